@@ -1,0 +1,370 @@
+"""HostCore: everything one host decides, as a single sans-I/O state machine.
+
+It composes, for one host incarnation:
+
+* the failure detector of Alg. 1 (`haa.hostd.ufd`): one `HeartbeatSender` and one `HeartbeatObserver`
+  per peer, so every ordered host pair is monitored separately (full mesh);
+* incarnations and permanent suspicion: every host life has an incarnation number; a message from an older
+  incarnation is dropped, a newer incarnation makes the older one permanently suspected, and a peer that
+  stays suspected for `exclude_after` seconds is excluded — its incarnation is permanently suspected, its
+  messages are dropped, and it is told so (`Excluded`) so that it restarts as a new incarnation
+  (docs/ufd.md, "exclusion"; the membership service of Alg. 3 will own this decision);
+* the ordered atomic commit of Alg. 2 (`haa.hostd.oac`).
+
+Inputs (each with the current local time): `start`, `on_message`, `on_timer`, `on_suspicion` (external
+failure detector mode, used by the simulator's adversarial FD model), `on_peer_info` (the transport learned
+a peer's incarnation from a handshake), `propose`. Effects accumulate in `out`; the driver calls `drain()`.
+The module performs no I/O, reads no clock and uses no randomness.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Hashable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from haa.hostd.effects import (
+    CancelTimer,
+    Effect,
+    Log,
+    PeerDead,
+    Reincarnate,
+    Send,
+    SetTimer,
+    Suspicion,
+)
+from haa.hostd.messages import (
+    OAC_TYPES,
+    Excluded,
+    Heartbeat,
+    Message,
+    OacMessage,
+    SetPeriod,
+    TxId,
+)
+from haa.hostd.oac import OacError, OrderedAtomicCommit
+from haa.hostd.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+
+FD_UFD = "ufd"
+FD_EXTERNAL = "external"
+
+
+@dataclass(frozen=True, slots=True)
+class CoreConfig:
+    ufd: UfdConfig = field(default_factory=UfdConfig)
+    fd_mode: str = FD_UFD
+    #: a peer suspected without interruption for this long is permanently suspected (excluded)
+    exclude_after: float = 10.0
+    #: at most one `Excluded` notice per peer in this interval
+    notice_interval: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.fd_mode not in (FD_UFD, FD_EXTERNAL):
+            raise ValueError(f"fd_mode must be {FD_UFD!r} or {FD_EXTERNAL!r}")
+        if self.exclude_after <= 0:
+            raise ValueError("exclude_after must be positive")
+
+
+class _Peer:
+    __slots__ = ("inc", "last_notice", "name", "observer", "sender", "suspected")
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.inc = 0  # 0: never heard from
+        self.sender: HeartbeatSender | None = None
+        self.observer: HeartbeatObserver | None = None
+        self.suspected = True
+        self.last_notice = float("-inf")
+
+
+class HostCore:
+    """One host incarnation: UFD + permanent suspicion + OAC. See the module docstring."""
+
+    def __init__(
+        self,
+        name: str,
+        inc: int,
+        peers: Iterable[str],
+        config: CoreConfig | None = None,
+        evaluate: Callable[[TxId, bytes], bool] | None = None,
+        known_incs: dict[str, int] | None = None,
+    ) -> None:
+        if inc <= 0:
+            raise ValueError("incarnation numbers start at 1")
+        self.name = name
+        self.inc = inc
+        self.config = config or CoreConfig()
+        self.out: list[Effect] = []
+        self.peers: dict[str, _Peer] = {}
+        for q in peers:
+            if q != name:
+                self.peers[q] = _Peer(q)
+        for q, qi in (known_incs or {}).items():
+            if q in self.peers:
+                self.peers[q].inc = qi
+        self.dead: set[tuple[str, int]] = set()
+        self.counters: Counter[str] = Counter()
+        self.started = False
+        self._now = 0.0
+        self.oac = OrderedAtomicCommit(
+            name,
+            inc,
+            self._oac_send,
+            self.out.append,
+            self.is_suspected,
+            self.is_dead,
+            evaluate,
+            learn=self._learn_participants,
+        )
+
+    # ------------------------------------------------------------------ queries used by OAC
+
+    def is_dead(self, q: str, qi: int) -> bool:
+        if (q, qi) in self.dead:
+            return True
+        p = self.peers.get(q)
+        return p is None or p.inc > qi
+
+    def is_suspected(self, q: str, qi: int) -> bool:
+        if (q, qi) in self.dead:
+            return True
+        p = self.peers.get(q)
+        if p is None or p.inc != qi:
+            return True
+        return p.suspected
+
+    def trusted_peers(self) -> list[str]:
+        return [
+            q
+            for q, p in self.peers.items()
+            if p.inc and not p.suspected and (q, p.inc) not in self.dead
+        ]
+
+    # ------------------------------------------------------------------ effects
+
+    def drain(self) -> list[Effect]:
+        out = self.out
+        if not out:
+            return []
+        res = out.copy()
+        out.clear()
+        return res
+
+    def _send(self, dst: str, dst_inc: int, msg: Message) -> None:
+        self.out.append(Send(dst, dst_inc, msg))
+
+    def _oac_send(self, dst: str, dst_inc: int, msg: OacMessage) -> None:
+        if (dst, dst_inc) in self.dead:
+            self.counters["oac_not_sent_to_dead"] += 1
+            return
+        self.out.append(Send(dst, dst_inc, msg))
+
+    def _timer(self, key: Hashable, at: float) -> None:
+        self.out.append(SetTimer(key, at))
+
+    def _log(self, event: str, **fields: Any) -> None:
+        self.out.append(Log(event, fields))
+
+    # ------------------------------------------------------------------ inputs
+
+    def start(self, now: float) -> None:
+        """Begin heartbeating every peer (Alg. 1 ll. 1-5 and 13-16)."""
+        self._now = now
+        if self.started:
+            return
+        self.started = True
+        ufd = self.config.fd_mode == FD_UFD
+        for p in self.peers.values():
+            if ufd:
+                self._start_ufd(now, p)
+            else:
+                p.suspected = not p.inc
+
+    def _start_ufd(self, now: float, p: _Peer) -> None:
+        p.sender = HeartbeatSender(self.config.ufd.initial_period, now)
+        p.observer = HeartbeatObserver(self.config.ufd, now)
+        p.suspected = True  # l. 15-17: q_tau_0 = now, nothing received yet
+        self._timer(("hb", p.name), now)
+
+    def on_timer(self, now: float, key: Hashable) -> None:
+        self._now = now
+        kind = key[0]  # type: ignore[index]
+        q = key[1]  # type: ignore[index]
+        p = self.peers.get(q)
+        if p is None:
+            return
+        if kind == "hb":  # Alg. 1 l. 6
+            if p.sender is None:
+                return
+            hb = p.sender.beat(now)
+            self._send(q, p.inc, hb)
+            self._timer(("hb", q), p.sender.next_send)
+        elif kind == "fd":  # Alg. 1 l. 17-18
+            if p.observer is not None and p.observer.on_deadline(now):
+                self._set_suspected(now, p, True)
+        elif kind == "excl":
+            if key[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:  # type: ignore[index]
+                self._exclude(now, p)
+
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
+        self._now = now
+        p = self.peers.get(src)
+        if p is None:
+            self.counters["rejected_unknown_sender"] += 1
+            self._log("reject", reason="unknown sender", src=src)
+            return
+        if dst_inc and dst_inc != self.inc:
+            self.counters["dropped_misaddressed"] += 1
+            return
+        if src_inc < p.inc:
+            self.counters["dropped_stale_incarnation"] += 1
+            return
+        if src_inc > p.inc:
+            self._new_incarnation(now, p, src_inc)
+        if (src, src_inc) in self.dead:
+            self.counters["dropped_from_excluded"] += 1
+            if now - p.last_notice >= self.config.notice_interval:
+                p.last_notice = now
+                self._send(src, src_inc, Excluded(src_inc))
+            return
+        t = type(msg)
+        if t is Heartbeat:
+            obs = p.observer
+            if obs is None:
+                return
+            became_trusted, new_period = obs.on_heartbeat(now, msg)  # type: ignore[arg-type]
+            self._timer(("fd", src), obs.freshness)
+            if new_period is not None:
+                self._send(src, src_inc, SetPeriod(new_period))  # Alg. 1 l. 27
+            if became_trusted:
+                self._set_suspected(now, p, False)
+        elif t in OAC_TYPES:
+            self.oac.on_message(src, src_inc, msg)  # type: ignore[arg-type]
+        elif t is SetPeriod:
+            if p.sender is not None:
+                try:
+                    p.sender.set_period(msg.period)  # type: ignore[union-attr]
+                except ValueError:
+                    self.counters["rejected_bad_period"] += 1
+        elif t is Excluded:
+            if msg.incarnation == self.inc:  # type: ignore[union-attr]
+                self._log("excluded_by_peer", by=src)
+                self.out.append(Reincarnate(by=src))
+        else:
+            self.counters["rejected_unknown_message"] += 1
+
+    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
+        """External failure detector output (fd_mode='external')."""
+        self._now = now
+        p = self.peers.get(peer)
+        if p is None or p.suspected == suspected:
+            return
+        self._set_suspected(now, p, suspected)
+
+    def on_peer_info(self, now: float, peer: str, inc: int) -> None:
+        """The transport learned `peer`'s incarnation (handshake) before any message from it."""
+        self._now = now
+        p = self.peers.get(peer)
+        if p is not None and inc > p.inc:
+            self._new_incarnation(now, p, inc)
+
+    def propose(self, now: float, payload: bytes, participants: Iterable[str] | None = None) -> TxId:
+        """Propose an OAC transaction; default participants: this host and every peer it trusts."""
+        self._now = now
+        if participants is None:
+            names = self.trusted_peers()
+        else:
+            names = []
+            for q in participants:
+                if q == self.name:
+                    continue
+                p = self.peers.get(q)
+                if p is None:
+                    raise OacError(f"unknown participant {q!r}")
+                if not p.inc or (q, p.inc) in self.dead:
+                    raise OacError(f"participant {q!r} is not reachable (no live incarnation known)")
+                names.append(q)
+        parts = [(q, self.peers[q].inc) for q in sorted(set(names))]
+        return self.oac.propose(payload, parts)
+
+    # ------------------------------------------------------------------ internals
+
+    def _set_suspected(self, now: float, p: _Peer, suspected: bool) -> None:
+        p.suspected = suspected
+        self.out.append(Suspicion(p.name, p.inc, suspected))
+        if p.inc:
+            key = ("excl", p.name, p.inc)
+            if suspected:
+                self._timer(key, now + self.config.exclude_after)
+            else:
+                self.out.append(CancelTimer(key))
+        self.oac.on_peer_change(p.name)
+
+    def _learn_participants(self, parts: tuple[tuple[str, int], ...]) -> None:
+        """A participant list names an incarnation we never heard from: it exists (its proposer heard
+        from it), so track it — and if we cannot hear it, suspect and eventually exclude it."""
+        for q, qi in parts:
+            p = self.peers.get(q)
+            if p is not None and qi > p.inc:
+                self._new_incarnation(self._now, p, qi)
+
+    def _mark_dead(self, p: _Peer, inc: int, reason: str) -> None:
+        if (p.name, inc) in self.dead:
+            return
+        self.dead.add((p.name, inc))
+        self.out.append(PeerDead(p.name, inc, reason))
+        self._log("peer_dead", peer=p.name, inc=inc, reason=reason)
+        self.oac.on_peer_change(p.name)
+
+    def _exclude(self, now: float, p: _Peer) -> None:
+        """Permanent suspicion after `exclude_after` of continuous suspicion."""
+        inc = p.inc
+        self._mark_dead(p, inc, "excluded")
+        p.sender = None
+        self.out.append(CancelTimer(("hb", p.name)))
+        p.last_notice = now
+        self._send(p.name, inc, Excluded(inc))
+
+    def _new_incarnation(self, now: float, p: _Peer, inc: int) -> None:
+        old = p.inc
+        p.inc = inc
+        self._log("peer_incarnation", peer=p.name, old=old, new=inc)
+        if not old:
+            # first contact: our heartbeats (addressed to incarnation 0) already reach it, keep them going;
+            # any older incarnation named in a transaction is now known to be superseded
+            if self.config.fd_mode == FD_EXTERNAL:
+                p.suspected = False
+            elif p.suspected:
+                self._timer(("excl", p.name, inc), now + self.config.exclude_after)
+            self.oac.on_peer_change(p.name)
+            return
+        self.out.append(CancelTimer(("excl", p.name, old)))
+        self._mark_dead(p, old, "restarted")
+        if self.config.fd_mode == FD_UFD:
+            # a new life: its observer of us starts from l = -1 and it needs our heartbeats at once
+            was = p.suspected
+            self._start_ufd(now, p)
+            if not was:
+                self.out.append(Suspicion(p.name, inc, True))
+        else:
+            p.suspected = False
+        self.oac.on_peer_change(p.name)
+
+    # ------------------------------------------------------------------ introspection
+
+    def peer_view(self) -> list[dict[str, Any]]:
+        rows = []
+        for q, p in sorted(self.peers.items()):
+            obs = p.observer
+            rows.append(
+                {
+                    "name": q,
+                    "incarnation": p.inc,
+                    "suspected": p.suspected,
+                    "excluded": (q, p.inc) in self.dead,
+                    "eta": obs.eta if obs else 0.0,
+                    "alpha": (self.config.ufd.qos.td_upper - obs.eta) if obs else 0.0,
+                }
+            )
+        return rows

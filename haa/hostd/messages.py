@@ -1,0 +1,125 @@
+"""Host-to-host messages as plain Python objects, the language of the sans-I/O cores.
+
+The cores never see protobuf: `haa.hostd.wire` converts these to and from the `haa.v1.Envelope` of
+`proto/haa/pb/hostlink.proto`. The simulator passes them between cores without encoding (fast), and a
+property test round-trips every type through the wire codec.
+
+Names follow thesis Appendix II: Alg. 1 (`Heartbeat`, `SetPeriod`) and Alg. 2 (the OAC messages, with the
+pseudo-code line that sends each).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+
+class TxId(NamedTuple):
+    """Globally unique, totally ordered transaction id (proposer host, incarnation, counter)."""
+
+    host: str
+    inc: int
+    seq: int
+
+    def __str__(self) -> str:
+        return f"{self.host}.{self.inc}.{self.seq}"
+
+
+# --- Alg. 1 -------------------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class Heartbeat:
+    """m_l = {l, period, p_tau_l} (Alg. 1 l. 8)."""
+
+    seq: int
+    period: float
+    sent_at: float
+
+
+@dataclass(slots=True)
+class SetPeriod:
+    """setPeriod = {newPeriod} (Alg. 1 l. 27)."""
+
+    period: float
+
+
+# --- Alg. 2 -------------------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class OacTransaction:
+    """(id, transaction, participants, order), Alg. 2 l. 5 (and the lazy relay, docs/oac.md).
+
+    `participants` are (host, incarnation) pairs in coordinator-rotation order (l. 46)."""
+
+    id: TxId
+    payload: bytes
+    participants: tuple[tuple[str, int], ...]
+    order: int
+
+
+@dataclass(slots=True)
+class OacOrder:
+    """(id, p, order_p): a new order proposal, Alg. 2 l. 24 / l. 79."""
+
+    id: TxId
+    order: int
+
+
+@dataclass(slots=True)
+class OacEstimate:
+    """(id, p, order_p, r_p, est_p, ts_p): step P1, Alg. 2 l. 47."""
+
+    id: TxId
+    order: int
+    round: int
+    precommit: bool
+    ts: int
+
+
+@dataclass(slots=True)
+class OacProposal:
+    """(id, p, order_p, r_p, est_p): step C1, Alg. 2 l. 56."""
+
+    id: TxId
+    order: int
+    round: int
+    precommit: bool
+
+
+@dataclass(slots=True)
+class OacAck:
+    """(id, p, order_p, r_p, ack|nack): step P2, Alg. 2 l. 61 / l. 63."""
+
+    id: TxId
+    order: int
+    round: int
+    ack: bool
+
+
+@dataclass(slots=True)
+class OacDecide:
+    """(id, p, order, r, outcome, decide): Alg. 2 l. 29, 36, 69, 71; abort carries order -1.
+
+    Carries the participant list so that a participant that never received the transaction itself can
+    relay the decision and close it (docs/oac.md, "placeholders")."""
+
+    id: TxId
+    order: int
+    round: int
+    commit: bool
+    participants: tuple[tuple[str, int], ...]
+
+
+@dataclass(slots=True)
+class Excluded:
+    """Tells a peer incarnation that it has been permanently suspected (docs/ufd.md, "exclusion")."""
+
+    incarnation: int
+
+
+OacMessage = OacTransaction | OacOrder | OacEstimate | OacProposal | OacAck | OacDecide
+Message = Heartbeat | SetPeriod | OacMessage | Excluded
+
+OAC_TYPES: tuple[type, ...] = (OacTransaction, OacOrder, OacEstimate, OacProposal, OacAck, OacDecide)

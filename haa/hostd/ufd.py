@@ -1,0 +1,201 @@
+"""Unreliable failure detector HAA-UFD (thesis §4.4, Appendix II Alg. 1).
+
+NFD-U of Chen, Toueg & Aguilera [66] with the thesis' six changes (§4.4.2):
+
+1. INITIAL_PERIOD set by the observer (Alg. 1 ll. 2-3): the observed process starts with
+   `UfdConfig.initial_period`, chosen below any period the configuration procedure can return.
+2. Each heartbeat carries the sender's current period and local send time p_tau_l (l. 8).
+3. Worst-case initialization (l. 14): until N heartbeats have been measured the observer configures
+   (eta, alpha) from `worst_loss` and `worst_delay_std`.
+4. EA_{l+1} with unsynchronized clocks (eq. 4.4-1): EA_{l+1} = p_tau_l + period + mean(O_i), where
+   O_i = (arrival time on q's clock) - p_tau_i is delay plus the constant clock offset.
+5. Every N heartbeats the observer re-evaluates (eta, alpha) with `haa.hostd.qos.configure` from the
+   measured loss rate and V(O) = V(D) over the last M heartbeats (ll. 25-26).
+6. The observer tells the sender the new period with setPeriod (l. 27); the sender adopts it after its
+   next heartbeat (ll. 7, 11-12), so q's expectation of m_{l+1} is not disturbed.
+
+Choices where the thesis is silent (docs/ufd.md):
+* alpha is derived per heartbeat as T_D^U - period(m_l), i.e. from the period the sender actually uses for
+  the next heartbeat, so T_D <= T_D^U + E(D) holds even while a setPeriod is in flight.
+* Floors on the measured loss and delay spread (`min_loss`, `min_delay_std`): a window of M samples
+  underestimates rare, long delays (GC pauses, scheduler stalls) that the Chebyshev bound cannot see.
+* setPeriod is only sent when the period changes by more than `period_change` (relative).
+
+Both halves are plain objects: they take the local time as an argument and return what to do.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from haa.hostd.messages import Heartbeat
+from haa.hostd.qos import CLUSTER_QOS, FdParams, QosTargets, configure
+
+
+@dataclass(frozen=True, slots=True)
+class UfdConfig:
+    qos: QosTargets = CLUSTER_QOS
+    initial_period: float = 0.05  # INITIAL_PERIOD (change 1)
+    reevaluate_every: int = 50  # N (change 5)
+    window: int = 200  # M most recent offset delays kept (change 5)
+    worst_loss: float = 0.01  # worst-case initialization (change 3)
+    worst_delay_std: float = 0.1
+    min_loss: float = 0.0
+    min_delay_std: float = 0.002
+    eta_min: float = 0.005
+    period_change: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.initial_period <= 0 or self.initial_period >= self.qos.td_upper:
+            raise ValueError("initial_period must be in (0, T_D^U)")
+        if self.reevaluate_every < 2 or self.window < 2:
+            raise ValueError("reevaluate_every and window must be >= 2")
+
+
+class HeartbeatSender:
+    """Process p, the observed side (Alg. 1 ll. 1-12), for one observer."""
+
+    __slots__ = ("l", "next_period", "next_send", "period")
+
+    def __init__(self, initial_period: float, now: float) -> None:
+        self.period = initial_period  # l. 2
+        self.next_period = initial_period  # l. 3
+        self.next_send = now  # l. 4: p_tau_0
+        self.l = 0  # l. 5
+
+    def beat(self, now: float) -> Heartbeat:
+        """l. 6-10: called when the local clock reaches p_tau_l; returns m_l. Next send at `next_send`."""
+        self.period = self.next_period  # l. 7
+        sent_at = self.next_send
+        hb = Heartbeat(seq=self.l, period=self.period, sent_at=sent_at)  # l. 8
+        # l. 9 (if the process was paused past p_tau_{l+1}, skip the missed slots rather than burst)
+        nxt = sent_at + self.period
+        if nxt <= now:
+            nxt = now + self.period - ((now - sent_at) % self.period)
+        self.next_send = nxt
+        self.l += 1  # l. 10
+        return hb
+
+    def set_period(self, period: float) -> None:
+        """l. 11-12: adopted after the next heartbeat is sent (l. 7)."""
+        if not (period > 0.0 and math.isfinite(period)):
+            raise ValueError(f"invalid heartbeat period {period!r}")
+        self.next_period = period
+
+
+class HeartbeatObserver:
+    """Process q, the observer (Alg. 1 ll. 13-27), of one observed process p."""
+
+    __slots__ = (
+        "config",
+        "contacted",
+        "count",
+        "eta",
+        "first_seq",
+        "freshness",
+        "l",
+        "last_params",
+        "offsets",
+        "received",
+        "requested_period",
+        "sum_offsets",
+        "trusted",
+    )
+
+    def __init__(self, config: UfdConfig, now: float) -> None:
+        self.config = config
+        # l. 14: worst-case initialization of (eta, alpha) (change 3)
+        self.last_params: FdParams = configure(
+            config.qos, config.worst_loss, config.worst_delay_std**2, eta_min=config.eta_min
+        )
+        self.eta = self.last_params.eta
+        self.requested_period = config.initial_period
+        self.freshness = now  # l. 15: q_tau_0
+        self.l = -1  # l. 16
+        self.trusted = False
+        self.offsets: deque[float] = deque(maxlen=config.window)
+        self.sum_offsets = 0.0
+        self.count = 0  # heartbeats received since the last re-evaluation
+        self.received = 0  # heartbeats received in the window used for the loss estimate
+        self.first_seq = -1
+        self.contacted = False
+
+    # l. 17-18
+    def on_deadline(self, now: float) -> bool:
+        """The freshness point q_tau_{l+1} passed; return True if this changes the output to SUSPECTED."""
+        if now >= self.freshness and self.trusted:
+            self.trusted = False
+            return True
+        return False
+
+    def on_heartbeat(self, now: float, hb: Heartbeat) -> tuple[bool, float | None]:
+        """l. 19-27. Returns (output changed to TRUSTED, new setPeriod value or None).
+
+        The caller re-arms its freshness timer at `self.freshness`."""
+        if hb.seq <= self.l:  # l. 20: stale or duplicate
+            return False, None
+        if not (math.isfinite(hb.period) and hb.period > 0.0 and math.isfinite(hb.sent_at)):
+            return False, None
+        if self.first_seq < 0:
+            self.first_seq = hb.seq
+        self.l = hb.seq  # l. 21
+        # eq. 4.4-1 (change 4): O_j = arrival - p_tau_j; EA_{l+1} = p_tau_l + period + mean(O)
+        o = now - hb.sent_at
+        if len(self.offsets) == self.offsets.maxlen:
+            self.sum_offsets -= self.offsets[0]
+        self.offsets.append(o)
+        self.sum_offsets += o
+        ea = hb.sent_at + hb.period + self.sum_offsets / len(self.offsets)
+        alpha = self.config.qos.td_upper - hb.period  # alpha = T_D^U - eta for the period in use
+        self.freshness = ea + alpha  # l. 22
+        became_trusted = False
+        if now < self.freshness and not self.trusted:  # l. 23-24
+            self.trusted = True
+            became_trusted = True
+        self.received += 1
+        self.count += 1
+        new_period = None
+        if not self.contacted:
+            self.contacted = True
+            new_period = self._request(self.eta)  # first contact: move to the worst-case eta
+        elif self.count >= self.config.reevaluate_every:  # l. 25
+            self.count = 0
+            new_period = self._reevaluate()  # l. 26-27
+        return became_trusted, new_period
+
+    def _request(self, eta: float) -> float | None:
+        old = self.requested_period
+        if abs(eta - old) <= self.config.period_change * old:
+            return None
+        self.requested_period = eta
+        return eta
+
+    def loss_estimate(self) -> float:
+        expected = self.l - self.first_seq + 1
+        if expected <= 0:
+            return 0.0
+        return max(0.0, 1.0 - self.received / expected)
+
+    def delay_variance(self) -> float:
+        n = len(self.offsets)
+        if n < 2:
+            return self.config.worst_delay_std**2
+        mean = self.sum_offsets / n
+        return sum((x - mean) ** 2 for x in self.offsets) / (n - 1)
+
+    def _reevaluate(self) -> float | None:
+        """l. 26: (eta, alpha) from the measured network (change 5)."""
+        cfg = self.config
+        p_loss = min(max(self.loss_estimate(), cfg.min_loss), 0.99)
+        var = max(self.delay_variance(), cfg.min_delay_std**2)
+        self.last_params = configure(cfg.qos, p_loss, var, eta_min=cfg.eta_min)
+        self.eta = self.last_params.eta
+        # restart the loss window so that it follows changing network conditions
+        self.received = 0
+        self.first_seq = self.l + 1
+        return self._request(self.eta)
+
+    def mean_offset(self) -> float:
+        return self.sum_offsets / len(self.offsets) if self.offsets else 0.0

@@ -1,0 +1,1 @@
+"""Generated protobuf/gRPC modules (do not edit; see `haa.pb.generate`)."""

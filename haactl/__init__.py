@@ -1,0 +1,1 @@
+"""haactl: the operator command line of HAA."""
