@@ -14,8 +14,8 @@ OAC (Alg. 2):
                         with the proposed payload.
   AC-Termination        (liveness, after healing, when every transaction has f < n/2 faulty participants)
                         every correct participant decides every transaction that a correct process
-                        proposed or that anyone decided, and every correct process closes everything it
-                        opened (Alg. 2 l. 41) with nothing left in flight.
+                        proposed or that a correct process decided, and every correct process closes
+                        everything it opened (Alg. 2 l. 41) with nothing left in flight.
 
 UFD (Alg. 1):
   UFD-Completeness      every crashed process is suspected by every correct process within
@@ -171,8 +171,8 @@ def check_oac(sc: Scenario, cl: SimCluster, quiescent: bool) -> CheckResult:
             break
     if live_ok:
         for txid, prop in h.proposals.items():
-            someone_decided = bool(outcomes.get(txid))
-            if not (someone_decided or prop.proposer in correct):
+            correct_decided = any(p in correct for p in outcomes.get(txid, {}))
+            if not (correct_decided or prop.proposer in correct):
                 continue
             for p in prop.participants:
                 if p in correct and txid not in h.decided.get(p, {}):

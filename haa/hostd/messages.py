@@ -103,13 +103,16 @@ class OacDecide:
     """(id, p, order, r, outcome, decide): Alg. 2 l. 29, 36, 69, 71; abort carries order -1.
 
     Carries the participant list so that a participant that never received the transaction itself can
-    relay the decision and close it (docs/oac.md, "placeholders")."""
+    relay the decision and close it (docs/oac.md, "placeholders"). `delivered` says that the sender has
+    passed l. 38 (delivered a commit, or decided abort); only such a message counts for the l. 41 closing
+    gate (docs/oac.md, "the closing gate": without it AC-Total-Order fails)."""
 
     id: TxId
     order: int
     round: int
     commit: bool
     participants: tuple[tuple[str, int], ...]
+    delivered: bool = True
 
 
 @dataclass(slots=True)

@@ -93,6 +93,7 @@ class _Tx:
         "r",
         "relayed_content",
         "relayed_decide",
+        "round_decided",
         "senders",
         "state",
         "ts",
@@ -118,6 +119,7 @@ class _Tx:
         self.acks: dict[tuple[int, int], dict[str, bool]] = {}
         self.decide_from: set[str] = set()
         self.relayed_decide = False
+        self.round_decided = -1
         self.relayed_content = False
         self.senders: set[Participant] = set()
         # Task 2 messages that reached a placeholder, replayed once the transaction arrives
@@ -246,7 +248,7 @@ class OrderedAtomicCommit:
         tx.senders.add((src, src_inc))
         t = type(msg)
         if tx.state == DONE:
-            if t is OacDecide:
+            if t is OacDecide and msg.delivered:
                 tx.decide_from.add(src)
                 self._close_check(tx)
             return
@@ -470,29 +472,38 @@ class OrderedAtomicCommit:
                 return
             tx.set_participants(parts)
             self._learn(parts)
-        tx.decide_from.add(src)
+        if msg.delivered:
+            tx.decide_from.add(src)
         if tx.state == UNDECIDED:  # l. 34
             self._decide(tx, commit=msg.commit, order=msg.order, rnd=msg.round)
         else:
             self._close_check(tx)
 
     def _decide(self, tx: _Tx, commit: bool, order: int, rnd: int) -> None:
-        """l. 35-40 for this host: record the outcome, rebroadcast it, and pass the l. 37 gate."""
+        """l. 35-40 for this host: record the outcome, pass the l. 37 gate if possible, rebroadcast."""
         tx.state = DECIDED  # l. 35
         tx.commit = commit
+        tx.round_decided = rnd
         tx.phase = IDLE  # Task 2 ends (l. 44)
         if commit:
             tx.order = order  # the final order (Lemma OAC-2)
             self._push_gate(tx)
         self._emit(Decided(tx.id, commit))
-        if not tx.relayed_decide:  # l. 36 (also l. 29 and l. 69, see module docstring)
-            tx.relayed_decide = True
-            self._send_all(tx, OacDecide(tx.id, order, rnd, commit, tx.parts))
-        tx.decide_from.add(self.name)
         if not commit:  # l. 37: abort needs no order
             tx.state = DONE  # ll. 38-40
-            self._close_check(tx)
-        self._deliver_ready()
+        self._deliver_ready()  # this transaction, or others it was holding back at the gate
+        # l. 36 (also l. 29 and l. 69, see the module docstring), after the gate was tried so that, in the
+        # common case, one message says both "decided" and "delivered"
+        if not tx.relayed_decide:
+            tx.relayed_decide = True
+            self._send_all(tx, self._decide_msg(tx))
+        if tx.state == DONE:
+            tx.decide_from.add(self.name)
+        self._close_check(tx)
+
+    def _decide_msg(self, tx: _Tx) -> OacDecide:
+        order = tx.order if tx.commit else -1
+        return OacDecide(tx.id, order, tx.round_decided, tx.commit, tx.parts, tx.state == DONE)
 
     def _deliver_ready(self) -> None:
         """l. 37-40: deliver committed transactions while they have the lowest (order, id) of all active."""
@@ -511,7 +522,14 @@ class OrderedAtomicCommit:
             self.delivered += 1
             self._emit(Deliver(tx.id, tx.order, tx.payload))  # l. 38
             tx.payload = b""
+            tx.decide_from.add(self.name)
+            if tx.relayed_decide:
+                self._announce_delivered(tx)
             self._close_check(tx)
+
+    def _announce_delivered(self, tx: _Tx) -> None:
+        """We rebroadcast the decision while held at the l. 37 gate: now tell everyone we passed l. 38."""
+        self._send_all(tx, self._decide_msg(tx))
 
     def _close_check(self, tx: _Tx) -> None:
         """l. 41-42: forget the transaction once no further message about it can arrive."""

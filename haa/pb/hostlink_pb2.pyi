@@ -99,18 +99,20 @@ class OacAck(_message.Message):
     def __init__(self, id: _Optional[_Union[TxId, _Mapping]] = ..., order: _Optional[int] = ..., round: _Optional[int] = ..., ack: _Optional[bool] = ...) -> None: ...
 
 class OacDecide(_message.Message):
-    __slots__ = ("id", "order", "round", "commit", "participants")
+    __slots__ = ("id", "order", "round", "commit", "participants", "delivered")
     ID_FIELD_NUMBER: _ClassVar[int]
     ORDER_FIELD_NUMBER: _ClassVar[int]
     ROUND_FIELD_NUMBER: _ClassVar[int]
     COMMIT_FIELD_NUMBER: _ClassVar[int]
     PARTICIPANTS_FIELD_NUMBER: _ClassVar[int]
+    DELIVERED_FIELD_NUMBER: _ClassVar[int]
     id: TxId
     order: int
     round: int
     commit: bool
     participants: _containers.RepeatedCompositeFieldContainer[Participant]
-    def __init__(self, id: _Optional[_Union[TxId, _Mapping]] = ..., order: _Optional[int] = ..., round: _Optional[int] = ..., commit: _Optional[bool] = ..., participants: _Optional[_Iterable[_Union[Participant, _Mapping]]] = ...) -> None: ...
+    delivered: bool
+    def __init__(self, id: _Optional[_Union[TxId, _Mapping]] = ..., order: _Optional[int] = ..., round: _Optional[int] = ..., commit: _Optional[bool] = ..., participants: _Optional[_Iterable[_Union[Participant, _Mapping]]] = ..., delivered: _Optional[bool] = ...) -> None: ...
 
 class Excluded(_message.Message):
     __slots__ = ("incarnation",)
