@@ -17,6 +17,13 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+@app.callback()
+def _root() -> None:
+    """Operate HAA clusters: verify the algorithms, run benchmarks and demos."""
+
+
 app.command("verify")(verify)
 
 if __name__ == "__main__":

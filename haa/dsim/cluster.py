@@ -211,11 +211,21 @@ class SimCluster:
         if h.state == CRASHED:
             return
         if mid_step and h.state == ALIVE:
+            # crash in the middle of the next broadcast (a step with two or more sends); if none comes
+            # soon, crash anyway
             h.crash_pending = self.rng.random()
+            inc = h.inc
+
+            def fallback() -> None:
+                if h.inc == inc and h.crash_pending is not None and h.state != CRASHED:
+                    self._crash_now(h)
+
+            self.at(self.now + 0.1, fallback)
             return
         self._crash_now(h)
 
     def _crash_now(self, h: SimHost) -> None:
+        h.crash_pending = None
         proc = (h.name, h.inc)
         start = h.pause_started if h.state == PAUSED else self.now
         h.state = CRASHED
@@ -355,10 +365,13 @@ class SimCluster:
             return
         now = self.now
         sends_allowed = None
+        crash_after = False
         if h.crash_pending is not None:
             n_sends = sum(1 for e in effects if type(e) is Send)
-            sends_allowed = int(h.crash_pending * n_sends)
-            self._note(f"crash-mid-step {h.name}#{h.inc}: {sends_allowed}/{n_sends} sends leave")
+            if n_sends >= 2:
+                sends_allowed = int(h.crash_pending * n_sends)
+                crash_after = True
+                self._note(f"crash-mid-step {h.name}#{h.inc}: {sends_allowed}/{n_sends} sends leave")
         proc = (h.name, h.inc)
         hist = self.history
         for e in effects:
@@ -396,7 +409,7 @@ class SimCluster:
                 self.at(now, lambda name=h.name, inc=h.inc: self._reincarnate(name, inc))
             elif t is Log and self.trace is not None:
                 self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
-        if h.crash_pending is not None:
+        if crash_after:
             self._crash_now(h)
 
     def _record_ed_hat(self, h: SimHost, peer: str, inc: int) -> None:

@@ -81,8 +81,7 @@ def configure(
     td = qos.td_upper
     gamma = (1.0 - p_loss) * td * td / (var_delay + td * td)
     eta_max = min(gamma * qos.tm_upper, td)
-    eta_min = min(eta_min, eta_max)
-    if eta_max <= 0.0:
+    if eta_max < eta_min:  # even T_M^U alone needs heartbeats faster than we allow
         return FdParams(eta=eta_min, alpha=max(td - eta_min, 0.0), achievable=False)
     target = math.log(qos.tmr_lower)
 

@@ -1,0 +1,216 @@
+"""Alg. 2 (OAC) on hand-built scenarios in the deterministic simulator.
+
+Random schedules (test_dsim.py) explore; these pin down the behaviours one by one: the failure-free
+path and its message count, unilateral abort, concurrent proposals, a proposer or coordinator that crashes
+part-way through a broadcast, placeholders, and the closing-gate hole in the thesis' l. 41."""
+
+import random
+
+import pytest
+
+from haa.dsim import mutations
+from haa.dsim.checks import check_oac
+from haa.dsim.cluster import SimCluster
+from haa.dsim.network import DelayModel
+from haa.dsim.schedule import SIM_UFD, Scenario
+from haa.hostd.core import FD_EXTERNAL, CoreConfig
+from haa.hostd.messages import OacTransaction
+
+CONST = DelayModel("const", 0.001, 0.0)
+
+
+def make(n, delay=CONST, no_votes=None, exclude_after=1.0):
+    names = [f"h{i + 1}" for i in range(n)]
+    cfg = CoreConfig(ufd=SIM_UFD, fd_mode=FD_EXTERNAL, exclude_after=exclude_after)
+    cl = SimCluster(names, random.Random(1), delay, cfg, no_votes=no_votes, trace=True)
+    cl.start_all()
+    return cl
+
+
+def scenario_for(cl, fault_end=0.0):
+    return Scenario(
+        seed=0,
+        algorithm="oac",
+        names=cl.names,
+        fd_mode=FD_EXTERNAL,
+        delay=cl.delay,
+        offsets=[0.0] * len(cl.names),
+        drifts=[0.0] * len(cl.names),
+        faulty=[],
+        features={},
+        fault_end=fault_end,
+    )
+
+
+def quiescent(cl):
+    return cl.oac_in_flight == 0 and all(v == 0 for v in cl.open_transactions().values())
+
+
+def deliveries(cl, name):
+    h = cl.hosts[name]
+    return [t for t, _o, _p, _time in cl.history.delivered[(name, h.inc)]]
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5, 7, 10])
+def test_failure_free_commit_and_message_count(n):
+    cl = make(n)
+    txid = cl.propose("h1", b"hello", None)
+    cl.run(1.0)
+    assert quiescent(cl)
+    for name in cl.names:
+        assert deliveries(cl, name) == [txid]
+        assert cl.history.decided[(name, 1)][txid][0] is True
+        assert txid in cl.history.closed[(name, 1)]
+    oac_msgs = sum(v for k, v in cl.msg_counts.items() if k.startswith("Oac"))
+    # tx n-1, estimates n-1, proposal n-1, acks n-1, decide n-1, rebroadcasts (n-1)^2, and the round-1
+    # estimates that Task 2's loop (l. 43-47) sends before the decision arrives: n-2 (the round-1
+    # coordinator keeps its own). n^2 + 4n - 6 in all, the thesis' "n^2 + 4n".
+    assert oac_msgs == (n - 1) * (n + 4) + (n - 2) == n * n + 4 * n - 6
+    assert check_oac(scenario_for(cl), cl, True).violations == []
+
+
+def test_proposer_coordinates_round_zero_and_decides_in_four_message_delays():
+    cl = make(5)
+    cl.propose("h3", b"x", None)
+    cl.run(1.0)
+    (commit, t_decide) = cl.history.decided[("h3", 1)][next(iter(cl.history.proposals))]
+    assert commit and t_decide == pytest.approx(0.004)  # tx, estimate, proposal, ack: 4 x 1 ms
+
+
+def test_unilateral_abort_aborts_everywhere():
+    cl = make(5, no_votes={(b"veto", "h4")})
+    txid = cl.propose("h1", b"veto", None)
+    cl.propose("h2", b"fine", None)
+    cl.run(1.0)
+    assert quiescent(cl)
+    for name in cl.names:
+        assert cl.history.decided[(name, 1)][txid][0] is False
+        assert txid not in deliveries(cl, name)
+        assert len(deliveries(cl, name)) == 1
+    assert check_oac(scenario_for(cl), cl, True).violations == []
+
+
+def test_concurrent_proposals_are_delivered_in_one_total_order():
+    delay = DelayModel("exp", 0.0002, 0.002)
+    cl = make(6, delay=delay)
+    for i, name in enumerate(cl.names * 3):
+        parts = None if i % 2 == 0 else [name, cl.names[(i + 1) % 6], cl.names[(i + 3) % 6]]
+        cl.at(0.0005 * (i % 4), lambda n=name, p=parts, i=i: cl.propose(n, f"t{i}".encode(), p))
+    cl.run(3.0)
+    assert quiescent(cl)
+    assert len(cl.history.proposals) == 18
+    full = [deliveries(cl, n) for n in cl.names]
+    assert all(len(d) >= 9 for d in full)
+    result = check_oac(scenario_for(cl), cl, True)
+    assert result.violations == []
+
+
+def test_proposer_crashing_mid_broadcast_is_relayed():
+    """The proposer's l. 5 reaches only h2 before it crashes: h2 relays the transaction when it
+    suspects the proposer, so h3..h5 are not left waiting for it (docs/oac.md, "relay")."""
+    cl = make(5)
+    h1 = cl.hosts["h1"]
+    h1.crash_pending = 0.25  # 1 of the 4 sends of the next broadcast leaves: the one to h2
+    txid = cl.propose("h1", b"x", None)
+    assert cl.hosts["h1"].core is None  # crashed
+    for p in ("h2", "h3", "h4", "h5"):
+        cl.at(0.05, lambda p=p: cl.suspect(p, "h1", True))
+    cl.run(5.0)
+    assert quiescent(cl)
+    relays = [ln for ln in cl.trace if "OacTransaction" in ln and "h2#1 -> " in ln]
+    assert len(relays) == 3
+    for name in ("h2", "h3", "h4", "h5"):
+        assert cl.history.decided[(name, 1)][txid][0] is False  # h1's estimate can never arrive
+    sc = scenario_for(cl)
+    assert check_oac(sc, cl, True).violations == []
+
+
+def test_coordinator_decision_reaching_one_participant_is_rebroadcast():
+    cl = make(5)
+    txid = cl.propose("h1", b"x", None)
+    # h1 coordinates round 0; make its decide broadcast reach only h2, then crash it
+    cl.run(0.0035)
+    cl.hosts["h1"].crash_pending = 0.25
+    for p in ("h2", "h3", "h4", "h5"):
+        cl.at(0.05, lambda p=p: cl.suspect(p, "h1", True))
+    cl.run(5.0)
+    assert quiescent(cl)
+    assert ("h1", 1) in cl.history.crash_time
+    for name in ("h2", "h3", "h4", "h5"):
+        assert cl.history.decided[(name, 1)][txid][0] is True
+        assert deliveries(cl, name) == [txid]
+
+
+def test_messages_before_the_transaction_wait_in_a_placeholder():
+    cl = make(4)
+    # h1 -> h3 is slow: h3 hears from the others (order, estimate) before it has the transaction
+    cl.spike("h1", "h3", DelayModel("const", 0.05, 0.0), 1.0)
+    a = cl.propose("h1", b"a", None)
+    cl.at(0.0001, lambda: cl.propose("h2", b"b", None))
+    cl.run(2.0)
+    assert quiescent(cl)
+    orders = {n: deliveries(cl, n) for n in cl.names}
+    assert all(len(d) == 2 for d in orders.values())
+    assert len({tuple(d) for d in orders.values()}) == 1
+    assert a in orders["h3"]
+
+
+def closing_gate_scenario():
+    """The interleaving that breaks the thesis' l. 41 (see docs/oac.md, "the closing gate").
+
+    m' = h5's transaction to all 7 hosts, m = h1's transaction to h1..h4, proposed 0.5 ms later.
+    h2..h4 hear of m' first, so they order m after m' (order 2 > 1) and hold m, decided, behind the still
+    undecided m'. h1 hears of m' only 50 ms later (slow channel h5 -> h1).
+    """
+    cl = make(7)
+    cl.spike("h5", "h1", DelayModel("const", 0.05, 0.0), 1.0)
+    m_prime = cl.propose("h5", b"m-prime", None)
+    m: list = []
+    cl.at(0.0005, lambda: m.append(cl.propose("h1", b"m", ["h1", "h2", "h3", "h4"])))
+    cl.run(2.0)
+    return cl, m[0], m_prime
+
+
+def test_closing_gate_keeps_total_order():
+    cl, m, m_prime = closing_gate_scenario()
+    assert quiescent(cl)
+    for name in ("h1", "h2", "h3", "h4"):
+        seq = deliveries(cl, name)
+        assert seq.index(m) < seq.index(m_prime) or seq.index(m) > seq.index(m_prime)
+    firsts = {deliveries(cl, n).index(m) < deliveries(cl, n).index(m_prime) for n in ("h1", "h2", "h3", "h4")}
+    assert len(firsts) == 1
+    assert check_oac(scenario_for(cl), cl, True).violations == []
+
+
+def test_thesis_l41_as_printed_breaks_total_order():
+    undo = mutations.apply("thesis-close")
+    try:
+        cl, m, m_prime = closing_gate_scenario()
+    finally:
+        undo()
+    assert deliveries(cl, "h1").index(m) < deliveries(cl, "h1").index(m_prime)
+    assert deliveries(cl, "h2").index(m_prime) < deliveries(cl, "h2").index(m)
+    props = {v.prop for v in check_oac(scenario_for(cl), cl, True).violations}
+    assert "AC-Total-Order" in props
+
+
+def test_malformed_transactions_are_rejected_without_state():
+    cl = make(3)
+    core = cl.hosts["h2"].core
+    # h2 is not among the participants
+    bad = OacTransaction(("h1", 1, 99), b"x", (("h1", 1), ("h3", 1)), 1)  # type: ignore[arg-type]
+    core.on_message(0.0, "h1", 1, 1, bad)
+    assert not core.oac.txs
+    # the sender is not a participant
+    bad2 = OacTransaction(("h3", 1, 5), b"x", (("h3", 1), ("h2", 1)), 1)  # type: ignore[arg-type]
+    core.on_message(0.0, "h1", 1, 1, bad2)
+    assert not core.oac.txs
+    logs = [e for e in core.drain() if type(e).__name__ == "Log"]
+    assert [e.event for e in logs] == ["oac_bad_transaction", "oac_bad_transaction"]
+
+
+def test_unknown_participant_is_refused_at_propose():
+    cl = make(3)
+    core = cl.hosts["h1"].core
+    with pytest.raises(ValueError, match="unknown participant"):
+        core.propose(0.0, b"x", ["h1", "h9"])
