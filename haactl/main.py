@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import typer
 
+from haactl.bench import bench_app
 from haactl.verify import verify
 
 app = typer.Typer(
@@ -25,6 +26,7 @@ def _root() -> None:
 
 
 app.command("verify")(verify)
+app.add_typer(bench_app, name="bench")
 
 if __name__ == "__main__":
     app()

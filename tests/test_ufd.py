@@ -82,7 +82,9 @@ def test_observer_requests_worst_case_period_then_measured_one():
     assert requested, "no setPeriod after N heartbeats (l. 25-27)"
     seq, eta = requested[0]
     assert seq + 1 == CFG.reevaluate_every  # after exactly N heartbeats (seq counts from 0)
-    measured = configure(QOS, 0.0, CFG.min_delay_std**2, eta_min=CFG.eta_min).eta
+    # add-one loss estimate over N heartbeats without a loss: 1 / (N + 2)
+    p_loss = 1 / (CFG.reevaluate_every + 2)
+    measured = configure(QOS, p_loss, CFG.min_delay_std**2, eta_min=CFG.eta_min).eta
     assert eta == pytest.approx(measured) and eta > worst  # a calm network allows slower heartbeats
 
 

@@ -10,7 +10,9 @@ NFD-U of Chen, Toueg & Aguilera [66] with the thesis' six changes (§4.4.2):
 4. EA_{l+1} with unsynchronized clocks (eq. 4.4-1): EA_{l+1} = p_tau_l + period + mean(O_i), where
    O_i = (arrival time on q's clock) - p_tau_i is delay plus the constant clock offset.
 5. Every N heartbeats the observer re-evaluates (eta, alpha) with `haa.hostd.qos.configure` from the
-   measured loss rate and V(O) = V(D) over the last M heartbeats (ll. 25-26).
+   loss rate and V(O) = V(D) measured over the last M heartbeats (ll. 25-26). The loss rate is the
+   add-one (Laplace) estimate (lost + 1) / (expected + 2) over that window, so that a window without a
+   loss does not read as "loss is impossible" (which makes f(eta) infinite and eta far too long).
 6. The observer tells the sender the new period with setPeriod (l. 27); the sender adopts it after its
    next heartbeat (ll. 7, 11-12), so q's expectation of m_{l+1} is not disturbed.
 
@@ -39,7 +41,7 @@ class UfdConfig:
     qos: QosTargets = CLUSTER_QOS
     initial_period: float = 0.05  # INITIAL_PERIOD (change 1)
     reevaluate_every: int = 50  # N (change 5)
-    window: int = 200  # M most recent offset delays kept (change 5)
+    window: int = 1000  # M most recent heartbeats used for E(O), V(O) and p_L (change 5)
     worst_loss: float = 0.01  # worst-case initialization (change 3)
     worst_delay_std: float = 0.1
     min_loss: float = 0.0
@@ -93,13 +95,12 @@ class HeartbeatObserver:
         "contacted",
         "count",
         "eta",
-        "first_seq",
         "freshness",
         "l",
         "last_params",
         "offsets",
-        "received",
         "requested_period",
+        "seqs",
         "sum_offsets",
         "trusted",
     )
@@ -116,10 +117,9 @@ class HeartbeatObserver:
         self.l = -1  # l. 16
         self.trusted = False
         self.offsets: deque[float] = deque(maxlen=config.window)
+        self.seqs: deque[int] = deque(maxlen=config.window)  # sequence numbers of the same heartbeats
         self.sum_offsets = 0.0
         self.count = 0  # heartbeats received since the last re-evaluation
-        self.received = 0  # heartbeats received in the window used for the loss estimate
-        self.first_seq = -1
         self.contacted = False
 
     # l. 17-18
@@ -138,14 +138,13 @@ class HeartbeatObserver:
             return False, None
         if not (math.isfinite(hb.period) and hb.period > 0.0 and math.isfinite(hb.sent_at)):
             return False, None
-        if self.first_seq < 0:
-            self.first_seq = hb.seq
         self.l = hb.seq  # l. 21
         # eq. 4.4-1 (change 4): O_j = arrival - p_tau_j; EA_{l+1} = p_tau_l + period + mean(O)
         o = now - hb.sent_at
         if len(self.offsets) == self.offsets.maxlen:
             self.sum_offsets -= self.offsets[0]
         self.offsets.append(o)
+        self.seqs.append(hb.seq)
         self.sum_offsets += o
         ea = hb.sent_at + hb.period + self.sum_offsets / len(self.offsets)
         alpha = self.config.qos.td_upper - hb.period  # alpha = T_D^U - eta for the period in use
@@ -154,7 +153,6 @@ class HeartbeatObserver:
         if now < self.freshness and not self.trusted:  # l. 23-24
             self.trusted = True
             became_trusted = True
-        self.received += 1
         self.count += 1
         new_period = None
         if not self.contacted:
@@ -173,10 +171,12 @@ class HeartbeatObserver:
         return eta
 
     def loss_estimate(self) -> float:
-        expected = self.l - self.first_seq + 1
-        if expected <= 0:
-            return 0.0
-        return max(0.0, 1.0 - self.received / expected)
+        """Add-one estimate of p_L over the heartbeats of the window (those received, and the gaps)."""
+        if not self.seqs:
+            return self.config.worst_loss
+        expected = self.seqs[-1] - self.seqs[0] + 1
+        lost = max(0, expected - len(self.seqs))
+        return (lost + 1) / (expected + 2)
 
     def delay_variance(self) -> float:
         n = len(self.offsets)
@@ -192,9 +192,6 @@ class HeartbeatObserver:
         var = max(self.delay_variance(), cfg.min_delay_std**2)
         self.last_params = configure(cfg.qos, p_loss, var, eta_min=cfg.eta_min)
         self.eta = self.last_params.eta
-        # restart the loss window so that it follows changing network conditions
-        self.received = 0
-        self.first_seq = self.l + 1
         return self._request(self.eta)
 
     def mean_offset(self) -> float:

@@ -1,0 +1,119 @@
+"""`haactl bench ...`: benchmarks that print markdown tables and write JSON under bench-results/.
+
+Benchmarks measure; they never fail on a timing. `ufd` measures the failure detector's QoS in simulation
+(haa.dsim.ufdqos); `ap1` is the thesis' experiment AP-1 on real haa-hostd processes (haactl.ap1).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from haa.dsim.network import DelayModel
+from haa.dsim.ufdqos import QosMeasurement, measure
+from haa.hostd.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
+
+bench_app = typer.Typer(help="Benchmarks: print a table, write bench-results/<name>.json.", no_args_is_help=True)
+
+RESULTS = Path("bench-results")
+
+MEASURABLE_QOS = QosTargets(td_upper=0.5, tmr_lower=60.0, tm_upper=0.5)
+
+
+def write_json(name: str, data: Any) -> Path:
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(data, indent=2, default=lambda o: None if o == math.inf else str(o)) + "\n")
+    return path
+
+
+def _fmt_time(x: float) -> str:
+    if math.isinf(x):
+        return "no mistake"
+    if x >= 86400:
+        return f"{x / 86400:.1f} d"
+    if x >= 3600:
+        return f"{x / 3600:.1f} h"
+    return f"{x:.1f} s"
+
+
+def ufd_rates_table() -> list[dict[str, Any]]:
+    """Heartbeat rate of the configuration procedure for the thesis' QoS and our cluster default."""
+    rows = []
+    for qname, qos in (("thesis (10 s, 1 week, 30 s)", THESIS_QOS), ("cluster (1 s, 1 day, 1 s)", CLUSTER_QOS)):
+        for p_loss in (0.0, 1e-4, 1e-3, 1e-2):
+            for std in (0.001, 0.01, 0.05):
+                # the observer's add-one loss estimate over its window of 1000 heartbeats never reads 0
+                p_est = max(p_loss, 1 / 1002)
+                params = configure(qos, p_est, std**2)
+                rows.append(
+                    {
+                        "qos": qname,
+                        "p_loss": p_loss,
+                        "delay_std_ms": std * 1e3,
+                        "eta_s": params.eta,
+                        "alpha_s": params.alpha,
+                        "heartbeats_per_minute": heartbeats_per_minute(params),
+                    }
+                )
+    return rows
+
+
+@bench_app.command("ufd")
+def bench_ufd(
+    quick: bool = typer.Option(False, "--quick", help="short horizons (a smoke run, not a measurement)"),
+    seed: int = typer.Option(1, "--seed"),
+) -> None:
+    """Failure detector (Alg. 1): heartbeat cost for the thesis' QoS and ours, and measured QoS."""
+    t0 = time.perf_counter()
+    rates = ufd_rates_table()
+    print("## Heartbeat rate chosen by the configuration procedure (per monitored pair)\n")
+    print("| QoS (T_D^U, T_MR^L, T_M^U) | p_L | σ(D) | η | α | heartbeats/min |")
+    print("|---|---|---|---|---|---|")
+    for r in rates:
+        print(
+            f"| {r['qos']} | {r['p_loss']:g} | {r['delay_std_ms']:g} ms | {r['eta_s']:.3f} s | "
+            f"{r['alpha_s']:.3f} s | {r['heartbeats_per_minute']:.1f} |"
+        )
+    scale = 0.1 if quick else 1.0
+    cases: list[tuple[str, QosTargets, DelayModel, float, float]] = [
+        ("measurable: exp 20 ms, 1% loss", MEASURABLE_QOS, DelayModel("exp", 0.001, 0.02), 0.01, 20000),
+        ("measurable: lognormal σ=0.8", MEASURABLE_QOS, DelayModel("lognormal", 0.001, 0.01, 0.8), 0.01, 20000),
+        ("measurable: Pareto α=2.5 (heavy tail)", MEASURABLE_QOS, DelayModel("pareto", 0.001, 0.02, 2.5), 0.01, 20000),
+        ("measurable: exp 50 ms, 5% loss", MEASURABLE_QOS, DelayModel("exp", 0.001, 0.05), 0.05, 20000),
+        ("cluster: LAN exp 1 ms, 0.1% loss", CLUSTER_QOS, DelayModel("exp", 0.0002, 0.001), 0.001, 10 * 86400),
+        ("thesis: LAN exp 1 ms, 0.1% loss", THESIS_QOS, DelayModel("exp", 0.0002, 0.001), 0.001, 8 * 7 * 86400),
+        ("thesis: WLAN lognormal 20 ms, 1% loss", THESIS_QOS, DelayModel("lognormal", 0.002, 0.015, 0.7), 0.01,
+         8 * 7 * 86400),
+    ]
+    measured: list[QosMeasurement] = []
+    for label, qos, delay, p_loss, horizon in cases:
+        measured.append(measure(label, qos, delay, p_loss, horizon * scale, seed=seed, crash_trials=100))
+    print("\n## Measured QoS in simulation (real Alg. 1 objects, adaptive re-configuration on)\n")
+    print(
+        "| case | horizon | η (final) | hb/min | mistakes | E(T_MR) ≥ T_MR^L? | E(T_M) ≤ T_M^U? | P_A | "
+        "max T_D / (T_D^U + E(D)) | targets met |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for m in measured:
+        print(
+            f"| {m.label} | {_fmt_time(m.horizon)} | {m.eta:.3f} s | {m.heartbeats_per_minute:.1f} | {m.mistakes} | "
+            f"{_fmt_time(m.mean_tmr)} vs {_fmt_time(m.tmr_lower)} | {m.mean_tm * 1e3:.0f} ms vs "
+            f"{m.tm_upper * 1e3:.0f} ms | {m.query_accuracy:.6f} | {m.max_detection:.3f} / {m.detection_bound:.3f} s | "
+            f"{'yes' if m.meets_targets else 'NO'} |"
+        )
+    path = write_json(
+        "ufd",
+        {
+            "rates": rates,
+            "measured": [m.row() for m in measured],
+            "seconds": time.perf_counter() - t0,
+            "quick": quick,
+        },
+    )
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
