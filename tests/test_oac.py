@@ -214,3 +214,20 @@ def test_unknown_participant_is_refused_at_propose():
     core = cl.hosts["h1"].core
     with pytest.raises(ValueError, match="unknown participant"):
         core.propose(0.0, b"x", ["h1", "h9"])
+
+
+def test_restarted_peer_that_never_speaks_is_still_excluded():
+    """A new incarnation learned from a handshake (or a participant list) that then dies without a single
+    heartbeat must become permanently suspected, or transactions naming it never close (l. 41)."""
+    from haa.hostd.core import CoreConfig, HostCore
+    from haa.hostd.effects import PeerDead, SetTimer
+
+    core = HostCore("h1", 1, ["h1", "h2"], CoreConfig(exclude_after=2.0))
+    core.start(0.0)
+    core.on_peer_info(0.0, "h2", 5)
+    core.on_peer_info(1.0, "h2", 6)  # restarted again before we ever heard from it
+    timers = [e for e in core.drain() if isinstance(e, SetTimer) and e.key[0] == "excl"]
+    assert timers[-1].key == ("excl", "h2", 6) and timers[-1].at == pytest.approx(3.0)
+    core.on_timer(3.0, ("excl", "h2", 6))
+    assert any(isinstance(e, PeerDead) and e.inc == 6 for e in core.drain())
+    assert core.is_dead("h2", 6)

@@ -102,3 +102,11 @@ def test_invalid_heartbeats_are_ignored():
     assert obs.on_heartbeat(0.0, Heartbeat(0, math.nan, 0.0)) == (False, None)
     assert obs.on_heartbeat(0.0, Heartbeat(0, -1.0, 0.0)) == (False, None)
     assert not obs.trusted and obs.l == -1
+
+
+def test_running_offset_sum_is_reanchored():
+    obs = HeartbeatObserver(UfdConfig(qos=QOS, window=10, reevaluate_every=10), now=0.0)
+    obs.on_heartbeat(0.0, Heartbeat(0, 0.05, -1e11))  # one absurd clock reading
+    for seq in range(1, 40):
+        obs.on_heartbeat(seq * 0.05 + 0.001, Heartbeat(seq, 0.05, seq * 0.05))
+    assert obs.mean_offset() == pytest.approx(0.001, abs=1e-9)

@@ -178,6 +178,8 @@ class HostCore:
         for p in self.peers.values():
             if ufd:
                 self._start_ufd(now, p)
+                if p.inc:  # an incarnation we were told about but have not heard from yet
+                    self._timer(("excl", p.name, p.inc), now + self.config.exclude_after)
             else:
                 p.suspected = not p.inc
 
@@ -347,6 +349,8 @@ class HostCore:
             self._start_ufd(now, p)
             if not was:
                 self.out.append(Suspicion(p.name, inc, True))
+            # suspected until its first heartbeat: if that never comes, it must still be excluded
+            self._timer(("excl", p.name, inc), now + self.config.exclude_after)
         else:
             p.suspected = False
         self.oac.on_peer_change(p.name)

@@ -188,6 +188,7 @@ class HeartbeatObserver:
     def _reevaluate(self) -> float | None:
         """l. 26: (eta, alpha) from the measured network (change 5)."""
         cfg = self.config
+        self.sum_offsets = math.fsum(self.offsets)  # the running sum drifts; re-anchor it every N
         p_loss = min(max(self.loss_estimate(), cfg.min_loss), 0.99)
         var = max(self.delay_variance(), cfg.min_delay_std**2)
         self.last_params = configure(cfg.qos, p_loss, var, eta_min=cfg.eta_min)

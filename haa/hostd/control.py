@@ -1,0 +1,194 @@
+"""The operator/control API of one haa-hostd (`haa.v1.HostControl`, proto/haa/pb/control.proto).
+
+`HostControlService` serves it on the host's gRPC server, next to the transport; every call must carry the
+cluster token in metadata `x-haa-token` (else `UNAUTHENTICATED`, counted as `rejected_unauthenticated`).
+
+* `Status`: who this host is, its view of every peer (incarnation, suspected, excluded, link connected,
+  the heartbeat period eta it asked for and the safety margin alpha), OAC activity, the delivered count and
+  hash chain, every counter (transport, runtime, and the core's as `core.*`), the RSS of this process and
+  its CPU use since the previous `Status` call (psutil).
+* `Propose`: start an OAC transaction (empty participant list: this host and every peer it trusts); with
+  `wait`, reply after the local decision and delivery (or abort, or the call's deadline / 30 s).
+* `Deliveries`: stream the delivered log from an index and keep following new deliveries until the client
+  cancels.
+* `Latencies`: the propose->decide and decide->deliver samples this host recorded (optionally reset).
+
+`ControlClient` is a small blocking client for tests, benchmarks and tools.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Iterator, Sequence
+from typing import TYPE_CHECKING
+
+import grpc
+from grpc import aio
+
+from haa.hostd.oac import OacError
+from haa.hostd.runtime import HostReincarnated, ProposeTimeout, TransactionAborted
+from haa.pb import control_pb2 as cpb
+from haa.pb import control_pb2_grpc
+from haa.pb import hostlink_pb2 as pb
+
+if TYPE_CHECKING:
+    from haa.hostd.messages import TxId
+    from haa.hostd.runtime import HostRuntime
+
+MD_TOKEN = "x-haa-token"
+DEFAULT_WAIT = 30.0
+
+
+def _txid(t: TxId) -> pb.TxId:
+    return pb.TxId(host=t.host, incarnation=t.inc, seq=t.seq)
+
+
+class HostControlService(control_pb2_grpc.HostControlServicer):
+    """`haa.v1.HostControl` backed by a `HostRuntime`."""
+
+    def __init__(self, runtime: HostRuntime) -> None:
+        self.rt = runtime
+
+    def add_to_server(self, server: aio.Server) -> None:
+        control_pb2_grpc.add_HostControlServicer_to_server(self, server)
+
+    async def _auth(self, context: aio.ServicerContext) -> None:
+        if not self.rt.transport.check_token(context.invocation_metadata()):
+            self.rt.counters["rejected_unauthenticated"] += 1
+            self.rt.counters["control_rejected"] += 1
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
+
+    async def Status(self, request: cpb.StatusRequest, context: aio.ServicerContext) -> cpb.StatusReply:
+        await self._auth(context)
+        st = self.rt.status()
+        peers = [
+            cpb.PeerStatus(
+                name=p["name"],
+                address=p["address"],
+                incarnation=p["incarnation"],
+                suspected=p["suspected"],
+                excluded=p["excluded"],
+                connected=p["connected"],
+                heartbeat_period=p["eta"],
+                alpha=p["alpha"],
+            )
+            for p in st["peers"]
+        ]
+        return cpb.StatusReply(
+            name=st["name"],
+            incarnation=st["incarnation"],
+            peers=peers,
+            active_transactions=st["active_transactions"],
+            decided_transactions=st["decided_transactions"],
+            delivered=st["delivered"],
+            delivered_hash=st["delivered_hash"],
+            counters=cpb.Counters(values={k: v for k, v in st["counters"].items() if v >= 0}),
+            cpu_percent=st["cpu_percent"],
+            rss_bytes=st["rss_bytes"],
+            uptime=st["uptime"],
+        )
+
+    async def Propose(self, request: cpb.ProposeRequest, context: aio.ServicerContext) -> cpb.ProposeReply:
+        await self._auth(context)
+        parts = list(request.participants) or None
+        rt = self.rt
+        rt.counters["control_proposals"] += 1
+        try:
+            if not request.wait:
+                txid = rt.propose_nowait(request.payload, parts)
+                return cpb.ProposeReply(id=_txid(txid), participants=rt.participants_of(txid))
+            remaining = context.time_remaining()
+            timeout = DEFAULT_WAIT if remaining is None else max(0.0, remaining - 0.05)
+            res = await rt.propose(request.payload, parts, timeout=timeout)
+        except OacError as e:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+            raise  # not reached: abort raises
+        except TransactionAborted as e:
+            return cpb.ProposeReply(
+                id=_txid(e.txid),
+                decided=True,
+                committed=False,
+                propose_to_decide=e.propose_to_decide,
+                participants=e.participants,
+            )
+        except ProposeTimeout as e:
+            return cpb.ProposeReply(id=_txid(e.txid), decided=False, participants=e.participants)
+        except HostReincarnated as e:
+            await context.abort(grpc.StatusCode.ABORTED, str(e))
+            raise
+        return cpb.ProposeReply(
+            id=_txid(res.txid),
+            decided=True,
+            committed=True,
+            propose_to_decide=res.propose_to_decide,
+            decide_to_deliver=res.decide_to_deliver,
+            participants=res.participants,
+        )
+
+    async def Deliveries(
+        self, request: cpb.DeliveriesRequest, context: aio.ServicerContext
+    ) -> AsyncIterator[cpb.Delivery]:
+        await self._auth(context)
+        rt = self.rt
+        i = request.from_index
+        task = asyncio.current_task()
+        if task is not None:
+            rt.stream_tasks.add(task)
+        try:
+            while True:
+                log = rt.delivered
+                while i < len(log):
+                    e = log[i]
+                    yield cpb.Delivery(
+                        index=e.index, id=_txid(e.txid), order=e.order, payload=e.payload, chain_hash=e.chain_hash
+                    )
+                    i += 1
+                await rt.wait_delivered(i + 1)
+        except asyncio.CancelledError:
+            if not rt.stopping:
+                raise
+            # the host is shutting down: end the stream normally
+        finally:
+            if task is not None:
+                rt.stream_tasks.discard(task)
+
+    async def Latencies(self, request: cpb.LatencyRequest, context: aio.ServicerContext) -> cpb.LatencyReply:
+        await self._auth(context)
+        d2d, p2d = self.rt.take_latencies(request.reset)
+        return cpb.LatencyReply(decide_to_deliver=d2d, propose_to_decide=p2d)
+
+
+class ControlClient:
+    """Blocking client of one host's control API."""
+
+    def __init__(self, address: str, token: str, timeout: float = 5.0) -> None:
+        self.address = address
+        self.timeout = timeout
+        self._md = ((MD_TOKEN, token),)
+        self._channel = grpc.insecure_channel(address)
+        self._stub = control_pb2_grpc.HostControlStub(self._channel)
+
+    def status(self) -> cpb.StatusReply:
+        return self._stub.Status(cpb.StatusRequest(), metadata=self._md, timeout=self.timeout)
+
+    def propose(
+        self, payload: bytes, participants: Sequence[str] = (), wait: bool = True, timeout: float = 20.0
+    ) -> cpb.ProposeReply:
+        req = cpb.ProposeRequest(payload=payload, participants=list(participants), wait=wait)
+        return self._stub.Propose(req, metadata=self._md, timeout=timeout)
+
+    def deliveries(self, from_index: int = 0, timeout: float | None = None) -> Iterator[cpb.Delivery]:
+        """Stream deliveries from `from_index` (the iterator follows new ones; cancel it to stop)."""
+        return self._stub.Deliveries(cpb.DeliveriesRequest(from_index=from_index), metadata=self._md, timeout=timeout)
+
+    def latencies(self, reset: bool = False) -> cpb.LatencyReply:
+        return self._stub.Latencies(cpb.LatencyRequest(reset=reset), metadata=self._md, timeout=self.timeout)
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def __enter__(self) -> ControlClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

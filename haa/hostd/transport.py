@@ -1,0 +1,686 @@
+"""Host-to-host transport: one reliable FIFO channel per ordered host pair over gRPC (`haa.v1.HostLink`).
+
+The algorithms of thesis Appendix II assume reliable FIFO channels between correct processes (§4.3.1). A TCP
+connection is FIFO but not reliable across reconnects, so each direction of each host pair is a *link* with
+its own sequence numbers, built on one bidirectional stream `HostLink.Open(stream Frame) -> stream LinkReply`
+opened by the sender (proto/haa/pb/hostlink.proto):
+
+Sender (`OutLink`, one asyncio task per peer)
+  * `Transport.send` encodes the message at once (`haa.hostd.wire`) and appends it to the link's `pending`
+    queue; nothing blocks the caller.
+  * The link task opens the stream with metadata `x-haa-token`, `x-haa-sender`, `x-haa-incarnation`, reads
+    the receiver's handshake `LinkReply(receiver, receiver_incarnation, acked_seq)`, and then writes
+    everything queued as one `Frame(first_seq, envelopes)` per stream write (batching is what makes a
+    stream fast in Python: see docs/transport.md for the measurements).
+  * Written envelopes move to `unacked` until the receiver's cumulative ack covers them. After a reconnect
+    the sender resends from the handshake's `acked_seq + 1`, so a broken TCP connection loses nothing while
+    both processes live.
+  * If the handshake shows a *different receiver incarnation* than the last one, that process is gone: the
+    link keeps only the queued messages addressed to the new incarnation or to "unknown" (dst_inc 0),
+    renumbers them after the new receiver's `acked_seq`, and reports the new incarnation through
+    `on_peer_incarnation` (the runtime calls `HostCore.on_peer_info`).
+  * Reconnects use capped exponential backoff (20 ms .. 1 s) for as long as the peer is configured; every
+    peer has its own task and channel, so a peer that is down never stalls the others.
+  * Before the first handshake with a peer, at most `precontact_limit` messages addressed to "unknown"
+    (heartbeats) are kept: a peer that has not started yet would otherwise receive a burst of stale
+    heartbeats that skews its failure detector's delay estimate (the UFD tolerates lost heartbeats).
+
+Receiver (the `HostLink` servicer, raw bytes)
+  * The handler receives undecoded bytes (`request_deserializer=None`) so that a frame that does not parse
+    is counted (`rejected_malformed`) and dropped instead of killing the stream; an envelope that fails
+    `wire.decode`, or claims another sender than the stream's metadata, is counted (`rejected_invalid`) and
+    dropped; a call without the right token is answered `UNAUTHENTICATED` (`rejected_unauthenticated`,
+    tokens compared with `hmac.compare_digest`); an unknown sender name gets `PERMISSION_DENIED`
+    (`rejected_unknown_peer`); an older incarnation of a sender than one already seen gets
+    `FAILED_PRECONDITION` (`rejected_stale_incarnation`).
+  * Per sender it remembers the sender incarnation and the highest link sequence number delivered; frames
+    at or below it are duplicates of a resend and are dropped (`link_duplicates`).
+  * Replies: first the handshake, then cumulative acks at most every `ack_interval` seconds, or at once after
+    `ack_every` frames.
+
+Every message and byte sent and received is counted per payload kind in `counters` (a `collections.Counter`
+the status RPC exposes), e.g. `tx_msgs.heartbeat`, `rx_bytes.oac_decide`.
+
+Frames are built by hand from pre-serialized envelopes (`envelope_chunk`, `encode_frame`): a Frame is
+field 1 (varint `first_seq`) followed by one length-delimited field 2 per envelope, so concatenating the
+envelope chunks is a valid protobuf encoding and a resend never re-serializes anything.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import logging
+from collections import Counter, deque
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import grpc
+from google.protobuf.message import DecodeError
+from grpc import aio
+
+from haa.hostd import wire
+from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
+from haa.hostd.messages import Message
+from haa.pb import hostlink_pb2 as pb
+
+log = logging.getLogger(LOGGER_NAME + ".transport")
+
+OPEN_METHOD = "/haa.v1.HostLink/Open"
+MD_TOKEN = "x-haa-token"
+MD_SENDER = "x-haa-sender"
+MD_INC = "x-haa-incarnation"
+
+#: (dst_inc, envelope chunk) — what a link queues
+Entry = tuple[int, bytes]
+#: called with (sender, sender_inc, [(dst_inc, msg), ...]) for every frame's valid, new envelopes
+OnEnvelopes = Callable[[str, int, list[tuple[int, Message]]], None]
+#: called with (peer, incarnation) when a handshake shows a receiver incarnation this link did not know
+OnPeerIncarnation = Callable[[str, int], None]
+
+MAX_MESSAGE = 64 << 20
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def envelope_chunk(env_bytes: bytes) -> bytes:
+    """A serialized Envelope as one element of `Frame.envelopes` (tag 2, length-delimited)."""
+    return b"\x12" + _varint(len(env_bytes)) + env_bytes
+
+
+def encode_frame(first_seq: int, chunks: list[bytes]) -> bytes:
+    """Serialized `Frame(first_seq, envelopes)` from envelope chunks (tag 1 varint + the chunks)."""
+    return b"\x08" + _varint(first_seq) + b"".join(chunks)
+
+
+def client_options() -> list[tuple[str, Any]]:
+    """Channel options for links: fast reconnects, keepalive to notice dead connections, large frames."""
+    return [
+        ("grpc.initial_reconnect_backoff_ms", 20),
+        ("grpc.min_reconnect_backoff_ms", 20),
+        ("grpc.max_reconnect_backoff_ms", 1000),
+        ("grpc.keepalive_time_ms", 5000),
+        ("grpc.keepalive_timeout_ms", 5000),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.max_pings_without_data", 0),
+        ("grpc.max_send_message_length", MAX_MESSAGE),
+        ("grpc.max_receive_message_length", MAX_MESSAGE),
+        ("grpc.enable_retries", 0),
+    ]
+
+
+class LinkDown(Exception):
+    """The current stream of a link ended (the link task reconnects)."""
+
+
+class OutLink:
+    """The sending half of the link to one peer (see the module docstring)."""
+
+    def __init__(self, transport: Transport, peer: str, address: str) -> None:
+        self.t = transport
+        self.peer = peer
+        self.address = address
+        self.pending: deque[Entry] = deque()  # not yet written on the current stream
+        self.unacked: deque[Entry] = deque()  # written, not yet acknowledged; seqs base, base+1, ...
+        self.base = 1  # link sequence number of unacked[0] (or of pending[0] if unacked is empty)
+        self.acked = 0  # highest sequence number the receiver acknowledged
+        self.receiver_inc = 0  # receiver incarnation of the last handshake (0: never connected)
+        self.connected = False
+        self.wake = asyncio.Event()
+        self.task: asyncio.Task[None] | None = None
+        self._broken = False
+        self._gen = 0  # session number: a finished session's reader must not touch the current one
+        self._channel: aio.Channel | None = None
+        self._open: Any = None
+
+    # ------------------------------------------------------------------ queueing (synchronous)
+
+    def enqueue(self, dst_inc: int, chunk: bytes) -> None:
+        pending = self.pending
+        pending.append((dst_inc, chunk))
+        t = self.t
+        if not self.receiver_inc and len(pending) > t.precontact_limit and pending[0][0] == 0:
+            pending.popleft()
+            t.counters["dropped_precontact"] += 1
+        elif len(pending) + len(self.unacked) > t.max_queue:
+            pending.popleft()
+            t.counters["dropped_overflow"] += 1
+            if t.limiter.allow("overflow." + self.peer):
+                log_event(log, logging.WARNING, "link_overflow", peer=self.peer, queued=len(pending))
+        self.wake.set()
+
+    @property
+    def next_seq(self) -> int:
+        return self.base + len(self.unacked) + len(self.pending)
+
+    def reset(self) -> None:
+        """This host became a new incarnation: the old incarnation's messages are void, numbering restarts."""
+        self._gen += 1  # acks still arriving on the old stream count the old numbering
+        self.pending.clear()
+        self.unacked.clear()
+        self.base = 1
+        self.acked = 0
+
+    # ------------------------------------------------------------------ the link task
+
+    def start(self) -> None:
+        if self._channel is None:
+            self._channel = aio.insecure_channel(self.address, options=client_options())
+            self._open = self._channel.stream_stream(OPEN_METHOD)
+        self.task = asyncio.get_running_loop().create_task(self._run(), name=f"link-{self.peer}")
+
+    def restart(self) -> None:
+        """Drop the current stream and connect again at once (used after this host reincarnates)."""
+        if self.task is not None:
+            self.task.cancel()
+        self.start()
+
+    async def close(self) -> None:
+        if self.task is not None:
+            self.task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self.task
+            self.task = None
+        if self._channel is not None:
+            await self._channel.close()
+            self._channel = None
+
+    async def _run(self) -> None:
+        t = self.t
+        backoff = t.min_backoff
+        while True:
+            try:
+                await self._session()
+            except asyncio.CancelledError:
+                raise
+            except LinkDown as e:
+                reason = str(e)
+            except grpc.RpcError as e:
+                code = e.code() if isinstance(e, aio.AioRpcError) else None
+                reason = f"{code.name if code else 'rpc error'}: {e.details() if code else e}"
+            except Exception as e:  # a link must survive anything and reconnect
+                reason = f"{type(e).__name__}: {e}"
+                log.exception("link %s failed", self.peer, extra={"event": "link_error", "fields": {}})
+            was_connected = self.connected
+            self.connected = False
+            if was_connected:
+                t.counters["link_disconnects"] += 1
+                log_event(log, logging.INFO, "link_down", peer=self.peer, reason=reason)
+                backoff = t.min_backoff
+            else:
+                t.counters["link_connect_failures"] += 1
+                if t.limiter.allow("connect." + self.peer):
+                    log_event(log, logging.DEBUG, "link_connect_failed", peer=self.peer, reason=reason)
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2.0, t.max_backoff)
+
+    async def _session(self) -> None:
+        t = self.t
+        md = ((MD_TOKEN, t.token), (MD_SENDER, t.name), (MD_INC, str(t.incarnation)))
+        call = self._open(metadata=md, wait_for_ready=True)
+        try:
+            try:
+                data = await asyncio.wait_for(call.read(), t.handshake_timeout)
+            except TimeoutError:
+                raise LinkDown("no handshake") from None
+            if data is aio.EOF:
+                raise LinkDown("stream closed before the handshake")
+            try:
+                reply = pb.LinkReply.FromString(data)
+            except DecodeError:
+                raise LinkDown("malformed handshake") from None
+            if reply.receiver != self.peer:
+                t.counters["link_wrong_receiver"] += 1
+                if t.limiter.allow("wrong." + self.peer):
+                    log_event(
+                        log,
+                        logging.ERROR,
+                        "link_wrong_receiver",
+                        peer=self.peer,
+                        answered=reply.receiver,
+                        address=self.address,
+                    )
+                raise LinkDown(f"{self.address} is {reply.receiver!r}, not {self.peer!r}")
+            if reply.receiver_incarnation == 0:
+                raise LinkDown("handshake without receiver incarnation")
+            self._handshake(reply.receiver_incarnation, reply.acked_seq)
+            self._gen += 1
+            self._broken = False
+            self.connected = True
+            t.counters["link_connects"] += 1
+            log_event(
+                log,
+                logging.INFO,
+                "link_up",
+                peer=self.peer,
+                receiver_inc=reply.receiver_incarnation,
+                acked=reply.acked_seq,
+                queued=len(self.pending),
+            )
+            reader = asyncio.get_running_loop().create_task(self._read_acks(call, self._gen))
+            try:
+                await self._write_loop(call)
+            finally:
+                reader.cancel()
+        finally:
+            call.cancel()
+
+    def _handshake(self, inc: int, acked: int) -> None:
+        t = self.t
+        if inc != self.receiver_inc:
+            # A receiver process we have not talked to: whatever it had of ours is gone with its predecessor.
+            # Keep what is addressed to it (or to "unknown"), numbered after what it says it has.
+            old = self.receiver_inc
+            entries = list(self.unacked) + list(self.pending)
+            keep = [e for e in entries if e[0] == 0 or e[0] == inc]
+            t.counters["link_discarded"] += len(entries) - len(keep)
+            self.unacked.clear()
+            self.pending = deque(keep)
+            self.base = acked + 1
+            self.acked = acked
+            self.receiver_inc = inc
+            if old:
+                log_event(
+                    log,
+                    logging.INFO,
+                    "link_new_receiver",
+                    peer=self.peer,
+                    old=old,
+                    new=inc,
+                    discarded=len(entries) - len(keep),
+                )
+            t.on_peer_incarnation(self.peer, inc)
+            return
+        # The same receiver process: resend everything it does not have, in order.
+        unacked = self.unacked
+        while unacked and self.base <= acked:
+            unacked.popleft()
+            self.base += 1
+        if acked >= self.base:  # it has more than we ever wrote: impossible unless the numbering broke
+            t.counters["link_ack_beyond_sent"] += 1
+            acked = self.base - 1
+        if acked > self.acked:
+            self.acked = acked
+        if unacked:
+            t.counters["link_resent"] += len(unacked)
+            self.pending.extendleft(reversed(unacked))
+            unacked.clear()
+
+    async def _read_acks(self, call: aio.StreamStreamCall, gen: int) -> None:
+        try:
+            while True:
+                data = await call.read()
+                if data is aio.EOF or gen != self._gen:
+                    return
+                try:
+                    a = pb.LinkReply.FromString(data).acked_seq
+                except DecodeError:
+                    self.t.counters["link_bad_ack"] += 1
+                    return
+                self._on_ack(a)
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # any failure of the stream ends this session
+            return
+        finally:
+            if gen == self._gen:
+                self._broken = True
+                self.wake.set()
+
+    def _on_ack(self, a: int) -> None:
+        unacked = self.unacked
+        if a < self.base - 1 or a >= self.base + len(unacked):
+            if a >= self.base + len(unacked):
+                self.t.counters["link_ack_beyond_sent"] += 1
+            return
+        n = a - self.base + 1
+        for _ in range(n):
+            unacked.popleft()
+        self.base += n
+        self.acked = a
+
+    async def _write_loop(self, call: aio.StreamStreamCall) -> None:
+        t = self.t
+        pending = self.pending
+        unacked = self.unacked
+        max_n = t.max_batch
+        max_bytes = t.max_batch_bytes
+        counters = t.counters
+        while True:
+            if self._broken:
+                raise LinkDown("stream closed by the receiver")
+            pending = self.pending  # `_handshake` may have replaced it
+            if not pending:
+                self.wake.clear()
+                await self.wake.wait()
+                continue
+            first = self.base + len(unacked)
+            chunks: list[bytes] = []
+            size = 0
+            while pending and len(chunks) < max_n and size < max_bytes:
+                e = pending.popleft()
+                unacked.append(e)
+                chunks.append(e[1])
+                size += len(e[1])
+            await call.write(encode_frame(first, chunks))
+            counters["tx_frames"] += 1
+
+
+class _RxState:
+    __slots__ = ("inc", "last")
+
+    def __init__(self, inc: int) -> None:
+        self.inc = inc
+        self.last = 0  # highest link sequence number delivered from this sender incarnation
+
+
+class Transport:
+    """All links of one host: the sending halves (`OutLink`) and the `HostLink` servicer.
+
+    Args:
+        name: this host.
+        token: the cluster token (sent on every link, required on every incoming call).
+        peers: peer name -> "host:port".
+        on_envelopes: receives every frame's new, valid messages (see `OnEnvelopes`).
+        on_peer_incarnation: learns receiver incarnations from handshakes (see `OnPeerIncarnation`).
+        counters: where to count (shared with the runtime); a new Counter if not given.
+    The caller sets `incarnation` before `start()` and calls `set_incarnation` when the host reincarnates.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        token: str,
+        peers: dict[str, str],
+        on_envelopes: OnEnvelopes,
+        on_peer_incarnation: OnPeerIncarnation | None = None,
+        counters: Counter[str] | None = None,
+        *,
+        min_backoff: float = 0.02,
+        max_backoff: float = 1.0,
+        handshake_timeout: float = 2.0,
+        ack_interval: float = 0.005,
+        ack_every: int = 32,
+        max_batch: int = 4096,
+        max_batch_bytes: int = 1 << 20,
+        precontact_limit: int = 16,
+        max_queue: int = 1_000_000,
+    ) -> None:
+        if name in peers:
+            raise ValueError(f"{name!r} cannot be its own peer")
+        self.name = name
+        self.token = token
+        self._token_b = token.encode()
+        self.incarnation = 0
+        self.peers = dict(peers)
+        self.on_envelopes = on_envelopes
+        self.on_peer_incarnation: OnPeerIncarnation = on_peer_incarnation or (lambda _p, _i: None)
+        self.counters: Counter[str] = counters if counters is not None else Counter()
+        self.min_backoff = min_backoff
+        self.max_backoff = max_backoff
+        self.handshake_timeout = handshake_timeout
+        self.ack_interval = ack_interval
+        self.ack_every = ack_every
+        self.max_batch = max_batch
+        self.max_batch_bytes = max_batch_bytes
+        self.precontact_limit = precontact_limit
+        self.max_queue = max_queue
+        self.limiter = RateLimiter(1.0)
+        self.links: dict[str, OutLink] = {}
+        self._rx: dict[str, _RxState] = {}
+        self._inbound: dict[str, int] = Counter()  # open inbound streams per sender
+        self._handlers: set[asyncio.Task[Any]] = set()  # tasks serving inbound streams
+        self._started = False
+        self._closing = False
+
+    # ------------------------------------------------------------------ sending
+
+    def start(self) -> None:
+        """Start one link task per peer (needs a running event loop and `incarnation` set)."""
+        if self.incarnation <= 0:
+            raise ValueError("set the incarnation before starting the transport")
+        self._started = True
+        for peer, addr in self.peers.items():
+            link = OutLink(self, peer, addr)
+            self.links[peer] = link
+            link.start()
+
+    async def stop(self) -> None:
+        """Close every link. Inbound streams are ended cleanly (their senders see the stream finish and
+        reconnect later), so that stopping the gRPC server afterwards has nothing left to cancel."""
+        self._started = False
+        self._closing = True
+        for task in list(self._handlers):
+            task.cancel()
+        for link in self.links.values():
+            await link.close()
+        for _ in range(3):  # let the cancelled handlers finish their RPCs
+            await asyncio.sleep(0)
+
+    def set_incarnation(self, inc: int) -> None:
+        """This host restarted as incarnation `inc`: void every queued message and reconnect every link
+        with the new incarnation in its metadata (receivers restart their numbering for it)."""
+        if inc <= self.incarnation:
+            raise ValueError("incarnations must increase")
+        self.incarnation = inc
+        for link in self.links.values():
+            link.reset()
+            if self._started:
+                link.restart()
+
+    def send(self, dst: str, dst_inc: int, msg: Message) -> None:
+        """Queue `msg` for `dst` (its incarnation `dst_inc`, 0 = unknown). Never blocks."""
+        link = self.links.get(dst)
+        if link is None:
+            self.counters["send_unknown_peer"] += 1
+            return
+        data = wire.encode(self.name, self.incarnation, dst_inc, msg).SerializeToString()
+        kind = wire.KIND[type(msg)]
+        c = self.counters
+        c["tx_msgs." + kind] += 1
+        c["tx_bytes." + kind] += len(data)
+        link.enqueue(dst_inc, envelope_chunk(data))
+
+    def connected(self, peer: str) -> bool:
+        link = self.links.get(peer)
+        return link is not None and link.connected
+
+    def queued(self, peer: str) -> int:
+        link = self.links.get(peer)
+        return 0 if link is None else len(link.pending) + len(link.unacked)
+
+    # ------------------------------------------------------------------ receiving
+
+    def rpc_handler(self) -> grpc.GenericRpcHandler:
+        return grpc.method_handlers_generic_handler(
+            "haa.v1.HostLink",
+            {
+                "Open": grpc.stream_stream_rpc_method_handler(
+                    self._serve_open, request_deserializer=None, response_serializer=None
+                )
+            },
+        )
+
+    def add_to_server(self, server: aio.Server) -> None:
+        server.add_generic_rpc_handlers((self.rpc_handler(),))
+
+    @staticmethod
+    def server_options() -> list[tuple[str, Any]]:
+        """Options for the grpc.aio server that hosts the links (accept keepalive pings, large frames)."""
+        return [
+            # never share the port with another server (two hosts on one port would split the links)
+            ("grpc.so_reuseport", 0),
+            ("grpc.max_receive_message_length", MAX_MESSAGE),
+            ("grpc.max_send_message_length", MAX_MESSAGE),
+            ("grpc.http2.min_ping_interval_without_data_ms", 1000),
+            ("grpc.http2.min_recv_ping_interval_without_data_ms", 1000),
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.keepalive_time_ms", 10000),
+            ("grpc.keepalive_timeout_ms", 5000),
+        ]
+
+    def check_token(self, metadata: Any) -> bool:
+        """True if the call metadata carries the cluster token."""
+        for key, value in metadata or ():
+            if key == MD_TOKEN:
+                v = value.encode() if isinstance(value, str) else bytes(value)
+                return hmac.compare_digest(v, self._token_b)
+        return False
+
+    def _reject(self, counter: str, event: str, **fields: Any) -> None:
+        self.counters[counter] += 1
+        if self.limiter.allow(counter):
+            log_event(log, logging.WARNING, event, **fields)
+
+    async def _serve_open(self, request_iterator: AsyncIterator[bytes], context: aio.ServicerContext) -> None:
+        md = context.invocation_metadata() or ()
+        if not self.check_token(md):
+            self._reject("rejected_unauthenticated", "reject_unauthenticated", peer=context.peer())
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
+        mdd = {k: v for k, v in md if isinstance(v, str)}
+        sender = mdd.get(MD_SENDER, "")
+        if sender not in self.peers:
+            self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=context.peer())
+            await context.abort(grpc.StatusCode.PERMISSION_DENIED, f"{sender[:100]!r} is not a configured peer")
+        try:
+            inc = int(mdd.get(MD_INC, ""))
+            if inc <= 0:
+                raise ValueError
+        except ValueError:
+            self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_INC}")
+        st = self._rx.get(sender)
+        if st is None or st.inc < inc:
+            st = _RxState(inc)
+            self._rx[sender] = st
+        elif st.inc > inc:
+            self._reject("rejected_stale_incarnation", "reject_stale_incarnation", sender=sender, inc=inc)
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "a newer incarnation of the sender exists")
+        self._inbound[sender] += 1
+        self.counters["link_accepts"] += 1
+        acker: _Acker | None = None
+        task = asyncio.current_task()
+        if task is not None:
+            self._handlers.add(task)
+        try:
+            await context.write(
+                pb.LinkReply(
+                    receiver=self.name, receiver_incarnation=self.incarnation, acked_seq=st.last
+                ).SerializeToString()
+            )
+            acker = _Acker(self, context, st)
+            await self._receive(request_iterator, sender, inc, st, acker)
+        except asyncio.CancelledError:
+            if not self._closing:
+                raise
+            # shutting down: end the RPC normally rather than leave grpc a cancelled task to report
+        except Exception as e:  # a broken stream must never take the host down
+            self.counters["link_receive_errors"] += 1
+            log_event(log, logging.DEBUG, "link_receive_ended", sender=sender, reason=f"{type(e).__name__}: {e}")
+        finally:
+            if acker is not None:
+                acker.stop()
+            if task is not None:
+                self._handlers.discard(task)
+            self._inbound[sender] -= 1
+
+    async def _receive(
+        self, request_iterator: AsyncIterator[bytes], sender: str, inc: int, st: _RxState, acker: _Acker
+    ) -> None:
+        counters = self.counters
+        decode = wire.decode
+        parse = pb.Frame.FromString
+        async for data in request_iterator:
+            if self._rx.get(sender) is not st:
+                # a newer incarnation of the sender connected: this stream belongs to a dead process
+                counters["rejected_stale_incarnation"] += 1
+                return
+            try:
+                frame = parse(data)
+            except DecodeError:
+                self._reject("rejected_malformed", "reject_malformed", sender=sender, size=len(data))
+                continue
+            seq = frame.first_seq
+            if seq == 0:
+                self._reject("rejected_malformed", "reject_malformed", sender=sender, why="first_seq 0")
+                continue
+            counters["rx_frames"] += 1
+            items: list[tuple[int, Message]] = []
+            for env in frame.envelopes:
+                last = st.last
+                if seq <= last:
+                    counters["link_duplicates"] += 1
+                    seq += 1
+                    continue
+                if seq > last + 1:
+                    counters["link_gap"] += 1
+                    if self.limiter.allow("gap." + sender):
+                        log_event(log, logging.WARNING, "link_gap", sender=sender, expected=last + 1, got=seq)
+                st.last = seq
+                seq += 1
+                try:
+                    src, src_inc, dst_inc, msg = decode(env)
+                except wire.WireError as e:
+                    self._reject("rejected_invalid", "reject_invalid", sender=sender, reason=str(e))
+                    continue
+                if src != sender or src_inc != inc:
+                    self._reject(
+                        "rejected_invalid", "reject_invalid", sender=sender, reason=f"envelope from {src}#{src_inc}"
+                    )
+                    continue
+                kind = wire.KIND[type(msg)]
+                counters["rx_msgs." + kind] += 1
+                counters["rx_bytes." + kind] += env.ByteSize()
+                items.append((dst_inc, msg))
+            if items:
+                self.on_envelopes(sender, inc, items)
+            acker.frame()
+
+
+class _Acker:
+    """Cumulative acks on one inbound stream: at most one per `ack_interval`, or at once every `ack_every`
+    frames. All writes after the handshake happen in this task (a stream allows one write at a time)."""
+
+    def __init__(self, t: Transport, context: aio.ServicerContext, st: _RxState) -> None:
+        self.t = t
+        self.context = context
+        self.st = st
+        self.frames = 0
+        self.sent = -1
+        self.need = asyncio.Event()
+        self.urgent = asyncio.Event()
+        self.task = asyncio.get_running_loop().create_task(self._run())
+
+    def frame(self) -> None:
+        self.frames += 1
+        self.need.set()
+        if self.frames >= self.t.ack_every:
+            self.urgent.set()
+
+    def stop(self) -> None:
+        self.task.cancel()
+
+    async def _run(self) -> None:
+        t = self.t
+        with contextlib.suppress(Exception):
+            while True:
+                await self.need.wait()
+                self.need.clear()
+                last = self.st.last
+                if last != self.sent:
+                    self.frames = 0
+                    await self.context.write(pb.LinkReply(acked_seq=last).SerializeToString())
+                    self.sent = last
+                    t.counters["acks_sent"] += 1
+                # at most one ack per `ack_interval`, unless `ack_every` frames arrived meanwhile
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.urgent.wait(), t.ack_interval)
+                self.urgent.clear()

@@ -1,0 +1,160 @@
+"""Test helper: a cluster of real `haa-hostd` subprocesses on free loopback ports (not a test module)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import grpc
+
+from haa.hostd.control import ControlClient
+from haa.pb import control_pb2 as cpb
+
+T = TypeVar("T")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def hostd_command() -> list[str]:
+    script = Path(sys.executable).parent / "haa-hostd"
+    return [str(script)] if script.exists() else [sys.executable, "-m", "haa.hostd.daemon"]
+
+
+def wait_for(fn: Callable[[], T], timeout: float, what: str, interval: float = 0.05) -> T:
+    """Poll `fn` until it returns something truthy (RPC errors count as "not yet")."""
+    deadline = time.monotonic() + timeout
+    last_err: Exception | None = None
+    while True:
+        try:
+            v = fn()
+            if v:
+                return v
+        except grpc.RpcError as e:
+            last_err = e
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout}s waiting for {what} (last error: {last_err})")
+        time.sleep(interval)
+
+
+class HostProc:
+    def __init__(self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str]):
+        self.name = name
+        self.port = port
+        self.address = f"127.0.0.1:{port}"
+        self.data_dir = root / name
+        self.cmd = [
+            *hostd_command(),
+            "--name",
+            name,
+            "--listen",
+            self.address,
+            "--peers",
+            ",".join(f"{p}=127.0.0.1:{pp}" for p, pp in peers.items()),
+            "--token-file",
+            str(token_file),
+            "--data-dir",
+            str(self.data_dir),
+            *args,
+        ]
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.token = token_file.read_text().strip()
+        self._client: ControlClient | None = None
+        self.starts = 0
+
+    def start(self) -> None:
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.starts += 1
+        err = open(self.data_dir / f"stderr.{self.starts}.txt", "wb")  # noqa: SIM115 - owned by the process
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err, env={**os.environ})
+        err.close()
+
+    @property
+    def client(self) -> ControlClient:
+        if self._client is None:
+            self._client = ControlClient(self.address, self.token)
+        return self._client
+
+    def status(self) -> cpb.StatusReply:
+        return self.client.status()
+
+    def signal(self, sig: int) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(sig)
+
+    def kill9(self) -> None:
+        self.signal(signal.SIGKILL)
+        assert self.proc is not None
+        self.proc.wait(10)
+
+    def terminate(self, timeout: float = 10.0) -> int:
+        assert self.proc is not None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.terminate()
+        return self.proc.wait(timeout)
+
+    def log_events(self) -> list[dict[str, Any]]:
+        path = self.data_dir / f"{self.name}.jsonl"
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
+class LocalCluster:
+    """N haa-hostd processes, full mesh, on free loopback ports."""
+
+    def __init__(self, names: list[str], root: Path, token: str = "cluster-secret", args: list[str] | None = None):
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        self.token = token
+        self.token_file = root / "token"
+        self.token_file.write_text(token + "\n")
+        ports = {n: free_port() for n in names}
+        self.hosts = {
+            n: HostProc(n, ports[n], {p: pp for p, pp in ports.items() if p != n}, root, self.token_file, args or [])
+            for n in names
+        }
+
+    def __getitem__(self, name: str) -> HostProc:
+        return self.hosts[name]
+
+    def start(self) -> None:
+        for h in self.hosts.values():
+            h.start()
+
+    def all_trusted(self, names: list[str] | None = None) -> bool:
+        """Every listed host knows every other's current incarnation, trusts it and has its link up."""
+        names = names or list(self.hosts)
+        st = {n: self.hosts[n].status() for n in names}
+        for n in names:
+            for p in st[n].peers:
+                if p.name not in st:
+                    continue
+                if p.incarnation != st[p.name].incarnation or p.suspected or p.excluded or not p.connected:
+                    return False
+        return True
+
+    def wait_trusted(self, timeout: float = 20.0, names: list[str] | None = None) -> None:
+        wait_for(lambda: self.all_trusted(names), timeout, "every host to trust every other")
+
+    def close(self) -> None:
+        for h in self.hosts.values():
+            h.close()

@@ -1,0 +1,176 @@
+"""HostRuntime in-process: the timer wheel, the delivered log and its hash chain, propose outcomes
+(commit, abort, timeout), and reincarnation."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import time
+from collections.abc import Awaitable, Callable, Hashable
+
+import pytest
+from hostd_procs import free_port
+
+from haa.hostd.core import CoreConfig
+from haa.hostd.effects import CancelTimer, SetTimer
+from haa.hostd.messages import Excluded, TxId
+from haa.hostd.oac import OacError
+from haa.hostd.qos import QosTargets
+from haa.hostd.runtime import (
+    GENESIS_HASH,
+    HostReincarnated,
+    HostRuntime,
+    ProposeTimeout,
+    RuntimeConfig,
+    TransactionAborted,
+    chain_hash,
+)
+from haa.hostd.ufd import UfdConfig
+
+FAST_CORE = CoreConfig(
+    ufd=UfdConfig(qos=QosTargets(td_upper=0.3, tmr_lower=3600.0, tm_upper=1.0), initial_period=0.02),
+    exclude_after=30.0,
+)
+
+
+def run(fn: Callable[[], Awaitable[None]]) -> None:
+    asyncio.run(asyncio.wait_for(fn(), 30))
+
+
+async def until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        await asyncio.sleep(0.01)
+
+
+def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = None) -> dict[str, HostRuntime]:
+    ports = {n: free_port() for n in names}
+    return {
+        n: HostRuntime(
+            RuntimeConfig(
+                name=n,
+                listen=f"127.0.0.1:{ports[n]}",
+                peers={p: f"127.0.0.1:{pp}" for p, pp in ports.items() if p != n},
+                token="t",
+                core=FAST_CORE,
+            ),
+            evaluate=evaluate,
+        )
+        for n in names
+    }
+
+
+def trusted(rts: dict[str, HostRuntime]) -> bool:
+    return all(
+        not row["suspected"] and row["incarnation"] == rts[row["name"]].incarnation
+        for rt in rts.values()
+        for row in rt.core.peer_view()  # type: ignore[union-attr]
+    )
+
+
+def test_chain_hash_definition() -> None:
+    t = TxId("h1", 7, 3)
+    want = hashlib.sha256(GENESIS_HASH.encode() + b"\nh1.7.3\npayload").hexdigest()
+    assert chain_hash(GENESIS_HASH, t, b"payload") == want
+    assert chain_hash(want, t, b"x") != chain_hash(want, TxId("h1", 7, 4), b"x")
+    # no ambiguity between the id and the payload
+    assert chain_hash(GENESIS_HASH, TxId("h1", 1, 1), b"2") != chain_hash(GENESIS_HASH, TxId("h1", 1, 12), b"")
+
+
+def test_timer_wheel_replaces_cancels_and_never_fires_early() -> None:
+    async def main() -> None:
+        rt = runtimes(["solo"])["solo"]
+        await rt.start()
+        fired: list[tuple[float, Hashable]] = []
+        core = rt.core
+        assert core is not None
+        core.on_timer = lambda now, key: fired.append((now, key))  # type: ignore[method-assign]
+        t = time.monotonic()
+        core.out += [
+            SetTimer(("x", 1), t + 0.02),
+            SetTimer(("x", 1), t + 0.06),  # replaces the first
+            SetTimer(("y", 1), t + 0.03),
+            SetTimer(("z", 1), t + 0.01),
+            CancelTimer(("z", 1)),
+        ]
+        rt._apply()
+        await asyncio.sleep(0.12)
+        assert [k for _n, k in fired] == [("y", 1), ("x", 1)]
+        assert fired[0][0] >= t + 0.03 and fired[1][0] >= t + 0.06
+        await rt.stop()
+
+    run(main)
+
+
+def test_single_host_commit_and_abort_and_delivered_log() -> None:
+    async def main() -> None:
+        rt = runtimes(["solo"], evaluate=lambda _t, payload: payload != b"veto")["solo"]
+        await rt.start()
+        res = await rt.propose(b"a", participants=[])
+        assert res.participants == ("solo",) and res.txid.host == "solo"
+        with pytest.raises(TransactionAborted) as exc:
+            await rt.propose(b"veto", participants=[])
+        assert exc.value.txid.seq == res.txid.seq + 1
+        res2 = await rt.propose(b"b", participants=[])
+        assert [(e.index, e.payload) for e in rt.delivered] == [(0, b"a"), (1, b"b")]
+        h = chain_hash(chain_hash(GENESIS_HASH, res.txid, b"a"), res2.txid, b"b")
+        assert rt.delivered_hash == h == rt.delivered[-1].chain_hash
+        d2d, p2d = rt.take_latencies(reset=True)
+        assert len(d2d) == 2 and len(p2d) == 3
+        assert rt.take_latencies(reset=False) == ([], [])
+        st = rt.status()
+        assert st["delivered"] == 2 and st["counters"]["oac_aborted"] == 1
+        with pytest.raises(OacError):
+            rt.propose_nowait(b"x", participants=["ghost"])
+        await rt.stop()
+
+    run(main)
+
+
+def test_two_hosts_commit_then_timeout_when_the_peer_is_gone() -> None:
+    async def main() -> None:
+        rts = runtimes(["a", "b"])
+        for rt in rts.values():
+            await rt.start()
+        await until(lambda: trusted(rts))
+        res = await rts["a"].propose(b"both", participants=["a", "b"])
+        assert res.participants == ("a", "b")
+        await until(lambda: len(rts["b"].delivered) == 1)
+        assert rts["a"].delivered_hash == rts["b"].delivered_hash
+        await rts["b"].stop()
+        # with two participants nothing can be decided without b: the proposer times out
+        with pytest.raises(ProposeTimeout) as exc:
+            await rts["a"].propose(b"alone", participants=["a", "b"], timeout=0.3)
+        assert exc.value.participants == ("a", "b")
+        await rts["a"].stop()
+
+    run(main)
+
+
+def test_reincarnation_on_exclusion_notice() -> None:
+    async def main() -> None:
+        rts = runtimes(["a", "b"])
+        for rt in rts.values():
+            await rt.start()
+        await until(lambda: trusted(rts))
+        a, b = rts["a"], rts["b"]
+        old = a.incarnation
+        open_tx = asyncio.create_task(a.propose(b"pending", participants=["a", "b"], timeout=5))
+        await asyncio.sleep(0)
+        n_timers = len(a._timers)
+        assert n_timers > 0
+        # b tells a that its incarnation has been excluded
+        a._on_envelopes("b", b.incarnation, [(old, Excluded(old))])
+        assert a.incarnation > old
+        assert a.transport.incarnation == a.incarnation
+        assert a.counters["reincarnations"] == 1
+        with pytest.raises(HostReincarnated):
+            await open_tx
+        await until(lambda: trusted(rts))
+        res = await a.propose(b"again", participants=["a", "b"])
+        assert res.txid.inc == a.incarnation
+        for rt in rts.values():
+            await rt.stop()
+
+    run(main)

@@ -1,0 +1,356 @@
+"""The host-to-host transport (haa.hostd.transport), in-process on loopback.
+
+FIFO and no loss across broken connections, receiver and sender reincarnations, a down peer not stalling the
+others, and the receiver's handling of hostile input (bad token, unknown sender, garbage, invalid envelopes,
+duplicates).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import grpc
+import pytest
+from grpc import aio
+
+from haa.hostd import wire
+from haa.hostd.messages import Excluded, Heartbeat, Message
+from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
+from haa.pb import hostlink_pb2 as pb
+
+TOKEN = "test-token"
+FAST = {"min_backoff": 0.01, "max_backoff": 0.1, "handshake_timeout": 1.0}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Node:
+    """A Transport with its own grpc.aio server, recording what it receives."""
+
+    def __init__(self, name: str, inc: int, port: int, peers: dict[str, int], **kw: Any) -> None:
+        self.name = name
+        self.port = port
+        self.got: list[tuple[str, int, int, Message]] = []
+        self.peer_incs: list[tuple[str, int]] = []
+        self.t = Transport(
+            name,
+            TOKEN,
+            {p: f"127.0.0.1:{pp}" for p, pp in peers.items()},
+            on_envelopes=self._on_envelopes,
+            on_peer_incarnation=lambda p, i: self.peer_incs.append((p, i)),
+            **{**FAST, **kw},
+        )
+        self.t.incarnation = inc
+        self.server: aio.Server | None = None
+
+    def _on_envelopes(self, src: str, src_inc: int, items: list[tuple[int, Message]]) -> None:
+        for dst_inc, msg in items:
+            self.got.append((src, src_inc, dst_inc, msg))
+
+    def seqs(self) -> list[int]:
+        return [msg.seq for _s, _i, _d, msg in self.got if isinstance(msg, Heartbeat)]
+
+    async def serve(self) -> None:
+        server = aio.server(options=Transport.server_options())
+        self.t.add_to_server(server)
+        assert server.add_insecure_port(f"127.0.0.1:{self.port}") == self.port
+        await server.start()
+        self.server = server
+
+    async def stop_server(self) -> None:
+        assert self.server is not None
+        await self.server.stop(0)
+        self.server = None
+
+    async def close(self) -> None:
+        await self.t.stop()
+        if self.server is not None:
+            await self.stop_server()
+
+
+async def until(cond: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.005)
+
+
+def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
+    asyncio.run(asyncio.wait_for(coro_fn(), 30))
+
+
+def hb(i: int) -> Heartbeat:
+    return Heartbeat(i, 0.1, float(i))
+
+
+# ------------------------------------------------------------------------------------------------ (f)
+
+
+def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
+    """The receiver's gRPC server is closed and reopened twice while the sender keeps queueing messages:
+    every message arrives exactly once and in order."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_})
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="first connection")
+        sent = 0
+        stop = asyncio.Event()
+        queued_while_down: list[int] = []
+
+        async def produce() -> None:
+            nonlocal sent
+            while not stop.is_set():
+                sent += 1
+                a.t.send("b", 22, hb(sent))
+                if sent % 20 == 0:
+                    await asyncio.sleep(0.001)
+
+        producer = asyncio.create_task(produce())
+        for _ in range(2):
+            mark = len(b.got)
+            await until(lambda m=mark: len(b.got) > m + 500, what="progress")
+            await b.stop_server()  # the connection breaks with frames in flight
+            await until(lambda: not a.t.connected("b"), what="disconnect")
+            await asyncio.sleep(0.15)
+            queued_while_down.append(a.t.queued("b"))
+            await b.serve()  # same Transport object: it remembers what it already has
+        mark = len(b.got)
+        await until(lambda: len(b.got) > mark + 500, what="progress after the last restart")
+        stop.set()
+        await producer
+        n = sent
+        await until(lambda: len(b.got) >= n, timeout=10, what="all messages")
+        await asyncio.sleep(0.05)
+        assert b.seqs() == list(range(1, n + 1))
+        assert all(src == "a" and inc == 11 and dst == 22 for src, inc, dst, _m in b.got)
+        assert a.t.counters["link_disconnects"] >= 2
+        assert a.t.counters["link_connects"] >= 3
+        assert all(q > 0 for q in queued_while_down)  # messages really were queued while it was down
+        assert b.t.counters["rx_frames"] < n  # batching: fewer frames than messages
+        assert b.t.counters["link_gap"] == 0
+        await until(lambda: a.t.queued("b") == 0, what="everything acknowledged")
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_})
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"))
+        for i in range(1, 11):
+            a.t.send("b", 22, hb(i))
+        await until(lambda: len(b.got) == 10)
+        assert a.peer_incs == [("b", 22)]
+        await b.close()  # process b is gone
+        await until(lambda: not a.t.connected("b"))
+        for i in range(11, 16):
+            a.t.send("b", 22, hb(i))  # addressed to the dead incarnation
+        for i in range(16, 19):
+            a.t.send("b", 0, hb(i))  # addressed to "whoever b is"
+        b2 = Node("b", 33, pb_, {"a": pa})
+        await b2.serve()
+        await until(lambda: a.t.connected("b"))
+        await until(lambda: len(b2.got) == 3)
+        assert b2.seqs() == [16, 17, 18]
+        assert a.peer_incs == [("b", 22), ("b", 33)]
+        assert a.t.counters["link_discarded"] == 5
+        a.t.send("b", 33, hb(19))
+        await until(lambda: len(b2.got) == 4)
+        assert b2.seqs() == [16, 17, 18, 19]
+        assert b2.t.counters["link_gap"] == 0  # renumbered after the new receiver's acked_seq
+        await a.close()
+        await b2.close()
+
+    run(main)
+
+
+def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -> None:
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_})
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"))
+        for i in range(1, 6):
+            a.t.send("b", 22, hb(i))
+        await until(lambda: len(b.got) == 5)
+        a.t.set_incarnation(12)
+        for i in range(6, 9):
+            a.t.send("b", 22, hb(i))
+        await until(lambda: len(b.got) == 8)
+        assert [(inc, msg.seq) for _s, inc, _d, msg in b.got] == [(11, i) for i in range(1, 6)] + [
+            (12, i) for i in range(6, 9)
+        ]
+        assert b.t.counters["link_gap"] == 0
+        with pytest.raises(ValueError):
+            a.t.set_incarnation(12)
+        # a leftover process of incarnation 11 is refused
+        old = Node("a", 11, free_port(), {"b": pb_})
+        old.t.start()
+        await until(lambda: b.t.counters["rejected_stale_incarnation"] >= 1)
+        assert not old.t.connected("b")
+        await old.close()
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_a_down_peer_does_not_stall_the_others() -> None:
+    async def main() -> None:
+        pa, pb_, pc = free_port(), free_port(), free_port()  # nothing listens on pc
+        a = Node("a", 11, pa, {"b": pb_, "c": pc})
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        t0 = time.monotonic()
+        await until(lambda: a.t.connected("b"))
+        for i in range(1, 201):
+            a.t.send("c", 7, hb(i))
+            a.t.send("b", 22, hb(i))
+        await until(lambda: len(b.got) == 200, timeout=2.0)
+        assert time.monotonic() - t0 < 2.0
+        assert not a.t.connected("c")
+        assert a.t.queued("c") == 200  # kept for when c comes up (addressed to a known incarnation)
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_before_first_contact_only_recent_unaddressed_messages_are_kept() -> None:
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, precontact_limit=16)
+        b = Node("b", 22, pb_, {"a": pa})
+        a.t.start()
+        for i in range(1, 101):
+            a.t.send("b", 0, hb(i))  # heartbeats to a peer that has not started yet
+        await asyncio.sleep(0.05)
+        await b.serve()
+        await until(lambda: len(b.got) == 16)
+        await asyncio.sleep(0.05)
+        assert b.seqs() == list(range(85, 101))
+        assert a.t.counters["dropped_precontact"] == 84
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+# ------------------------------------------------------------------------------------------ hostile input
+
+
+class RawLink:
+    """A hand-driven HostLink.Open call (bytes in, bytes out)."""
+
+    def __init__(self, port: int, md: tuple[tuple[str, str], ...]) -> None:
+        self.channel = aio.insecure_channel(f"127.0.0.1:{port}")
+        self.call = self.channel.stream_stream(OPEN_METHOD)(metadata=md)
+
+    async def reply(self) -> pb.LinkReply:
+        data = await asyncio.wait_for(self.call.read(), 5)
+        assert data is not aio.EOF
+        return pb.LinkReply.FromString(data)
+
+    async def close(self) -> None:
+        self.call.cancel()
+        await self.channel.close()
+
+
+def md(token: str = TOKEN, sender: str = "a", inc: str = "11") -> tuple[tuple[str, str], ...]:
+    return ((MD_TOKEN, token), (MD_SENDER, sender), (MD_INC, inc))
+
+
+def frame(first: int, msgs: list[Message], sender: str = "a", inc: int = 11) -> bytes:
+    return encode_frame(first, [envelope_chunk(wire.encode(sender, inc, 22, x).SerializeToString()) for x in msgs])
+
+
+@pytest.mark.parametrize(
+    ("metadata", "code", "counter"),
+    [
+        (md(token="wrong"), grpc.StatusCode.UNAUTHENTICATED, "rejected_unauthenticated"),
+        (((MD_SENDER, "a"), (MD_INC, "11")), grpc.StatusCode.UNAUTHENTICATED, "rejected_unauthenticated"),
+        (md(sender="mallory"), grpc.StatusCode.PERMISSION_DENIED, "rejected_unknown_peer"),
+        (md(inc="x"), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
+        (md(inc="0"), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
+    ],
+    ids=["wrong-token", "no-token", "unknown-sender", "bad-inc", "zero-inc"],
+)
+def test_refused_calls(metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str) -> None:
+    async def main() -> None:
+        pb_ = free_port()
+        b = Node("b", 22, pb_, {"a": free_port()})
+        await b.serve()
+        raw = RawLink(pb_, metadata)
+        with pytest.raises(aio.AioRpcError) as exc:
+            await raw.reply()
+        assert exc.value.code() == code
+        assert b.t.counters[counter] == 1
+        await raw.close()
+        # the server still serves a correct peer
+        ok = RawLink(pb_, md())
+        assert (await ok.reply()).receiver == "b"
+        await ok.close()
+        await b.close()
+
+    run(main)
+
+
+def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives() -> None:
+    async def main() -> None:
+        pb_ = free_port()
+        b = Node("b", 22, pb_, {"a": free_port(), "c": free_port()}, ack_interval=0.001)
+        await b.serve()
+        raw = RawLink(pb_, md())
+        hello = await raw.reply()
+        assert (hello.receiver, hello.receiver_incarnation, hello.acked_seq) == ("b", 22, 0)
+        c = b.t.counters
+        await raw.call.write(b"\xff\xff\xff\xff garbage")
+        await raw.call.write(b"\x08")  # truncated varint
+        await until(lambda: c["rejected_malformed"] == 2)
+        await raw.call.write(encode_frame(0, []))  # sequence numbers start at 1
+        await until(lambda: c["rejected_malformed"] == 3)
+        await raw.call.write(frame(1, [hb(1), hb(2)]))
+        await until(lambda: len(b.got) == 2)
+        bad = wire.encode("a", 11, 22, Heartbeat(3, 0.1, 0.0))
+        bad.heartbeat.period = math.nan
+        spoofed = wire.encode("c", 5, 22, Excluded(22))  # c's message on a's link
+        await raw.call.write(
+            encode_frame(3, [envelope_chunk(bad.SerializeToString()), envelope_chunk(spoofed.SerializeToString())])
+        )
+        await until(lambda: c["rejected_invalid"] == 2)
+        await raw.call.write(frame(2, [hb(102), hb(103), hb(104), hb(105)]))  # seqs 2..5: 2-4 are duplicates
+        await until(lambda: len(b.got) == 3)
+        assert c["link_duplicates"] == 3
+        assert b.seqs() == [1, 2, 105]
+        # acks are cumulative and reach the last link sequence number seen
+        last = 0
+        while last < 5:
+            last = (await raw.reply()).acked_seq
+        assert last == 5
+        await raw.close()
+        await b.close()
+
+    run(main)
