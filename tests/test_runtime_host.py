@@ -9,7 +9,6 @@ import time
 from collections.abc import Awaitable, Callable, Hashable
 
 import pytest
-from hostd_procs import free_port
 
 from haa.hostd.core import CoreConfig
 from haa.hostd.effects import CancelTimer, SetTimer
@@ -26,6 +25,7 @@ from haa.hostd.runtime import (
     chain_hash,
 )
 from haa.hostd.ufd import UfdConfig
+from haactl.local import free_port
 
 FAST_CORE = CoreConfig(
     ufd=UfdConfig(qos=QosTargets(td_upper=0.3, tmr_lower=3600.0, tm_upper=1.0), initial_period=0.02),
@@ -170,6 +170,33 @@ def test_reincarnation_on_exclusion_notice() -> None:
         await until(lambda: trusted(rts))
         res = await a.propose(b"again", participants=["a", "b"])
         assert res.txid.inc == a.incarnation
+        for rt in rts.values():
+            await rt.stop()
+
+    run(main)
+
+
+def test_concurrent_proposals_commit_and_close_everything() -> None:
+    """Regression: the wire codec once dropped OacDecide.delivered, so every rebroadcast counted for the
+    l. 41 closing gate and late 'delivered' messages re-created closed transactions as placeholders that
+    blocked the l. 37 gate for good. Concurrent proposers on real runtimes hit it within a few
+    transactions."""
+
+    async def main() -> None:
+        rts = runtimes(["h1", "h2", "h3"])
+        for rt in rts.values():
+            await rt.start()
+        await until(lambda: trusted(rts), 10)
+        jobs = [
+            asyncio.wait_for(rts[p].propose(f"{p}{i}".encode(), participants=list(rts)), 10)
+            for i in range(15)
+            for p in rts
+        ]
+        results = await asyncio.gather(*jobs)
+        assert len(results) == 45
+        await until(lambda: all(not rt.core.oac.txs for rt in rts.values()), 5)  # type: ignore[union-attr]
+        assert len({rt.delivered_hash for rt in rts.values()}) == 1
+        assert all(len(rt.delivered) == 45 for rt in rts.values())
         for rt in rts.values():
             await rt.stop()
 

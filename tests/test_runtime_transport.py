@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -22,15 +21,10 @@ from haa.hostd import wire
 from haa.hostd.messages import Excluded, Heartbeat, Message
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
+from haactl.local import free_port
 
 TOKEN = "test-token"
 FAST = {"min_backoff": 0.01, "max_backoff": 0.1, "handshake_timeout": 1.0}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Node:

@@ -34,7 +34,7 @@ def decides(draw: st.DrawFn) -> m.OacDecide:
     commit = draw(st.booleans())
     order = draw(orders) if commit else -1
     rnd = draw(st.integers(min_value=-1, max_value=wire.MAX_ROUND))
-    return m.OacDecide(draw(txids), order, rnd, commit, draw(participants()))
+    return m.OacDecide(draw(txids), order, rnd, commit, draw(participants()), draw(st.booleans()))
 
 
 messages = st.one_of(
@@ -133,18 +133,20 @@ MALFORMED: list[tuple[str, Callable[[], pb.Envelope], str]] = [
     ("estimate negative ts", lambda: env_of(m.OacEstimate(T, 1, 0, False, -3)), "ts -3"),
     ("proposal negative round", lambda: env_of(m.OacProposal(T, 1, -2, True)), "round -2"),
     ("ack negative round", lambda: env_of(m.OacAck(T, 1, -1, True)), "round -1"),
-    ("decide round -2", lambda: env_of(m.OacDecide(T, -1, -2, False, P3)), "round -2"),
-    ("commit with order -1", lambda: env_of(m.OacDecide(T, -1, 0, True, P3)), "order -1"),
-    ("abort order -2", lambda: env_of(m.OacDecide(T, -2, 0, False, P3)), "order -2"),
+    ("decide round -2", lambda: env_of(m.OacDecide(T, -1, -2, False, P3, True)), "round -2"),
+    ("commit with order -1", lambda: env_of(m.OacDecide(T, -1, 0, True, P3, False)), "order -1"),
+    ("abort order -2", lambda: env_of(m.OacDecide(T, -2, 0, False, P3, True)), "order -2"),
     ("tx empty participants", lambda: env_of(m.OacTransaction(T, b"x", (), 1)), "empty participant list"),
-    ("decide empty participants", lambda: env_of(m.OacDecide(T, 1, 0, True, ())), "empty participant list"),
+    ("decide empty participants", lambda: env_of(m.OacDecide(T, 1, 0, True, (), False)), "empty participant list"),
     ("tx duplicate participants", lambda: env_of(m.OacTransaction(T, b"", (("h1", 5), ("h1", 6)), 1)), "duplicate"),
-    ("decide duplicate participants", lambda: env_of(m.OacDecide(T, 1, 0, True, (("h2", 1),) * 2)), "duplicate"),
+    ("decide duplicate participants", lambda: env_of(m.OacDecide(T, 1, 0, True, (("h2", 1),) * 2, False)), "duplicate"),
     ("participant inc 0", lambda: env_of(m.OacTransaction(T, b"", (("h1", 5), ("h2", 0)), 1)), "incarnation 0"),
     ("participant no name", lambda: env_of(m.OacTransaction(T, b"", (("h1", 5), ("", 2)), 1)), "empty host name"),
     (
         "too many participants",
-        lambda: env_of(m.OacDecide(T, 1, 0, True, tuple((f"h{i}", 1) for i in range(wire.MAX_PARTICIPANTS + 1)))),
+        lambda: env_of(
+            m.OacDecide(T, 1, 0, True, tuple((f"h{i}", 1) for i in range(wire.MAX_PARTICIPANTS + 1)), False)
+        ),
         "participants (max",
     ),
     ("excluded inc 0", lambda: env_of(m.Excluded(0)), "incarnation 0"),
@@ -164,8 +166,8 @@ def test_decode_accepts_the_boundaries() -> None:
     # the values just inside every limit are legal
     ok = [
         m.Heartbeat(wire.MAX_HB_SEQ, wire.MAX_PERIOD, -wire.MAX_CLOCK),
-        m.OacDecide(T, -1, -1, False, P3),  # unilateral abort before any round (Alg. 2 l. 29)
-        m.OacDecide(T, wire.MAX_ORDER, wire.MAX_ROUND, True, P3),
+        m.OacDecide(T, -1, -1, False, P3, True),  # unilateral abort before any round (Alg. 2 l. 29)
+        m.OacDecide(T, wire.MAX_ORDER, wire.MAX_ROUND, True, P3, False),
         m.OacEstimate(T, 0, 0, False, 0),
         m.OacTransaction(T, b"", (("h1", 5),), 1),  # a single-host transaction
     ]

@@ -112,7 +112,7 @@ class OacDecide:
     round: int
     commit: bool
     participants: tuple[tuple[str, int], ...]
-    delivered: bool = True
+    delivered: bool
 
 
 @dataclass(slots=True)

@@ -149,6 +149,7 @@ def _enc_decide(env: pb.Envelope, m: OacDecide) -> None:
     t.round = m.round
     t.commit = m.commit
     _set_parts(t.participants, m.participants)
+    t.delivered = m.delivered
 
 
 def _enc_excluded(env: pb.Envelope, m: Excluded) -> None:
@@ -300,7 +301,9 @@ def _dec_decide(env: pb.Envelope) -> OacDecide:
     k = "oac_decide"
     # an abort carries order -1 (Alg. 2 l. 29 / l. 71); a unilateral abort before any round carries round -1
     order = _order(m.order, k, low=0 if m.commit else -1)
-    return OacDecide(_dec_txid(m, k), order, _round(m.round, k, low=-1), m.commit, _dec_parts(m.participants, k))
+    return OacDecide(
+        _dec_txid(m, k), order, _round(m.round, k, low=-1), m.commit, _dec_parts(m.participants, k), m.delivered
+    )
 
 
 def _dec_excluded(env: pb.Envelope) -> Excluded:

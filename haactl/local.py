@@ -1,9 +1,16 @@
-"""Test helper: a cluster of real `haa-hostd` subprocesses on free loopback ports (not a test module)."""
+"""A local cluster: real `haa-hostd` processes on free loopback ports, full mesh, one data dir each.
+
+Used by `haactl demo`, `haactl bench ap1` and the tests. Each host gets its own folder under the cluster
+root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
+file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
+`LocalCluster` starts them all and waits until every host trusts every other.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -49,7 +56,9 @@ def wait_for(fn: Callable[[], T], timeout: float, what: str, interval: float = 0
 
 
 class HostProc:
-    def __init__(self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str]):
+    def __init__(
+        self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str]
+    ) -> None:
         self.name = name
         self.port = port
         self.address = f"127.0.0.1:{port}"
@@ -121,12 +130,16 @@ class HostProc:
 class LocalCluster:
     """N haa-hostd processes, full mesh, on free loopback ports."""
 
-    def __init__(self, names: list[str], root: Path, token: str = "cluster-secret", args: list[str] | None = None):
+    def __init__(
+        self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None
+    ) -> None:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
+        token = token or secrets.token_hex(24)
         self.token = token
         self.token_file = root / "token"
         self.token_file.write_text(token + "\n")
+        self.token_file.chmod(0o600)
         ports = {n: free_port() for n in names}
         self.hosts = {
             n: HostProc(n, ports[n], {p: pp for p, pp in ports.items() if p != n}, root, self.token_file, args or [])
@@ -158,3 +171,9 @@ class LocalCluster:
     def close(self) -> None:
         for h in self.hosts.values():
             h.close()
+
+    def __enter__(self) -> LocalCluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
