@@ -117,3 +117,23 @@ def bench_ufd(
         },
     )
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ap1")
+def bench_ap1(
+    hosts: int = typer.Option(10, "--hosts", min=2, max=16, help="largest participant count"),
+    transactions: int = typer.Option(300, "--transactions", "-n", min=10, help="transactions per step"),
+    concurrency: int = typer.Option(2, "--concurrency", min=1, help="in-flight proposals per proposer"),
+) -> None:
+    """Experiment AP-1 (thesis §7.2.1): OAC latency and messages vs. participants, real haa-hostd processes."""
+    from haactl.ap1 import machine, markdown_table, run_ap1
+
+    t0 = time.perf_counter()
+    rows = run_ap1(max_hosts=hosts, transactions=transactions, concurrency=concurrency)
+    print()
+    print(markdown_table(rows))
+    path = write_json(
+        "ap1",
+        {"machine": machine(), "transactions_per_step": transactions, "concurrency": concurrency, "rows": rows},
+    )
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")

@@ -13,7 +13,8 @@ the reason, before anything starts. A port that cannot be bound exits with code 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
 (default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT shut the host down gracefully (links closed, the
-final delivered count and hash logged).
+final delivered count and hash logged). The event loop is uvloop; set HAA_EVENT_LOOP=asyncio for the
+standard library loop.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ import os
 import re
 import signal
 import sys
+from collections.abc import Coroutine
 from pathlib import Path
-from typing import Literal, NoReturn
+from typing import Any, Literal, NoReturn
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, ValidationInfo, field_validator
 
@@ -216,11 +218,22 @@ async def serve(cfg: RuntimeConfig) -> None:
     await rt.run()
 
 
+def run_event_loop(coro: Coroutine[Any, Any, None]) -> None:
+    """Run on uvloop unless HAA_EVENT_LOOP=asyncio: measured on 10 hosts sharing 2 cores, uvloop gives
+    grpc.aio ~45% more OAC throughput and ~20% lower latency (README, AP-1)."""
+    if os.environ.get("HAA_EVENT_LOOP", "uvloop") == "asyncio":
+        asyncio.run(coro)
+        return
+    import uvloop
+
+    uvloop.run(coro)
+
+
 def main(argv: list[str] | None = None) -> None:
     settings = load_settings(argv)
     cfg = settings.runtime_config()
     try:
-        asyncio.run(serve(cfg))
+        run_event_loop(serve(cfg))
     except RuntimeError as e:
         if "bind" in str(e).lower():
             fail(f"cannot listen on {cfg.listen}: {e}", code=1)
