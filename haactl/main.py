@@ -9,6 +9,7 @@ from __future__ import annotations
 import typer
 
 from haactl.bench import bench_app
+from haactl.demo import demo
 from haactl.verify import verify
 
 app = typer.Typer(
@@ -27,6 +28,7 @@ def _root() -> None:
 
 app.command("verify")(verify)
 app.add_typer(bench_app, name="bench")
+app.command("demo")(demo)
 
 if __name__ == "__main__":
     app()
