@@ -110,3 +110,23 @@ def test_running_offset_sum_is_reanchored():
     for seq in range(1, 40):
         obs.on_heartbeat(seq * 0.05 + 0.001, Heartbeat(seq, 0.05, seq * 0.05))
     assert obs.mean_offset() == pytest.approx(0.001, abs=1e-9)
+
+
+def test_a_freshness_timer_that_fires_early_is_rearmed():
+    """A driver whose clock conversion loses an ulp may fire the timer just before q_tau_{l+1}: the
+    core must wait for the deadline again, or a crashed peer stays trusted forever (found by the
+    100,000-schedule sweep, seed 7020)."""
+    from haa.hostd.core import CoreConfig, HostCore
+    from haa.hostd.effects import SetTimer, Suspicion
+
+    core = HostCore("q", 1, ["q", "p"], CoreConfig(ufd=CFG))
+    core.start(0.0)
+    core.on_message(0.01, "p", 1, 0, Heartbeat(0, 0.05, 0.0))
+    core.drain()
+    fresh = core.peers["p"].observer.freshness
+    core.on_timer(fresh - 1e-12, ("fd", "p"))
+    out = core.drain()
+    assert not any(isinstance(e, Suspicion) for e in out)
+    assert SetTimer(("fd", "p"), fresh) in out
+    core.on_timer(fresh, ("fd", "p"))
+    assert any(isinstance(e, Suspicion) and e.suspected for e in core.drain())

@@ -346,12 +346,14 @@ class SimCluster:
                 if type(msg) is Heartbeat and (src, src_inc) in self.history.crash_time:
                     self._record_ed_hat(h, src, src_inc)
             else:
-                inc, key, gen = data
+                inc, key, gen, deadline = data
                 if inc != h.inc or h.timers.get(key) != gen:
                     continue
                 del h.timers[key]
                 upd(f"{t:.9f}t{idx}{key}".encode())
-                core.on_timer(h.local(t), key)
+                local = h.local(t)
+                # local -> virtual -> local may lose an ulp: never report a timer before its deadline
+                core.on_timer(local if local >= deadline else deadline, key)
             self._apply(h)
         self.now = max(self.now, until)
 
@@ -386,7 +388,7 @@ class SimCluster:
                 self.seq += 1
                 h.timers[e.key] = self.seq
                 at = h.virtual(e.at)
-                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, self.seq))
+                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, self.seq, e.at))
             elif t is CancelTimer:
                 h.timers.pop(e.key, None)
             elif t is Deliver:

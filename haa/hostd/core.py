@@ -203,8 +203,13 @@ class HostCore:
             self._send(q, p.inc, hb)
             self._timer(("hb", q), p.sender.next_send)
         elif kind == "fd":  # Alg. 1 l. 17-18
-            if p.observer is not None and p.observer.on_deadline(now):
+            obs = p.observer
+            if obs is None:
+                return
+            if obs.on_deadline(now):
                 self._set_suspected(now, p, True)
+            elif obs.trusted:  # fired before q_tau_{l+1} (a driver's clock rounding): wait for it again
+                self._timer(("fd", q), obs.freshness)
         elif kind == "excl":
             if key[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:  # type: ignore[index]
                 self._exclude(now, p)
