@@ -231,3 +231,45 @@ def test_restarted_peer_that_never_speaks_is_still_excluded():
     core.on_timer(3.0, ("excl", "h2", 6))
     assert any(isinstance(e, PeerDead) and e.inc == 6 for e in core.drain())
     assert core.is_dead("h2", 6)
+
+
+def locked_round_zero_scenario():
+    """Round 0 commits with a quorum while a participant that suspected the coordinator runs round 1.
+
+    h1 coordinates round 0 of a transaction to (h1, h2, h3); its proposal reaches h3 but not h2 (slow
+    channel), h3 acks, h1 decides commit with the quorum {h1, h3}; its decide to h3 is slow too. h2
+    suspects h1, nacks, and coordinates round 1 with its own estimate and h3's (which adopted round 0's
+    pre-commit). The thesis' pseudo-code starts rounds at 0 and timestamps at 0 (l. 19-20), so h3's
+    adoption (ts := 0, l. 60) looks like no adoption at all, and h2 picks its own pre-abort.
+    """
+    cl = make(3)
+    slow = DelayModel("const", 0.05, 0.0)
+    cl.at(0.0015, lambda: cl.spike("h1", "h2", slow, 1.0))
+    cl.at(0.0035, lambda: cl.spike("h1", "h3", slow, 1.0))
+    cl.at(0.0032, lambda: cl.suspect("h2", "h1", True))  # after h3 acked, so h1 counts that ack first
+    cl.at(0.2, lambda: cl.suspect("h2", "h1", False))
+    txid = cl.propose("h1", b"x", None)
+    cl.run(3.0)
+    return cl, txid
+
+
+def test_round_zero_lock_survives_a_later_round():
+    cl, txid = locked_round_zero_scenario()
+    outcomes = {n: cl.history.decided[(n, 1)][txid][0] for n in cl.names}
+    assert outcomes == {"h1": True, "h2": True, "h3": True}
+    assert check_oac(scenario_for(cl), cl, True).violations == []
+
+
+def test_thesis_initial_timestamp_breaks_agreement():
+    """The same schedule with ts_p initialised to 0 as printed (l. 20): h1 commits, h2 and h3 abort."""
+    from haa.hostd import oac as oac_mod
+
+    original = oac_mod.INITIAL_TS
+    oac_mod.INITIAL_TS = 0
+    try:
+        cl, txid = locked_round_zero_scenario()
+    finally:
+        oac_mod.INITIAL_TS = original
+    outcomes = {n: cl.history.decided[(n, 1)][txid][0] for n in cl.names}
+    assert outcomes["h1"] is True and outcomes["h2"] is False
+    assert "AC-Uniform-Agreement" in {v.prop for v in check_oac(scenario_for(cl), cl, True).violations}

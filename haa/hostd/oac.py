@@ -62,6 +62,12 @@ C1 = 1  # coordinator waiting for estimates (l. 49)
 P2 = 2  # participant waiting for the coordinator's proposal (l. 57)
 C2 = 3  # coordinator waiting for acks (l. 65)
 
+#: ts_p before any proposal was adopted. The thesis initialises it to 0 (l. 20, l. 82) but starts rounds at 0
+#: (l. 19, l. 45), so adopting round 0's proposal (ts := 0, l. 60) looked like no adoption at all and a later
+#: coordinator could drop a pre-commit that round 0 had already decided on (AC-Uniform-Agreement; found by
+#: the verifier, seed 25965; docs/oac.md). [67] starts rounds at 1; we start timestamps at -1.
+INITIAL_TS = -1
+
 _STATE_NAMES = {UNDECIDED: "undecided", DECIDED: "decided", DONE: "done"}
 _PHASE_NAMES = {IDLE: "idle", C1: "C1", P2: "P2", C2: "C2"}
 
@@ -113,7 +119,7 @@ class _Tx:
         self.phase = IDLE
         self.est = False  # est_p: True = pre-commit (l. 12)
         self.r = -1  # r_p (l. 13)
-        self.ts = 0  # ts_p (l. 14)
+        self.ts = INITIAL_TS  # ts_p (l. 14)
         self.ests: dict[tuple[int, int], dict[str, tuple[bool, int]]] = {}
         self.props: dict[tuple[int, int], bool] = {}
         self.acks: dict[tuple[int, int], dict[str, bool]] = {}
@@ -390,7 +396,7 @@ class OrderedAtomicCommit:
     def _start_task2(self, tx: _Tx) -> None:
         tx.est = False  # l. 18 / l. 80: pre-abort
         tx.r = -1  # l. 19 / l. 81
-        tx.ts = 0  # l. 20 / l. 82
+        tx.ts = INITIAL_TS  # l. 20 / l. 82 (see INITIAL_TS)
         self._next_round(tx)
         self._progress(tx)
 
