@@ -6,8 +6,10 @@ A *process* is one host incarnation (host, inc). It is *correct* if it never cra
 OAC (Alg. 2):
   AC-Uniform-Agreement  no two processes decide differently on a transaction (correct or not).
   AC-Uniform-Validity   a transaction is committed only if every participant voted yes.
-  AC-Non-Triviality     if every participant voted yes and no participant was ever suspected (or crashed)
-                        before the transaction was decided, the outcome is commit.
+  AC-Non-Triviality     if every participant voted yes and no participant was suspected (by anyone), paused
+                        or crashed between the proposal and the last decision, the outcome is commit.
+                        (Every process suspects a peer until its first heartbeat, so "ever" would make the
+                        property vacuous: we read it over the transaction's lifetime.)
   AC-Total-Order        any two correct processes deliver the transactions they both deliver in the same
                         relative order.
   Integrity             each process delivers a transaction at most once, only after deciding commit,
@@ -58,6 +60,33 @@ class CheckResult:
     stats: dict[str, float]
 
 
+def suspicion_intervals(h: History) -> dict[Proc, list[tuple[float, float]]]:
+    """When each process was suspected by someone: [start, end] intervals (end = inf when it never ended).
+
+    Built from every observer's suspicion records, permanent suspicion (dead marks), the end of the
+    process's life, and the pauses of its host (a paused host is unresponsive)."""
+    out: dict[Proc, list[tuple[float, float]]] = defaultdict(list)
+    inf = float("inf")
+    open_at: dict[tuple[Proc, Proc], float] = {}
+    for t, obs, target, s in sorted(h.suspicions, key=lambda r: r[0]):
+        key = (obs, target)
+        if s:
+            open_at.setdefault(key, t)
+        elif key in open_at:
+            out[target].append((open_at.pop(key), t))
+    for (_obs, target), t in open_at.items():
+        out[target].append((t, inf))
+    for t, _obs, target, _reason in h.dead_marks:
+        out[target].append((t, inf))
+    for p, t in h.ended.items():
+        out[p].append((t, inf))
+    for name, t0, t1 in h.pauses:
+        for p in h.started:
+            if p[0] == name:
+                out[p].append((t0, t1))
+    return out
+
+
 def _fmt(p: Proc) -> str:
     return f"{p[0]}#{p[1]}"
 
@@ -67,18 +96,7 @@ def check_oac(sc: Scenario, cl: SimCluster, quiescent: bool) -> CheckResult:
     v: list[Violation] = []
     correct = h.correct()
     faulty = h.faulty()
-    first_susp: dict[Proc, float] = {}
-    for t, _obs, target, s in h.suspicions:
-        if s and target not in first_susp:
-            first_susp[target] = t
-    for _t, _obs, target, _r in h.dead_marks:
-        first_susp.setdefault(target, _t)
-    for p, t in h.ended.items():
-        first_susp[p] = min(first_susp.get(p, t), t)
-    pause_start: dict[str, float] = {}
-    for name, t0, _t1 in h.pauses:
-        pause_start[name] = min(pause_start.get(name, t0), t0)
-
+    susp = suspicion_intervals(h)
     outcomes: dict[TxId, dict[Proc, tuple[bool, float]]] = defaultdict(dict)
     for proc, decs in h.decided.items():
         for txid, (commit, t) in decs.items():
@@ -107,9 +125,8 @@ def check_oac(sc: Scenario, cl: SimCluster, quiescent: bool) -> CheckResult:
                 )
         if False in values and all(votes.get(p) is True for p in prop.participants):
             last = max(t for _c, t in decs.values())
-            quiet = all(
-                first_susp.get(p, float("inf")) > last and pause_start.get(p[0], float("inf")) > last
-                for p in prop.participants
+            quiet = not any(
+                a <= last and b >= prop.time for p in prop.participants for a, b in susp.get(p, ())
             )
             if quiet:
                 v.append(

@@ -13,6 +13,8 @@ function that undoes the patch. The verifier applies a mutation before it forks 
                      conflicts with a transaction it already holds. Breaks AC-Total-Order.
 * `commit-on-quorum` Alg. 2 l. 51 with a quorum instead of all n estimates: pre-commit without every vote.
                      Breaks AC-Uniform-Validity.
+* `never-precommit`  Alg. 2 l. 51-52 removed: the coordinator never proposes pre-commit. Breaks
+                     AC-Non-Triviality.
 * `deaf-detector`    the failure detector never suspects a process that stopped sending heartbeats
                      (Alg. 1 l. 17-18 removed). Breaks UFD-Completeness.
 """
@@ -101,6 +103,30 @@ def commit_on_quorum() -> Undo:
     return _patch(cls, "_progress", progress)
 
 
+def never_precommit() -> Undo:
+    cls = oac_mod.OrderedAtomicCommit
+    original = cls._progress
+
+    def progress(self: oac_mod.OrderedAtomicCommit, tx: oac_mod._Tx) -> None:
+        if tx.phase == oac_mod.C1 and tx.state == oac_mod.UNDECIDED:
+            got = tx.ests.get((tx.order, tx.r))
+            if got is not None and len(got) == tx.n:  # hide one estimate: l. 51 never holds
+                q = next(q for q, _qi in tx.parts if q != self.name)
+                saved = got.pop(q)
+                try:
+                    if all(q2 in got or self._suspected(q2, qi) for q2, qi in tx.parts if q2 != q):
+                        tx.est = False
+                        prop = oac_mod.OacProposal(tx.id, tx.order, tx.r, False)
+                        self._send_all(tx, prop)
+                        tx.props[(tx.order, tx.r)] = False
+                        tx.phase = oac_mod.P2
+                finally:
+                    got[q] = saved
+        original(self, tx)
+
+    return _patch(cls, "_progress", progress)
+
+
 def deaf_detector() -> Undo:
     return _patch(ufd_mod.HeartbeatObserver, "on_deadline", lambda self, now: False)
 
@@ -111,6 +137,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "thesis-close": (thesis_close, "oac", "AC-Total-Order"),
     "no-order-confirm": (no_order_confirm, "oac", "AC-Total-Order"),
     "commit-on-quorum": (commit_on_quorum, "oac", "AC-Uniform-Validity"),
+    "never-precommit": (never_precommit, "oac", "AC-Non-Triviality"),
     "deaf-detector": (deaf_detector, "ufd", "UFD-Completeness"),
 }
 

@@ -208,7 +208,7 @@ class HostCore:
                 return
             if obs.on_deadline(now):
                 self._set_suspected(now, p, True)
-            elif obs.trusted:  # fired before q_tau_{l+1} (a driver's clock rounding): wait for it again
+            elif obs.trusted and now < obs.freshness:  # fired early (a driver's clock rounding): wait again
                 self._timer(("fd", q), obs.freshness)
         elif kind == "excl":
             if key[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:  # type: ignore[index]
@@ -343,6 +343,8 @@ class HostCore:
             if self.config.fd_mode == FD_EXTERNAL:
                 p.suspected = False
             elif p.suspected:
+                # the detector's output for an incarnation it has not heard from yet is SUSPECTED (l. 15-18)
+                self.out.append(Suspicion(p.name, inc, True))
                 self._timer(("excl", p.name, inc), now + self.config.exclude_after)
             self.oac.on_peer_change(p.name)
             return
@@ -350,10 +352,8 @@ class HostCore:
         self._mark_dead(p, old, "restarted")
         if self.config.fd_mode == FD_UFD:
             # a new life: its observer of us starts from l = -1 and it needs our heartbeats at once
-            was = p.suspected
             self._start_ufd(now, p)
-            if not was:
-                self.out.append(Suspicion(p.name, inc, True))
+            self.out.append(Suspicion(p.name, inc, True))  # a new life starts suspected (l. 15-18)
             # suspected until its first heartbeat: if that never comes, it must still be excluded
             self._timer(("excl", p.name, inc), now + self.config.exclude_after)
         else:
