@@ -42,7 +42,7 @@ messages = st.one_of(
     st.builds(m.SetPeriod, periods),
     st.builds(m.OacTransaction, txids, st.binary(max_size=64), participants(), orders),
     st.builds(m.OacOrder, txids, orders),
-    st.builds(m.OacEstimate, txids, orders, rounds, st.booleans(), rounds),
+    st.builds(m.OacEstimate, txids, orders, rounds, st.booleans(), st.integers(min_value=-1, max_value=wire.MAX_ROUND)),
     st.builds(m.OacProposal, txids, orders, rounds, st.booleans()),
     st.builds(m.OacAck, txids, orders, rounds, st.booleans()),
     decides(),
@@ -130,7 +130,7 @@ MALFORMED: list[tuple[str, Callable[[], pb.Envelope], str]] = [
     ("absurd order", lambda: env_of(m.OacOrder(T, 2**63 - 1)), "order"),
     ("estimate negative round", lambda: env_of(m.OacEstimate(T, 1, -1, False, 0)), "round -1"),
     ("estimate absurd round", lambda: env_of(m.OacEstimate(T, 1, 2**40, False, 0)), "round"),
-    ("estimate negative ts", lambda: env_of(m.OacEstimate(T, 1, 0, False, -3)), "ts -3"),
+    ("estimate ts below the initial -1", lambda: env_of(m.OacEstimate(T, 1, 0, False, -3)), "ts -3"),
     ("proposal negative round", lambda: env_of(m.OacProposal(T, 1, -2, True)), "round -2"),
     ("ack negative round", lambda: env_of(m.OacAck(T, 1, -1, True)), "round -1"),
     ("decide round -2", lambda: env_of(m.OacDecide(T, -1, -2, False, P3, True)), "round -2"),
@@ -169,6 +169,7 @@ def test_decode_accepts_the_boundaries() -> None:
         m.OacDecide(T, -1, -1, False, P3, True),  # unilateral abort before any round (Alg. 2 l. 29)
         m.OacDecide(T, wire.MAX_ORDER, wire.MAX_ROUND, True, P3, False),
         m.OacEstimate(T, 0, 0, False, 0),
+        m.OacEstimate(T, 0, 0, False, -1),  # the initial timestamp (Alg. 2 l. 20, haa.hostd.oac.INITIAL_TS)
         m.OacTransaction(T, b"", (("h1", 5),), 1),  # a single-host transaction
     ]
     for msg in ok:

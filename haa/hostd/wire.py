@@ -34,6 +34,7 @@ from haa.hostd.messages import (
     SetPeriod,
     TxId,
 )
+from haa.hostd.oac import INITIAL_TS
 from haa.pb import hostlink_pb2 as pb
 
 #: longest host name accepted on the wire
@@ -279,7 +280,7 @@ def _dec_order(env: pb.Envelope) -> OacOrder:
 def _dec_estimate(env: pb.Envelope) -> OacEstimate:
     m = env.oac_estimate
     k = "oac_estimate"
-    if m.ts < 0 or m.ts > MAX_ROUND:
+    if m.ts < INITIAL_TS or m.ts > MAX_ROUND:  # -1: no proposal adopted yet (haa.hostd.oac.INITIAL_TS)
         raise WireError(f"{k}: ts {m.ts} out of range")
     return OacEstimate(_dec_txid(m, k), _order(m.order, k), _round(m.round, k), m.precommit, m.ts)
 
