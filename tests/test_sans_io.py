@@ -16,6 +16,7 @@ CORE_MODULES = [
     "haa/hostd/qos.py",
     "haa/hostd/messages.py",
     "haa/hostd/effects.py",
+    "haa/hostd/ddb.py",
 ]
 FORBIDDEN = {
     "asyncio",
