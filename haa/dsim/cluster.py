@@ -162,6 +162,8 @@ class SimCluster:
         self.trace: list[str] | None = [] if trace else None
         self.external = config.fd_mode == FD_EXTERNAL
         self.on_restart: Callable[[str, int], None] | None = None
+        #: receives effects this class does not know (those of a `MembershipNode`)
+        self.on_effect: Callable[[SimHost, Any], None] | None = None
 
     # ------------------------------------------------------------------ set-up
 
@@ -409,8 +411,11 @@ class SimCluster:
                 self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
             elif t is Reincarnate:
                 self.at(now, lambda name=h.name, inc=h.inc: self._reincarnate(name, inc))
-            elif t is Log and self.trace is not None:
-                self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
+            elif t is Log:
+                if self.trace is not None:
+                    self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
+            elif self.on_effect is not None:
+                self.on_effect(h, e)
         if crash_after:
             self._crash_now(h)
 
@@ -418,7 +423,9 @@ class SimCluster:
         """The observer's E(D) estimate: mean offset delay minus the true clock offset (eq. 4.4-1)."""
         core = h.core
         assert core is not None
-        pst = core.peers[peer]
+        pst = core.peers.get(peer)
+        if pst is None:
+            return
         obs = pst.observer
         q = self.hosts[peer]
         if obs is None or not obs.offsets or pst.inc != inc:

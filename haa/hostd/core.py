@@ -35,6 +35,7 @@ from haa.hostd.effects import (
     Suspicion,
 )
 from haa.hostd.messages import (
+    GROUP_TYPES,
     OAC_TYPES,
     Excluded,
     Heartbeat,
@@ -105,6 +106,10 @@ class HostCore:
                 self.peers[q].inc = qi
         self.dead: set[tuple[str, int]] = set()
         self.counters: Counter[str] = Counter()
+        #: receives the membership messages of Alg. 3 (set by `haa.hostd.membership.MembershipNode`); when it
+        #: is set, a membership message from a host this core has never heard of adds that host as a peer
+        #: (an applicant, or a member introduced to us) instead of being rejected
+        self.group_handler: Callable[[str, int, Message], None] | None = None
         self.started = False
         self._now = 0.0
         self.oac = OrderedAtomicCommit(
@@ -217,6 +222,8 @@ class HostCore:
     def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
         self._now = now
         p = self.peers.get(src)
+        if p is None and self.group_handler is not None and type(msg) in GROUP_TYPES and src != self.name:
+            p = self.add_peer(now, src)
         if p is None:
             self.counters["rejected_unknown_sender"] += 1
             self._log("reject", reason="unknown sender", src=src)
@@ -258,6 +265,8 @@ class HostCore:
             if msg.incarnation == self.inc:  # type: ignore[union-attr]
                 self._log("excluded_by_peer", by=src)
                 self.out.append(Reincarnate(by=src))
+        elif self.group_handler is not None and t in GROUP_TYPES:
+            self.group_handler(src, src_inc, msg)
         else:
             self.counters["rejected_unknown_message"] += 1
 
@@ -275,6 +284,38 @@ class HostCore:
         p = self.peers.get(peer)
         if p is not None and inc > p.inc:
             self._new_incarnation(now, p, inc)
+
+    def add_peer(self, now: float, name: str, inc: int = 0) -> _Peer:
+        """Start monitoring a host learned at run time (an applicant, or a member we were introduced to)."""
+        self._now = now
+        p = self.peers.get(name)
+        if p is None:
+            p = self.peers[name] = _Peer(name)
+            if self.started and self.config.fd_mode == FD_UFD:
+                self._start_ufd(now, p)
+        if inc > p.inc:
+            self._new_incarnation(now, p, inc)
+        return p
+
+    def mark_dead(self, now: float, name: str, inc: int, reason: str) -> None:
+        """Permanently suspect `name` incarnation `inc` (for example: the group removed it, Alg. 3 l. 118) and
+        tell it, so that a correct host removed by mistake comes back as a new incarnation."""
+        self._now = now
+        p = self.peers.get(name)
+        if p is None or (name, inc) in self.dead or inc <= 0:
+            return
+        self._mark_dead(p, inc, reason)
+        if p.inc == inc:
+            p.sender = None
+            self.out.append(CancelTimer(("hb", name)))
+            self.out.append(CancelTimer(("excl", name, inc)))
+        p.last_notice = now
+        self._send(name, inc, Excluded(inc))
+
+    def propose_to(self, now: float, payload: bytes, participants: Iterable[tuple[str, int]]) -> TxId:
+        """Propose an OAC transaction to exactly these host incarnations (this host is always included)."""
+        self._now = now
+        return self.oac.propose(payload, [pq for pq in participants if pq[0] != self.name])
 
     def propose(self, now: float, payload: bytes, participants: Iterable[str] | None = None) -> TxId:
         """Propose an OAC transaction; default participants: this host and every peer it trusts."""

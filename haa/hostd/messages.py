@@ -4,8 +4,8 @@ The cores never see protobuf: `haa.hostd.wire` converts these to and from the `h
 `proto/haa/pb/hostlink.proto`. The simulator passes them between cores without encoding (fast), and a
 property test round-trips every type through the wire codec.
 
-Names follow thesis Appendix II: Alg. 1 (`Heartbeat`, `SetPeriod`) and Alg. 2 (the OAC messages, with the
-pseudo-code line that sends each).
+Names follow thesis Appendix II: Alg. 1 (`Heartbeat`, `SetPeriod`), Alg. 2 (the OAC messages) and Alg. 3 (the
+membership messages), with the pseudo-code line that sends each.
 """
 
 from __future__ import annotations
@@ -122,7 +122,110 @@ class Excluded:
     incarnation: int
 
 
+# --- Alg. 3 (host membership) ------------------------------------------------------------------------
+
+
+class Member(NamedTuple):
+    """A host life in a member list: name, incarnation and the address its peers connect to."""
+
+    name: str
+    inc: int
+    addr: str
+
+    @property
+    def proc(self) -> tuple[str, int]:
+        return (self.name, self.inc)
+
+
+@dataclass(slots=True)
+class Apply:
+    """(apply, a): Alg. 3 l. 39, sent by an applicant to every core process. `addr` is where `a` listens."""
+
+    addr: str
+
+
+@dataclass(slots=True)
+class Introduce:
+    """(introduce, a, q): Alg. 3 l. 55, 56, 68; q is the envelope's sender.
+
+    `group` is the id of the correct group whose state the sender holds ("" if none): a host that formed a
+    provisional group of one learns this way that a correct group already exists (docs/membership.md,
+    "restarts")."""
+
+    name: str
+    inc: int
+    addr: str
+    group: str
+
+
+@dataclass(slots=True)
+class Sponsor:
+    """(sponsor, q): Alg. 3 l. 59, 124, 175."""
+
+
+@dataclass(slots=True)
+class Connections:
+    """(connections, q, connectionList): Alg. 3 l. 70, 73 (q's two-way connections)."""
+
+    peers: tuple[tuple[str, int], ...]
+
+
+@dataclass(slots=True)
+class Leave:
+    """(leave, q): Alg. 3 l. 15."""
+
+
+@dataclass(slots=True)
+class Locked:
+    """(locked, key, q): Alg. 3 l. 130."""
+
+    key: str
+
+
+@dataclass(slots=True)
+class StateSnapshot:
+    """The global state (Alg. 3 l. 60, 125, 176) at sequence number `seq`; also the answer to a
+    `StateRequest`, then with `anchor` = the requested transaction and `anchor_seq` its sequence number."""
+
+    seq: int
+    data: bytes
+    anchor: TxId | None
+    anchor_seq: int
+
+
+@dataclass(slots=True)
+class StateForward:
+    """A forwarded global state change (Alg. 3 l. 61): the `seq`-th applied transaction."""
+
+    seq: int
+    txid: TxId
+    payload: bytes
+
+
+@dataclass(slots=True)
+class StateRequest:
+    """A new member that delivered `txid` but lacks the state before it asks a member for a snapshot
+    (docs/membership.md, "state transfer")."""
+
+    txid: TxId
+
+
+GroupMessage = (
+    Apply | Introduce | Sponsor | Connections | Leave | Locked | StateSnapshot | StateForward | StateRequest
+)
+GROUP_TYPES: tuple[type, ...] = (
+    Apply,
+    Introduce,
+    Sponsor,
+    Connections,
+    Leave,
+    Locked,
+    StateSnapshot,
+    StateForward,
+    StateRequest,
+)
+
 OacMessage = OacTransaction | OacOrder | OacEstimate | OacProposal | OacAck | OacDecide
-Message = Heartbeat | SetPeriod | OacMessage | Excluded
+Message = Heartbeat | SetPeriod | OacMessage | Excluded | GroupMessage
 
 OAC_TYPES: tuple[type, ...] = (OacTransaction, OacOrder, OacEstimate, OacProposal, OacAck, OacDecide)

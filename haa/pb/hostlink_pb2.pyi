@@ -120,8 +120,74 @@ class Excluded(_message.Message):
     incarnation: int
     def __init__(self, incarnation: _Optional[int] = ...) -> None: ...
 
+class Apply(_message.Message):
+    __slots__ = ("addr",)
+    ADDR_FIELD_NUMBER: _ClassVar[int]
+    addr: str
+    def __init__(self, addr: _Optional[str] = ...) -> None: ...
+
+class Introduce(_message.Message):
+    __slots__ = ("name", "incarnation", "addr", "group")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    ADDR_FIELD_NUMBER: _ClassVar[int]
+    GROUP_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    incarnation: int
+    addr: str
+    group: str
+    def __init__(self, name: _Optional[str] = ..., incarnation: _Optional[int] = ..., addr: _Optional[str] = ..., group: _Optional[str] = ...) -> None: ...
+
+class Sponsor(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class Connections(_message.Message):
+    __slots__ = ("peers",)
+    PEERS_FIELD_NUMBER: _ClassVar[int]
+    peers: _containers.RepeatedCompositeFieldContainer[Participant]
+    def __init__(self, peers: _Optional[_Iterable[_Union[Participant, _Mapping]]] = ...) -> None: ...
+
+class Leave(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class Locked(_message.Message):
+    __slots__ = ("key",)
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    key: str
+    def __init__(self, key: _Optional[str] = ...) -> None: ...
+
+class StateSnapshot(_message.Message):
+    __slots__ = ("seq", "data", "anchor", "anchor_seq")
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    ANCHOR_FIELD_NUMBER: _ClassVar[int]
+    ANCHOR_SEQ_FIELD_NUMBER: _ClassVar[int]
+    seq: int
+    data: bytes
+    anchor: TxId
+    anchor_seq: int
+    def __init__(self, seq: _Optional[int] = ..., data: _Optional[bytes] = ..., anchor: _Optional[_Union[TxId, _Mapping]] = ..., anchor_seq: _Optional[int] = ...) -> None: ...
+
+class StateForward(_message.Message):
+    __slots__ = ("seq", "txid", "payload")
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    TXID_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    seq: int
+    txid: TxId
+    payload: bytes
+    def __init__(self, seq: _Optional[int] = ..., txid: _Optional[_Union[TxId, _Mapping]] = ..., payload: _Optional[bytes] = ...) -> None: ...
+
+class StateRequest(_message.Message):
+    __slots__ = ("txid",)
+    TXID_FIELD_NUMBER: _ClassVar[int]
+    txid: TxId
+    def __init__(self, txid: _Optional[_Union[TxId, _Mapping]] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded")
+    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request")
     SENDER_FIELD_NUMBER: _ClassVar[int]
     SENDER_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     DEST_INCARNATION_FIELD_NUMBER: _ClassVar[int]
@@ -134,6 +200,15 @@ class Envelope(_message.Message):
     OAC_ACK_FIELD_NUMBER: _ClassVar[int]
     OAC_DECIDE_FIELD_NUMBER: _ClassVar[int]
     EXCLUDED_FIELD_NUMBER: _ClassVar[int]
+    APPLY_FIELD_NUMBER: _ClassVar[int]
+    INTRODUCE_FIELD_NUMBER: _ClassVar[int]
+    SPONSOR_FIELD_NUMBER: _ClassVar[int]
+    CONNECTIONS_FIELD_NUMBER: _ClassVar[int]
+    LEAVE_FIELD_NUMBER: _ClassVar[int]
+    LOCKED_FIELD_NUMBER: _ClassVar[int]
+    STATE_SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
+    STATE_FORWARD_FIELD_NUMBER: _ClassVar[int]
+    STATE_REQUEST_FIELD_NUMBER: _ClassVar[int]
     sender: str
     sender_incarnation: int
     dest_incarnation: int
@@ -146,7 +221,16 @@ class Envelope(_message.Message):
     oac_ack: OacAck
     oac_decide: OacDecide
     excluded: Excluded
-    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ...) -> None: ...
+    apply: Apply
+    introduce: Introduce
+    sponsor: Sponsor
+    connections: Connections
+    leave: Leave
+    locked: Locked
+    state_snapshot: StateSnapshot
+    state_forward: StateForward
+    state_request: StateRequest
+    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("first_seq", "envelopes")

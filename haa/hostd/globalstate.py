@@ -1,0 +1,315 @@
+"""The host group's global state: what every member holds identically (thesis Alg. 3, "global state").
+
+Every transaction the group commits through OAC carries one `GroupTx` (proto/haa/pb/group.proto): a
+membership change (OAC(remove), OAC(membership), OAC(formationFallback) of Alg. 3), a batch of DDB
+operations, or a test payload. Every member applies the committed transactions in the OAC's total order, so
+two members that applied the same number of transactions hold the same state; `content_hash()` makes that
+checkable. The state is:
+
+* `seq`: how many transactions were applied; `chain`: a hash chain over their ids and payloads;
+* the member list (ordered by rank: insertion order, the leader first, Alg. 3 l. 3), the view id (one more
+  for every committed change of the list), `group_correct` and `core_members` (Alg. 3 ll. 12-13, 146-149);
+* the replicated database (`haa.hostd.ddb.Ddb`);
+* `recent`: the global sequence number of the last few thousand applied transactions, so that a new
+  member can find where its first delivered transaction sits in the sequence (docs/membership.md).
+
+A sponsor sends `snapshot()` to an applicant (Alg. 3 l. 60) and then forwards every applied transaction
+(l. 61); `restore()` installs it. Pure and deterministic: no I/O, no clock, no randomness.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from google.protobuf.message import DecodeError
+
+from haa.hostd.ddb import Ddb, DdbError
+from haa.hostd.messages import Member, TxId
+from haa.pb import group_pb2 as gpb
+
+Proc = tuple[str, int]
+
+#: how many applied transaction ids are remembered with their sequence number
+RECENT = 4096
+GENESIS = "0" * 64
+
+
+class GroupTxError(ValueError):
+    """A group transaction payload that does not decode."""
+
+
+# --------------------------------------------------------------------------------------------- payloads
+
+
+@dataclass(frozen=True, slots=True)
+class TxRemove:
+    """OAC(remove, key, q, removalList), Alg. 3 l. 102; key "" = no lock (l. 99)."""
+
+    key: str
+    proposer: Proc
+    removal: tuple[Proc, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class TxMembership:
+    """OAC(membership, key, q, newMemberList), Alg. 3 l. 43 and l. 106."""
+
+    key: str
+    proposer: Proc
+    members: tuple[Member, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class TxFormation:
+    """OAC(formationFallback, q, newMemberList), Alg. 3 l. 48."""
+
+    proposer: Proc
+    members: tuple[Member, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class TxDdb:
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class TxTest:
+    data: bytes
+
+
+GroupTx = TxRemove | TxMembership | TxFormation | TxDdb | TxTest
+
+
+def _proc(m: gpb.GroupProc, p: Proc) -> None:
+    m.name = p[0]
+    m.incarnation = p[1]
+
+
+def _members(rep: object, members: tuple[Member, ...]) -> None:
+    for x in members:
+        rep.add(name=x.name, incarnation=x.inc, addr=x.addr)  # type: ignore[attr-defined]
+
+
+def encode_tx(tx: GroupTx) -> bytes:
+    m = gpb.GroupTx()
+    t = type(tx)
+    if t is TxRemove:
+        _proc(m.remove.proposer, tx.proposer)  # type: ignore[union-attr]
+        m.remove.key = tx.key  # type: ignore[union-attr]
+        for p in tx.removal:  # type: ignore[union-attr]
+            _proc(m.remove.removal.add(), p)
+    elif t is TxMembership:
+        m.membership.key = tx.key  # type: ignore[union-attr]
+        _proc(m.membership.proposer, tx.proposer)  # type: ignore[union-attr]
+        _members(m.membership.members, tx.members)  # type: ignore[union-attr]
+    elif t is TxFormation:
+        _proc(m.formation.proposer, tx.proposer)  # type: ignore[union-attr]
+        _members(m.formation.members, tx.members)  # type: ignore[union-attr]
+    elif t is TxDdb:
+        m.ddb = tx.data  # type: ignore[union-attr]
+    elif t is TxTest:
+        m.test = tx.data  # type: ignore[union-attr]
+    else:
+        raise TypeError(f"not a group transaction: {t.__name__}")
+    return m.SerializeToString()
+
+
+def _dec_proc(m: gpb.GroupProc, what: str) -> Proc:
+    if not m.name or m.incarnation == 0:
+        raise GroupTxError(f"{what}: host name and incarnation required")
+    return (m.name, m.incarnation)
+
+
+def _dec_members(rep: object, what: str) -> tuple[Member, ...]:
+    out = [Member(x.name, x.incarnation, x.addr) for x in rep]  # type: ignore[attr-defined]
+    names = [x.name for x in out]
+    if not out or any(not x.name or x.inc == 0 for x in out):
+        raise GroupTxError(f"{what}: empty member list or a member without name/incarnation")
+    if len(set(names)) != len(names):
+        raise GroupTxError(f"{what}: duplicate member")
+    return tuple(out)
+
+
+def decode_tx(payload: bytes) -> GroupTx:
+    m = gpb.GroupTx()
+    try:
+        m.ParseFromString(payload)
+    except DecodeError as e:
+        raise GroupTxError(f"group transaction does not decode: {e}") from None
+    kind = m.WhichOneof("body")
+    if kind == "remove":
+        r = m.remove
+        return TxRemove(
+            r.key, _dec_proc(r.proposer, "remove.proposer"), tuple(_dec_proc(p, "remove") for p in r.removal)
+        )
+    if kind == "membership":
+        r2 = m.membership
+        return TxMembership(
+            r2.key, _dec_proc(r2.proposer, "membership.proposer"), _dec_members(r2.members, "membership")
+        )
+    if kind == "formation":
+        r3 = m.formation
+        return TxFormation(_dec_proc(r3.proposer, "formation.proposer"), _dec_members(r3.members, "formation"))
+    if kind == "ddb":
+        return TxDdb(m.ddb)
+    if kind == "test":
+        return TxTest(m.test)
+    raise GroupTxError("group transaction: body not set")
+
+
+def tx_kind(tx: GroupTx) -> str:
+    return {TxRemove: "remove", TxMembership: "membership", TxFormation: "formation", TxDdb: "ddb", TxTest: "test"}[
+        type(tx)
+    ]
+
+
+# --------------------------------------------------------------------------------------------- the state
+
+
+@dataclass(frozen=True, slots=True)
+class Applied:
+    """What applying one transaction did."""
+
+    seq: int
+    kind: str
+    view_changed: bool
+    removed: tuple[Member, ...]
+    added: tuple[Member, ...]
+    ddb_result: object | None
+    error: str
+
+
+class GlobalState:
+    """See the module docstring."""
+
+    def __init__(self, core_names: tuple[str, ...], c_f: int) -> None:
+        self.core_names = core_names
+        self.c_f = c_f
+        self.seq = 0
+        self.view = 0
+        self.genesis = ""  # id of the transaction that created the group
+        self.members: list[Member] = []
+        self.group_correct = False
+        self.core_members: set[str] = set()
+        self.ddb = Ddb()
+        self.chain = GENESIS
+        self.recent: OrderedDict[TxId, int] = OrderedDict()
+
+    # ------------------------------------------------------------------ queries
+
+    def procs(self) -> list[Proc]:
+        return [m.proc for m in self.members]
+
+    def is_member(self, p: Proc) -> bool:
+        return any(m.proc == p for m in self.members)
+
+    def leader(self) -> Member | None:
+        return self.members[0] if self.members else None
+
+    def group_id(self) -> str:
+        """Identifies the group (its creating transaction) once it is correct, "" before."""
+        return self.genesis if self.group_correct else ""
+
+    def content_hash(self) -> str:
+        h = hashlib.sha256()
+        h.update(f"{self.seq}|{self.view}|{self.genesis}|{int(self.group_correct)}|".encode())
+        h.update(",".join(sorted(self.core_members)).encode())
+        for m in self.members:
+            h.update(f"|{m.name}.{m.inc}@{m.addr}".encode())
+        h.update(b"|")
+        h.update(self.ddb.content_hash().encode())
+        return h.hexdigest()
+
+    # ------------------------------------------------------------------ apply
+
+    def _note_core(self) -> None:
+        """Alg. 3 ll. 146-149: a group is correct once more than c_f core processes have been members."""
+        if not self.group_correct:
+            self.core_members |= {m.name for m in self.members if m.name in self.core_names}
+            if len(self.core_members) > self.c_f:
+                self.group_correct = True
+
+    def apply(self, txid: TxId, payload: bytes) -> Applied:
+        """Apply the next committed transaction (the caller guarantees the total order)."""
+        try:
+            tx: GroupTx | None = decode_tx(payload)
+        except GroupTxError as e:
+            tx = None
+            err = str(e)
+        else:
+            err = ""
+        self.seq += 1
+        h = hashlib.sha256(f"{self.chain}\n{txid.host}.{txid.inc}.{txid.seq}\n".encode())
+        h.update(payload)
+        self.chain = h.hexdigest()
+        self.recent[txid] = self.seq
+        if len(self.recent) > RECENT:
+            self.recent.popitem(last=False)
+        kind = tx_kind(tx) if tx is not None else "invalid"
+        removed: tuple[Member, ...] = ()
+        added: tuple[Member, ...] = ()
+        ddb_result = None
+        before = list(self.members)
+        t = type(tx)
+        if t is TxRemove:
+            gone = set(tx.removal)  # type: ignore[union-attr]
+            self.members = [m for m in self.members if m.proc not in gone]  # l. 118
+        elif t is TxMembership:
+            if not self.members and not self.genesis:
+                self.genesis = str(txid)  # l. 43: the first core process' group of one
+            self.members = list(tx.members)  # type: ignore[union-attr]  # l. 141
+        elif t is TxFormation:
+            if not self.members:  # l. 167: only accept one formation message
+                self.genesis = str(txid)
+                self.members = list(tx.members)  # type: ignore[union-attr]  # l. 169
+                self.group_correct = True  # l. 178
+        elif t is TxDdb:
+            try:
+                ddb_result = self.ddb.apply(tx.data)  # type: ignore[union-attr]
+            except DdbError as e:
+                err = str(e)
+        changed = self.members != before
+        if changed:
+            self.view += 1
+            old = {m.proc for m in before}
+            new = {m.proc for m in self.members}
+            removed = tuple(m for m in before if m.proc not in new)
+            added = tuple(m for m in self.members if m.proc not in old)
+            self._note_core()
+        return Applied(self.seq, kind, changed, removed, added, ddb_result, err)
+
+    # ------------------------------------------------------------------ snapshots
+
+    def snapshot(self) -> bytes:
+        s = gpb.GlobalSnapshot(
+            seq=self.seq,
+            view=self.view,
+            group_correct=self.group_correct,
+            core_members=sorted(self.core_members),
+            ddb=self.ddb.snapshot(),
+            chain=self.chain,
+            genesis=self.genesis,
+        )
+        _members(s.members, tuple(self.members))
+        for t, q in self.recent.items():
+            s.recent.add(host=t.host, incarnation=t.inc, seq=t.seq, applied_seq=q)
+        return s.SerializeToString()
+
+    def restore(self, data: bytes) -> None:
+        s = gpb.GlobalSnapshot()
+        try:
+            s.ParseFromString(data)
+            ddb = Ddb.restore(s.ddb)
+        except (DecodeError, DdbError) as e:
+            raise GroupTxError(f"global state snapshot does not decode: {e}") from None
+        self.seq = s.seq
+        self.view = s.view
+        self.members = [Member(m.name, m.incarnation, m.addr) for m in s.members]
+        self.group_correct = s.group_correct
+        self.core_members = set(s.core_members)
+        self.ddb = ddb
+        self.chain = s.chain
+        self.genesis = s.genesis
+        self.recent = OrderedDict((TxId(r.host, r.incarnation, r.seq), r.applied_seq) for r in s.recent)

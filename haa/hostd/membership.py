@@ -1,0 +1,1054 @@
+"""Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3), as one sans-I/O state machine.
+
+`MembershipNode` is everything one host incarnation decides once it takes part in a group: it owns a
+`HostCore` (failure detector + OAC, `haa.hostd.core`) and the group's `GlobalState` (member list, view, DDB,
+`haa.hostd.globalstate`), and runs Alg. 3 on top:
+
+* formation by the first core process (ll. 41-43) and the FORMATION_TIMEOUT fallback with
+  OAC(formationFallback) by the core head (ll. 44-49, 158-179);
+* apply / introduce / sponsor / connections (ll. 35-39, 50-75): an applicant contacts every core process,
+  everyone who hears of it introduces it to everyone else, the leader sponsors it: sends it the global state
+  and forwards every later change until it has joined;
+* updateMembership (ll. 76-109): the leader (highest-ranked member it does not suspect) commits
+  OAC(remove) — removing members that every remaining member suspects (l. 113, HM-Weak-Validity) and,
+  when members join or leave, locking the global state — waits for every lock acknowledgement and for
+  every OAC it knows to be decided, then commits OAC(membership) with the new list, which unlocks;
+* votes on remove and formation transactions (ll. 110-116, 158-165), global-state changes held while
+  locked (ll. 127-132, 144-145, 153-155), voluntary leave (ll. 14-21);
+* global-state changes: DDB batches and test payloads are proposed to every member by OAC, applied in
+  total order, acknowledged to the requester only once committed, and re-proposed after an abort.
+
+Line numbers in comments refer to Alg. 3. Where the pseudo-code is silent or had to be completed, the
+choices are documented in docs/membership.md; in short:
+
+* Members are host incarnations with their address (`Member`); a restarted host is a new incarnation that
+  applies again, and its old incarnation is removed like a crashed one.
+* A member removed from the view is permanently suspected (`HostCore.mark_dead`), so that OAC can close
+  transactions it took part in (Alg. 2 l. 41), and told so: a correct host removed by mistake restarts as a
+  new incarnation and re-applies.
+* The leader also sponsors waiting applicants when it commits a membership change that made it the
+  leader (the first core process' group of one: ll. 136-151 have no sponsor step, so applicants that
+  applied before it existed would never be sponsored).
+* Applicants re-send `apply` to core processes they have not heard from (a core process that was down
+  when the applicant started would otherwise never learn of it).
+* The first core process waits `discovery` seconds before forming its group of one, and neither it nor
+  the core head forms a group once an introduction shows that a correct group exists; a provisional
+  group that learns of a different correct group restarts as a new incarnation and applies to it.
+* State transfer: applied transactions are numbered (`GlobalState.seq`). A new member buffers what it
+  delivers until its state has caught up to the transaction that added it — from its sponsor's forwarded
+  stream, or, if that does not arrive within `catchup_timeout`, from a `StateRequest` to a member.
+
+The class does no I/O, reads no clock and uses no randomness.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from haa.hostd.core import CoreConfig, HostCore
+from haa.hostd.effects import Decided, Deliver, Log, PeerDead, Reincarnate, Send, Suspicion
+from haa.hostd.globalstate import (
+    GlobalState,
+    GroupTx,
+    GroupTxError,
+    TxDdb,
+    TxFormation,
+    TxMembership,
+    TxRemove,
+    TxTest,
+    decode_tx,
+    encode_tx,
+)
+from haa.hostd.messages import (
+    Apply,
+    Connections,
+    Introduce,
+    Leave,
+    Locked,
+    Member,
+    Message,
+    Sponsor,
+    StateForward,
+    StateRequest,
+    StateSnapshot,
+    TxId,
+)
+from haa.hostd.oac import UNDECIDED
+
+Proc = tuple[str, int]
+
+
+# ------------------------------------------------------------------------------------------------ effects
+
+
+@dataclass(slots=True)
+class Connect:
+    """Open (or keep) a link to host `name` at `addr` (Alg. 3 "open connection to")."""
+
+    name: str
+    addr: str
+
+
+@dataclass(slots=True)
+class ViewChange:
+    """This host applied a change of the member list."""
+
+    view: int
+    seq: int
+    members: tuple[Member, ...]
+    removed: tuple[Member, ...]
+    added: tuple[Member, ...]
+    txid: TxId
+
+
+@dataclass(slots=True)
+class AppliedTx:
+    """This host applied the `seq`-th global transaction; `state_hash` is its content hash afterwards
+    (only computed when `NodeConfig.hash_every_apply` is set: the simulator's prefix-consistency check)."""
+
+    seq: int
+    txid: TxId
+    kind: str
+    payload: bytes
+    state_hash: str
+    result: object | None
+
+
+@dataclass(slots=True)
+class WriteDone:
+    """A global-state change requested with `submit` was committed (`ok`) or given up (`reason`)."""
+
+    req: Hashable
+    ok: bool
+    txid: TxId | None
+    seq: int
+    reason: str
+    result: object | None = None
+
+
+@dataclass(slots=True)
+class Left:
+    """The voluntary leave of this host was committed (Alg. 3 l. 16): it stops taking part."""
+
+
+# ------------------------------------------------------------------------------------------------ config
+
+
+@dataclass(frozen=True, slots=True)
+class NodeConfig:
+    core: CoreConfig = field(default_factory=CoreConfig)
+    #: c_f: core processes that may fail (c_f < c/2); None = the largest such value
+    c_f: int | None = None
+    #: c_H: size of the core head that runs the fallback formation (c_f < c_H <= c); None = c_f + 1
+    c_h: int | None = None
+    #: FORMATION_TIMEOUT (l. 45), seconds after start
+    formation_timeout: float = 5.0
+    #: wait between two formationFallback attempts
+    formation_retry: float = 1.0
+    #: the first core process listens this long for an existing group before forming its own
+    discovery: float = 1.0
+    #: an applicant re-sends `apply` to core processes it has not heard from, this often
+    reapply: float = 2.0
+    #: a new member whose state has not caught up after this long asks a member for a snapshot
+    catchup_timeout: float = 2.0
+    #: a global-state change aborted this many times is reported failed
+    max_write_attempts: int = 50
+    #: compute the content hash after every applied transaction (the simulator's checks)
+    hash_every_apply: bool = False
+
+    def __post_init__(self) -> None:
+        for n in ("formation_timeout", "formation_retry", "discovery", "reapply", "catchup_timeout"):
+            if getattr(self, n) <= 0:
+                raise ValueError(f"{n} must be positive")
+
+
+@dataclass(slots=True)
+class _Attempt:
+    """One run of updateMembership's commit part (ll. 95-109)."""
+
+    txid: TxId
+    key: str
+    active: list[Proc]
+    accept: list[Member]
+    stage: str  # "remove" | "locking" | "membership"
+    locks: set[Proc] = field(default_factory=set)
+    membership_txid: TxId | None = None
+
+
+@dataclass(slots=True)
+class _Write:
+    req: Hashable
+    payload: bytes
+    attempts: int = 0
+
+
+# ------------------------------------------------------------------------------------------------ node
+
+
+class MembershipNode:
+    """One host incarnation running Alg. 3 over its `HostCore`. See the module docstring.
+
+    Inputs (each with the local time): `start`, `on_message`, `on_timer`, `on_suspicion`, `on_peer_info`,
+    `submit` (a DDB batch or test payload), `leave`. The driver calls `drain()` after each input and carries
+    out the effects: those of `haa.hostd.effects` plus `Connect`, `ViewChange`, `AppliedTx`, `WriteDone`
+    and `Left`.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        inc: int,
+        addr: str,
+        core_processes: Sequence[tuple[str, str]],
+        config: NodeConfig | None = None,
+        mutations: frozenset[str] = frozenset(),
+        known_hosts: Sequence[tuple[str, str]] = (),
+    ) -> None:
+        self.config = cfg = config or NodeConfig()
+        self.name = name
+        self.inc = inc
+        self.me: Proc = (name, inc)
+        self.addr = addr
+        self.mutations = mutations
+        self.core_names = tuple(n for n, _ in core_processes)  # l. 1
+        if len(set(self.core_names)) != len(self.core_names) or not self.core_names:
+            raise ValueError("core process list must be non-empty and without duplicates")
+        c = len(self.core_names)
+        self.c_f = cfg.c_f if cfg.c_f is not None else (c - 1) // 2
+        if not self.c_f >= 0 or not 2 * self.c_f < c:
+            raise ValueError(f"c_f = {self.c_f} violates c_f < c/2 with c = {c}")
+        self.c_h = cfg.c_h if cfg.c_h is not None else min(c, self.c_f + 1)
+        if not self.c_f < self.c_h <= c:
+            raise ValueError(f"c_H = {self.c_h} violates c_f < c_H <= c")
+        self.addrs: dict[str, str] = dict(core_processes)
+        #: hosts a previous incarnation knew as members (`--data-dir`): a restarted host applies to them too,
+        #: so that it finds its group even when every core process is down or is itself (docs/membership.md)
+        self.known_hosts = [(n, a) for n, a in known_hosts if n != name and n not in self.addrs]
+        for n, a in self.known_hosts:
+            self.addrs[n] = a
+        self.addrs[name] = addr
+        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate)
+        self.core.group_handler = self._on_group
+        self.out = self.core.out  # node effects go through the same outbox, in order
+        self.state = GlobalState(self.core_names, self.c_f)
+        # Alg. 3 ll. 2-13 (removeList_p is computed on demand: members ∩ ◇S_p, see `_remove_list`)
+        self.join_list: dict[Proc, str] = {}  # l. 2, applicant -> address, in application order
+        self.leave_list: set[Proc] = set()  # l. 5
+        self.locked: str | None = None  # l. 6
+        self.updating = False  # l. 7
+        self.conn_to: set[str] = set()  # l. 8 (a link is per host name)
+        self.conn_from: set[Proc] = set()  # l. 9
+        self.sponsor: Proc | None = None  # l. 10
+        self.sponsees: set[Proc] = set()  # l. 11
+        self.conns_of: dict[Proc, set[Proc]] = {}  # the latest (connections, a, list) per applicant
+        self.attempt: _Attempt | None = None
+        self.group_txs: set[TxId] = set()  # remove / membership transactions in progress here (l. 77)
+        self.held: list[_Write] = []  # global-state changes held while locked (l. 129)
+        self.writes: dict[TxId, _Write] = {}
+        self.key_seq = 0
+        self.group_seen = ""  # id of a correct group someone introduced to us
+        self.leaving = False
+        self.left = False
+        self.formation_txid: TxId | None = None
+        # state transfer (docs/membership.md)
+        self.fwd_buffer: dict[int, tuple[TxId, bytes]] = {}
+        self.direct_q: list[tuple[TxId, bytes]] = []
+        self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
+        self.state_requests: dict[TxId, list[Proc]] = {}
+        self.started = False
+        self._now = 0.0
+
+    # ------------------------------------------------------------------ plumbing shared with the driver
+
+    @property
+    def peers(self) -> dict[str, Any]:
+        return self.core.peers
+
+    @property
+    def oac(self) -> Any:
+        return self.core.oac
+
+    @property
+    def counters(self) -> Any:
+        return self.core.counters
+
+    def drain(self) -> list[Any]:
+        """Effects of the last input. OAC decisions about group transactions are consumed here (and also
+        passed on, for logs and the simulator's history)."""
+        res: list[Any] = []
+        core = self.core
+        while True:
+            effects = core.drain()
+            if not effects:
+                self._poll()
+                if not core.out:
+                    break
+                continue
+            for e in effects:
+                t = type(e)
+                if t is Reincarnate and self.leaving and self.left:
+                    continue  # we left on purpose: a peer's removal notice is no reason to come back
+                res.append(e)
+                if t is Deliver:
+                    self._on_deliver(e)
+                elif t is Decided:
+                    self._on_decided(e)
+                elif t is Suspicion:
+                    self._on_suspicion_change((e.peer, e.inc), e.suspected)
+                elif t is PeerDead:
+                    self._on_peer_dead((e.peer, e.inc))
+        return res
+
+    def _send(self, dst: Proc, msg: Message) -> None:
+        if dst == self.me:
+            return
+        self.out.append(Send(dst[0], dst[1], msg))
+
+    def _timer(self, key: str, at: float) -> None:
+        self.core._timer(("m", key), at)
+
+    def _log(self, event: str, **fields: Any) -> None:
+        self.out.append(Log(event, fields))
+
+    def _connect(self, name: str, addr: str | None = None) -> None:
+        """ "open connection to" (ll. 37, 53, 66): start monitoring the host and have the driver link to it."""
+        if name == self.name:
+            return
+        if addr:
+            self.addrs[name] = addr
+        self.core.add_peer(self._now, name)
+        a = self.addrs.get(name)
+        if a:
+            self.out.append(Connect(name, a))
+
+    def _suspected(self, p: Proc) -> bool:
+        return p != self.me and self.core.is_suspected(p[0], p[1])
+
+    def _known_dead(self, p: Proc) -> bool:
+        """Permanently suspected: excluded, removed, or superseded by a newer incarnation we heard of."""
+        if p in self.core.dead:
+            return True
+        peer = self.core.peers.get(p[0])
+        return peer is not None and peer.inc > p[1]
+
+    def _remove_list(self) -> set[Proc]:
+        """removeList_p = memberList_p ∩ ◇S_p (ll. 22-31, 119, 142)."""
+        return {m.proc for m in self.state.members if self._suspected(m.proc)}
+
+    def is_member(self) -> bool:
+        return self.state.is_member(self.me)
+
+    def _leader_now(self) -> bool:
+        """p = front(memberList_p): the undisputed leader (ll. 57, 121, 172)."""
+        lead = self.state.leader()
+        return lead is not None and lead.proc == self.me
+
+    def _two_way(self) -> tuple[Proc, ...]:
+        """connectionsTo_p ∩ connectionsFrom_p (ll. 70, 73)."""
+        return tuple(sorted(p for p in self.conn_from if p[0] in self.conn_to))
+
+    # ------------------------------------------------------------------ inputs
+
+    def start(self, now: float) -> None:
+        """groupJoin() (ll. 35-49)."""
+        self._now = now
+        if self.started:
+            return
+        self.started = True
+        self.core.start(now)
+        for q in self._contacts():  # ll. 36-39
+            self._connect(q)
+            self.conn_to.add(q)
+            self._send((q, self.core.peers[q].inc), Apply(self.addr))
+        self._timer("reapply", now + self.config.reapply)
+        if self.name == self.core_names[0]:  # l. 41: the first core process
+            self._timer("discovery", now + self.config.discovery)
+        elif self.name in self.core_names[: self.c_h]:  # l. 44: the core head
+            self._timer("formation", now + self.config.formation_timeout)  # l. 45
+
+    def _contacts(self) -> list[str]:
+        """Where an applicant sends `apply`: every core process (l. 36), and the hosts it knew before."""
+        return [q for q in self.core_names if q != self.name] + [n for n, _ in self.known_hosts]
+
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
+        self._now = now
+        self.core.on_message(now, src, src_inc, dst_inc, msg)
+
+    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
+        self._now = now
+        self.core.on_suspicion(now, peer, suspected)
+
+    def on_peer_info(self, now: float, peer: str, inc: int) -> None:
+        self._now = now
+        self.core.on_peer_info(now, peer, inc)
+
+    def on_timer(self, now: float, key: Hashable) -> None:
+        self._now = now
+        if key[0] != "m":  # type: ignore[index]
+            self.core.on_timer(now, key)
+            return
+        k = key[1]  # type: ignore[index]
+        if self.left:
+            return
+        if k == "discovery":
+            self._form_group_of_one()
+        elif k == "formation":
+            self._formation_fallback()
+        elif k == "reapply":
+            # until a leader sponsors us, apply again: an `apply` sent before a core process was up is lost,
+            # and one received by a core process that was not yet a member made no leader sponsor us
+            if not self.is_member() and (self.sponsor is None or self._suspected(self.sponsor)):
+                for q in self._contacts():
+                    self._send((q, self.core.peers[q].inc), Apply(self.addr))
+            if not self.is_member():
+                self._timer("reapply", now + self.config.reapply)
+        elif k == "catchup":
+            self._request_state()
+
+    def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
+        """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
+        `WriteDone` effect; a committed change has been applied here before `WriteDone`."""
+        self._now = now
+        tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxTest(payload)
+        w = _Write(req, encode_tx(tx))
+        if self.direct_q:  # a new member catching up: hold until its state has caught up
+            self.held.append(w)
+            return
+        if not self.is_member():
+            self.out.append(WriteDone(req, False, None, 0, "not a member of the group"))
+            return
+        if not self.state.group_correct:
+            self.out.append(WriteDone(req, False, None, 0, "the group is not formed yet"))
+            return
+        if self.locked is not None:  # l. 129: hold while locked
+            self.held.append(w)
+            return
+        self._propose_write(w)
+
+    def leave(self, now: float) -> None:
+        """groupLeave() (ll. 14-17): the `Left` effect follows once the group has removed this host."""
+        self._now = now
+        if self.leaving:
+            return
+        self.leaving = True
+        self._log("leave_requested")
+        if not self.is_member():
+            self.left = True
+            self.out.append(Left())
+            return
+        for m in self.state.members:  # l. 15
+            if m.proc == self.me:
+                self._on_leave(self.me)
+            else:
+                self._send(m.proc, Leave())
+
+    # ------------------------------------------------------------------ formation (ll. 40-49)
+
+    def _form_group_of_one(self) -> None:
+        """ll. 41-43, after `discovery` (docs/membership.md, "restarts")."""
+        if self.state.members or self.group_seen or self.leaving:
+            return
+        self.key_seq += 1
+        key = f"{self.name}.{self.inc}.{self.key_seq}"
+        self.locked = key  # l. 42
+        tx = TxMembership(key, self.me, (Member(self.name, self.inc, self.addr),))
+        txid = self.core.propose_to(self._now, encode_tx(tx), [self.me])  # l. 43
+        self.group_txs.add(txid)
+        self._log("group_of_one", tx=str(txid))
+
+    def _core_head_list(self) -> tuple[Member, ...]:
+        """coreHead − (coreHead ∩ ◇S_p) (l. 47, l. 162)."""
+        out = []
+        for q in self.core_names[: self.c_h]:
+            if q == self.name:
+                out.append(Member(q, self.inc, self.addr))
+                continue
+            p = self.core.peers.get(q)
+            if p is None or not p.inc or self.core.is_suspected(q, p.inc):
+                continue
+            out.append(Member(q, p.inc, self.addrs.get(q, "")))
+        return tuple(out)
+
+    def _formation_fallback(self) -> None:
+        """ll. 45-49: while p ∉ memberList_p, propose OAC(formationFallback) to the unsuspected core head."""
+        if self.state.members or self.group_seen or self.leaving:
+            return
+        if self.formation_txid is not None:
+            return  # l. 49: wait until decided
+        members = self._core_head_list()
+        tx = TxFormation(self.me, members)
+        self.formation_txid = self.core.propose_to(self._now, encode_tx(tx), [m.proc for m in members])
+        self._log("formation_fallback", tx=str(self.formation_txid), members=[m.name for m in members])
+
+    # ------------------------------------------------------------------ OAC votes (ll. 110-116, 158-165)
+
+    def _evaluate(self, txid: TxId, payload: bytes) -> bool:
+        try:
+            tx = decode_tx(payload)
+        except GroupTxError:
+            return True  # not ours to judge: it is applied as a no-op everywhere
+        t = type(tx)
+        if t is TxRemove:
+            self.group_txs.add(txid)
+            if "no-weak-validity" in self.mutations:
+                return True
+            rl = self._remove_list()
+            cand = [m.proc for m in self.state.members if m.proc not in rl]
+            if not cand or cand[0] != tx.proposer:  # type: ignore[union-attr]
+                return False  # l. 111-112: not the accepted leader
+            if not set(tx.removal) <= rl:  # type: ignore[union-attr]  # l. 113-114
+                return False
+            return self._quorum(tx.removal)  # type: ignore[union-attr]
+        if t is TxMembership:
+            self.group_txs.add(txid)
+            return True
+        if t is TxFormation:
+            if self.state.members:  # l. 160-161
+                return False
+            want = [m.proc for m in self._core_head_list()]
+            return [m.proc for m in tx.members] == want  # type: ignore[union-attr]  # l. 162-163
+        return True
+
+    # ------------------------------------------------------------------ OAC outcomes
+
+    def _on_decided(self, e: Decided) -> None:
+        txid = e.txid
+        if e.commit:
+            return  # handled at delivery, in total order
+        self.group_txs.discard(txid)
+        if txid == self.formation_txid:
+            self.formation_txid = None
+            if not self.state.members:
+                self._timer("formation", self._now + self.config.formation_retry)  # l. 46: repeat
+        w = self.writes.pop(txid, None)
+        if w is not None:
+            self._retry_write(w, "aborted")
+        a = self.attempt
+        if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
+            self.attempt = None
+            self.updating = False
+            self._update()
+        elif a is not None and txid == a.membership_txid:  # l. 152-157
+            self.attempt = None
+            if self.locked == a.key:
+                self._unlock()
+            self.updating = False
+            self._update()
+
+    def _on_deliver(self, e: Deliver) -> None:
+        self.group_txs.discard(e.txid)
+        if e.txid == self.formation_txid:
+            self.formation_txid = None
+        if e.txid in self.state.recent:
+            return  # already applied from the sponsor's forwarded stream
+        if self.direct_q or (not self.is_member() and self._needs_state(e.payload)):
+            # a new member: buffer until the state has caught up with the transaction that added us
+            self.direct_q.append((e.txid, e.payload))
+            if self.direct_anchor:
+                self._drain_direct()
+            else:
+                self._timer("catchup", self._now + self.config.catchup_timeout)
+            return
+        self._apply(e.txid, e.payload, direct=True)
+
+    def _needs_state(self, payload: bytes) -> bool:
+        """A non-member delivers a transaction: the one that adds it to an existing group (it must first
+        hold the state before it), or one that creates a group (formation, or our own group of one)."""
+        try:
+            tx = decode_tx(payload)
+        except GroupTxError:
+            return True
+        if type(tx) is TxFormation:
+            return False
+        return not (type(tx) is TxMembership and tx.proposer == self.me and not self.state.members)
+
+    # ------------------------------------------------------------------ applying the global sequence
+
+    def _apply(self, txid: TxId, payload: bytes, direct: bool) -> None:
+        was_member = self.is_member()
+        was_leader = self._leader_now()
+        res = self.state.apply(txid, payload)
+        h = self.state.content_hash() if self.config.hash_every_apply else ""
+        self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result))
+        for a in list(self.sponsees):  # l. 61: forward to every applicant we sponsor
+            self._send(a, StateForward(res.seq, txid, payload))
+        pending = self.state_requests.pop(txid, None)
+        if pending:
+            for q in pending:
+                self._send(q, StateSnapshot(self.state.seq, self.state.snapshot(), txid, res.seq))
+        try:
+            tx = decode_tx(payload)
+        except GroupTxError:
+            tx = None
+        if res.view_changed:
+            self.out.append(
+                ViewChange(self.state.view, res.seq, tuple(self.state.members), res.removed, res.added, txid)
+            )
+            self._log(
+                "view",
+                view=self.state.view,
+                members=[f"{m.name}.{m.inc}" for m in self.state.members],
+                removed=[m.name for m in res.removed],
+                added=[m.name for m in res.added],
+            )
+            for m in self.state.members:
+                if m.proc != self.me:
+                    self._connect(m.name, m.addr)
+                    self.core.add_peer(self._now, m.name, m.inc)
+            for m in res.removed:
+                if m.proc != self.me:
+                    self.core.mark_dead(self._now, m.name, m.inc, "removed")
+                    self.join_list.pop(m.proc, None)
+        w = self.writes.pop(txid, None)
+        if w is not None:
+            self.out.append(WriteDone(w.req, True, txid, res.seq, res.error, res.ddb_result))
+        if not (direct or self.is_member()):
+            return  # an applicant following its sponsor's stream: state only
+        t = type(tx)
+        if t is TxRemove:
+            if was_member:
+                self._on_remove_committed(tx)  # type: ignore[arg-type]
+        elif t is TxMembership:
+            self._on_membership_committed(txid, tx, was_member)  # type: ignore[arg-type]
+        elif t is TxFormation:
+            self._on_formation_committed(tx)  # type: ignore[arg-type]
+        if self.is_member() and not was_leader and self._leader_now():
+            self._log("leader", view=self.state.view)
+
+    def _on_remove_committed(self, tx: TxRemove) -> None:
+        """ll. 117-133."""
+        if not self.is_member():
+            self._removed()
+            return
+        self.leave_list &= {m.proc for m in self.state.members}  # l. 120
+        if self._leader_now():  # ll. 121-126
+            self._sponsor_all()
+        key = tx.key or None
+        self.locked = key  # l. 127
+        if key is not None:  # ll. 128-130
+            self._send(tx.proposer, Locked(key))
+            if tx.proposer == self.me:
+                self._on_locked(self.me, key)
+        else:
+            self._propose_held()  # l. 132
+        a = self.attempt
+        if a is not None and a.stage == "remove" and tx.proposer == self.me and key == (a.key or None):
+            if key is None:  # l. 103 first case, then ll. 108-109
+                self.attempt = None
+                self.updating = False
+            else:
+                a.stage = "locking"
+        self._update()  # l. 133
+
+    def _on_membership_committed(self, txid: TxId, tx: TxMembership, was_member: bool) -> None:
+        """ll. 136-151."""
+        new = {m.proc for m in tx.members}
+        if tx.proposer == self.me:  # ll. 137-139
+            self.sponsees -= new
+        for p in list(self.join_list):  # l. 140
+            if p in new:
+                del self.join_list[p]
+        self.leave_list &= new  # l. 143
+        if self.me not in new:
+            if was_member or self.leaving:
+                self._removed()
+            return
+        if not was_member:
+            self._log("joined", view=self.state.view, tx=str(txid))
+            self.sponsor = None
+        self.locked = None  # l. 144
+        self._propose_held()  # l. 145
+        a = self.attempt
+        if a is not None and a.membership_txid == txid:
+            self.attempt = None
+        self.updating = False  # l. 150
+        if self._leader_now():
+            self._sponsor_all()  # docs/membership.md: a new leader sponsors waiting applicants
+        self._update()  # l. 151
+
+    def _on_formation_committed(self, tx: TxFormation) -> None:
+        """ll. 166-179 (the state part, ll. 167-171 and 178, is in GlobalState.apply)."""
+        new = {m.proc for m in tx.members}
+        for p in list(self.join_list):  # l. 168
+            if p in new:
+                del self.join_list[p]
+        self.leave_list &= new  # l. 171
+        if self._leader_now():  # ll. 172-177
+            self._sponsor_all()
+        self._update()  # l. 179
+
+    def _removed(self) -> None:
+        """This incarnation is no longer a member: after a leave, stop (l. 17); otherwise re-apply as a new
+        incarnation (docs/membership.md)."""
+        if self.left:
+            return
+        if self.leaving:
+            self.left = True
+            self._log("left", view=self.state.view)
+            self.out.append(Left())
+        else:
+            self._log("removed", view=self.state.view)
+            self.out.append(Reincarnate(by=self.name))
+            self.left = True
+
+    # ------------------------------------------------------------------ updateMembership (ll. 76-109)
+
+    def _group_tx_in_progress(self) -> bool:
+        return bool(self.group_txs)
+
+    def _update(self) -> None:
+        if self.left or not self.is_member():
+            return
+        if self.updating or self._group_tx_in_progress():  # l. 77-78
+            return
+        procs = self.state.procs()
+        rl = self._remove_list()
+        cand = [p for p in procs if p not in rl]
+        if not cand or cand[0] != self.me:  # l. 79
+            return
+        cur = {p for p in procs if p not in rl and p not in self.leave_list}  # l. 82
+        gc = self.state.group_correct
+        potential: list[Proc] = []
+        for a in self.join_list:  # ll. 83-87
+            if self._suspected(a) or a not in self.sponsees or (not gc and a[0] not in self.core_names):
+                continue  # l. 84-85: disqualified
+            if cur <= self.conns_of.get(a, set()):
+                potential.append(a)
+        accept: list[Proc] = []
+        for a in list(potential):  # ll. 88-91
+            if a not in potential:
+                continue
+            conns = self.conns_of.get(a, set())
+            if set(accept) <= conns:
+                potential = [x for x in potential if x == a or x in conns]
+                accept.append(a)
+        if not gc and len(accept) < self.c_f:  # l. 92-93
+            accept = []
+        leave = {p for p in self.leave_list if p in set(procs) or p in self.join_list}
+        if not (accept or rl or leave):  # l. 94
+            return
+        if rl and not self._quorum(tuple(rl)):
+            self._log("removal_waits_for_quorum", suspected=[p[0] for p in sorted(rl)])
+            return
+        active = [p for p in procs if p not in rl]  # l. 95
+        removal = tuple(sorted(rl))  # l. 96
+        self.updating = True  # l. 97
+        if not accept and not leave:  # ll. 98-99
+            key = ""
+        else:  # l. 101
+            self.key_seq += 1
+            key = f"{self.name}.{self.inc}.{self.key_seq}"
+        tx = TxRemove(key, self.me, removal)
+        txid = self.core.propose_to(self._now, encode_tx(tx), active)  # l. 102
+        self.group_txs.add(txid)
+        members = [Member(a[0], a[1], self.join_list[a]) for a in accept]
+        self.attempt = _Attempt(txid, key, active, members, "remove")
+        self._log(
+            "update_membership",
+            tx=str(txid),
+            removal=[f"{p[0]}.{p[1]}" for p in removal],
+            accept=[m.name for m in members],
+            leave=[p[0] for p in leave],
+            lock=bool(key),
+        )
+
+    def _quorum(self, removal: tuple[Proc, ...]) -> bool:
+        """HAA's addition to l. 113 (docs/membership.md, "quorum"): a removal must leave more than half of
+        the current members, or exactly half including the front of the list. Two disjoint sets of members
+        that falsely suspect each other can then never both remove the other (a split group), which the
+        thesis rules out only by assumption (no erroneous removal, §4.6.1)."""
+        if "no-quorum" in self.mutations:
+            return True
+        procs = self.state.procs()
+        gone = set(removal)
+        stay = [p for p in procs if p not in gone]
+        n = len(procs)
+        if 2 * len(stay) > n:
+            return True
+        return 2 * len(stay) == n and bool(procs) and procs[0] in stay
+
+    def _on_locked(self, src: Proc, key: str) -> None:
+        a = self.attempt
+        if a is not None and a.key == key and a.stage in ("remove", "locking"):
+            a.locks.add(src)
+
+    def _poll(self) -> None:
+        """Re-check the waits of l. 103 (and the new member's catch-up) after every input."""
+        a = self.attempt
+        if a is None or a.stage != "locking" or self.left:
+            return
+        if "no-lock-wait" not in self.mutations:
+            for q in a.active:
+                if q not in a.locks and not self._suspected(q):
+                    return
+            for tx in self.core.oac.txs.values():  # "all active OACs are decided"
+                if tx.content and tx.state == UNDECIDED:
+                    return
+        if all(q in a.locks for q in a.active) or "no-lock-wait" in self.mutations:  # l. 104
+            leave = self.leave_list
+            new = [m for m in self.state.members if m.proc not in leave]  # l. 105
+            have = {m.proc for m in new}
+            new += [m for m in a.accept if m.proc not in have and m.proc not in leave]
+            tx = TxMembership(a.key, self.me, tuple(new))
+            parts = list(dict.fromkeys([*a.active, *(m.proc for m in a.accept)]))
+            a.stage = "membership"
+            a.membership_txid = self.core.propose_to(self._now, encode_tx(tx), parts)  # l. 106
+            self.group_txs.add(a.membership_txid)
+            self._log("membership_proposed", tx=str(a.membership_txid), members=[m.name for m in new])
+        else:  # ll. 107-109
+            self.attempt = None
+            self.updating = False
+            self._update()
+
+    # ------------------------------------------------------------------ global-state changes
+
+    def _propose_write(self, w: _Write) -> None:
+        w.attempts += 1
+        txid = self.core.propose_to(self._now, w.payload, self.state.procs())
+        self.writes[txid] = w
+
+    def _retry_write(self, w: _Write, why: str) -> None:
+        if w.attempts >= self.config.max_write_attempts:
+            self.out.append(WriteDone(w.req, False, None, 0, f"gave up after {w.attempts} attempts ({why})"))
+            return
+        if self.locked is not None or not self.is_member() or self.direct_q:
+            if self.is_member():
+                self.held.append(w)
+            else:
+                self.out.append(WriteDone(w.req, False, None, 0, "no longer a member of the group"))
+            return
+        self._propose_write(w)
+
+    def _propose_held(self) -> None:
+        """ll. 132, 145, 155: propose the changes held while locked."""
+        if self.locked is not None or self.direct_q:
+            return
+        held, self.held = self.held, []
+        for w in held:
+            self._propose_write(w)
+
+    def _unlock(self) -> None:
+        self.locked = None
+        self._propose_held()
+
+    # ------------------------------------------------------------------ sponsoring and state transfer
+
+    def _sponsor(self, a: Proc) -> None:
+        """ll. 58-61 (and 123-126, 174-177)."""
+        self.sponsees.add(a)
+        self._send(a, Sponsor())
+        self._send(a, StateSnapshot(self.state.seq, self.state.snapshot(), None, 0))
+
+    def _sponsor_all(self) -> None:
+        for a in list(self.join_list):
+            if a not in self.sponsees and not self._known_dead(a):
+                self._sponsor(a)
+
+    def _install(self, seq: int, data: bytes) -> bool:
+        if seq <= self.state.seq:
+            return False
+        try:
+            self.state.restore(data)
+        except GroupTxError as e:
+            self.counters["rejected_snapshot"] += 1
+            self._log("reject", reason=str(e))
+            return False
+        for m in self.state.members:
+            if m.proc != self.me:
+                self.addrs.setdefault(m.name, m.addr)
+        return True
+
+    def _on_forward(self, seq: int, txid: TxId, payload: bytes) -> None:
+        if self.is_member() and not self.direct_q:
+            return  # joined: the sponsor's stream has nothing more for us
+        if seq <= self.state.seq:
+            return
+        self.fwd_buffer[seq] = (txid, payload)
+        self._drain_forwarded()
+
+    def _drain_forwarded(self) -> None:
+        while self.state.seq + 1 in self.fwd_buffer:
+            txid, payload = self.fwd_buffer.pop(self.state.seq + 1)
+            if self.direct_q and txid == self.direct_q[0][0]:
+                self.direct_anchor = self.state.seq + 1
+                self.fwd_buffer.clear()
+                self._drain_direct()
+                return
+            self._apply(txid, payload, direct=False)
+        for s in [s for s in self.fwd_buffer if s <= self.state.seq]:
+            del self.fwd_buffer[s]
+
+    def _drain_direct(self) -> None:
+        """Apply buffered deliveries once the state has reached the one before the first of them."""
+        if not self.direct_anchor or self.state.seq + 1 < self.direct_anchor:
+            return
+        q, self.direct_q = self.direct_q, []
+        first = self.direct_anchor
+        self.direct_anchor = 0
+        for i, (txid, payload) in enumerate(q):
+            if first + i <= self.state.seq or txid in self.state.recent:
+                continue
+            self._apply(txid, payload, direct=True)
+        self.core.out.append(Log("caught_up", {"seq": self.state.seq}))
+        self._propose_held()
+
+    def _request_state(self) -> None:
+        if not self.direct_q or self.direct_anchor:
+            return
+        txid = self.direct_q[0][0]
+        target = None
+        for m in self.state.members:  # the first unsuspected member that is not us
+            if m.proc != self.me and not self._suspected(m.proc):
+                target = m.proc
+                break
+        if target is None and self.sponsor is not None:
+            target = self.sponsor
+        if target is None:
+            target = (txid.host, txid.inc)
+        self._send(target, StateRequest(txid))
+        self._log("state_request", to=target[0], tx=str(txid))
+        self._timer("catchup", self._now + self.config.catchup_timeout)
+
+    def _on_state_request(self, src: Proc, txid: TxId) -> None:
+        seq = self.state.recent.get(txid)
+        if seq is None:
+            self.state_requests.setdefault(txid, []).append(src)  # answer once it is applied here
+            return
+        self._send(src, StateSnapshot(self.state.seq, self.state.snapshot(), txid, seq))
+
+    def _on_snapshot(self, src: Proc, msg: StateSnapshot) -> None:
+        if msg.anchor is None:  # from our sponsor (ll. 60, 125, 176)
+            if self.is_member() and not self.direct_q:
+                return
+            self._install(msg.seq, msg.data)
+            self._drain_forwarded()
+            return
+        if not self.direct_q or msg.anchor != self.direct_q[0][0]:
+            return
+        self._install(msg.seq, msg.data)
+        self.direct_anchor = msg.anchor_seq
+        self.fwd_buffer.clear()
+        self._drain_direct()
+
+    # ------------------------------------------------------------------ membership messages
+
+    def _on_group(self, src: str, src_inc: int, msg: Message) -> None:
+        q = (src, src_inc)
+        t = type(msg)
+        if self.left:
+            return
+        if t is Apply:
+            self._on_apply(q, msg.addr)  # type: ignore[union-attr]
+        elif t is Introduce:
+            self._on_introduce(q, msg)  # type: ignore[arg-type]
+        elif t is Sponsor:  # ll. 71-73
+            if not self.is_member():
+                self.sponsor = q
+                self._send(q, Connections(self._two_way()))
+        elif t is Connections:  # ll. 74-75
+            self.conns_of[q] = set(msg.peers)  # type: ignore[union-attr]
+            self._update()
+        elif t is Leave:
+            self._on_leave(q)
+        elif t is Locked:
+            self._on_locked(q, msg.key)  # type: ignore[union-attr]
+        elif t is StateForward:
+            self._on_forward(msg.seq, msg.txid, msg.payload)  # type: ignore[union-attr]
+        elif t is StateSnapshot:
+            self._on_snapshot(q, msg)  # type: ignore[arg-type]
+        elif t is StateRequest:
+            self._on_state_request(q, msg.txid)  # type: ignore[union-attr]
+
+    def _on_apply(self, a: Proc, addr: str) -> None:
+        """ll. 50-61."""
+        if self.state.is_member(a) or self._known_dead(a):
+            return
+        fresh = a not in self.join_list
+        self.join_list[a] = addr  # l. 51
+        self.conn_from.add(a)  # l. 52
+        self._connect(a[0], addr)  # l. 53
+        self.conn_to.add(a[0])  # l. 54
+        gid = self.state.group_id()
+        self._send(a, Introduce(self.name, self.inc, self.addr, gid))  # l. 55
+        if fresh:
+            for p in [*self.state.procs(), *self.join_list]:  # l. 56
+                if p != a and p != self.me:
+                    self._send(p, Introduce(a[0], a[1], addr, gid))
+        if self._leader_now() and a not in self.sponsees:  # ll. 57-61
+            self._sponsor(a)
+        self._update()
+
+    def _on_introduce(self, q: Proc, msg: Introduce) -> None:
+        """ll. 62-70."""
+        a = (msg.name, msg.inc)
+        if msg.group:
+            self._group_evidence(msg.group)
+        if a == self.me or self._known_dead(a):
+            return
+        if a == q:  # ll. 63-64
+            self.conn_from.add(q)
+        if a[0] not in self.conn_to:  # ll. 65-68
+            self._connect(a[0], msg.addr)
+            self.conn_to.add(a[0])
+            self._send(a, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
+        elif msg.addr:
+            self.addrs.setdefault(a[0], msg.addr)
+            self.core.add_peer(self._now, a[0], a[1])
+        if not self.is_member() and self.sponsor is not None:  # ll. 69-70
+            self._send(self.sponsor, Connections(self._two_way()))
+
+    def _group_evidence(self, gid: str) -> None:
+        """docs/membership.md, "restarts": someone holds the state of a correct group `gid`."""
+        self.group_seen = gid
+        st = self.state
+        if st.members and not st.group_correct and st.genesis != gid and self.is_member():
+            self._log("provisional_group_abandoned", group=st.genesis, existing=gid)
+            self.left = True
+            self.out.append(Reincarnate(by=self.name))
+
+    def _on_leave(self, q: Proc) -> None:
+        """ll. 18-21."""
+        if self.state.is_member(q) or q in self.join_list:
+            self.leave_list.add(q)
+            self._update()
+
+    # ------------------------------------------------------------------ failure detector changes
+
+    def _on_suspicion_change(self, p: Proc, suspected: bool) -> None:
+        """ll. 22-31 (removeList_p itself is computed on demand)."""
+        if self.state.is_member(p) or p in self.join_list:
+            self._update()
+
+    def _on_peer_dead(self, p: Proc) -> None:
+        """ll. 32-34."""
+        if p in self.join_list:
+            del self.join_list[p]
+        self.sponsees.discard(p)
+        self.conns_of.pop(p, None)
+        if self.sponsor == p:
+            self.sponsor = None
+        self._update()
+
+    # ------------------------------------------------------------------ introspection
+
+    def status(self) -> dict[str, Any]:
+        st = self.state
+        lead = st.leader()
+        return {
+            "name": self.name,
+            "incarnation": self.inc,
+            "member": self.is_member(),
+            "members": [m.name for m in st.members],
+            "leader": lead.name if lead else "",
+            "view": st.view,
+            "rank": next((i for i, m in enumerate(st.members) if m.proc == self.me), -1),
+            "group_correct": st.group_correct,
+            "seq": st.seq,
+            "locked": self.locked or "",
+            "applicants": [p[0] for p in self.join_list],
+            "suspected": sorted(m.name for m in st.members if self._suspected(m.proc)),
+            "ddb_size": st.ddb.size,
+            "state_hash": st.content_hash(),
+        }
