@@ -100,7 +100,8 @@ def draw_group(seed: int, hosts: int = 7) -> GroupScenario:
     quiet_from = SIM_NODE["formation_timeout"] + 0.5  # no false suspicion before formation (§4.6.1)
     # hosts that crash, leave or pause: fewer than half of all hosts (a removal needs a quorum of the view,
     # docs/membership.md), and at most c_f core processes
-    budget = (n - 1) // 2
+    early = sum(1 for t in starts.values() if t < 0.5)
+    budget = (early - 1) // 2  # every OAC's participants keep a correct majority (f < n/2, §4.5.1)
     budget_core = c_f
     troubled: set[str] = set()
 
@@ -157,8 +158,9 @@ def draw_group(seed: int, hosts: int = 7) -> GroupScenario:
 
 @dataclass
 class GroupHistory:
-    views: dict[Proc, list[tuple[int, tuple[Proc, ...], float]]] = field(default_factory=lambda: defaultdict(list))
-    applied: dict[Proc, list[tuple[int, TxId, str]]] = field(default_factory=lambda: defaultdict(list))
+    views: dict[Proc, list[tuple[str, int, tuple[Proc, ...], float]]] = field(default_factory=lambda: defaultdict(list))
+    correct_groups: set[str] = field(default_factory=set)
+    applied: dict[Proc, list[tuple[int, TxId, str, str]]] = field(default_factory=lambda: defaultdict(list))
     votes: list[tuple[float, Proc, TxId, bool, Any]] = field(default_factory=list)
     acked: dict[Any, tuple[Proc, TxId, int]] = field(default_factory=dict)
     write_proposer: dict[TxId, Proc] = field(default_factory=dict)
@@ -229,9 +231,11 @@ class GroupSim:
         if t is ViewChange:
             self.known[h.name] = {m.name: m.addr for m in e.members}
         if t is AppliedTx:
-            gh.applied[proc].append((e.seq, e.txid, e.state_hash))
+            gh.applied[proc].append((e.seq, e.txid, e.state_hash, h.core.state.genesis))  # type: ignore[union-attr]
         elif t is ViewChange:
-            gh.views[proc].append((e.view, tuple(m.proc for m in e.members), self.cl.now))
+            gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))
+            if e.correct:
+                gh.correct_groups.add(e.group)
             self.cl._note(f"view {e.view} at {h.name}#{h.inc}: {[m.name for m in e.members]}")
         elif t is WriteDone:
             if e.ok:
@@ -360,24 +364,32 @@ def check_group(sim: GroupSim) -> list[GroupViolation]:
     gh = sim.gh
     out: list[GroupViolation] = []
     # HM-Agreement: one view id, one member set; increasing ids per process
-    view_sets: dict[int, tuple[Proc, ...]] = {}
+    view_sets: dict[tuple[str, int], tuple[Proc, ...]] = {}
+    if len(gh.correct_groups) > 1:
+        out.append(GroupViolation("HM-Formation", f"more than one correct group formed: {sorted(gh.correct_groups)}"))
     for proc, vs in gh.views.items():
         last = 0
-        for v, members, t in vs:
+        for g, v, members, t in vs:
             if v <= last:
                 out.append(GroupViolation("HM-Agreement", f"{proc} view ids not increasing: {last} then {v}"))
             last = v
-            prev = view_sets.setdefault(v, members)
+            prev = view_sets.setdefault((g, v), members)
             if prev != members:
                 out.append(
-                    GroupViolation("HM-Agreement", f"view {v}: {proc} has {list(members)} at {t:.3f}, other {list(prev)}")
+                    GroupViolation(
+                        "HM-Agreement", f"group {g} view {v}: {proc} has {list(members)} at {t:.3f}, other {list(prev)}"
+                    )
                 )
                 break
     # one leader per view is the front of the (agreed) list; check nobody acted as leader outside it
     # global sequence: same txid and hash at every seq
     at_seq: dict[int, tuple[TxId, str, Proc]] = {}
+    groups = gh.correct_groups or {""}
+    main = min(groups)
     for proc, items in gh.applied.items():
-        for seq, txid, h in items:
+        for seq, txid, h, g in items:
+            if g != main:
+                continue  # a provisional group of one that was abandoned
             prev = at_seq.get(seq)
             if prev is None:
                 at_seq[seq] = (txid, h, proc)
@@ -392,7 +404,7 @@ def check_group(sim: GroupSim) -> list[GroupViolation]:
                 )
                 break
     # HM-Weak-Validity
-    committed = {txid for items in gh.applied.values() for _s, txid, _h in items}
+    committed = {txid for items in gh.applied.values() for _s, txid, _h, _g in items}
     for t, proc, txid, vote, tx in gh.votes:
         if not vote or txid not in committed:
             continue

@@ -101,6 +101,8 @@ class ViewChange:
     removed: tuple[Member, ...]
     added: tuple[Member, ...]
     txid: TxId
+    group: str  # id of the group (the transaction that created it)
+    correct: bool  # the group is correct (more than c_f core processes have been members)
 
 
 @dataclass(slots=True)
@@ -153,13 +155,15 @@ class NodeConfig:
     reapply: float = 2.0
     #: a new member whose state has not caught up after this long asks a member for a snapshot
     catchup_timeout: float = 2.0
+    #: wait between a failed membership update attempt and the next
+    retry_backoff: float = 0.05
     #: a global-state change aborted this many times is reported failed
     max_write_attempts: int = 50
     #: compute the content hash after every applied transaction (the simulator's checks)
     hash_every_apply: bool = False
 
     def __post_init__(self) -> None:
-        for n in ("formation_timeout", "formation_retry", "discovery", "reapply", "catchup_timeout"):
+        for n in ("formation_timeout", "formation_retry", "discovery", "reapply", "catchup_timeout", "retry_backoff"):
             if getattr(self, n) <= 0:
                 raise ValueError(f"{n} must be positive")
 
@@ -403,9 +407,18 @@ class MembershipNode:
                 for q in self._contacts():
                     self._send((q, self.core.peers[q].inc), Apply(self.addr))
             if not self.is_member():
+                for m in self.state.members:  # members we never heard from: introduce ourselves again
+                    if m.proc not in self.conn_from and not self._known_dead(m.proc):
+                        self._connect(m.name, m.addr)
+                        self.conn_to.add(m.name)
+                        self._send(m.proc, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
                 self._timer("reapply", now + self.config.reapply)
         elif k == "catchup":
             self._request_state()
+        elif k == "retry":
+            if self.attempt is None:
+                self.updating = False
+                self._update()
 
     def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
         """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
@@ -528,14 +541,12 @@ class MembershipNode:
         a = self.attempt
         if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
             self.attempt = None
-            self.updating = False
-            self._update()
+            self._retry_later()
         elif a is not None and txid == a.membership_txid:  # l. 152-157
             self.attempt = None
             if self.locked == a.key:
                 self._unlock()
-            self.updating = False
-            self._update()
+            self._retry_later()
 
     def _on_deliver(self, e: Deliver) -> None:
         self.group_txs.discard(e.txid)
@@ -583,8 +594,9 @@ class MembershipNode:
         except GroupTxError:
             tx = None
         if res.view_changed:
+            st = self.state
             self.out.append(
-                ViewChange(self.state.view, res.seq, tuple(self.state.members), res.removed, res.added, txid)
+                ViewChange(st.view, res.seq, tuple(st.members), res.removed, res.added, txid, st.genesis, st.group_correct)
             )
             self._log(
                 "view",
@@ -754,6 +766,12 @@ class MembershipNode:
             lock=bool(key),
         )
 
+    def _retry_later(self) -> None:
+        """l. 109 after a failed attempt: updateMembership() again, after `retry_backoff` (the pseudo-code
+        retries at once, which spins while a false suspicion lasts)."""
+        self.updating = True  # nothing new starts until the retry
+        self._timer("retry", self._now + self.config.retry_backoff)
+
     def _quorum(self, removal: tuple[Proc, ...]) -> bool:
         """HAA's addition to l. 113 (docs/membership.md, "quorum"): a removal must leave more than half of
         the current members, or exactly half including the front of the list. Two disjoint sets of members
@@ -799,8 +817,7 @@ class MembershipNode:
             self._log("membership_proposed", tx=str(a.membership_txid), members=[m.name for m in new])
         else:  # ll. 107-109
             self.attempt = None
-            self.updating = False
-            self._update()
+            self._retry_later()
 
     # ------------------------------------------------------------------ global-state changes
 
@@ -989,9 +1006,12 @@ class MembershipNode:
             return
         if a == q:  # ll. 63-64
             self.conn_from.add(q)
-        if a[0] not in self.conn_to:  # ll. 65-68
+        if a[0] not in self.conn_to or (a != q and a not in self.conn_from):  # ll. 65-68
+            # (also when we "opened" the link before but never heard from `a`: our `apply` or introduction
+            # may have reached it before it was running; docs/membership.md, "lost introductions")
             self._connect(a[0], msg.addr)
             self.conn_to.add(a[0])
+            self.core.add_peer(self._now, a[0], a[1])
             self._send(a, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
         elif msg.addr:
             self.addrs.setdefault(a[0], msg.addr)
