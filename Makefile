@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast lint proto verify bench clean
+.PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image
 
 setup: $(STAMP)
 
@@ -38,6 +38,14 @@ verify: setup
 
 bench: setup
 	$(BIN)/haactl bench ap1
+
+# Container engine (Debian's docker.io + docker-compose v1; starts dockerd if needed) and the haa-hostd image,
+# built offline from a debootstrap base and a host-filled wheelhouse. See docs/containers.md.
+docker-setup:
+	scripts/docker-setup.sh
+
+image:
+	PYTHON=$(PYTHON) scripts/build-image.sh
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
