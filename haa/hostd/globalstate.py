@@ -297,6 +297,16 @@ class GlobalState:
             s.recent.add(host=t.host, incarnation=t.inc, seq=t.seq, applied_seq=q)
         return s.SerializeToString()
 
+    @staticmethod
+    def peek(data: bytes) -> tuple[int, str, bool]:
+        """(seq, group id, group_correct) of a snapshot, without restoring it."""
+        s = gpb.GlobalSnapshot()
+        try:
+            s.ParseFromString(data)
+        except DecodeError as e:
+            raise GroupTxError(f"global state snapshot does not decode: {e}") from None
+        return s.seq, s.genesis, s.group_correct
+
     def restore(self, data: bytes) -> None:
         s = gpb.GlobalSnapshot()
         try:

@@ -460,8 +460,10 @@ class MembershipNode:
     # ------------------------------------------------------------------ formation (ll. 40-49)
 
     def _form_group_of_one(self) -> None:
-        """ll. 41-43, after `discovery` (docs/membership.md, "restarts")."""
-        if self.state.members or self.group_seen or self.leaving:
+        """ll. 41-43, after `discovery` (docs/membership.md, "restarts"). A host that was a member before (it
+        knows hosts from a previous incarnation) never forms a group: its group may still exist and only be
+        slow to answer; it applies until it is joined."""
+        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
             return
         self.key_seq += 1
         key = f"{self.name}.{self.inc}.{self.key_seq}"
@@ -486,7 +488,7 @@ class MembershipNode:
 
     def _formation_fallback(self) -> None:
         """ll. 45-49: while p ∉ memberList_p, propose OAC(formationFallback) to the unsuspected core head."""
-        if self.state.members or self.group_seen or self.leaving:
+        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
             return
         if self.formation_txid is not None:
             return  # l. 49: wait until decided
@@ -596,7 +598,9 @@ class MembershipNode:
         if res.view_changed:
             st = self.state
             self.out.append(
-                ViewChange(st.view, res.seq, tuple(st.members), res.removed, res.added, txid, st.genesis, st.group_correct)
+                ViewChange(
+                    st.view, res.seq, tuple(st.members), res.removed, res.added, txid, st.genesis, st.group_correct
+                )
             )
             self._log(
                 "view",
@@ -864,8 +868,20 @@ class MembershipNode:
                 self._sponsor(a)
 
     def _install(self, seq: int, data: bytes) -> bool:
-        if seq <= self.state.seq:
+        """Install a snapshot that is ahead of our state in the same group, or that comes from a correct group
+        while ours is not (a provisional group of one that never became correct, docs/membership.md)."""
+        st = self.state
+        try:
+            seq, gid, correct = GlobalState.peek(data)
+        except GroupTxError as e:
+            self.counters["rejected_snapshot"] += 1
+            self._log("reject", reason=str(e))
             return False
+        same = gid == st.genesis
+        if not ((same and seq > st.seq) or (not same and correct and not st.group_correct) or st.seq == 0):
+            return False
+        if not same:
+            self.fwd_buffer.clear()
         try:
             self.state.restore(data)
         except GroupTxError as e:
