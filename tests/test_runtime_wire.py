@@ -174,3 +174,30 @@ def test_decode_accepts_the_boundaries() -> None:
     ]
     for msg in ok:
         assert wire.decode(env_of(msg))[3] == msg
+
+
+def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
+    msgs = [
+        m.Apply("h1:7000"),
+        m.Introduce("h2", 3, "h2:7000", "h1.1.1"),
+        m.Sponsor(),
+        m.Connections((("h1", 1), ("h2", 2))),
+        m.Connections(()),
+        m.Leave(),
+        m.Locked("h1.1.4"),
+        m.StateSnapshot(5, b"state", None, 0),
+        m.StateSnapshot(5, b"state", m.TxId("h1", 1, 2), 4),
+        m.StateForward(3, m.TxId("h1", 1, 2), b"payload"),
+        m.StateRequest(m.TxId("h1", 1, 2)),
+    ]
+    for msg in msgs:
+        env = wire.encode("h9", 7, 0, msg)
+        assert wire.decode(pb.Envelope.FromString(env.SerializeToString()))[3] == msg
+    bad = wire.encode("h9", 7, 0, m.StateRequest(m.TxId("h1", 1, 2)))
+    bad.state_request.txid.incarnation = 0
+    with pytest.raises(wire.WireError):
+        wire.decode(bad)
+    empty = wire.encode("h9", 7, 0, m.Apply("x"))
+    empty.apply.addr = ""
+    with pytest.raises(wire.WireError):
+        wire.decode(empty)

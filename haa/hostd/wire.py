@@ -22,8 +22,13 @@ from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 from haa.hostd.messages import (
+    Apply,
+    Connections,
     Excluded,
     Heartbeat,
+    Introduce,
+    Leave,
+    Locked,
     Message,
     OacAck,
     OacDecide,
@@ -32,6 +37,10 @@ from haa.hostd.messages import (
     OacProposal,
     OacTransaction,
     SetPeriod,
+    Sponsor,
+    StateForward,
+    StateRequest,
+    StateSnapshot,
     TxId,
 )
 from haa.hostd.oac import INITIAL_TS
@@ -71,7 +80,18 @@ KIND: dict[type, str] = {
     OacAck: "oac_ack",
     OacDecide: "oac_decide",
     Excluded: "excluded",
+    Apply: "apply",
+    Introduce: "introduce",
+    Sponsor: "sponsor",
+    Connections: "connections",
+    Leave: "leave",
+    Locked: "locked",
+    StateSnapshot: "state_snapshot",
+    StateForward: "state_forward",
+    StateRequest: "state_request",
 }
+#: longest address, lock key or group id accepted on the wire
+MAX_TEXT = 1024
 
 
 # ----------------------------------------------------------------------------------------------- encode
@@ -157,6 +177,58 @@ def _enc_excluded(env: pb.Envelope, m: Excluded) -> None:
     env.excluded.incarnation = m.incarnation
 
 
+# --- Alg. 3 (membership) ------------------------------------------------------------------------------
+
+
+def _enc_apply(env: pb.Envelope, m: Apply) -> None:
+    env.apply.addr = m.addr
+
+
+def _enc_introduce(env: pb.Envelope, m: Introduce) -> None:
+    t = env.introduce
+    t.name = m.name
+    t.incarnation = m.inc
+    t.addr = m.addr
+    t.group = m.group
+
+
+def _enc_sponsor(env: pb.Envelope, m: Sponsor) -> None:
+    env.sponsor.SetInParent()
+
+
+def _enc_connections(env: pb.Envelope, m: Connections) -> None:
+    env.connections.SetInParent()
+    _set_parts(env.connections.peers, m.peers)
+
+
+def _enc_leave(env: pb.Envelope, m: Leave) -> None:
+    env.leave.SetInParent()
+
+
+def _enc_locked(env: pb.Envelope, m: Locked) -> None:
+    env.locked.key = m.key
+
+
+def _enc_snapshot(env: pb.Envelope, m: StateSnapshot) -> None:
+    t = env.state_snapshot
+    t.seq = m.seq
+    t.data = m.data
+    if m.anchor is not None:
+        _set_txid(t.anchor, m.anchor)
+    t.anchor_seq = m.anchor_seq
+
+
+def _enc_forward(env: pb.Envelope, m: StateForward) -> None:
+    t = env.state_forward
+    t.seq = m.seq
+    _set_txid(t.txid, m.txid)
+    t.payload = m.payload
+
+
+def _enc_state_request(env: pb.Envelope, m: StateRequest) -> None:
+    _set_txid(env.state_request.txid, m.txid)
+
+
 _ENCODERS: dict[type, Callable[[pb.Envelope, object], None]] = {
     Heartbeat: _enc_heartbeat,  # type: ignore[dict-item]
     SetPeriod: _enc_set_period,  # type: ignore[dict-item]
@@ -167,6 +239,15 @@ _ENCODERS: dict[type, Callable[[pb.Envelope, object], None]] = {
     OacAck: _enc_ack,  # type: ignore[dict-item]
     OacDecide: _enc_decide,  # type: ignore[dict-item]
     Excluded: _enc_excluded,  # type: ignore[dict-item]
+    Apply: _enc_apply,  # type: ignore[dict-item]
+    Introduce: _enc_introduce,  # type: ignore[dict-item]
+    Sponsor: _enc_sponsor,  # type: ignore[dict-item]
+    Connections: _enc_connections,  # type: ignore[dict-item]
+    Leave: _enc_leave,  # type: ignore[dict-item]
+    Locked: _enc_locked,  # type: ignore[dict-item]
+    StateSnapshot: _enc_snapshot,  # type: ignore[dict-item]
+    StateForward: _enc_forward,  # type: ignore[dict-item]
+    StateRequest: _enc_state_request,  # type: ignore[dict-item]
 }
 
 
@@ -314,6 +395,77 @@ def _dec_excluded(env: pb.Envelope) -> Excluded:
     return Excluded(inc)
 
 
+def _text(v: str, what: str, empty_ok: bool = True) -> str:
+    if not v and not empty_ok:
+        raise WireError(f"{what}: empty")
+    if len(v) > MAX_TEXT:
+        raise WireError(f"{what}: longer than {MAX_TEXT}")
+    return v
+
+
+def _dec_apply(env: pb.Envelope) -> Apply:
+    return Apply(_text(env.apply.addr, "apply.addr", empty_ok=False))
+
+
+def _dec_introduce(env: pb.Envelope) -> Introduce:
+    m = env.introduce
+    if m.incarnation == 0:
+        raise WireError("introduce: incarnation 0")
+    return Introduce(
+        _name(m.name, "introduce"), m.incarnation, _text(m.addr, "introduce.addr"), _text(m.group, "introduce.group")
+    )
+
+
+def _dec_sponsor(env: pb.Envelope) -> Sponsor:
+    return Sponsor()
+
+
+def _dec_connections(env: pb.Envelope) -> Connections:
+    rep = env.connections.peers
+    if len(rep) == 0:
+        return Connections(())
+    return Connections(_dec_parts(rep, "connections"))
+
+
+def _dec_leave(env: pb.Envelope) -> Leave:
+    return Leave()
+
+
+def _dec_locked(env: pb.Envelope) -> Locked:
+    return Locked(_text(env.locked.key, "locked.key", empty_ok=False))
+
+
+def _dec_snapshot(env: pb.Envelope) -> StateSnapshot:
+    m = env.state_snapshot
+    anchor = None
+    if m.HasField("anchor"):
+        t = m.anchor
+        if not t.host or t.incarnation == 0 or t.seq == 0:
+            raise WireError("state_snapshot.anchor: incomplete TxId")
+        anchor = TxId(_name(t.host, "state_snapshot.anchor"), t.incarnation, t.seq)
+    return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq)
+
+
+def _dec_forward(env: pb.Envelope) -> StateForward:
+    m = env.state_forward
+    if not m.HasField("txid") or m.seq == 0:
+        raise WireError("state_forward: txid and seq required")
+    t = m.txid
+    if t.incarnation == 0 or t.seq == 0:
+        raise WireError("state_forward.txid: incomplete TxId")
+    return StateForward(m.seq, TxId(_name(t.host, "state_forward.txid"), t.incarnation, t.seq), m.payload)
+
+
+def _dec_state_request(env: pb.Envelope) -> StateRequest:
+    m = env.state_request
+    if not m.HasField("txid"):
+        raise WireError("state_request: missing txid")
+    t = m.txid
+    if t.incarnation == 0 or t.seq == 0:
+        raise WireError("state_request.txid: incomplete TxId")
+    return StateRequest(TxId(_name(t.host, "state_request.txid"), t.incarnation, t.seq))
+
+
 _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
     "heartbeat": _dec_heartbeat,
     "set_period": _dec_set_period,
@@ -324,6 +476,15 @@ _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
     "oac_ack": _dec_ack,
     "oac_decide": _dec_decide,
     "excluded": _dec_excluded,
+    "apply": _dec_apply,
+    "introduce": _dec_introduce,
+    "sponsor": _dec_sponsor,
+    "connections": _dec_connections,
+    "leave": _dec_leave,
+    "locked": _dec_locked,
+    "state_snapshot": _dec_snapshot,
+    "state_forward": _dec_forward,
+    "state_request": _dec_state_request,
 }
 
 
