@@ -6,7 +6,7 @@ from haa.dsim.group import GroupScenario, GroupSim, check_group, draw_group, run
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
 from haa.hostd import ddb
-from haa.hostd.globalstate import GlobalState, TxMembership, TxRemove, decode_tx, encode_tx
+from haa.hostd.globalstate import GlobalState, TxDdb, TxMembership, TxRemove, decode_tx, encode_tx
 from haa.hostd.membership import MembershipNode, NodeConfig
 from haa.hostd.messages import Member, TxId
 
@@ -138,8 +138,6 @@ def test_global_state_snapshot_restores_and_continues_identically():
     b = GlobalState(("h1", "h2", "h3"), 1)
     b.restore(a.snapshot())
     assert b.content_hash() == a.content_hash()
-    from haa.hostd.globalstate import TxDdb
-
     w = encode_tx(TxDdb(ddb.encode_batch([ddb.put("k", "json", {"a": 1})])))
     a.apply(TxId("h2", 1, 1), w)
     b.apply(TxId("h2", 1, 1), w)

@@ -162,6 +162,9 @@ class SimCluster:
         self.trace: list[str] | None = [] if trace else None
         self.external = config.fd_mode == FD_EXTERNAL
         self.on_restart: Callable[[str, int], None] | None = None
+        #: builds the state machine a host boots (default: a `HostCore` over the static host list); it must
+        #: offer HostCore's inputs, `drain()`, `peers` and `oac`, and record its votes in `history.votes`
+        self.make_core: Callable[[SimHost, int], Any] | None = None
         #: receives effects this class does not know (those of a `MembershipNode`)
         self.on_effect: Callable[[SimHost, Any], None] | None = None
 
@@ -186,8 +189,11 @@ class SimCluster:
             self.history.votes.setdefault(txid, {})[(_name, _inc)] = vote
             return vote
 
-        known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
-        h.core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+        if self.make_core is not None:
+            h.core = self.make_core(h, inc)
+        else:
+            known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
+            h.core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
         proc = (name, inc)
         self.history.started[proc] = self.now
         self.history.decided[proc] = {}

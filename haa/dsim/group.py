@@ -31,14 +31,14 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.dsim.cluster import CRASHED, SimCluster, SimHost
+from haa.dsim.cluster import ALIVE, CRASHED, PAUSED, SimCluster, SimHost
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import EXCLUDE_AFTER, SIM_UFD, Fault, _delay_model
 from haa.hostd import ddb as ddbmod
 from haa.hostd.core import CoreConfig
 from haa.hostd.globalstate import TxRemove, decode_tx
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
-from haa.hostd.messages import GROUP_TYPES, OAC_TYPES, TxId
+from haa.hostd.messages import TxId
 
 Proc = tuple[str, int]
 
@@ -179,7 +179,7 @@ class GroupSim:
         cfg = CoreConfig(ufd=SIM_UFD, exclude_after=EXCLUDE_AFTER)
         self.node_cfg = NodeConfig(core=cfg, c_f=sc.c_f, **SIM_NODE)
         self.cl = SimCluster(sc.names, self.rng, sc.delay, cfg, sc.offsets, sc.drifts, trace=trace)
-        self.cl._boot = self._boot  # type: ignore[method-assign]
+        self.cl.make_core = self._make_node
         self.cl.on_effect = self._on_effect
         self.gh = GroupHistory()
         self.core_list = [(nm, nm) for nm in sc.core]
@@ -189,20 +189,15 @@ class GroupSim:
         for h in self.cl.by_idx:
             h.state = CRASHED  # not started yet
 
-    def _boot(self, h: SimHost, inc: int) -> None:
+    def _make_node(self, h: SimHost, inc: int) -> MembershipNode:
         cl = self.cl
-        h.inc = inc
-        h.state = 0
-        h.timers = {}
-        h.backlog = []
-        h.crash_pending = None
         # what the previous incarnation knew (the daemon keeps it in --data-dir)
         known = sorted(self.known.get(h.name, {}).items())
         node = MembershipNode(h.name, inc, h.name, self.core_list, self.node_cfg, self.mutations, known)
         proc = (h.name, inc)
         orig = node._evaluate
 
-        def evaluate(txid: TxId, payload: bytes, _p: Proc = proc, _h: SimHost = h) -> bool:
+        def evaluate(txid: TxId, payload: bytes, _p: Proc = proc) -> bool:
             vote = orig(txid, payload)
             try:
                 tx = decode_tx(payload)
@@ -216,15 +211,7 @@ class GroupSim:
             return vote
 
         node.core.oac._evaluate = evaluate
-        h.core = node  # type: ignore[assignment]
-        hist = cl.history
-        hist.started[proc] = cl.now
-        hist.decided[proc] = {}
-        hist.delivered[proc] = []
-        hist.closed[proc] = set()
-        node.start(h.local(cl.now))
-        cl._apply(h)
-        cl._note(f"boot {h.name}#{inc}")
+        return node
 
     def _on_effect(self, h: SimHost, e: Any) -> None:
         proc = (h.name, h.inc)
@@ -252,7 +239,7 @@ class GroupSim:
     def _write(self, name: str) -> None:
         h = self.cl.hosts[name]
         node = h.core
-        if h.state != 0 or node is None or not isinstance(node, MembershipNode):
+        if h.state != ALIVE or node is None or not isinstance(node, MembershipNode):
             return
         r = self.rreq
         key = f"k{r.randint(0, 5)}"
@@ -275,7 +262,7 @@ class GroupSim:
     def _leave(self, name: str) -> None:
         h = self.cl.hosts[name]
         node = h.core
-        if h.state != 0 or node is None:
+        if h.state != ALIVE or node is None:
             return
         self.gh.leave_requested[(name, h.inc)] = self.cl.now
         node.leave(h.local(self.cl.now))  # type: ignore[attr-defined]
@@ -285,7 +272,7 @@ class GroupSim:
         cl = self.cl
         sc = self.sc
         for nm, t in sc.starts.items():
-            cl.at(t, lambda nm=nm: self._boot(cl.hosts[nm], 1))
+            cl.at(t, lambda nm=nm: cl._boot(cl.hosts[nm], 1))
         for f in sc.faults:
             if f.kind in ("crash", "crash_mid"):
                 cl.at(f.time, lambda f=f: cl.crash(f.host, mid_step=f.kind == "crash_mid"))
@@ -302,7 +289,7 @@ class GroupSim:
             cl.at(t, lambda nm=nm: self._leave(nm))
         cl.run(sc.fault_end)
         for h in cl.by_idx:  # heal
-            if h.state == 1:
+            if h.state == PAUSED:
                 cl.resume(h.name)
         t = sc.fault_end
         quiet_for = 0.0
@@ -414,7 +401,7 @@ def check_group(sim: GroupSim) -> list[GroupViolation]:
         out.append(GroupViolation("HM-Termination", f"not quiescent by t={sim.sc.deadline}"))
         return out
     # final view
-    live = [h for h in cl.by_idx if h.state == 0 and h.core is not None]
+    live = [h for h in cl.by_idx if h.state == ALIVE and h.core is not None]
     if not live:
         return out
     finals = {}
@@ -452,9 +439,3 @@ def run_group(
     sim = GroupSim(sc, mutations)
     sim.run()
     return sim, check_group(sim)
-
-
-def group_msg_counts(sim: GroupSim) -> dict[str, int]:
-    c = sim.cl.msg_counts
-    names = {t.__name__ for t in GROUP_TYPES} | {t.__name__ for t in OAC_TYPES}
-    return {k: v for k, v in c.items() if k in names}

@@ -367,12 +367,7 @@ class HostCore:
 
     def _exclude(self, now: float, p: _Peer) -> None:
         """Permanent suspicion after `exclude_after` of continuous suspicion."""
-        inc = p.inc
-        self._mark_dead(p, inc, "excluded")
-        p.sender = None
-        self.out.append(CancelTimer(("hb", p.name)))
-        p.last_notice = now
-        self._send(p.name, inc, Excluded(inc))
+        self.mark_dead(now, p.name, p.inc, "excluded")
 
     def _new_incarnation(self, now: float, p: _Peer, inc: int) -> None:
         old = p.inc

@@ -281,15 +281,16 @@ class _WithTxId(Protocol):
     def HasField(self, field_name: str) -> bool: ...  # protobuf's method name
 
 
-def _dec_txid(m: _WithTxId, kind: str) -> TxId:
-    if not m.HasField("id"):
+def _dec_txid(m: _WithTxId, kind: str, field: str = "id") -> TxId:
+    """The TxId in `m.<field>` (every OAC message's `id`; the membership messages' `txid` / `anchor`)."""
+    if not m.HasField(field):
         raise WireError(f"{kind}: missing TxId")
-    t = m.id
-    host = _name(t.host, f"{kind}.id")
+    t = getattr(m, field)
+    host = _name(t.host, f"{kind}.{field}")
     if t.incarnation == 0:
-        raise WireError(f"{kind}.id: incarnation 0")
+        raise WireError(f"{kind}.{field}: incarnation 0")
     if t.seq == 0:
-        raise WireError(f"{kind}.id: seq 0")
+        raise WireError(f"{kind}.{field}: seq 0")
     return TxId(host, t.incarnation, t.seq)
 
 
@@ -437,33 +438,19 @@ def _dec_locked(env: pb.Envelope) -> Locked:
 
 def _dec_snapshot(env: pb.Envelope) -> StateSnapshot:
     m = env.state_snapshot
-    anchor = None
-    if m.HasField("anchor"):
-        t = m.anchor
-        if not t.host or t.incarnation == 0 or t.seq == 0:
-            raise WireError("state_snapshot.anchor: incomplete TxId")
-        anchor = TxId(_name(t.host, "state_snapshot.anchor"), t.incarnation, t.seq)
+    anchor = _dec_txid(m, "state_snapshot", "anchor") if m.HasField("anchor") else None
     return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq)
 
 
 def _dec_forward(env: pb.Envelope) -> StateForward:
     m = env.state_forward
-    if not m.HasField("txid") or m.seq == 0:
-        raise WireError("state_forward: txid and seq required")
-    t = m.txid
-    if t.incarnation == 0 or t.seq == 0:
-        raise WireError("state_forward.txid: incomplete TxId")
-    return StateForward(m.seq, TxId(_name(t.host, "state_forward.txid"), t.incarnation, t.seq), m.payload)
+    if m.seq == 0:
+        raise WireError("state_forward: seq 0")
+    return StateForward(m.seq, _dec_txid(m, "state_forward", "txid"), m.payload)
 
 
 def _dec_state_request(env: pb.Envelope) -> StateRequest:
-    m = env.state_request
-    if not m.HasField("txid"):
-        raise WireError("state_request: missing txid")
-    t = m.txid
-    if t.incarnation == 0 or t.seq == 0:
-        raise WireError("state_request.txid: incomplete TxId")
-    return StateRequest(TxId(_name(t.host, "state_request.txid"), t.incarnation, t.seq))
+    return StateRequest(_dec_txid(env.state_request, "state_request", "txid"))
 
 
 _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
