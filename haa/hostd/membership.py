@@ -924,7 +924,7 @@ class MembershipNode:
             if first + i <= self.state.seq or txid in self.state.recent:
                 continue
             self._apply(txid, payload, direct=True)
-        self.core.out.append(Log("caught_up", {"seq": self.state.seq}))
+        self._log("caught_up", seq=self.state.seq)
         self._propose_held()
 
     def _request_state(self) -> None:
