@@ -184,6 +184,27 @@ class ControlClient:
     def latencies(self, reset: bool = False) -> cpb.LatencyReply:
         return self._stub.Latencies(cpb.LatencyRequest(reset=reset), metadata=self._md, timeout=self.timeout)
 
+    def ddb_write(self, ops: Sequence[object], atomic: bool = False, timeout: float = 30.0) -> cpb.DdbWriteReply:
+        """Write a batch of DDB ops (`haa.hostd.ddb.put/delete/append/cas/add`) through this host; returns
+        once the batch is committed and applied here (`committed`), or given up (`reason`)."""
+        req = cpb.DdbWriteRequest(ops=list(ops), atomic=atomic)  # type: ignore[arg-type]
+        return self._stub.DdbWrite(req, metadata=self._md, timeout=timeout)
+
+    def ddb_get(
+        self, keys: Sequence[str] = (), prefix: str = "", keys_only: bool = False, limit: int = 0
+    ) -> cpb.DdbGetReply:
+        """Read this host's replica: the given keys, or every key under `prefix`."""
+        req = cpb.DdbGetRequest(keys=list(keys), prefix=prefix, keys_only=keys_only, limit=limit)
+        return self._stub.DdbGet(req, metadata=self._md, timeout=self.timeout)
+
+    def mirror(self, views: bool = True, timeout: float | None = None) -> Iterator[cpb.MirrorEvent]:
+        """The mirror stream: a snapshot, then every applied DDB batch (and view change); cancel to stop."""
+        return self._stub.Mirror(cpb.MirrorRequest(views=views), metadata=self._md, timeout=timeout)
+
+    def leave(self, exit: bool = True, timeout: float = 30.0) -> cpb.LeaveReply:
+        """Leave the group gracefully (Alg. 3 ll. 14-21); with `exit` the host process stops afterwards."""
+        return self._stub.Leave(cpb.LeaveRequest(exit=exit), metadata=self._md, timeout=timeout)
+
     def close(self) -> None:
         self._channel.close()
 

@@ -23,9 +23,10 @@ _sym_db = _symbol_database.Default()
 
 
 from haa.pb import hostlink_pb2 as haa_dot_pb_dot_hostlink__pb2
+from haa.pb import ddb_pb2 as haa_dot_pb_dot_ddb__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14haa/pb/control.proto\x12\x06haa.v1\x1a\x15haa/pb/hostlink.proto\"\x0f\n\rStatusRequest\"\xa1\x01\n\nPeerStatus\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\x13\n\x0bincarnation\x18\x03 \x01(\x04\x12\x11\n\tsuspected\x18\x04 \x01(\x08\x12\x10\n\x08\x65xcluded\x18\x05 \x01(\x08\x12\x11\n\tconnected\x18\x06 \x01(\x08\x12\x18\n\x10heartbeat_period\x18\x07 \x01(\x01\x12\r\n\x05\x61lpha\x18\x08 \x01(\x01\"g\n\x08\x43ounters\x12,\n\x06values\x18\x01 \x03(\x0b\x32\x1c.haa.v1.Counters.ValuesEntry\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\"\x95\x02\n\x0bStatusReply\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x13\n\x0bincarnation\x18\x02 \x01(\x04\x12!\n\x05peers\x18\x03 \x03(\x0b\x32\x12.haa.v1.PeerStatus\x12\x1b\n\x13\x61\x63tive_transactions\x18\x04 \x01(\x04\x12\x1c\n\x14\x64\x65\x63ided_transactions\x18\x05 \x01(\x04\x12\x11\n\tdelivered\x18\x06 \x01(\x04\x12\x16\n\x0e\x64\x65livered_hash\x18\x07 \x01(\t\x12\"\n\x08\x63ounters\x18\x08 \x01(\x0b\x32\x10.haa.v1.Counters\x12\x13\n\x0b\x63pu_percent\x18\t \x01(\x01\x12\x11\n\trss_bytes\x18\n \x01(\x04\x12\x0e\n\x06uptime\x18\x0b \x01(\x01\"E\n\x0eProposeRequest\x12\x0f\n\x07payload\x18\x01 \x01(\x0c\x12\x14\n\x0cparticipants\x18\x02 \x03(\t\x12\x0c\n\x04wait\x18\x03 \x01(\x08\"\x98\x01\n\x0cProposeReply\x12\x18\n\x02id\x18\x01 \x01(\x0b\x32\x0c.haa.v1.TxId\x12\x0f\n\x07\x64\x65\x63ided\x18\x02 \x01(\x08\x12\x11\n\tcommitted\x18\x03 \x01(\x08\x12\x19\n\x11propose_to_decide\x18\x04 \x01(\x01\x12\x19\n\x11\x64\x65\x63ide_to_deliver\x18\x05 \x01(\x01\x12\x14\n\x0cparticipants\x18\x06 \x03(\t\"\'\n\x11\x44\x65liveriesRequest\x12\x12\n\nfrom_index\x18\x01 \x01(\x04\"g\n\x08\x44\x65livery\x12\r\n\x05index\x18\x01 \x01(\x04\x12\x18\n\x02id\x18\x02 \x01(\x0b\x32\x0c.haa.v1.TxId\x12\r\n\x05order\x18\x03 \x01(\x03\x12\x0f\n\x07payload\x18\x04 \x01(\x0c\x12\x12\n\nchain_hash\x18\x05 \x01(\t\"\x1f\n\x0eLatencyRequest\x12\r\n\x05reset\x18\x01 \x01(\x08\"D\n\x0cLatencyReply\x12\x19\n\x11\x64\x65\x63ide_to_deliver\x18\x01 \x03(\x01\x12\x19\n\x11propose_to_decide\x18\x02 \x03(\x01\x32\xf4\x01\n\x0bHostControl\x12\x34\n\x06Status\x12\x15.haa.v1.StatusRequest\x1a\x13.haa.v1.StatusReply\x12\x37\n\x07Propose\x12\x16.haa.v1.ProposeRequest\x1a\x14.haa.v1.ProposeReply\x12;\n\nDeliveries\x12\x19.haa.v1.DeliveriesRequest\x1a\x10.haa.v1.Delivery0\x01\x12\x39\n\tLatencies\x12\x16.haa.v1.LatencyRequest\x1a\x14.haa.v1.LatencyReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14haa/pb/control.proto\x12\x06haa.v1\x1a\x15haa/pb/hostlink.proto\x1a\x10haa/pb/ddb.proto\"\x0f\n\rStatusRequest\"\xa1\x01\n\nPeerStatus\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\x13\n\x0bincarnation\x18\x03 \x01(\x04\x12\x11\n\tsuspected\x18\x04 \x01(\x08\x12\x10\n\x08\x65xcluded\x18\x05 \x01(\x08\x12\x11\n\tconnected\x18\x06 \x01(\x08\x12\x18\n\x10heartbeat_period\x18\x07 \x01(\x01\x12\r\n\x05\x61lpha\x18\x08 \x01(\x01\"g\n\x08\x43ounters\x12,\n\x06values\x18\x01 \x03(\x0b\x32\x1c.haa.v1.Counters.ValuesEntry\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x04:\x02\x38\x01\"\x82\x05\n\x0bStatusReply\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x13\n\x0bincarnation\x18\x02 \x01(\x04\x12!\n\x05peers\x18\x03 \x03(\x0b\x32\x12.haa.v1.PeerStatus\x12\x1b\n\x13\x61\x63tive_transactions\x18\x04 \x01(\x04\x12\x1c\n\x14\x64\x65\x63ided_transactions\x18\x05 \x01(\x04\x12\x11\n\tdelivered\x18\x06 \x01(\x04\x12\x16\n\x0e\x64\x65livered_hash\x18\x07 \x01(\t\x12\"\n\x08\x63ounters\x18\x08 \x01(\x0b\x32\x10.haa.v1.Counters\x12\x13\n\x0b\x63pu_percent\x18\t \x01(\x01\x12\x11\n\trss_bytes\x18\n \x01(\x04\x12\x0e\n\x06uptime\x18\x0b \x01(\x01\x12\x0c\n\x04mode\x18\x0c \x01(\t\x12\x0e\n\x06member\x18\r \x01(\x08\x12\x0f\n\x07members\x18\x0e \x03(\t\x12\'\n\x0bmember_info\x18\x0f \x03(\x0b\x32\x12.haa.v1.MemberInfo\x12\x0e\n\x06leader\x18\x10 \x01(\t\x12\x0c\n\x04view\x18\x11 \x01(\x04\x12\x0c\n\x04rank\x18\x12 \x01(\x11\x12\x12\n\nsuspicions\x18\x13 \x03(\t\x12\x10\n\x08\x64\x64\x62_size\x18\x14 \x01(\x04\x12\x10\n\x08\x64\x64\x62_hash\x18\x15 \x01(\t\x12\x0f\n\x07\x64\x64\x62_seq\x18\x16 \x01(\x04\x12\x12\n\nglobal_seq\x18\x17 \x01(\x04\x12\x12\n\nstate_hash\x18\x18 \x01(\t\x12\x10\n\x08group_id\x18\x19 \x01(\t\x12\x15\n\rgroup_correct\x18\x1a \x01(\x08\x12\x0e\n\x06locked\x18\x1b \x01(\t\x12\x12\n\napplicants\x18\x1c \x03(\t\x12\x0f\n\x07leaving\x18\x1d \x01(\x08\x12\x18\n\x10load_cpu_seconds\x18\x1e \x01(\x01\"S\n\nMemberInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x13\n\x0bincarnation\x18\x02 \x01(\x04\x12\x0f\n\x07\x61\x64\x64ress\x18\x03 \x01(\t\x12\x11\n\tsuspected\x18\x04 \x01(\x08\"E\n\x0eProposeRequest\x12\x0f\n\x07payload\x18\x01 \x01(\x0c\x12\x14\n\x0cparticipants\x18\x02 \x03(\t\x12\x0c\n\x04wait\x18\x03 \x01(\x08\"\x98\x01\n\x0cProposeReply\x12\x18\n\x02id\x18\x01 \x01(\x0b\x32\x0c.haa.v1.TxId\x12\x0f\n\x07\x64\x65\x63ided\x18\x02 \x01(\x08\x12\x11\n\tcommitted\x18\x03 \x01(\x08\x12\x19\n\x11propose_to_decide\x18\x04 \x01(\x01\x12\x19\n\x11\x64\x65\x63ide_to_deliver\x18\x05 \x01(\x01\x12\x14\n\x0cparticipants\x18\x06 \x03(\t\"\'\n\x11\x44\x65liveriesRequest\x12\x12\n\nfrom_index\x18\x01 \x01(\x04\"g\n\x08\x44\x65livery\x12\r\n\x05index\x18\x01 \x01(\x04\x12\x18\n\x02id\x18\x02 \x01(\x0b\x32\x0c.haa.v1.TxId\x12\r\n\x05order\x18\x03 \x01(\x03\x12\x0f\n\x07payload\x18\x04 \x01(\x0c\x12\x12\n\nchain_hash\x18\x05 \x01(\t\"\x1f\n\x0eLatencyRequest\x12\r\n\x05reset\x18\x01 \x01(\x08\"D\n\x0cLatencyReply\x12\x19\n\x11\x64\x65\x63ide_to_deliver\x18\x01 \x03(\x01\x12\x19\n\x11propose_to_decide\x18\x02 \x03(\x01\"=\n\x0f\x44\x64\x62WriteRequest\x12\x1a\n\x03ops\x18\x01 \x03(\x0b\x32\r.haa.v1.DdbOp\x12\x0e\n\x06\x61tomic\x18\x02 \x01(\x08\"S\n\x0b\x44\x64\x62OpResult\x12\n\n\x02op\x18\x01 \x01(\t\x12\x0b\n\x03key\x18\x02 \x01(\t\x12\n\n\x02ok\x18\x03 \x01(\x08\x12\x0e\n\x06reason\x18\x04 \x01(\t\x12\x0f\n\x07version\x18\x05 \x01(\x04\"\x97\x01\n\rDdbWriteReply\x12\x11\n\tcommitted\x18\x01 \x01(\x08\x12\x0e\n\x06reason\x18\x02 \x01(\t\x12\x18\n\x02id\x18\x03 \x01(\x0b\x32\x0c.haa.v1.TxId\x12\x12\n\nglobal_seq\x18\x04 \x01(\x04\x12\x0f\n\x07\x64\x64\x62_seq\x18\x05 \x01(\x04\x12$\n\x07results\x18\x06 \x03(\x0b\x32\x13.haa.v1.DdbOpResult\"O\n\rDdbGetRequest\x12\x0c\n\x04keys\x18\x01 \x03(\t\x12\x0e\n\x06prefix\x18\x02 \x01(\t\x12\x11\n\tkeys_only\x18\x03 \x01(\x08\x12\r\n\x05limit\x18\x04 \x01(\r\"m\n\x0b\x44\x64\x62GetReply\x12(\n\x07objects\x18\x01 \x03(\x0b\x32\x17.haa.v1.DdbObjectRecord\x12\x0f\n\x07\x64\x64\x62_seq\x18\x02 \x01(\x04\x12\x10\n\x08\x64\x64\x62_hash\x18\x03 \x01(\t\x12\x11\n\ttruncated\x18\x04 \x01(\x08\"\x1e\n\rMirrorRequest\x12\r\n\x05views\x18\x01 \x01(\x08\"C\n\x0bMirrorBatch\x12\x0f\n\x07\x64\x64\x62_seq\x18\x01 \x01(\x04\x12\x0f\n\x07payload\x18\x02 \x01(\x0c\x12\x12\n\nglobal_seq\x18\x03 \x01(\x04\"\x82\x01\n\tViewEvent\x12\x0c\n\x04view\x18\x01 \x01(\x04\x12\x12\n\nglobal_seq\x18\x02 \x01(\x04\x12#\n\x07members\x18\x03 \x03(\x0b\x32\x12.haa.v1.MemberInfo\x12\x0f\n\x07removed\x18\x04 \x03(\t\x12\r\n\x05\x61\x64\x64\x65\x64\x18\x05 \x03(\t\x12\x0e\n\x06leader\x18\x06 \x01(\t\"\x9a\x01\n\x0bMirrorEvent\x12\'\n\x08snapshot\x18\x01 \x01(\x0b\x32\x13.haa.v1.DdbSnapshotH\x00\x12$\n\x05\x62\x61tch\x18\x02 \x01(\x0b\x32\x13.haa.v1.MirrorBatchH\x00\x12!\n\x04view\x18\x03 \x01(\x0b\x32\x11.haa.v1.ViewEventH\x00\x12\x10\n\x08\x64\x64\x62_hash\x18\x04 \x01(\tB\x07\n\x05\x65vent\"\x1c\n\x0cLeaveRequest\x12\x0c\n\x04\x65xit\x18\x01 \x01(\x08\"*\n\nLeaveReply\x12\x0c\n\x04left\x18\x01 \x01(\x08\x12\x0e\n\x06reason\x18\x02 \x01(\t2\xd1\x03\n\x0bHostControl\x12\x34\n\x06Status\x12\x15.haa.v1.StatusRequest\x1a\x13.haa.v1.StatusReply\x12\x37\n\x07Propose\x12\x16.haa.v1.ProposeRequest\x1a\x14.haa.v1.ProposeReply\x12;\n\nDeliveries\x12\x19.haa.v1.DeliveriesRequest\x1a\x10.haa.v1.Delivery0\x01\x12\x39\n\tLatencies\x12\x16.haa.v1.LatencyRequest\x1a\x14.haa.v1.LatencyReply\x12:\n\x08\x44\x64\x62Write\x12\x17.haa.v1.DdbWriteRequest\x1a\x15.haa.v1.DdbWriteReply\x12\x34\n\x06\x44\x64\x62Get\x12\x15.haa.v1.DdbGetRequest\x1a\x13.haa.v1.DdbGetReply\x12\x36\n\x06Mirror\x12\x15.haa.v1.MirrorRequest\x1a\x13.haa.v1.MirrorEvent0\x01\x12\x31\n\x05Leave\x12\x14.haa.v1.LeaveRequest\x1a\x12.haa.v1.LeaveReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,28 +35,52 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_COUNTERS_VALUESENTRY']._loaded_options = None
   _globals['_COUNTERS_VALUESENTRY']._serialized_options = b'8\001'
-  _globals['_STATUSREQUEST']._serialized_start=55
-  _globals['_STATUSREQUEST']._serialized_end=70
-  _globals['_PEERSTATUS']._serialized_start=73
-  _globals['_PEERSTATUS']._serialized_end=234
-  _globals['_COUNTERS']._serialized_start=236
-  _globals['_COUNTERS']._serialized_end=339
-  _globals['_COUNTERS_VALUESENTRY']._serialized_start=294
-  _globals['_COUNTERS_VALUESENTRY']._serialized_end=339
-  _globals['_STATUSREPLY']._serialized_start=342
-  _globals['_STATUSREPLY']._serialized_end=619
-  _globals['_PROPOSEREQUEST']._serialized_start=621
-  _globals['_PROPOSEREQUEST']._serialized_end=690
-  _globals['_PROPOSEREPLY']._serialized_start=693
-  _globals['_PROPOSEREPLY']._serialized_end=845
-  _globals['_DELIVERIESREQUEST']._serialized_start=847
-  _globals['_DELIVERIESREQUEST']._serialized_end=886
-  _globals['_DELIVERY']._serialized_start=888
-  _globals['_DELIVERY']._serialized_end=991
-  _globals['_LATENCYREQUEST']._serialized_start=993
-  _globals['_LATENCYREQUEST']._serialized_end=1024
-  _globals['_LATENCYREPLY']._serialized_start=1026
-  _globals['_LATENCYREPLY']._serialized_end=1094
-  _globals['_HOSTCONTROL']._serialized_start=1097
-  _globals['_HOSTCONTROL']._serialized_end=1341
+  _globals['_STATUSREQUEST']._serialized_start=73
+  _globals['_STATUSREQUEST']._serialized_end=88
+  _globals['_PEERSTATUS']._serialized_start=91
+  _globals['_PEERSTATUS']._serialized_end=252
+  _globals['_COUNTERS']._serialized_start=254
+  _globals['_COUNTERS']._serialized_end=357
+  _globals['_COUNTERS_VALUESENTRY']._serialized_start=312
+  _globals['_COUNTERS_VALUESENTRY']._serialized_end=357
+  _globals['_STATUSREPLY']._serialized_start=360
+  _globals['_STATUSREPLY']._serialized_end=1002
+  _globals['_MEMBERINFO']._serialized_start=1004
+  _globals['_MEMBERINFO']._serialized_end=1087
+  _globals['_PROPOSEREQUEST']._serialized_start=1089
+  _globals['_PROPOSEREQUEST']._serialized_end=1158
+  _globals['_PROPOSEREPLY']._serialized_start=1161
+  _globals['_PROPOSEREPLY']._serialized_end=1313
+  _globals['_DELIVERIESREQUEST']._serialized_start=1315
+  _globals['_DELIVERIESREQUEST']._serialized_end=1354
+  _globals['_DELIVERY']._serialized_start=1356
+  _globals['_DELIVERY']._serialized_end=1459
+  _globals['_LATENCYREQUEST']._serialized_start=1461
+  _globals['_LATENCYREQUEST']._serialized_end=1492
+  _globals['_LATENCYREPLY']._serialized_start=1494
+  _globals['_LATENCYREPLY']._serialized_end=1562
+  _globals['_DDBWRITEREQUEST']._serialized_start=1564
+  _globals['_DDBWRITEREQUEST']._serialized_end=1625
+  _globals['_DDBOPRESULT']._serialized_start=1627
+  _globals['_DDBOPRESULT']._serialized_end=1710
+  _globals['_DDBWRITEREPLY']._serialized_start=1713
+  _globals['_DDBWRITEREPLY']._serialized_end=1864
+  _globals['_DDBGETREQUEST']._serialized_start=1866
+  _globals['_DDBGETREQUEST']._serialized_end=1945
+  _globals['_DDBGETREPLY']._serialized_start=1947
+  _globals['_DDBGETREPLY']._serialized_end=2056
+  _globals['_MIRRORREQUEST']._serialized_start=2058
+  _globals['_MIRRORREQUEST']._serialized_end=2088
+  _globals['_MIRRORBATCH']._serialized_start=2090
+  _globals['_MIRRORBATCH']._serialized_end=2157
+  _globals['_VIEWEVENT']._serialized_start=2160
+  _globals['_VIEWEVENT']._serialized_end=2290
+  _globals['_MIRROREVENT']._serialized_start=2293
+  _globals['_MIRROREVENT']._serialized_end=2447
+  _globals['_LEAVEREQUEST']._serialized_start=2449
+  _globals['_LEAVEREQUEST']._serialized_end=2477
+  _globals['_LEAVEREPLY']._serialized_start=2479
+  _globals['_LEAVEREPLY']._serialized_end=2521
+  _globals['_HOSTCONTROL']._serialized_start=2524
+  _globals['_HOSTCONTROL']._serialized_end=2989
 # @@protoc_insertion_point(module_scope)

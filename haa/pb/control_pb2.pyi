@@ -1,4 +1,5 @@
 from haa.pb import hostlink_pb2 as _hostlink_pb2
+from haa.pb import ddb_pb2 as _ddb_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -45,7 +46,7 @@ class Counters(_message.Message):
     def __init__(self, values: _Optional[_Mapping[str, int]] = ...) -> None: ...
 
 class StatusReply(_message.Message):
-    __slots__ = ("name", "incarnation", "peers", "active_transactions", "decided_transactions", "delivered", "delivered_hash", "counters", "cpu_percent", "rss_bytes", "uptime")
+    __slots__ = ("name", "incarnation", "peers", "active_transactions", "decided_transactions", "delivered", "delivered_hash", "counters", "cpu_percent", "rss_bytes", "uptime", "mode", "member", "members", "member_info", "leader", "view", "rank", "suspicions", "ddb_size", "ddb_hash", "ddb_seq", "global_seq", "state_hash", "group_id", "group_correct", "locked", "applicants", "leaving", "load_cpu_seconds")
     NAME_FIELD_NUMBER: _ClassVar[int]
     INCARNATION_FIELD_NUMBER: _ClassVar[int]
     PEERS_FIELD_NUMBER: _ClassVar[int]
@@ -57,6 +58,25 @@ class StatusReply(_message.Message):
     CPU_PERCENT_FIELD_NUMBER: _ClassVar[int]
     RSS_BYTES_FIELD_NUMBER: _ClassVar[int]
     UPTIME_FIELD_NUMBER: _ClassVar[int]
+    MODE_FIELD_NUMBER: _ClassVar[int]
+    MEMBER_FIELD_NUMBER: _ClassVar[int]
+    MEMBERS_FIELD_NUMBER: _ClassVar[int]
+    MEMBER_INFO_FIELD_NUMBER: _ClassVar[int]
+    LEADER_FIELD_NUMBER: _ClassVar[int]
+    VIEW_FIELD_NUMBER: _ClassVar[int]
+    RANK_FIELD_NUMBER: _ClassVar[int]
+    SUSPICIONS_FIELD_NUMBER: _ClassVar[int]
+    DDB_SIZE_FIELD_NUMBER: _ClassVar[int]
+    DDB_HASH_FIELD_NUMBER: _ClassVar[int]
+    DDB_SEQ_FIELD_NUMBER: _ClassVar[int]
+    GLOBAL_SEQ_FIELD_NUMBER: _ClassVar[int]
+    STATE_HASH_FIELD_NUMBER: _ClassVar[int]
+    GROUP_ID_FIELD_NUMBER: _ClassVar[int]
+    GROUP_CORRECT_FIELD_NUMBER: _ClassVar[int]
+    LOCKED_FIELD_NUMBER: _ClassVar[int]
+    APPLICANTS_FIELD_NUMBER: _ClassVar[int]
+    LEAVING_FIELD_NUMBER: _ClassVar[int]
+    LOAD_CPU_SECONDS_FIELD_NUMBER: _ClassVar[int]
     name: str
     incarnation: int
     peers: _containers.RepeatedCompositeFieldContainer[PeerStatus]
@@ -68,7 +88,38 @@ class StatusReply(_message.Message):
     cpu_percent: float
     rss_bytes: int
     uptime: float
-    def __init__(self, name: _Optional[str] = ..., incarnation: _Optional[int] = ..., peers: _Optional[_Iterable[_Union[PeerStatus, _Mapping]]] = ..., active_transactions: _Optional[int] = ..., decided_transactions: _Optional[int] = ..., delivered: _Optional[int] = ..., delivered_hash: _Optional[str] = ..., counters: _Optional[_Union[Counters, _Mapping]] = ..., cpu_percent: _Optional[float] = ..., rss_bytes: _Optional[int] = ..., uptime: _Optional[float] = ...) -> None: ...
+    mode: str
+    member: bool
+    members: _containers.RepeatedScalarFieldContainer[str]
+    member_info: _containers.RepeatedCompositeFieldContainer[MemberInfo]
+    leader: str
+    view: int
+    rank: int
+    suspicions: _containers.RepeatedScalarFieldContainer[str]
+    ddb_size: int
+    ddb_hash: str
+    ddb_seq: int
+    global_seq: int
+    state_hash: str
+    group_id: str
+    group_correct: bool
+    locked: str
+    applicants: _containers.RepeatedScalarFieldContainer[str]
+    leaving: bool
+    load_cpu_seconds: float
+    def __init__(self, name: _Optional[str] = ..., incarnation: _Optional[int] = ..., peers: _Optional[_Iterable[_Union[PeerStatus, _Mapping]]] = ..., active_transactions: _Optional[int] = ..., decided_transactions: _Optional[int] = ..., delivered: _Optional[int] = ..., delivered_hash: _Optional[str] = ..., counters: _Optional[_Union[Counters, _Mapping]] = ..., cpu_percent: _Optional[float] = ..., rss_bytes: _Optional[int] = ..., uptime: _Optional[float] = ..., mode: _Optional[str] = ..., member: _Optional[bool] = ..., members: _Optional[_Iterable[str]] = ..., member_info: _Optional[_Iterable[_Union[MemberInfo, _Mapping]]] = ..., leader: _Optional[str] = ..., view: _Optional[int] = ..., rank: _Optional[int] = ..., suspicions: _Optional[_Iterable[str]] = ..., ddb_size: _Optional[int] = ..., ddb_hash: _Optional[str] = ..., ddb_seq: _Optional[int] = ..., global_seq: _Optional[int] = ..., state_hash: _Optional[str] = ..., group_id: _Optional[str] = ..., group_correct: _Optional[bool] = ..., locked: _Optional[str] = ..., applicants: _Optional[_Iterable[str]] = ..., leaving: _Optional[bool] = ..., load_cpu_seconds: _Optional[float] = ...) -> None: ...
+
+class MemberInfo(_message.Message):
+    __slots__ = ("name", "incarnation", "address", "suspected")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    SUSPECTED_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    incarnation: int
+    address: str
+    suspected: bool
+    def __init__(self, name: _Optional[str] = ..., incarnation: _Optional[int] = ..., address: _Optional[str] = ..., suspected: _Optional[bool] = ...) -> None: ...
 
 class ProposeRequest(_message.Message):
     __slots__ = ("payload", "participants", "wait")
@@ -129,3 +180,123 @@ class LatencyReply(_message.Message):
     decide_to_deliver: _containers.RepeatedScalarFieldContainer[float]
     propose_to_decide: _containers.RepeatedScalarFieldContainer[float]
     def __init__(self, decide_to_deliver: _Optional[_Iterable[float]] = ..., propose_to_decide: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class DdbWriteRequest(_message.Message):
+    __slots__ = ("ops", "atomic")
+    OPS_FIELD_NUMBER: _ClassVar[int]
+    ATOMIC_FIELD_NUMBER: _ClassVar[int]
+    ops: _containers.RepeatedCompositeFieldContainer[_ddb_pb2.DdbOp]
+    atomic: bool
+    def __init__(self, ops: _Optional[_Iterable[_Union[_ddb_pb2.DdbOp, _Mapping]]] = ..., atomic: _Optional[bool] = ...) -> None: ...
+
+class DdbOpResult(_message.Message):
+    __slots__ = ("op", "key", "ok", "reason", "version")
+    OP_FIELD_NUMBER: _ClassVar[int]
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    OK_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    op: str
+    key: str
+    ok: bool
+    reason: str
+    version: int
+    def __init__(self, op: _Optional[str] = ..., key: _Optional[str] = ..., ok: _Optional[bool] = ..., reason: _Optional[str] = ..., version: _Optional[int] = ...) -> None: ...
+
+class DdbWriteReply(_message.Message):
+    __slots__ = ("committed", "reason", "id", "global_seq", "ddb_seq", "results")
+    COMMITTED_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    GLOBAL_SEQ_FIELD_NUMBER: _ClassVar[int]
+    DDB_SEQ_FIELD_NUMBER: _ClassVar[int]
+    RESULTS_FIELD_NUMBER: _ClassVar[int]
+    committed: bool
+    reason: str
+    id: _hostlink_pb2.TxId
+    global_seq: int
+    ddb_seq: int
+    results: _containers.RepeatedCompositeFieldContainer[DdbOpResult]
+    def __init__(self, committed: _Optional[bool] = ..., reason: _Optional[str] = ..., id: _Optional[_Union[_hostlink_pb2.TxId, _Mapping]] = ..., global_seq: _Optional[int] = ..., ddb_seq: _Optional[int] = ..., results: _Optional[_Iterable[_Union[DdbOpResult, _Mapping]]] = ...) -> None: ...
+
+class DdbGetRequest(_message.Message):
+    __slots__ = ("keys", "prefix", "keys_only", "limit")
+    KEYS_FIELD_NUMBER: _ClassVar[int]
+    PREFIX_FIELD_NUMBER: _ClassVar[int]
+    KEYS_ONLY_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
+    keys: _containers.RepeatedScalarFieldContainer[str]
+    prefix: str
+    keys_only: bool
+    limit: int
+    def __init__(self, keys: _Optional[_Iterable[str]] = ..., prefix: _Optional[str] = ..., keys_only: _Optional[bool] = ..., limit: _Optional[int] = ...) -> None: ...
+
+class DdbGetReply(_message.Message):
+    __slots__ = ("objects", "ddb_seq", "ddb_hash", "truncated")
+    OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    DDB_SEQ_FIELD_NUMBER: _ClassVar[int]
+    DDB_HASH_FIELD_NUMBER: _ClassVar[int]
+    TRUNCATED_FIELD_NUMBER: _ClassVar[int]
+    objects: _containers.RepeatedCompositeFieldContainer[_ddb_pb2.DdbObjectRecord]
+    ddb_seq: int
+    ddb_hash: str
+    truncated: bool
+    def __init__(self, objects: _Optional[_Iterable[_Union[_ddb_pb2.DdbObjectRecord, _Mapping]]] = ..., ddb_seq: _Optional[int] = ..., ddb_hash: _Optional[str] = ..., truncated: _Optional[bool] = ...) -> None: ...
+
+class MirrorRequest(_message.Message):
+    __slots__ = ("views",)
+    VIEWS_FIELD_NUMBER: _ClassVar[int]
+    views: bool
+    def __init__(self, views: _Optional[bool] = ...) -> None: ...
+
+class MirrorBatch(_message.Message):
+    __slots__ = ("ddb_seq", "payload", "global_seq")
+    DDB_SEQ_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    GLOBAL_SEQ_FIELD_NUMBER: _ClassVar[int]
+    ddb_seq: int
+    payload: bytes
+    global_seq: int
+    def __init__(self, ddb_seq: _Optional[int] = ..., payload: _Optional[bytes] = ..., global_seq: _Optional[int] = ...) -> None: ...
+
+class ViewEvent(_message.Message):
+    __slots__ = ("view", "global_seq", "members", "removed", "added", "leader")
+    VIEW_FIELD_NUMBER: _ClassVar[int]
+    GLOBAL_SEQ_FIELD_NUMBER: _ClassVar[int]
+    MEMBERS_FIELD_NUMBER: _ClassVar[int]
+    REMOVED_FIELD_NUMBER: _ClassVar[int]
+    ADDED_FIELD_NUMBER: _ClassVar[int]
+    LEADER_FIELD_NUMBER: _ClassVar[int]
+    view: int
+    global_seq: int
+    members: _containers.RepeatedCompositeFieldContainer[MemberInfo]
+    removed: _containers.RepeatedScalarFieldContainer[str]
+    added: _containers.RepeatedScalarFieldContainer[str]
+    leader: str
+    def __init__(self, view: _Optional[int] = ..., global_seq: _Optional[int] = ..., members: _Optional[_Iterable[_Union[MemberInfo, _Mapping]]] = ..., removed: _Optional[_Iterable[str]] = ..., added: _Optional[_Iterable[str]] = ..., leader: _Optional[str] = ...) -> None: ...
+
+class MirrorEvent(_message.Message):
+    __slots__ = ("snapshot", "batch", "view", "ddb_hash")
+    SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
+    BATCH_FIELD_NUMBER: _ClassVar[int]
+    VIEW_FIELD_NUMBER: _ClassVar[int]
+    DDB_HASH_FIELD_NUMBER: _ClassVar[int]
+    snapshot: _ddb_pb2.DdbSnapshot
+    batch: MirrorBatch
+    view: ViewEvent
+    ddb_hash: str
+    def __init__(self, snapshot: _Optional[_Union[_ddb_pb2.DdbSnapshot, _Mapping]] = ..., batch: _Optional[_Union[MirrorBatch, _Mapping]] = ..., view: _Optional[_Union[ViewEvent, _Mapping]] = ..., ddb_hash: _Optional[str] = ...) -> None: ...
+
+class LeaveRequest(_message.Message):
+    __slots__ = ("exit",)
+    EXIT_FIELD_NUMBER: _ClassVar[int]
+    exit: bool
+    def __init__(self, exit: _Optional[bool] = ...) -> None: ...
+
+class LeaveReply(_message.Message):
+    __slots__ = ("left", "reason")
+    LEFT_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    left: bool
+    reason: str
+    def __init__(self, left: _Optional[bool] = ..., reason: _Optional[str] = ...) -> None: ...

@@ -54,6 +54,26 @@ class HostControlStub:
                 request_serializer=haa_dot_pb_dot_control__pb2.LatencyRequest.SerializeToString,
                 response_deserializer=haa_dot_pb_dot_control__pb2.LatencyReply.FromString,
                 _registered_method=True)
+        self.DdbWrite = channel.unary_unary(
+                '/haa.v1.HostControl/DdbWrite',
+                request_serializer=haa_dot_pb_dot_control__pb2.DdbWriteRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.DdbWriteReply.FromString,
+                _registered_method=True)
+        self.DdbGet = channel.unary_unary(
+                '/haa.v1.HostControl/DdbGet',
+                request_serializer=haa_dot_pb_dot_control__pb2.DdbGetRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.DdbGetReply.FromString,
+                _registered_method=True)
+        self.Mirror = channel.unary_stream(
+                '/haa.v1.HostControl/Mirror',
+                request_serializer=haa_dot_pb_dot_control__pb2.MirrorRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.MirrorEvent.FromString,
+                _registered_method=True)
+        self.Leave = channel.unary_unary(
+                '/haa.v1.HostControl/Leave',
+                request_serializer=haa_dot_pb_dot_control__pb2.LeaveRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.LeaveReply.FromString,
+                _registered_method=True)
 
 
 class HostControlServicer:
@@ -83,6 +103,30 @@ class HostControlServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def DdbWrite(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def DdbGet(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Mirror(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Leave(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_HostControlServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -105,6 +149,26 @@ def add_HostControlServicer_to_server(servicer, server):
                     servicer.Latencies,
                     request_deserializer=haa_dot_pb_dot_control__pb2.LatencyRequest.FromString,
                     response_serializer=haa_dot_pb_dot_control__pb2.LatencyReply.SerializeToString,
+            ),
+            'DdbWrite': grpc.unary_unary_rpc_method_handler(
+                    servicer.DdbWrite,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.DdbWriteRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.DdbWriteReply.SerializeToString,
+            ),
+            'DdbGet': grpc.unary_unary_rpc_method_handler(
+                    servicer.DdbGet,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.DdbGetRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.DdbGetReply.SerializeToString,
+            ),
+            'Mirror': grpc.unary_stream_rpc_method_handler(
+                    servicer.Mirror,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.MirrorRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.MirrorEvent.SerializeToString,
+            ),
+            'Leave': grpc.unary_unary_rpc_method_handler(
+                    servicer.Leave,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.LeaveRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.LeaveReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -215,6 +279,114 @@ class HostControl:
             '/haa.v1.HostControl/Latencies',
             haa_dot_pb_dot_control__pb2.LatencyRequest.SerializeToString,
             haa_dot_pb_dot_control__pb2.LatencyReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DdbWrite(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/DdbWrite',
+            haa_dot_pb_dot_control__pb2.DdbWriteRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.DdbWriteReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DdbGet(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/DdbGet',
+            haa_dot_pb_dot_control__pb2.DdbGetRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.DdbGetReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Mirror(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/haa.v1.HostControl/Mirror',
+            haa_dot_pb_dot_control__pb2.MirrorRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.MirrorEvent.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Leave(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/Leave',
+            haa_dot_pb_dot_control__pb2.LeaveRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.LeaveReply.FromString,
             options,
             channel_credentials,
             insecure,
