@@ -13,6 +13,19 @@ cluster token in metadata `x-haa-token` (else `UNAUTHENTICATED`, counted as `rej
   cancels.
 * `Latencies`: the propose->decide and decide->deliver samples this host recorded (optionally reset).
 
+Membership mode (`--core`) adds the group to `Status` (members in rank order, leader, view id, own rank,
+suspicions, DDB size/hash/seq, global sequence and state hash) and serves the DDB:
+
+* `DdbWrite`: a batch of ops proposed to every member by OAC; the reply comes once the batch is committed
+  and applied here, with each op's result (`committed=False` and a `reason` if it was not: not a member yet,
+  leaving, gave up, timeout). In membership mode `Propose` is a test payload submitted the same way.
+* `DdbGet`: local reads (keys, or a prefix).
+* `Mirror`: the thesis' AgentMirror — a snapshot of the replica, then every applied batch and (optionally)
+  every view change; a fresh snapshot whenever the replica was replaced or the subscriber fell behind.
+* `Leave`: graceful leave (Alg. 3 ll. 14-21); with `exit` the process stops once the group removed it.
+
+Static mode answers the DDB calls with `FAILED_PRECONDITION`.
+
 `ControlClient` is a small blocking client for tests, benchmarks and tools.
 """
 
@@ -20,15 +33,24 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterator, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import grpc
 from grpc import aio
 
+from haa.hostd import ddb as ddbmod
 from haa.hostd.oac import OacError
-from haa.hostd.runtime import HostReincarnated, ProposeTimeout, TransactionAborted
+from haa.hostd.runtime import (
+    HostReincarnated,
+    MirrorSub,
+    NotMembershipMode,
+    ProposeTimeout,
+    TransactionAborted,
+    WriteFailed,
+)
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
+from haa.pb import ddb_pb2 as dpb
 from haa.pb import hostlink_pb2 as pb
 
 if TYPE_CHECKING:
@@ -41,6 +63,30 @@ DEFAULT_WAIT = 30.0
 
 def _txid(t: TxId) -> pb.TxId:
     return pb.TxId(host=t.host, incarnation=t.inc, seq=t.seq)
+
+
+def _group_fields(st: dict[str, Any]) -> dict[str, Any]:
+    if st["mode"] != "membership":
+        return {}
+    return {
+        "member": st["member"],
+        "members": st["members"],
+        "member_info": [cpb.MemberInfo(**m) for m in st["member_info"]],
+        "leader": st["leader"],
+        "view": st["view"],
+        "rank": st["rank"],
+        "suspicions": st["suspicions"],
+        "ddb_size": st["ddb_size"],
+        "ddb_hash": st["ddb_hash"],
+        "ddb_seq": st["ddb_seq"],
+        "global_seq": st["global_seq"],
+        "state_hash": st["state_hash"],
+        "group_id": st["group_id"],
+        "group_correct": st["group_correct"],
+        "locked": st["locked"],
+        "applicants": st["applicants"],
+        "leaving": st["leaving"],
+    }
 
 
 class HostControlService(control_pb2_grpc.HostControlServicer):
@@ -86,10 +132,168 @@ class HostControlService(control_pb2_grpc.HostControlServicer):
             cpu_percent=st["cpu_percent"],
             rss_bytes=st["rss_bytes"],
             uptime=st["uptime"],
+            mode=st["mode"],
+            load_cpu_seconds=st["cpu_seconds"],
+            **_group_fields(st),
         )
+
+    def _deadline(self, context: aio.ServicerContext) -> float:
+        remaining = context.time_remaining()
+        return DEFAULT_WAIT if remaining is None else max(0.0, remaining - 0.05)
+
+    async def _membership_propose(self, request: cpb.ProposeRequest, context: aio.ServicerContext) -> cpb.ProposeReply:
+        if request.participants:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "membership mode: a transaction goes to every member")
+        rt = self.rt
+        try:
+            res = await rt.submit(request.payload, "test", timeout=self._deadline(context))
+        except WriteFailed as e:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, e.reason)
+            raise
+        return cpb.ProposeReply(id=_txid(res.txid), decided=True, committed=True)
+
+    async def DdbWrite(self, request: cpb.DdbWriteRequest, context: aio.ServicerContext) -> cpb.DdbWriteReply:
+        await self._auth(context)
+        rt = self.rt
+        if not rt.membership:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "static mode (--peers): this host has no DDB")
+        if not request.ops:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty batch")
+        rt.counters["control_ddb_writes"] += 1
+        payload = ddbmod.encode_batch(request.ops, origin=rt.name, atomic=request.atomic)
+        if len(payload) > ddbmod.MAX_BATCH_BYTES:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch larger than {ddbmod.MAX_BATCH_BYTES} bytes")
+        try:
+            res = await rt.submit(payload, "ddb", timeout=self._deadline(context))
+        except WriteFailed as e:
+            return cpb.DdbWriteReply(committed=False, reason=e.reason)
+        except NotMembershipMode as e:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+            raise
+        r = res.result
+        reply = cpb.DdbWriteReply(committed=True, reason=res.reason, id=_txid(res.txid), global_seq=res.global_seq)
+        if isinstance(r, ddbmod.ApplyResult):
+            reply.ddb_seq = r.seq
+            reply.results.extend(
+                cpb.DdbOpResult(op=o.op, key=o.key, ok=o.ok, reason=o.reason, version=o.version) for o in r.results
+            )
+        return reply
+
+    async def DdbGet(self, request: cpb.DdbGetRequest, context: aio.ServicerContext) -> cpb.DdbGetReply:
+        await self._auth(context)
+        try:
+            node = self.rt._member_node()
+        except NotMembershipMode as e:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+            raise
+        db = node.state.ddb
+        if request.keys:
+            objs = [o for o in (db.get(k) for k in request.keys) if o is not None]
+        else:
+            objs = list(db.items(request.prefix))
+        truncated = bool(request.limit) and len(objs) > request.limit
+        if truncated:
+            objs = objs[: request.limit]
+        return cpb.DdbGetReply(
+            objects=[
+                dpb.DdbObjectRecord(
+                    key=o.key,
+                    type=o.type_name,
+                    value=b"" if request.keys_only else o.data,
+                    version=o.version,
+                    created=o.created,
+                )
+                for o in objs
+            ],
+            ddb_seq=db.seq,
+            ddb_hash=db.content_hash(),
+            truncated=truncated,
+        )
+
+    async def Mirror(self, request: cpb.MirrorRequest, context: aio.ServicerContext) -> AsyncIterator[cpb.MirrorEvent]:
+        await self._auth(context)
+        rt = self.rt
+        try:
+            node = rt._member_node()
+        except NotMembershipMode as e:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+            raise
+        sub = MirrorSub(request.views)
+        rt.mirrors.add(sub)
+        rt._ddb_ref = node.state.ddb
+        task = asyncio.current_task()
+        if task is not None:
+            rt.stream_tasks.add(task)
+        rt.counters["mirror_subscribers"] += 1
+        try:
+            db = node.state.ddb
+            last = db.seq
+            yield cpb.MirrorEvent(snapshot=dpb.DdbSnapshot.FromString(db.snapshot()), ddb_hash=db.content_hash())
+            while True:
+                item = await sub.get()
+                if item is None:
+                    return
+                kind = item[0]
+                node = rt._member_node()
+                db = node.state.ddb
+                if kind == "batch":
+                    _, seq, payload, gseq = item
+                    if seq <= last:
+                        continue  # already in the snapshot sent
+                    if seq != last + 1:
+                        kind = "resync"  # a gap: cannot happen unless the replica changed; resend
+                    else:
+                        last = seq
+                        h = db.content_hash() if db.seq == seq else ""
+                        yield cpb.MirrorEvent(
+                            batch=cpb.MirrorBatch(ddb_seq=seq, payload=payload, global_seq=gseq), ddb_hash=h
+                        )
+                        continue
+                if kind == "resync":
+                    last = db.seq
+                    rt.counters["mirror_resyncs"] += 1
+                    yield cpb.MirrorEvent(
+                        snapshot=dpb.DdbSnapshot.FromString(db.snapshot()), ddb_hash=db.content_hash()
+                    )
+                elif kind == "view":
+                    e = item[1]
+                    lead = e.members[0].name if e.members else ""
+                    yield cpb.MirrorEvent(
+                        view=cpb.ViewEvent(
+                            view=e.view,
+                            global_seq=e.seq,
+                            members=[cpb.MemberInfo(name=m.name, incarnation=m.inc, address=m.addr) for m in e.members],
+                            removed=[m.name for m in e.removed],
+                            added=[m.name for m in e.added],
+                            leader=lead,
+                        )
+                    )
+        except asyncio.CancelledError:
+            if not rt.stopping:
+                raise
+        finally:
+            rt.mirrors.discard(sub)
+            if task is not None:
+                rt.stream_tasks.discard(task)
+
+    async def Leave(self, request: cpb.LeaveRequest, context: aio.ServicerContext) -> cpb.LeaveReply:
+        await self._auth(context)
+        rt = self.rt
+        try:
+            await rt.leave(timeout=self._deadline(context))
+        except NotMembershipMode as e:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+            raise
+        except (TimeoutError, WriteFailed) as e:
+            return cpb.LeaveReply(left=False, reason=str(e) or "the group did not commit the leave in time")
+        if request.exit:
+            asyncio.get_running_loop().call_later(0.2, rt.request_stop)
+        return cpb.LeaveReply(left=True)
 
     async def Propose(self, request: cpb.ProposeRequest, context: aio.ServicerContext) -> cpb.ProposeReply:
         await self._auth(context)
+        if self.rt.membership:
+            return await self._membership_propose(request, context)
         parts = list(request.participants) or None
         rt = self.rt
         rt.counters["control_proposals"] += 1

@@ -1,20 +1,35 @@
 """`haa-hostd`: the host daemon's command line (console script `haa-hostd` -> `haa.hostd.daemon:main`).
 
-    haa-hostd --name h1 --listen 127.0.0.1:7001 --peers h2=127.0.0.1:7002,h3=127.0.0.1:7003 \\
-              --token-file cluster.token [--data-dir data/h1] [--qos-td 1.0 --qos-tmr 86400 --qos-tm 1.0] \\
-              [--exclude-after 10] [--log-level info] [--log-stderr]
+Membership mode (the normal one; Alg. 3 group membership, the replicated DDB):
 
-Environment variables `HAA_NAME`, `HAA_LISTEN`, `HAA_PEERS`, `HAA_TOKEN_FILE`, `HAA_DATA_DIR` stand in for
-the corresponding options. The settings are validated by a pydantic model (`HostSettings`); anything wrong —
-an unreadable or empty token file, a bad address, duplicate peer names, the host's own name among its peers,
-a non-positive QoS target — ends the process with exit code 2 and one line on stderr naming the option and
-the reason, before anything starts. A port that cannot be bound exits with code 1.
+    haa-hostd --name h4 --listen 0.0.0.0:7000 --core h1=h1:7000,h2=h2:7000,h3=h3:7000 \\
+              --token-file cluster.token [--advertise h4:7000] [--data-dir /var/lib/haa/h4] [--config h4.yaml]
+
+Static mode (a fixed full mesh running OAC without membership: the AP-1 benchmark and the demo):
+
+    haa-hostd --name h1 --listen 127.0.0.1:7001 --peers h2=127.0.0.1:7002,h3=127.0.0.1:7003 --token-file F
+
+Every option can also be given as environment variable `HAA_<OPTION>` (`HAA_CORE`, `HAA_TOKEN_FILE`, ...)
+or as a key of a YAML file (`--config` / `HAA_CONFIG`; keys are the option names, plus a `membership:`
+section with the Alg. 3 tunables of `NodeConfig`); the command line wins over the environment, the
+environment over the file. The settings are validated by a pydantic model (`HostSettings`); anything wrong —
+an unreadable or empty token file, broken YAML, an unknown key, a bad address, duplicate names, both
+`--peers` and `--core`, c_f or c_H out of range, a non-positive timeout — ends the process with exit code 2
+and one line on stderr naming the option and the reason, before anything starts. A port that cannot be
+bound exits with code 1.
+
+`--advertise` is the address the other hosts connect to; by default `--listen`, with a wildcard host
+replaced by this machine's host name. `--data-dir` keeps the JSON-lines log, the last incarnation and the
+hosts of the last view (`known_hosts.json`): a restarted host applies to them as well as to the core
+processes and never founds a group of its own (`--forget-group` drops them: needed only if every host of
+the group was lost).
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
-(default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT shut the host down gracefully (links closed, the
-final delivered count and hash logged). The event loop is uvloop; set HAA_EVENT_LOOP=asyncio for the
-standard library loop.
+(default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
+removes this host first, for at most `--leave-timeout` seconds), then a graceful shutdown (links closed, the
+final delivered count and hash logged); a second signal skips the wait. The event loop is uvloop; set
+HAA_EVENT_LOOP=asyncio for the standard library loop.
 """
 
 from __future__ import annotations
@@ -30,9 +45,20 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any, Literal, NoReturn
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, ValidationInfo, field_validator
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from haa.hostd.core import CoreConfig
+from haa.hostd.membership import NodeConfig
 from haa.hostd.qos import CLUSTER_QOS, QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.ufd import UfdConfig
@@ -68,6 +94,22 @@ def parse_peers(text: str) -> list[tuple[str, str]]:
     return out
 
 
+class MembershipSettings(BaseModel):
+    """Alg. 3 tunables (`membership:` section of the YAML file; see `haa.hostd.membership.NodeConfig`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    c_f: int | None = Field(default=None, ge=0)
+    c_h: int | None = Field(default=None, ge=1)
+    formation_timeout: float = Field(default=NodeConfig().formation_timeout, gt=0, allow_inf_nan=False)
+    formation_retry: float = Field(default=NodeConfig().formation_retry, gt=0, allow_inf_nan=False)
+    discovery: float = Field(default=NodeConfig().discovery, gt=0, allow_inf_nan=False)
+    reapply: float = Field(default=NodeConfig().reapply, gt=0, allow_inf_nan=False)
+    catchup_timeout: float = Field(default=NodeConfig().catchup_timeout, gt=0, allow_inf_nan=False)
+    retry_backoff: float = Field(default=NodeConfig().retry_backoff, gt=0, allow_inf_nan=False)
+    max_write_attempts: int = Field(default=NodeConfig().max_write_attempts, ge=1)
+
+
 class HostSettings(BaseModel):
     """Everything haa-hostd needs to start, validated."""
 
@@ -76,12 +118,17 @@ class HostSettings(BaseModel):
     name: str
     listen: str
     peers: list[tuple[str, str]] = Field(default_factory=list)
+    core: list[tuple[str, str]] = Field(default_factory=list)
+    advertise: str | None = None
     token: SecretStr
     data_dir: Path
     qos_td: float = Field(default=CLUSTER_QOS.td_upper, gt=0, allow_inf_nan=False)
     qos_tmr: float = Field(default=CLUSTER_QOS.tmr_lower, gt=0, allow_inf_nan=False)
     qos_tm: float = Field(default=CLUSTER_QOS.tm_upper, gt=0, allow_inf_nan=False)
     exclude_after: float = Field(default=CoreConfig().exclude_after, gt=0, allow_inf_nan=False)
+    leave_timeout: float = Field(default=3.0, gt=0, allow_inf_nan=False)
+    forget_group: bool = False
+    membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
 
@@ -96,6 +143,11 @@ class HostSettings(BaseModel):
     @classmethod
     def _listen(cls, v: str) -> str:
         return check_address(v, allow_port_zero=True)
+
+    @field_validator("advertise")
+    @classmethod
+    def _advertise(cls, v: str | None) -> str | None:
+        return None if v is None else check_address(v)
 
     @field_validator("peers")
     @classmethod
@@ -113,6 +165,35 @@ class HostSettings(BaseModel):
             check_address(addr)
         return v
 
+    @field_validator("core")
+    @classmethod
+    def _core(cls, v: list[tuple[str, str]], info: ValidationInfo) -> list[tuple[str, str]]:
+        seen: set[str] = set()
+        for name, addr in v:
+            if not NAME_RE.match(name):
+                raise ValueError(f"{name!r} is not a host name")
+            if name in seen:
+                raise ValueError(f"duplicate core process {name!r}")
+            seen.add(name)
+            check_address(addr)
+        if v and info.data.get("peers"):
+            raise ValueError("give either --peers (static mode) or --core (membership), not both")
+        return v
+
+    @model_validator(mode="after")
+    def _group_sizes(self) -> HostSettings:
+        """c_f < c/2 and c_f < c_H <= c (thesis §4.6.1), checked before anything starts."""
+        c = len(self.core)
+        if c:
+            m = self.membership
+            c_f = m.c_f if m.c_f is not None else (c - 1) // 2
+            if 2 * c_f >= c:
+                raise ValueError(f"membership.c_f = {c_f} violates c_f < c/2 with {c} core processes")
+            c_h = m.c_h if m.c_h is not None else min(c, c_f + 1)
+            if not c_f < c_h <= c:
+                raise ValueError(f"membership.c_h = {c_h} violates c_f < c_H <= c (c_f = {c_f}, c = {c})")
+        return self
+
     def runtime_config(self) -> RuntimeConfig:
         qos = QosTargets(td_upper=self.qos_td, tmr_lower=self.qos_tmr, tm_upper=self.qos_tm)
         initial = min(DEFAULT_INITIAL_PERIOD, self.qos_td / 2)  # INITIAL_PERIOD must be below T_D^U
@@ -126,6 +207,11 @@ class HostSettings(BaseModel):
             data_dir=self.data_dir,
             log_level=getattr(logging, self.log_level.upper()),
             log_stderr=self.log_stderr,
+            core_processes=list(self.core),
+            advertise=self.advertise or "",
+            node=NodeConfig(core=core, **self.membership.model_dump()),
+            forget_group=self.forget_group,
+            leave_timeout=self.leave_timeout,
         )
 
 
@@ -139,27 +225,57 @@ def fail(message: str, code: int = 2) -> NoReturn:
     sys.exit(code)
 
 
+#: options that may also come from the environment (HAA_<NAME>) and the YAML file
+_OPTIONS = (
+    "name",
+    "listen",
+    "peers",
+    "core",
+    "advertise",
+    "token_file",
+    "data_dir",
+    "qos_td",
+    "qos_tmr",
+    "qos_tm",
+    "exclude_after",
+    "leave_timeout",
+    "forget_group",
+    "log_level",
+    "log_stderr",
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    env = os.environ.get
-    p = _Parser(prog=PROG, description="HAA host daemon: failure detector, OAC and the host-to-host transport.")
-    p.add_argument("--name", default=env("HAA_NAME"), help="this host's name (env HAA_NAME)")
-    p.add_argument("--listen", default=env("HAA_LISTEN"), help="HOST:PORT to serve on (env HAA_LISTEN)")
-    p.add_argument(
-        "--peers", default=env("HAA_PEERS", ""), help="NAME=HOST:PORT,... of every other host (env HAA_PEERS)"
+    p = _Parser(
+        prog=PROG,
+        description="HAA host daemon: group membership, replicated DDB, failure detector, OAC, transport.",
+        epilog="Every option can also be given as environment variable HAA_<OPTION> (e.g. HAA_CORE) or as a "
+        "key of the --config YAML file (e.g. `core: h1=a:7000,h2=b:7000`); the command line wins over the "
+        "environment, the environment over the file.",
     )
-    p.add_argument("--token-file", default=env("HAA_TOKEN_FILE"), help="cluster token file (env HAA_TOKEN_FILE)")
-    p.add_argument("--data-dir", default=env("HAA_DATA_DIR"), help="logs, state (env HAA_DATA_DIR; default data/NAME)")
-    p.add_argument("--qos-td", type=float, default=CLUSTER_QOS.td_upper, help="T_D^U: detection time bound, s")
-    p.add_argument("--qos-tmr", type=float, default=CLUSTER_QOS.tmr_lower, help="T_MR^L: mistake recurrence, s")
-    p.add_argument("--qos-tm", type=float, default=CLUSTER_QOS.tm_upper, help="T_M^U: mistake duration, s")
+    p.add_argument("--config", default=os.environ.get("HAA_CONFIG"), help="YAML settings file (env HAA_CONFIG)")
+    p.add_argument("--name", help="this host's name")
+    p.add_argument("--listen", help="HOST:PORT to serve on")
+    p.add_argument("--core", help="NAME=HOST:PORT,... the ordered core process list (membership mode)")
+    p.add_argument("--advertise", help="HOST:PORT other hosts reach this one at (default: --listen)")
+    p.add_argument("--peers", help="NAME=HOST:PORT,... every other host (static mode: OAC without membership)")
+    p.add_argument("--token-file", help="cluster token file")
+    p.add_argument("--data-dir", help="logs, incarnation, known hosts (default data/NAME)")
+    p.add_argument("--qos-td", type=float, help=f"T_D^U: detection time bound, s ({CLUSTER_QOS.td_upper})")
+    p.add_argument("--qos-tmr", type=float, help=f"T_MR^L: mistake recurrence, s ({CLUSTER_QOS.tmr_lower})")
+    p.add_argument("--qos-tm", type=float, help=f"T_M^U: mistake duration, s ({CLUSTER_QOS.tm_upper})")
     p.add_argument(
-        "--exclude-after",
-        type=float,
-        default=CoreConfig().exclude_after,
-        help="exclude a peer suspected for this long, s",
+        "--exclude-after", type=float, help=f"exclude a peer suspected for this long, s ({CoreConfig().exclude_after})"
     )
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
-    p.add_argument("--log-stderr", action="store_true", help="also write the JSON log lines to stderr")
+    p.add_argument("--leave-timeout", type=float, help="SIGTERM: wait this long for the graceful leave, s (3)")
+    p.add_argument(
+        "--forget-group",
+        action="store_const",
+        const=True,
+        help="ignore the hosts a previous life knew (needed when every host of a group was lost)",
+    )
+    p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
 
 
@@ -173,39 +289,92 @@ def read_token(path: str) -> str:
     return token
 
 
-def load_settings(argv: list[str] | None = None) -> HostSettings:
-    """Parse and validate the command line (exits with code 2 and one line on stderr on any error)."""
-    args = build_parser().parse_args(argv)
-    for opt in ("name", "listen", "token_file"):
-        if not getattr(args, opt):
-            env = "HAA_" + opt.upper()
-            fail(f"--{opt.replace('_', '-')} (or {env}) is required")
+def _read_yaml(path: str) -> dict[str, Any]:
     try:
-        peers = parse_peers(args.peers)
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"cannot read {path!r}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ValueError(f"{path!r} is not valid YAML{where}: {getattr(e, 'problem', None) or e}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path!r} must hold a mapping of option: value")
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        key = str(k).replace("-", "_")
+        if key not in _OPTIONS and key != "membership":
+            raise ValueError(f"{path!r}: unknown option {k!r}")
+        out[key] = v
+    return out
+
+
+def _bool(text: str) -> bool:
+    t = text.strip().lower()
+    if t in ("1", "true", "yes", "on"):
+        return True
+    if t in ("0", "false", "no", "off", ""):
+        return False
+    raise ValueError(f"{text!r} is not a boolean")
+
+
+def _host_list(value: Any, opt: str) -> list[tuple[str, str]]:
+    if isinstance(value, dict):  # YAML mapping form
+        return [(str(k), str(v)) for k, v in value.items()]
+    if isinstance(value, list):  # YAML list of "NAME=HOST:PORT"
+        value = ",".join(str(x) for x in value)
+    try:
+        return parse_peers(str(value))
     except ValueError as e:
-        fail(f"--peers: {e}")
+        fail(f"--{opt}: {e}")
+
+
+def load_settings(argv: list[str] | None = None) -> HostSettings:
+    """Parse and validate command line, environment and YAML file (exits with code 2 and one line on
+    stderr on any error)."""
+    args = build_parser().parse_args(argv)
+    merged: dict[str, Any] = {}
+    if args.config:
+        try:
+            merged.update(_read_yaml(args.config))
+        except ValueError as e:
+            fail(f"--config: {e}")
+    for opt in _OPTIONS:
+        env = os.environ.get("HAA_" + opt.upper())
+        if env is not None and env != "":
+            if opt in ("forget_group", "log_stderr"):
+                try:
+                    merged[opt] = _bool(env)
+                except ValueError as e:
+                    fail(f"HAA_{opt.upper()}: {e}")
+            else:
+                merged[opt] = env
+        v = getattr(args, opt)
+        if v is not None:
+            merged[opt] = v
+    for opt in ("name", "listen", "token_file"):
+        if not merged.get(opt):
+            fail(f"--{opt.replace('_', '-')} (or HAA_{opt.upper()}) is required")
+    for opt in ("peers", "core"):
+        merged[opt] = _host_list(merged.get(opt) or "", opt)
     try:
-        token = read_token(args.token_file)
+        token = read_token(str(merged.pop("token_file")))
     except ValueError as e:
         fail(f"--token-file: {e}")
+    name = str(merged["name"])
+    merged["data_dir"] = Path(str(merged["data_dir"])) if merged.get("data_dir") else Path("data") / name
     try:
-        return HostSettings(
-            name=args.name,
-            listen=args.listen,
-            peers=peers,
-            token=SecretStr(token),
-            data_dir=Path(args.data_dir) if args.data_dir else Path("data") / args.name,
-            qos_td=args.qos_td,
-            qos_tmr=args.qos_tmr,
-            qos_tm=args.qos_tm,
-            exclude_after=args.exclude_after,
-            log_level=args.log_level,
-            log_stderr=args.log_stderr,
-        )
+        return HostSettings(token=SecretStr(token), **merged)
     except ValidationError as e:
         err = e.errors()[0]
         loc = ".".join(str(x) for x in err["loc"] if not isinstance(x, int))
         opt = f"--{loc.split('.')[0].replace('_', '-')}" if loc else "settings"
+        if loc.startswith("membership."):
+            opt = f"membership.{loc.split('.', 1)[1]}"
         msg = err["msg"].removeprefix("Value error, ")
         fail(f"{opt}: {msg}")
 
@@ -214,7 +383,7 @@ async def serve(cfg: RuntimeConfig) -> None:
     rt = HostRuntime(cfg)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, rt.request_stop)
+        loop.add_signal_handler(sig, rt.request_shutdown)
     await rt.run()
 
 

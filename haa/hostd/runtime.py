@@ -33,11 +33,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import json
 import logging
+import os
+import socket
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from dataclasses import replace as dataclass_replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -57,7 +61,9 @@ from haa.hostd.effects import (
     SetTimer,
     Suspicion,
 )
+from haa.hostd.globalstate import decode_tx
 from haa.hostd.logs import LOGGER_NAME, HostIdentity, log_event, setup_logging, teardown_logging
+from haa.hostd.membership import AppliedTx, Connect, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.hostd.messages import Message, TxId
 from haa.hostd.transport import Transport
 
@@ -118,6 +124,29 @@ class HostReincarnated(Exception):
     """This host restarted as a new incarnation while the transaction was open; its outcome is unknown here."""
 
 
+class WriteFailed(Exception):
+    """A global-state change (DDB batch, test payload) was not committed: `reason` says why. A timeout does
+    not mean it will never commit."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class NotMembershipMode(Exception):
+    """The operation needs group membership (`--core`); this host runs a static peer list (`--peers`)."""
+
+
+@dataclass(frozen=True)
+class WriteResult:
+    """A committed global-state change, applied on this host."""
+
+    txid: TxId
+    global_seq: int
+    result: object | None  # haa.hostd.ddb.ApplyResult for DDB batches
+    reason: str  # non-empty if the payload was committed but could not be applied (malformed)
+
+
 @dataclass
 class RuntimeConfig:
     name: str
@@ -128,6 +157,19 @@ class RuntimeConfig:
     data_dir: Path | None = None
     log_level: int = logging.INFO
     log_stderr: bool = False
+    #: membership mode (Alg. 3): the ordered core process list; empty = static mode over `peers`
+    core_processes: list[tuple[str, str]] = field(default_factory=list)
+    #: the address other hosts connect to (membership mode); default: `listen`
+    advertise: str = ""
+    node: NodeConfig | None = None
+    #: ignore the hosts a previous incarnation knew (`<data-dir>/known_hosts.json`)
+    forget_group: bool = False
+    #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s
+    leave_timeout: float = 3.0
+
+    @property
+    def membership(self) -> bool:
+        return bool(self.core_processes)
 
 
 class HostRuntime:
@@ -139,15 +181,21 @@ class HostRuntime:
         self.evaluate = evaluate
         self.counters: Counter[str] = Counter()
         self.ident = HostIdentity(config.name, 0)
+        self.membership = config.membership
+        #: the state machine this runtime drives: a `MembershipNode` (membership mode) or a bare `HostCore`
+        self.node: MembershipNode | HostCore | None = None
+        #: the failure detector + OAC core (the node's own in membership mode)
         self.core: HostCore | None = None
         self.transport = Transport(
             config.name,
             config.token,
-            config.peers,
+            {} if config.membership else config.peers,
             on_envelopes=self._on_envelopes,
             on_peer_incarnation=self._on_peer_incarnation,
             counters=self.counters,
+            accept_unknown=config.membership,
         )
+        self.advertise = config.advertise
         self.server: aio.Server | None = None
         self.port = 0
         self.delivered: list[DeliveredEntry] = []
@@ -171,6 +219,16 @@ class HostRuntime:
         self._log_handlers: list[logging.Handler] = []
         self._past_core_counters: Counter[str] = Counter()
         self._proc = psutil.Process()
+        # membership mode
+        self._writes: dict[int, asyncio.Future[WriteResult]] = {}
+        self._write_seq = 0
+        self._left_waiters: list[asyncio.Future[None]] = []
+        self.left = False
+        self._exit_after_leave = False
+        #: mirror stream subscribers (`MirrorSub`), fed from applied transactions and view changes
+        self.mirrors: set[MirrorSub] = set()
+        self._ddb_ref: object | None = None
+        self._view_event = asyncio.Event()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -191,10 +249,56 @@ class HostRuntime:
                 log_event(log, logging.WARNING, "incarnation_not_saved", error=str(e))
         return inc
 
-    def _make_core(self, inc: int) -> HostCore:
-        core = HostCore(self.name, inc, list(self.config.peers), self.config.core, evaluate=self.evaluate)
+    def _make_node(self, inc: int) -> None:
+        cfg = self.config
         self.ident.inc = inc
-        return core
+        if not self.membership:
+            self.node = self.core = HostCore(self.name, inc, list(cfg.peers), cfg.core, evaluate=self.evaluate)
+            return
+        known = [] if cfg.forget_group else self._load_known_hosts()
+        if self.node is not None and isinstance(self.node, MembershipNode):
+            # a reincarnation: apply to the hosts the previous incarnation knew as members
+            known = [(m.name, m.addr) for m in self.node.state.members if m.name != self.name] or known
+        ncfg = dataclass_replace(cfg.node, core=cfg.core) if cfg.node is not None else NodeConfig(core=cfg.core)
+        node = MembershipNode(self.name, inc, self.advertise, cfg.core_processes, ncfg, known_hosts=known)
+        self.node = node
+        self.core = node.core
+
+    def _known_hosts_file(self) -> Path | None:
+        d = self.config.data_dir
+        return d / "known_hosts.json" if d is not None else None
+
+    def _load_known_hosts(self) -> list[tuple[str, str]]:
+        """Hosts a previous incarnation had as fellow members (docs/membership.md, "restarts")."""
+        f = self._known_hosts_file()
+        if f is None or not f.exists():
+            return []
+        try:
+            data = json.loads(f.read_text())
+            out = [(str(n), str(a)) for n, a in data["members"] if n != self.name]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log_event(log, logging.WARNING, "known_hosts_unreadable", file=str(f), error=str(e))
+            return []
+        log_event(log, logging.INFO, "known_hosts", hosts=[n for n, _ in out])
+        return out
+
+    def _save_known_hosts(self, members: Any) -> None:
+        f = self._known_hosts_file()
+        if f is None:
+            return
+        data = {"members": [[m.name, m.addr] for m in members if m.name != self.name]}
+        tmp = f.with_suffix(".tmp")
+        try:
+            tmp.write_text(json.dumps(data))
+            os.replace(tmp, f)
+        except OSError as e:
+            log_event(log, logging.WARNING, "known_hosts_not_saved", error=str(e))
+
+    def _forget_known_hosts(self) -> None:
+        f = self._known_hosts_file()
+        if f is not None:
+            with contextlib.suppress(OSError):
+                f.unlink()
 
     async def start(self) -> None:
         """Bind the server, start the links and the core."""
@@ -209,7 +313,6 @@ class HostRuntime:
         self._clock_offset = loop.time() - time.monotonic()
         self._proc.cpu_percent(None)
         inc = self._new_incarnation(0)
-        self.core = self._make_core(inc)
         self.transport.incarnation = inc
         # imported here because haa.hostd.control imports this module
         from haa.hostd.control import HostControlService
@@ -218,6 +321,9 @@ class HostRuntime:
         self.transport.add_to_server(server)
         HostControlService(self).add_to_server(server)
         self.port = server.add_insecure_port(cfg.listen)
+        if not self.advertise:
+            self.advertise = advertised_address(cfg.listen, self.port)
+        self._make_node(inc)
         await server.start()
         self.server = server
         self.started_at = time.monotonic()
@@ -229,15 +335,38 @@ class HostRuntime:
             listen=cfg.listen,
             port=self.port,
             peers=cfg.peers,
+            core_processes=cfg.core_processes,
+            advertise=self.advertise if self.membership else "",
             qos={"td": ufd.qos.td_upper, "tmr": ufd.qos.tmr_lower, "tm": ufd.qos.tm_upper},
             exclude_after=cfg.core.exclude_after,
         )
         self.transport.start()
-        self._feed(self.core.start)
+        self._feed(self.node.start)
 
     def request_stop(self) -> None:
-        """Ask `run()` to return (signal handlers call this)."""
+        """Ask `run()` to return."""
         self._stopped.set()
+
+    def request_shutdown(self) -> None:
+        """SIGTERM/SIGINT: in membership mode leave the group gracefully first (at most `leave_timeout`
+        seconds), then stop; a second signal stops at once."""
+        if not self.membership or self.left or self._exit_after_leave or self.node is None:
+            self.request_stop()
+            return
+        self._exit_after_leave = True
+        loop = self._loop
+        assert loop is not None
+        task = loop.create_task(self._leave_then_stop())
+        self.stream_tasks.add(task)
+        task.add_done_callback(self.stream_tasks.discard)
+
+    async def _leave_then_stop(self) -> None:
+        try:
+            await self.leave(timeout=self.config.leave_timeout)
+        except (TimeoutError, WriteFailed) as e:
+            log_event(log, logging.WARNING, "leave_incomplete", reason=str(e) or "timeout")
+        finally:
+            self.request_stop()
 
     async def run(self) -> None:
         """Start, serve until `request_stop()`, then shut down gracefully."""
@@ -259,9 +388,11 @@ class HostRuntime:
         for h in self._timers.values():
             h.cancel()
         self._timers.clear()
-        for fut in self._waiters.values():
+        for fut in [*self._waiters.values(), *self._writes.values(), *self._left_waiters]:
             if not fut.done():
                 fut.set_exception(RuntimeError(f"{self.name} is shutting down"))
+        for sub in list(self.mirrors):
+            sub.close()
         await self.transport.stop()
         for task in list(self.stream_tasks):
             task.cancel()
@@ -288,11 +419,11 @@ class HostRuntime:
         return res
 
     def _on_envelopes(self, sender: str, sender_inc: int, items: list[tuple[int, Message]]) -> None:
-        core = self.core
-        if core is None:
+        node = self.node
+        if node is None:
             return
         now = time.monotonic()
-        on_message = core.on_message
+        on_message = node.on_message
         for dst_inc, msg in items:
             try:
                 on_message(now, sender, sender_inc, dst_inc, msg)
@@ -305,19 +436,19 @@ class HostRuntime:
         self._apply()
 
     def _on_peer_incarnation(self, peer: str, inc: int) -> None:
-        if self.core is not None:
-            self._feed(self.core.on_peer_info, peer, inc)
+        if self.node is not None:
+            self._feed(self.node.on_peer_info, peer, inc)
 
     def _fire(self, key: Hashable, at: float) -> None:
         self._timers.pop(key, None)
-        core = self.core
-        if core is None:
+        node = self.node
+        if node is None:
             return
         now = time.monotonic()
         if now < at:  # the loop may run a timer a hair early; the core must see its deadline reached
             now = at
         try:
-            core.on_timer(now, key)
+            node.on_timer(now, key)
         except Exception:
             self.counters["core_errors"] += 1
             log.exception("core failed on a timer", extra={"event": "core_error", "fields": {"key": repr(key)}})
@@ -326,10 +457,10 @@ class HostRuntime:
     # ------------------------------------------------------------------ effects
 
     def _apply(self) -> None:
-        core = self.core
-        if core is None:
+        node = self.node
+        if node is None:
             return
-        effects = core.drain()
+        effects = node.drain()
         if not effects:
             return
         send = self.transport.send
@@ -368,6 +499,18 @@ class HostRuntime:
                 # the core also logs what a typed effect above already carries: keep those at debug level
                 level = logging.DEBUG if e.event in _TYPED_EVENTS else logging.INFO  # type: ignore[union-attr]
                 log_event(log, level, e.event, **e.fields)  # type: ignore[union-attr]
+            elif t is Connect:
+                self.transport.add_peer(e.name, e.addr)  # type: ignore[union-attr]
+            elif t is AppliedTx:
+                self._on_applied(e)  # type: ignore[arg-type]
+            elif t is ViewChange:
+                self._on_view(e)  # type: ignore[arg-type]
+            elif t is WriteDone:
+                self._on_write_done(e)  # type: ignore[arg-type]
+            elif t is Left:
+                self._on_left()
+        if self.mirrors:
+            self._check_replica()
         if reincarnate_by is not None:
             self._reincarnate(reincarnate_by)
 
@@ -425,19 +568,76 @@ class HostRuntime:
         for txid, fut in self._waiters.items():
             if not fut.done():
                 fut.set_exception(HostReincarnated(f"{self.name} reincarnated while {txid} was open"))
+        for fut in [*self._writes.values(), *self._left_waiters]:
+            if not fut.done():
+                fut.set_exception(WriteFailed(f"{self.name} restarted as a new incarnation (outcome unknown)"))
+        self._writes.clear()
+        self._left_waiters.clear()
         self._proposed_at.clear()
         self._decided_at.clear()
         self._p2d.clear()
         self._participants_cache.clear()
-        self.core = self._make_core(inc)
+        self._make_node(inc)
         self.transport.set_incarnation(inc)
         now = time.monotonic()
-        self.core.start(now)
+        node = self.node
+        assert node is not None
+        node.start(now)
         # the links already know the peers' incarnations; tell the new core (it arms their exclusion timers)
         for peer, link in self.transport.links.items():
             if link.receiver_inc:
-                self.core.on_peer_info(now, peer, link.receiver_inc)
+                node.on_peer_info(now, peer, link.receiver_inc)
         self._apply()
+
+    # ------------------------------------------------------------------ membership effects
+
+    def _on_applied(self, e: AppliedTx) -> None:
+        self.counters["global_applied"] += 1
+        if e.kind != "ddb" or e.result is None or not self.mirrors:
+            return
+        data = decode_tx(e.payload).data  # type: ignore[union-attr]  # the DdbBatch inside the TxDdb
+        ddb_seq = e.result.seq  # type: ignore[attr-defined]
+        for sub in list(self.mirrors):
+            sub.push(("batch", ddb_seq, data, e.seq))
+
+    def _on_view(self, e: ViewChange) -> None:
+        self.counters["view_changes"] += 1
+        self._save_known_hosts(e.members)
+        ev = self._view_event
+        self._view_event = asyncio.Event()
+        ev.set()
+        for sub in list(self.mirrors):
+            if sub.views:
+                sub.push(("view", e))
+
+    def _on_write_done(self, e: WriteDone) -> None:
+        fut = self._writes.pop(e.req, None)  # type: ignore[arg-type]
+        if fut is None or fut.done():
+            return
+        if e.ok:
+            fut.set_result(WriteResult(e.txid, e.seq, e.result, e.reason))  # type: ignore[arg-type]
+        else:
+            fut.set_exception(WriteFailed(e.reason))
+
+    def _on_left(self) -> None:
+        self.left = True
+        self._forget_known_hosts()
+        for fut in self._left_waiters:
+            if not fut.done():
+                fut.set_result(None)
+        self._left_waiters.clear()
+
+    def _check_replica(self) -> None:
+        """A joiner that installed its sponsor's state, or a new incarnation, has a new replica object:
+        mirror subscribers need a fresh snapshot."""
+        node = self.node
+        if not isinstance(node, MembershipNode):
+            return
+        ddb = node.state.ddb
+        if ddb is not self._ddb_ref:
+            self._ddb_ref = ddb
+            for sub in list(self.mirrors):
+                sub.push(("resync",))
 
     # ------------------------------------------------------------------ proposals
 
@@ -484,6 +684,57 @@ class HostRuntime:
         finally:
             self._waiters.pop(txid, None)
 
+    # ------------------------------------------------------------------ global-state changes (membership mode)
+
+    def _member_node(self) -> MembershipNode:
+        node = self.node
+        if not isinstance(node, MembershipNode):
+            raise NotMembershipMode(f"{self.name} runs a static peer list (--peers): no group, no DDB")
+        return node
+
+    async def submit(self, payload: bytes, kind: str = "ddb", timeout: float = 30.0) -> WriteResult:
+        """Propose a global-state change to every member (a `DdbBatch` for `kind="ddb"`, any bytes for
+        `kind="test"`) and wait until it is committed and applied here.
+
+        Raises `WriteFailed` (not a member, leaving, gave up after aborts, this host restarted, timeout —
+        after a timeout the change may still commit) or `NotMembershipMode`."""
+        node = self._member_node()
+        if self.left or node.leaving:
+            raise WriteFailed("this host is leaving the group")
+        self._write_seq += 1
+        req = self._write_seq
+        fut: asyncio.Future[WriteResult] = asyncio.get_running_loop().create_future()
+        self._writes[req] = fut
+        self.counters["writes_submitted"] += 1
+        try:
+            self._feed(node.submit, payload, req, kind)
+            try:
+                return await asyncio.wait_for(fut, timeout)
+            except TimeoutError:
+                raise WriteFailed(f"not committed within {timeout:g} s (it may still commit)") from None
+        finally:
+            self._writes.pop(req, None)
+
+    async def leave(self, timeout: float = 10.0) -> None:
+        """Leave the group (Alg. 3 ll. 14-21) and wait until the group has removed this host. The process
+        keeps running (stop it with `request_stop`); `TimeoutError` if the removal did not commit in time."""
+        node = self._member_node()
+        if self.left:
+            return
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._left_waiters.append(fut)
+        self._feed(node.leave)
+        await asyncio.wait_for(fut, timeout)
+
+    async def wait_view(self, predicate: Callable[[dict[str, Any]], bool], timeout: float) -> dict[str, Any]:
+        """Wait until `predicate(self.status())` holds (checked after every view change)."""
+        async with asyncio.timeout(timeout):
+            while True:
+                st = self.status()
+                if predicate(st):
+                    return st
+                await self._view_event.wait()
+
     # ------------------------------------------------------------------ queries
 
     async def wait_delivered(self, count: int) -> None:
@@ -507,13 +758,44 @@ class HostRuntime:
             peers.append(
                 {
                     **row,
-                    "address": self.config.peers.get(q, ""),
+                    "address": self.transport.peers.get(q, ""),
                     "connected": self.transport.connected(q),
                     "queued": self.transport.queued(q),
                 }
             )
         mem = self._proc.memory_info()
+        cpu = self._proc.cpu_times()
+        group: dict[str, Any] = {"mode": "static"}
+        node = self.node
+        if isinstance(node, MembershipNode):
+            st = node.state
+            ns = node.status()
+            group = {
+                "mode": "membership",
+                "member": ns["member"],
+                "members": ns["members"],
+                "member_info": [
+                    {"name": m.name, "incarnation": m.inc, "address": m.addr, "suspected": node._suspected(m.proc)}
+                    for m in st.members
+                ],
+                "leader": ns["leader"],
+                "view": ns["view"],
+                "rank": ns["rank"],
+                "suspicions": ns["suspected"],
+                "ddb_size": st.ddb.size,
+                "ddb_hash": st.ddb.content_hash(),
+                "ddb_seq": st.ddb.seq,
+                "global_seq": st.seq,
+                "state_hash": ns["state_hash"],
+                "group_id": st.genesis,
+                "group_correct": st.group_correct,
+                "locked": ns["locked"],
+                "applicants": ns["applicants"],
+                "leaving": node.leaving,
+            }
         return {
+            **group,
+            "cpu_seconds": cpu.user + cpu.system,
             "name": self.name,
             "incarnation": core.inc,
             "peers": peers,
@@ -534,3 +816,45 @@ class HostRuntime:
             self.decide_to_deliver.clear()
             self.propose_to_decide.clear()
         return d2d, p2d
+
+
+class MirrorSub:
+    """One mirror-stream subscriber: a queue of ("batch", ddb_seq, payload, global_seq), ("view", ViewChange)
+    and ("resync",) items the control service turns into `MirrorEvent`s. A subscriber more than `limit`
+    items behind is cut back to one ("resync",): it gets a fresh snapshot instead of the batches."""
+
+    def __init__(self, views: bool, limit: int = 10_000) -> None:
+        self.views = views
+        self.limit = limit
+        self.queue: deque[tuple[Any, ...]] = deque()
+        self.closed = False
+        self._event = asyncio.Event()
+
+    def push(self, item: tuple[Any, ...]) -> None:
+        if len(self.queue) >= self.limit:
+            self.queue.clear()
+            item = ("resync",)
+        self.queue.append(item)
+        self._event.set()
+
+    def close(self) -> None:
+        self.closed = True
+        self._event.set()
+
+    async def get(self) -> tuple[Any, ...] | None:
+        """The next item, or None once closed."""
+        while not self.queue:
+            if self.closed:
+                return None
+            self._event.clear()
+            await self._event.wait()
+        return self.queue.popleft()
+
+
+def advertised_address(listen: str, port: int) -> str:
+    """The address other hosts reach this one at: `listen` with the bound port; a wildcard listen address
+    (0.0.0.0, [::]) is replaced by this machine's host name (a compose service's name)."""
+    host = listen.rpartition(":")[0]
+    if host in ("", "0.0.0.0", "[::]", "::"):
+        host = socket.gethostname()
+    return f"{host}:{port}"

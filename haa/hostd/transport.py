@@ -20,7 +20,8 @@ Sender (`OutLink`, one asyncio task per peer)
     renumbers them after the new receiver's `acked_seq`, and reports the new incarnation through
     `on_peer_incarnation` (the runtime calls `HostCore.on_peer_info`).
   * Reconnects use capped exponential backoff (20 ms .. 1 s) for as long as the peer is configured; every
-    peer has its own task and channel, so a peer that is down never stalls the others.
+    peer has its own task and channel, so a peer that is down never stalls the others. Peers are given at
+    start (static mode) or added at run time with `add_peer` (membership mode, Alg. 3 "open connection").
   * Before the first handshake with a peer, at most `precontact_limit` messages addressed to "unknown"
     (heartbeats) are kept: a peer that has not started yet would otherwise receive a burst of stale
     heartbeats that skews its failure detector's delay estimate (the UFD tolerates lost heartbeats).
@@ -31,8 +32,9 @@ Receiver (the `HostLink` servicer, raw bytes)
     `wire.decode`, or claims another sender than the stream's metadata, is counted (`rejected_invalid`) and
     dropped; a call without the right token is answered `UNAUTHENTICATED` (`rejected_unauthenticated`,
     tokens compared with `hmac.compare_digest`); an unknown sender name gets `PERMISSION_DENIED`
-    (`rejected_unknown_peer`); an older incarnation of a sender than one already seen gets
-    `FAILED_PRECONDITION` (`rejected_stale_incarnation`).
+    (`rejected_unknown_peer`) unless the transport accepts unknown senders (`accept_unknown`, membership
+    mode: an applicant is unknown until it applies; it still needs the token and a valid name); an older
+    incarnation of a sender than one already seen gets `FAILED_PRECONDITION` (`rejected_stale_incarnation`).
   * Per sender it remembers the sender incarnation and the highest link sequence number delivered; frames
     at or below it are duplicates of a resend and are dropped (`link_duplicates`).
   * Replies: first the handshake, then cumulative acks at most every `ack_interval` seconds.
@@ -51,6 +53,7 @@ import asyncio
 import contextlib
 import hmac
 import logging
+import re
 from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -114,6 +117,14 @@ def client_options() -> list[tuple[str, Any]]:
         ("grpc.max_receive_message_length", MAX_MESSAGE),
         ("grpc.enable_retries", 0),
     ]
+
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
+
+
+def valid_name(name: str) -> bool:
+    """A host name as haa-hostd accepts it (`--name`): 1-63 of [A-Za-z0-9_.-], not starting with [_.-]."""
+    return bool(_NAME_RE.match(name))
 
 
 class LinkDown(Exception):
@@ -181,6 +192,19 @@ class OutLink:
         if self.task is not None:
             self.task.cancel()
         self.start()
+
+    def retarget(self, address: str) -> None:
+        """The peer is now reached at `address`: drop the channel and reconnect there. The queues and the
+        numbering stay (the receiver process, if it is the same, resends nothing twice)."""
+        self.address = address
+        old = self._channel
+        self._channel = None
+        if old is not None:
+            task = asyncio.get_running_loop().create_task(old.close())
+            self.t._handlers.add(task)
+            task.add_done_callback(self.t._handlers.discard)
+        if self.task is not None:
+            self.restart()
 
     async def close(self) -> None:
         if self.task is not None:
@@ -411,6 +435,7 @@ class Transport:
         max_batch_bytes: int = 1 << 20,
         precontact_limit: int = 16,
         max_queue: int = 1_000_000,
+        accept_unknown: bool = False,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
@@ -430,6 +455,7 @@ class Transport:
         self.max_batch_bytes = max_batch_bytes
         self.precontact_limit = precontact_limit
         self.max_queue = max_queue
+        self.accept_unknown = accept_unknown
         self.limiter = RateLimiter(1.0)
         self.links: dict[str, OutLink] = {}
         self._rx: dict[str, _RxState] = {}
@@ -472,6 +498,24 @@ class Transport:
             link.reset()
             if self._started:
                 link.restart()
+
+    def add_peer(self, name: str, address: str) -> None:
+        """Start sending to `name` at `address` (a new link), or move its link to a new address. Used by the
+        membership layer ("open connection to", Alg. 3); links are never removed while the host runs (a
+        link to a host that is gone costs one connection attempt per `max_backoff`)."""
+        if name == self.name:
+            return
+        link = self.links.get(name)
+        self.peers[name] = address
+        if link is None:
+            link = OutLink(self, name, address)
+            self.links[name] = link
+            if self._started:
+                link.start()
+            self.counters["links_added"] += 1
+        elif link.address != address:
+            log_event(log, logging.INFO, "link_retarget", peer=name, old=link.address, new=address)
+            link.retarget(address)
 
     def send(self, dst: str, dst_inc: int, msg: Message) -> None:
         """Queue `msg` for `dst` (its incarnation `dst_inc`, 0 = unknown). Never blocks."""
@@ -544,7 +588,7 @@ class Transport:
             await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
         mdd = {k: v for k, v in md if isinstance(v, str)}
         sender = mdd.get(MD_SENDER, "")
-        if sender not in self.peers:
+        if sender not in self.peers and not (self.accept_unknown and valid_name(sender) and sender != self.name):
             self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=context.peer())
             await context.abort(grpc.StatusCode.PERMISSION_DENIED, f"{sender[:100]!r} is not a configured peer")
         try:
