@@ -137,3 +137,51 @@ def bench_ap1(
         {"machine": machine(), "transactions_per_step": transactions, "concurrency": concurrency, "rows": rows},
     )
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("idle")
+def bench_idle(
+    hosts: int = typer.Option(10, "--hosts", min=1, max=32, help="hosts in the idle cluster"),
+    duration: float = typer.Option(60.0, "--duration", min=1, help="measurement window, s"),
+    settle: float = typer.Option(10.0, "--settle", min=0, help="wait after the group formed, s"),
+    compose: bool = typer.Option(False, "--compose", help="measure the docker compose cluster instead"),
+) -> None:
+    """Idle cost: CPU and memory of an idle membership-mode cluster -> bench-results/idle.json."""
+    from haactl.ap1 import machine
+    from haactl.idle import measure_compose, measure_local
+
+    kind = "compose" if compose else "local"
+    r = (measure_compose if compose else measure_local)(hosts, duration, settle)
+    print("\n| cluster | hosts | CPU total (% of one core) | per host min / max | % of the machine | RSS MiB/host |")
+    print("|---|---|---|---|---|---|")
+    print(
+        f"| {kind} | {r['hosts']} | {r['cpu_percent_total']:.1f} | {r['cpu_percent_host_min']:.2f} / "
+        f"{r['cpu_percent_host_max']:.2f} | {r['cpu_percent_of_machine']:.1f} | {r['rss_mib_mean']:.0f} |"
+    )
+    if compose:
+        print(f"\nengine processes: {r['engine_cpu_percent_total']:.1f} % of one core {r['engine_cpu_percent']}")
+    path = RESULTS / "idle.json"
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data[kind] = {**r, "machine": machine(), "measured_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    path = write_json("idle", data)
+    print(f"\nwrote {path}")
+
+
+@bench_app.command("ap2")
+def bench_ap2(
+    hosts: int = typer.Option(10, "--hosts", min=2, max=16, help="largest group size"),
+    reps: int = typer.Option(3, "--reps", min=1, help="leaves and crashes per group size"),
+    root: Path | None = typer.Option(None, "--root", help="data dirs and logs (default: a temporary dir)"),
+) -> None:
+    """Experiment AP-2 (thesis §7.2.2): join, leave and removal delays vs. group size, real haa-hostd."""
+    import tempfile
+
+    from haactl.ap2 import machine, markdown_table, run_ap2
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="haa-ap2-") as tmp:
+        rows = run_ap2(root or Path(tmp), max_hosts=hosts, reps=reps)
+    print()
+    print(markdown_table(rows))
+    path = write_json("ap2", {"machine": machine(), "reps": reps, "rows": rows})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")

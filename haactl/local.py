@@ -130,9 +130,7 @@ class HostProc:
 class LocalCluster:
     """N haa-hostd processes, full mesh, on free loopback ports."""
 
-    def __init__(
-        self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None
-    ) -> None:
+    def __init__(self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None) -> None:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         token = token or secrets.token_hex(24)
@@ -177,3 +175,28 @@ class LocalCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def member_command(
+    name: str,
+    address: str,
+    core: dict[str, str],
+    token_file: Path,
+    data_dir: Path,
+    args: list[str] | None = None,
+) -> list[str]:
+    """The command line of a membership-mode host (Alg. 3): it finds the group through the core list."""
+    return [
+        *hostd_command(),
+        "--name",
+        name,
+        "--listen",
+        address,
+        "--core",
+        ",".join(f"{n}={a}" for n, a in core.items()),
+        "--token-file",
+        str(token_file),
+        "--data-dir",
+        str(data_dir),
+        *(args or []),
+    ]

@@ -1,7 +1,9 @@
 """haactl: the operator command line of HAA (typer + rich).
 
 Subcommands live in their own modules: `verify` (deterministic simulation of the algorithms), `bench`
-(the thesis' experiments and our own measurements) and `demo` (the main job on a local cluster).
+(the thesis' experiments and our own measurements), `demo` (the main job on a local cluster), and the
+operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
+processes or, with --compose, the docker compose cluster: docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -9,12 +11,15 @@ from __future__ import annotations
 import typer
 
 from haactl.bench import bench_app
+from haactl.cluster import cluster_app, host_app
+from haactl.ddbcli import ddb_app
 from haactl.demo import demo
+from haactl.logview import logs
 from haactl.verify import verify
 
 app = typer.Typer(
     name="haactl",
-    help="Operate HAA clusters: verify the algorithms, run benchmarks and demos.",
+    help="Operate HAA clusters: bring them up, inspect and break them, verify the algorithms, run benchmarks.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -23,12 +28,16 @@ app = typer.Typer(
 
 @app.callback()
 def _root() -> None:
-    """Operate HAA clusters: verify the algorithms, run benchmarks and demos."""
+    """Operate HAA clusters: bring them up, inspect and break them, verify the algorithms, run benchmarks."""
 
 
 app.command("verify")(verify)
 app.add_typer(bench_app, name="bench")
 app.command("demo")(demo)
+app.add_typer(cluster_app, name="cluster")
+app.add_typer(host_app, name="host")
+app.add_typer(ddb_app, name="ddb")
+app.command("logs")(logs)
 
 if __name__ == "__main__":
     app()

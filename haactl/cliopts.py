@@ -1,0 +1,84 @@
+"""Options shared by `haactl cluster|host|ddb|logs`: which cluster (local or compose) and clean errors."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from haactl.backend import Backend, ClusterError
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+# Not a terminal (a pipe, a file, a test runner): wide lines rather than tables squeezed into 80 columns.
+out = Console(highlight=False, width=None if sys.stdout.isatty() else 200)
+err = Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 200)
+
+ComposeOpt = Annotated[
+    bool,
+    typer.Option(
+        "--compose",
+        envvar="HAA_COMPOSE",
+        help="the docker compose cluster (compose/compose.yaml) instead of the local one (env HAA_COMPOSE=1)",
+    ),
+]
+RootOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--root",
+        help="local cluster directory (default $HAA_CLUSTER_DIR, else .haa/cluster under the current directory)",
+        show_default=False,
+    ),
+]
+ComposeFileOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--compose-file",
+        help="compose file (default $HAA_COMPOSE_FILE, else compose/compose.yaml)",
+        show_default=False,
+    ),
+]
+HostOpt = Annotated[
+    str | None, typer.Option("--host", "-H", help="talk to this host (default: the first alive member)")
+]
+
+
+def open_backend(compose: bool, root: Path | None = None, compose_file: Path | None = None) -> Backend:
+    if compose:
+        if root is not None:
+            raise ClusterError("--root is for local clusters; not with --compose")
+        from haactl.compose_backend import ComposeBackend
+
+        return ComposeBackend(compose_file)
+    if compose_file is not None:
+        raise ClusterError("--compose-file needs --compose")
+    from haactl.local_backend import LocalBackend
+
+    return LocalBackend(root)
+
+
+def fail(message: str) -> None:
+    err.print(f"[bold red]error:[/bold red] {escape(message)}")
+    raise typer.Exit(1)
+
+
+def cli_errors(fn: F) -> F:
+    """Turn `ClusterError` into one red line on stderr and exit code 1; Ctrl-C into exit code 130."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except ClusterError as e:
+            fail(str(e))
+        except KeyboardInterrupt:
+            err.print("interrupted")
+            raise typer.Exit(130) from None
+
+    return wrapper  # type: ignore[return-value]

@@ -1,0 +1,402 @@
+"""A cluster of membership-mode `haa-hostd` processes on loopback, driven by `haactl` (LocalBackend).
+
+The cluster lives in one root directory (default `.haa/cluster` under the current directory, or
+`$HAA_CLUSTER_DIR`, or `--root`):
+
+    <root>/cluster.json        state file: token file, core list, hostd arguments, per host its address,
+                               pid (+ process start time, so that a reused pid is not mistaken for it),
+                               whether it is core, how it was stopped
+    <root>/token               the cluster token (mode 600)
+    <root>/<name>/             the host's --data-dir: JSON-lines log <name>.jsonl, stderr.<n>.txt per start
+
+Processes are started in their own session, so they outlive the `haactl` command that started them and
+an interrupt of the terminal does not reach them; later commands find them through the state file.
+Every host gets the same `--core h1=ADDR,...` list (the first K hosts); hosts added later are not core and
+find the group through that list (Alg. 3).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import secrets
+import shlex
+import shutil
+import signal
+import subprocess
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import psutil
+import yaml
+
+from haactl.backend import (
+    ALIVE,
+    DEAD,
+    KILLED,
+    LEFT,
+    PAUSED,
+    Backend,
+    ClusterError,
+    HostInfo,
+    StartError,
+    natural_key,
+    state_phrase,
+)
+from haactl.local import free_port, member_command
+
+STATE_FILE = "cluster.json"
+STATE_VERSION = 1
+
+
+def default_root() -> Path:
+    env = os.environ.get("HAA_CLUSTER_DIR")
+    return Path(env) if env else Path.cwd() / ".haa" / "cluster"
+
+
+def check_yaml(path: Path) -> None:
+    """Parse a hostd config file here, so that a broken file gives one error instead of N dead hosts."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ClusterError(f"cannot read config file {path}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ClusterError(f"config file {path}:{where}: broken YAML: {problem}") from None
+    if data is not None and not isinstance(data, dict):
+        kind = type(data).__name__
+        raise ClusterError(f"config file {path}: the top level must be a mapping (key: value), not {kind}")
+
+
+def _proc_state(pid: int | None, create_time: float | None) -> str | None:
+    """ALIVE / PAUSED for our process, None if it is gone (or the pid now belongs to another process)."""
+    if not pid:
+        return None
+    try:
+        p = psutil.Process(pid)
+        if create_time is not None and abs(p.create_time() - create_time) > 0.5:
+            return None
+        st = p.status()
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return None
+    if st == psutil.STATUS_ZOMBIE:
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.waitpid(pid, os.WNOHANG)  # reap it if it is our child
+        return None
+    if st in (psutil.STATUS_STOPPED, psutil.STATUS_TRACING_STOP):
+        return PAUSED
+    return ALIVE
+
+
+class LocalBackend(Backend):
+    kind = "local"
+
+    def __init__(self, root: Path | None = None) -> None:
+        self.root = (root or default_root()).absolute()
+        self.state: dict[str, Any] = {}
+        self._procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.load()
+        token = ""
+        tf = self.state.get("token_file")
+        if tf:
+            try:
+                token = Path(tf).read_text().strip()
+            except OSError as e:
+                raise ClusterError(f"cannot read the cluster token {tf}: {e.strerror}") from None
+        super().__init__(token)
+
+    # ------------------------------------------------------------------ state file
+    @property
+    def state_path(self) -> Path:
+        return self.root / STATE_FILE
+
+    def load(self) -> None:
+        try:
+            text = self.state_path.read_text()
+        except FileNotFoundError:
+            self.state = {}
+            return
+        try:
+            self.state = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ClusterError(f"broken state file {self.state_path}: {e}") from None
+        if self.state.get("version") != STATE_VERSION:
+            raise ClusterError(f"state file {self.state_path} has an unknown version; `haactl cluster down`")
+
+    def save(self) -> None:
+        tmp = self.state_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.state, indent=2) + "\n")
+        tmp.replace(self.state_path)
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Re-read, modify and write the state file under an exclusive lock."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        with open(self.root / "cluster.lock", "w") as f:
+            fcntl.flock(f, fcntl.LOCK_EX)
+            try:
+                self.load()
+                yield
+                if self.state:
+                    self.save()
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
+
+    # ------------------------------------------------------------------ Backend
+    def describe(self) -> str:
+        return f"local cluster in {self.root}"
+
+    def _rec(self, name: str) -> dict[str, Any]:
+        rec = self.state.get("hosts", {}).get(name)
+        if rec is None:
+            self.host(name)  # raises the "unknown host" error with the list of hosts
+            raise AssertionError(name)
+        return rec
+
+    def hosts(self) -> list[HostInfo]:
+        out = []
+        for name, rec in self.state.get("hosts", {}).items():
+            st = _proc_state(rec.get("pid"), rec.get("create_time"))
+            if st is None:
+                st = {"kill": KILLED, "leave": LEFT, "down": DEAD}.get(rec.get("stopped_by") or "", DEAD)
+            out.append(HostInfo(name, rec["address"], st, bool(rec.get("core")), pid=rec.get("pid")))
+        return sorted(out, key=lambda h: natural_key(h.name))
+
+    def _spawn(self, name: str) -> None:
+        rec = self._rec(name)
+        data_dir = Path(rec["data_dir"])
+        data_dir.mkdir(parents=True, exist_ok=True)
+        rec["starts"] = int(rec.get("starts", 0)) + 1
+        cmd = member_command(
+            name, rec["address"], self.state["core"], Path(self.state["token_file"]), data_dir, self.state["args"]
+        )
+        err_path = data_dir / f"stderr.{rec['starts']}.txt"
+        with open(err_path, "wb") as err:
+            p = subprocess.Popen(
+                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True
+            )
+        self._procs[name] = p
+        try:
+            ct = psutil.Process(p.pid).create_time()
+        except psutil.NoSuchProcess:
+            ct = None
+        rec.update(pid=p.pid, create_time=ct, stopped_by=None, stderr=str(err_path), started=time.time())
+
+    def check_started(self) -> None:
+        """Raise if a process started by this command has already exited (bad settings, port in use)."""
+        for name, p in self._procs.items():
+            code = p.poll()
+            if code is None:
+                continue
+            rec = self.state["hosts"][name]
+            try:
+                lines = [ln for ln in Path(rec["stderr"]).read_text(errors="replace").splitlines() if ln.strip()]
+            except OSError:
+                lines = []
+            last = lines[-1] if lines else "(no output)"
+            raise StartError(f"host {name} exited at start with code {code}: {last} (stderr: {rec['stderr']})")
+
+    def up(self, hosts: int, core: int, hostd_args: Sequence[str] = (), config: Path | None = None) -> list[str]:
+        """Create the state file and start h1..hN (the first `core` are core); returns the names."""
+        if config is not None:
+            check_yaml(config)
+        with self.locked():
+            running = [h.name for h in self.hosts() if h.up]
+            if running:
+                raise ClusterError(
+                    f"a cluster is already running in {self.root} ({', '.join(running)}): `haactl cluster down` first"
+                )
+            names = [f"h{i + 1}" for i in range(hosts)]
+            for old in self.state.get("hosts", {}).values():  # logs of a previous cluster
+                shutil.rmtree(old["data_dir"], ignore_errors=True)
+            for n in names:  # a data dir of a previous life would make a host re-apply instead of forming
+                shutil.rmtree(self.root / n, ignore_errors=True)
+            token_file = self.root / "token"
+            token_file.write_text(secrets.token_hex(32) + "\n")
+            token_file.chmod(0o600)
+            self.token = token_file.read_text().strip()
+            addrs = {n: f"127.0.0.1:{free_port()}" for n in names}
+            args = list(hostd_args)
+            if config is not None:
+                args += ["--config", str(config.absolute())]
+            self.state = {
+                "version": STATE_VERSION,
+                "kind": "local",
+                "created": time.time(),
+                "token_file": str(token_file),
+                "core": {n: addrs[n] for n in names[:core]},
+                "args": args,
+                "hosts": {
+                    n: {"address": addrs[n], "core": i < core, "data_dir": str(self.root / n), "starts": 0}
+                    for i, n in enumerate(names)
+                },
+            }
+            for n in names:
+                self._spawn(n)
+        return names
+
+    def _signal(self, name: str, sig: int) -> None:
+        rec = self._rec(name)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(rec["pid"], sig)
+
+    def _require(self, name: str, *states: str) -> HostInfo:
+        h = self.host(name)
+        if h.state not in states:
+            raise ClusterError(state_phrase(name, h.state))
+        return h
+
+    def kill(self, name: str) -> None:
+        self._require(name, ALIVE, PAUSED)
+        with self.locked():
+            self._signal(name, signal.SIGKILL)
+            self._rec(name)["stopped_by"] = "kill"
+        self.wait_gone(name, 10)
+
+    def pause(self, name: str) -> None:
+        self._require(name, ALIVE)
+        self._signal(name, signal.SIGSTOP)
+        self._wait_state(name, PAUSED)
+
+    def resume(self, name: str) -> None:
+        self._require(name, PAUSED)
+        self._signal(name, signal.SIGCONT)
+        self._wait_state(name, ALIVE)
+
+    def _wait_state(self, name: str, state: str, timeout: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout
+        while self.host(name).state != state:
+            if time.monotonic() > deadline:
+                raise ClusterError(f"host {name} did not become {state} within {timeout:.0f} s")
+            time.sleep(0.02)
+
+    def restart(self, name: str) -> HostInfo:
+        h = self.host(name)
+        if h.up:
+            raise ClusterError(f"{state_phrase(name, h.state)}: kill it or let it leave before restarting it")
+        with self.locked():
+            self._spawn(name)
+        return self.host(name)
+
+    def add(self, name: str) -> HostInfo:
+        with self.locked():
+            if not self.state:
+                raise ClusterError(f"no cluster running ({self.describe()}); start one with `haactl cluster up`")
+            if name in self.state["hosts"]:
+                raise ClusterError(f"host {name} already exists ({self.host(name).state}); use `haactl host restart`")
+            self.state["hosts"][name] = {
+                "address": f"127.0.0.1:{free_port()}",
+                "core": False,
+                "data_dir": str(self.root / name),
+                "starts": 0,
+            }
+            shutil.rmtree(self.root / name, ignore_errors=True)
+            self._spawn(name)
+        return self.host(name)
+
+    def next_name(self) -> str:
+        used = {int(n[1:]) for n in self.state.get("hosts", {}) if n[:1] == "h" and n[1:].isdigit()}
+        i = 1
+        while i in used:
+            i += 1
+        return f"h{i}"
+
+    def terminate(self, name: str, timeout: float) -> None:
+        h = self.host(name)
+        if not h.up:
+            return
+        self._signal(name, signal.SIGCONT)
+        self._signal(name, signal.SIGTERM)
+        self.wait_gone(name, timeout)
+
+    def wait_gone(self, name: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while self.host(name).up:
+            p = self._procs.get(name)
+            if p is not None:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(0.05)
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def mark_left(self, name: str) -> None:
+        with self.locked():
+            self._rec(name)["stopped_by"] = "leave"
+
+    def down(self, grace: float = 5.0, purge: bool = False) -> dict[str, str]:
+        """Stop every host (SIGTERM = graceful leave, SIGKILL after `grace` s); remove the state file (and
+        with `purge` the logs). Returns how each running host ended."""
+        out: dict[str, str] = {}
+        with self.locked():
+            up = [h for h in self.hosts() if h.up]
+            for h in up:
+                self._signal(h.name, signal.SIGCONT)
+                self._signal(h.name, signal.SIGTERM)
+            deadline = time.monotonic() + grace
+            for h in up:
+                while self.host(h.name).up and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                if self.host(h.name).up:
+                    self._signal(h.name, signal.SIGKILL)
+                    self.wait_gone(h.name, 10)
+                    out[h.name] = "SIGKILL"
+                else:
+                    out[h.name] = "SIGTERM"
+                self.state["hosts"][h.name]["stopped_by"] = "down"
+            hosts = self.state.get("hosts", {})
+            self.state_path.unlink(missing_ok=True)
+            if purge:
+                for rec in hosts.values():
+                    shutil.rmtree(rec["data_dir"], ignore_errors=True)
+                (self.root / "token").unlink(missing_ok=True)
+            self.state = {}
+        if purge:
+            (self.root / "cluster.lock").unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                self.root.rmdir()
+        return out
+
+    # ------------------------------------------------------------------ logs
+    def log_path(self, name: str) -> Path:
+        return Path(self._rec(name)["data_dir"]) / f"{name}.jsonl"
+
+    def log_records(self, names: Sequence[str], follow: bool) -> Iterator[tuple[str, str]]:
+        offsets: dict[str, int] = {}
+        partial: dict[str, bytes] = {}
+
+        def read_new(name: str) -> list[str]:
+            path = self.log_path(name)
+            try:
+                with open(path, "rb") as f:
+                    f.seek(offsets.get(name, 0))
+                    data = f.read()
+            except FileNotFoundError:
+                return []
+            offsets[name] = offsets.get(name, 0) + len(data)
+            data = partial.pop(name, b"") + data
+            lines = data.split(b"\n")
+            if lines[-1]:
+                partial[name] = lines[-1]
+            return [ln.decode("utf-8", "replace") for ln in lines[:-1] if ln.strip()]
+
+        for n in names:
+            for line in read_new(n):
+                yield n, line
+        while follow:
+            time.sleep(0.2)
+            for n in names:
+                for line in read_new(n):
+                    yield n, line
+
+    def hostd_args_text(self) -> str:
+        return shlex.join(self.state.get("args", []))
