@@ -150,6 +150,7 @@ class OutLink:
         self._gen = 0  # session number: a finished session's reader must not touch the current one
         self._channel: aio.Channel | None = None
         self._open: Any = None
+        self._kicked = 0.0
 
     # ------------------------------------------------------------------ queueing (synchronous)
 
@@ -205,6 +206,19 @@ class OutLink:
             task.add_done_callback(self.t._handlers.discard)
         if self.task is not None:
             self.restart()
+
+    def kick(self) -> None:
+        """The peer just opened a link to us, so it is up: if ours to it is down, reconnect at once on a
+        fresh channel rather than at the end of the backoff (up to `max_backoff`, and gRPC's own channel
+        backoff): a host that starts after its peers would otherwise wait up to a second for their links."""
+        if self.connected or self.task is None:
+            return
+        now = asyncio.get_running_loop().time()
+        if now - self._kicked < 0.05:
+            return
+        self._kicked = now
+        self.t.counters["link_kicks"] += 1
+        self.retarget(self.address)
 
     async def close(self) -> None:
         if self.task is not None:
@@ -607,6 +621,9 @@ class Transport:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "a newer incarnation of the sender exists")
         self._inbound[sender] += 1
         self.counters["link_accepts"] += 1
+        link = self.links.get(sender)
+        if link is not None:
+            link.kick()
         acker: _Acker | None = None
         task = asyncio.current_task()
         if task is not None:
