@@ -201,3 +201,24 @@ def test_concurrent_proposals_commit_and_close_everything() -> None:
             await rt.stop()
 
     run(main)
+
+
+def test_delivered_log_is_bounded_and_the_chain_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    import haa.hostd.runtime as runtime_mod
+
+    monkeypatch.setattr(runtime_mod, "MAX_DELIVERED", 4)
+
+    async def main() -> None:
+        rt = runtimes(["solo"])["solo"]
+        await rt.start()
+        h = GENESIS_HASH
+        for i in range(10):
+            res = await rt.propose(f"p{i}".encode(), participants=[])
+            h = chain_hash(h, res.txid, f"p{i}".encode())
+        assert rt.delivered_count == 10 and rt.status()["delivered"] == 10
+        assert len(rt.delivered) <= 4 and rt.delivered[0].index == rt.delivered_base
+        assert [e.index for e in rt.delivered] == list(range(rt.delivered_base, 10))
+        assert rt.delivered_hash == h == rt.delivered[-1].chain_hash
+        await rt.stop()
+
+    run(main)

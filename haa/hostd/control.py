@@ -340,9 +340,13 @@ class HostControlService(control_pb2_grpc.HostControlServicer):
             rt.stream_tasks.add(task)
         try:
             while True:
-                log = rt.delivered
-                while i < len(log):
-                    e = log[i]
+                if i < rt.delivered_base:
+                    await context.abort(
+                        grpc.StatusCode.OUT_OF_RANGE,
+                        f"entries before {rt.delivered_base} are no longer kept (MAX_DELIVERED)",
+                    )
+                while i < rt.delivered_count:
+                    e = rt.delivered[i - rt.delivered_base]
                     yield cpb.Delivery(
                         index=e.index, id=_txid(e.txid), order=e.order, payload=e.payload, chain_hash=e.chain_hash
                     )

@@ -15,7 +15,8 @@ it for real:
   `propose()` waiting for them. `Suspicion`, `PeerDead`, `Log` -> the JSON-lines log. `Reincarnate` -> the
   core is replaced by a new incarnation (the transport stays; its links restart numbering for the new
   incarnation).
-* **Delivered log.** Every committed transaction this process delivered, in delivery order, as
+* **Delivered log.** Every committed transaction this process delivered (the latest `MAX_DELIVERED` kept in
+  memory), in delivery order, as
   `(index, txid, order, payload, chain_hash)` with a running hash chain
   `chain_i = sha256(chain_{i-1} + "\\n" + "host.inc.seq" + "\\n" + payload)` (hex; `chain_{-1}` is 64
   zeros), so two hosts have delivered the same sequence iff their last hashes are equal.
@@ -74,6 +75,9 @@ GENESIS_HASH = "0" * 64
 _TYPED_EVENTS = frozenset({"peer_dead"})
 #: how many latency samples are kept (oldest dropped first)
 MAX_SAMPLES = 100_000
+#: the delivered log keeps at most this many entries in memory (the older half is dropped when it is full;
+#: the hash chain and the count go on)
+MAX_DELIVERED = 200_000
 
 
 def chain_hash(prev: str, txid: TxId, payload: bytes) -> str:
@@ -199,6 +203,7 @@ class HostRuntime:
         self.server: aio.Server | None = None
         self.port = 0
         self.delivered: list[DeliveredEntry] = []
+        self.delivered_base = 0  # index of delivered[0]: entries before it were dropped (MAX_DELIVERED)
         self.delivered_hash = GENESIS_HASH
         self.propose_to_decide: deque[float] = deque(maxlen=MAX_SAMPLES)
         self.decide_to_deliver: deque[float] = deque(maxlen=MAX_SAMPLES)
@@ -384,7 +389,7 @@ class HostRuntime:
         if self._stopping:
             return
         self._stopping = True
-        log_event(log, logging.INFO, "shutdown", delivered=len(self.delivered), hash=self.delivered_hash)
+        log_event(log, logging.INFO, "shutdown", delivered=self.delivered_count, hash=self.delivered_hash)
         for h in self._timers.values():
             h.cancel()
         self._timers.clear()
@@ -545,7 +550,12 @@ class HostRuntime:
         d2d = now - t1 if t1 is not None else 0.0
         self.decide_to_deliver.append(d2d)
         self.delivered_hash = chain_hash(self.delivered_hash, txid, e.payload)
-        self.delivered.append(DeliveredEntry(len(self.delivered), txid, e.order, e.payload, self.delivered_hash))
+        log_ = self.delivered
+        log_.append(DeliveredEntry(self.delivered_count, txid, e.order, e.payload, self.delivered_hash))
+        if len(log_) > MAX_DELIVERED:
+            drop = len(log_) // 2
+            del log_[:drop]
+            self.delivered_base += drop
         self.counters["oac_delivered"] += 1
         ev = self._delivery_event
         self._delivery_event = asyncio.Event()
@@ -742,9 +752,14 @@ class HostRuntime:
 
     # ------------------------------------------------------------------ queries
 
+    @property
+    def delivered_count(self) -> int:
+        """Transactions delivered since this process started (the log keeps the latest MAX_DELIVERED)."""
+        return self.delivered_base + len(self.delivered)
+
     async def wait_delivered(self, count: int) -> None:
         """Return once at least `count` transactions are in the delivered log."""
-        while len(self.delivered) < count:
+        while self.delivered_count < count:
             await self._delivery_event.wait()
 
     def all_counters(self) -> Counter[str]:
@@ -806,7 +821,7 @@ class HostRuntime:
             "peers": peers,
             "active_transactions": core.oac.active_count,
             "decided_transactions": core.oac.decided_count,
-            "delivered": len(self.delivered),
+            "delivered": self.delivered_count,
             "delivered_hash": self.delivered_hash,
             "counters": self.all_counters(),
             "cpu_percent": self._proc.cpu_percent(None),
