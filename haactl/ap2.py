@@ -35,7 +35,7 @@ import grpc
 import psutil
 
 from haa.hostd.control import ControlClient
-from haactl.local import free_port, hostd_command, wait_for
+from haactl.local import free_port, member_command, wait_for
 
 CORE = 3
 
@@ -48,20 +48,8 @@ class MemberHost:
         self.address = f"127.0.0.1:{port}"
         self.data_dir = root / name
         self.log_file = self.data_dir / f"{name}.jsonl"
-        self.cmd = [
-            *hostd_command(),
-            "--name",
-            name,
-            "--listen",
-            self.address,
-            "--core",
-            core,
-            "--token-file",
-            str(root / "token"),
-            "--data-dir",
-            str(self.data_dir),
-            *(args or []),
-        ]
+        core_map = dict(item.split("=", 1) for item in core.split(","))
+        self.cmd = member_command(name, self.address, core_map, root / "token", self.data_dir, args)
         self.proc: subprocess.Popen[bytes] | None = None
         self.client = ControlClient(self.address, token)
         self.starts = 0

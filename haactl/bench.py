@@ -185,3 +185,20 @@ def bench_ap2(
     print(markdown_table(rows))
     path = write_json("ap2", {"machine": machine(), "reps": reps, "rows": rows})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ddb")
+def bench_ddb(
+    hosts: int = typer.Option(5, "--hosts", min=1, max=16, help="group size"),
+    seconds: float = typer.Option(5.0, "--seconds", min=0.5, help="duration of each step"),
+) -> None:
+    """DDB writes through OAC: ops/s and latency vs. ops per transaction (does batching pay?)."""
+    from haactl.ap2 import machine
+    from haactl.ddbbench import markdown_table, run_ddb_bench
+
+    t0 = time.perf_counter()
+    rows = run_ddb_bench(hosts=hosts, seconds=seconds)
+    print()
+    print(markdown_table(rows))
+    path = write_json("ddb", {"machine": machine(), "seconds": seconds, "rows": rows})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
