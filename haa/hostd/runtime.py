@@ -233,7 +233,6 @@ class HostRuntime:
         #: mirror stream subscribers (`MirrorSub`), fed from applied transactions and view changes
         self.mirrors: set[MirrorSub] = set()
         self._ddb_ref: object | None = None
-        self._view_event = asyncio.Event()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -613,9 +612,6 @@ class HostRuntime:
     def _on_view(self, e: ViewChange) -> None:
         self.counters["view_changes"] += 1
         self._save_known_hosts(e.members)
-        ev = self._view_event
-        self._view_event = asyncio.Event()
-        ev.set()
         for sub in list(self.mirrors):
             if sub.views:
                 sub.push(("view", e))
@@ -740,15 +736,6 @@ class HostRuntime:
             log_event(log, logging.INFO, "left", view=node.state.view, last_member=True)
             self._on_left()
         await asyncio.wait_for(fut, timeout)
-
-    async def wait_view(self, predicate: Callable[[dict[str, Any]], bool], timeout: float) -> dict[str, Any]:
-        """Wait until `predicate(self.status())` holds (checked after every view change)."""
-        async with asyncio.timeout(timeout):
-            while True:
-                st = self.status()
-                if predicate(st):
-                    return st
-                await self._view_event.wait()
 
     # ------------------------------------------------------------------ queries
 
