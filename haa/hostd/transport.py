@@ -116,6 +116,9 @@ def client_options() -> list[tuple[str, Any]]:
         ("grpc.max_send_message_length", MAX_MESSAGE),
         ("grpc.max_receive_message_length", MAX_MESSAGE),
         ("grpc.enable_retries", 0),
+        # a channel of its own subchannels: otherwise a fresh channel (OutLink.kick) shares the old one's
+        # subchannel from gRPC's global pool, still waiting out its reconnect backoff
+        ("grpc.use_local_subchannel_pool", 1),
     ]
 
 
