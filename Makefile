@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image
+.PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image chaos compose-up compose-down \
+	compose-status idle
 
 setup: $(STAMP)
 
@@ -22,7 +23,7 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 test-fast: setup
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow and not docker"
 
 lint: setup
 	$(BIN)/ruff check .
@@ -46,6 +47,25 @@ docker-setup:
 
 image:
 	PYTHON=$(PYTHON) scripts/build-image.sh
+
+# The container chaos tests alone (tests/chaos, marker docker; fail instead of skip without docker).
+chaos: setup
+	HAA_REQUIRE_DOCKER=1 $(BIN)/python -m pytest -q -m docker tests/chaos
+
+# The 10-host compose cluster through haactl (docs/cluster.md); `make image` first.
+compose-up: setup
+	$(BIN)/haactl cluster up --compose --hosts 10
+
+compose-status: setup
+	$(BIN)/haactl cluster status --compose
+
+compose-down: setup
+	$(BIN)/haactl cluster down --compose
+
+# Idle cost of a 10-host cluster, local processes then containers -> bench-results/idle.json
+idle: setup
+	$(BIN)/haactl bench idle --hosts 10 --duration 60
+	$(BIN)/haactl bench idle --hosts 10 --duration 60 --compose
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
