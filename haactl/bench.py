@@ -158,6 +158,12 @@ def bench_idle(
         f"| {kind} | {r['hosts']} | {r['cpu_percent_total']:.1f} | {r['cpu_percent_host_min']:.2f} / "
         f"{r['cpu_percent_host_max']:.2f} | {r['cpu_percent_of_machine']:.1f} | {r['rss_mib_mean']:.0f} |"
     )
+    if "tx_msgs_per_s_per_host" in r:
+        print(
+            f"\nper host: {r['tx_msgs_per_s_per_host']:.1f} messages/s sent "
+            f"({r['tx_frames_per_s_per_host']:.1f} frames, {r['acks_per_s_per_host']:.1f} acks); "
+            f"heartbeats {r['heartbeats_per_s_per_pair']:.2f}/s per pair"
+        )
     if compose:
         print(f"\nengine processes: {r['engine_cpu_percent_total']:.1f} % of one core {r['engine_cpu_percent']}")
     path = RESULTS / "idle.json"

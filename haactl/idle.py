@@ -77,6 +77,31 @@ def _window(sample: Callable[[], dict[str, tuple[float, int]]], duration: float)
     return per, rss, secs, machine_busy
 
 
+def _traffic(backend: Backend) -> dict[str, dict[str, int]]:
+    return {n: dict(r.counters.values) for n, r in backend.statuses().items() if not isinstance(r, Exception)}
+
+
+def _rates(a: dict[str, dict[str, int]], b: dict[str, dict[str, int]], secs: float) -> dict[str, Any]:
+    """Messages and frames each host sent per second over the window, and heartbeats per monitored pair."""
+    names = [n for n in a if n in b]
+    if not names:
+        return {}
+
+    def per_host(pred: Callable[[str], bool]) -> float:
+        tot = sum(v - a[n].get(k, 0) for n in names for k, v in b[n].items() if pred(k))
+        return tot / len(names) / secs
+
+    peers = max(1, len(names) - 1)
+    hb = per_host(lambda k: k == "tx_msgs.heartbeat")
+    return {
+        "tx_msgs_per_s_per_host": round(per_host(lambda k: k.startswith("tx_msgs.")), 2),
+        "tx_frames_per_s_per_host": round(per_host(lambda k: k == "tx_frames"), 2),
+        "acks_per_s_per_host": round(per_host(lambda k: k == "acks_sent"), 2),
+        "heartbeats_per_s_per_pair": round(hb / peers, 2),
+        "set_period_per_s_per_host": round(per_host(lambda k: k == "tx_msgs.set_period"), 3),
+    }
+
+
 def _formed(backend: Backend, names: list[str], timeout: float) -> float:
     check_started = getattr(backend, "check_started", None)
 
@@ -101,10 +126,17 @@ def measure_local(hosts: int, duration: float, settle: float, log: Callable[[str
             log(f"local: {hosts} hosts formed a group in {formed:.2f} s; settle {settle:g} s, measure {duration:g} s")
             time.sleep(settle)
             pids = {h.name: h.pid for h in backend.hosts() if h.pid}
+            t0 = _traffic(backend)
             per, rss, secs, busy = _window(lambda: _proc_cpu(pids), duration)
+            traffic = _rates(t0, _traffic(backend), secs)
         finally:
             backend.down(grace=2.0, purge=True)
-    return {**_summary(per, rss, secs), "formed_seconds": round(formed, 2), "machine_busy_percent": round(busy, 1)}
+    return {
+        **_summary(per, rss, secs),
+        **traffic,
+        "formed_seconds": round(formed, 2),
+        "machine_busy_percent": round(busy, 1),
+    }
 
 
 def measure_compose(hosts: int, duration: float, settle: float, log: Callable[[str], None] = print) -> dict[str, Any]:
@@ -137,7 +169,9 @@ def measure_compose(hosts: int, duration: float, settle: float, log: Callable[[s
             res.update({f"engine/{k}": v for k, v in _proc_cpu(engine).items()})
             return res
 
+        t0 = _traffic(backend)
         per_all, rss_all, secs, busy = _window(sample, duration)
+        traffic = _rates(t0, _traffic(backend), secs)
     finally:
         backend.down(grace=2.0)
     per = {n: v for n, v in per_all.items() if not n.startswith("engine/")}
@@ -149,6 +183,7 @@ def measure_compose(hosts: int, duration: float, settle: float, log: Callable[[s
         by_kind[kind] = by_kind.get(kind, 0.0) + v
     return {
         **_summary(per, rss, secs),
+        **traffic,
         "formed_seconds": round(formed, 2),
         "machine_busy_percent": round(busy, 1),
         "engine_cpu_percent": {k: round(v, 2) for k, v in sorted(by_kind.items())},
