@@ -1,5 +1,6 @@
-"""`haactl verify ufd|oac`: run seeded fault schedules in the deterministic simulator and check the
-thesis' properties (see `haa.dsim.checks`).
+"""`haactl verify ufd|oac|membership|ddb`: run seeded fault schedules in the deterministic simulator and
+check the thesis' properties (`haa.dsim.checks` for UFD and OAC, `haa.dsim.group` for host membership and
+the replicated DDB).
 
 Output contract: one `VIOLATION seed=S <property>: <detail>` line per violation, a trace excerpt and a
 `reproduce:` command for the first few violating seeds, a summary, and as the very last line exactly
@@ -21,7 +22,7 @@ console = Console(stderr=True)
 
 
 def verify(
-    algorithm: str = typer.Argument(..., help="ufd or oac"),
+    algorithm: str = typer.Argument(..., help="ufd, oac, membership or ddb"),
     schedules: int = typer.Option(2000, "--schedules", "-n", min=1, help="number of seeded schedules"),
     seed: int = typer.Option(0, "--seed", "-s", min=0, help="first seed; schedules use seed .. seed+N-1"),
     hosts: int = typer.Option(7, "--hosts", min=2, max=64, help="hosts per schedule"),
@@ -35,7 +36,8 @@ def verify(
     excerpts: int = typer.Option(5, "--excerpts", min=0, help="trace excerpts to print"),
 ) -> None:
     """Verify an algorithm over N random fault schedules (crashes, pauses, restarts, delay spikes, false
-    suspicions); every violation prints the seed that reproduces it."""
+    suspicions; for membership and ddb also joins and leaves); every violation prints the seed that
+    reproduces it."""
     if algorithm not in sweep.ALGORITHMS:
         console.print(f"[red]error:[/red] unknown algorithm {algorithm!r}; choose from {', '.join(sweep.ALGORITHMS)}")
         raise typer.Exit(2)
@@ -57,14 +59,8 @@ def verify(
         console.print(f"[yellow]running with the deliberately broken variant {mutate!r}[/yellow]")
     if trace:
         for s in range(seed, seed + schedules):
-            sc = sweep.sched.draw(s, hosts, algorithm)
-            cl, _stats = sweep.sched.run(sc, trace=True)
-            print(f"# {sc.describe()}")
-            for f in sc.faults:
-                print(f"# fault {f.describe()}")
-            for line in cl.trace or []:
+            for line in sweep.full_trace(algorithm, s, hosts):
                 print(line)
-            print(f"# trace hash {cl.trace_hash()}")
     nworkers = workers or os.cpu_count() or 1
     with Progress(
         TextColumn(f"verify {algorithm}"),
@@ -86,11 +82,14 @@ def verify(
             progress=lambda done, total: progress.update(task, completed=done),
             checkpoint=checkpoint,
             excerpts=excerpts,
+            mutate=mutate,
         )
     print(
         f"seeds {seed}..{seed + schedules - 1}: {summary.per_minute:.0f} schedules/minute on {nworkers} "
         f"worker(s), {summary.events} events, liveness checked in {summary.liveness_checked}/{schedules}"
     )
+    if summary.totals:
+        print("totals: " + ", ".join(f"{k.replace('_', ' ')} {v:.0f}" for k, v in summary.totals.items()))
     if summary.violating_seeds:
         print(f"violating seeds: {' '.join(str(s) for s in summary.violating_seeds[:50])}")
     print(f"verify {algorithm}: {summary.schedules} schedules, {summary.violations} violations", flush=True)

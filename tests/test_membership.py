@@ -10,7 +10,16 @@ from haa.hostd.globalstate import GlobalState, TxDdb, TxMembership, TxRemove, de
 from haa.hostd.membership import MembershipNode, NodeConfig
 from haa.hostd.messages import Member, TxId
 
-SAFETY = {"HM-Agreement", "HM-Weak-Validity", "HM-Formation", "DDB-Prefix", "DDB-Durability"}
+SAFETY = {
+    "HM-Agreement",
+    "HM-Weak-Validity",
+    "HM-Formation",
+    "HM-Single-Leader",
+    "DDB-Prefix",
+    "DDB-Durability",
+    "DDB-Atomicity",
+    "DDB-Joiner-Consistency",
+}
 
 
 def _scenario(n=5, core=3, faults=(), leaves=(), writes=20, starts=None, seed=1):
@@ -94,8 +103,8 @@ def test_same_seed_same_trace():
     ("mutation", "seed", "prop"),
     [
         ("no-weak-validity", 0, "HM-Weak-Validity"),
-        ("no-quorum", 29, "HM-Agreement"),
-        ("no-lock-wait", 182, "HM-Agreement"),
+        ("no-quorum", 54, "HM-Agreement"),
+        ("no-lock-wait", 92, "HM-Agreement"),
     ],
 )
 def test_the_checker_catches_a_broken_membership(mutation, seed, prop):
@@ -103,20 +112,16 @@ def test_the_checker_catches_a_broken_membership(mutation, seed, prop):
     _sim, v = run_group(seed, 7, frozenset({mutation}))
     assert prop in {x.prop for x in v}
     _sim, ok = run_group(seed, 7)
-    assert not [x for x in ok if x.prop in SAFETY]
+    assert ok == []
 
 
-@pytest.mark.slow
-def test_safety_over_random_fault_schedules():
-    """Safety holds on every schedule; liveness (HM-Termination within the deadline) is still missed on a
-    few percent of schedules (docs/membership.md, "open problems")."""
-    unsafe, stuck = [], []
-    for seed in range(400):
+def test_seeds_that_once_missed_liveness_now_terminate():
+    """Seeds that ended without termination before the fixes of docs/membership.md ("liveness misses"); the
+    scenarios have changed since (the fault gate), so this is a smoke test, the 2,000-schedule sweeps of
+    tests/test_verify_group.py are the real check."""
+    for seed in (49, 79, 143, 166, 219, 269, 290, 296, 550, 1975):
         _sim, v = run_group(seed, 7)
-        unsafe += [(seed, x.prop, x.detail) for x in v if x.prop in SAFETY]
-        stuck += [seed for x in v if x.prop not in SAFETY]
-    assert not unsafe, unsafe[:5]
-    assert len(set(stuck)) <= 20, sorted(set(stuck))
+        assert v == [], (seed, v)
 
 
 def test_group_transactions_round_trip_and_reject_garbage():

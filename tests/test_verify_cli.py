@@ -42,3 +42,34 @@ def test_bad_arguments_are_clear_errors():
     assert r.returncode == 2 and "unknown algorithm" in r.stderr
     r = run("oac", "--schedules", "1", "--mutate", "bogus")
     assert r.returncode == 2 and "unknown mutation" in r.stderr
+
+
+def test_group_verifiers_clean_runs_keep_the_contract():
+    for alg in ("membership", "ddb"):
+        r = run(alg, "--schedules", "10", "--seed", "0", "--hosts", "5", "--workers", "2")
+        lines = r.stdout.strip().splitlines()
+        assert lines[-1] == f"verify {alg}: 10 schedules, 0 violations", r.stdout + r.stderr
+        assert r.returncode == 0
+        assert "schedules/minute on 2 worker(s)" in r.stdout and "liveness checked in 10/10" in r.stdout
+
+
+def test_broken_ddb_is_reported_with_seed_excerpt_and_a_reproduce_command_that_breaks_it_again():
+    r = run("ddb", "--schedules", "4", "--seed", "0", "--mutate", "stale-snapshot", "--excerpts", "1")
+    lines = r.stdout.strip().splitlines()
+    assert r.returncode == 1
+    assert lines[-1].startswith("verify ddb: 4 schedules, ") and not lines[-1].endswith(" 0 violations")
+    assert any(ln.startswith("VIOLATION seed=") and "DDB-Joiner-Consistency" in ln for ln in lines)
+    assert any(ln.startswith("  scenario: seed=") for ln in lines)  # the trace excerpt
+    assert any("reproduce: haactl verify ddb --seed" in ln and "--mutate stale-snapshot --trace" in ln for ln in lines)
+
+
+def test_group_trace_and_resume(tmp_path):
+    r = run("membership", "--schedules", "1", "--seed", "3", "--hosts", "4", "--trace")
+    assert r.returncode == 0 and r.stdout.startswith("# seed=3 ")
+    assert " view 1 at " in r.stdout and "# trace hash " in r.stdout
+    ck = tmp_path / "ck.json"
+    r = run("membership", "--schedules", "3", "--seed", "0", "--hosts", "4", "--checkpoint", str(ck))
+    assert r.returncode == 0 and ck.exists()
+    r2 = run("membership", "--schedules", "5", "--seed", "0", "--hosts", "4", "--checkpoint", str(ck), "--resume")
+    assert "resuming at seed 3, 2 schedules left" in r2.stderr
+    assert r2.stdout.strip().splitlines()[-1] == "verify membership: 2 schedules, 0 violations"

@@ -1,31 +1,43 @@
 """Deterministic simulation of the host group: membership (Alg. 3) and the replicated DDB.
 
-`draw_group(seed, hosts)` turns one seed into a scenario (swarm style, like `haa.dsim.schedule`): how many
-hosts and core processes, when each host starts (late starts are joins), a workload of DDB writes from
-random members, voluntary leaves, crashes (some in the middle of a broadcast, including the first core
-process before it forms the group), restarts as new incarnations, pauses (resume, or "unresponsive, then
-shut down") and delay spikes that make the failure detector suspect correct hosts. `run_group` runs it on a
+`draw_group(seed, hosts, workload)` turns one seed into a scenario (swarm style, like `haa.dsim.schedule`):
+how many hosts and core processes, when each host starts (late starts are joins), a workload of DDB writes
+from random members (`workload="ddb"`: many more, in batches of put/delete/append/cas/add, some of them cut
+short by a crash in the middle of their broadcast), voluntary leaves, crashes (some in the middle of a
+broadcast, including the first core process before it forms the group), restarts as new incarnations,
+pauses and delay spikes that make the failure detector suspect correct hosts. `run_group` runs it on a
 `SimCluster` whose hosts are `MembershipNode`s, heals, runs to quiescence and checks (`check_group`):
 
-* HM-Agreement: one view id, one member set, across every process; every process's view ids increase;
-  every process applies the same transaction at the same global sequence number, with the same state
-  hash afterwards (this is also "a joiner's replica equals the others'": a new member's first applied
-  transaction comes after its installed snapshot).
-* At most one acknowledged leader per view (the front of the view's list, the same for everyone).
+Membership (`haactl verify membership`, `MEMBERSHIP_PROPS`):
+
+* HM-Formation: exactly one correct group is ever formed, and one is formed.
+* HM-Termination: after healing the run goes quiet (no membership, OAC or state-transfer traffic).
+* HM-Non-Triviality-Join/-Leave/-Remove: then every live host's current incarnation is a member of one
+  final view, which holds no crashed, superseded (-Remove) or departed (-Leave) process.
 * HM-Weak-Validity: when a removal commits, every participant that voted for it suspected (per its own
   failure detector output at the time of its vote) every removed member.
-* HM-Formation, HM-Non-Triviality-Join/-Leave/-Remove, HM-Termination (after healing): the run goes
-  quiet; every live host's current incarnation is a member of one final view, which holds no crashed,
-  superseded or departed process.
-* DDB: every correct member ends with the same content hash and sequence; every acknowledged write is in
-  the common sequence; a write whose proposer crashed is applied everywhere or nowhere.
+* HM-Agreement: one (group, view id), one member set; every process's view ids increase; every process
+  applies the same transaction at the same global sequence number (the same series of views).
+* HM-Single-Leader: at most one acknowledged leader per view: every committed remove/membership
+  transaction of a view was proposed by the same process, the front of that view (ll. 79, 111).
 
-Faults that would break the thesis' own assumptions are not drawn: at most c_f core processes fail, and no
-false suspicion is injected before FORMATION_TIMEOUT (§4.6.1: no erroneous exclusion during formation).
+DDB (`haactl verify ddb`, `DDB_PROPS`, plus HM-Agreement which they rest on):
+
+* DDB-Prefix: the same state hash after the same sequence number on every process (deterministic apply).
+* DDB-Convergence: after quiescence every live member holds the same state (the run must get quiet first).
+* DDB-Durability: every acknowledged write is in every final replica.
+* DDB-Atomicity: a write whose proposer crashed (in particular in the middle of its broadcast) is in every
+  final replica or in none.
+* DDB-Joiner-Consistency: a joiner's replica, when it becomes a member, equals the others' at that point.
+
+Faults are drawn so that the thesis' assumptions hold (see `GroupSim._safe`): at most c_f core processes
+fail, no false suspicion before FORMATION_TIMEOUT (§4.6.1: no erroneous exclusion during formation), and a
+fault is injected only while every view and every open transaction keeps a correct majority (§4.5.1).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import random
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -36,11 +48,15 @@ from haa.dsim.network import DelayModel
 from haa.dsim.schedule import EXCLUDE_AFTER, SIM_UFD, Fault, _delay_model
 from haa.hostd import ddb as ddbmod
 from haa.hostd.core import CoreConfig
-from haa.hostd.globalstate import TxRemove, decode_tx
+from haa.hostd.globalstate import TxDdb, TxMembership, TxRemove, decode_tx
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.hostd.messages import TxId
 
 Proc = tuple[str, int]
+
+#: the failure detector of the group simulation: as in `haa.dsim.schedule`, but its QoS configuration is
+#: recomputed every 50 heartbeats (the thesis' N) instead of 20, which is most of the cost of a schedule
+GROUP_UFD = dataclasses.replace(SIM_UFD, reevaluate_every=50)
 
 SIM_NODE = dict(
     formation_timeout=1.0,
@@ -50,6 +66,14 @@ SIM_NODE = dict(
     catchup_timeout=0.4,
     hash_every_apply=True,
 )
+#: a fault that would break the assumptions is tried again this much later (until the fault window ends)
+GATE_RETRY = 0.1
+#: the run is quiescent once no membership, OAC or state-transfer message was sent for this long (longer than
+#: every periodic timer of the nodes: `reapply` is the longest)
+QUIET_FOR = 1.0
+QUIET_STEP = 0.25
+#: a paused or spiked process counts as failed for this long after the pause or spike ends
+SETTLE = 1.0
 
 
 @dataclass
@@ -68,6 +92,8 @@ class GroupScenario:
     leaves: list[tuple[float, str]] = field(default_factory=list)
     fault_end: float = 4.0
     deadline: float = 40.0
+    workload: str = "membership"  # or "ddb": many more writes, in batches
+    batch_max: int = 1  # DDB ops per write (1 .. batch_max)
 
     def describe(self) -> list[str]:
         out = [
@@ -77,11 +103,16 @@ class GroupScenario:
         ]
         out += [f.describe() for f in self.faults]
         out += [f"t={t:.3f} leave {h}" for t, h in self.leaves]
-        out.append(f"{len(self.writes)} writes")
+        out.append(f"{len(self.writes)} writes ({self.workload} workload, up to {self.batch_max} ops per batch)")
         return out
 
 
-def draw_group(seed: int, hosts: int = 7) -> GroupScenario:
+WORKLOADS = ("membership", "ddb")
+
+
+def draw_group(seed: int, hosts: int = 7, workload: str = "membership") -> GroupScenario:
+    if workload not in WORKLOADS:
+        raise ValueError(f"unknown workload {workload!r}; choose from {WORKLOADS}")
     rng = random.Random(seed)
     n = rng.randint(3, max(3, hosts))
     names = [f"h{i + 1}" for i in range(n)]
@@ -147,7 +178,13 @@ def draw_group(seed: int, hosts: int = 7) -> GroupScenario:
             nm = pick(False)
             if nm is not None:
                 sc.leaves.append((rng.uniform(1.5, 3.8), nm))
-    for _ in range(rng.randint(5, 40)):
+    if workload == "ddb":
+        sc.workload = workload
+        sc.batch_max = 6
+        n_writes = rng.randint(25, 70)
+    else:
+        n_writes = rng.randint(5, 40)
+    for _ in range(n_writes):
         sc.writes.append((rng.uniform(0.5, sc.fault_end), rng.choice(names)))
     sc.faults.sort(key=lambda f: f.time)
     return sc
@@ -160,23 +197,36 @@ def draw_group(seed: int, hosts: int = 7) -> GroupScenario:
 class GroupHistory:
     views: dict[Proc, list[tuple[str, int, tuple[Proc, ...], float]]] = field(default_factory=lambda: defaultdict(list))
     correct_groups: set[str] = field(default_factory=set)
-    applied: dict[Proc, list[tuple[int, TxId, str, str]]] = field(default_factory=lambda: defaultdict(list))
+    # per process: (seq, txid, state hash, group, front of the member list, view) after each applied transaction
+    applied: dict[Proc, list[tuple[int, TxId, str, str, Proc | None, int]]] = field(
+        default_factory=lambda: defaultdict(list)
+    )
     votes: list[tuple[float, Proc, TxId, bool, Any, dict[Proc, bool]]] = field(default_factory=list)
     acked: dict[Any, tuple[Proc, TxId, int]] = field(default_factory=dict)
-    write_proposer: dict[TxId, Proc] = field(default_factory=dict)
+    write_proposer: dict[TxId, Proc] = field(default_factory=dict)  # every DDB write transaction seen
+    # per process: (group, seq, txid, decoded remove/membership transaction)
+    group_txs: dict[Proc, list[tuple[str, int, TxId, Any]]] = field(default_factory=lambda: defaultdict(list))
+    joins: dict[Proc, tuple[str, int, str]] = field(default_factory=dict)  # (group, seq, state hash) at join
+    mid_commit: list[Proc] = field(default_factory=list)  # processes armed to crash inside a write broadcast
     leave_requested: dict[Proc, float] = field(default_factory=dict)
     left: dict[Proc, float] = field(default_factory=dict)
     group_msgs: int = 0
+    dropped: list[Fault] = field(default_factory=list)  # faults the assumptions did not allow (`GroupSim._safe`)
+
+
+#: mutations every `GroupSim` passes to its nodes unless given others (`haa.dsim.mutations` sets it, before the
+#: verifier forks its workers)
+DEFAULT_MUTATIONS: frozenset[str] = frozenset()
 
 
 class GroupSim:
     """Runs one `GroupScenario` (see the module docstring)."""
 
-    def __init__(self, sc: GroupScenario, mutations: frozenset[str] = frozenset(), trace: bool = False) -> None:
+    def __init__(self, sc: GroupScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
         self.sc = sc
         self.rng = random.Random(sc.seed * 7919 + 1)
-        self.mutations = mutations
-        cfg = CoreConfig(ufd=SIM_UFD, exclude_after=EXCLUDE_AFTER)
+        self.mutations = DEFAULT_MUTATIONS if mutations is None else mutations
+        cfg = CoreConfig(ufd=GROUP_UFD, exclude_after=EXCLUDE_AFTER)
         self.node_cfg = NodeConfig(core=cfg, c_f=sc.c_f, **SIM_NODE)
         self.cl = SimCluster(sc.names, self.rng, sc.delay, cfg, sc.offsets, sc.drifts, trace=trace)
         self.cl.make_core = self._make_node
@@ -186,6 +236,8 @@ class GroupSim:
         self.req = 0
         self.known: dict[str, dict[str, str]] = {}
         self.rreq = random.Random(sc.seed * 31 + 7)
+        self.trouble: dict[Proc, float] = {}  # process -> until when it counts as failed for `_safe`
+        self.quiescent = False
         for h in self.cl.by_idx:
             h.state = CRASHED  # not started yet
 
@@ -203,7 +255,9 @@ class GroupSim:
                 tx = decode_tx(payload)
             except ValueError:
                 tx = None
-            if type(tx) is TxRemove:
+            if type(tx) is TxDdb:
+                self.gh.write_proposer.setdefault(txid, (txid.host, txid.inc))
+            elif type(tx) is TxRemove:
                 # the voter's failure-detector output about each member to remove, sampled at the vote
                 fd = {q: node.core.is_suspected(q[0], q[1]) for q in tx.removal}
                 self.gh.votes.append((cl.now, _p, txid, vote, tx, fd))
@@ -220,11 +274,19 @@ class GroupSim:
         if t is ViewChange:
             self.known[h.name] = {m.name: m.addr for m in e.members}
         if t is AppliedTx:
-            gh.applied[proc].append((e.seq, e.txid, e.state_hash, h.core.state.genesis))  # type: ignore[union-attr]
+            st = h.core.state  # type: ignore[union-attr]
+            front = st.members[0].proc if st.members else None
+            gh.applied[proc].append((e.seq, e.txid, e.state_hash, st.genesis, front, st.view))
+            if e.kind in ("remove", "membership"):
+                gh.group_txs[proc].append((st.genesis, e.seq, e.txid, decode_tx(e.payload)))
         elif t is ViewChange:
             gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))
             if e.correct:
                 gh.correct_groups.add(e.group)
+            if any(m.proc == proc for m in e.added):
+                # the state hash at that seq (the node may have applied more before its effects are carried out)
+                got = next((it[2] for it in reversed(gh.applied[proc]) if it[0] == e.seq), "")
+                gh.joins[proc] = (e.group, e.seq, got)
             self.cl._note(f"view {e.view} at {h.name}#{h.inc}: {[m.name for m in e.members]}")
         elif t is WriteDone:
             if e.ok:
@@ -236,32 +298,44 @@ class GroupSim:
             h.core = None
             self.cl.history.ended.setdefault(proc, self.cl.now)
 
+    def _op(self, name: str, node: MembershipNode) -> Any:
+        r = self.rreq
+        key = f"k{r.randint(0, 5)}"
+        kind = r.random()
+        if kind < 0.4:
+            return ddbmod.put(key, "json", {"v": r.randint(0, 1000), "by": name})
+        if kind < 0.6:
+            return ddbmod.append(f"l{r.randint(0, 2)}", r.randbytes(4), 8)
+        if kind < 0.8:
+            return ddbmod.add(f"c{r.randint(0, 2)}", r.randint(-5, 5))
+        if kind < 0.9:
+            if self.sc.workload == "ddb":  # read-modify-write against the local replica: often races
+                obj = node.state.ddb.get(key)
+                ver = obj.version if obj is not None and obj.type_name == "blob" else 0
+                return ddbmod.cas(key, ver if r.random() < 0.8 else ver + 1, "blob", r.randbytes(3))
+            return ddbmod.cas(key, r.randint(0, 30), "blob", r.randbytes(3))
+        return ddbmod.delete(key)
+
     def _write(self, name: str) -> None:
         h = self.cl.hosts[name]
         node = h.core
         if h.state != ALIVE or node is None or not isinstance(node, MembershipNode):
             return
         r = self.rreq
-        key = f"k{r.randint(0, 5)}"
-        kind = r.random()
-        if kind < 0.4:
-            op = ddbmod.put(key, "json", {"v": r.randint(0, 1000), "by": name})
-        elif kind < 0.6:
-            op = ddbmod.append(f"l{r.randint(0, 2)}", r.randbytes(4), 8)
-        elif kind < 0.8:
-            op = ddbmod.add(f"c{r.randint(0, 2)}", r.randint(-5, 5))
-        elif kind < 0.9:
-            op = ddbmod.cas(key, r.randint(0, 30), "blob", r.randbytes(3))
-        else:
-            op = ddbmod.delete(key)
+        n_ops = r.randint(1, self.sc.batch_max) if self.sc.batch_max > 1 else 1
+        ops = [self._op(name, node) for _ in range(n_ops)]
+        atomic = n_ops > 1 and r.random() < 0.3
         self.req += 1
-        payload = ddbmod.encode_batch([op], origin=name, client_seq=self.req)
+        payload = ddbmod.encode_batch(ops, origin=name, client_seq=self.req, atomic=atomic)
         node.submit(h.local(self.cl.now), payload, (name, self.req))
         self.cl._apply(h)
 
     def _leave(self, name: str) -> None:
         h = self.cl.hosts[name]
         node = h.core
+        if h.inc == 0 and self.cl.now + GATE_RETRY <= self.sc.fault_end:  # not started yet
+            self.cl.at(self.cl.now + GATE_RETRY, lambda: self._leave(name))
+            return
         if h.state != ALIVE or node is None:
             return
         self.gh.leave_requested[(name, h.inc)] = self.cl.now
@@ -272,17 +346,20 @@ class GroupSim:
         cl = self.cl
         sc = self.sc
         for nm, t in sc.starts.items():
-            cl.at(t, lambda nm=nm: cl._boot(cl.hosts[nm], 1))
-        for f in sc.faults:
+            cl.at(t, lambda nm=nm: self._start(nm))
+        restarts: dict[int, float] = {}  # index of a crash fault -> delay of the restart drawn for it
+        for i, f in enumerate(sc.faults):
             if f.kind in ("crash", "crash_mid"):
-                cl.at(f.time, lambda f=f: cl.crash(f.host, mid_step=f.kind == "crash_mid"))
-            elif f.kind == "restart":
-                cl.at(f.time, lambda f=f: self._restart(f.host))
+                nxt = next((g for g in sc.faults[i + 1 :] if g.host == f.host and g.kind == "restart"), None)
+                if nxt is not None and nxt.time >= f.time:
+                    restarts[i] = nxt.time - f.time
+        for i, f in enumerate(sc.faults):
+            if f.kind in ("crash", "crash_mid"):
+                cl.at(f.time, lambda f=f, i=i: self._gated(f, lambda: self._crash(f, restarts.get(i))))
             elif f.kind == "pause":
-                cl.at(f.time, lambda f=f: cl.pause(f.host))
-                cl.at(min(f.time + f.duration, sc.fault_end), lambda f=f: cl.resume(f.host))
+                cl.at(f.time, lambda f=f: self._gated(f, lambda: self._pause(f)))
             elif f.kind == "spike":
-                cl.at(f.time, lambda f=f: cl.spike(f.host, f.other or None, f.extra, f.duration))  # type: ignore[arg-type]
+                cl.at(f.time, lambda f=f: self._gated(f, lambda: self._spike(f)))
         for t, nm in sc.writes:
             cl.at(t, lambda nm=nm: self._write(nm))
         for t, nm in sc.leaves:
@@ -294,21 +371,101 @@ class GroupSim:
         t = sc.fault_end
         quiet_for = 0.0
         while t < sc.deadline:
-            t += 0.5
+            t += QUIET_STEP
             before = self._activity()
             cl.run(t)
             if self._quiet() and self._activity() == before:
-                quiet_for += 0.5
-                if quiet_for >= 2.0:
+                quiet_for += QUIET_STEP
+                if quiet_for >= QUIET_FOR:
                     break
             else:
                 quiet_for = 0.0
-        self.quiescent = quiet_for >= 2.0
+        self.quiescent = quiet_for >= QUIET_FOR
+
+    # ------------------------------------------------------------------ faults, within the assumptions
+
+    def _start(self, name: str) -> None:
+        h = self.cl.hosts[name]
+        if h.inc == 0:
+            self.cl._boot(h, 1)
+
+    def _gated(self, f: Fault, act: Any) -> None:
+        """Inject fault `f` now if it keeps the thesis' failure assumptions, else retry a little later (until
+        the end of the fault window, then drop it). See `_safe`."""
+        h = self.cl.hosts[f.host]
+        if h.inc > 0 and h.state == ALIVE and self._safe((f.host, h.inc)):
+            act()
+            return
+        nxt = self.cl.now + GATE_RETRY
+        if nxt <= self.sc.fault_end:
+            self.cl.at(nxt, lambda: self._gated(f, act))
+        else:
+            self.gh.dropped.append(f)
+            self.cl._note(f"fault dropped (assumptions): {f.describe()}")
+
+    def _safe(self, x: Proc) -> bool:
+        """OAC (Alg. 2) decides only while fewer than half of a transaction's participants fail (§4.5.1), and
+        Alg. 3 proposes to the members it does not suspect; a falsely suspected or paused process counts as
+        failed (§4.2: a process at the end of a suspected channel "is assumed to have crashed"). A fault on
+        `x` is allowed only if, in every current view and every open transaction that holds `x`, the
+        processes in trouble (crashed, superseded, paused, spiked, permanently suspected) stay fewer than
+        half with `x` added. Without this, a group of two blocks on the crash of one member with a
+        transaction in flight, whatever the membership algorithm does (docs/membership.md)."""
+        cl = self.cl
+        now = cl.now
+        sets: set[tuple[Proc, ...]] = set()
+        dead: set[Proc] = set()
+        for h in cl.by_idx:
+            node = h.core
+            if node is None or h.state == CRASHED or not isinstance(node, MembershipNode):
+                continue
+            dead |= node.core.dead
+            if node.is_member():
+                sets.add(tuple(node.state.procs()))
+            for tx in node.oac.txs.values():
+                if tx.parts:
+                    sets.add(tuple(tx.parts))
+
+        def bad(p: Proc) -> bool:
+            h = cl.hosts[p[0]]
+            return h.inc != p[1] or h.state != ALIVE or p in dead or self.trouble.get(p, -1.0) > now
+
+        for s in sets:
+            if x in s:
+                n_bad = 1 + sum(1 for p in s if p != x and bad(p))
+                if 2 * n_bad >= len(s):
+                    return False
+        return True
+
+    def _crash(self, f: Fault, restart_after: float | None) -> None:
+        h = self.cl.hosts[f.host]
+        self.trouble[(f.host, h.inc)] = float("inf")
+        self.cl.crash(f.host, mid_step=f.kind == "crash_mid")
+        if f.kind == "crash_mid" and self.sc.workload == "ddb" and h.state == ALIVE:
+            # a write whose broadcast the crash cuts short (DDB-Atomicity: everywhere or nowhere)
+            self.gh.mid_commit.append((f.host, h.inc))
+            self._write(f.host)
+        if restart_after is not None:
+            self.cl.at(self.cl.now + restart_after, lambda: self._restart(f.host))
+
+    def _pause(self, f: Fault) -> None:
+        cl = self.cl
+        h = cl.hosts[f.host]
+        end = min(cl.now + f.duration, self.sc.fault_end)
+        self.trouble[(f.host, h.inc)] = end + SETTLE
+        cl.pause(f.host)
+        cl.at(end, lambda: cl.resume(f.host))
+
+    def _spike(self, f: Fault) -> None:
+        cl = self.cl
+        h = cl.hosts[f.host]
+        self.trouble[(f.host, h.inc)] = cl.now + f.duration + SETTLE
+        cl.spike(f.host, f.other or None, f.extra, f.duration)  # type: ignore[arg-type]
 
     def _restart(self, name: str) -> None:
         h = self.cl.hosts[name]
-        if (name, h.inc) in self.gh.left:
-            return
+        if (name, h.inc) in self.gh.left or h.state != CRASHED:
+            return  # it left, or was already reincarnated
         self.cl.restart(name)
 
     def _activity(self) -> int:
@@ -328,114 +485,236 @@ class GroupSim:
 # ------------------------------------------------------------------------------------------------ checks
 
 
+MEMBERSHIP_PROPS = frozenset(
+    {
+        "HM-Formation",
+        "HM-Termination",
+        "HM-Non-Triviality-Join",
+        "HM-Non-Triviality-Leave",
+        "HM-Non-Triviality-Remove",
+        "HM-Weak-Validity",
+        "HM-Agreement",
+        "HM-Single-Leader",
+    }
+)
+DDB_PROPS = frozenset(
+    {"HM-Agreement", "DDB-Prefix", "DDB-Convergence", "DDB-Durability", "DDB-Atomicity", "DDB-Joiner-Consistency"}
+)
+#: which properties each verifier reports (`haactl verify membership|ddb`)
+VERIFIER_PROPS = {"membership": MEMBERSHIP_PROPS, "ddb": DDB_PROPS}
+
+
 @dataclass
 class GroupViolation:
     prop: str
     detail: str
+    hosts: list[str] = field(default_factory=list)  # for picking trace lines
+
+    def __str__(self) -> str:
+        return f"{self.prop}: {self.detail}"
 
 
-def check_group(sim: GroupSim) -> list[GroupViolation]:
+def _p(p: Proc | None) -> str:
+    return f"{p[0]}#{p[1]}" if p else "-"
+
+
+def check_group(sim: GroupSim, props: frozenset[str] | None = None) -> list[GroupViolation]:
+    """Check a finished run (see the module docstring); `props` keeps only those properties."""
+    out = _check(sim)
+    if props is not None:
+        out = [v for v in out if v.prop in props]
+    return out
+
+
+def _check(sim: GroupSim) -> list[GroupViolation]:
     cl = sim.cl
     gh = sim.gh
+    hist = cl.history
     out: list[GroupViolation] = []
-    # HM-Agreement: one view id, one member set; increasing ids per process
-    view_sets: dict[tuple[str, int], tuple[Proc, ...]] = {}
+
+    def bad(prop: str, detail: str, *procs: Proc | None) -> None:
+        out.append(GroupViolation(prop, detail, sorted({p[0] for p in procs if p})))
+
+    # HM-Formation (safety part): never two correct groups
     if len(gh.correct_groups) > 1:
-        out.append(GroupViolation("HM-Formation", f"more than one correct group formed: {sorted(gh.correct_groups)}"))
+        bad("HM-Formation", f"more than one correct group formed: {sorted(gh.correct_groups)}")
+    # HM-Agreement: one (group, view id), one member set; increasing ids per process
+    view_sets: dict[tuple[str, int], tuple[tuple[Proc, ...], Proc]] = {}
     for proc, vs in gh.views.items():
         last = 0
         for g, v, members, t in vs:
             if v <= last:
-                out.append(GroupViolation("HM-Agreement", f"{proc} view ids not increasing: {last} then {v}"))
+                bad("HM-Agreement", f"{_p(proc)} view ids not increasing: {last} then {v}", proc)
             last = v
-            prev = view_sets.setdefault((g, v), members)
-            if prev != members:
-                out.append(
-                    GroupViolation(
-                        "HM-Agreement", f"group {g} view {v}: {proc} has {list(members)} at {t:.3f}, other {list(prev)}"
-                    )
+            prev = view_sets.setdefault((g, v), (members, proc))
+            if prev[0] != members:
+                bad(
+                    "HM-Agreement",
+                    f"group {g} view {v}: {_p(proc)} has {[_p(m) for m in members]} at {t:.3f}, "
+                    f"{_p(prev[1])} has {[_p(m) for m in prev[0]]}",
+                    proc,
+                    prev[1],
                 )
                 break
-    # one leader per view is the front of the (agreed) list; check nobody acted as leader outside it
-    # global sequence: same txid and hash at every seq
-    at_seq: dict[int, tuple[TxId, str, Proc]] = {}
+    # the global sequence: the same transaction (HM-Agreement) and the same state (DDB-Prefix) at every seq.
+    # A member removed while it was running (false suspicion; it then restarts as a new incarnation) does not
+    # deliver the transaction that removed it, so what it applies afterwards is not the group's sequence.
     groups = gh.correct_groups or {""}
     main = min(groups)
-    # a member removed while it was running (false suspicion; it then restarts as a new incarnation) does not
-    # deliver the transaction that removed it, so what it applies afterwards is not the group's sequence
-    hist = cl.history
     removed_alive = {p for p in hist.ended if p not in hist.crash_time and p not in gh.left}
+    join_at = {p: seq for p, (g, seq, _h) in gh.joins.items() if g == main}
+    at_seq: dict[int, tuple[TxId, str, Proc, Proc | None, int]] = {}
     for proc, items in gh.applied.items():
         if proc in removed_alive:
             continue
-        for seq, txid, h, g in items:
-            if g != main:
-                continue  # a provisional group of one that was abandoned
-            prev = at_seq.get(seq)
-            if prev is None:
-                at_seq[seq] = (txid, h, proc)
-            elif prev[0] != txid or prev[1] != h:
-                what = "transaction" if prev[0] != txid else "state hash"
-                out.append(
-                    GroupViolation(
-                        "DDB-Prefix" if prev[0] == txid else "HM-Agreement",
-                        f"seq {seq}: {proc} applied {txid} ({h[:12]}), {prev[2]} applied {prev[0]} ({prev[1][:12]})"
-                        f" - different {what}",
-                    )
+        for seq, txid, h, g, front, view in items:
+            if g == main and seq != join_at.get(proc):
+                at_seq.setdefault(seq, (txid, h, proc, front, view))
+    diverged: set[Proc] = set()
+    for proc, (g, seq, h) in gh.joins.items():  # DDB-Joiner-Consistency
+        ref = at_seq.get(seq)
+        if g != main or proc in removed_alive or ref is None:
+            continue
+        if ref[1] != h:
+            diverged.add(proc)
+            bad(
+                "DDB-Joiner-Consistency",
+                f"{_p(proc)} joined at seq {seq} with state {h[:12]}, {_p(ref[2])} had {ref[1][:12]}",
+                proc,
+                ref[2],
+            )
+    for proc, items in gh.applied.items():
+        if proc in removed_alive or proc in diverged:
+            continue
+        for seq, txid, h, g, _f, _v in items:
+            ref = at_seq.get(seq)
+            if g != main or ref is None or (ref[0] == txid and ref[1] == h):
+                continue
+            if ref[0] != txid:
+                bad(
+                    "HM-Agreement", f"seq {seq}: {_p(proc)} applied {txid}, {_p(ref[2])} applied {ref[0]}", proc, ref[2]
                 )
-                break
+            else:
+                bad(
+                    "DDB-Prefix",
+                    f"seq {seq} ({txid}): state {h[:12]} at {_p(proc)}, {ref[1][:12]} at {_p(ref[2])}",
+                    proc,
+                    ref[2],
+                )
+            break
+    # HM-Single-Leader: only the front of the list commits membership changes (ll. 79, 111)
+    seen: set[int] = set()
+    for proc, recs in gh.group_txs.items():
+        if proc in removed_alive:
+            continue
+        for g, seq, txid, tx in recs:
+            if g != main or seq in seen:
+                continue
+            seen.add(seq)
+            after, before = at_seq.get(seq), at_seq.get(seq - 1)
+            if type(tx) is TxRemove and after is not None and after[3] != tx.proposer:
+                bad(
+                    "HM-Single-Leader",
+                    f"seq {seq}: remove {txid} by {_p(tx.proposer)} committed, but the front of the list without "
+                    f"the removed members is {_p(after[3])}",
+                    tx.proposer,
+                    after[3],
+                )
+            elif type(tx) is TxMembership and before is not None and before[3] not in (None, tx.proposer):
+                bad(
+                    "HM-Single-Leader",
+                    f"seq {seq}: membership {txid} by {_p(tx.proposer)} committed in view {before[4]}, whose "
+                    f"leader is {_p(before[3])}",
+                    tx.proposer,
+                    before[3],
+                )
     # HM-Weak-Validity
-    committed = {txid for items in gh.applied.values() for _s, txid, _h, _g in items}
+    committed = {it[1] for items in gh.applied.values() for it in items}
     for t, proc, txid, vote, tx, fd in gh.votes:
         if not vote or txid not in committed:
             continue
         for target in tx.removal:
             if not fd[target]:
-                out.append(
-                    GroupViolation(
-                        "HM-Weak-Validity",
-                        f"{proc} voted to remove {target} in {txid} at {t:.3f} without suspecting it",
-                    )
+                bad(
+                    "HM-Weak-Validity",
+                    f"{_p(proc)} voted to remove {_p(target)} in {txid} at {t:.3f} without suspecting it",
+                    proc,
+                    target,
                 )
     if not sim.quiescent:
-        out.append(GroupViolation("HM-Termination", f"not quiescent by t={sim.sc.deadline}"))
+        bad("HM-Termination", f"not quiescent by t={sim.sc.deadline}")
+        bad("DDB-Convergence", f"not quiescent by t={sim.sc.deadline}: replicas never settled")
         return out
-    # final view
-    live = [h for h in cl.by_idx if h.state == ALIVE and h.core is not None]
+    # after healing and quiescence
+    live = [h for h in cl.by_idx if h.state == ALIVE and isinstance(h.core, MembershipNode)]
     if not live:
         return out
-    finals = {}
-    for h in live:
-        node: MembershipNode = h.core  # type: ignore[assignment]
-        finals[(h.name, h.inc)] = (
-            node.state.view,
-            tuple(node.state.procs()),
-            node.state.content_hash(),
-            node.state.seq,
-        )
-    want = {(h.name, h.inc) for h in live}
-    distinct = set(finals.values())
-    if len(distinct) != 1:
-        detail = "; ".join(f"{p[0]}#{p[1]}: view {v[0]} {[m[0] for m in v[1]]} seq {v[3]}" for p, v in finals.items())
-        out.append(GroupViolation("HM-Non-Triviality/DDB-Convergence", f"final states differ: {detail}"))
+    if not gh.correct_groups:
+        bad("HM-Formation", "no correct group was formed")
         return out
-    view, members, _h, seq = distinct.pop()
-    if set(members) != want:
-        missing = sorted(want - set(members))
-        extra = sorted(set(members) - want)
-        prop = "HM-Non-Triviality-Join" if missing else "HM-Non-Triviality-Remove/Leave"
-        out.append(GroupViolation(prop, f"final view {view}: missing {missing}, should be gone {extra}"))
-    in_group = {v[0] for v in at_seq.values()}
-    for req, (_proc, txid, s) in gh.acked.items():
-        if txid not in in_group:
-            out.append(GroupViolation("DDB-Durability", f"acknowledged write {req} ({txid} at seq {s}) lost"))
+    nodes: dict[Proc, MembershipNode] = {(h.name, h.inc): h.core for h in live}  # type: ignore[misc]
+    members = {p: n for p, n in nodes.items() if n.is_member()}
+    if not members:
+        bad("HM-Non-Triviality-Join", f"no live host is a member: {sorted(_p(p) for p in nodes)}", *nodes)
+        return out
+    ref_p = max(members, key=lambda p: (members[p].state.view, p))
+    ref = members[ref_p].state
+    final = set(ref.procs())
+    for p, n in members.items():
+        st = n.state
+        if (st.view, st.procs()) != (ref.view, ref.procs()):
+            bad(
+                "HM-Agreement",
+                f"final views differ: {_p(p)} view {st.view} {[_p(q) for q in st.procs()]}, {_p(ref_p)} view "
+                f"{ref.view} {[_p(q) for q in ref.procs()]}",
+                p,
+                ref_p,
+            )
+        elif (st.seq, st.content_hash()) != (ref.seq, ref.content_hash()):
+            bad(
+                "DDB-Convergence",
+                f"final replicas differ: {_p(p)} seq {st.seq} {st.content_hash()[:12]}, {_p(ref_p)} seq {ref.seq} "
+                f"{ref.content_hash()[:12]}",
+                p,
+                ref_p,
+            )
+    for p in sorted(set(nodes) - final):
+        bad("HM-Non-Triviality-Join", f"live {_p(p)} is not in the final view {ref.view} {sorted(final)}", p)
+    for p in sorted(final - set(nodes)):
+        if p in gh.leave_requested:
+            bad("HM-Non-Triviality-Leave", f"{_p(p)} asked to leave but is in the final view {ref.view}", p)
+        else:
+            bad("HM-Non-Triviality-Remove", f"{_p(p)} is gone but still in the final view {ref.view}", p)
+    # DDB: acknowledged writes everywhere; writes of crashed proposers everywhere or nowhere
+    for req, (proc, txid, s) in gh.acked.items():
+        missing = [p for p, n in members.items() if txid not in n.state.recent]
+        if missing:
+            bad(
+                "DDB-Durability",
+                f"write {req} ({txid}, acknowledged by {_p(proc)} at seq {s}) missing at {[_p(p) for p in missing]}",
+                proc,
+                *missing,
+            )
+    for txid, proc in gh.write_proposer.items():
+        if proc not in hist.crash_time:
+            continue
+        have = [p for p, n in members.items() if txid in n.state.recent]
+        if have and len(have) != len(members):
+            lack = [_p(p) for p in members if p not in have]
+            mid = " (crashed in the middle of its broadcast)" if proc in gh.mid_commit else ""
+            bad(
+                "DDB-Atomicity",
+                f"write {txid} of crashed {_p(proc)}{mid} applied at {[_p(p) for p in have]}, not at {lack}",
+                proc,
+                *have,
+            )
     return out
 
 
 def run_group(
-    seed: int, hosts: int = 7, mutations: frozenset[str] = frozenset()
+    seed: int, hosts: int = 7, mutations: frozenset[str] | None = None, workload: str = "membership"
 ) -> tuple[GroupSim, list[GroupViolation]]:
-    sc = draw_group(seed, hosts)
+    sc = draw_group(seed, hosts, workload)
     sim = GroupSim(sc, mutations)
     sim.run()
     return sim, check_group(sim)

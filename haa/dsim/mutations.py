@@ -17,16 +17,38 @@ function that undoes the patch. The verifier applies a mutation before it forks 
                      AC-Non-Triviality.
 * `deaf-detector`    the failure detector never suspects a process that stopped sending heartbeats
                      (Alg. 1 l. 17-18 removed). Breaks UFD-Completeness.
+
+Host membership (Alg. 3) and the DDB, checked by `haactl verify membership|ddb` (`haa.dsim.group`):
+
+* `no-weak-validity` a member votes yes to any OAC(remove) (Alg. 3 ll. 113-114 removed). Breaks
+                     HM-Weak-Validity.
+* `no-quorum`        HAA's removal quorum is dropped: two halves that falsely suspect each other both remove
+                     the other (docs/membership.md). Breaks HM-Agreement.
+* `no-lock-wait`     OAC(membership) is proposed without waiting for the lock acknowledgements and for the
+                     active OACs to be decided (Alg. 3 l. 103): a joiner misses writes. Breaks DDB-Durability.
+* `stale-snapshot`   a sponsor sends the DDB as it was when it first sponsored anyone, labelled with its
+                     current sequence number (Alg. 3 l. 60 with a cached state). Breaks
+                     DDB-Joiner-Consistency.
+* `reorder-restored` a replica restored from a snapshot (every joiner's) applies the ops of a batch in an
+                     order of its own (reversed), as an iteration over a set might: replicas are no longer
+                     identical by construction. Breaks DDB-Prefix.
 """
 
 from __future__ import annotations
 
 import heapq
+import weakref
 from collections.abc import Callable
 
+from google.protobuf.message import DecodeError
+
+from haa.dsim import group as group_mod
+from haa.hostd import ddb as ddb_mod
+from haa.hostd import membership as membership_mod
 from haa.hostd import oac as oac_mod
 from haa.hostd import ufd as ufd_mod
 from haa.hostd.effects import Deliver
+from haa.hostd.globalstate import GlobalState
 from haa.hostd.messages import OacDecide
 
 Undo = Callable[[], None]
@@ -131,6 +153,69 @@ def deaf_detector() -> Undo:
     return _patch(ufd_mod.HeartbeatObserver, "on_deadline", lambda self, now: False)
 
 
+def _node_flag(flag: str) -> Callable[[], Undo]:
+    """A mutation built into `MembershipNode` (its `mutations` argument), switched on for every `GroupSim`."""
+
+    def apply() -> Undo:
+        return _patch(group_mod, "DEFAULT_MUTATIONS", group_mod.DEFAULT_MUTATIONS | {flag})
+
+    return apply
+
+
+def stale_snapshot() -> Undo:
+    cls = membership_mod.MembershipNode
+    cache: dict[int, bytes] = {}
+
+    def sponsor(self: membership_mod.MembershipNode, a: tuple[str, int]) -> None:
+        self.sponsees.add(a)
+        self._send(a, membership_mod.Sponsor())
+        now = self.state.snapshot()
+        old = cache.setdefault(id(self), now)
+        if old is not now:
+            stale, cur = GlobalState(self.state.core_names, self.c_f), GlobalState(self.state.core_names, self.c_f)
+            stale.restore(old)
+            cur.restore(now)
+            cur.ddb = stale.ddb  # the DDB of back then, under today's sequence number
+            now = cur.snapshot()
+        self._send(a, membership_mod.StateSnapshot(self.state.seq, now, None, 0))
+
+    return _patch(cls, "_sponsor", sponsor)
+
+
+def reorder_restored() -> Undo:
+    cls = ddb_mod.Ddb
+    restore = cls.restore.__func__  # type: ignore[attr-defined]
+    apply = cls.apply
+    restored: weakref.WeakSet[ddb_mod.Ddb] = weakref.WeakSet()
+
+    def restore_marked(klass: type[ddb_mod.Ddb], data: bytes, *args: object, **kw: object) -> ddb_mod.Ddb:
+        d = restore(klass, data, *args, **kw)
+        restored.add(d)
+        return d
+
+    def apply_reordered(self: ddb_mod.Ddb, payload: bytes, meta: object = None) -> ddb_mod.ApplyResult:
+        if self in restored:
+            try:
+                batch = ddb_mod.pb.DdbBatch.FromString(bytes(payload))
+            except DecodeError:
+                pass
+            else:  # the ops of a batch in an order of this replica's own
+                ops = list(batch.ops)[::-1]
+                del batch.ops[:]
+                batch.ops.extend(ops)
+                payload = batch.SerializeToString()
+        return apply(self, payload, meta)
+
+    undo_restore = _patch(cls, "restore", classmethod(restore_marked))
+    undo_apply = _patch(cls, "apply", apply_reordered)
+
+    def undo() -> None:
+        undo_apply()
+        undo_restore()
+
+    return undo
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -139,6 +224,11 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "commit-on-quorum": (commit_on_quorum, "oac", "AC-Uniform-Validity"),
     "never-precommit": (never_precommit, "oac", "AC-Non-Triviality"),
     "deaf-detector": (deaf_detector, "ufd", "UFD-Completeness"),
+    "no-weak-validity": (_node_flag("no-weak-validity"), "membership", "HM-Weak-Validity"),
+    "no-quorum": (_node_flag("no-quorum"), "membership", "HM-Agreement"),
+    "no-lock-wait": (_node_flag("no-lock-wait"), "ddb", "DDB-Durability"),
+    "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
+    "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
 }
 
 

@@ -1,5 +1,9 @@
 """Run many seeded schedules on every core and report property violations.
 
+Algorithms: `ufd` and `oac` run `haa.dsim.schedule` scenarios on bare host cores (checked by
+`haa.dsim.checks`); `membership` and `ddb` run `haa.dsim.group` scenarios on `MembershipNode`s (Alg. 3 and
+the replicated DDB; `ddb` with a heavier write workload) and report `haa.dsim.group.VERIFIER_PROPS`.
+
 `run_seed` draws one scenario, runs it, checks it, and returns a small picklable result. `sweep` fans
 seeds out to a process pool (one worker per core), reports progress and schedules per minute, and for each
 violating seed re-runs it with tracing on to print a readable trace excerpt: every failure is reproducible
@@ -19,10 +23,14 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from haa.dsim import group
 from haa.dsim import schedule as sched
 from haa.dsim.checks import CheckResult, Violation, check_oac, check_ufd
 
-ALGORITHMS = ("ufd", "oac")
+GROUP_ALGORITHMS = ("membership", "ddb")
+ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS)
+#: per-seed figures of the group verifiers that the summary adds up
+GROUP_TOTALS = ("faults_injected", "faults_dropped", "writes_acked", "views")
 
 
 @dataclass
@@ -56,6 +64,8 @@ def run_seed(
     """Run one seed. `mutate` (tests only) is called first in the worker, e.g. to break the algorithm."""
     if mutate is not None:
         mutate()
+    if algorithm in GROUP_ALGORITHMS:
+        return run_group_seed(algorithm, seed, hosts)
     sc = sched.draw(seed, hosts, algorithm)
     cl, stats = sched.run(sc)
     res = check(algorithm, sc, cl, stats["quiescent"])
@@ -74,8 +84,77 @@ def run_seed(
     )
 
 
+def run_group_seed(algorithm: str, seed: int, hosts: int) -> SeedResult:
+    sc = group.draw_group(seed, hosts, algorithm)
+    sim = group.GroupSim(sc)
+    sim.run()
+    vs = group.check_group(sim, group.VERIFIER_PROPS[algorithm])
+    gh = sim.gh
+    cl = sim.cl
+    injected = sum(1 for f in sc.faults if f.kind != "restart") + len(sc.leaves) - len(gh.dropped)
+    return SeedResult(
+        seed=seed,
+        violations=[str(x) for x in vs],
+        liveness_checked=sim.quiescent,
+        trace_hash=cl.trace_hash(),
+        events=cl.events,
+        messages=sum(cl.msg_counts.values()),
+        stats={
+            "faults_injected": float(injected),
+            "faults_dropped": float(len(gh.dropped)),
+            "writes_acked": float(len(gh.acked)),
+            "views": float(max((len(v) for v in gh.views.values()), default=0)),
+        },
+        hosts=[hh for x in vs for hh in x.hosts],
+        description=" | ".join(sc.describe()[:3]),
+    )
+
+
+_GROUP_TRACE_NOISE = ("Heartbeat(", "SetPeriod(", "StateSnapshot(", "StateForward(")
+
+
+def full_trace(algorithm: str, seed: int, hosts: int) -> list[str]:
+    """The scenario and the whole event trace of one seed (`haactl verify ... --trace`)."""
+    if algorithm in GROUP_ALGORITHMS:
+        sc = group.draw_group(seed, hosts, algorithm)
+        sim = group.GroupSim(sc, trace=True)
+        sim.run()
+        out = [f"# {ln}" for ln in sc.describe()]
+        out += [ln for ln in sim.cl.trace or [] if not any(k in ln for k in _GROUP_TRACE_NOISE)]
+        out.append(f"# trace hash {sim.cl.trace_hash()}")
+        return out
+    sc2 = sched.draw(seed, hosts, algorithm)
+    cl, _stats = sched.run(sc2, trace=True)
+    out = [f"# {sc2.describe()}"]
+    out += [f"# fault {f.describe()}" for f in sc2.faults]
+    out += list(cl.trace or [])
+    out.append(f"# trace hash {cl.trace_hash()}")
+    return out
+
+
+def _group_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lines: int) -> list[str]:
+    sc = group.draw_group(seed, hosts, algorithm)
+    sim = group.GroupSim(sc, trace=True)
+    sim.run()
+    keys = tuple(f"{hh}#" for hh in set(result.hosts))
+    # membership events (views, logs, faults) of the hosts concerned; messages are left to --trace
+    picked = [
+        ln
+        for ln in sim.cl.trace or []
+        if " -> " not in ln and " <- " not in ln and (not keys or any(k in ln for k in keys))
+    ]
+    out = [f"  scenario: {ln}" for ln in sc.describe()[:12]]
+    if len(picked) > lines:
+        out.append(f"  ... {len(picked) - lines} earlier lines ...")
+        picked = picked[-lines:]
+    out += [f"  {ln}" for ln in picked]
+    return out
+
+
 def trace_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lines: int = 40) -> list[str]:
     """Re-run a seed with tracing and pick the lines about the violating transactions or hosts."""
+    if algorithm in GROUP_ALGORITHMS:
+        return _group_excerpt(algorithm, seed, hosts, result, lines)
     sc = sched.draw(seed, hosts, algorithm)
     cl, _stats = sched.run(sc, trace=True)
     trace = cl.trace or []
@@ -119,6 +198,7 @@ class SweepSummary:
     seconds: float
     events: int
     messages: int
+    totals: dict[str, float] = field(default_factory=dict)
 
     @property
     def per_minute(self) -> float:
@@ -142,6 +222,7 @@ def sweep(
     progress: Callable[[int, int], None] | None = None,
     checkpoint: Path | None = None,
     excerpts: int = 5,
+    mutate: str | None = None,
 ) -> SweepSummary:
     """Run seeds [seed, seed + schedules) and report violations (see the module docstring)."""
     if algorithm not in ALGORITHMS:
@@ -157,6 +238,8 @@ def sweep(
     events = 0
     messages = 0
     shown = 0
+    totals: dict[str, float] = dict.fromkeys(GROUP_TOTALS, 0.0) if algorithm in GROUP_ALGORITHMS else {}
+    again = f" --mutate {mutate}" if mutate else ""
 
     def results() -> Iterator[SeedResult]:
         args = [(algorithm, s, hosts) for s in seeds]
@@ -177,6 +260,8 @@ def sweep(
         events += r.events
         messages += r.messages
         live += int(r.liveness_checked)
+        for k in totals:
+            totals[k] += r.stats.get(k, 0.0)
         if r.violations:
             violations += len(r.violations)
             bad_seeds.append(r.seed)
@@ -186,7 +271,9 @@ def sweep(
                 shown += 1
                 for line in trace_excerpt(algorithm, r.seed, hosts, r):
                     report(line)
-            report(f"  reproduce: haactl verify {algorithm} --seed {r.seed} --schedules 1 --hosts {hosts} --trace")
+            report(
+                f"  reproduce: haactl verify {algorithm} --seed {r.seed} --schedules 1 --hosts {hosts}{again} --trace"
+            )
         if progress is not None:
             progress(len(seeds) - (len(seeds) - (contiguous - seed) - len(done)), len(seeds))
         if checkpoint is not None and (contiguous - seed) % 500 == 0:
@@ -202,6 +289,7 @@ def sweep(
         seconds=time.perf_counter() - t0,
         events=events,
         messages=messages,
+        totals=totals,
     )
 
 

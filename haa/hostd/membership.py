@@ -251,8 +251,10 @@ class MembershipNode:
         self.group_txs: set[TxId] = set()  # remove / membership transactions in progress here (l. 77)
         self.held: list[_Write] = []  # global-state changes held while locked (l. 129)
         self.writes: dict[TxId, _Write] = {}
+        self.lock_keys: dict[TxId, str] = {}  # membership transactions we voted on -> the lock they release
         self.key_seq = 0
         self.group_seen = ""  # id of a correct group someone introduced to us
+        self.group_hosts: dict[str, None] = {}  # hosts that introduced themselves with a correct group (ordered)
         self.leaving = False
         self.left = False
         self.formation_txid: TxId | None = None
@@ -373,8 +375,10 @@ class MembershipNode:
             self._timer("formation", now + self.config.formation_timeout)  # l. 45
 
     def _contacts(self) -> list[str]:
-        """Where an applicant sends `apply`: every core process (l. 36), and the hosts it knew before."""
-        return [q for q in self.core_names if q != self.name] + [n for n, _ in self.known_hosts]
+        """Where an applicant sends `apply`: every core process (l. 36), the hosts it knew before, and the hosts
+        that introduced themselves as holding a correct group (docs/membership.md, "apply to the members")."""
+        out = [q for q in self.core_names if q != self.name] + [n for n, _ in self.known_hosts]
+        return out + [q for q in self.group_hosts if q not in out and q != self.name]
 
     def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
         self._now = now
@@ -518,6 +522,8 @@ class MembershipNode:
             return self._quorum(tx.removal)  # type: ignore[union-attr]
         if t is TxMembership:
             self.group_txs.add(txid)
+            if tx.key:  # type: ignore[union-attr]
+                self.lock_keys[txid] = tx.key  # type: ignore[union-attr]  # for l. 153 if it aborts
             return True
         if t is TxFormation:
             if self.state.members:  # l. 160-161
@@ -537,6 +543,11 @@ class MembershipNode:
             self.formation_txid = None
             if not self.state.members:
                 self._timer("formation", self._now + self.config.formation_retry)  # l. 46: repeat
+        key = self.lock_keys.pop(txid, None)
+        if key is not None and self.locked == key and (self.attempt is None or self.attempt.key != key):
+            # ll. 152-155 on every participant, not only the proposer: a member that stayed locked after the
+            # membership transaction aborted would hold its global-state changes forever
+            self._unlock()
         w = self.writes.pop(txid, None)
         if w is not None:
             self._retry_write(w, "aborted")
@@ -552,6 +563,7 @@ class MembershipNode:
 
     def _on_deliver(self, e: Deliver) -> None:
         self.group_txs.discard(e.txid)
+        self.lock_keys.pop(e.txid, None)
         if e.txid == self.formation_txid:
             self.formation_txid = None
         if e.txid in self.state.recent:
@@ -585,7 +597,7 @@ class MembershipNode:
         res = self.state.apply(txid, payload)
         h = self.state.content_hash() if self.config.hash_every_apply else ""
         self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result))
-        for a in list(self.sponsees):  # l. 61: forward to every applicant we sponsor
+        for a in sorted(self.sponsees):  # l. 61: forward to every applicant we sponsor (sorted: deterministic)
             self._send(a, StateForward(res.seq, txid, payload))
         pending = self.state_requests.pop(txid, None)
         if pending:
@@ -780,16 +792,27 @@ class MembershipNode:
         """HAA's addition to l. 113 (docs/membership.md, "quorum"): a removal must leave more than half of
         the current members, or exactly half including the front of the list. Two disjoint sets of members
         that falsely suspect each other can then never both remove the other (a split group), which the
-        thesis rules out only by assumption (no erroneous removal, §4.6.1)."""
+        thesis rules out only by assumption (no erroneous removal, §4.6.1).
+
+        Members superseded by a newer incarnation of their host are certainly gone (a host runs one
+        incarnation at a time): they are left out of the count, and removing them needs no quorum. Otherwise
+        a group of two whose front crashed and restarted would wait for the old incarnation forever."""
         if "no-quorum" in self.mutations:
             return True
-        procs = self.state.procs()
-        gone = set(removal)
+        procs = [p for p in self.state.procs() if not self._superseded(p)]
+        gone = {p for p in removal if not self._superseded(p)}
+        if not gone:
+            return True
         stay = [p for p in procs if p not in gone]
         n = len(procs)
         if 2 * len(stay) > n:
             return True
         return 2 * len(stay) == n and bool(procs) and procs[0] in stay
+
+    def _superseded(self, p: Proc) -> bool:
+        """A newer incarnation of p's host has been heard of: p is not running."""
+        peer = self.core.peers.get(p[0])
+        return p != self.me and peer is not None and peer.inc > p[1]
 
     def _on_locked(self, src: Proc, key: str) -> None:
         a = self.attempt
@@ -1009,8 +1032,16 @@ class MembershipNode:
             for p in [*self.state.procs(), *self.join_list]:  # l. 56
                 if p != a and p != self.me:
                     self._send(p, Introduce(a[0], a[1], addr, gid))
-        if self._leader_now() and a not in self.sponsees:  # ll. 57-61
-            self._sponsor(a)
+        if self._leader_now():  # ll. 57-61
+            if a not in self.sponsees:
+                self._sponsor(a)
+            else:
+                # an applicant we sponsor applies again: it lost track of its sponsor (a stale leader's Sponsor,
+                # sent after a pause, replaced ours and then died); tell it again (docs/membership.md, "sponsor")
+                self._send(a, Sponsor())
+        # an applicant that another applicant applied to (a host it knew from a previous life) gains a two-way
+        # link here, and no introduction follows: tell the sponsor now, as ll. 69-70 do on an introduction
+        self._report_connections()
         self._update()
 
     def _on_introduce(self, q: Proc, msg: Introduce) -> None:
@@ -1020,9 +1051,18 @@ class MembershipNode:
             self._group_evidence(msg.group)
         if a == self.me or self._known_dead(a):
             return
+        # the first word from this incarnation itself: our link to its host name may date from an earlier
+        # incarnation, which is no connection to this one (docs/membership.md, "lost introductions")
+        first = a == q and q not in self.conn_from
         if a == q:  # ll. 63-64
             self.conn_from.add(q)
-        if a[0] not in self.conn_to or (a != q and a not in self.conn_from):  # ll. 65-68
+            if msg.group and not self.is_member() and not self.leaving and q[0] not in self.group_hosts:
+                # a member of a correct group: apply to it too, so that the leader (which need not be a core
+                # process) hears our application and sponsors us (l. 57); docs/membership.md
+                self.group_hosts[q[0]] = None
+                if q[0] not in self.core_names and (self.sponsor is None or self._suspected(self.sponsor)):
+                    self._send(q, Apply(self.addr))
+        if a[0] not in self.conn_to or (a != q and a not in self.conn_from) or first:  # ll. 65-68
             # (also when we "opened" the link before but never heard from `a`: our `apply` or introduction
             # may have reached it before it was running; docs/membership.md, "lost introductions")
             self._connect(a[0], msg.addr)
@@ -1032,7 +1072,11 @@ class MembershipNode:
         elif msg.addr:
             self.addrs.setdefault(a[0], msg.addr)
             self.core.add_peer(self._now, a[0], a[1])
-        if not self.is_member() and self.sponsor is not None:  # ll. 69-70
+        self._report_connections()  # ll. 69-70
+
+    def _report_connections(self) -> None:
+        """ll. 69-70: an applicant tells its sponsor whom it is connected to both ways."""
+        if not self.is_member() and self.sponsor is not None:
             self._send(self.sponsor, Connections(self._two_way()))
 
     def _group_evidence(self, gid: str) -> None:

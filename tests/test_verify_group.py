@@ -1,0 +1,202 @@
+"""`haactl verify membership|ddb`: the group verifiers, the broken variants they must catch, and the fixes
+of the liveness bugs they found (docs/membership.md, "verification")."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from haa.dsim import mutations
+from haa.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group
+from haa.dsim.network import DelayModel
+from haa.dsim.schedule import Fault
+from haa.dsim.sweep import run_seed, sweep
+from haa.hostd.effects import Decided, Send
+from haa.hostd.globalstate import TxMembership, encode_tx
+from haa.hostd.membership import MembershipNode, NodeConfig
+from haa.hostd.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
+
+CORE = [("h1", "h1"), ("h2", "h2"), ("h3", "h3")]
+
+
+# ------------------------------------------------------------------------------------------------ sweeps
+
+
+@pytest.mark.parametrize("algorithm", ["membership", "ddb"])
+def test_thirty_schedules_have_no_violation(algorithm):
+    lines: list[str] = []
+    summary = sweep(algorithm, 30, 0, 7, workers=2, report=lines.append)
+    assert summary.violations == 0, "\n".join(lines[:40])
+    assert summary.liveness_checked == 30  # every schedule went quiet and was checked to the end
+    assert summary.totals["faults_injected"] > 0 and summary.totals["writes_acked"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algorithm", ["membership", "ddb"])
+def test_ci_sweep_2000_schedules_at_7_hosts(algorithm):
+    """What CI runs (`make test`): 2,000 schedules of each group verifier, no violation, liveness included."""
+    lines: list[str] = []
+    summary = sweep(algorithm, 2000, 0, 7, report=lines.append)
+    assert summary.violations == 0, "\n".join(lines[:60])
+    assert summary.liveness_checked == 2000
+
+
+# ------------------------------------------------------------------------------------------------ mutations
+
+
+@pytest.mark.parametrize(
+    ("name", "algorithm", "seeds", "prop"),
+    [
+        ("no-weak-validity", "membership", (0, 1, 5), "HM-Weak-Validity"),
+        ("no-quorum", "membership", (54, 82), "HM-Agreement"),
+        ("no-lock-wait", "ddb", (22, 52), "DDB-Durability"),
+        ("stale-snapshot", "ddb", (1, 2, 3), "DDB-Joiner-Consistency"),
+        ("reorder-restored", "ddb", (0, 1, 2), "DDB-Prefix"),
+    ],
+)
+def test_the_verifier_catches_each_broken_variant(name, algorithm, seeds, prop):
+    """Each deliberately broken variant is reported on fixed seeds, and the unbroken algorithm passes them."""
+    assert mutations.MUTATIONS[name][1:] == (algorithm, prop)
+    undo = mutations.apply(name)
+    try:
+        broken = {s: run_seed(algorithm, s, 7).violations for s in seeds}
+    finally:
+        undo()
+    for s, vs in broken.items():
+        assert any(v.startswith(prop + ":") for v in vs), (name, s, vs)
+        assert not run_seed(algorithm, s, 7).violations, (algorithm, s)
+
+
+def test_each_verifier_reports_only_its_properties():
+    assert "HM-Single-Leader" in MEMBERSHIP_PROPS and "DDB-Durability" not in MEMBERSHIP_PROPS
+    assert {"DDB-Convergence", "DDB-Durability", "DDB-Atomicity", "DDB-Joiner-Consistency"} <= DDB_PROPS
+    assert "HM-Agreement" in DDB_PROPS  # the DDB properties rest on it
+    undo = mutations.apply("no-weak-validity")
+    try:
+        assert run_seed("membership", 0, 7).violations
+        assert not [v for v in run_seed("ddb", 0, 7).violations if v.startswith("HM-Weak-Validity")]
+    finally:
+        undo()
+
+
+def test_runs_do_not_depend_on_string_hashing():
+    """A seed must reproduce in another process (the membership node once iterated a set of sponsees)."""
+    code = (
+        "from haa.dsim.sweep import run_seed\n"
+        "print(' '.join(run_seed(a, s, 7).trace_hash for a in ('membership', 'ddb') for s in (3, 11)))"
+    )
+    outs = set()
+    for hs in ("1", "2"):
+        env = {**os.environ, "PYTHONHASHSEED": hs}
+        outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout)
+    assert len(outs) == 1 and len(outs.pop().split()) == 4
+
+
+# ------------------------------------------------------------------------------------------------ the fault gate
+
+
+def _scenario(n, core, starts, faults, writes=0):
+    names = [f"h{i + 1}" for i in range(n)]
+    sc = GroupScenario(
+        seed=7,
+        names=names,
+        core=names[:core],
+        c_f=(core - 1) // 2,
+        delay=DelayModel("exp", 0.0005, 0.002),
+        offsets=[10.0 * i for i in range(n)],
+        drifts=[0.0] * n,
+        starts=starts,
+        features={},
+        faults=faults,
+    )
+    sc.writes = [(0.8 + 0.05 * i, names[i % n]) for i in range(writes)]
+    return sc
+
+
+def test_a_crash_that_would_leave_no_correct_majority_is_not_injected():
+    """In a group of two, any crash blocks every OAC in flight (Alg. 2 needs a majority): the simulator does
+    not inject it (it would break the assumptions of §4.5.1), and says so."""
+    sc = _scenario(3, 1, {"h1": 0.0, "h2": 0.05, "h3": 99.0}, [Fault(1.5, "crash", "h2")], writes=20)
+    sim = GroupSim(sc)
+    sim.run()
+    assert [f.host for f in sim.gh.dropped] == ["h2"]
+    assert check_group(sim) == []
+
+
+def test_a_crash_that_keeps_a_majority_is_injected_and_the_member_removed():
+    sc = _scenario(3, 1, {"h1": 0.0, "h2": 0.05, "h3": 0.1}, [Fault(1.5, "crash", "h3")], writes=20)
+    sim = GroupSim(sc)
+    sim.run()
+    assert not sim.gh.dropped
+    assert check_group(sim) == []
+    assert sim.cl.hosts["h1"].core.status()["members"] == ["h1", "h2"]
+
+
+# ------------------------------------------------------------------------------------------------ liveness fixes
+
+
+def _node(name, members=(), inc=1):
+    node = MembershipNode(name, inc, name, CORE, NodeConfig())
+    node.start(0.0)
+    node.drain()
+    if members:
+        tx = TxMembership("", members[0], tuple(Member(n, i, n) for n, i in members))
+        node.state.apply(TxId(members[0][0], members[0][1], 1), encode_tx(tx))
+    return node
+
+
+def _sent(node):
+    return [(e.dst, type(e.msg).__name__) for e in node.drain() if type(e) is Send]
+
+
+def test_leader_sponsors_again_an_applicant_that_applies_again():
+    """An applicant whose sponsor pointer a stale leader overwrote re-applies; the leader tells it again."""
+    leader = _node("h1", [("h1", 1), ("h2", 1)])
+    leader._on_group("h5", 1, Apply("h5"))
+    assert ("h5", "Sponsor") in _sent(leader)
+    leader._on_group("h5", 1, Apply("h5"))
+    assert ("h5", "Sponsor") in _sent(leader)
+
+
+def test_removing_a_superseded_incarnation_needs_no_quorum():
+    """A group of two whose front crashed: the survivor may remove it once it restarted (it is gone for sure)."""
+    node = _node("h2", [("h1", 1), ("h2", 1)])
+    assert not node._quorum((("h1", 1),))  # half of the group, without the front: could be a partition
+    node.core.add_peer(1.0, "h1", 2)  # h1 came back as incarnation 2
+    assert node._quorum((("h1", 1),))
+
+
+def test_applicant_applies_to_members_that_introduce_themselves():
+    """The leader need not be a core process: an applicant applies to every member of a correct group it
+    hears from, so that the leader gets its application (l. 57)."""
+    app = _node("h4")
+    app._on_group("h5", 1, Introduce("h5", 1, "h5", "h1.1.1"))
+    assert ("h5", "Apply") in _sent(app)
+
+
+def test_member_answers_the_first_introduction_of_a_new_incarnation():
+    member = _node("h3", [("h1", 1), ("h3", 1)])
+    member.conn_to.add("h4")  # a link opened to h4's previous incarnation
+    member._on_group("h4", 2, Introduce("h4", 2, "h4", ""))
+    assert ("h4", "Introduce") in _sent(member)
+
+
+def test_applicant_reports_a_new_two_way_link_to_its_sponsor():
+    app = _node("h4")
+    app._on_group("h1", 1, Sponsor())
+    app.drain()
+    app._on_group("h6", 2, Apply("h6"))
+    sent = [e.msg for e in app.drain() if type(e) is Send and e.dst == "h1"]
+    assert any(type(m) is Connections and ("h6", 2) in m.peers for m in sent)
+
+
+def test_member_unlocks_when_the_membership_transaction_aborts():
+    """Alg. 3 ll. 152-155 run on every participant, not only on the proposer."""
+    node = _node("h2", [("h1", 1), ("h2", 1)])
+    node.locked = "k1"
+    txid = TxId("h1", 1, 9)
+    tx = TxMembership("k1", ("h1", 1), (Member("h1", 1, "h1"), Member("h2", 1, "h2"), Member("h4", 1, "h4")))
+    assert node._evaluate(txid, encode_tx(tx))
+    node._on_decided(Decided(txid, False))
+    assert node.locked is None
