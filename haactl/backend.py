@@ -182,7 +182,8 @@ class Backend(ABC):
     def require_hosts(self) -> list[HostInfo]:
         hosts = self.hosts()
         if not hosts:
-            raise ClusterError(f"no cluster running ({self.describe()}); start one with `haactl cluster up`")
+            up = "haactl cluster up" + (" --compose" if self.kind == "compose" else "")
+            raise ClusterError(f"no cluster running ({self.describe()}); start one with `{up}`")
         return hosts
 
     def client(self, name: str, timeout: float | None = None) -> ControlClient:

@@ -49,7 +49,10 @@ HostOpt = Annotated[
 ]
 
 
-def open_backend(compose: bool, root: Path | None = None, compose_file: Path | None = None) -> Backend:
+def open_backend(
+    compose: bool, root: Path | None = None, compose_file: Path | None = None, last: bool = False
+) -> Backend:
+    """The cluster a command works on; `last`: a local cluster that `cluster down` stopped will do (logs)."""
     if compose:
         if root is not None:
             raise ClusterError("--root is for local clusters; not with --compose")
@@ -60,7 +63,7 @@ def open_backend(compose: bool, root: Path | None = None, compose_file: Path | N
         raise ClusterError("--compose-file needs --compose")
     from haactl.local_backend import LocalBackend
 
-    return LocalBackend(root)
+    return LocalBackend(root, last=last)
 
 
 def fail(message: str) -> None:

@@ -151,7 +151,7 @@ def cluster_down(
     purge: Annotated[bool, typer.Option("--purge", help="also delete the local cluster's logs and data")] = False,
 ) -> None:
     """Stop every host (SIGTERM = graceful leave, SIGKILL after --grace) and forget the cluster."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, last=purge)
     if compose:
         from haactl.compose_backend import ComposeBackend
 

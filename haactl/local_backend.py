@@ -50,6 +50,7 @@ from haactl.backend import (
 from haactl.local import free_port, member_command
 
 STATE_FILE = "cluster.json"
+LAST_STATE_FILE = "cluster.last.json"  # the state of the cluster `down` stopped, so that `logs` still finds it
 STATE_VERSION = 1
 
 
@@ -99,11 +100,12 @@ def _proc_state(pid: int | None, create_time: float | None) -> str | None:
 class LocalBackend(Backend):
     kind = "local"
 
-    def __init__(self, root: Path | None = None) -> None:
+    def __init__(self, root: Path | None = None, last: bool = False) -> None:
         self.root = (root or default_root()).absolute()
         self.state: dict[str, Any] = {}
         self._procs: dict[str, subprocess.Popen[bytes]] = {}
-        self.load()
+        self._last = last
+        self.reload()
         token = ""
         tf = self.state.get("token_file")
         if tf:
@@ -118,18 +120,24 @@ class LocalBackend(Backend):
     def state_path(self) -> Path:
         return self.root / STATE_FILE
 
-    def load(self) -> None:
+    def load(self, path: Path | None = None) -> None:
+        path = path or self.state_path
         try:
-            text = self.state_path.read_text()
+            text = path.read_text()
         except FileNotFoundError:
             self.state = {}
             return
         try:
             self.state = json.loads(text)
         except json.JSONDecodeError as e:
-            raise ClusterError(f"broken state file {self.state_path}: {e}") from None
+            raise ClusterError(f"broken state file {path}: {e}") from None
         if self.state.get("version") != STATE_VERSION:
-            raise ClusterError(f"state file {self.state_path} has an unknown version; `haactl cluster down`")
+            raise ClusterError(f"state file {path} has an unknown version; remove it (`haactl cluster down --purge`)")
+
+    def reload(self) -> None:
+        self.load()
+        if not self.state and self._last:  # `logs` or `down --purge` after `cluster down`
+            self.load(self.root / LAST_STATE_FILE)
 
     def save(self) -> None:
         tmp = self.state_path.with_suffix(".tmp")
@@ -143,7 +151,7 @@ class LocalBackend(Backend):
         with open(self.root / "cluster.lock", "w") as f:
             fcntl.flock(f, fcntl.LOCK_EX)
             try:
-                self.load()
+                self.reload()
                 yield
                 if self.state:
                     self.save()
@@ -215,8 +223,10 @@ class LocalBackend(Backend):
                     f"a cluster is already running in {self.root} ({', '.join(running)}): `haactl cluster down` first"
                 )
             names = [f"h{i + 1}" for i in range(hosts)]
-            for old in self.state.get("hosts", {}).values():  # logs of a previous cluster
+            last = LocalBackend(self.root, last=True).state if not self.state else self.state
+            for old in last.get("hosts", {}).values():  # logs of a previous cluster
                 shutil.rmtree(old["data_dir"], ignore_errors=True)
+            (self.root / LAST_STATE_FILE).unlink(missing_ok=True)
             for n in names:  # a data dir of a previous life would make a host re-apply instead of forming
                 shutil.rmtree(self.root / n, ignore_errors=True)
             token_file = self.root / "token"
@@ -354,7 +364,12 @@ class LocalBackend(Backend):
                     out[h.name] = "SIGTERM"
                 self.state["hosts"][h.name]["stopped_by"] = "down"
             hosts = self.state.get("hosts", {})
-            self.state_path.unlink(missing_ok=True)
+            if purge:
+                self.state_path.unlink(missing_ok=True)
+                (self.root / LAST_STATE_FILE).unlink(missing_ok=True)
+            elif self.state:
+                self.save()
+                self.state_path.replace(self.root / LAST_STATE_FILE)
             if purge:
                 for rec in hosts.values():
                     shutil.rmtree(rec["data_dir"], ignore_errors=True)

@@ -103,7 +103,7 @@ def logs(
     compose_file: ComposeFileOpt = None,
 ) -> None:
     """Show the hosts' JSON-lines logs merged by time (rich-formatted; -f follows)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, last=True)
     hosts = backend.require_hosts()
     names = [h.name for h in hosts]
     for n in host or []:

@@ -250,3 +250,6 @@ def test_down(cli: Cli) -> None:
             os.kill(pid, 0)
     r = cli("cluster", "status", ok=False)
     assert "no cluster running" in r.output
+    assert "shutdown" in cli("logs", "--host", "h1", "--tail", "5").output  # the logs outlive the cluster
+    cli("cluster", "down", "--purge")
+    assert not (cli.root / "h1").exists() and not (cli.root / "token").exists()
