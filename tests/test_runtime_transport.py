@@ -348,3 +348,40 @@ def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream
         await b.close()
 
     run(main)
+
+
+def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() -> None:
+    """The receiver never skips a link sequence number: a frame that does ends the stream, and the next
+    stream's handshake tells the sender where to resend from. Two streams of one sender incarnation open
+    at once (a reconnect while the old stream still delivers) interleave without loss or duplicates."""
+
+    async def main() -> None:
+        pb_ = free_port()
+        b = Node("b", 22, pb_, {"a": free_port()}, ack_interval=0.001)
+        await b.serve()
+        c = b.t.counters
+        old = RawLink(pb_, md())
+        await old.reply()
+        await old.call.write(frame(1, [hb(1), hb(2)]))
+        await until(lambda: b.seqs() == [1, 2])
+        new = RawLink(pb_, md())
+        hello = await new.reply()
+        assert hello.acked_seq == 2
+        await new.call.write(frame(3, [hb(3), hb(4)]))
+        await until(lambda: b.seqs() == [1, 2, 3, 4])
+        await old.call.write(frame(3, [hb(3), hb(4)]))  # the old stream's late copies: duplicates
+        await until(lambda: c["link_duplicates"] == 2)
+        await new.call.write(frame(7, [hb(7)]))  # 5 and 6 are missing
+        await until(lambda: c["link_gap"] == 1)
+        while (await asyncio.wait_for(new.call.read(), 5)) is not aio.EOF:
+            pass  # the receiver ended the stream
+        assert b.seqs() == [1, 2, 3, 4]
+        again = RawLink(pb_, md())
+        assert (await again.reply()).acked_seq == 4  # resend from 5
+        await again.call.write(frame(5, [hb(5), hb(6), hb(7)]))
+        await until(lambda: b.seqs() == [1, 2, 3, 4, 5, 6, 7])
+        for link in (old, new, again):
+            await link.close()
+        await b.close()
+
+    run(main)

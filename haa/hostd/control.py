@@ -160,24 +160,25 @@ class HostControlService(control_pb2_grpc.HostControlServicer):
         if not request.ops:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty batch")
         rt.counters["control_ddb_writes"] += 1
-        payload = ddbmod.encode_batch(request.ops, origin=rt.name, atomic=request.atomic)
-        if len(payload) > ddbmod.MAX_BATCH_BYTES:
+        size = sum(op.ByteSize() for op in request.ops)
+        if size > ddbmod.MAX_BATCH_BYTES:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch larger than {ddbmod.MAX_BATCH_BYTES} bytes")
         try:
-            res = await rt.submit(payload, "ddb", timeout=self._deadline(context))
+            res = await rt.ddb_write(list(request.ops), request.atomic, timeout=self._deadline(context))
         except WriteFailed as e:
             return cpb.DdbWriteReply(committed=False, reason=e.reason)
         except NotMembershipMode as e:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
             raise
-        r = res.result
-        reply = cpb.DdbWriteReply(committed=True, reason=res.reason, id=_txid(res.txid), global_seq=res.global_seq)
-        if isinstance(r, ddbmod.ApplyResult):
-            reply.ddb_seq = r.seq
-            reply.results.extend(
-                cpb.DdbOpResult(op=o.op, key=o.key, ok=o.ok, reason=o.reason, version=o.version) for o in r.results
-            )
-        return reply
+        return cpb.DdbWriteReply(
+            committed=True,
+            id=_txid(res.txid),
+            global_seq=res.global_seq,
+            ddb_seq=res.ddb_seq,
+            results=[
+                cpb.DdbOpResult(op=o.op, key=o.key, ok=o.ok, reason=o.reason, version=o.version) for o in res.results
+            ],
+        )
 
     async def DdbGet(self, request: cpb.DdbGetRequest, context: aio.ServicerContext) -> cpb.DdbGetReply:
         await self._auth(context)

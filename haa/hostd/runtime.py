@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 import psutil
 from grpc import aio
 
+from haa.hostd import ddb as ddbmod
 from haa.hostd.core import CoreConfig, HostCore
 from haa.hostd.effects import (
     CancelTimer,
@@ -75,6 +76,12 @@ GENESIS_HASH = "0" * 64
 _TYPED_EVENTS = frozenset({"peer_dead"})
 #: how many latency samples are kept (oldest dropped first)
 MAX_SAMPLES = 100_000
+#: group commit of DDB writes (`HostRuntime.ddb_write`): at most this many of this host's DDB batches are in
+#: OAC at a time; writes requested meanwhile wait and go out together as one batch of at most
+#: DDB_GROUP_MAX_OPS ops / DDB_GROUP_MAX_BYTES bytes (atomic writes always go alone)
+DDB_MAX_INFLIGHT = 2
+DDB_GROUP_MAX_OPS = 2000
+DDB_GROUP_MAX_BYTES = 4 << 20
 #: the delivered log keeps at most this many entries in memory (the older half is dropped when it is full;
 #: the hash chain and the count go on)
 MAX_DELIVERED = 200_000
@@ -149,6 +156,27 @@ class WriteResult:
     global_seq: int
     result: object | None  # haa.hostd.ddb.ApplyResult for DDB batches
     reason: str  # non-empty if the payload was committed but could not be applied (malformed)
+
+
+@dataclass(frozen=True)
+class DdbWriteResult:
+    """One `ddb_write` request, committed and applied on this host: its ops' results (in request order),
+    the DDB seq of the batch that carried it and how many requests shared that batch (group commit)."""
+
+    txid: TxId
+    global_seq: int
+    ddb_seq: int
+    results: tuple[Any, ...]  # haa.hostd.ddb.OpResult
+    merged: int
+
+
+@dataclass(eq=False)
+class _QueuedWrite:
+    ops: list[Any]
+    atomic: bool
+    size: int
+    fut: asyncio.Future[DdbWriteResult]
+    abandoned: bool = False
 
 
 @dataclass
@@ -226,6 +254,8 @@ class HostRuntime:
         self._proc = psutil.Process()
         # membership mode
         self._writes: dict[int, asyncio.Future[WriteResult]] = {}
+        self._ddb_queue: deque[_QueuedWrite] = deque()
+        self._ddb_inflight = 0
         self._write_seq = 0
         self._left_waiters: list[asyncio.Future[None]] = []
         self.left = False
@@ -721,6 +751,99 @@ class HostRuntime:
         finally:
             self._writes.pop(req, None)
 
+    async def ddb_write(self, ops: list[Any], atomic: bool = False, timeout: float = 30.0) -> DdbWriteResult:
+        """Write DDB ops (`haa.hostd.ddb.put/...`) to the group and wait until they are committed and applied
+        here. Group commit: while `DDB_MAX_INFLIGHT` batches of this host are in OAC, further requests queue
+        and then go out merged into one batch, in arrival order (an op sees the effects of the ops before
+        it, as if the requests had been committed one after the other; they share one version number).
+        `atomic` requests always travel alone, so "all or none" covers exactly their ops.
+
+        Raises `WriteFailed` (see `submit`) or `NotMembershipMode`."""
+        node = self._member_node()
+        if self.left or node.leaving:
+            raise WriteFailed("this host is leaving the group")
+        if not ops:
+            raise WriteFailed("empty batch")
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[DdbWriteResult] = loop.create_future()
+        fut.add_done_callback(_retrieve)
+        q = _QueuedWrite(list(ops), atomic, sum(op.ByteSize() for op in ops), fut)
+        self._ddb_queue.append(q)
+        self.counters["ddb_writes"] += 1
+        self._flush_ddb()
+        try:
+            return await asyncio.wait_for(asyncio.shield(fut), timeout)
+        except TimeoutError:
+            q.abandoned = True  # not proposed yet: it never will be
+            raise WriteFailed(f"not committed within {timeout:g} s (it may still commit)") from None
+
+    def _flush_ddb(self) -> None:
+        queue = self._ddb_queue
+        if self._stopping or self.left:
+            while queue:
+                q = queue.popleft()
+                if not q.fut.done():
+                    q.fut.set_exception(WriteFailed("this host is stopping or left the group"))
+            return
+        loop = asyncio.get_running_loop()
+        while queue and self._ddb_inflight < DDB_MAX_INFLIGHT:
+            group: list[_QueuedWrite] = []
+            ops: list[Any] = []
+            size = 0
+            while queue:
+                q = queue[0]
+                if q.abandoned or q.fut.done():
+                    queue.popleft()
+                    continue
+                if group and (
+                    q.atomic or len(ops) + len(q.ops) > DDB_GROUP_MAX_OPS or size + q.size > DDB_GROUP_MAX_BYTES
+                ):
+                    break
+                queue.popleft()
+                group.append(q)
+                ops.extend(q.ops)
+                size += q.size
+                if q.atomic:
+                    break
+            if not group:
+                return
+            payload = ddbmod.encode_batch(ops, origin=self.name, atomic=group[0].atomic)
+            self._write_seq += 1
+            req = self._write_seq
+            gfut: asyncio.Future[WriteResult] = loop.create_future()
+            self._writes[req] = gfut
+            self._ddb_inflight += 1
+            self.counters["ddb_batches"] += 1
+            self.counters["ddb_merged_writes"] += len(group) - 1
+            gfut.add_done_callback(lambda f, g=group: self._ddb_group_done(g, f))
+            node = self.node
+            assert isinstance(node, MembershipNode)
+            self._feed(node.submit, payload, req, "ddb")
+
+    def _ddb_group_done(self, group: list[_QueuedWrite], gfut: asyncio.Future[WriteResult]) -> None:
+        self._ddb_inflight -= 1
+        exc = gfut.exception() if not gfut.cancelled() else WriteFailed("cancelled")
+        res = None if exc is not None else gfut.result()
+        r = res.result if res is not None else None
+        if exc is None and r is None:
+            exc = WriteFailed(res.reason if res is not None and res.reason else "committed but not applied")
+        if exc is not None:
+            reason = getattr(exc, "reason", None) or str(exc)
+            for q in group:
+                if not q.fut.done():
+                    q.fut.set_exception(WriteFailed(reason))
+        else:
+            assert res is not None
+            i = 0
+            for q in group:
+                n = len(q.ops)
+                if not q.fut.done():
+                    q.fut.set_result(
+                        DdbWriteResult(res.txid, res.global_seq, r.seq, tuple(r.results[i : i + n]), len(group))  # type: ignore[union-attr]
+                    )
+                i += n
+        self._flush_ddb()
+
     async def leave(self, timeout: float = 10.0) -> None:
         """Leave the group (Alg. 3 ll. 14-21) and wait until the group has removed this host. The process
         keeps running (stop it with `request_stop`); `TimeoutError` if the removal did not commit in time."""
@@ -865,3 +988,9 @@ def advertised_address(listen: str, port: int) -> str:
     if host in ("", "0.0.0.0", "[::]", "::"):
         host = socket.gethostname()
     return f"{host}:{port}"
+
+
+def _retrieve(fut: asyncio.Future[Any]) -> None:
+    """Mark a future's exception as retrieved (its waiter may have timed out and gone)."""
+    if not fut.cancelled():
+        fut.exception()
