@@ -312,3 +312,53 @@ def test_a_single_core_process_forms_a_group_of_one_and_serves_the_ddb(tmp_path:
             proc.kill()
             proc.wait()
     assert sys.executable  # keep the interpreter import used by hostd_command's fallback
+
+
+def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(tmp_path: Path) -> None:
+    """In-process single-host group: concurrent `ddb_write`s beyond DDB_MAX_INFLIGHT go out merged, each
+    request gets exactly its own ops' results, later ops see earlier ones, atomic requests travel alone."""
+    import asyncio
+
+    from haa.hostd.membership import NodeConfig
+    from haa.hostd.runtime import DDB_MAX_INFLIGHT, HostRuntime, RuntimeConfig
+
+    port = free_port()
+    addr = f"127.0.0.1:{port}"
+
+    async def main() -> None:
+        rt = HostRuntime(
+            RuntimeConfig(
+                name="solo",
+                listen=addr,
+                peers={},
+                token=TOKEN,
+                data_dir=tmp_path / "solo",
+                core_processes=[("solo", addr)],
+                node=NodeConfig(discovery=0.05),
+            )
+        )
+        await rt.start()
+        try:
+            for _ in range(200):
+                if rt.status()["member"]:
+                    break
+                await asyncio.sleep(0.02)
+            # one core process: c_f = 0, so its group of one is a correct group and takes writes
+            writes = [rt.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 100)]) for i in range(30)]
+            writes.append(rt.ddb_write([ddb.cas("k0", 999, "counter", 7)], atomic=True))  # stale version
+            writes.append(rt.ddb_write([ddb.delete("k1"), ddb.delete("nope")]))
+            res = await asyncio.gather(*writes)
+            for i, r in enumerate(res[:30]):
+                assert [o.key for o in r.results] == [f"k{i}", f"k{i}"] and all(o.ok for o in r.results)
+            assert not res[30].results[0].ok and res[30].merged == 1
+            assert [o.ok for o in res[31].results] == [True, False]
+            db = rt.node.state.ddb  # type: ignore[union-attr]
+            assert db.get("k5").value == 105 and db.get("k1") is None
+            c = rt.counters
+            assert c["ddb_writes"] == 32
+            assert DDB_MAX_INFLIGHT <= c["ddb_batches"] < 32 and c["ddb_merged_writes"] == 32 - c["ddb_batches"]
+            assert max(r.merged for r in res) > 1
+        finally:
+            await rt.stop()
+
+    asyncio.run(asyncio.wait_for(main(), 30))
