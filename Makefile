@@ -36,6 +36,8 @@ proto: setup
 verify: setup
 	$(BIN)/haactl verify ufd --schedules 2000 --hosts 7
 	$(BIN)/haactl verify oac --schedules 2000 --hosts 7
+	$(BIN)/haactl verify membership --schedules 2000 --hosts 7
+	$(BIN)/haactl verify ddb --schedules 2000 --hosts 7
 
 bench: setup
 	$(BIN)/haactl bench ap1

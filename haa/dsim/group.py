@@ -406,7 +406,7 @@ class GroupSim:
     def _safe(self, x: Proc) -> bool:
         """OAC (Alg. 2) decides only while fewer than half of a transaction's participants fail (§4.5.1), and
         Alg. 3 proposes to the members it does not suspect; a falsely suspected or paused process counts as
-        failed (§4.2: a process at the end of a suspected channel "is assumed to have crashed"). A fault on
+        failed (§4.3.1: a process at the end of a suspected channel "is assumed to have crashed"). A fault on
         `x` is allowed only if, in every current view and every open transaction that holds `x`, the
         processes in trouble (crashed, superseded, paused, spiked, permanently suspected) stay fewer than
         half with `x` added. Without this, a group of two blocks on the crash of one member with a

@@ -206,12 +206,13 @@ def reorder_restored() -> Undo:
                 payload = batch.SerializeToString()
         return apply(self, payload, meta)
 
-    undo_restore = _patch(cls, "restore", classmethod(restore_marked))
+    raw = cls.__dict__["restore"]  # the classmethod object itself (getattr would give a bound method)
+    cls.restore = classmethod(restore_marked)  # type: ignore[method-assign,assignment]
     undo_apply = _patch(cls, "apply", apply_reordered)
 
     def undo() -> None:
         undo_apply()
-        undo_restore()
+        cls.restore = raw  # type: ignore[method-assign]
 
     return undo
 

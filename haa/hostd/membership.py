@@ -30,7 +30,11 @@ choices are documented in docs/membership.md; in short:
   leader (the first core process' group of one: ll. 136-151 have no sponsor step, so applicants that
   applied before it existed would never be sponsored).
 * Applicants re-send `apply` to core processes they have not heard from (a core process that was down
-  when the applicant started would otherwise never learn of it).
+  when the applicant started would otherwise never learn of it), and also apply to every member that
+  introduces itself (the leader need not be a core process); a leader answers a repeated `apply` of an
+  applicant it sponsors with `Sponsor` again.
+* ll. 152-155 (unlock when OAC(membership) aborts) run on every participant; a removal quorum leaves out
+  incarnations superseded by a restart.
 * The first core process waits `discovery` seconds before forming its group of one, and neither it nor
   the core head forms a group once an introduction shows that a correct group exists; a provisional
   group that learns of a different correct group restarts as a new incarnation and applies to it.
