@@ -1,0 +1,35 @@
+"""Smoke runs of the membership benchmarks (AP-2, DDB batching) on tiny groups: they must keep working and
+produce every figure; the numbers themselves are the benchmarks' business (bench-results/)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from haactl.ap2 import markdown_table, run_ap2
+from haactl.ddbbench import markdown_table as ddb_table
+from haactl.ddbbench import run_ddb_bench
+
+
+def test_ap2_measures_join_leave_and_removal(tmp_path: Path) -> None:
+    rows = run_ap2(tmp_path, max_hosts=3, reps=1, log=lambda _s: None)
+    assert [r["hosts"] for r in rows] == [2, 3]
+    for r in rows:
+        assert r["join"]["n"] == 3 and r["leave"]["n"] == 1 and r["remove"]["n"] == 1
+        assert 0 < r["join"]["median"] < 10 and 0 < r["leave"]["median"] < 5
+        # removal needs a failure detection first: at least a good part of T_D^U (1 s) after the kill
+        assert 0.3 < r["crash_to_removal"]["median"] < 10
+        assert 0 <= r["remove"]["median"] <= r["crash_to_removal"]["median"]
+    assert "| 3 |" in markdown_table(rows)
+
+
+def test_ddb_bench_writes_and_replicas_agree(tmp_path: Path) -> None:
+    rows = run_ddb_bench(
+        hosts=2, batch_sizes=(1, 20), clients=(1,), crowd=3, seconds=0.5, root=tmp_path, log=lambda _s: None
+    )
+    assert [(r["clients"], r["batch"], r["through"]) for r in rows] == [
+        (1, 1, "every host"),
+        (1, 20, "every host"),
+        (3, 1, "one host"),
+    ]
+    assert all(r["requests"] > 0 and r["failed"] == 0 and r["ops_per_s"] > 0 for r in rows)
+    assert "ops per request" in ddb_table(rows)
