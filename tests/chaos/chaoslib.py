@@ -89,7 +89,28 @@ class Chaos:
         return st if sorted(members) == sorted(expect) else None
 
     def wait_converged(self, expect: list[str], timeout: float) -> dict[str, cpb.StatusReply]:
-        return self.wait(lambda: self.converged(expect), timeout, f"{len(expect)} hosts in one view, equal DDB")
+        try:
+            return self.wait(lambda: self.converged(expect), timeout, f"{len(expect)} hosts in one view, equal DDB")
+        except AssertionError as e:
+            raise AssertionError(f"{e}\n{self.describe()}") from None
+
+    def describe(self) -> str:
+        """One line per host: what it thinks of the group (for failure messages)."""
+        states = {h.name: h.state for h in self.backend.hosts()}
+        st = self.statuses()
+        lines = []
+        for n in NAMES:
+            r = st.get(n)
+            if r is None:
+                lines.append(f"  {n}: {states.get(n, '?')}, no answer")
+                continue
+            lines.append(
+                f"  {n}: inc {r.incarnation} member={r.member} view {r.view} leader {r.leader} "
+                f"members {','.join(r.members)} suspects {','.join(r.suspicions) or '-'} "
+                f"locked {r.locked or '-'} applicants {','.join(r.applicants) or '-'} "
+                f"active_tx {r.active_transactions} global_seq {r.global_seq} ddb {r.ddb_size}/{r.ddb_hash[:8]}"
+            )
+        return "\n".join(lines)
 
     def removed(self, gone: list[str]) -> bool:
         st = {n: r for n, r in self.statuses().items() if n not in gone}
