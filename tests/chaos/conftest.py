@@ -4,7 +4,8 @@ Needs a reachable docker engine and the image haa-hostd:latest (`make docker-set
 tests are skipped with the reason — or fail, when HAA_REQUIRE_DOCKER=1 (as in .ci/run, so that CI cannot
 pass by skipping them). The cluster is brought up with `haactl cluster up --compose --hosts 10` and taken
 down at the end; a compose cluster already running under project `haa` is taken down first. Every random
-choice comes from one seed (HAA_CHAOS_SEED, else the time), printed at the start.
+choice comes from one seed (HAA_CHAOS_SEED, else the time), printed at the start. The containers' logs of
+each run are saved as JSON lines in .haa/chaos/ (the five newest runs).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def chaos(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Chaos]:
+def chaos() -> Iterator[Chaos]:
     problem = docker_problem()
     if problem:
         if os.environ.get("HAA_REQUIRE_DOCKER") == "1":
@@ -55,7 +56,10 @@ def chaos(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Chaos]:
     try:
         yield Chaos(backend, seed)
     finally:
-        logs = tmp_path_factory.mktemp("chaos-logs") / "hosts.jsonl"
+        # Kept under .haa/chaos/ (gitignored; the 5 newest runs), where pytest's tmp cleanup cannot reach them.
+        keep = REPO / ".haa" / "chaos"
+        keep.mkdir(parents=True, exist_ok=True)
+        logs = keep / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{seed}.jsonl"
         with open(logs, "w") as f:
             subprocess.run(
                 [str(HAACTL), "logs", "--compose", "--json"],
@@ -64,5 +68,7 @@ def chaos(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Chaos]:
                 timeout=120,
                 env={**os.environ, "HAA_COMPOSE_FILE": str(backend.file)},
             )
+        for old in sorted(keep.glob("*.jsonl"))[:-5]:
+            old.unlink()
         print(f"\ncontainer logs: {logs} (chaos seed {seed})")
         backend.down(grace=2)
