@@ -385,3 +385,40 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() 
         await b.close()
 
     run(main)
+
+
+def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
+    """Regression: a link restarted (a kick, a reincarnation) while its session waited for the handshake
+    could keep running next to its replacement (asyncio.wait_for in 3.11 swallows a cancellation that
+    coincides with the read completing); both sessions then wrote from one queue on two streams and the
+    receiver saw gaps — lost messages, stalled OAC. Restart the link hundreds of times under traffic: every
+    message arrives once, in order, and the receiver never sees a gap."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_})
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="first connection")
+        link = a.t.links["b"]
+        sent = 0
+        for i in range(300):
+            for _ in range(5):
+                sent += 1
+                a.t.send("b", 22, hb(sent))
+            if i % 3 == 0:
+                link.restart()
+            else:
+                link.kick()
+            await asyncio.sleep(0.001 if i % 2 else 0)
+        await until(lambda: len(b.got) >= sent, timeout=20, what="all messages")
+        await asyncio.sleep(0.05)
+        assert b.seqs() == list(range(1, sent + 1))
+        assert b.t.counters["link_gap"] == 0 and a.t.counters["link_sender_gap"] == 0
+        tasks = [t for t in asyncio.all_tasks() if t.get_name() == "link-b" and not t.done()]
+        assert tasks == [link.task]
+        await a.close()
+        await b.close()
+
+    run(main)

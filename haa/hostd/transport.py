@@ -179,6 +179,7 @@ class OutLink:
     def reset(self) -> None:
         """This host became a new incarnation: the old incarnation's messages are void, numbering restarts."""
         self._gen += 1  # acks still arriving on the old stream count the old numbering
+        self._next_write = 1
         self.pending.clear()
         self.unacked.clear()
         self.base = 1
@@ -187,16 +188,26 @@ class OutLink:
     # ------------------------------------------------------------------ the link task
 
     def start(self) -> None:
+        """Start the link task. A previous task is cancelled, and the new one waits until it has ended:
+        two sessions of one link must never run at once — they would take messages from the same queue
+        and write them, numbered from the same counters, on two streams (the receiver then sees gaps)."""
         if self._channel is None:
             self._channel = aio.insecure_channel(self.address, options=client_options())
             self._open = self._channel.stream_stream(OPEN_METHOD)
-        self.task = asyncio.get_running_loop().create_task(self._run(), name=f"link-{self.peer}")
+        prev = self.task
+        if prev is not None and not prev.done():
+            prev.cancel()
+        else:
+            prev = None
+        self.task = asyncio.get_running_loop().create_task(self._run(prev), name=f"link-{self.peer}")
 
     def restart(self) -> None:
         """Drop the current stream and connect again at once (used after this host reincarnates)."""
-        if self.task is not None:
-            self.task.cancel()
         self.start()
+
+    def _current(self) -> bool:
+        """This code runs in the link's current task (not in one that was replaced)."""
+        return asyncio.current_task() is self.task
 
     def retarget(self, address: str) -> None:
         """The peer is now reached at `address`: drop the channel and reconnect there. The queues and the
@@ -225,17 +236,22 @@ class OutLink:
         self.retarget(self.address)
 
     async def close(self) -> None:
-        if self.task is not None:
-            self.task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self.task
-            self.task = None
+        task, self.task = self.task, None  # (a task that is no longer current stops at its next check)
+        while task is not None and not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=0.05)
         if self._channel is not None:
             await self._channel.close()
             self._channel = None
 
-    async def _run(self) -> None:
+    async def _run(self, prev: asyncio.Task[None] | None = None) -> None:
         t = self.t
+        if prev is not None:
+            # asyncio.wait_for in Python 3.11 can swallow a cancellation that arrives as its awaitable
+            # completes: cancel again until the previous task is really gone
+            while not prev.done():
+                prev.cancel()
+                await asyncio.wait({prev}, timeout=0.05)
         backoff = t.min_backoff
         while True:
             try:
@@ -269,9 +285,12 @@ class OutLink:
         call = self._open(metadata=md, wait_for_ready=True)
         try:
             try:
-                data = await asyncio.wait_for(call.read(), t.handshake_timeout)
+                async with asyncio.timeout(t.handshake_timeout):
+                    data = await call.read()
             except TimeoutError:
                 raise LinkDown("no handshake") from None
+            if not self._current():
+                raise asyncio.CancelledError
             if data is aio.EOF:
                 raise LinkDown("stream closed before the handshake")
             try:
@@ -399,6 +418,8 @@ class OutLink:
         while True:
             if self._broken:
                 raise LinkDown("stream closed by the receiver")
+            if not self._current():  # replaced (see `start`): never touch the queues again
+                raise asyncio.CancelledError
             pending = self.pending  # `_handshake` may have replaced it
             if not pending:
                 self.wake.clear()
