@@ -182,6 +182,7 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
         m.Introduce("h2", 3, "h2:7000", "h1.1.1"),
         m.Sponsor(),
         m.Connections((("h1", 1), ("h2", 2))),
+        m.Connections((("h1", 1), ("h1", 2))),  # an old and a new incarnation of a restarted host
         m.Connections(()),
         m.Leave(),
         m.Locked("h1.1.4"),
@@ -197,6 +198,9 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
     bad.state_request.txid.incarnation = 0
     with pytest.raises(wire.WireError):
         wire.decode(bad)
+    twice = wire.encode("h9", 7, 0, m.Connections((("h1", 1), ("h1", 1))))
+    with pytest.raises(wire.WireError, match="duplicate"):
+        wire.decode(twice)
     empty = wire.encode("h9", 7, 0, m.Apply("x"))
     empty.apply.addr = ""
     with pytest.raises(wire.WireError):

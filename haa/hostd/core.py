@@ -106,6 +106,7 @@ class HostCore:
                 self.peers[q].inc = qi
         self.dead: set[tuple[str, int]] = set()
         self.counters: Counter[str] = Counter()
+        self._unknown_logged: dict[str, float] = {}  # unknown sender -> when it was last logged
         #: receives the membership messages of Alg. 3 (set by `haa.hostd.membership.MembershipNode`); when it
         #: is set, a membership message from a host this core has never heard of adds that host as a peer
         #: (an applicant, or a member introduced to us) instead of being rejected
@@ -225,8 +226,14 @@ class HostCore:
         if p is None and self.group_handler is not None and type(msg) in GROUP_TYPES and src != self.name:
             p = self.add_peer(now, src)
         if p is None:
+            # (in membership mode an applicant's first heartbeats can precede its `apply` on the link: log
+            # each unknown sender at most once a second, not every message)
             self.counters["rejected_unknown_sender"] += 1
-            self._log("reject", reason="unknown sender", src=src)
+            if now - self._unknown_logged.get(src, -1e18) >= 1.0:
+                if len(self._unknown_logged) > 1000:
+                    self._unknown_logged.clear()
+                self._unknown_logged[src] = now
+                self._log("reject", reason="unknown sender", src=src)
             return
         if dst_inc and dst_inc != self.inc:
             self.counters["dropped_misaddressed"] += 1

@@ -263,6 +263,8 @@ class OutLink:
             except grpc.RpcError as e:
                 code = e.code() if isinstance(e, aio.AioRpcError) else None
                 reason = f"{code.name if code else 'rpc error'}: {e.details() if code else e}"
+            except asyncio.InvalidStateError as e:  # grpc.aio: a write on a call that has just finished
+                reason = f"stream finished: {e}"
             except Exception as e:  # a link must survive anything and reconnect
                 reason = f"{type(e).__name__}: {e}"
                 log.exception("link %s failed", self.peer, extra={"event": "link_error", "fields": {}})

@@ -294,9 +294,11 @@ def _dec_txid(m: _WithTxId, kind: str, field: str = "id") -> TxId:
     return TxId(host, t.incarnation, t.seq)
 
 
-def _dec_parts(rep: Iterable[pb.Participant], kind: str) -> Participants:
+def _dec_parts(rep: Iterable[pb.Participant], kind: str, lives: bool = False) -> Participants:
+    """A participant list: distinct host names (OAC), or with `lives` distinct (host, incarnation) pairs — an
+    applicant's connections may name an old and a new incarnation of a restarted host."""
     parts = []
-    names = set()
+    names: set[object] = set()
     for p in rep:
         h = p.host
         i = p.incarnation
@@ -304,7 +306,7 @@ def _dec_parts(rep: Iterable[pb.Participant], kind: str) -> Participants:
             _name(h, f"{kind}.participants")
         if i == 0:
             raise WireError(f"{kind}.participants: {h!r} has incarnation 0")
-        names.add(h)
+        names.add((h, i) if lives else h)
         parts.append((h, i))
     n = len(parts)
     if n == 0:
@@ -425,7 +427,7 @@ def _dec_connections(env: pb.Envelope) -> Connections:
     rep = env.connections.peers
     if len(rep) == 0:
         return Connections(())
-    return Connections(_dec_parts(rep, "connections"))
+    return Connections(_dec_parts(rep, "connections", lives=True))
 
 
 def _dec_leave(env: pb.Envelope) -> Leave:
