@@ -13,7 +13,7 @@ from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
 from haa.dsim.sweep import run_seed, sweep
 from haa.hostd.effects import Decided, Send
-from haa.hostd.globalstate import TxMembership, encode_tx
+from haa.hostd.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
 from haa.hostd.membership import MembershipNode, NodeConfig
 from haa.hostd.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
 
@@ -199,4 +199,36 @@ def test_member_unlocks_when_the_membership_transaction_aborts():
     tx = TxMembership("k1", ("h1", 1), (Member("h1", 1, "h1"), Member("h2", 1, "h2"), Member("h4", 1, "h4")))
     assert node._evaluate(txid, encode_tx(tx))
     node._on_decided(Decided(txid, False))
+    assert node.locked is None
+
+
+def test_an_applicant_is_introduced_again_once_the_host_it_applied_to_has_joined():
+    """A host that was itself applying when `a` applied to it knew no members; once it is a member, `a`'s
+    next apply makes it introduce `a` to them (l. 56), or the leader never hears of `a`."""
+    node = _node("h1", inc=2)
+    node._on_group("h5", 1, Apply("h5"))
+    assert ("h3", "Introduce") not in _sent(node)
+    tx = TxMembership("", ("h3", 1), (Member("h3", 1, "h3"), Member("h1", 2, "h1")))
+    node.state.apply(TxId("h3", 1, 1), encode_tx(tx))
+    node._on_group("h5", 1, Apply("h5"))
+    assert ("h3", "Introduce") in _sent(node)
+    node._on_group("h5", 1, Apply("h5"))
+    assert ("h3", "Introduce") not in _sent(node)  # once per view
+
+
+def test_a_former_leaders_transaction_ordered_after_its_replacement_is_a_no_op():
+    """Votes (l. 111) are cast on each voter's list at the time; OAC may order a former leader's lock or
+    membership change after the removal that replaced it (seed 3704). It must neither lock the members nor
+    bring the former leader back."""
+    st = GlobalState(("h1", "h2", "h3"), 1)
+    three = tuple(Member(n, 1, n) for n in ("h1", "h2", "h3"))
+    st.apply(TxId("h1", 1, 1), encode_tx(TxMembership("", ("h1", 1), three)))
+    r = st.apply(TxId("h2", 1, 1), encode_tx(TxRemove("", ("h2", 1), (("h1", 1),))))
+    assert not r.stale and st.procs() == [("h2", 1), ("h3", 1)] and st.view == 2
+    r = st.apply(TxId("h1", 1, 5), encode_tx(TxRemove("h1.1.3", ("h1", 1), ())))
+    assert r.stale and st.view == 2
+    r = st.apply(TxId("h1", 1, 6), encode_tx(TxMembership("h1.1.3", ("h1", 1), three)))
+    assert r.stale and st.procs() == [("h2", 1), ("h3", 1)] and st.seq == 4
+    node = _node("h3", [("h2", 1), ("h3", 1)])
+    node._apply(TxId("h1", 1, 5), encode_tx(TxRemove("h1.1.3", ("h1", 1), ())), direct=True)
     assert node.locked is None

@@ -11,15 +11,16 @@ pauses and delay spikes that make the failure detector suspect correct hosts. `r
 Membership (`haactl verify membership`, `MEMBERSHIP_PROPS`):
 
 * HM-Formation: exactly one correct group is ever formed, and one is formed.
-* HM-Termination: after healing the run goes quiet (no membership, OAC or state-transfer traffic).
+* HM-Termination: after healing the run goes quiet (no membership, OAC or state-transfer traffic), and no
+  member is left locked.
 * HM-Non-Triviality-Join/-Leave/-Remove: then every live host's current incarnation is a member of one
   final view, which holds no crashed, superseded (-Remove) or departed (-Leave) process.
 * HM-Weak-Validity: when a removal commits, every participant that voted for it suspected (per its own
   failure detector output at the time of its vote) every removed member.
 * HM-Agreement: one (group, view id), one member set; every process's view ids increase; every process
   applies the same transaction at the same global sequence number (the same series of views).
-* HM-Single-Leader: at most one acknowledged leader per view: every committed remove/membership
-  transaction of a view was proposed by the same process, the front of that view (ll. 79, 111).
+* HM-Single-Leader: at most one acknowledged leader per view: every remove or membership transaction that
+  changed the view was proposed by the front of the list (without the members it removed; ll. 79, 111).
 
 DDB (`haactl verify ddb`, `DDB_PROPS`, plus HM-Agreement which they rest on):
 
@@ -393,7 +394,7 @@ class GroupSim:
         """Inject fault `f` now if it keeps the thesis' failure assumptions, else retry a little later (until
         the end of the fault window, then drop it). See `_safe`."""
         h = self.cl.hosts[f.host]
-        if h.inc > 0 and h.state == ALIVE and self._safe((f.host, h.inc)):
+        if h.inc > 0 and h.state == ALIVE and self._safe((f.host, h.inc), f.kind in ("crash", "crash_mid")):
             act()
             return
         nxt = self.cl.now + GATE_RETRY
@@ -403,14 +404,17 @@ class GroupSim:
             self.gh.dropped.append(f)
             self.cl._note(f"fault dropped (assumptions): {f.describe()}")
 
-    def _safe(self, x: Proc) -> bool:
+    def _safe(self, x: Proc, crash: bool = False) -> bool:
         """OAC (Alg. 2) decides only while fewer than half of a transaction's participants fail (§4.5.1), and
         Alg. 3 proposes to the members it does not suspect; a falsely suspected or paused process counts as
         failed (§4.3.1: a process at the end of a suspected channel "is assumed to have crashed"). A fault on
         `x` is allowed only if, in every current view and every open transaction that holds `x`, the
         processes in trouble (crashed, superseded, paused, spiked, permanently suspected) stay fewer than
         half with `x` added. Without this, a group of two blocks on the crash of one member with a
-        transaction in flight, whatever the membership algorithm does (docs/membership.md)."""
+        transaction in flight, whatever the membership algorithm does (docs/membership.md).
+
+        A crashed applicant may still be accepted (its failure is not detected yet, and a crash in the middle
+        of a step happens up to 0.1 s later): for a crash, every view counts with `x` added."""
         cl = self.cl
         now = cl.now
         sets: set[tuple[Proc, ...]] = set()
@@ -421,7 +425,10 @@ class GroupSim:
                 continue
             dead |= node.core.dead
             if node.is_member():
-                sets.add(tuple(node.state.procs()))
+                view = tuple(node.state.procs())
+                sets.add(view)
+                if crash and x not in view:
+                    sets.add((*view, x))
             for tx in node.oac.txs.values():
                 if tx.parts:
                     sets.add(tuple(tx.parts))
@@ -602,7 +609,8 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                     ref[2],
                 )
             break
-    # HM-Single-Leader: only the front of the list commits membership changes (ll. 79, 111)
+    # HM-Single-Leader: only the front of the list changes it (ll. 79, 111). A former leader's transaction
+    # ordered after its replacement is applied as a no-op (GlobalState, "stale"): only changes count.
     seen: set[int] = set()
     for proc, recs in gh.group_txs.items():
         if proc in removed_alive:
@@ -612,7 +620,9 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 continue
             seen.add(seq)
             after, before = at_seq.get(seq), at_seq.get(seq - 1)
-            if type(tx) is TxRemove and after is not None and after[3] != tx.proposer:
+            if after is None or before is None or after[4] == before[4]:
+                continue  # the view did not change (a lock, a no-op), or the view before is not known
+            if type(tx) is TxRemove and after[3] != tx.proposer:
                 bad(
                     "HM-Single-Leader",
                     f"seq {seq}: remove {txid} by {_p(tx.proposer)} committed, but the front of the list without "
@@ -620,7 +630,7 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                     tx.proposer,
                     after[3],
                 )
-            elif type(tx) is TxMembership and before is not None and before[3] not in (None, tx.proposer):
+            elif type(tx) is TxMembership and before[3] not in (None, tx.proposer):
                 bad(
                     "HM-Single-Leader",
                     f"seq {seq}: membership {txid} by {_p(tx.proposer)} committed in view {before[4]}, whose "
@@ -678,6 +688,9 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 p,
                 ref_p,
             )
+    for p, n in members.items():
+        if n.locked is not None:  # quiet, yet holding the global state for a membership change
+            bad("HM-Termination", f"{_p(p)} is still locked ({n.locked}) at the end", p)
     for p in sorted(set(nodes) - final):
         bad("HM-Non-Triviality-Join", f"live {_p(p)} is not in the final view {ref.view} {sorted(final)}", p)
     for p in sorted(final - set(nodes)):

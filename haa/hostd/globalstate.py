@@ -13,6 +13,11 @@ checkable. The state is:
 * `recent`: the global sequence number of the last few thousand applied transactions, so that a new
   member can find where its first delivered transaction sits in the sequence (docs/membership.md).
 
+A remove or membership transaction changes the list only if its proposer is the leader of the list it is
+applied to (the front, without the members it removes): votes (Alg. 3 l. 111) are cast on each voter's
+list at the time, and OAC may order a former leader's transaction after the one that replaced it. Such a
+stale transaction takes its place in the sequence as a no-op (`Applied.stale`), deterministically everywhere.
+
 A sponsor sends `snapshot()` to an applicant (Alg. 3 l. 60) and then forwards every applied transaction
 (l. 61); `restore()` installs it. Pure and deterministic: no I/O, no clock, no randomness.
 """
@@ -179,6 +184,9 @@ class Applied:
     added: tuple[Member, ...]
     ddb_result: object | None
     error: str
+    #: a remove or membership transaction of a process that is no longer the leader when it is applied (it
+    #: was voted for under an earlier list, l. 111): applied as a no-op (docs/membership.md, "stale leader")
+    stale: bool = False
 
 
 class GlobalState:
@@ -252,14 +260,23 @@ class GlobalState:
         added: tuple[Member, ...] = ()
         ddb_result = None
         before = list(self.members)
+        stale = False
         t = type(tx)
         if t is TxRemove:
             gone = set(tx.removal)  # type: ignore[union-attr]
-            self.members = [m for m in self.members if m.proc not in gone]  # l. 118
+            rest = [m for m in self.members if m.proc not in gone]
+            if rest and rest[0].proc == tx.proposer:  # type: ignore[union-attr]
+                self.members = rest  # l. 118
+            else:
+                stale = True
         elif t is TxMembership:
             if not self.members and not self.genesis:
                 self.genesis = str(txid)  # l. 43: the first core process' group of one
-            self.members = list(tx.members)  # type: ignore[union-attr]  # l. 141
+                self.members = list(tx.members)  # type: ignore[union-attr]
+            elif not self.members or self.members[0].proc == tx.proposer:  # type: ignore[union-attr]
+                self.members = list(tx.members)  # type: ignore[union-attr]  # l. 141
+            else:
+                stale = True
         elif t is TxFormation:
             if not self.members:  # l. 167: only accept one formation message
                 self.genesis = str(txid)
@@ -278,7 +295,7 @@ class GlobalState:
             removed = tuple(m for m in before if m.proc not in new)
             added = tuple(m for m in self.members if m.proc not in old)
             self._note_core()
-        return Applied(self.seq, kind, changed, removed, added, ddb_result, err)
+        return Applied(self.seq, kind, changed, removed, added, ddb_result, err, stale)
 
     # ------------------------------------------------------------------ snapshots
 

@@ -259,6 +259,7 @@ class MembershipNode:
         self.key_seq = 0
         self.group_seen = ""  # id of a correct group someone introduced to us
         self.group_hosts: dict[str, None] = {}  # hosts that introduced themselves with a correct group (ordered)
+        self.introduced: dict[Proc, tuple[str, int]] = {}  # applicant -> (group, view) when we introduced it
         self.leaving = False
         self.left = False
         self.formation_txid: TxId | None = None
@@ -639,7 +640,9 @@ class MembershipNode:
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
         t = type(tx)
-        if t is TxRemove:
+        if res.stale:
+            self._on_stale(txid)
+        elif t is TxRemove:
             if was_member:
                 self._on_remove_committed(tx)  # type: ignore[arg-type]
         elif t is TxMembership:
@@ -648,6 +651,20 @@ class MembershipNode:
             self._on_formation_committed(tx)  # type: ignore[arg-type]
         if self.is_member() and not was_leader and self._leader_now():
             self._log("leader", view=self.state.view)
+
+    def _on_stale(self, txid: TxId) -> None:
+        """A remove or membership transaction of a former leader, ordered after the change that replaced it:
+        the state applied it as a no-op (`Applied.stale`), so it neither locks (l. 127) nor changes the list.
+        Without this a former leader's lock, committed after its removal, held every member's writes until
+        the next membership change (docs/membership.md, "stale leader")."""
+        self._log("stale_group_tx", tx=str(txid), proposer=f"{txid.host}.{txid.inc}")
+        a = self.attempt
+        if a is not None and txid in (a.txid, a.membership_txid):  # our own attempt: we are not the leader
+            self.attempt = None
+            if self.locked == a.key:
+                self._unlock()
+            self._retry_later()
+        self._update()
 
     def _on_remove_committed(self, tx: TxRemove) -> None:
         """ll. 117-133."""
@@ -1025,7 +1042,10 @@ class MembershipNode:
         """ll. 50-61."""
         if self.state.is_member(a) or self._known_dead(a):
             return
-        fresh = a not in self.join_list
+        # introduce a to everyone (l. 56) when we first hear of it, and again once our view has changed since:
+        # a host that was itself applying when `a` applied to it knew no members then (docs/membership.md)
+        here = (self.state.genesis, self.state.view)
+        fresh = a not in self.join_list or self.introduced.get(a) != here
         self.join_list[a] = addr  # l. 51
         self.conn_from.add(a)  # l. 52
         self._connect(a[0], addr)  # l. 53
@@ -1033,6 +1053,8 @@ class MembershipNode:
         gid = self.state.group_id()
         self._send(a, Introduce(self.name, self.inc, self.addr, gid))  # l. 55
         if fresh:
+            self.introduced = {p: v for p, v in self.introduced.items() if p in self.join_list}
+            self.introduced[a] = here
             for p in [*self.state.procs(), *self.join_list]:  # l. 56
                 if p != a and p != self.me:
                     self._send(p, Introduce(a[0], a[1], addr, gid))
