@@ -362,3 +362,20 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
             await rt.stop()
 
     asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_one_daemon_per_data_dir(tmp_path: Path) -> None:
+    (tmp_path / "t").write_text(TOKEN + "\n")
+    port = free_port()
+    args = ["--name", "solo", "--listen", f"127.0.0.1:{port}", "--core", f"solo=127.0.0.1:{port}"]
+    args += ["--token-file", str(tmp_path / "t"), "--data-dir", str(tmp_path / "d")]
+    first = subprocess.Popen([*hostd_command(), *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        c = ControlClient(f"127.0.0.1:{port}", TOKEN)
+        wait(lambda: c.status(), 15, "the first daemon")
+        c.close()
+        second = _hostd([*args[:3], f"127.0.0.1:{free_port()}", *args[4:]])
+        assert second.returncode == 1 and "is in use by another haa-hostd" in second.stderr
+    finally:
+        first.kill()
+        first.wait()

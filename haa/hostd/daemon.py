@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import errno
+import fcntl
 import logging
 import os
 import re
@@ -398,9 +400,31 @@ def run_event_loop(coro: Coroutine[Any, Any, None]) -> None:
     uvloop.run(coro)
 
 
+def lock_data_dir(path: Path) -> int:
+    """Hold an exclusive lock on `<data-dir>/lock` for the life of the process: one haa-hostd per data
+    directory. Its incarnation numbers and known hosts live there, and a host must never run two
+    incarnations at once (the quorum rule for removals relies on it, docs/membership.md)."""
+    path.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
 def main(argv: list[str] | None = None) -> None:
     settings = load_settings(argv)
     cfg = settings.runtime_config()
+    try:
+        lock_data_dir(settings.data_dir)
+    except OSError as e:
+        if e.errno in (errno.EAGAIN, errno.EACCES):
+            fail(f"--data-dir: {settings.data_dir} is in use by another haa-hostd", code=1)
+        fail(f"--data-dir: cannot lock {settings.data_dir}: {e.strerror or e}", code=1)
     try:
         run_event_loop(serve(cfg))
     except RuntimeError as e:
