@@ -63,10 +63,10 @@ from haa.hostd.core import CoreConfig
 from haa.hostd.membership import NodeConfig
 from haa.hostd.qos import CLUSTER_QOS, QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
+from haa.hostd.transport import NAME_RE
 from haa.hostd.ufd import UfdConfig
 
 PROG = "haa-hostd"
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 _HOST_RE = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)$")
 DEFAULT_INITIAL_PERIOD = UfdConfig().initial_period
 

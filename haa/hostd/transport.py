@@ -122,12 +122,13 @@ def client_options() -> list[tuple[str, Any]]:
     ]
 
 
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
+#: a host name (`haa-hostd --name`); haa.hostd.daemon validates names with the same pattern
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 
 
 def valid_name(name: str) -> bool:
     """A host name as haa-hostd accepts it (`--name`): 1-63 of [A-Za-z0-9_.-], not starting with [_.-]."""
-    return bool(_NAME_RE.match(name))
+    return bool(NAME_RE.match(name))
 
 
 class LinkDown(Exception):
