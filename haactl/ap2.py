@@ -20,12 +20,9 @@ The process start-up (Python imports, ~0.5-1 s on this machine) is not part of a
 
 from __future__ import annotations
 
-import json
 import os
 import platform
-import signal
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -34,53 +31,9 @@ from typing import Any
 import grpc
 import psutil
 
-from haa.hostd.control import ControlClient
-from haactl.local import free_port, member_command, wait_for
+from haactl.local import MemberHost, free_port, wait_for
 
 CORE = 3
-
-
-class MemberHost:
-    """One membership-mode haa-hostd process (restartable: each start is a new incarnation)."""
-
-    def __init__(self, name: str, port: int, core: str, root: Path, token: str, args: list[str] | None = None) -> None:
-        self.name = name
-        self.address = f"127.0.0.1:{port}"
-        self.data_dir = root / name
-        self.log_file = self.data_dir / f"{name}.jsonl"
-        core_map = dict(item.split("=", 1) for item in core.split(","))
-        self.cmd = member_command(name, self.address, core_map, root / "token", self.data_dir, args)
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.client = ControlClient(self.address, token)
-        self.starts = 0
-
-    def start(self) -> None:
-        self.starts += 1
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.data_dir / f"stderr.{self.starts}.txt", "wb") as err:
-            self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err)
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def kill(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGCONT)
-            self.proc.kill()
-            self.proc.wait(10)
-
-    def events(self, since: float, names: set[str] | None = None) -> list[dict[str, Any]]:
-        if not self.log_file.exists():
-            return []
-        out = []
-        for line in self.log_file.read_text().splitlines():
-            try:
-                e = json.loads(line)
-            except ValueError:
-                continue
-            if e.get("ts", 0) >= since and (names is None or e.get("event") in names):
-                out.append(e)
-        return out
 
 
 def _members(h: MemberHost) -> list[str]:
@@ -102,7 +55,7 @@ class Ap2Run:
         (root / "token").write_text(self.token + "\n")
         names = [f"h{i}" for i in range(1, max_hosts + 1)]
         ports = {n: free_port() for n in names}
-        core = ",".join(f"{n}=127.0.0.1:{ports[n]}" for n in names[:CORE])
+        core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
         self.hosts = {n: MemberHost(n, ports[n], core, root, self.token) for n in names}
         self.log = log
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shlex
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -429,6 +430,18 @@ def host_leave(
         _wait_removed(backend, [name], timeout)
 
 
+def _break_hosts(
+    backend: Backend, names: list[str], action: Callable[[str], None], done: str, wait: bool, timeout: float
+) -> None:
+    """`host kill` / `host pause`: `action` on each host, then optionally wait until the group removed them."""
+    _check_names(backend, names)
+    for n in names:
+        action(n)
+        out.print(f"{done} {n}")
+    if wait:
+        _wait_removed(backend, names, timeout)
+
+
 @host_app.command("kill")
 @cli_errors
 def host_kill(
@@ -441,12 +454,7 @@ def host_kill(
 ) -> None:
     """SIGKILL host(s): a crash (connections refused from then on)."""
     backend = open_backend(compose, root, compose_file)
-    _check_names(backend, names)
-    for n in names:
-        backend.kill(n)
-        out.print(f"killed {n}")
-    if wait:
-        _wait_removed(backend, names, timeout)
+    _break_hosts(backend, names, backend.kill, "killed", wait, timeout)
 
 
 @host_app.command("pause")
@@ -461,12 +469,7 @@ def host_pause(
 ) -> None:
     """SIGSTOP / freeze host(s): a hung host whose TCP connections stay open."""
     backend = open_backend(compose, root, compose_file)
-    _check_names(backend, names)
-    for n in names:
-        backend.pause(n)
-        out.print(f"paused {n}")
-    if wait:
-        _wait_removed(backend, names, timeout)
+    _break_hosts(backend, names, backend.pause, "paused", wait, timeout)
 
 
 @host_app.command("resume")

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from haa.hostd import ddb
-from haactl.ap2 import CORE, MemberHost
-from haactl.local import free_port, wait_for
+from haactl.ap2 import CORE
+from haactl.local import MemberHost, free_port, wait_for
 
 
 def _pct(xs: list[float], q: float) -> float:
@@ -45,7 +45,7 @@ def run_ddb_bench(
         (base / "token").write_text(token + "\n")
         names = [f"h{i}" for i in range(1, hosts + 1)]
         ports = {n: free_port() for n in names}
-        core = ",".join(f"{n}=127.0.0.1:{ports[n]}" for n in names[:CORE])
+        core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
         group = [MemberHost(n, ports[n], core, base, token) for n in names]
         rows: list[dict[str, Any]] = []
         try:

@@ -200,3 +200,51 @@ def member_command(
         str(data_dir),
         *(args or []),
     ]
+
+
+class MemberHost:
+    """One membership-mode haa-hostd process on loopback, its data dir `<root>/<name>` and the cluster token
+    file `<root>/token` (restartable: each start is a new incarnation). Used by benchmarks and tests."""
+
+    def __init__(
+        self, name: str, port: int, core: dict[str, str], root: Path, token: str, args: list[str] | None = None
+    ) -> None:
+        self.name = name
+        self.address = f"127.0.0.1:{port}"
+        self.data_dir = root / name
+        self.log_file = self.data_dir / f"{name}.jsonl"
+        self.cmd = member_command(name, self.address, core, root / "token", self.data_dir, args)
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.client = ControlClient(self.address, token)
+        self.starts = 0
+
+    def start(self) -> None:
+        self.starts += 1
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.data_dir / f"stderr.{self.starts}.txt", "wb") as err:
+            self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err)
+
+    def status(self) -> cpb.StatusReply:
+        return self.client.status()
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.kill()
+            self.proc.wait(10)
+
+    def events(self, since: float, names: set[str] | None = None) -> list[dict[str, Any]]:
+        if not self.log_file.exists():
+            return []
+        out = []
+        for line in self.log_file.read_text().splitlines():
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue
+            if e.get("ts", 0) >= since and (names is None or e.get("event") in names):
+                out.append(e)
+        return out

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,63 +23,15 @@ import pytest
 
 from haa.hostd import ddb
 from haa.hostd.control import ControlClient
-from haactl.local import free_port, hostd_command
+from haactl.local import MemberHost, free_port, hostd_command
+from haactl.local import wait_for as wait
 
 TOKEN = "membership-test-token"
 NAMES = ["h1", "h2", "h3", "h4", "h5"]
 CORE = ["h1", "h2", "h3"]
 
 
-class Host:
-    def __init__(self, name: str, port: int, core: str, root: Path) -> None:
-        self.name = name
-        self.address = f"127.0.0.1:{port}"
-        self.data_dir = root / name
-        self.cmd = [
-            *hostd_command(),
-            "--name",
-            name,
-            "--listen",
-            self.address,
-            "--core",
-            core,
-            "--token-file",
-            str(root / "token"),
-            "--data-dir",
-            str(self.data_dir),
-        ]
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.client = ControlClient(self.address, TOKEN)
-        self.starts = 0
-
-    def start(self) -> None:
-        self.starts += 1
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.data_dir / f"stderr.{self.starts}.txt", "wb") as err:
-            self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err)
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def status(self) -> Any:
-        return self.client.status()
-
-
-def wait(pred: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            v = pred()
-            if v:
-                return v
-        except grpc.RpcError:
-            pass
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.05)
-
-
-def views(hosts: list[Host]) -> dict[str, tuple[tuple[str, ...], int, str]]:
+def views(hosts: list[MemberHost]) -> dict[str, tuple[tuple[str, ...], int, str]]:
     out = {}
     for h in hosts:
         s = h.status()
@@ -87,7 +39,7 @@ def views(hosts: list[Host]) -> dict[str, tuple[tuple[str, ...], int, str]]:
     return out
 
 
-def agree(hosts: list[Host], members: list[str] | None = None) -> bool:
+def agree(hosts: list[MemberHost], members: list[str] | None = None) -> bool:
     """Every listed host is a member of the same view (with exactly `members`, if given) and DDB hash."""
     v = views(hosts)
     if len(set(v.values())) != 1:
@@ -98,27 +50,23 @@ def agree(hosts: list[Host], members: list[str] | None = None) -> bool:
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Host]]:
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, MemberHost]]:
     root = tmp_path_factory.mktemp("membership")
     (root / "token").write_text(TOKEN + "\n")
     ports = {n: free_port() for n in NAMES}
-    core = ",".join(f"{n}=127.0.0.1:{ports[n]}" for n in CORE)
-    hosts = {n: Host(n, ports[n], core, root) for n in NAMES}
+    core = {n: f"127.0.0.1:{ports[n]}" for n in CORE}
+    hosts = {n: MemberHost(n, ports[n], core, root, TOKEN) for n in NAMES}
     for h in hosts.values():
         h.start()
     try:
         yield hosts
     finally:
         for h in hosts.values():
+            h.kill()
             h.client.close()
-            if h.alive():
-                assert h.proc is not None
-                h.proc.send_signal(signal.SIGCONT)
-                h.proc.kill()
-                h.proc.wait(10)
 
 
-def test_group_forms_with_the_first_core_process_as_leader(cluster: dict[str, Host]) -> None:
+def test_group_forms_with_the_first_core_process_as_leader(cluster: dict[str, MemberHost]) -> None:
     hosts = list(cluster.values())
     wait(lambda: agree(hosts, NAMES), 20, "all five hosts in one view")
     for h in hosts:
@@ -130,7 +78,7 @@ def test_group_forms_with_the_first_core_process_as_leader(cluster: dict[str, Ho
         assert s.ddb_size == 0
 
 
-def test_ddb_writes_through_any_host_and_the_mirror_stream(cluster: dict[str, Host]) -> None:
+def test_ddb_writes_through_any_host_and_the_mirror_stream(cluster: dict[str, MemberHost]) -> None:
     hosts = list(cluster.values())
     events: list[Any] = []
     stream = cluster["h5"].client.mirror(views=True)
@@ -173,7 +121,7 @@ def test_ddb_writes_through_any_host_and_the_mirror_stream(cluster: dict[str, Ho
     assert replica.content_hash() == final
 
 
-def test_leader_crash_is_removed_from_every_view(cluster: dict[str, Host]) -> None:
+def test_leader_crash_is_removed_from_every_view(cluster: dict[str, MemberHost]) -> None:
     h1 = cluster["h1"]
     assert h1.proc is not None
     h1.proc.kill()
@@ -190,7 +138,7 @@ def test_leader_crash_is_removed_from_every_view(cluster: dict[str, Host]) -> No
     assert r.committed
 
 
-def test_restarted_host_rejoins_with_an_equal_replica(cluster: dict[str, Host]) -> None:
+def test_restarted_host_rejoins_with_an_equal_replica(cluster: dict[str, MemberHost]) -> None:
     h1 = cluster["h1"]
     old_inc = max(int(x) for x in (h1.data_dir / "incarnation").read_text().split())
     assert (h1.data_dir / "known_hosts.json").exists()
@@ -203,7 +151,7 @@ def test_restarted_host_rejoins_with_an_equal_replica(cluster: dict[str, Host]) 
     assert s.ddb_size == cluster["h2"].status().ddb_size == 23
 
 
-def test_paused_host_is_removed_and_comes_back_as_a_new_incarnation(cluster: dict[str, Host]) -> None:
+def test_paused_host_is_removed_and_comes_back_as_a_new_incarnation(cluster: dict[str, MemberHost]) -> None:
     h4 = cluster["h4"]
     assert h4.proc is not None
     inc = h4.status().incarnation
@@ -221,7 +169,7 @@ def test_paused_host_is_removed_and_comes_back_as_a_new_incarnation(cluster: dic
     assert cluster["h4"].client.ddb_get(keys=["while-paused"]).objects
 
 
-def test_sigterm_is_a_graceful_leave(cluster: dict[str, Host]) -> None:
+def test_sigterm_is_a_graceful_leave(cluster: dict[str, MemberHost]) -> None:
     h5 = cluster["h5"]
     assert h5.proc is not None
     h5.proc.send_signal(signal.SIGTERM)
