@@ -65,28 +65,31 @@ def _txid(t: TxId) -> pb.TxId:
     return pb.TxId(host=t.host, incarnation=t.inc, seq=t.seq)
 
 
+#: membership fields of `HostRuntime.status()` that map one to one onto `StatusReply`
+_GROUP_KEYS = (
+    "member",
+    "members",
+    "leader",
+    "view",
+    "rank",
+    "suspicions",
+    "ddb_size",
+    "ddb_hash",
+    "ddb_seq",
+    "global_seq",
+    "state_hash",
+    "group_id",
+    "group_correct",
+    "locked",
+    "applicants",
+    "leaving",
+)
+
+
 def _group_fields(st: dict[str, Any]) -> dict[str, Any]:
     if st["mode"] != "membership":
         return {}
-    return {
-        "member": st["member"],
-        "members": st["members"],
-        "member_info": [cpb.MemberInfo(**m) for m in st["member_info"]],
-        "leader": st["leader"],
-        "view": st["view"],
-        "rank": st["rank"],
-        "suspicions": st["suspicions"],
-        "ddb_size": st["ddb_size"],
-        "ddb_hash": st["ddb_hash"],
-        "ddb_seq": st["ddb_seq"],
-        "global_seq": st["global_seq"],
-        "state_hash": st["state_hash"],
-        "group_id": st["group_id"],
-        "group_correct": st["group_correct"],
-        "locked": st["locked"],
-        "applicants": st["applicants"],
-        "leaving": st["leaving"],
-    }
+    return {k: st[k] for k in _GROUP_KEYS} | {"member_info": [cpb.MemberInfo(**m) for m in st["member_info"]]}
 
 
 class HostControlService(control_pb2_grpc.HostControlServicer):

@@ -460,6 +460,12 @@ class MembershipNode:
             self.left = True
             self.out.append(Left())
             return
+        if len(self.state.members) == 1:
+            # the last member: nobody remains to commit its removal (Alg. 3 assumes a group remains)
+            self.left = True
+            self._log("left", view=self.state.view, last_member=True)
+            self.out.append(Left())
+            return
         for m in self.state.members:  # l. 15
             if m.proc == self.me:
                 self._on_leave(self.me)

@@ -852,12 +852,7 @@ class HostRuntime:
             return
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._left_waiters.append(fut)
-        sole = node.is_member() and len(node.state.members) == 1
         self._feed(node.leave)
-        if sole and not self.left:
-            # the last member: there is nobody to commit its removal (Alg. 3 assumes a group remains)
-            log_event(log, logging.INFO, "left", view=node.state.view, last_member=True)
-            self._on_left()
         await asyncio.wait_for(fut, timeout)
 
     # ------------------------------------------------------------------ queries
