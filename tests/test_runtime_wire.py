@@ -47,6 +47,13 @@ messages = st.one_of(
     st.builds(m.OacAck, txids, orders, rounds, st.booleans()),
     decides(),
     st.builds(m.Excluded, incs),
+    st.builds(
+        m.AgentHostMsg,
+        st.sampled_from(m.AGENT_HOST_KINDS),
+        st.text(max_size=64),
+        st.integers(min_value=0, max_value=2**64 - 1),
+        st.binary(max_size=64),
+    ),
 )
 
 

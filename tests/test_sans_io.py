@@ -19,6 +19,7 @@ CORE_MODULES = [
     "haa/hostd/ddb.py",
     "haa/hostd/globalstate.py",
     "haa/hostd/membership.py",
+    "haa/hostd/agenttable.py",
 ]
 FORBIDDEN = {
     "asyncio",

@@ -35,6 +35,7 @@ from haa.hostd.effects import (
     Suspicion,
 )
 from haa.hostd.messages import (
+    APP_TYPES,
     GROUP_TYPES,
     OAC_TYPES,
     Excluded,
@@ -111,6 +112,8 @@ class HostCore:
         #: is set, a membership message from a host this core has never heard of adds that host as a peer
         #: (an applicant, or a member introduced to us) instead of being rejected
         self.group_handler: Callable[[str, int, Message], None] | None = None
+        #: the agent layer's handler for `APP_TYPES` messages (haa.hostd.agentnode); None: counted as unknown
+        self.app_handler: Callable[[str, int, Message], None] | None = None
         self.started = False
         self._now = 0.0
         self.oac = OrderedAtomicCommit(
@@ -274,6 +277,8 @@ class HostCore:
                 self.out.append(Reincarnate(by=src))
         elif self.group_handler is not None and t in GROUP_TYPES:
             self.group_handler(src, src_inc, msg)
+        elif self.app_handler is not None and t in APP_TYPES:
+            self.app_handler(src, src_inc, msg)
         else:
             self.counters["rejected_unknown_message"] += 1
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 from google.protobuf.message import DecodeError
 
+from haa.hostd.agenttable import AgentTable, AgentTxError
 from haa.hostd.ddb import Ddb, DdbError
 from haa.hostd.messages import Member, TxId
 from haa.pb import group_pb2 as gpb
@@ -84,7 +85,14 @@ class TxTest:
     data: bytes
 
 
-GroupTx = TxRemove | TxMembership | TxFormation | TxDdb | TxTest
+@dataclass(frozen=True, slots=True)
+class TxAgent:
+    """A change of the agent table (`haa.hostd.agenttable`, proto haa.v1.AgentTx)."""
+
+    data: bytes
+
+
+GroupTx = TxRemove | TxMembership | TxFormation | TxDdb | TxTest | TxAgent
 
 
 def _proc(m: gpb.GroupProc, p: Proc) -> None:
@@ -116,6 +124,8 @@ def encode_tx(tx: GroupTx) -> bytes:
         m.ddb = tx.data  # type: ignore[union-attr]
     elif t is TxTest:
         m.test = tx.data  # type: ignore[union-attr]
+    elif t is TxAgent:
+        m.agent = tx.data  # type: ignore[union-attr]
     else:
         raise TypeError(f"not a group transaction: {t.__name__}")
     return m.SerializeToString()
@@ -161,13 +171,20 @@ def decode_tx(payload: bytes) -> GroupTx:
         return TxDdb(m.ddb)
     if kind == "test":
         return TxTest(m.test)
+    if kind == "agent":
+        return TxAgent(m.agent)
     raise GroupTxError("group transaction: body not set")
 
 
 def tx_kind(tx: GroupTx) -> str:
-    return {TxRemove: "remove", TxMembership: "membership", TxFormation: "formation", TxDdb: "ddb", TxTest: "test"}[
-        type(tx)
-    ]
+    return {
+        TxRemove: "remove",
+        TxMembership: "membership",
+        TxFormation: "formation",
+        TxDdb: "ddb",
+        TxTest: "test",
+        TxAgent: "agent",
+    }[type(tx)]
 
 
 # --------------------------------------------------------------------------------------------- the state
@@ -202,6 +219,7 @@ class GlobalState:
         self.group_correct = False
         self.core_members: set[str] = set()
         self.ddb = Ddb()
+        self.agents = AgentTable()
         self.chain = GENESIS
         self.recent: OrderedDict[TxId, int] = OrderedDict()
 
@@ -228,6 +246,8 @@ class GlobalState:
             h.update(f"|{m.name}.{m.inc}@{m.addr}".encode())
         h.update(b"|")
         h.update(self.ddb.content_hash().encode())
+        if len(self.agents) or self.agents.hosts or self.agents.ses_id:
+            h.update(b"|agents:" + self.agents.content_hash().encode())
         return h.hexdigest()
 
     # ------------------------------------------------------------------ apply
@@ -287,6 +307,8 @@ class GlobalState:
                 ddb_result = self.ddb.apply(tx.data)  # type: ignore[union-attr]
             except DdbError as e:
                 err = str(e)
+        elif t is TxAgent:
+            ddb_result = self.agents.apply(tx.data)  # type: ignore[union-attr]
         changed = self.members != before
         if changed:
             self.view += 1
@@ -295,6 +317,10 @@ class GlobalState:
             removed = tuple(m for m in before if m.proc not in new)
             added = tuple(m for m in self.members if m.proc not in old)
             self._note_core()
+            if removed:
+                # the agents the removed hosts ran have crashed (Alg. 8); the result of a membership change
+                # carries the agents whose owner changed
+                ddb_result = self.agents.on_removed(m.name for m in removed)
         return Applied(self.seq, kind, changed, removed, added, ddb_result, err, stale)
 
     # ------------------------------------------------------------------ snapshots
@@ -306,6 +332,7 @@ class GlobalState:
             group_correct=self.group_correct,
             core_members=sorted(self.core_members),
             ddb=self.ddb.snapshot(),
+            agents=self.agents.snapshot(),
             chain=self.chain,
             genesis=self.genesis,
         )
@@ -329,7 +356,8 @@ class GlobalState:
         try:
             s.ParseFromString(data)
             ddb = Ddb.restore(s.ddb)
-        except (DecodeError, DdbError) as e:
+            agents = AgentTable.restore(s.agents)
+        except (DecodeError, DdbError, AgentTxError) as e:
             raise GroupTxError(f"global state snapshot does not decode: {e}") from None
         self.seq = s.seq
         self.view = s.view
@@ -337,6 +365,7 @@ class GlobalState:
         self.group_correct = s.group_correct
         self.core_members = set(s.core_members)
         self.ddb = ddb
+        self.agents = agents
         self.chain = s.chain
         self.genesis = s.genesis
         self.recent = OrderedDict((TxId(r.host, r.incarnation, r.seq), r.applied_seq) for r in s.recent)

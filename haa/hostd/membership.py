@@ -57,6 +57,7 @@ from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
     GroupTxError,
+    TxAgent,
     TxDdb,
     TxFormation,
     TxMembership,
@@ -433,7 +434,7 @@ class MembershipNode:
         """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
         `WriteDone` effect; a committed change has been applied here before `WriteDone`."""
         self._now = now
-        tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxTest(payload)
+        tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxAgent(payload) if kind == "agent" else TxTest(payload)
         w = _Write(req, encode_tx(tx))
         if self.direct_q:  # a new member catching up: hold until its state has caught up
             self.held.append(w)

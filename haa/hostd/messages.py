@@ -210,6 +210,23 @@ class StateRequest:
     txid: TxId
 
 
+# --- the agent layer (Alg. 4-8) ----------------------------------------------------------------------
+
+AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc")
+
+
+@dataclass(slots=True)
+class AgentHostMsg:
+    """Host-to-host message of the agent layer (`haa.hostd.agentnode`): kind "msg" (a routed agent message,
+    `data` = haa.v1.RoutedMsg), "freeze_ack" (Alg. 5 l. 24), "claim_ack" (Alg. 6 l. 16) or "alloc" (a bid
+    update of Alg. 4 l. 84, `data` encoded by `haa.hostd.allocation`)."""
+
+    kind: str
+    agent: str
+    epoch: int
+    data: bytes
+
+
 GroupMessage = (
     Apply | Introduce | Sponsor | Connections | Leave | Locked | StateSnapshot | StateForward | StateRequest
 )
@@ -226,6 +243,7 @@ GROUP_TYPES: tuple[type, ...] = (
 )
 
 OacMessage = OacTransaction | OacOrder | OacEstimate | OacProposal | OacAck | OacDecide
-Message = Heartbeat | SetPeriod | OacMessage | Excluded | GroupMessage
+Message = Heartbeat | SetPeriod | OacMessage | Excluded | GroupMessage | AgentHostMsg
+APP_TYPES: tuple[type, ...] = (AgentHostMsg,)
 
 OAC_TYPES: tuple[type, ...] = (OacTransaction, OacOrder, OacEstimate, OacProposal, OacAck, OacDecide)

@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 from haa.hostd.messages import (
+    AGENT_HOST_KINDS,
+    AgentHostMsg,
     Apply,
     Connections,
     Excluded,
@@ -89,6 +91,7 @@ KIND: dict[type, str] = {
     StateSnapshot: "state_snapshot",
     StateForward: "state_forward",
     StateRequest: "state_request",
+    AgentHostMsg: "agent_host",
 }
 #: longest address, lock key or group id accepted on the wire
 MAX_TEXT = 1024
@@ -229,6 +232,14 @@ def _enc_state_request(env: pb.Envelope, m: StateRequest) -> None:
     _set_txid(env.state_request.txid, m.txid)
 
 
+def _enc_agent_host(env: pb.Envelope, m: AgentHostMsg) -> None:
+    a = env.agent_host
+    a.kind = m.kind
+    a.agent = m.agent
+    a.epoch = m.epoch
+    a.data = m.data
+
+
 _ENCODERS: dict[type, Callable[[pb.Envelope, object], None]] = {
     Heartbeat: _enc_heartbeat,  # type: ignore[dict-item]
     SetPeriod: _enc_set_period,  # type: ignore[dict-item]
@@ -248,6 +259,7 @@ _ENCODERS: dict[type, Callable[[pb.Envelope, object], None]] = {
     StateSnapshot: _enc_snapshot,  # type: ignore[dict-item]
     StateForward: _enc_forward,  # type: ignore[dict-item]
     StateRequest: _enc_state_request,  # type: ignore[dict-item]
+    AgentHostMsg: _enc_agent_host,  # type: ignore[dict-item]
 }
 
 
@@ -455,6 +467,15 @@ def _dec_state_request(env: pb.Envelope) -> StateRequest:
     return StateRequest(_dec_txid(env.state_request, "state_request", "txid"))
 
 
+def _dec_agent_host(env: pb.Envelope) -> AgentHostMsg:
+    a = env.agent_host
+    if a.kind not in AGENT_HOST_KINDS:
+        raise WireError(f"agent_host: unknown kind {a.kind[:40]!r}")
+    if len(a.agent) > 64:
+        raise WireError("agent_host: agent id longer than 64 characters")
+    return AgentHostMsg(a.kind, a.agent, a.epoch, a.data)
+
+
 _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
     "heartbeat": _dec_heartbeat,
     "set_period": _dec_set_period,
@@ -474,6 +495,7 @@ _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
     "state_snapshot": _dec_snapshot,
     "state_forward": _dec_forward,
     "state_request": _dec_state_request,
+    "agent_host": _dec_agent_host,
 }
 
 

@@ -53,18 +53,20 @@ class GroupFormation(_message.Message):
     def __init__(self, proposer: _Optional[_Union[GroupProc, _Mapping]] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ...) -> None: ...
 
 class GroupTx(_message.Message):
-    __slots__ = ("remove", "membership", "formation", "ddb", "test")
+    __slots__ = ("remove", "membership", "formation", "ddb", "test", "agent")
     REMOVE_FIELD_NUMBER: _ClassVar[int]
     MEMBERSHIP_FIELD_NUMBER: _ClassVar[int]
     FORMATION_FIELD_NUMBER: _ClassVar[int]
     DDB_FIELD_NUMBER: _ClassVar[int]
     TEST_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
     remove: GroupRemove
     membership: GroupMembership
     formation: GroupFormation
     ddb: bytes
     test: bytes
-    def __init__(self, remove: _Optional[_Union[GroupRemove, _Mapping]] = ..., membership: _Optional[_Union[GroupMembership, _Mapping]] = ..., formation: _Optional[_Union[GroupFormation, _Mapping]] = ..., ddb: _Optional[bytes] = ..., test: _Optional[bytes] = ...) -> None: ...
+    agent: bytes
+    def __init__(self, remove: _Optional[_Union[GroupRemove, _Mapping]] = ..., membership: _Optional[_Union[GroupMembership, _Mapping]] = ..., formation: _Optional[_Union[GroupFormation, _Mapping]] = ..., ddb: _Optional[bytes] = ..., test: _Optional[bytes] = ..., agent: _Optional[bytes] = ...) -> None: ...
 
 class AppliedTx(_message.Message):
     __slots__ = ("host", "incarnation", "seq", "applied_seq")
@@ -79,7 +81,7 @@ class AppliedTx(_message.Message):
     def __init__(self, host: _Optional[str] = ..., incarnation: _Optional[int] = ..., seq: _Optional[int] = ..., applied_seq: _Optional[int] = ...) -> None: ...
 
 class GlobalSnapshot(_message.Message):
-    __slots__ = ("seq", "view", "members", "group_correct", "core_members", "ddb", "recent", "chain", "genesis")
+    __slots__ = ("seq", "view", "members", "group_correct", "core_members", "ddb", "recent", "chain", "genesis", "agents")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     VIEW_FIELD_NUMBER: _ClassVar[int]
     MEMBERS_FIELD_NUMBER: _ClassVar[int]
@@ -89,6 +91,7 @@ class GlobalSnapshot(_message.Message):
     RECENT_FIELD_NUMBER: _ClassVar[int]
     CHAIN_FIELD_NUMBER: _ClassVar[int]
     GENESIS_FIELD_NUMBER: _ClassVar[int]
+    AGENTS_FIELD_NUMBER: _ClassVar[int]
     seq: int
     view: int
     members: _containers.RepeatedCompositeFieldContainer[GroupMember]
@@ -98,4 +101,5 @@ class GlobalSnapshot(_message.Message):
     recent: _containers.RepeatedCompositeFieldContainer[AppliedTx]
     chain: str
     genesis: str
-    def __init__(self, seq: _Optional[int] = ..., view: _Optional[int] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ..., group_correct: _Optional[bool] = ..., core_members: _Optional[_Iterable[str]] = ..., ddb: _Optional[bytes] = ..., recent: _Optional[_Iterable[_Union[AppliedTx, _Mapping]]] = ..., chain: _Optional[str] = ..., genesis: _Optional[str] = ...) -> None: ...
+    agents: bytes
+    def __init__(self, seq: _Optional[int] = ..., view: _Optional[int] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ..., group_correct: _Optional[bool] = ..., core_members: _Optional[_Iterable[str]] = ..., ddb: _Optional[bytes] = ..., recent: _Optional[_Iterable[_Union[AppliedTx, _Mapping]]] = ..., chain: _Optional[str] = ..., genesis: _Optional[str] = ..., agents: _Optional[bytes] = ...) -> None: ...

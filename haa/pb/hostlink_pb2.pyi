@@ -186,8 +186,20 @@ class StateRequest(_message.Message):
     txid: TxId
     def __init__(self, txid: _Optional[_Union[TxId, _Mapping]] = ...) -> None: ...
 
+class AgentHost(_message.Message):
+    __slots__ = ("kind", "agent", "epoch", "data")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
+    EPOCH_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    kind: str
+    agent: str
+    epoch: int
+    data: bytes
+    def __init__(self, kind: _Optional[str] = ..., agent: _Optional[str] = ..., epoch: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request")
+    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request", "agent_host")
     SENDER_FIELD_NUMBER: _ClassVar[int]
     SENDER_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     DEST_INCARNATION_FIELD_NUMBER: _ClassVar[int]
@@ -209,6 +221,7 @@ class Envelope(_message.Message):
     STATE_SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
     STATE_FORWARD_FIELD_NUMBER: _ClassVar[int]
     STATE_REQUEST_FIELD_NUMBER: _ClassVar[int]
+    AGENT_HOST_FIELD_NUMBER: _ClassVar[int]
     sender: str
     sender_incarnation: int
     dest_incarnation: int
@@ -230,7 +243,8 @@ class Envelope(_message.Message):
     state_snapshot: StateSnapshot
     state_forward: StateForward
     state_request: StateRequest
-    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ...) -> None: ...
+    agent_host: AgentHost
+    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ..., agent_host: _Optional[_Union[AgentHost, _Mapping]] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("first_seq", "envelopes")

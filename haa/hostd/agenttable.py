@@ -1,0 +1,484 @@
+"""The replicated agent table: which agents exist, who owns each, what is queued for it (thesis "DDB.agents").
+
+Part of the group's global state (`haa.hostd.globalstate`): every member applies the same `AgentTx`
+transactions (proto/haa/pb/agenttx.proto) in the OAC's total order, so every member holds the same table and
+every decision below is taken identically everywhere. The table is what Alg. 4-8 read and write:
+
+* records: id (UUID), type, config, parent and display name (A3, A3.1, A3.1.2: thesis naming by parentage),
+  declared cost / hardware / transfer penalty / recovery strategy, measured CPU;
+* ownership: `status` (new, active, freezing, frozen, crashed), `owner` (the host running it), `alloc` (the
+  host the last committed allocation gives it, Alg. 4 l. 94), `epoch` (fencing epoch: bumped by every claim
+  and recovery, so at most one instance holds the current epoch) and `life` (bumped by every recovery only:
+  it names the sender stream of the agent's messages, docs/agents-host.md);
+* `state` (Alg. 5 l. 12), `backup` (Alg. 7 l. 5), `queue1` / `queue2` (Alg. 5 ll. 3-4, 11, 23), and the
+  host-kept stream positions that travel with a frozen agent (inbox: next expected message per sender
+  stream; outbox: next sequence number per receiver; pending: messages received but not processed);
+* allocation bookkeeping: session id of the last committed OAC(start) and OAC(finish), paused flag, hosts'
+  capacity / hardware / draining flag, measured affinities.
+
+Validity rules, applied identically everywhere (an invalid transaction is a no-op with a reason):
+
+* freeze (Alg. 5 l. 21): the proposer owns the agent, it is active, epochs match -> freezing, queues cleared
+  (l. 3: the thesis clears them before proposing; clearing on commit is equivalent and keeps the table the
+  only writer);
+* release (l. 14): the proposer owns the freezing agent -> frozen, state stored, owner cleared;
+* claim (Alg. 6 ll. 12-18): the agent is frozen and allocated to the claimer -> active, owned, epoch + 1;
+  otherwise the claim is abandoned (l. 18);
+* recovered (Alg. 8 l. 13-14): the agent is new or crashed and allocated to the claimer -> active, owned,
+  epoch + 1, life + 1. Unlike Alg. 8, the new host commits this *before* it hands the backup to the new
+  shell (docs/agents-host.md, "recovery claims first"): with overlapping allocation sessions two hosts could
+  otherwise both run the agent;
+* backup: only from the owner's current epoch (a zombie instance cannot overwrite a newer backup);
+* failed: from the owner's current epoch, or implied when the owner is removed from the group -> crashed;
+* push: appends to queue1/queue2 (bounded: MAX_QUEUE messages, then counted as dropped).
+
+Pure and deterministic: no I/O, no clock, no randomness.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+
+from google.protobuf.message import DecodeError
+
+from haa.pb import agenttx_pb2 as apb
+
+NEW = "new"
+ACTIVE = "active"
+FREEZING = "freezing"
+FROZEN = "frozen"
+CRASHED = "crashed"
+STATUSES = (NEW, ACTIVE, FREEZING, FROZEN, CRASHED)
+RECOVERY_MODES = ("backup", "restart", "none")
+
+#: messages kept per queue of one agent; more are counted as dropped
+MAX_QUEUE = 10_000
+#: bytes of one agent's state, backup or config
+MAX_BLOB = 64 * 1024 * 1024
+
+
+class AgentTxError(ValueError):
+    """An agent transaction that does not decode or is malformed."""
+
+
+@dataclass(slots=True)
+class AgentRecord:
+    spec: apb.AgentCreate
+    name: str
+    children: int = 0
+    status: str = NEW
+    owner: str = ""
+    alloc: str = ""
+    epoch: int = 0
+    life: int = 0
+    state: bytes | None = None
+    backup: bytes | None = None
+    backup_epoch: int = 0
+    queue1: list[apb.RoutedMsg] = field(default_factory=list)
+    queue2: list[apb.RoutedMsg] = field(default_factory=list)
+    inbox: list[apb.StreamPos] = field(default_factory=list)
+    outbox: list[apb.SendPos] = field(default_factory=list)
+    pending: list[apb.RoutedMsg] = field(default_factory=list)
+    cpu: float = 0.0
+    dropped: int = 0
+
+    @property
+    def id(self) -> str:
+        return self.spec.id
+
+    @property
+    def type(self) -> str:
+        return self.spec.type
+
+    @property
+    def parent(self) -> str:
+        return self.spec.parent
+
+    def cost(self) -> float:
+        """Measured CPU (fraction of one core) when known, else the declared cost."""
+        return self.cpu if self.cpu > 0 else self.spec.cost
+
+    def to_pb(self) -> apb.AgentRecordPb:
+        r = apb.AgentRecordPb(
+            name=self.name,
+            children=self.children,
+            status=self.status,
+            owner=self.owner,
+            alloc=self.alloc,
+            epoch=self.epoch,
+            life=self.life,
+            state=self.state or b"",
+            has_state=self.state is not None,
+            backup=self.backup or b"",
+            has_backup=self.backup is not None,
+            backup_epoch=self.backup_epoch,
+            cpu=self.cpu,
+            dropped=self.dropped,
+        )
+        r.spec.CopyFrom(self.spec)
+        r.queue1.extend(self.queue1)
+        r.queue2.extend(self.queue2)
+        r.inbox.extend(self.inbox)
+        r.outbox.extend(self.outbox)
+        r.pending.extend(self.pending)
+        return r
+
+    @staticmethod
+    def from_pb(r: apb.AgentRecordPb) -> AgentRecord:
+        return AgentRecord(
+            spec=r.spec,
+            name=r.name,
+            children=r.children,
+            status=r.status,
+            owner=r.owner,
+            alloc=r.alloc,
+            epoch=r.epoch,
+            life=r.life,
+            state=r.state if r.has_state else None,
+            backup=r.backup if r.has_backup else None,
+            backup_epoch=r.backup_epoch,
+            queue1=list(r.queue1),
+            queue2=list(r.queue2),
+            inbox=list(r.inbox),
+            outbox=list(r.outbox),
+            pending=list(r.pending),
+            cpu=r.cpu,
+            dropped=r.dropped,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class AgentApplied:
+    """What applying one agent transaction did (the host layer reacts to it)."""
+
+    kind: str
+    agent: str  # agent id ("" for table-wide transactions)
+    ok: bool
+    reason: str = ""
+    host: str = ""  # the proposing host
+    req: int = 0  # the requester's id (create)
+    #: agents whose owner or allocation changed as a side effect (finish, failed, removals)
+    touched: tuple[str, ...] = ()
+    #: messages appended to a queue by this push
+    msgs: tuple[apb.RoutedMsg, ...] = ()
+
+
+def encode(tx: apb.AgentTx) -> bytes:
+    return tx.SerializeToString()
+
+
+def decode(data: bytes) -> apb.AgentTx:
+    tx = apb.AgentTx()
+    try:
+        tx.ParseFromString(data)
+    except DecodeError as e:
+        raise AgentTxError(f"agent transaction does not decode: {e}") from None
+    if tx.WhichOneof("body") is None:
+        raise AgentTxError("agent transaction: body not set")
+    return tx
+
+
+def check_create(c: apb.AgentCreate) -> str:
+    """'' when an AgentCreate is well formed, else the reason."""
+    if not c.id or len(c.id) > 64:
+        return "create: agent id must be 1-64 characters"
+    if not c.type or len(c.type) > 64:
+        return "create: type name must be 1-64 characters"
+    if not 0.0 <= c.transfer_penalty <= 1.0:
+        return "create: transfer_penalty must be in [0, 1]"
+    if not (c.cost >= 0.0):  # also rejects NaN
+        return "create: cost must be >= 0"
+    if c.recovery not in RECOVERY_MODES:
+        return f"create: recovery must be one of {', '.join(RECOVERY_MODES)}"
+    if len(c.config) > MAX_BLOB:
+        return "create: config too large"
+    return ""
+
+
+class AgentTable:
+    """See the module docstring."""
+
+    def __init__(self) -> None:
+        self.records: dict[str, AgentRecord] = {}
+        self.ses_id = 0  # last committed OAC(start) (Alg. 4 ll. 41-43)
+        self.finished_ses = 0  # last committed OAC(finish)
+        self.top = 0  # top-level agents named so far (A1, A2, ...)
+        self.hosts: dict[str, apb.HostInfo] = {}
+        self.paused = False
+        self.affinity: dict[tuple[str, str], float] = {}
+        self.last_start = b""
+
+    # ------------------------------------------------------------------ queries
+
+    def get(self, agent: str) -> AgentRecord | None:
+        return self.records.get(agent)
+
+    def __iter__(self) -> Iterator[AgentRecord]:
+        return iter(self.records.values())
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def agent_ids(self) -> tuple[str, ...]:
+        """Alg. 4 `agentList`: every agent, in a deterministic order."""
+        return tuple(sorted(self.records))
+
+    def owned_by(self, host: str) -> list[AgentRecord]:
+        return [r for r in self.records.values() if r.owner == host]
+
+    def by_name(self, name: str) -> AgentRecord | None:
+        for r in self.records.values():
+            if r.name == name:
+                return r
+        return None
+
+    def resolve(self, ref: str) -> AgentRecord | None:
+        """An agent by id, display name or unique id prefix (>= 4 characters)."""
+        r = self.records.get(ref) or self.by_name(ref)
+        if r is None and len(ref) >= 4:
+            hits = [x for x in self.records.values() if x.id.startswith(ref)]
+            if len(hits) == 1:
+                r = hits[0]
+        return r
+
+    def content_hash(self) -> str:
+        h = hashlib.sha256()
+        h.update(f"{self.ses_id}|{self.finished_ses}|{self.top}|{int(self.paused)}|".encode())
+        for name in sorted(self.hosts):
+            h.update(self.hosts[name].SerializeToString(deterministic=True))
+        for k in sorted(self.affinity):
+            h.update(f"{k[0]}:{k[1]}={self.affinity[k]!r}|".encode())
+        for agent in sorted(self.records):
+            h.update(self.records[agent].to_pb().SerializeToString(deterministic=True))
+        h.update(self.last_start)
+        return h.hexdigest()
+
+    # ------------------------------------------------------------------ apply
+
+    def apply(self, data: bytes) -> AgentApplied:
+        """Apply one committed agent transaction (the caller guarantees the total order)."""
+        try:
+            tx = decode(data)
+        except AgentTxError as e:
+            return AgentApplied("invalid", "", False, str(e))
+        kind = tx.WhichOneof("body")
+        return getattr(self, f"_tx_{kind}")(getattr(tx, kind))
+
+    def _tx_create(self, c: apb.AgentCreate) -> AgentApplied:
+        why = check_create(c)
+        if not why and c.id in self.records:
+            why = "create: agent id already exists"
+        parent = self.records.get(c.parent) if c.parent else None
+        if not why and c.parent and parent is None:
+            why = "create: unknown parent"
+        if why:
+            return AgentApplied("create", c.id, False, why, c.host, c.req)
+        if parent is not None:
+            parent.children += 1
+            name = f"{parent.name}.{parent.children}"
+        else:
+            self.top += 1
+            name = f"A{self.top}"
+        self.records[c.id] = AgentRecord(spec=c, name=name)
+        return AgentApplied("create", c.id, True, "", c.host, c.req)
+
+    def _tx_remove(self, m: apb.AgentRemove) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("remove", m.id, False, "unknown agent", m.host)
+        if m.epoch and m.epoch != r.epoch:
+            return AgentApplied("remove", m.id, False, "stale epoch", m.host)
+        del self.records[m.id]
+        self.affinity = {k: v for k, v in self.affinity.items() if m.id not in k}
+        return AgentApplied("remove", m.id, True, "", m.host)
+
+    def _tx_start(self, s: apb.AllocStartTx) -> AgentApplied:
+        self.last_start = s.data
+        self.ses_id = max(self.ses_id, s.ses_id)
+        return AgentApplied("start", "", True, "", s.leader)
+
+    def _tx_finish(self, f: apb.AllocFinishTx) -> AgentApplied:
+        if f.ses_id < self.finished_ses:
+            return AgentApplied("finish", "", False, "older than the last finished session", f.leader)
+        self.finished_ses = f.ses_id
+        touched = []
+        for agent, host in sorted(f.allocation.items()):
+            r = self.records.get(agent)
+            if r is not None and r.alloc != host:
+                r.alloc = host
+                touched.append(agent)
+        return AgentApplied("finish", "", True, "", f.leader, touched=tuple(touched))
+
+    def _tx_move(self, m: apb.AgentMove) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("move", m.id, False, "unknown agent")
+        r.alloc = m.host
+        return AgentApplied("move", m.id, True, "", m.host, touched=(m.id,))
+
+    def _tx_freeze(self, m: apb.AgentFreeze) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("freeze", m.id, False, "unknown agent", m.host)
+        if r.owner != m.host or r.status != ACTIVE or r.epoch != m.epoch:
+            return AgentApplied("freeze", m.id, False, f"not active on {m.host} at epoch {m.epoch}", m.host)
+        r.status = FREEZING
+        r.queue1 = []  # Alg. 5 l. 3
+        r.queue2 = []
+        return AgentApplied("freeze", m.id, True, "", m.host)
+
+    def _tx_release(self, m: apb.AgentRelease) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("release", m.id, False, "unknown agent", m.host)
+        if r.owner != m.host or r.status != FREEZING or r.epoch != m.epoch:
+            return AgentApplied("release", m.id, False, f"not freezing on {m.host} at epoch {m.epoch}", m.host)
+        r.status = FROZEN  # Alg. 5 ll. 12-16
+        r.owner = ""
+        r.state = m.state
+        r.inbox = list(m.inbox)
+        r.outbox = list(m.outbox)
+        r.pending = list(m.pending)
+        return AgentApplied("release", m.id, True, "", m.host)
+
+    def _tx_claim(self, m: apb.AgentClaim) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("claim", m.id, False, "unknown agent", m.host)
+        if r.alloc != m.host or r.status != FROZEN:  # Alg. 6 l. 13
+            return AgentApplied("claim", m.id, False, f"not frozen and allocated to {m.host}", m.host)
+        r.status = ACTIVE
+        r.owner = m.host
+        r.epoch += 1
+        return AgentApplied("claim", m.id, True, "", m.host)
+
+    def _tx_recovered(self, m: apb.AgentRecovered) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("recovered", m.id, False, "unknown agent", m.host)
+        if r.alloc != m.host or r.status not in (NEW, CRASHED):  # Alg. 8 l. 14
+            return AgentApplied("recovered", m.id, False, f"not new/crashed and allocated to {m.host}", m.host)
+        r.status = ACTIVE
+        r.owner = m.host
+        r.epoch += 1
+        r.life += 1
+        # a recovered agent starts new streams: what the dead life expected or had numbered is gone
+        r.inbox, r.outbox, r.pending, r.state = [], [], [], None
+        return AgentApplied("recovered", m.id, True, "", m.host)
+
+    def _tx_backup(self, m: apb.AgentBackup) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("backup", m.id, False, "unknown agent", m.host)
+        if r.owner != m.host or r.epoch != m.epoch or r.status not in (ACTIVE, FREEZING):
+            return AgentApplied("backup", m.id, False, "stale epoch or not the owner", m.host)
+        if len(m.data) > MAX_BLOB:
+            return AgentApplied("backup", m.id, False, "backup too large", m.host)
+        r.backup = m.data  # Alg. 7 l. 5
+        r.backup_epoch = m.epoch
+        return AgentApplied("backup", m.id, True, "", m.host)
+
+    def _tx_failed(self, m: apb.AgentFailed) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("failed", m.id, False, "unknown agent", m.host)
+        if r.owner != m.host or r.epoch != m.epoch or r.status not in (ACTIVE, FREEZING):
+            return AgentApplied("failed", m.id, False, "stale epoch or not the owner", m.host)
+        self._crash(r)
+        return AgentApplied("failed", m.id, True, m.reason, m.host, touched=(m.id,))
+
+    def _crash(self, r: AgentRecord) -> None:
+        r.status = CRASHED
+        r.owner = ""
+        r.queue1 = r.queue1 + r.queue2 if r.queue1 or r.queue2 else []
+        r.queue2 = []
+
+    def _tx_push(self, m: apb.AgentPush) -> AgentApplied:
+        r = self.records.get(m.id)
+        if r is None:
+            return AgentApplied("push", m.id, False, "unknown agent")
+        if m.queue not in (1, 2):
+            return AgentApplied("push", m.id, False, "queue must be 1 or 2")
+        q = r.queue1 if m.queue == 1 else r.queue2
+        room = max(0, MAX_QUEUE - len(q))
+        kept = list(m.msgs[:room])
+        q.extend(kept)
+        r.dropped += len(m.msgs) - len(kept)
+        return AgentApplied("push", m.id, True, "", msgs=tuple(kept))
+
+    def _tx_costs(self, m: apb.AgentCosts) -> AgentApplied:
+        for c in m.costs:
+            r = self.records.get(c.id)
+            if r is not None and r.owner == m.host and c.cpu >= 0.0:
+                r.cpu = c.cpu
+        for a in m.affinity:
+            if a.a in self.records and a.b in self.records and a.a != a.b and a.rate >= 0.0:
+                key = (a.a, a.b) if a.a < a.b else (a.b, a.a)
+                if a.rate > 0:
+                    self.affinity[key] = a.rate
+                else:
+                    self.affinity.pop(key, None)
+        return AgentApplied("costs", "", True, "", m.host)
+
+    def _tx_host(self, m: apb.HostInfo) -> AgentApplied:
+        if not m.name or not (m.capacity >= 0.0):
+            return AgentApplied("host", "", False, "host info needs a name and a capacity >= 0")
+        self.hosts[m.name] = m
+        return AgentApplied("host", "", True, "", m.name)
+
+    def _tx_control(self, m: apb.AllocControl) -> AgentApplied:
+        self.paused = m.paused
+        return AgentApplied("control", "", True)
+
+    def on_removed(self, hosts: Iterable[str]) -> tuple[str, ...]:
+        """Members removed from the group: the agents they ran crashed (Alg. 8 "its host is removed"), their
+        allocations are void. Returns the agents whose owner changed."""
+        gone = set(hosts)
+        touched = []
+        for r in self.records.values():
+            if r.owner in gone and r.status in (ACTIVE, FREEZING):
+                self._crash(r)
+                touched.append(r.id)
+            if r.alloc in gone:
+                r.alloc = ""
+                if r.id not in touched:
+                    touched.append(r.id)
+        for h in gone:
+            self.hosts.pop(h, None)
+        return tuple(touched)
+
+    # ------------------------------------------------------------------ snapshots
+
+    def snapshot(self) -> bytes:
+        s = apb.AgentTableSnapshot(
+            ses_id=self.ses_id, finished_ses=self.finished_ses, top=self.top, paused=self.paused,
+            last_start=self.last_start,
+        )
+        for agent in sorted(self.records):
+            s.records.append(self.records[agent].to_pb())
+        for name in sorted(self.hosts):
+            s.hosts.append(self.hosts[name])
+        for (a, b), rate in sorted(self.affinity.items()):
+            s.affinity.add(a=a, b=b, rate=rate)
+        return s.SerializeToString()
+
+    @staticmethod
+    def restore(data: bytes) -> AgentTable:
+        s = apb.AgentTableSnapshot()
+        try:
+            s.ParseFromString(data)
+        except DecodeError as e:
+            raise AgentTxError(f"agent table snapshot does not decode: {e}") from None
+        t = AgentTable()
+        t.ses_id, t.finished_ses, t.top, t.paused, t.last_start = (
+            s.ses_id, s.finished_ses, s.top, s.paused, s.last_start,
+        )
+        for r in s.records:
+            t.records[r.spec.id] = AgentRecord.from_pb(r)
+        for h in s.hosts:
+            t.hosts[h.name] = h
+        for a in s.affinity:
+            t.affinity[(a.a, a.b)] = a.rate
+        return t
