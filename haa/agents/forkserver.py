@@ -1,0 +1,428 @@
+"""The fork server ("zygote"): a small process that preloads the agent runtime and every agent type, then
+forks one child per agent on request, so that starting an agent costs a fork instead of an interpreter
+start and its imports (AP-4: spawn <= 0.5 s end to end; the fork + ready part here is a few ms).
+
+Why a separate process: haa-hostd runs grpc's threads and an event loop, and forking a threaded process is
+unsafe (a child can inherit a lock some other thread held). The zygote is single-threaded and never runs an
+event loop, so its children start clean; each builds its own loop (`haa.agents.runner`).
+
+Protocol (proto/haa/pb/agent.proto, one message per packet on a SOCK_SEQPACKET socketpair):
+
+* zygote -> host, once: `ForkServerEvent.ready` with the registered types (cost, hardware, transfer
+  penalty, recovery: what the host needs for allocation without importing agent code) and load errors;
+* host -> zygote: `ForkServerRequest` (req_id, type_name, agent_id, log_path, exec) with the agent's end of
+  its channel attached as SCM_RIGHTS; the zygote checks the type, forks, closes its copy of the fd and
+  answers `ForkServerEvent.reply` (pid, or an error such as an unknown type — then nothing was forked);
+* zygote -> host: `ForkServerEvent.exit` (pid, exit code or signal) for every child it reaps. The agents
+  are the zygote's children, so it is the one that learns how each ended ("exited code 1", "killed by
+  signal 9"); the host turns that into the agent's Failed event.
+
+Lifetime: the zygote exits when the host's end of the socket closes (it SIGKILLs and reaps its children
+first), and it asks the kernel to SIGKILL it if haa-hostd dies (PR_SET_PDEATHSIG); every child asks the
+same about the zygote. So no agent outlives its host. The zygote runs in its own session, so a Ctrl-C in
+the host's terminal reaches only haa-hostd, which then closes its agents in order.
+
+Preloading: the registry (`haa.agents.registry.load_all`: agent modules, entry points, HAA_AGENT_MODULES,
+--preload), the runtime, protobuf, uvloop; then `gc.freeze()` so the children share the preloaded objects'
+pages instead of copying them when the collector touches them. Math libraries are limited to one thread
+(OMP/OPENBLAS/MKL_NUM_THREADS=1 unless set): an agent is one process whose CPU the host measures, and
+forking after a thread pool started is unsafe.
+
+`ForkServer` is the host's side (asyncio); `serve()` is the zygote's main (`python -m haa.agents.forkserver`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import ctypes
+import gc
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from haa.pb import agent_pb2 as pb
+
+PR_SET_PDEATHSIG = 1
+#: largest packet on the control socket (the ready message with the type table is the big one)
+MAX_PACKET = 1 << 20
+#: environment defaults for the zygote (one math thread per agent process)
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+class SpawnError(RuntimeError):
+    """An agent process could not be started (unknown type, fork failure, no Hello, fork server gone)."""
+
+
+def set_pdeathsig(sig: int = signal.SIGKILL) -> bool:
+    """Ask Linux to send `sig` to this process when its parent dies; False where unsupported."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+# ====================================================================================== zygote side
+
+
+def _send(sock: socket.socket, ev: pb.ForkServerEvent) -> None:
+    sock.sendall(ev.SerializeToString())
+
+
+def serve(fd: int, preload: Sequence[str] = ()) -> int:
+    """The zygote's main loop (module docstring); returns when the host closes the socket."""
+    parent = os.getppid()
+    set_pdeathsig()
+    if os.getppid() != parent:  # the host died before prctl took effect
+        return 1
+    sock = socket.socket(fileno=fd)
+    sock.setblocking(True)
+    t0 = time.perf_counter()
+    # preloaded for the children
+    from haa.agents import base as _base  # noqa: F401
+    from haa.agents import registry, runner  # noqa: F401
+
+    with contextlib.suppress(ImportError):
+        import uvloop  # noqa: F401
+    errors = registry.load_all(preload)
+    for e in errors:
+        print(f"haa fork server: {e}", file=sys.stderr)
+    types = [pb.AgentTypeInfo(**registry.type_info(cls)) for cls in registry.REGISTRY.values()]
+    gc.collect()
+    gc.freeze()
+    ready = pb.ForkServerEvent(
+        ready=pb.ForkServerEvent.Ready(
+            pid=os.getpid(), types=types, load_errors=errors, preload_seconds=time.perf_counter() - t0
+        )
+    )
+    _send(sock, ready)
+
+    rpipe, wpipe = os.pipe()
+    os.set_blocking(rpipe, False)
+    os.set_blocking(wpipe, False)
+    signal.signal(signal.SIGCHLD, lambda *_: None)
+    signal.set_wakeup_fd(wpipe)
+    children: set[int] = set()
+    sel = selectors.DefaultSelector()
+    sel.register(sock, selectors.EVENT_READ)
+    sel.register(rpipe, selectors.EVENT_READ)
+
+    def reap() -> None:
+        while children:
+            try:
+                pid, status = os.waitpid(-1, os.WNOHANG)
+            except ChildProcessError:
+                children.clear()
+                return
+            if pid == 0:
+                return
+            children.discard(pid)
+            if os.WIFSIGNALED(status):
+                ev = pb.ForkServerEvent.ChildExit(pid=pid, signal=os.WTERMSIG(status))
+            else:
+                ev = pb.ForkServerEvent.ChildExit(pid=pid, exit_code=os.waitstatus_to_exitcode(status))
+            with contextlib.suppress(OSError):
+                _send(sock, pb.ForkServerEvent(exit=ev))
+
+    try:
+        while True:
+            for key, _ in sel.select():
+                if key.fileobj is sock:
+                    try:
+                        data, fds, _flags, _addr = socket.recv_fds(sock, MAX_PACKET, 4)
+                    except ConnectionError:
+                        return 0
+                    if not data and not fds:
+                        return 0  # the host closed its end
+                    pid = _fork_one(sock, data, fds, children, (rpipe, wpipe, sel))
+                    if pid:
+                        children.add(pid)
+                else:
+                    with contextlib.suppress(BlockingIOError):
+                        while os.read(rpipe, 4096):
+                            pass
+                    reap()
+            reap()  # SIGCHLDs can coalesce; reaping is cheap
+    finally:
+        for pid in list(children):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        while children:
+            try:
+                pid, _status = os.waitpid(-1, 0)
+            except ChildProcessError:
+                break
+            children.discard(pid)
+
+
+def _fork_one(sock: socket.socket, data: bytes, fds: list[int], children: set[int],
+              private: tuple[int, int, selectors.BaseSelector]) -> int:
+    """Handle one request: check the type, fork, answer. Returns the child's pid (0 if none)."""
+    from haa.agents import registry
+
+    req = pb.ForkServerRequest()
+    try:
+        req.ParseFromString(data)
+    except Exception as e:
+        for fd in fds:
+            os.close(fd)
+        _send(sock, pb.ForkServerEvent(reply=pb.ForkServerEvent.Reply(error=f"malformed fork request: {e}")))
+        return 0
+
+    def refuse(message: str) -> int:
+        for fd in fds:
+            os.close(fd)
+        _send(sock, pb.ForkServerEvent(reply=pb.ForkServerEvent.Reply(req_id=req.req_id, error=message)))
+        return 0
+
+    if len(fds) != 1:
+        return refuse(f"a fork request needs exactly one channel fd, got {len(fds)}")
+    if req.type_name not in registry.REGISTRY:
+        return refuse(str(registry.UnknownAgentType(req.type_name, registry.REGISTRY)))
+    (fd,) = fds
+    sys.stdout.flush()
+    sys.stderr.flush()
+    zygote = os.getpid()
+    try:
+        pid = os.fork()
+    except OSError as e:
+        return refuse(f"fork failed: {e}")
+    if pid == 0:  # ---------------------------------------------------------------- the agent process
+        code = 70
+        try:
+            signal.set_wakeup_fd(-1)
+            signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+            rpipe, wpipe, sel = private
+            os.close(rpipe)
+            os.close(wpipe)
+            os.close(sel.fileno())  # not sel.close(): the epoll instance is shared with the zygote
+            sock.close()  # the child's copy only; the zygote's stays open
+            set_pdeathsig()
+            if os.getppid() != zygote:
+                os._exit(1)
+            if req.log_path:
+                out = os.open(req.log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+                os.dup2(out, 1)
+                os.dup2(out, 2)
+                os.close(out)
+            if req.exec:
+                os.set_inheritable(fd, True)
+                os.execv(sys.executable, [sys.executable, "-m", "haa.agents.runner", "--fd", str(fd)])
+            from haa.agents.runner import run_child
+
+            code = run_child(fd)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                traceback.print_exc()
+        finally:
+            with contextlib.suppress(Exception):
+                sys.stdout.flush()
+                sys.stderr.flush()
+            os._exit(code)
+    os.close(fd)  # ---------------------------------------------------------------------- the zygote
+    _send(sock, pb.ForkServerEvent(reply=pb.ForkServerEvent.Reply(req_id=req.req_id, pid=pid)))
+    return pid
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="HAA agent fork server (started by haa-hostd)")
+    ap.add_argument("--fd", type=int, required=True, help="the SOCK_SEQPACKET control socket")
+    ap.add_argument("--preload", default="", help="extra modules to import, comma separated")
+    args = ap.parse_args(argv)
+    return serve(args.fd, [m for m in args.preload.split(",") if m])
+
+
+# ====================================================================================== host side
+
+ExitCallback = Callable[[int, str], None]
+
+
+def exit_reason(exit_code: int, sig: int) -> str:
+    """The Failed reason of an exit status: "exited code N" or "killed by signal S"."""
+    return f"killed by signal {sig}" if sig else f"exited code {exit_code}"
+
+
+class ForkServer:
+    """The host's handle on a zygote: start it, fork agents, learn how they exit (asyncio).
+
+    `on_exit(pid, reason)` is called from the event loop for every reaped child; `on_dead()` once if the
+    zygote itself goes away while it should be running.
+    """
+
+    def __init__(
+        self,
+        on_exit: ExitCallback,
+        *,
+        on_dead: Callable[[str], None] | None = None,
+        workdir: Path | None = None,
+        preload: Sequence[str] = (),
+        env: dict[str, str] | None = None,
+    ) -> None:
+        self.on_exit = on_exit
+        self.on_dead = on_dead
+        self.workdir = workdir
+        self.preload = list(preload)
+        self.env = env
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.sock: socket.socket | None = None
+        self.types: dict[str, pb.AgentTypeInfo] = {}
+        self.load_errors: list[str] = []
+        self.preload_seconds = 0.0
+        self.start_seconds = 0.0
+        self._pending: dict[int, asyncio.Future[int]] = {}
+        self._next = 1
+        self._reader: asyncio.Task[None] | None = None
+        self._closing = False
+        self.alive = False
+
+    async def start(self, timeout: float = 60.0) -> None:
+        """Start the zygote and wait until it has preloaded everything."""
+        t0 = time.perf_counter()
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        env = dict(os.environ if self.env is None else self.env)
+        for k, v in THREAD_ENV.items():
+            env.setdefault(k, v)
+        cmd = [sys.executable, "-m", "haa.agents.forkserver", "--fd", str(theirs.fileno())]
+        if self.preload:
+            cmd += ["--preload", ",".join(self.preload)]
+        try:
+            self.proc = subprocess.Popen(
+                cmd,
+                pass_fds=[theirs.fileno()],
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                cwd=self.workdir,
+                env=env,
+            )
+        finally:
+            theirs.close()
+        mine.setblocking(False)
+        self.sock = mine
+        loop = asyncio.get_running_loop()
+        try:
+            data = await asyncio.wait_for(loop.sock_recv(mine, MAX_PACKET), timeout)
+        except TimeoutError:
+            await self.close()
+            raise SpawnError(f"the agent fork server did not start within {timeout:g} s") from None
+        ev = pb.ForkServerEvent()
+        if not data:
+            code = self.proc.wait(5)
+            await self.close()
+            raise SpawnError(f"the agent fork server exited during start ({exit_reason(code, 0)}; see its stderr)")
+        ev.ParseFromString(data)
+        if ev.WhichOneof("ev") != "ready":
+            await self.close()
+            raise SpawnError(f"the agent fork server sent {ev.WhichOneof('ev')} instead of ready")
+        self.types = {t.type_name: t for t in ev.ready.types}
+        self.load_errors = list(ev.ready.load_errors)
+        self.preload_seconds = ev.ready.preload_seconds
+        self.start_seconds = time.perf_counter() - t0
+        self.alive = True
+        self._reader = asyncio.create_task(self._read(), name="forkserver-reader")
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc is not None else None
+
+    async def fork(self, type_name: str, agent_id: str, channel_fd: int, *, log_path: str = "",
+                   exec_: bool = False, timeout: float = 10.0) -> int:
+        """Fork an agent process with `channel_fd` as its channel; its pid. SpawnError if refused."""
+        if not self.alive or self.sock is None:
+            raise SpawnError("the agent fork server is not running")
+        req_id = self._next
+        self._next += 1
+        req = pb.ForkServerRequest(req_id=req_id, type_name=type_name, agent_id=agent_id, log_path=log_path,
+                                   exec=exec_)
+        fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        self._pending[req_id] = fut
+        data = req.SerializeToString()
+        try:
+            deadline = time.monotonic() + timeout
+            while True:
+                try:
+                    socket.send_fds(self.sock, [data], [channel_fd])
+                    break
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        raise SpawnError("the agent fork server is not reading its requests") from None
+                    await asyncio.sleep(0.002)
+                except OSError as e:
+                    raise SpawnError(f"the agent fork server is gone: {e}") from None
+            try:
+                return await asyncio.wait_for(fut, timeout)
+            except TimeoutError:
+                raise SpawnError(f"the agent fork server did not answer within {timeout:g} s") from None
+        finally:
+            self._pending.pop(req_id, None)
+
+    async def _read(self) -> None:
+        assert self.sock is not None
+        loop = asyncio.get_running_loop()
+        reason = "closed its socket"
+        try:
+            while True:
+                try:
+                    data = await loop.sock_recv(self.sock, MAX_PACKET)
+                except OSError as e:
+                    reason = f"socket error: {e}"
+                    break
+                if not data:
+                    break
+                ev = pb.ForkServerEvent()
+                try:
+                    ev.ParseFromString(data)
+                except Exception as e:
+                    reason = f"sent a malformed packet: {e}"
+                    break
+                kind = ev.WhichOneof("ev")
+                if kind == "reply":
+                    fut = self._pending.get(ev.reply.req_id)
+                    if fut is not None and not fut.done():
+                        if ev.reply.error:
+                            fut.set_exception(SpawnError(ev.reply.error))
+                        else:
+                            fut.set_result(ev.reply.pid)
+                elif kind == "exit":
+                    try:
+                        self.on_exit(ev.exit.pid, exit_reason(ev.exit.exit_code, ev.exit.signal))
+                    except Exception:
+                        traceback.print_exc()
+        finally:
+            self.alive = False
+            for fut in self._pending.values():
+                if not fut.done():
+                    fut.set_exception(SpawnError(f"the agent fork server {reason}"))
+            if not self._closing and self.on_dead is not None:
+                self.on_dead(reason)
+
+    async def close(self, timeout: float = 5.0) -> None:
+        """Close the socket (the zygote kills its children and exits) and wait for it."""
+        self._closing = True
+        self.alive = False
+        if self._reader is not None:
+            self._reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._reader
+        if self.sock is not None:
+            self.sock.close()
+        if self.proc is not None:
+            deadline = time.monotonic() + timeout
+            while self.proc.poll() is None and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            if self.proc.poll() is None:
+                self.proc.kill()
+                with contextlib.suppress(Exception):
+                    self.proc.wait(2)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
