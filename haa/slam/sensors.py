@@ -1,0 +1,369 @@
+"""Sensor models: each reading gives a map update and a per-particle observation density g(y | x) (§5.1.4).
+
+Readings (plain frozen dataclasses, validated on construction with a one-line error naming the field):
+
+* `SonarReading` — one sonar's echo: bearing on the avatar, range (None: no echo within max_range), cone
+  field of view, max range (Table 6.2-4: 0.349 rad, 2 m).
+* `LandmarkReading` — a landmark seen by the camera: id, range, bearing (noise ∝ range, Table 6.2-4).
+* `CooccupancyReading` — "if the area is occupied by the avatar it is not occupied by an obstacle"
+  (AgentSensorCooccupancy): the disc under the avatar is free.
+* `FloorReading` — a floor region found in a camera image and already mapped to the ground plane (the
+  FloorFinder's output): a polygon in the avatar frame whose inside is free.
+
+Grid sensors use *belief templates*: a fixed set of sample points in the avatar frame, one per cell area
+(polar sampling for cones), each with a sensor model value p(s|C). Per reading the template is moved to
+every particle's pose at the reading time (an (N, K) array operation), then
+`OccupancyGrid.log_likelihood` gives log g per particle (computed against the map *before* this reading is
+added, so a reading never confirms itself) and `OccupancyGrid.mixture_update` applies the template at each
+particle adjusted by its weight.
+
+The sonar template follows the idea of Howard & Kitchen (thesis ref. [85], "Generating sonar maps in highly
+specular environments"): the cone in front of the echo is evidence of free space, strongest on the axis
+and fading to the cone's edges; the arc at the echo range is evidence of occupancy, but weaker than the
+free evidence because only one point of the arc reflected; a reading with no echo is weak evidence of free
+space only (in a specular environment a missing echo often means a glancing reflection, not empty space).
+
+Landmarks are point features with a shared estimate per id (mean and 2×2 covariance, `LandmarkMap`) — the
+thesis reports "landmark error" and "landmark covariance". For a sighting, particle i implies the landmark
+at p_i = (x_i + r cos(θ_i + b), y_i + r sin(θ_i + b)) with the sensor covariance R_i (range σ_r, bearing
+σ_b, rotated to the world); log g_i is the Gaussian log density of p_i − μ under Σ_L + R_i. The estimate is
+then updated (Kalman) with the weighted mixture of the p_i: mean Σ w_i p_i, covariance the weighted
+scatter plus R. A first sighting only creates the estimate (no density: nothing to compare with).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from haa.slam.grid import OccupancyGrid
+
+
+def _finite(obj: object, *names: str) -> None:
+    for name in names:
+        v = getattr(obj, name)
+        if not math.isfinite(v):
+            raise ValueError(f"{type(obj).__name__}.{name}: must be finite, got {v}")
+
+
+@dataclass(frozen=True)
+class SonarReading:
+    avatar: str
+    t: float
+    bearing: float  # rad, relative to the avatar heading
+    range: float | None  # m; None = no echo within max_range
+    fov: float = 0.349
+    max_range: float = 2.0
+    kind: str = field(default="sonar", init=False)
+
+    def __post_init__(self) -> None:
+        _finite(self, "t", "bearing", "fov", "max_range")
+        if not 0 < self.fov < math.pi:
+            raise ValueError(f"SonarReading.fov: must be in (0, π), got {self.fov}")
+        if not self.max_range > 0:
+            raise ValueError(f"SonarReading.max_range: must be > 0, got {self.max_range}")
+        if self.range is not None and not (math.isfinite(self.range) and 0 <= self.range <= self.max_range):
+            raise ValueError(
+                f"SonarReading.range: must be in [0, max_range={self.max_range}] or None, got {self.range}"
+            )
+
+
+@dataclass(frozen=True)
+class LandmarkReading:
+    avatar: str
+    t: float
+    landmark_id: int
+    range: float
+    bearing: float
+    kind: str = field(default="landmark", init=False)
+
+    def __post_init__(self) -> None:
+        _finite(self, "t", "range", "bearing")
+        if not self.range > 0:
+            raise ValueError(f"LandmarkReading.range: must be > 0, got {self.range}")
+
+
+@dataclass(frozen=True)
+class CooccupancyReading:
+    avatar: str
+    t: float
+    radius: float = 0.15  # m, the avatar's footprint
+    kind: str = field(default="cooccupancy", init=False)
+
+    def __post_init__(self) -> None:
+        _finite(self, "t", "radius")
+        if not self.radius > 0:
+            raise ValueError(f"CooccupancyReading.radius: must be > 0, got {self.radius}")
+
+
+@dataclass(frozen=True)
+class FloorReading:
+    avatar: str
+    t: float
+    polygon: tuple[tuple[float, float], ...]  # avatar frame (x forward, y left), metres
+    kind: str = field(default="floor", init=False)
+
+    def __post_init__(self) -> None:
+        _finite(self, "t")
+        if len(self.polygon) < 3:
+            raise ValueError(f"FloorReading.polygon: needs at least 3 vertices, got {len(self.polygon)}")
+        if not all(len(v) == 2 and math.isfinite(v[0]) and math.isfinite(v[1]) for v in self.polygon):
+            raise ValueError("FloorReading.polygon: vertices must be finite (x, y) pairs")
+
+
+Reading = SonarReading | LandmarkReading | CooccupancyReading | FloorReading
+
+
+@dataclass
+class Template:
+    """Belief template: sample points in the avatar frame and their p(s|C)."""
+
+    points: np.ndarray  # (K, 2)
+    p: np.ndarray  # (K,)
+
+
+def place(states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World coordinates (N, K) of avatar-frame points for every particle state (N, 3)."""
+    c, s = np.cos(states[:, 2])[:, None], np.sin(states[:, 2])[:, None]
+    px, py = points[None, :, 0], points[None, :, 1]
+    return states[:, 0:1] + c * px - s * py, states[:, 1:2] + s * px + c * py
+
+
+def template_cells(grid: OccupancyGrid, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Flat cell indices (N, K) of the template points placed at every particle (float32 arithmetic)."""
+    res = grid.spec.resolution
+    u0, v0 = grid.cell_units(states[:, 0], states[:, 1])
+    th = states[:, 2]
+    c = np.cos(th).astype(np.float32)[:, None]
+    s = np.sin(th).astype(np.float32)[:, None]
+    qx = (points[:, 0] / res).astype(np.float32)[None, :]
+    qy = (points[:, 1] / res).astype(np.float32)[None, :]
+    u = u0.astype(np.float32)[:, None] + (c * qx - s * qy)
+    v = v0.astype(np.float32)[:, None] + (s * qx + c * qy)
+    return grid.flat_from_units(u, v)
+
+
+def apply_template(
+    grid: OccupancyGrid, states: np.ndarray, weights: np.ndarray, tpl: Template, temper: float, update: bool = True
+) -> np.ndarray:
+    """log g per particle against the current map, then (optionally) the weighted map update."""
+    flat = template_cells(grid, states, tpl.points)
+    log_g = grid.log_likelihood(flat, tpl.p, temper)
+    if update:
+        grid.mixture_update(flat, tpl.p, weights)
+    return log_g
+
+
+def _cone_points(d_min: float, d_max: float, half: float, res: float) -> tuple[np.ndarray, np.ndarray]:
+    """Polar samples (distance, angle) of a cone, about one per cell area."""
+    n_r = max(1, math.ceil((d_max - d_min) / res))
+    ds = d_min + (np.arange(n_r) + 0.5) * (d_max - d_min) / n_r
+    dd, aa = [], []
+    for d in ds:
+        n_a = max(1, math.ceil(2 * half * d / res))
+        dd.append(np.full(n_a, d))
+        aa.append(((np.arange(n_a) + 0.5) / n_a * 2 - 1) * half)
+    return np.concatenate(dd), np.concatenate(aa)
+
+
+@dataclass
+class SonarModel:
+    """Cone belief template for one sonar echo (see the module docstring)."""
+
+    resolution: float = 0.1
+    p_free: float = 0.30  # on the axis, inside the echo range
+    p_occ: float = 0.72  # on the axis, at the echo range
+    p_free_no_echo: float = 0.42  # on the axis, for a reading without an echo
+    arc_width: float = 0.1  # m, thickness of the occupied arc
+    mount_radius: float = 0.0  # m, sonar distance from the avatar centre along its bearing
+    temper: float = 0.25
+    _cache: OrderedDict = field(default_factory=OrderedDict, repr=False)
+
+    def template(self, r: SonarReading) -> Template:
+        rq = None if r.range is None else round(r.range / (self.resolution / 4))
+        key = (rq, round(r.bearing, 4), round(r.fov, 4), round(r.max_range, 3))
+        tpl = self._cache.get(key)
+        if tpl is not None:
+            self._cache.move_to_end(key)
+            return tpl
+        half = r.fov / 2
+        res = self.resolution
+        if r.range is None:
+            d, a = _cone_points(0.0, r.max_range, half, res)
+            fall = 1.0 - 0.5 * (a / half) ** 2
+            p = 0.5 - (0.5 - self.p_free_no_echo) * fall
+        else:
+            rng = rq * (self.resolution / 4)
+            d_free_end = max(0.0, rng - self.arc_width / 2)
+            pts_d, pts_a, pts_p = [], [], []
+            if d_free_end > 0:
+                d, a = _cone_points(0.0, d_free_end, half, res)
+                fall = 1.0 - 0.5 * (a / half) ** 2
+                pts_d.append(d), pts_a.append(a), pts_p.append(0.5 - (0.5 - self.p_free) * fall)
+            d, a = _cone_points(d_free_end, min(rng + self.arc_width / 2, r.max_range + self.arc_width / 2), half, res)
+            fall = 1.0 - 0.5 * (a / half) ** 2
+            pts_d.append(d), pts_a.append(a), pts_p.append(0.5 + (self.p_occ - 0.5) * fall)
+            d, a, p = np.concatenate(pts_d), np.concatenate(pts_a), np.concatenate(pts_p)
+        ang = r.bearing + a
+        pts = np.stack(
+            [
+                self.mount_radius * math.cos(r.bearing) + d * np.cos(ang),
+                self.mount_radius * math.sin(r.bearing) + d * np.sin(ang),
+            ],
+            axis=1,
+        )
+        tpl = Template(pts, p)
+        self._cache[key] = tpl
+        if len(self._cache) > 4096:
+            self._cache.popitem(last=False)
+        return tpl
+
+    def apply(self, r: SonarReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
+        return apply_template(grid, states, weights, self.template(r), self.temper)
+
+
+@dataclass
+class CooccupancyModel:
+    """The disc under the avatar is free."""
+
+    resolution: float = 0.1
+    p_free: float = 0.25
+    temper: float = 0.25
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def template(self, radius: float) -> Template:
+        key = round(radius, 3)
+        tpl = self._cache.get(key)
+        if tpl is None:
+            res = self.resolution
+            k = math.ceil(radius / res)
+            g = np.arange(-k, k + 1) * res
+            xx, yy = np.meshgrid(g, g)
+            inside = xx**2 + yy**2 <= radius**2
+            pts = np.stack([xx[inside], yy[inside]], axis=1)
+            tpl = Template(pts, np.full(len(pts), self.p_free))
+            self._cache[key] = tpl
+        return tpl
+
+    def apply(self, r: CooccupancyReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
+        return apply_template(grid, states, weights, self.template(r.radius), self.temper)
+
+
+def points_in_polygon(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Even-odd rule, vectorized over the points."""
+    inside = np.zeros(px.shape, dtype=bool)
+    x0, y0 = poly[-1]
+    for x1, y1 in poly:
+        crosses = (y1 > py) != (y0 > py)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xint = x1 + (py - y1) * (x0 - x1) / (y0 - y1)
+        inside ^= crosses & (px < xint)
+        x0, y0 = x1, y1
+    return inside
+
+
+@dataclass
+class FloorModel:
+    """A floor polygon (avatar frame) from the camera: its inside is free."""
+
+    resolution: float = 0.1
+    p_free: float = 0.35
+    temper: float = 0.25
+
+    def template(self, r: FloorReading) -> Template:
+        poly = np.asarray(r.polygon, dtype=np.float64)
+        res = self.resolution
+        lo, hi = poly.min(axis=0), poly.max(axis=0)
+        gx = np.arange(lo[0] + res / 2, hi[0], res)
+        gy = np.arange(lo[1] + res / 2, hi[1], res)
+        xx, yy = np.meshgrid(gx, gy)
+        inside = points_in_polygon(xx, yy, poly)
+        pts = np.stack([xx[inside], yy[inside]], axis=1)
+        return Template(pts, np.full(len(pts), self.p_free))
+
+    def apply(self, r: FloorReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
+        return apply_template(grid, states, weights, self.template(r), self.temper)
+
+
+@dataclass
+class Landmark:
+    mean: np.ndarray  # (2,)
+    cov: np.ndarray  # (2, 2)
+    sightings: int = 1
+
+
+class LandmarkMap:
+    """Landmark position estimates (mean, covariance) by id, shared by all avatars."""
+
+    def __init__(self) -> None:
+        self.landmarks: dict[int, Landmark] = {}
+
+    def __len__(self) -> int:
+        return len(self.landmarks)
+
+    def get(self, lid: int) -> Landmark | None:
+        return self.landmarks.get(lid)
+
+    def fuse(self, lid: int, mean: np.ndarray, cov: np.ndarray) -> None:
+        """Kalman update of landmark `lid` with an independent position measurement (mean, cov)."""
+        lm = self.landmarks.get(lid)
+        if lm is None:
+            self.landmarks[lid] = Landmark(mean.copy(), cov.copy())
+            return
+        gain = lm.cov @ np.linalg.inv(lm.cov + cov)
+        lm.mean = lm.mean + gain @ (mean - lm.mean)
+        c = (np.eye(2) - gain) @ lm.cov
+        lm.cov = 0.5 * (c + c.T)
+        lm.sightings += 1
+
+    def errors(self, truth: dict[int, tuple[float, float]]) -> dict[str, float]:
+        """Landmark error (mean distance to the truth) and covariance (mean sqrt(trace Σ)), §7.1 tables."""
+        ids = [i for i in self.landmarks if i in truth]
+        if not ids:
+            return {"landmarks": 0, "landmark_error": math.nan, "landmark_cov": math.nan}
+        err = [float(np.hypot(*(self.landmarks[i].mean - np.asarray(truth[i])))) for i in ids]
+        cov = [math.sqrt(float(np.trace(self.landmarks[i].cov))) for i in ids]
+        return {"landmarks": len(ids), "landmark_error": float(np.mean(err)), "landmark_cov": float(np.mean(cov))}
+
+
+@dataclass
+class LandmarkModel:
+    """Range/bearing landmark sightings: σ_range = range_frac · range (≥ min_sigma), σ_bearing."""
+
+    range_frac: float = 0.09
+    sigma_bearing: float = 0.05
+    min_sigma: float = 0.02
+
+    def sensor_cov(self, r: LandmarkReading, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World-frame covariance (xx, yy, xy) of the implied landmark position, per direction phi."""
+        sr = max(self.range_frac * r.range, self.min_sigma) ** 2
+        st = max(r.range * self.sigma_bearing, self.min_sigma) ** 2
+        c, s = np.cos(phi), np.sin(phi)
+        return sr * c * c + st * s * s, sr * s * s + st * c * c, (sr - st) * c * s
+
+    def apply(
+        self, r: LandmarkReading, states: np.ndarray, weights: np.ndarray, landmarks: LandmarkMap
+    ) -> np.ndarray | None:
+        phi = states[:, 2] + r.bearing
+        px = states[:, 0] + r.range * np.cos(phi)
+        py = states[:, 1] + r.range * np.sin(phi)
+        rxx, ryy, rxy = self.sensor_cov(r, phi)
+        lm = landmarks.get(r.landmark_id)
+        log_g = None
+        if lm is not None:
+            sxx, syy, sxy = lm.cov[0, 0] + rxx, lm.cov[1, 1] + ryy, lm.cov[0, 1] + rxy
+            det = sxx * syy - sxy * sxy
+            ex, ey = px - lm.mean[0], py - lm.mean[1]
+            maha = (syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / det
+            log_g = -0.5 * maha - 0.5 * np.log(det)
+        # map update: the weighted mixture of the positions the particles imply
+        mx, my = float(weights @ px), float(weights @ py)
+        dx, dy = px - mx, py - my
+        cxx = float(weights @ (dx * dx + rxx))
+        cyy = float(weights @ (dy * dy + ryy))
+        cxy = float(weights @ (dx * dy + rxy))
+        landmarks.fuse(r.landmark_id, np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]))
+        return log_g

@@ -1,0 +1,149 @@
+"""Occupancy grid (eq. 5.1-2), sensor models and map metrics (eq. 7.1-1, 7.1-2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from haa.slam.grid import GridSpec, OccupancyGrid
+from haa.slam.metrics import explored_fraction, map_accuracy, map_coverage, pose_error
+from haa.slam.sensors import (
+    CooccupancyModel,
+    CooccupancyReading,
+    FloorModel,
+    FloorReading,
+    LandmarkMap,
+    LandmarkModel,
+    LandmarkReading,
+    SonarModel,
+    SonarReading,
+    points_in_polygon,
+)
+
+SPEC = GridSpec(6.0, 4.0, 0.1)
+
+
+def test_log_odds_update_is_bayes_rule():
+    g = OccupancyGrid(SPEC, clamp=50.0)
+    cell = g.cells(np.array([1.05]), np.array([2.05]))
+    p = 0.5
+    for s in (0.7, 0.3, 0.9, 0.8, 0.2):
+        p = s * p / (p * s + (1 - p) * (1 - s))  # eq. 5.1-2 literally
+        g.bayes_update(cell, np.array([s]))
+        assert math.isclose(float(g.prob()[20, 10]), p, rel_tol=1e-6)
+
+
+def test_mixture_update_adjusts_by_particle_weight():
+    pts = np.array([[0.0, 0.0]])
+    one = OccupancyGrid(SPEC)
+    states = np.array([[1.05, 1.05, 0.0], [3.05, 2.05, 0.0]])
+    from haa.slam.sensors import template_cells
+
+    flat = template_cells(one, states, pts)
+    one.mixture_update(flat, np.array([0.9]), np.array([1.0, 0.0]))
+    assert math.isclose(float(one.prob()[10, 10]), 0.9, rel_tol=1e-6)
+    assert one.prob()[20, 30] == 0.5  # a zero-weight particle changes nothing
+    two = OccupancyGrid(SPEC)
+    two.mixture_update(flat, np.array([0.9]), np.array([0.5, 0.5]))
+    assert math.isclose(float(two.prob()[10, 10]), 0.7, rel_tol=1e-6)  # 0.5 + 0.5 (0.9 − 0.5)
+    assert math.isclose(float(two.prob()[20, 30]), 0.7, rel_tol=1e-6)
+    # points outside the map fall on the border and change nothing
+    out = template_cells(two, np.array([[-5.0, -5.0, 0.0]]), pts)
+    before = two.prob()
+    two.mixture_update(out, np.array([0.9]), np.array([1.0]))
+    np.testing.assert_array_equal(two.prob(), before)
+
+
+def wall_map() -> OccupancyGrid:
+    """Free floor for x < 3, a wall at 3 <= x < 3.2."""
+    g = OccupancyGrid(SPEC)
+    p = np.full((g.rows, g.cols), 0.2)
+    p[:, 30:32] = 0.95
+    p[:, 32:] = 0.5
+    g.set_prob(p)
+    return g
+
+
+def test_sonar_density_prefers_the_true_pose_and_maps_the_echo():
+    g = wall_map()
+    m = SonarModel(resolution=0.1)
+    r = SonarReading("a", 0.0, 0.0, 2.0, 0.349, 2.0)  # wall 2 m ahead of (1, 2)
+    states = np.array([[1.0, 2.0, 0.0], [1.5, 2.0, 0.0], [0.5, 2.0, 0.0], [1.0, 2.0, 0.6]])
+    log_g = m.apply(r, states, np.array([1.0, 0.0, 0.0, 0.0]), g)
+    assert log_g.argmax() == 0
+    # the map: free in front of the true pose, more occupied at the echo
+    empty = OccupancyGrid(SPEC)
+    m.apply(r, states[:1], np.array([1.0]), empty)
+    p = empty.prob()
+    assert p[20, 15] < 0.4 and p[20, 30] > 0.6
+    # no echo: weak free evidence only
+    free = OccupancyGrid(SPEC)
+    m.apply(SonarReading("a", 0.0, 0.0, None, 0.349, 2.0), states[:1], np.array([1.0]), free)
+    assert 0.4 < free.prob()[20, 20] < 0.5 and free.prob().max() <= 0.5
+
+
+def test_landmark_density_and_estimate():
+    lms = LandmarkMap()
+    model = LandmarkModel(range_frac=0.05, sigma_bearing=0.02)
+    truth = np.array([3.0, 2.0])
+    states = np.array([[1.0, 2.0, 0.0], [1.3, 2.0, 0.0], [1.0, 2.4, 0.0]])
+    first = LandmarkReading("a", 0.0, 7, 2.0, 0.0)
+    assert model.apply(first, states[:1], np.array([1.0]), lms) is None  # first sighting: estimate only
+    np.testing.assert_allclose(lms.get(7).mean, truth)
+    cov0 = lms.get(7).cov.copy()
+    log_g = model.apply(first, states, np.array([1.0, 0.0, 0.0]), lms)
+    assert log_g is not None and log_g.argmax() == 0
+    assert np.trace(lms.get(7).cov) < np.trace(cov0)  # a second sighting sharpens it
+    e = lms.errors({7: (3.1, 2.0)})
+    assert e["landmarks"] == 1 and math.isclose(e["landmark_error"], 0.1, rel_tol=1e-6)
+
+
+def test_cooccupancy_frees_the_footprint_and_penalizes_overlap():
+    g = wall_map()
+    m = CooccupancyModel(resolution=0.1)
+    r = CooccupancyReading("a", 0.0, 0.15)
+    states = np.array([[1.0, 2.0, 0.0], [3.1, 2.0, 0.0]])  # the second sits in the wall
+    log_g = m.apply(r, states, np.array([1.0, 0.0]), g)
+    assert log_g[0] > log_g[1]
+    assert g.prob()[20, 10] < 0.2
+
+
+def test_floor_polygon_is_free():
+    poly = ((0.2, -0.3), (1.0, -0.6), (1.0, 0.6), (0.2, 0.3))
+    xs, ys = np.array([0.5, 0.1, 0.9, 0.9]), np.array([0.0, 0.0, 0.55, -0.7])
+    np.testing.assert_array_equal(points_in_polygon(xs, ys, np.asarray(poly)), [True, False, True, False])
+    g = OccupancyGrid(SPEC)
+    FloorModel(resolution=0.1).apply(FloorReading("a", 0.0, poly), np.array([[1.0, 2.0, 0.0]]), np.array([1.0]), g)
+    p = g.prob()
+    assert p[20, 16] < 0.5 and p[20, 9] == 0.5
+
+
+def test_bad_readings_name_the_field():
+    with pytest.raises(ValueError, match=r"SonarReading\.range"):
+        SonarReading("a", 0.0, 0.0, 3.0, 0.349, 2.0)
+    with pytest.raises(ValueError, match=r"LandmarkReading\.range"):
+        LandmarkReading("a", 0.0, 1, -1.0, 0.0)
+    with pytest.raises(ValueError, match=r"FloorReading\.polygon"):
+        FloorReading("a", 0.0, ((0.0, 0.0), (1.0, 0.0)))
+    with pytest.raises(ValueError, match=r"grid\.resolution"):
+        GridSpec(1.0, 1.0, 0.0)
+
+
+def test_map_metrics():
+    ideal = np.array([[0.0, 0.0, 1.0, 1.0]])
+    empty = np.full((1, 4), 0.5)
+    assert map_coverage(empty, ideal) == 0.0
+    assert map_accuracy(empty, ideal) == 0.5  # the thesis: a blank map has nominal accuracy 0.5
+    assert map_coverage(ideal, ideal) == 1.0 and map_accuracy(ideal, ideal) == 1.0
+    half = np.array([[0.1, 0.5, 0.9, 0.6]])
+    assert math.isclose(map_coverage(half, ideal), (0.4 + 0 + 0.4 + 0.1) / 2.0)
+    assert math.isclose(map_accuracy(half, ideal), 1 - (0.1 + 0.5 + 0.1 + 0.4) / 4)
+    region = np.array([[True, False, True, False]])
+    assert math.isclose(map_accuracy(half, ideal, region), 0.9)
+    assert explored_fraction(np.array([[0.8, 0.72, 0.26, 0.5]])) == 0.5
+    with pytest.raises(ValueError, match="ideal: shape"):
+        map_accuracy(half, np.zeros((2, 2)))
+    assert pose_error(np.array([1.0, 1.0, math.pi - 0.1]), (1.0, 2.0, -math.pi + 0.1))[0] == 1.0
+    assert math.isclose(pose_error(np.array([1.0, 1.0, math.pi - 0.1]), (1.0, 2.0, -math.pi + 0.1))[1], 0.2)

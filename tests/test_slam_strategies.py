@@ -1,0 +1,126 @@
+"""Reading schedulers (haa.slam.strategies): LIFO + OOO equals in-order with enough processing (Fig. 5.2-2),
+and each strategy's behaviour when processing is short."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from haa.slam.strategies import STRATEGIES, Capacity, discard_share, run, strategy
+from haa.slam.synthetic import synthetic_recording
+from haa.slam.system import SlamConfig, SlamSystem
+
+COST = {"sonar": 1.0, "landmark": 0.3, "cooccupancy": 0.5, "floor": 0.5}
+
+
+@pytest.fixture(scope="module")
+def rec():
+    return synthetic_recording(avatars=2, duration=40.0, seed=4)
+
+
+def spaced(rec):
+    """At most one reading per time (so with enough processing none waits for another)."""
+    seen, out = set(), []
+    for r in rec.readings:
+        if r.t not in seen:
+            seen.add(r.t)
+            out.append(r)
+    return dataclasses.replace(rec, readings=out)
+
+
+def replay(rec, name, capacity, n=40, seed=0):
+    s = strategy(name)
+    system = SlamSystem(rec.grid, SlamConfig(n_particles=n, forward_propagation=s.forward_propagation), seed=seed)
+    for a in rec.avatars:
+        system.add_avatar(a.name, a.start, 0.0)
+    stats = run(rec.events(1.0), s, capacity, system, seed=seed, keep_order=True)
+    return system, stats
+
+
+def state(system):
+    w = {k: pf.estimate().weights for k, pf in system.filters.items()}
+    lms = {k: (v.mean.copy(), v.cov.copy()) for k, v in system.landmarks.landmarks.items()}
+    return w, system.grid.prob(), lms
+
+
+def assert_same(a, b):
+    wa, ga, la = a
+    wb, gb, lb = b
+    for k in wa:
+        np.testing.assert_array_equal(wa[k], wb[k])
+    np.testing.assert_array_equal(ga, gb)
+    assert la.keys() == lb.keys()
+    for k in la:
+        np.testing.assert_array_equal(la[k][0], lb[k][0])
+
+
+def test_lifo_ooo_equals_in_order_with_enough_processing(rec):
+    sp = spaced(rec)
+    cap = Capacity(1, {k: 0.1 for k in COST})  # every reading done before the next arrives
+    runs = {name: replay(sp, name, cap) for name in ("jcslam", "fifo", "discard", "random")}
+    ref_sys, ref_stats = runs["fifo"]
+    assert ref_stats.processed + ref_stats.held_at_end == ref_stats.arrived == len(sp.readings)
+    assert ref_stats.held_at_end <= 1  # the last one may still be in progress when the recording ends
+    for name, (system, stats) in runs.items():
+        assert stats.order == ref_stats.order, name  # same readings, same order, same times
+        assert stats.out_of_order == 0
+        assert_same(state(system), state(ref_sys))
+    # with instantaneous processing every strategy is the Baseline, bit for bit
+    base_sys, _ = replay(sp, "baseline", None)
+    zero_sys, _ = replay(sp, "jcslam", Capacity(1, {k: 0.0 for k in COST}))
+    assert_same(state(zero_sys), state(base_sys))
+
+
+def test_equality_check_is_sensitive(rec):
+    """The comparison above would notice a different processing: drop one reading and it differs."""
+    sp = spaced(rec)
+    cap = Capacity(1, {k: 0.1 for k in COST})
+    a, _ = replay(sp, "fifo", cap)
+    b, _ = replay(dataclasses.replace(sp, readings=sp.readings[:-5] + sp.readings[-4:]), "fifo", cap)
+    with pytest.raises(AssertionError):
+        assert_same(state(a), state(b))
+
+
+def test_constrained_strategies_behave_as_specified(rec):
+    cap = Capacity(2, {k: 0.1 * c for k, c in COST.items()})
+    out = {name: replay(rec, name, cap)[1] for name in ("baseline", "discard", "jcslam", "fifo", "random", "delay")}
+    n = len(rec.readings)
+    assert out["baseline"].processed == n and out["baseline"].delay_sum == 0
+    d = out["discard"]
+    assert d.dropped > 0 and d.processed + d.dropped + d.held_at_end == n and d.out_of_order == 0
+    assert abs((d.processed + d.held_at_end) / n - discard_share([(r.t, r.kind) for r in rec.readings], cap)) < 1e-12
+    j, f, r = out["jcslam"], out["fifo"], out["random"]
+    assert j.processed >= d.processed  # held readings are processed during lulls
+    assert j.out_of_order > 0 and f.out_of_order == 0
+    # overloaded: FIFO falls behind (its delay grows), LIFO keeps processing the newest readings
+    over = Capacity(2, {k: 0.3 * c for k, c in COST.items()})
+    j2, f2 = replay(rec, "jcslam", over)[1], replay(rec, "fifo", over)[1]
+    assert j2.held_at_end > 0.2 * n and f2.held_at_end > 0.2 * n
+    assert f2.delay_sum / f2.processed > 5 * (j2.delay_sum / j2.processed)
+    assert r.out_of_order > 0
+    # FIFO's processing order is the arrival order; LIFO's is not
+    assert [t for _, t in f.order] == sorted(t for _, t in f.order)
+    dl = out["delay"]
+    assert dl.dropped == 0 and dl.processed == n - dl.held_at_end and dl.waited > 0 and dl.out_of_order == 0
+
+
+def test_random_is_reproducible_from_its_seed(rec):
+    cap = Capacity(1, {k: 0.3 * c for k, c in COST.items()})
+    a = replay(rec, "random", cap, seed=3)
+    b = replay(rec, "random", cap, seed=3)
+    assert a[1].order == b[1].order
+    assert_same(state(a[0]), state(b[0]))
+
+
+def test_strategy_and_capacity_errors(rec):
+    with pytest.raises(ValueError, match="strategy: unknown 'lilo'"):
+        strategy("lilo")
+    with pytest.raises(ValueError, match=r"capacity\.workers"):
+        Capacity(0, COST)
+    system = SlamSystem(rec.grid, SlamConfig(n_particles=10), seed=0)
+    with pytest.raises(ValueError, match="forward_propagation: must be False"):
+        run([], STRATEGIES["nfp"], Capacity(1, COST), system)
+    with pytest.raises(ValueError, match="needs a processing capacity"):
+        run([], STRATEGIES["jcslam"], None, system)
