@@ -130,6 +130,11 @@ class Channel(Generic[M]):
             raise ChannelError(
                 f"connection closed in the middle of a frame (got {len(e.partial)} of {HEADER.size} header bytes)"
             ) from None
+        except ConnectionResetError:
+            # the peer died with unread input in its socket (the kernel resets it): an end of stream
+            if not getattr(self.reader, "_buffer", b""):
+                return None
+            raise ChannelError("connection reset in the middle of a frame") from None
         except (ConnectionError, OSError) as e:
             raise ChannelError(f"read failed: {e}") from e
         (n,) = HEADER.unpack(header)

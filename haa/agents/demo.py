@@ -404,8 +404,9 @@ class ProbeAgent(AgentBase):
         out: Any = "ok"
         if op == "echo":
             out = cmd.get("data", "")
-        elif op == "send":
-            self.send(cmd["to"], str(cmd.get("data", "")).encode())
+        elif op == "send":  # "size": send that many bytes instead of "data"
+            data = b"x" * int(cmd["size"]) if "size" in cmd else str(cmd.get("data", "")).encode()
+            self.send(cmd["to"], data)
         elif op == "request":
             try:
                 data = str(cmd.get("data", "")).encode()

@@ -14,7 +14,7 @@ A new agent type is a subclass plus a registry entry, nothing else:
 in this order (`load_all`):
 
 1. every module of the `haa.agents` package except the runtime's own (base, channel, registry, runner,
-   forkserver, bench) — so an agent module dropped into haa/agents/ is found without editing a list;
+   forkserver, bench, harness) — so an agent module dropped into haa/agents/ is found without editing a list;
 2. the entry points of group `haa.agents` of installed distributions (third-party agent packages): an entry
    point names a module (imported for its `@register`s) or an AgentBase subclass (registered if it is not);
 3. the modules named in the environment variable `HAA_AGENT_MODULES` (comma separated) and the `extra`
@@ -40,7 +40,7 @@ from haa.agents.base import RECOVERY_STRATEGIES, AgentBase
 ENTRY_POINT_GROUP = "haa.agents"
 ENV_MODULES = "HAA_AGENT_MODULES"
 #: modules of haa.agents that are the runtime, not agent types
-RUNTIME_MODULES = frozenset({"base", "channel", "registry", "runner", "forkserver", "bench"})
+RUNTIME_MODULES = frozenset({"base", "channel", "registry", "runner", "forkserver", "bench", "harness"})
 
 TYPE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.\-]{0,63}$")
 

@@ -26,6 +26,7 @@ agent came up. Failed reasons start with one of
 
     "exited code N"           the process exited by itself (an agent's fatal error adds " (agent error: ...)")
     "killed by signal S"      e.g. kill -9, the OOM killer, `kill()`
+    "fork server died: ..."   the agents' parent died, and they with it (no exit status is known)
     "hung: no heartbeat for X s"   it stopped heartbeating for `hang_timeout`; the supervisor SIGKILLed it
     "channel error: ..."      it sent a malformed, oversized or out-of-place frame, or closed its channel
                               while alive; the supervisor SIGKILLed it
@@ -284,6 +285,7 @@ class _Instance:
         self.spec = spec
         self.pid = 0
         self.proc: psutil.Process | None = None
+        self.fork: ForkServer | None = None  # the fork server that forked it (and reports its exit)
         self.chan: Channel[pb.AgentToHost] | None = None
         self.state = "spawning"
         self.pending: deque[Envelope] = deque()
@@ -314,6 +316,16 @@ class _Instance:
     def count_in(self, env: Envelope) -> None:
         self.msgs_in[env.src] += 1
         self.bytes_in[env.src] += len(env.payload)
+
+
+def _alive(proc: psutil.Process | None) -> bool:
+    """Whether the process still runs (a zombie does not); False if unknown."""
+    if proc is None:
+        return False
+    try:
+        return proc.is_running() and proc.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 class AgentSupervisor:
@@ -508,6 +520,7 @@ class AgentSupervisor:
                                 exec_=self.cold_start)
             agent_sock.close()
             inst.pid = pid
+            inst.fork = fs
             self._by_pid[pid] = inst
             early = self._unclaimed_exits.pop(pid, None)
             if early is not None:
@@ -746,10 +759,10 @@ class AgentSupervisor:
                 self._on_frame(inst, msg)
                 if inst.terminal:
                     break
-        except ChannelError as e:
-            inst.fail_reason = inst.fail_reason or f"channel error: {e}"
-        except _ProtocolError as e:
-            inst.fail_reason = inst.fail_reason or f"channel error: {e}"
+        except (ChannelError, _ProtocolError) as e:
+            # a process that dies with unread input resets its socket: then the exit status is the reason
+            if inst.fail_reason is None and not await self._wait_exit(inst, 0.2):
+                inst.fail_reason = f"channel error: {e}"
         except asyncio.CancelledError:
             inst.chan.close()
             raise
@@ -781,29 +794,43 @@ class AgentSupervisor:
             del self._agents[inst.id]
 
     async def _wait_exit(self, inst: _Instance, timeout: float) -> bool:
-        try:
-            await asyncio.wait_for(inst.exited.wait(), timeout)
-            return True
-        except TimeoutError:
-            return False
+        """Wait up to `timeout` for the process's exit; True once it is gone. The fork server reports exits;
+        if the one that forked this agent died (its children die with it), psutil tells instead."""
+        end = time.monotonic() + timeout
+        while not inst.exited.is_set():
+            orphan = inst.fork is not None and not inst.fork.alive
+            if orphan and not _alive(inst.proc):
+                self._set_exited(inst, "fork server died: exit status unknown")
+                break
+            left = end - time.monotonic()
+            if left <= 0:
+                return False
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(inst.exited.wait(), min(left, 0.05) if orphan else left)
+        return True
+
+    def _set_exited(self, inst: _Instance, reason: str) -> None:
+        if inst.exit_reason is None:
+            inst.exit_reason = reason
+        if self._by_pid.get(inst.pid) is inst:
+            del self._by_pid[inst.pid]
+        inst.exited.set()
 
     async def _wait_gone(self, inst: _Instance, timeout: float) -> None:
-        """Wait until the fork server reports the exit; kill and fall back to psutil if it does not."""
+        """Wait until the process is gone; SIGKILL it if it does not go in time."""
         if await self._wait_exit(inst, timeout):
             return
         self._signal(inst, signal.SIGKILL)
         if await self._wait_exit(inst, 1.0):
             return
-        # the fork server is gone (its children die with it) or slow: ask the kernel
+        # the fork server is slow or stuck: ask the kernel
         if inst.proc is not None:
             with contextlib.suppress(psutil.Error):
                 await asyncio.to_thread(inst.proc.wait, 2.0)
-        if inst.exit_reason is None:
-            inst.exit_reason = "exited (status unknown: the fork server did not report it)"
-        self._by_pid.pop(inst.pid, None)
-        inst.exited.set()
+        self._set_exited(inst, "exit status unknown: the fork server did not report it")
 
     def _signal(self, inst: _Instance, sig: int) -> bool:
+        """Signal the agent's process unless it is known to be gone."""
         if not inst.pid or inst.exited.is_set():
             return False
         try:

@@ -1,0 +1,424 @@
+"""AgentBase / AgentContext in-process (no agent processes): the mailbox, conversations, timers, freeze,
+errors; and the registry's validation and naming helpers."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import pytest
+
+from haa.agents import registry
+from haa.agents.base import AgentBase, AgentContext, RemoteError, child_name, new_agent_id, root_name
+from haa.pb import agent_pb2 as pb
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 20))
+
+
+def make(cls, frames: list, *, epoch: int = 1, name: str = "A1") -> AgentContext:
+    init = pb.HostToAgent.Init(agent_id=new_agent_id(), name=name, type_name=cls.TYPE, epoch=epoch,
+                               config=b'{"x": 1}', host="h1")
+    return AgentContext(init, cls, frames.append)
+
+
+def msg(src: str, data: bytes, conv: int = 0, reply: bool = False, error: str = "") -> pb.HostToAgent:
+    return pb.HostToAgent(deliver=pb.AgentMsg(src=src, dst="me", payload=data, conv=conv, reply=reply, error=error))
+
+
+def start(ctx: AgentContext, how: str = "start") -> None:
+    ctx.feed(pb.HostToAgent(start=pb.HostToAgent.Start()))
+    ctx.feed(pb.HostToAgent(resume=pb.HostToAgent.Resume(how=how)))
+
+
+def kinds(frames: list) -> list[str]:
+    return [f.WhichOneof("msg") for f in frames]
+
+
+async def until(cond, timeout: float = 5.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not cond():
+        assert loop.time() < end, "timed out"
+        await asyncio.sleep(0.005)
+
+
+class Slow(AgentBase):
+    TYPE = "t-slow"
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.seen: list[bytes] = []
+        self.active = 0
+        self.max_active = 0
+        self.ticks = 0
+
+    async def on_start(self):
+        self.every(0.01, self.tick)
+
+    def tick(self):
+        self.ticks += 1
+
+    async def on_message(self, src, payload):
+        self.active += 1
+        self.max_active = max(self.max_active, self.active)
+        await asyncio.sleep(0.002)
+        self.seen.append(payload)
+        self.send(src, b"ack:" + payload)
+        self.active -= 1
+
+    async def on_request(self, src, payload):
+        if payload == b"boom":
+            raise KeyError("boom")
+        return payload.upper()
+
+    def pack_state(self):
+        return json.dumps([p.decode() for p in self.seen]).encode()
+
+
+def test_messages_are_handled_one_at_a_time_in_order_and_freeze_packs_after_them():
+    async def main():
+        frames: list = []
+        ctx = make(Slow, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        await until(lambda: ctx.agent.ticks >= 3)
+        for i in range(30):
+            ctx.feed(msg("peer", b"m%d" % i))
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        ticks_at_freeze = ctx.agent.ticks
+        code = await worker
+        a = ctx.agent
+        assert code == 0
+        assert a.max_active == 1
+        assert a.seen == [b"m%d" % i for i in range(30)]
+        assert a.ticks == ticks_at_freeze  # timers stop at the freeze, while the mailbox drains (>= 60 ms)
+        ks = kinds(frames)
+        assert ks[0] == "ready" and ks[-1] == "frozen"
+        sent = [f.sent.payload for f in frames if f.WhichOneof("msg") == "sent"]
+        assert sent == [b"ack:m%d" % i for i in range(30)]  # every Sent before the Frozen frame
+        assert json.loads(frames[-1].frozen.state) == [f"m{i}" for i in range(30)]
+
+    run(main())
+
+
+def test_requests_are_answered_and_errors_become_error_replies():
+    async def main():
+        frames: list = []
+        ctx = make(Slow, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        ctx.feed(msg("peer", b"hi", conv=5))
+        ctx.feed(msg("peer", b"boom", conv=6))
+        await until(lambda: len([f for f in frames if f.WhichOneof("msg") == "sent"]) == 2)
+        r1, r2 = [f.sent for f in frames if f.WhichOneof("msg") == "sent"]
+        assert (r1.dst, r1.conv, r1.reply, r1.payload, r1.error) == ("peer", 5, True, b"HI", "")
+        assert (r2.conv, r2.reply, r2.payload) == (6, True, b"")
+        assert r2.error == "KeyError: 'boom'"
+        ctx.feed(pb.HostToAgent(stop=pb.HostToAgent.Stop()))
+        assert await worker == 0
+        assert kinds(frames)[-1] == "stopped"
+
+    run(main())
+
+
+class Asker(AgentBase):
+    TYPE = "t-asker"
+
+    async def on_request(self, src, payload):
+        cmd = json.loads(payload)
+        try:
+            return await self.request(cmd["to"], b"q", timeout=cmd["timeout"])
+        except TimeoutError as e:
+            return b"timeout: " + str(e).encode()
+        except RemoteError as e:
+            return b"remote: " + str(e).encode()
+
+
+def test_request_timeout_late_reply_dropped_and_remote_error():
+    async def main():
+        frames: list = []
+        ctx = make(Asker, frames, epoch=7)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        ctx.feed(msg("op", json.dumps({"to": "b", "timeout": 0.05}).encode(), conv=1))
+        await until(lambda: any(f.WhichOneof("msg") == "sent" and f.sent.reply for f in frames))
+        out = [f.sent for f in frames if f.WhichOneof("msg") == "sent"]
+        req, reply = out[0], out[1]
+        assert req.dst == "b" and not req.reply and req.conv >> 32 == 7  # conversation ids carry the epoch
+        assert reply.payload == b"timeout: request to b timed out after 0.05 s"
+        ctx.feed(msg("b", b"late", conv=req.conv, reply=True))  # the late reply is dropped
+        await until(lambda: ctx.late_replies == 1)
+        # an error reply (e.g. from a host: no such agent) raises RemoteError in the requester
+        n = len(frames)
+        ctx.feed(msg("op", json.dumps({"to": "c", "timeout": 5}).encode(), conv=2))
+        await until(lambda: len(frames) > n)
+        req2 = frames[n].sent
+        ctx.feed(msg("", b"", conv=req2.conv, reply=True, error="no agent c"))
+        await until(lambda: any(f.WhichOneof("msg") == "sent" and f.sent.conv == 2 for f in frames))
+        assert [f.sent.payload for f in frames if f.WhichOneof("msg") == "sent" and f.sent.conv == 2] == [
+            b"remote: no agent c"
+        ]
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        assert await worker == 0
+
+    run(main())
+
+
+class Timers(AgentBase):
+    TYPE = "t-timers"
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.log_: list[str] = []
+
+    async def on_start(self):
+        self.call_later(0.01, lambda: self.log_.append("once"))
+        t = self.call_later(0.01, lambda: self.log_.append("cancelled"))
+        t.cancel()
+        self.every(0.005, self.tick)
+
+    async def tick(self):
+        self.log_.append("tick")
+        await asyncio.sleep(0)
+
+
+def test_timers_run_in_the_mailbox_and_cancel():
+    async def main():
+        frames: list = []
+        ctx = make(Timers, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        await until(lambda: ctx.agent.log_.count("tick") >= 5 and "once" in ctx.agent.log_)
+        assert "cancelled" not in ctx.agent.log_
+        assert ctx.agent.log_.count("once") == 1
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        assert await worker == 0
+
+    run(main())
+
+
+class Fragile(AgentBase):
+    TYPE = "t-fragile"
+
+    async def on_message(self, src, payload):
+        raise RuntimeError("bad message")
+
+    def unpack_state(self, data):
+        raise ValueError("corrupt state")
+
+
+class Brittle(Fragile):
+    TYPE = "t-brittle"
+    CRASH_ON_ERROR = True
+
+
+def test_handler_error_is_logged_and_the_agent_goes_on():
+    async def main():
+        frames: list = []
+        ctx = make(Fragile, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        ctx.feed(msg("p", b"x"))
+        ctx.feed(msg("p", b"y"))
+        await until(lambda: ctx.handler_errors == 2)
+        logs = [f.log for f in frames if f.WhichOneof("msg") == "log"]
+        assert [lg.event for lg in logs] == ["handler_error", "handler_error"]
+        assert json.loads(logs[0].fields_json)["error"] == "RuntimeError: bad message"
+        ctx.feed(pb.HostToAgent(stop=pb.HostToAgent.Stop()))
+        assert await worker == 0
+
+    run(main())
+
+
+def test_crash_on_error_and_fatal_hooks_exit_with_code_1():
+    async def main():
+        frames: list = []
+        ctx = make(Brittle, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        ctx.feed(msg("p", b"x"))
+        assert await worker == 1
+        assert frames[-1].error.message == "on_message raised RuntimeError: bad message"
+
+        frames2: list = []
+        ctx2 = make(Fragile, frames2)
+        worker2 = asyncio.create_task(ctx2.run())
+        ctx2.feed(pb.HostToAgent(thaw=pb.HostToAgent.Thaw(state=b"??")))
+        ctx2.feed(msg("p", b"queued"))
+        ctx2.feed(pb.HostToAgent(resume=pb.HostToAgent.Resume(how="thaw")))
+        assert await worker2 == 1
+        assert kinds(frames2) == ["error"]  # no Ready, the queued message was not handled
+        assert frames2[0].error.message == "unpack_state raised ValueError: corrupt state"
+
+    run(main())
+
+
+class Lister(AgentBase):
+    TYPE = "t-lister"
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.got: list[tuple[str, bytes]] = []
+        self.how: list[str] = []
+
+    async def on_message(self, src, payload):
+        self.got.append((src, payload))
+
+    def unpack_state(self, data):
+        self.got.append(("state", data))
+
+    def recover(self, backup):
+        self.got.append(("backup", backup))
+
+    async def on_resume(self, how):
+        self.how.append(how)
+
+
+def test_thaw_and_recover_order_state_messages_resume():
+    async def main():
+        for how, first in (
+            ("thaw", pb.HostToAgent(thaw=pb.HostToAgent.Thaw(state=b"S"))),
+            ("recover", pb.HostToAgent(recover=pb.HostToAgent.Recover(has_backup=False))),
+        ):
+            frames: list = []
+            ctx = make(Lister, frames)
+            worker = asyncio.create_task(ctx.run())
+            ctx.feed(first)
+            ctx.feed(msg("a", b"1"))
+            ctx.feed(msg("b", b"2"))
+            ctx.feed(pb.HostToAgent(resume=pb.HostToAgent.Resume(how=how)))
+            ctx.feed(msg("a", b"3"))
+            await until(lambda ctx=ctx: len(ctx.agent.got) == 4)
+            head = ("state", b"S") if how == "thaw" else ("backup", None)
+            assert ctx.agent.got == [head, ("a", b"1"), ("b", b"2"), ("a", b"3")]
+            assert ctx.agent.how == [how]
+            assert [f.ready.how for f in frames if f.WhichOneof("msg") == "ready"] == [how]
+            ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+            assert await worker == 0
+
+    run(main())
+
+
+def test_host_calls_and_watches():
+    class Caller(AgentBase):
+        TYPE = "t-caller"
+
+        def __init__(self, ctx):
+            super().__init__(ctx)
+            self.out: list = []
+
+        async def on_message(self, src, payload):
+            self.out.append(await self.ddb_get("k1"))
+            self.out.append(await self.ddb_get("nope"))
+            try:
+                await self.ddb_put("k2", b"v")
+            except Exception as e:
+                self.out.append(f"{type(e).__name__}: {e}")
+            self.out.append(await self.spawn_child("probe", {"a": 1}))
+            self.watch("cfg/", lambda ev, key, val: self.out.append((ev, key, val)))
+
+    async def main():
+        frames: list = []
+        ctx = make(Caller, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        ctx.feed(msg("p", b"go"))
+
+        async def answer(kind, **kw):
+            await until(lambda: any(f.WhichOneof("msg") == kind for f in frames))
+            f = next(f for f in frames if f.WhichOneof("msg") == kind)
+            frames.remove(f)
+            ctx.feed(pb.HostToAgent(answer=pb.HostToAgent.Answer(req_id=getattr(f, kind).req_id, **kw)))
+            return getattr(f, kind)
+
+        assert (await answer("ddb_get", ok=True, value=b"V1")).key == "k1"
+        assert (await answer("ddb_get", ok=True, missing=True)).key == "nope"
+        put = await answer("ddb_put", ok=False, error="not committed")
+        assert (put.key, put.value, put.type_name) == ("k2", b"v", "blob")
+        sc = await answer("spawn_child", ok=True, value=b"child-id")
+        assert (sc.type_name, json.loads(sc.config)) == ("probe", {"a": 1})
+        await until(lambda: any(f.WhichOneof("msg") == "ddb_watch" for f in frames))
+        w = next(f.ddb_watch for f in frames if f.WhichOneof("msg") == "ddb_watch")
+        assert w.prefix == "cfg/"
+        ctx.feed(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=w.watch_id, event="add", key="cfg/a",
+                                                                       has_value=True, value=b"1")))
+        await until(lambda: len(ctx.agent.out) == 5)
+        assert ctx.agent.out == [b"V1", None, "HostError: ddb_put 'k2': not committed", "child-id",
+                                 ("add", "cfg/a", b"1")]
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        assert await worker == 0
+
+    run(main())
+
+
+# ------------------------------------------------------------------------------------------ registry
+
+
+def test_registry_validates_types():
+    class NoType(AgentBase):
+        pass
+
+    class BadRecovery(AgentBase):
+        TYPE = "t-bad-recovery"
+        RECOVERY = "sometimes"
+
+    class BadPenalty(AgentBase):
+        TYPE = "t-bad-penalty"
+        TRANSFER_PENALTY = 2
+
+    class BadHardware(AgentBase):
+        TYPE = "t-bad-hw"
+        HARDWARE = ["camera"]
+
+    with pytest.raises(ValueError, match=r"TYPE must match"):
+        registry.register(NoType)
+    with pytest.raises(ValueError, match=r"RECOVERY must be one of \['backup', 'none', 'restart'\], got 'sometimes'"):
+        registry.register(BadRecovery)
+    with pytest.raises(ValueError, match=r"TRANSFER_PENALTY must be in \[0, 1\], got 2"):
+        registry.register(BadPenalty)
+    with pytest.raises(ValueError, match=r"HARDWARE must be a frozenset"):
+        registry.register(BadHardware)
+    with pytest.raises(TypeError, match="not a subclass"):
+        registry.register(dict)  # type: ignore[arg-type]
+    assert "t-bad-recovery" not in registry.REGISTRY
+
+
+def test_registry_register_get_and_conflicts():
+    class One(AgentBase):
+        TYPE = "t-one"
+        COST = 0.5
+        HARDWARE = frozenset({"camera"})
+
+    class Other(AgentBase):
+        TYPE = "t-one"
+
+    try:
+        assert registry.register(One) is One
+        assert registry.register(One) is One  # idempotent
+        assert registry.get("t-one") is One
+        with pytest.raises(ValueError, match="already registered"):
+            registry.register(Other)
+        with pytest.raises(LookupError, match=r"unknown agent type 'nope' \(registered: .*t-one"):
+            registry.get("nope")
+        info = registry.type_info(One)
+        assert info["cost"] == 0.5 and info["hardware"] == ["camera"] and info["recovery"] == "backup"
+    finally:
+        registry.REGISTRY.pop("t-one", None)
+
+
+def test_load_all_finds_demo_types_and_reports_bad_modules(monkeypatch):
+    monkeypatch.setenv(registry.ENV_MODULES, "haa.agents.no_such_module")
+    errors = registry.load_all()
+    assert {"counter", "spawner", "busy", "probe"} <= set(registry.REGISTRY)
+    assert any("haa.agents.no_such_module" in e and "ModuleNotFoundError" in e for e in errors)
+
+
+def test_names_follow_parentage():
+    assert root_name(6) == "A6"
+    assert child_name("A6.2", 1) == "A6.2.1"
+    with pytest.raises(ValueError, match="numbered from 1"):
+        child_name("A6", 0)
+    a, b = new_agent_id(), new_agent_id()
+    assert a != b and len(a) == 36

@@ -1,0 +1,102 @@
+"""haa.agents.channel: length-prefixed protobuf frames over a unix socketpair, and its errors."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+
+import pytest
+
+from haa.agents.channel import Channel, ChannelError, FrameTooLarge
+from haa.pb import agent_pb2 as pb
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 20))
+
+
+async def pair(max_frame: int = 1 << 20) -> tuple[Channel, Channel]:
+    a, b = socket.socketpair()
+    host = await Channel.open(a, pb.AgentToHost, max_frame=max_frame)
+    agent = await Channel.open(b, pb.HostToAgent, max_frame=max_frame)
+    return host, agent
+
+
+def test_frames_both_ways_in_order():
+    async def main():
+        host, agent = await pair()
+        for i in range(200):
+            host.send(pb.HostToAgent(deliver=pb.AgentMsg(src="x", dst="y", payload=bytes(i) * 50, conv=i)))
+            agent.send(pb.AgentToHost(heartbeat=pb.AgentToHost.Heartbeat(handled=i)))
+        for i in range(200):
+            m = await agent.recv()
+            assert m.WhichOneof("msg") == "deliver" and m.deliver.conv == i and len(m.deliver.payload) == 50 * i
+            h = await host.recv()
+            assert h.heartbeat.handled == i
+        host.close()
+        assert await agent.recv() is None  # clean end of stream between frames
+        agent.close()
+
+    run(main())
+
+
+def test_send_refuses_oversized_frame_before_writing():
+    async def main():
+        host, agent = await pair(max_frame=1000)
+        with pytest.raises(FrameTooLarge, match=r"frame of \d+ bytes \(deliver\) exceeds the limit of 1000 bytes"):
+            host.send(pb.HostToAgent(deliver=pb.AgentMsg(payload=b"x" * 2000)))
+        assert host.frames_out == 0
+        host.send(pb.HostToAgent(start=pb.HostToAgent.Start()))
+        m = await agent.recv()
+        assert m.WhichOneof("msg") == "start"
+        host.close()
+        agent.close()
+
+    run(main())
+
+
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        (struct.pack(">I", 0x7FFFFFFF), r"frame of 2147483647 bytes exceeds the limit of 4096 bytes"),
+        (struct.pack(">I", 3) + b"\xff\xff\xff", r"malformed frame \(3 bytes\)"),
+        (struct.pack(">I", 0), r"malformed frame \(0 bytes\): no known message in it"),
+        (struct.pack(">I", 2) + b"\x78\x01", r"no known message in it"),  # field 15 varint: unknown field only
+        (b"\x00\x00", r"closed in the middle of a frame \(got 2 of 4 header bytes\)"),
+        (struct.pack(">I", 10) + b"abc", r"closed in the middle of a frame \(got 3 of 10 body bytes\)"),
+    ],
+)
+def test_bad_frames_are_clear_errors(raw, message):
+    async def main():
+        a, b = socket.socketpair()
+        host = await Channel.open(a, pb.AgentToHost, max_frame=4096)
+        b.sendall(raw)
+        b.close()
+        with pytest.raises(ChannelError, match=message):
+            await host.recv()
+        host.close()
+
+    run(main())
+
+
+def test_send_after_close_is_a_channel_error():
+    async def main():
+        host, agent = await pair()
+        host.close()
+        with pytest.raises(ChannelError, match="closed"):
+            host.send(pb.HostToAgent(start=pb.HostToAgent.Start()))
+        agent.close()
+
+    run(main())
+
+
+def test_max_frame_is_validated():
+    async def main():
+        a, b = socket.socketpair()
+        with pytest.raises(ValueError, match="max_frame"):
+            await Channel.open(a, pb.AgentToHost, max_frame=0)
+        a.close()
+        b.close()
+
+    run(main())
