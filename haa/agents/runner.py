@@ -27,7 +27,7 @@ import os
 import socket
 import sys
 from collections.abc import Coroutine
-from typing import Any
+from typing import Any, TypeVar
 
 from haa.agents import registry
 from haa.agents.base import AgentContext, AgentFatal
@@ -37,6 +37,8 @@ from haa.pb import agent_pb2 as pb
 #: how long a new process waits for its Init frame
 INIT_TIMEOUT = 30.0
 
+T = TypeVar("T")
+
 EXIT_OK = 0
 EXIT_FATAL = 1
 EXIT_BAD_INIT = 2
@@ -44,7 +46,7 @@ EXIT_HOST_CLOSED = 3
 EXIT_CHANNEL_ERROR = 4
 
 
-def run_loop(coro: Coroutine[Any, Any, int]) -> int:
+def run_loop(coro: Coroutine[Any, Any, T]) -> T:
     """Run the coroutine on uvloop (default) or asyncio (HAA_EVENT_LOOP=asyncio)."""
     if os.environ.get("HAA_EVENT_LOOP", "uvloop") != "asyncio":
         try:

@@ -1,0 +1,200 @@
+"""Agent runtime benchmark: spawn latency through the fork server (AP-4's local part), cold start for
+comparison, memory per agent, and the local steps of a transfer (freeze -> Frozen, spawn + thaw -> Ready)
+and of a failure (kill -9 -> Failed).
+
+    python -m haa.agents.bench [-n 50] [--cold-n 10]     # prints markdown tables, writes bench-results/agents.json
+
+`measure_spawn(n)` is the function `haactl bench ap4` calls; it returns a dict of figures (seconds) and never
+fails on a timing. Everything runs on this machine with real processes (haa.agents.harness.LocalHosts is not
+involved: one AgentSupervisor, driven directly).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import platform
+import signal
+import statistics
+import time
+from typing import Any
+
+import psutil
+
+from haa.agents.base import new_agent_id
+from haa.hostd.agentproc import AgentEvent, AgentSupervisor, Failed, Frozen, InstanceSpec, Ready
+
+
+def _summary(xs: list[float]) -> dict[str, float]:
+    if not xs:
+        return {"n": 0}
+    xs = sorted(xs)
+    p90 = xs[min(len(xs) - 1, round(0.9 * (len(xs) - 1)))]
+    return {"n": len(xs), "median": statistics.median(xs), "p90": p90, "max": xs[-1], "min": xs[0],
+            "mean": statistics.fmean(xs)}
+
+
+class _Waiter:
+    def __init__(self) -> None:
+        self.events: list[AgentEvent] = []
+        self.cond: asyncio.Event = asyncio.Event()
+
+    def __call__(self, ev: AgentEvent) -> None:
+        self.events.append(ev)
+        self.cond.set()
+
+    async def wait(self, pred: Any, timeout: float = 30.0) -> AgentEvent:
+        end = time.monotonic() + timeout
+        while True:
+            for ev in self.events:
+                if pred(ev):
+                    self.events.remove(ev)
+                    return ev
+            left = end - time.monotonic()
+            if left <= 0:
+                raise TimeoutError("benchmark: event not seen")
+            self.cond.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.cond.wait(), left)
+
+
+async def ameasure_spawn(n: int = 50, *, cold: bool = False, type_name: str = "probe", transfers: int = 10,
+                         kills: int = 5) -> dict[str, Any]:
+    """The figures of `measure_spawn` (async)."""
+    w = _Waiter()
+    sup = AgentSupervisor("bench", w, heartbeat_period=0.5, hang_timeout=5.0, cold_start=cold)
+    t0 = time.perf_counter()
+    await sup.start()
+    start_s = time.perf_counter() - t0
+    hello: list[float] = []
+    ready: list[float] = []
+    freeze: list[float] = []
+    thaw: list[float] = []
+    kill: list[float] = []
+    rss: list[int] = []
+    uss: list[int] = []
+    ids: list[str] = []
+    try:
+        for i in range(n):
+            a = new_agent_id()
+            t0 = time.perf_counter()
+            await sup.spawn(InstanceSpec(a, f"A{i + 1}", type_name, b"{}", epoch=1))
+            t1 = time.perf_counter()
+            sup.start_fresh(a)
+            await w.wait(lambda ev, a=a: isinstance(ev, Ready) and ev.agent_id == a)
+            t2 = time.perf_counter()
+            hello.append(t1 - t0)
+            ready.append(t2 - t0)
+            ids.append(a)
+        for a in ids:
+            try:
+                mem = psutil.Process(sup.pid(a)).memory_full_info()
+                rss.append(mem.rss)
+                uss.append(mem.uss)
+            except (psutil.Error, KeyError):
+                pass
+        for a in ids[:transfers]:
+            t0 = time.perf_counter()
+            sup.freeze(a)
+            ev = await w.wait(lambda ev, a=a: isinstance(ev, Frozen) and ev.agent_id == a)
+            t1 = time.perf_counter()
+            assert isinstance(ev, Frozen)
+            await sup.spawn(InstanceSpec(a, "T", type_name, b"{}", epoch=2))
+            sup.thaw(a, ev.state, [])
+            await w.wait(lambda ev, a=a: isinstance(ev, Ready) and ev.agent_id == a)
+            t2 = time.perf_counter()
+            freeze.append(t1 - t0)
+            thaw.append(t2 - t1)
+        for a in ids[transfers:transfers + kills]:
+            pid = sup.pid(a)
+            t0 = time.perf_counter()
+            os.kill(pid, signal.SIGKILL)
+            await w.wait(lambda ev, a=a: isinstance(ev, Failed) and ev.agent_id == a)
+            kill.append(time.perf_counter() - t0)
+    finally:
+        await sup.close()
+    return {
+        "mode": "cold (exec)" if cold else "fork server",
+        "type": type_name,
+        "agents": n,
+        "forkserver_start_s": start_s,
+        "spawn_to_hello_s": _summary(hello),
+        "spawn_to_ready_s": _summary(ready),
+        "freeze_to_frozen_s": _summary(freeze),
+        "spawn_thaw_to_ready_s": _summary(thaw),
+        "kill9_to_failed_s": _summary(kill),
+        "rss_mib_mean": statistics.fmean(rss) / 2**20 if rss else None,
+        "uss_mib_mean": statistics.fmean(uss) / 2**20 if uss else None,
+    }
+
+
+def measure_spawn(n: int = 50, *, cold: bool = False, type_name: str = "probe", transfers: int = 10,
+                  kills: int = 5) -> dict[str, Any]:
+    """Spawn `n` agents one after the other (keeping them alive) and time each step; see the module docstring.
+
+    Returns {"spawn_to_ready_s": {"median", "p90", "max", ...}, "spawn_to_hello_s": ..., "freeze_to_frozen_s",
+    "spawn_thaw_to_ready_s", "kill9_to_failed_s", "forkserver_start_s", "rss_mib_mean", "uss_mib_mean"}.
+    """
+    from haa.agents.runner import run_loop  # uvloop unless HAA_EVENT_LOOP=asyncio, as in haa-hostd
+
+    return run_loop(ameasure_spawn(n, cold=cold, type_name=type_name, transfers=transfers, kills=kills))
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    def ms(s: dict[str, float], k: str) -> str:
+        return f"{s[k] * 1e3:.1f}" if s.get("n") else "-"
+
+    lines = [
+        "| mode | agents | step | median ms | p90 ms | max ms |",
+        "|---|---|---|---|---|---|",
+    ]
+    steps = [("spawn -> Hello", "spawn_to_hello_s"), ("spawn -> Ready", "spawn_to_ready_s"),
+             ("freeze -> Frozen", "freeze_to_frozen_s"), ("spawn + thaw -> Ready", "spawn_thaw_to_ready_s"),
+             ("kill -9 -> Failed", "kill9_to_failed_s")]
+    for r in rows:
+        for label, key in steps:
+            s = r[key]
+            if s.get("n"):
+                lines.append(f"| {r['mode']} | {r['agents']} | {label} | {ms(s, 'median')} | {ms(s, 'p90')} | "
+                             f"{ms(s, 'max')} |")
+    lines.append("")
+    lines.append("| mode | fork server start ms | RSS MiB/agent | USS MiB/agent (private) |")
+    lines.append("|---|---|---|---|")
+    for r in rows:
+        rss = f"{r['rss_mib_mean']:.1f}" if r["rss_mib_mean"] else "-"
+        uss = f"{r['uss_mib_mean']:.1f}" if r["uss_mib_mean"] else "-"
+        lines.append(f"| {r['mode']} | {r['forkserver_start_s'] * 1e3:.0f} | {rss} | {uss} |")
+    return "\n".join(lines)
+
+
+def machine() -> dict[str, Any]:
+    return {"cpus": os.cpu_count(), "python": platform.python_version(), "load_1min": os.getloadavg()[0],
+            "event_loop": os.environ.get("HAA_EVENT_LOOP", "uvloop")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="agent runtime benchmark (spawn latency, transfer steps, memory)")
+    ap.add_argument("-n", type=int, default=50, help="agents spawned through the fork server")
+    ap.add_argument("--cold-n", type=int, default=10, help="agents spawned by exec (0 = skip)")
+    ap.add_argument("--no-json", action="store_true", help="do not write bench-results/agents.json")
+    args = ap.parse_args(argv)
+    import logging
+
+    logging.getLogger("haa.hostd.agents").setLevel(logging.ERROR)  # the kills are on purpose
+    t0 = time.perf_counter()
+    rows = [measure_spawn(args.n)]
+    if args.cold_n:
+        rows.append(measure_spawn(args.cold_n, cold=True, transfers=min(5, args.cold_n), kills=0))
+    print(markdown_table(rows))
+    if not args.no_json:
+        from haactl.bench import write_json
+
+        path = write_json("agents", {"machine": machine(), "rows": rows})
+        print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
