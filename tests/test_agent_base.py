@@ -422,3 +422,40 @@ def test_names_follow_parentage():
         child_name("A6", 0)
     a, b = new_agent_id(), new_agent_id()
     assert a != b and len(a) == 36
+
+
+class Sync(AgentBase):
+    TYPE = "t-sync"
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.n = 0
+
+    async def on_message(self, src, payload):
+        self.n += 1  # never awaits
+
+
+def test_a_long_backlog_of_sync_handlers_lets_other_tasks_run():
+    async def main():
+        frames: list = []
+        ctx = make(Sync, frames)
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        for _ in range(5000):
+            ctx.feed(msg("p", b"x"))
+        beats = 0
+
+        async def other():  # stands for the heartbeat task
+            nonlocal beats
+            while True:
+                beats += 1
+                await asyncio.sleep(0)
+
+        t = asyncio.create_task(other())
+        await until(lambda: ctx.agent.n == 5000)
+        t.cancel()
+        assert beats > 1000  # the other task ran while the backlog was handled, not only after it
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        assert await worker == 0
+
+    run(main())

@@ -176,9 +176,9 @@ def test_hung_agent_is_killed_and_reported():
     run(main())
 
 
-def test_exit_codes_and_agent_errors():
+def test_exit_codes_and_agent_errors(tmp_path):
     async def main():
-        async with hosts() as H:
+        async with hosts(workdir=tmp_path) as H:
             a = await H.create("probe", {}, "h1")
             H.send(a, b"first")
             task = asyncio.create_task(H.request(a, {"op": "exit", "code": 3}))
@@ -199,6 +199,9 @@ def test_exit_codes_and_agent_errors():
             ev = await H.wait_end(spec.agent_id)
             assert isinstance(ev, Failed)
             assert ev.reason.startswith("exited code 1 (agent error: unpack_state raised JSONDecodeError"), ev
+            # with a workdir, each agent's stdout/stderr (here: the traceback) goes to agents/<id>.log
+            log = (tmp_path / "agents" / f"{spec.agent_id}.log").read_text()
+            assert "Traceback" in log and "JSONDecodeError" in log
 
     run(main())
 

@@ -419,7 +419,10 @@ class AgentContext:
             if self._stop_requested and self.exit_code is None and self.state == "running":
                 self._do_stop()
             if self._drain is not None and self.exit_code is None:
-                await self._drain()
+                await self._drain()  # backpressure: wait while the host is not reading
+            # Queue.get() and a handler that never awaits do not yield: without this a long backlog (a thaw
+            # with many queued messages) would starve the heartbeat and the reader, and look like a hang
+            await asyncio.sleep(0)
         self._cancel_timers()
         for fut in [*self._convs.values(), *self._calls.values()]:
             fut.cancel()
