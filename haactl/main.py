@@ -15,6 +15,7 @@ from haactl.cluster import cluster_app, host_app
 from haactl.ddbcli import ddb_app
 from haactl.demo import demo
 from haactl.logview import logs
+from haactl.sim import sim_app
 from haactl.verify import verify
 
 app = typer.Typer(
@@ -38,6 +39,7 @@ app.add_typer(cluster_app, name="cluster")
 app.add_typer(host_app, name="host")
 app.add_typer(ddb_app, name="ddb")
 app.command("logs")(logs)
+app.add_typer(sim_app, name="sim")
 
 if __name__ == "__main__":
     app()

@@ -1,0 +1,156 @@
+"""Avatar types (thesis Table 6.2-3) and the odometry drift model.
+
+| type            | speed m/s | drift after 10 m | drift after 10 turns | carries | sensors                   |
+|-----------------|-----------|------------------|----------------------|---------|---------------------------|
+| seeker          | 2.0       | 1.22 m           | 0.08 rad             | 0       | basic camera              |
+| enhanced_seeker | 2.0       | 0.25 m           | 0.016 rad            | 0       | enhanced camera           |
+| sweeper         | 1.0       | 0.12 m           | 0.016 rad            | 1       | enhanced camera, 5 sonars |
+| carrier         | 1.5       | 0.12 m           | 0.016 rad            | 1       | enhanced camera           |
+
+Turn-rate limits, radii and masses are not in the thesis; ours are in `AVATAR_TYPES` (docs/sim.md).
+
+Odometry ("what the wheels believe") integrates the wheel increments of every physics step with errors of
+two kinds, both drawn from the avatar's own seeded streams:
+
+* systematic, drawn once per avatar: a distance scale error `e_s` (wheel radius), a heading bias per metre
+  driven `b` (unequal wheels: a straight drive curves), a rotation scale error `e_r` (wheel base);
+* random walk: along-track noise with variance `sa^2` per metre, heading noise `sh^2` per metre driven,
+  rotation noise `sr^2` per radian turned.
+
+Per increment (ds, dtheta) of the true motion:
+
+    ds'     = ds (1 + e_s) + sa sqrt(|ds|) n1
+    dtheta' = dtheta (1 + e_r) + sr sqrt(|dtheta|) n2 + b ds + sh sqrt(|ds|) n3
+
+Calibration: the table's drifts are read as RMS errors. After a straight drive of D = 10 m the squared
+position error has expectation e_s^2 D^2 + sa^2 D (along track) + b^2 D^4/4 + sh^2 D^3/3 (across); each of
+the four terms gets a quarter of L^2 (L = the table's linear drift). After R = 10 rotations in place the
+squared heading error is e_r^2 R^2 + sr^2 R, half of A^2 each. tests/test_sim_world.py checks the RMS
+errors against the table statistically.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: reference distance and rotation of Table 6.2-3
+DRIFT_DISTANCE = 10.0
+DRIFT_ROTATION = 10 * 2 * math.pi
+
+
+@dataclass(frozen=True)
+class AvatarSpec:
+    name: str
+    max_speed: float  # m/s (Table 6.2-3)
+    max_turn: float  # rad/s (ours)
+    linear_drift: float  # RMS position error after 10 m straight, m (Table 6.2-3)
+    angular_drift: float  # RMS heading error after 10 rotations in place, rad (Table 6.2-3)
+    capacity: int  # collectables carried at once (Table 6.2-3)
+    camera: str  # "basic" | "enhanced" (Table 6.2-3, 6.2-4)
+    sonars: int  # (Table 6.2-3)
+    radius: float  # m (ours)
+    mass: float  # kg (ours)
+    height: float  # m, as the cameras see other avatars (ours)
+
+    @property
+    def drift_params(self) -> DriftParams:
+        return DriftParams.calibrated(self.linear_drift, self.angular_drift)
+
+
+AVATAR_TYPES: dict[str, AvatarSpec] = {
+    "seeker": AvatarSpec("seeker", 2.0, 3.0, 1.22, 0.08, 0, "basic", 0, 0.12, 3.0, 0.25),
+    "enhanced_seeker": AvatarSpec("enhanced_seeker", 2.0, 3.0, 0.25, 0.016, 0, "enhanced", 0, 0.12, 3.0, 0.25),
+    "sweeper": AvatarSpec("sweeper", 1.0, 1.5, 0.12, 0.016, 1, "enhanced", 5, 0.20, 10.0, 0.35),
+    "carrier": AvatarSpec("carrier", 1.5, 2.0, 0.12, 0.016, 1, "enhanced", 0, 0.20, 8.0, 0.35),
+}
+
+
+def avatar_spec(kind: str) -> AvatarSpec:
+    try:
+        return AVATAR_TYPES[kind]
+    except KeyError:
+        raise ValueError(f"avatar type {kind!r} is not one of {', '.join(AVATAR_TYPES)}") from None
+
+
+@dataclass(frozen=True)
+class DriftParams:
+    """Standard deviations of the drift model (see the module docstring)."""
+
+    scale: float  # e_s ~ N(0, scale)
+    along: float  # sa, m per sqrt(m)
+    bias: float  # b ~ N(0, bias), rad per m
+    heading: float  # sh, rad per sqrt(m)
+    rot_scale: float  # e_r ~ N(0, rot_scale)
+    rot: float  # sr, rad per sqrt(rad)
+
+    @staticmethod
+    def calibrated(linear: float, angular: float) -> DriftParams:
+        D, R = DRIFT_DISTANCE, DRIFT_ROTATION
+        return DriftParams(
+            scale=linear / (2 * D),
+            along=linear / (2 * math.sqrt(D)),
+            bias=linear / D**2,
+            heading=math.sqrt(3) / 2 * linear / D**1.5,
+            rot_scale=angular / (math.sqrt(2) * R),
+            rot=angular / math.sqrt(2 * R),
+        )
+
+
+class NormalStream:
+    """Standard normal variates from a seeded generator, drawn in blocks (cheap per value)."""
+
+    def __init__(self, rng: np.random.Generator, block: int = 4096) -> None:
+        self.rng = rng
+        self.block = block
+        self._buf: list[float] = []
+        self._i = 0
+
+    def __call__(self) -> float:
+        if self._i >= len(self._buf):
+            self._buf = self.rng.standard_normal(self.block).tolist()
+            self._i = 0
+        v = self._buf[self._i]
+        self._i += 1
+        return v
+
+
+class Odometry:
+    """Dead reckoning from wheel increments with the avatar's drift (systematic + random walk)."""
+
+    def __init__(self, params: DriftParams, pose: tuple[float, float, float], rng: np.random.Generator) -> None:
+        self.params = params
+        sysdraw = rng.standard_normal(3)
+        self.e_s = float(sysdraw[0]) * params.scale
+        self.b = float(sysdraw[1]) * params.bias
+        self.e_r = float(sysdraw[2]) * params.rot_scale
+        self.noise = NormalStream(rng, 2048)
+        self.x, self.y, self.theta = pose
+        self.distance = 0.0  # |ds| summed, m
+        self.rotation = 0.0  # |dtheta| summed, rad
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        return (self.x, self.y, self.theta)
+
+    def update(self, ds: float, dtheta: float) -> None:
+        """Integrate one true increment: ds along the heading (m), dtheta (rad)."""
+        p = self.params
+        n = self.noise
+        ads, adt = abs(ds), abs(dtheta)
+        ds_o = ds * (1.0 + self.e_s)
+        dt_o = dtheta * (1.0 + self.e_r)
+        if ads > 0.0:
+            r = math.sqrt(ads)
+            ds_o += p.along * r * n()
+            dt_o += self.b * ds + p.heading * r * n()
+        if adt > 0.0:
+            dt_o += p.rot * math.sqrt(adt) * n()
+        mid = self.theta + 0.5 * dt_o
+        self.x += ds_o * math.cos(mid)
+        self.y += ds_o * math.sin(mid)
+        self.theta = math.remainder(self.theta + dt_o, 2 * math.pi)
+        self.distance += ads
+        self.rotation += adt
