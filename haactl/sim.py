@@ -45,12 +45,18 @@ def show(
         raise typer.Exit(2)
     try:
         if server is not None:
-            from haa.sim.service import SimClient, world_from_truth
+            import grpc
+
+            from haa.sim.service import SimClient, truth_from_server
 
             token = token_file.read_text().strip() if token_file else None
-            with SimClient(server, token=token, timeout=10.0) as c:
-                world = world_from_truth(c)
-            img = render_topdown(world.arena, world, scale=scale, labels=labels)
+            try:
+                with SimClient(server, token=token, timeout=10.0) as c:
+                    a, truth = truth_from_server(c)
+            except grpc.RpcError as e:
+                typer.echo(f"error: haa-sim at {server}: {e.code().name}: {e.details()}", err=True)
+                raise typer.Exit(1) from None
+            img = render_topdown(a, truth, scale=scale, labels=labels)
         else:
             assert arena is not None
             a = load_arena(arena)

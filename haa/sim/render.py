@@ -3,12 +3,13 @@
 Drawn with OpenCV at `scale` pixels per metre, north (+y) up: outer walls and walls grey, obstacles blue,
 the congregation post yellow, landmarks as small squares on their faces with their ids, collection regions
 green, collectables red, start poses as numbered arrows, avatars (when a World is given) as circles with a
-heading tick and their ids, plus a 1 m scale bar and a title line with the arena's counts.
+heading tick and their ids (red when crashed), plus a 1 m scale bar and a title line with the arena's counts.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,7 +20,37 @@ from haa.sim.arena import OBSTACLE, OUTER_WALL, POST, WALL, Arena
 from haa.sim.groundtruth import explorable_area
 
 if TYPE_CHECKING:
-    from haa.sim.world import World
+    from haa.sim.world import CollectableState, World
+
+
+@dataclass
+class AvatarView:
+    id: str
+    status: str
+    x: float
+    y: float
+    theta: float
+    radius: float
+    carrying: bool = False
+
+
+@dataclass
+class TruthView:
+    """What a picture of the true state needs (from a World, or from haa-sim's ground-truth API)."""
+
+    time: float
+    avatars: list[AvatarView] = field(default_factory=list)
+    collectables: list[CollectableState] = field(default_factory=list)
+
+
+def truth_of(world: World) -> TruthView:
+    avatars = [
+        AvatarView(a.id, a.status, *a.pose, a.spec.radius, bool(a.carrying))
+        for a in world.avatars.values()
+        if a.status != "retired"
+    ]
+    return TruthView(world.time, avatars, world.collectable_states())
+
 
 BGR = {
     "floor": (236, 240, 244),
@@ -40,9 +71,12 @@ TITLE = 30
 
 
 def render_topdown(
-    arena: Arena, world: World | None = None, scale: float | None = None, labels: bool = True
+    arena: Arena, truth: TruthView | World | None = None, scale: float | None = None, labels: bool = True
 ) -> np.ndarray:
-    """BGR image of the arena (and of `world`'s avatars and collectables when given)."""
+    """BGR image of the arena (and of the true state's avatars and collectables when given)."""
+    from haa.sim.world import World
+
+    world = truth_of(truth) if isinstance(truth, World) else truth
     if scale is None:
         scale = max(20.0, min(120.0, 900.0 / max(arena.width, arena.height)))
     Wpx = math.ceil(arena.width * scale) + 2 * MARGIN
@@ -90,26 +124,26 @@ def render_topdown(
             if labels:
                 _text(img, cid, px(x + 0.08, y + 0.08), fs, colour=BGR["collectable"])
     else:
-        for c in world.collectable_states():
+        for c in world.collectables:
             if c.state == "deposited":
                 colour = (60, 120, 60)
             else:
                 colour = BGR["collectable"]
             if c.state != "carried":
                 cv2.circle(img, px(c.x, c.y), max(2, int(0.05 * scale)), colour, -1, cv2.LINE_AA)
-        for av in world.avatars.values():
+        for av in world.avatars:
             if av.status == "retired":
                 continue
-            x, y, th = av.pose
+            x, y, th = av.x, av.y, av.theta
             colour = BGR["crashed"] if av.status == "crashed" else BGR["avatar"]
-            r = max(3, int(av.spec.radius * scale))
+            r = max(3, int(av.radius * scale))
             cv2.circle(img, px(x, y), r, colour, 2, cv2.LINE_AA)
-            tip = px(x + av.spec.radius * math.cos(th), y + av.spec.radius * math.sin(th))
+            tip = px(x + av.radius * math.cos(th), y + av.radius * math.sin(th))
             cv2.line(img, px(x, y), tip, colour, 2, cv2.LINE_AA)
             if av.carrying:
                 cv2.circle(img, px(x, y), max(2, r // 3), BGR["collectable"], -1, cv2.LINE_AA)
             if labels:
-                _text(img, av.id, px(x + av.spec.radius, y + av.spec.radius), fs, colour=colour)
+                _text(img, av.id, px(x + av.radius, y + av.radius), fs, colour=colour)
     # scale bar
     x0, y0 = MARGIN, Hpx - 12
     cv2.line(img, (x0, y0), (x0 + int(scale), y0), BGR["text"], 2)

@@ -112,6 +112,7 @@ class AvatarState:
         self.last_speed = 0.0
         self.action: Action | None = None
         self.carrying: list[str] = []
+        self.start_pose = pose
         seed = world.seed
         self.odo = Odometry(self.spec.drift_params, pose, np.random.default_rng([seed, serial, _DRIFT]))
         self.sonar_noise = NormalStream(np.random.default_rng([seed, serial, _SONAR]), 512)
@@ -339,6 +340,7 @@ class World:
                     self._substep(h)
             self.time = seg_end
             self._apply_schedule()
+        self.time = round(end, 9)  # no drift from summing sub-steps: 30 steps of 0.1 s end at 3.0
 
     def _substep(self, h: float) -> None:
         avs = [a for a in self.avatars.values() if a.status != RETIRED]
