@@ -1,0 +1,1120 @@
+"""Agent allocation HAA-AA (thesis §4.7, Appendix II Alg. 4), as a sans-I/O state machine.
+
+One `Allocator` per host. The host feeds it, in this order of concern:
+
+* `on_change(group, agents, hosts)`: the host group or the agent list changed, or the `RebalancePolicy`
+  says a periodic load-balancing session is due (Alg. 4 l. 17). Only the undisputed leader (`group[0]`)
+  starts a session: it emits `ProposeStart(SessionStart)` for the host to commit as OAC(start) (ll. 18-28).
+* committed OAC transactions, in the OAC total order: `on_start_committed` (ll. 38-50) and
+  `on_finish_committed` (ll. 93-96); and the OAC outcome of its own proposals, `on_start_decided` /
+  `on_finish_decided`, to retry an aborted one while the situation is unchanged (ll. 25-28, 89-92);
+* bid updates from peers (`on_update`, ll. 59-76) over reliable FIFO channels, followed by `end_of_inbox`
+  once the host has handed over everything currently queued (ll. 77-81: the queued build / distribute).
+
+It answers with effects (`drain()`): `SendUpdate` (a `BidUpdate` to the other session members), `ProposeStart`,
+`ProposeFinish`, `Allocated` (a committed allocation this host accepts) and `Log`.
+
+The algorithm is CBBA (Choi, Brunet, How 2009) in its asynchronous form (Johnson, Ponda, Choi, How 2010,
+thesis ref. [69]) applied to processor usage instead of time: each host greedily builds a bundle of agents
+(`_build`, "HAA-AA Bundle Building Strategy"), bids are compared by a total order (`bid_gt`, "HAA-AA Bid
+Comparison Operator", Fig. II-1 reconstructed), and conflicting bids are resolved by the 34 rows of Table 4.7-1
+(`resolve`). The leader checks consensus on its bid table (l. 86-88) and commits the result with OAC(finish).
+
+Where the thesis is silent, garbled or the figure is missing, the choices are documented in docs/allocation.md.
+In short:
+
+* bid order (Fig. II-1): a bid within capacity (support > 0) beats one over it; within capacity higher reward,
+  then higher support; over capacity higher support (the less overloaded host; eq. 4.7-3 rewards it with
+  s = support), then higher reward; then the lower host name. The nil bid is below every bid.
+* bid warping: a bid placed later in a bundle never beats one placed earlier in it (its reward is capped at
+  its predecessor's), which restores the diminishing-marginal-gains property that affinity bonuses break.
+* trim (rows 1, 17) resets the bids of the agents removed after the lost one to nil and broadcasts them.
+* rounds: a build always bids in a round no other bid of this host used (l. 53-55 generalised).
+* a committed finish is accepted only if it belongs to the last committed start and the group and agent list
+  are still those of that start (l. 94 accepts unconditionally; see docs/allocation.md "expired finish").
+* committed start ids strictly increase (a start whose id is not above the last committed one is expired).
+* hardware: a host bids only for agents whose hardware it has; agents no host of the group can run are
+  reported as `unallocatable` and left out of the consensus check (otherwise the session never ends).
+
+The class does no I/O, reads no clock and uses no randomness; iteration orders are those of its inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+from haa.hostd.effects import Log
+
+INF = math.inf
+
+# --------------------------------------------------------------------------------------------- problem data
+
+
+def _finite(x: object, what: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise ValueError(f"{what}: must be a finite number, got {x!r}")
+    v = float(x)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise ValueError(f"{what}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+    if hi is not None and v > hi:
+        raise ValueError(f"{what}: must be <= {hi:g}, got {v:g}")
+    return v
+
+
+def _name(x: object, what: str) -> str:
+    if not isinstance(x, str) or not x:
+        raise ValueError(f"{what}: must be a non-empty string, got {x!r}")
+    return x
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent a_i of §4.7: id, processing cost c_i (>= 0, in units of host capacity), required hardware
+    Q_i, affinities A_i (other agent id -> alpha_ij >= 0), transfer penalty t_i in [0, 1] and the host that runs
+    it now (L_h membership; None: not running yet)."""
+
+    id: str
+    cost: float
+    hardware: frozenset[str] = frozenset()
+    affinity: Mapping[str, float] = field(default_factory=dict)
+    transfer_penalty: float = 0.0
+    current_host: str | None = None
+
+    def __post_init__(self) -> None:
+        _name(self.id, "AgentSpec.id")
+        object.__setattr__(self, "cost", _finite(self.cost, f"AgentSpec({self.id}).cost", 0.0))
+        pen = _finite(self.transfer_penalty, f"AgentSpec({self.id}).transfer_penalty", 0.0, 1.0)
+        object.__setattr__(self, "transfer_penalty", pen)
+        hw = frozenset(self.hardware)
+        for h in hw:
+            _name(h, f"AgentSpec({self.id}).hardware item")
+        object.__setattr__(self, "hardware", hw)
+        aff: dict[str, float] = {}
+        for k, v in dict(self.affinity).items():
+            _name(k, f"AgentSpec({self.id}).affinity key")
+            if k == self.id:
+                raise ValueError(f"AgentSpec({self.id}).affinity: an agent has no affinity with itself")
+            aff[k] = _finite(v, f"AgentSpec({self.id}).affinity[{k}]", 0.0)
+        object.__setattr__(self, "affinity", aff)
+        if self.current_host is not None:
+            _name(self.current_host, f"AgentSpec({self.id}).current_host")
+
+    def __hash__(self) -> int:
+        return hash(
+            (self.id, self.cost, self.hardware, tuple(self.affinity.items()), self.transfer_penalty, self.current_host)
+        )
+
+
+@dataclass(frozen=True)
+class HostSpec:
+    """One host h of §4.7: processor capacity K_h (> 0) and available hardware H_h. A `draining` host (leaving
+    gracefully) takes part in the session but bids for nothing."""
+
+    name: str
+    capacity: float
+    hardware: frozenset[str] = frozenset()
+    draining: bool = False
+
+    def __post_init__(self) -> None:
+        _name(self.name, "HostSpec.name")
+        object.__setattr__(
+            self, "capacity", _finite(self.capacity, f"HostSpec({self.name}).capacity", 0.0, lo_open=True)
+        )
+        hw = frozenset(self.hardware)
+        for h in hw:
+            _name(h, f"HostSpec({self.name}).hardware item")
+        object.__setattr__(self, "hardware", hw)
+
+    def can_run(self, agent: AgentSpec) -> bool:
+        """Q_i subset of H_h, and not draining."""
+        return not self.draining and agent.hardware <= self.hardware
+
+
+@dataclass(frozen=True)
+class SessionStart:
+    """The payload of OAC(start, p, sesId, sesGroup, sesAgents, sesCosts, sesAffinity) (Alg. 4 l. 26); the
+    agents carry costs, affinities, hardware and transfer penalties, the hosts capacities and hardware."""
+
+    leader: str
+    ses_id: int
+    group: tuple[str, ...]
+    agents: tuple[AgentSpec, ...]
+    hosts: tuple[HostSpec, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "group", tuple(self.group))
+        object.__setattr__(self, "agents", tuple(self.agents))
+        object.__setattr__(self, "hosts", tuple(self.hosts))
+        if isinstance(self.ses_id, bool) or not isinstance(self.ses_id, int) or self.ses_id < 1:
+            raise ValueError(f"SessionStart.ses_id: must be an integer >= 1, got {self.ses_id!r}")
+        if not self.group:
+            raise ValueError("SessionStart.group: must not be empty")
+        for g in self.group:
+            _name(g, "SessionStart.group member")
+        if len(set(self.group)) != len(self.group):
+            raise ValueError(f"SessionStart.group: duplicate host in {list(self.group)}")
+        if self.leader != self.group[0]:
+            raise ValueError(f"SessionStart.leader: must be group[0] ({self.group[0]!r}), got {self.leader!r}")
+        ids = [a.id for a in self.agents]
+        if len(set(ids)) != len(ids):
+            raise ValueError("SessionStart.agents: duplicate agent id")
+        names = {h.name for h in self.hosts}
+        if len(names) != len(self.hosts):
+            raise ValueError("SessionStart.hosts: duplicate host")
+        missing = [g for g in self.group if g not in names]
+        if missing:
+            raise ValueError(f"SessionStart.hosts: no HostSpec for group member(s) {missing}")
+
+    @property
+    def agent_ids(self) -> tuple[str, ...]:
+        return tuple(a.id for a in self.agents)
+
+    def host(self, name: str) -> HostSpec:
+        for h in self.hosts:
+            if h.name == name:
+                return h
+        raise KeyError(name)
+
+    def unallocatable(self) -> tuple[str, ...]:
+        """Agents no host of the group can run (hardware, draining): left out of the allocation."""
+        hs = [self.host(g) for g in self.group]
+        return tuple(a.id for a in self.agents if not any(h.can_run(a) for h in hs))
+
+
+class Bid(NamedTuple):
+    """One entry of bidTable_p: {j, z_j (winner; None = none), y_j = {reward, support}, r_j (round)}."""
+
+    agent: str
+    winner: str | None
+    reward: float
+    support: float
+    round: int
+
+
+_NILS: dict[str, Bid] = {}
+
+
+def nil_bid(agent: str) -> Bid:
+    """Table 4.7-1 "reset": {j, none, {0, -inf}, 0}."""
+    b = _NILS.get(agent)
+    if b is None:
+        b = Bid(agent, None, 0.0, -INF, 0)
+        if len(_NILS) < 100_000:
+            _NILS[agent] = b
+    return b
+
+
+@dataclass(frozen=True)
+class BidUpdate:
+    """(update, q, sesId_q, for each updated bid j: {j, z_qj, y_qj, r_qj}) (Alg. 4 l. 59, l. 84)."""
+
+    ses_id: int
+    bids: tuple[Bid, ...]
+    sender: str = ""
+
+
+# --------------------------------------------------------------------------------------------- effects
+
+
+@dataclass(slots=True)
+class SendUpdate:
+    """Send `update` to every host in `dsts` (l. 84; never to oneself)."""
+
+    dsts: tuple[str, ...]
+    update: BidUpdate
+
+
+@dataclass(slots=True)
+class ProposeStart:
+    """Commit OAC(start, ...) with this payload among the group (l. 26); report with `on_start_decided`."""
+
+    start: SessionStart
+
+
+@dataclass(slots=True)
+class ProposeFinish:
+    """Commit OAC(finish, p, sesId_p, bidTable_p[p]) (l. 90); report with `on_finish_decided`."""
+
+    ses_id: int
+    allocation: dict[str, str]
+    leader: str = ""
+    unallocatable: tuple[str, ...] = ()
+
+
+@dataclass(slots=True)
+class Allocated:
+    """A committed allocation this host accepts (l. 94): agent -> host. Every host that accepts session
+    `ses_id` accepts the same map; `unallocatable` agents have no capable host in the group."""
+
+    ses_id: int
+    allocation: dict[str, str]
+    unallocatable: tuple[str, ...] = ()
+
+
+AllocEffect = SendUpdate | ProposeStart | ProposeFinish | Allocated | Log
+
+
+# --------------------------------------------------------------------------------------------- bid order
+
+
+def bid_key(b: Bid) -> tuple[int, float, float]:
+    """The value part of the order (Fig. II-1 as reconstructed, docs/allocation.md): class 1 = within
+    capacity (support > 0) ranked by (reward, support); class 0 = over capacity ranked by (support, reward);
+    class -1 = the nil bid."""
+    if b.winner is None:
+        return (-1, 0.0, 0.0)
+    if b.support > 0.0:
+        return (1, b.reward, b.support)
+    return (0, b.support, b.reward)
+
+
+def bid_gt(a: Bid, b: Bid) -> bool:
+    """a > b: the bid comparison operator, a strict total order on (values, winner). Equal values are
+    broken by the lower host name (Appendix II: "ties can be broken by taking the bidder with the lower ID");
+    two nil bids are equal. (`bid_key` spelled out, for speed.)"""
+    _ja, wa, ra, sa, _ra = a
+    _jb, wb, rb, sb, _rb = b
+    if wa is None:
+        return False
+    if wb is None:
+        return True
+    fa = sa > 0.0
+    if fa != (sb > 0.0):
+        return fa
+    if fa:
+        if ra != rb:
+            return ra > rb
+        if sa != sb:
+            return sa > sb
+    else:
+        if sa != sb:
+            return sa > sb
+        if ra != rb:
+            return ra > rb
+    return wa < wb
+
+
+def same_bid(a: Bid, b: Bid) -> bool:
+    """Equal winner and value: the same bid, possibly confirmed in different rounds. Consensus (l. 87) and
+    the "already sent" test compare bids this way; rounds only order information in Table 4.7-1."""
+    return a[1] == b[1] and a[2] == b[2] and a[3] == b[3]
+
+
+# --------------------------------------------------------------------------------------------- Table 4.7-1
+
+LEAVE = "leave"
+UPDATE = "update"
+RESET = "reset"
+TRIM_UPDATE = "trim & update"
+UPDATE_TIME = "update time"
+
+
+#: the resets of Table 4.7-1 driven by round comparisons with a third host's bid
+_GUARDED_RESETS = frozenset({10, 11, 28, 29})
+
+
+class Rule(NamedTuple):
+    row: int
+    action: str
+    broadcast: bool
+
+
+def resolve(p: str, q: str, sb: Bid, rb: Bid) -> Rule:
+    """Table 4.7-1: receiver p's action on sender q's bid `sb` for agent j, p holding `rb` (bidTable_p[p][j]).
+
+    y comparisons use `bid_gt` (values, then the lower winner name), so rows 2 and 18 (equal y, lower z) are
+    part of rows 1 and 17. r is the round of each bid. Default: leave & broadcast (the thesis' header)."""
+    zq, zp = sb.winner, rb.winner
+    rq, rp = sb.round, rb.round
+    if zq == q:  # sender thinks it wins (rows 1-12)
+        if zp == p:
+            if bid_gt(sb, rb):
+                return Rule(1, TRIM_UPDATE, True)
+            return Rule(3, UPDATE_TIME, True)
+        if zp == q:
+            if rq > rp:
+                return Rule(4, UPDATE, True)
+            return Rule(5 if rq == rp else 6, LEAVE, False)
+        if zp is None:
+            return Rule(12, UPDATE, True)
+        return _third_party(sb, rb, 7)
+    if zq == p:  # sender thinks the receiver wins (rows 13-16)
+        if zp == p:
+            if rq == rp:
+                return Rule(13, LEAVE, False)
+            return Rule(13, LEAVE, True)
+        if zp == q:
+            return Rule(14, RESET, True)
+        if zp is None:
+            return Rule(16, LEAVE, True)
+        return Rule(15, LEAVE, True)
+    if zq is None:  # sender has no winner (rows 31-34)
+        if zp == p:
+            return Rule(31, LEAVE, True)
+        if zp == q:
+            return Rule(32, UPDATE, True)
+        if zp is None:
+            return Rule(34, LEAVE, False)
+        if rq > rp:
+            return Rule(33, UPDATE, True)
+        return Rule(33, LEAVE, True)
+    # sender thinks a third host m wins (rows 17-30)
+    if zp == p:
+        if bid_gt(sb, rb):
+            return Rule(17, TRIM_UPDATE, True)
+        return Rule(19, UPDATE_TIME, True)
+    if zp == q:
+        if rq >= rp:
+            return Rule(20, UPDATE, True)
+        return Rule(21, RESET, True)
+    if zp == zq:
+        if rq > rp:
+            return Rule(22, UPDATE, True)
+        return Rule(23 if rq == rp else 24, LEAVE, False)
+    if zp is None:
+        return Rule(30, UPDATE, True)
+    return _third_party(sb, rb, 25)
+
+
+def _third_party(sb: Bid, rb: Bid, base: int) -> Rule:
+    """Rows 7-11 (sender q thinks q, receiver thinks m) and 25-29 (sender thinks m, receiver thinks n)."""
+    gt, lt = bid_gt(sb, rb), bid_gt(rb, sb)
+    rq, rp = sb.round, rb.round
+    if gt and rq >= rp:
+        return Rule(base, UPDATE, True)
+    if lt and rq <= rp:
+        return Rule(base + 1, LEAVE, True)
+    if not gt and not lt:
+        return Rule(base + 2, LEAVE, True)
+    return Rule(base + 3 if lt else base + 4, RESET, True)
+
+
+# --------------------------------------------------------------------------------------------- rewards
+
+
+def transfer_factor(agent: AgentSpec, host: str) -> float:
+    """eq. 4.7-2: 1 on the current host (a_i in L_h), (1 - t_i) elsewhere."""
+    return 1.0 if agent.current_host == host else 1.0 - agent.transfer_penalty
+
+
+def agent_reward(agent: AgentSpec, host: str, bundle: Iterable[str]) -> float:
+    """r(a_i), eq. 4.7-2: (c_i + sum of alpha_ij over a_j in the bundle) x the transfer factor."""
+    aff = agent.affinity
+    bonus = sum(aff.get(j, 0.0) for j in bundle if j != agent.id)
+    return (agent.cost + bonus) * transfer_factor(agent, host)
+
+
+def bundle_reward(order: list[AgentSpec], host: HostSpec) -> float:
+    """R(b_h), eq. 4.7-1 for one bundle order: r(a_i) while the running cost stays below K_h, then the
+    penalty s(a_i) = (K_h - running cost) / K_h (eq. 4.7-3)."""
+    ids = [a.id for a in order]
+    k = host.capacity
+    total = 0.0
+    used = 0.0
+    for a in order:
+        used += a.cost
+        total += agent_reward(a, host.name, ids) if used < k else (k - used) / k
+    return total
+
+
+# --------------------------------------------------------------------------------------------- the session
+
+
+class _Entry(NamedTuple):
+    agents: tuple[str, ...]
+    reward: float
+    support: float
+
+
+class _Session:
+    """The per-session state of Alg. 4 ll. 3-16 (sesId, bidTable, outbox, bundle, r, flags)."""
+
+    def __init__(self, ses_id: int, me: str) -> None:
+        self.ses_id = ses_id
+        self.me = me
+        self.start: SessionStart | None = None
+        self.ready = False  # sesReady_p
+        self.decided = False  # decided_p
+        self.build_queued = False
+        self.distribute_queued = False
+        self.r = 0  # r_p
+        self.round_used = -1  # lastBuildRound_p, and rounds used by "update time"
+        self.own: dict[str, Bid] = {}  # bidTable_p[p]
+        self.rows: dict[str, dict[str, Bid]] = {}  # bidTable_p[q] for q != p
+        self.outbox: dict[str, Bid] = {}
+        self.replies: dict[str, dict[str, Bid]] = {}  # q -> bids only q needs (Allocator._broadcast)
+        self.sent: dict[str, Bid] = {}  # the bid of each agent this host last sent to every member
+        self.bundle: list[_Entry] = []
+        self.entry_of: dict[str, int] = {}
+        # known once ready
+        self.group: tuple[str, ...] = ()
+        self.others: tuple[str, ...] = ()
+        self.agents: dict[str, AgentSpec] = {}
+        self.allocatable: frozenset[str] = frozenset()
+        self.unallocatable: tuple[str, ...] = ()
+        self.spec: HostSpec | None = None
+        self.eligible: tuple[str, ...] = ()
+        self.rev: dict[str, list[tuple[str, float]]] = {}  # j -> [(i, alpha_ij)]: who gains from j
+        self.nbrs: dict[str, tuple[str, ...]] = {}  # mutual affinity among eligible agents
+        self.mismatch = 0  # (q, j) with bidTable_p[q][j] != bidTable_p[p][j]
+        self.unclaimed = 0  # allocatable j with bidTable_p[p][j].z == none
+        self.messages_sent = 0
+        self.builds = 0
+
+    def bid(self, j: str) -> Bid:
+        b = self.own.get(j)
+        return b if b is not None else nil_bid(j)
+
+    def row_bid(self, q: str, j: str) -> Bid:
+        b = self.rows.get(q, {}).get(j)
+        return b if b is not None else nil_bid(j)
+
+    # --- table maintenance (incremental consensus bookkeeping)
+
+    def set_own(self, j: str, b: Bid) -> None:
+        old = self.bid(j)
+        if old == b:
+            return
+        self.own[j] = b
+        if not self.ready:
+            return
+        if j in self.allocatable:
+            self.unclaimed += (b.winner is None) - (old.winner is None)
+        if same_bid(old, b):
+            return
+        for q in self.others:
+            t = self.row_bid(q, j)
+            self.mismatch += (not same_bid(t, b)) - (not same_bid(t, old))
+
+    def set_row(self, q: str, j: str, b: Bid) -> None:
+        row = self.rows.setdefault(q, {})
+        old = row.get(j)
+        if old is None:
+            old = nil_bid(j)
+        row[j] = b
+        if self.ready and not same_bid(old, b):
+            own = self.bid(j)
+            self.mismatch += (not same_bid(b, own)) - (not same_bid(old, own))
+
+    def make_ready(self, start: SessionStart, me: str) -> None:
+        """ll. 45-49: take the session's parameters; drop what does not belong to it."""
+        self.start = start
+        self.group = start.group
+        self.others = tuple(h for h in start.group if h != me)
+        self.agents = {a.id: a for a in start.agents}
+        self.spec = start.host(me) if me in start.group else None
+        self.unallocatable = start.unallocatable()
+        self.allocatable = frozenset(self.agents) - frozenset(self.unallocatable)
+        spec = self.spec
+        self.eligible = tuple(a.id for a in start.agents if spec is not None and spec.can_run(a))
+        rev: dict[str, list[tuple[str, float]]] = {}
+        for a in start.agents:
+            for j, alpha in a.affinity.items():
+                if alpha > 0.0 and j in self.agents:
+                    rev.setdefault(j, []).append((a.id, alpha))
+        self.rev = rev
+        el = set(self.eligible)
+        self.nbrs = {
+            i: tuple(
+                j
+                for j in self.eligible
+                if j != i and self.agents[i].affinity.get(j, 0.0) > 0.0 and self.agents[j].affinity.get(i, 0.0) > 0.0
+            )
+            for i in self.eligible
+            if i in el
+        }
+        known = self.agents
+        self.own = {j: b for j, b in self.own.items() if j in known and (b.winner is None or b.winner in self.group)}
+        self.outbox = {j: b for j, b in self.outbox.items() if j in known}
+        self.rows = {
+            q: {j: b for j, b in row.items() if j in known} for q, row in self.rows.items() if q in self.others
+        }
+        self.ready = True
+        self.unclaimed = sum(1 for j in self.allocatable if self.bid(j).winner is None)
+        self.mismatch = sum(
+            1 for q in self.others for j in self.agents if not same_bid(self.row_bid(q, j), self.bid(j))
+        )
+
+
+# --------------------------------------------------------------------------------------------- allocator
+
+
+class Allocator:
+    """Alg. 4 for host `me` (see the module docstring for the inputs and effects).
+
+    `committed_ses` is the id of the last committed valid OAC(start) when this host joins an existing group
+    (part of the replicated state a new member receives); a fresh group starts at 0.
+    """
+
+    #: bids later in a bundle never beat earlier ones (see the module docstring); class attribute so that the
+    #: verifier's deliberately broken variant can switch it off
+    WARP = True
+    #: largest cluster of mutually affine agents bid for as one (Appendix II, bundle building step 2)
+    MAX_CLUSTER = 4
+    #: cluster candidates examined per bundle step (bounds the work on dense affinity graphs)
+    MAX_CLUSTERS = 64
+
+    def __init__(self, me: str, committed_ses: int = 0) -> None:
+        self.me = _name(me, "Allocator.me")
+        self.group: tuple[str, ...] = ()  # hostGroup
+        self.agents: tuple[AgentSpec, ...] = ()  # agentList, with the current costs and affinities
+        self.hosts: dict[str, HostSpec] = {}
+        self.ses_id = committed_ses  # sesId_p: the newest session this host knows of
+        self.committed_ses = committed_ses  # the last committed valid OAC(start)
+        self.committed_start: SessionStart | None = None
+        self.finished_ses = 0  # the last accepted OAC(finish)
+        self.session: _Session | None = None
+        self._pending_start: SessionStart | None = None
+        self._pending_finish: ProposeFinish | None = None
+        self._out: list[AllocEffect] = []
+        self.stats = {"updates_in": 0, "bids_in": 0, "updates_out": 0, "messages_out": 0, "builds": 0}
+
+    # ------------------------------------------------------------------ queries
+
+    def drain(self) -> list[AllocEffect]:
+        out, self._out = self._out, []
+        return out
+
+    @property
+    def member(self) -> bool:
+        return self.me in self.group
+
+    def own_bids(self) -> dict[str, Bid]:
+        """bidTable_p[p] of the current session (empty when there is none)."""
+        s = self.session
+        return dict(s.own) if s is not None else {}
+
+    def bundle(self) -> list[str]:
+        s = self.session
+        return [a for e in s.bundle for a in e.agents] if s is not None else []
+
+    # ------------------------------------------------------------------ l. 17-28: initiation
+
+    def on_change(
+        self,
+        group: tuple[str, ...],
+        agents: tuple[AgentSpec, ...],
+        hosts: Iterable[HostSpec],
+        start: bool = True,
+    ) -> None:
+        """The host group or agent list changed, or a rebalance is due (l. 17). Records the new situation;
+        if `start` and this host is the undisputed leader (l. 18), starts a new session (ll. 19-26).
+        `hosts` must describe every member of `group`. With `start=False` (a rate-limited change) it only
+        records, and the host calls again with `start=True` when its `RebalancePolicy` allows."""
+        self.group = tuple(group)
+        self.agents = tuple(agents)
+        self.hosts = {h.name: h for h in hosts}
+        if not self.member:
+            if self.session is not None:
+                self._log("alloc.left_group", ses=self.session.ses_id)
+            self.session = None
+            self._pending_start = self._pending_finish = None
+            return
+        if start and self.group[0] == self.me:
+            missing = [g for g in self.group if g not in self.hosts]
+            if missing:
+                raise ValueError(f"Allocator.on_change: hosts: no HostSpec for group member(s) {missing}")
+            ses = max(self.ses_id, self.committed_ses) + 1  # l. 19
+            st = SessionStart(self.me, ses, self.group, self.agents, tuple(self.hosts[g] for g in self.group))
+            self.ses_id = ses
+            self.session = _Session(ses, self.me)  # l. 24 newSession()
+            self._pending_start = st
+            self._pending_finish = None
+            self._log("alloc.propose_start", ses=ses, group=list(self.group), agents=len(self.agents))
+            self._out.append(ProposeStart(st))
+
+    def on_start_decided(
+        self, start: SessionStart, committed: bool, group: tuple[str, ...], agents: Iterable[AgentSpec | str]
+    ) -> None:
+        """The OAC(start) this host proposed was decided (l. 27). Aborted: propose it again while this host
+        is still the leader of that session and the group and agent list are unchanged (l. 28)."""
+        if committed or self._pending_start is None or self._pending_start.ses_id != start.ses_id:
+            if committed and self._pending_start is not None and self._pending_start.ses_id == start.ses_id:
+                self._pending_start = None
+            return
+        ids = tuple(a if isinstance(a, str) else a.id for a in agents)
+        if tuple(group) == start.group and ids == start.agent_ids and self.ses_id == start.ses_id:
+            self._log("alloc.retry_start", ses=start.ses_id)
+            self._out.append(ProposeStart(start))
+        else:
+            self._pending_start = None
+
+    # ------------------------------------------------------------------ l. 38-50: start committed
+
+    def start_valid(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> str:
+        """Why a committed OAC(start) is expired ("" = valid): ll. 39-40 plus increasing session ids. Depends
+        only on totally ordered state, so every host decides the same."""
+        if not group or start.leader != group[0]:
+            return "proposer is not the leader"
+        if start.group != tuple(group):
+            return "group changed"
+        if start.agent_ids != tuple(agent_ids):
+            return "agent list changed"
+        if start.ses_id <= self.committed_ses:
+            return f"session id not above the last committed ({self.committed_ses})"
+        return ""
+
+    def on_start_committed(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> None:
+        """OAC(start) committed (l. 38); `group` and `agent_ids` are this host's hostGroup and agentList at
+        this point of the total order."""
+        why = self.start_valid(start, tuple(group), tuple(agent_ids))
+        if why:  # l. 39-40 expired session
+            self._log("alloc.start_expired", ses=start.ses_id, reason=why)
+            return
+        self.committed_ses = start.ses_id
+        self.committed_start = start
+        if self.me not in start.group:
+            return
+        if start.ses_id < self.ses_id:  # already joined a later session through its updates (l. 41)
+            return
+        if start.ses_id > self.ses_id or self.session is None or self.session.ses_id != start.ses_id:
+            self.ses_id = start.ses_id  # ll. 42-44
+            self.session = _Session(start.ses_id, self.me)
+        s = self.session
+        s.make_ready(start, self.me)  # ll. 45-49
+        self._log("alloc.session", ses=s.ses_id, group=list(s.group), agents=len(s.agents))
+        self._build(s)  # l. 50
+
+    # ------------------------------------------------------------------ l. 59-76: bid updates
+
+    def on_update(self, src: str, upd: BidUpdate) -> None:
+        """A bid update from `src` (l. 59). Conflicts are resolved now; the build and distribution this
+        queues run at `end_of_inbox`."""
+        self.stats["updates_in"] += 1
+        if not self.member or src == self.me:
+            return
+        if upd.ses_id < self.ses_id:  # l. 60-61 old message
+            return
+        if upd.ses_id > self.ses_id:  # ll. 62-64 join the newer session
+            self.ses_id = upd.ses_id
+            self.session = _Session(upd.ses_id, self.me)
+            self._pending_finish = None
+        s = self.session
+        if s is None:
+            return
+        if s.ready and src not in s.others:
+            self._log("alloc.update_from_outsider", ses=s.ses_id, src=src)
+            return
+        for b in upd.bids:  # l. 65
+            self.stats["bids_in"] += 1
+            self._process_bid(s, src, b)
+        if s.ready and (s.outbox or s.replies):  # l. 73-74
+            s.distribute_queued = True
+        if s.ready:  # l. 75-76
+            self._check_consensus(s)
+
+    def _process_bid(self, s: _Session, q: str, b: Bid) -> None:
+        j = b.agent
+        if s.ready and (j not in s.agents or (b.winner is not None and b.winner not in s.group)):
+            return
+        s.set_row(q, j, b)  # l. 66
+        if b.round >= s.r:  # l. 67-68
+            s.r = b.round + 1
+        old = s.bid(j)  # l. 69
+        rule = resolve(self.me, q, b, old)  # l. 70
+        if rule.action == RESET and rule.row in _GUARDED_RESETS and self._owner_confirms(s, old):
+            rule = Rule(rule.row, LEAVE, True)
+        act = rule.action
+        bundle_changed = False
+        if act == UPDATE:
+            s.set_own(j, b)
+        elif act == TRIM_UPDATE:
+            self._trim(s, j)
+            s.set_own(j, b)
+            bundle_changed = True
+        elif act == RESET:
+            s.set_own(j, nil_bid(j))
+        elif act == UPDATE_TIME:
+            s.set_own(j, old._replace(round=s.r))
+            s.round_used = max(s.round_used, s.r)
+        if rule.broadcast:
+            self._broadcast(s, q, j, self._broadcast_bid(s, j, b, act), b)
+        if bundle_changed or bid_gt(old, s.bid(j)):  # l. 71-72 (got worse), or our bundle shrank
+            s.build_queued = True
+
+    #: rows 10, 11, 28, 29 reset when the sender's (lower or higher) bid is newer than the receiver's
+    #: accepted bid of a third host m; the receiver keeps it if m's own last update still claims it
+    OWNER_GUARD = True
+
+    def _owner_confirms(self, s: _Session, held: Bid) -> bool:
+        """The winner m of `held` claimed exactly this bid in its last update to us (bidTable_p[m][j]): with
+        FIFO channels from every member, a newer round elsewhere cannot mean m gave it up (docs/allocation.md,
+        "rounds")."""
+        m = held.winner
+        if not self.OWNER_GUARD or m is None or m == self.me:
+            return False
+        w = s.rows.get(m, {}).get(held.agent)
+        return w is not None and w.winner == m and same_bid(w, held)
+
+    def _broadcast_bid(self, s: _Session, j: str, sender_bid: Bid, action: str) -> Bid:
+        """What "broadcast" puts in the outbox: bidTable_p[p][j], so a reset sends the receiver's nil bid (the
+        thesis' change to [69])."""
+        return s.bid(j)
+
+    def _broadcast(self, s: _Session, q: str, j: str, b: Bid, sender_bid: Bid) -> None:
+        """outbox_p[j] := b (l. 84 sends it to every member). When b is (`same_bid`) what this host last sent
+        to every member, the rebroadcast is news only to q, whose view differs, and only when this host is
+        the authority on it: b is our own claim, or q's bid names us as the winner. Every other member's
+        bid reaches q from its owner, which replies to q itself (docs/allocation.md, "messages")."""
+        if j in s.outbox or not same_bid(s.sent.get(j, nil_bid(j)), b):
+            s.outbox[j] = b
+        elif b.winner == self.me or sender_bid.winner == self.me:
+            s.replies.setdefault(q, {})[j] = b
+
+    def _trim(self, s: _Session, j: str) -> None:
+        """Rows 1 and 17: remove j's bundle entry (its cluster) and every later one; the other agents removed
+        lose this host's bid (reset to nil, broadcast)."""
+        k = s.entry_of.get(j)
+        if k is None:
+            return
+        removed = s.bundle[k:]
+        del s.bundle[k:]
+        for e in removed:
+            for a in e.agents:
+                s.entry_of.pop(a, None)
+                if a != j:
+                    s.set_own(a, nil_bid(a))
+                    s.outbox[a] = s.bid(a)
+
+    def end_of_inbox(self) -> None:
+        """ll. 77-81: every message currently in the inbox was processed."""
+        s = self.session
+        if s is None or not self.member:
+            return
+        if s.ready and s.build_queued:
+            self._build(s)
+        if s.distribute_queued:
+            self._distribute(s)
+
+    # ------------------------------------------------------------------ l. 51-58: bundle building
+
+    def _build(self, s: _Session) -> None:
+        s.build_queued = False  # l. 52
+        if s.r <= s.round_used:  # l. 53-55 (a round no bid of ours used yet)
+            s.r = s.round_used + 1
+        s.round_used = s.r
+        s.builds += 1
+        self.stats["builds"] += 1
+        self._build_bundle(s)  # l. 56
+        self._distribute(s)  # l. 57
+        self._check_consensus(s)  # l. 58
+
+    def _build_bundle(self, s: _Session) -> None:
+        """Appendix II "HAA-AA Bundle Building Strategy": greedily add the winning bid (single agent or
+        cluster of mutually affine agents) with the highest return until no winning bid is left."""
+        spec = s.spec
+        if spec is None or not s.eligible:
+            return
+        me = self.me
+        k = spec.capacity
+        agents = s.agents
+        in_bundle: set[str] = set(s.entry_of)
+        used = sum(agents[a].cost for a in in_bundle)
+        bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
+        for j in in_bundle:
+            for i, alpha in s.rev.get(j, ()):
+                if i in bonus:
+                    bonus[i] += alpha
+        factor = {i: transfer_factor(agents[i], me) for i in s.eligible}
+        claims = self._claims(s)
+        while True:
+            prev = s.bundle[-1] if s.bundle else None
+            best: tuple[tuple[int, float, float], tuple[str, ...], float, float] | None = None
+            for i in s.eligible:
+                if i in in_bundle:
+                    continue
+                a = agents[i]
+                reward = (a.cost + bonus[i]) * factor[i]
+                support = (k - used - a.cost) / k
+                raw = Bid(i, me, reward, support, s.r)
+                placed = self._warp(raw, prev)
+                if not bid_gt(placed, self._to_beat(s, i, claims)):
+                    continue
+                key = bid_key(raw)
+                if best is None or key > best[0]:
+                    best = (key, (i,), placed.reward, placed.support)
+            for cl in self._clusters(s, in_bundle):
+                cost = sum(agents[i].cost for i in cl)
+                support = (k - used - cost) / k
+                if support <= 0.0:  # the whole cluster must fit
+                    continue
+                reward = 0.0
+                for i in cl:
+                    a = agents[i]
+                    inner = sum(a.affinity.get(j, 0.0) for j in cl if j != i)
+                    reward += (a.cost + bonus[i] + inner) * factor[i]
+                raw = Bid(cl[0], me, reward, support, s.r)
+                placed = self._warp(raw, prev)
+                if not all(bid_gt(placed._replace(agent=i), self._to_beat(s, i, claims)) for i in cl):
+                    continue
+                key = bid_key(raw)
+                if best is None or key > best[0]:
+                    best = (key, cl, placed.reward, placed.support)
+            if best is None:
+                return
+            _key, chosen, reward, support = best
+            s.entry_of.update(dict.fromkeys(chosen, len(s.bundle)))
+            s.bundle.append(_Entry(chosen, reward, support))
+            for i in chosen:  # step 3c i-iii
+                in_bundle.add(i)
+                used += agents[i].cost
+                for i2, alpha in s.rev.get(i, ()):
+                    if i2 in bonus:
+                        bonus[i2] += alpha
+                b = Bid(i, me, reward, support, s.r)
+                s.set_own(i, b)
+                s.outbox[i] = b
+
+    #: a winning bid must also beat every bid another member last claimed for itself (docs/allocation.md)
+    BEAT_CLAIMS = True
+
+    def _claims(self, s: _Session) -> dict[str, Bid]:
+        """The best bid each agent is claimed with by another member for itself in its last update
+        (bidTable_p[q][j] with z = q)."""
+        out: dict[str, Bid] = {}
+        if not self.BEAT_CLAIMS:
+            return out
+        for q in s.others:
+            for j, b in s.rows.get(q, {}).items():
+                if b.winner == q:
+                    c = out.get(j)
+                    if c is None or bid_gt(b, c):
+                        out[j] = b
+        return out
+
+    def _to_beat(self, s: _Session, j: str, claims: dict[str, Bid]) -> Bid:
+        """The bid a new bid of ours for j must beat: bidTable_p[p][j] (Appendix II step 3), and, damping the
+        reset/re-bid cascades of the asynchronous rules, every bid bidTable_p[q][j] in which a member q
+        claims j for itself in its last update (q's own word, so never stale by more than that update)."""
+        best = s.bid(j)
+        c = claims.get(j)
+        if c is not None and bid_gt(c, best):
+            return c
+        return best
+
+    def _warp(self, raw: Bid, prev: _Entry | None) -> Bid:
+        """Cap a bid so that it does not beat the previous bid of the same bundle (diminishing marginal
+        gains, the condition of CBBA's convergence proof, which affinity bonuses would otherwise break)."""
+        if not self.WARP or prev is None:
+            return raw
+        prev_bid = raw._replace(reward=prev.reward, support=prev.support)
+        if bid_key(raw) <= bid_key(prev_bid):
+            return raw
+        # support never grows along a bundle, so capping the reward is enough
+        return raw._replace(reward=min(raw.reward, prev.reward))
+
+    def _clusters(self, s: _Session, in_bundle: set[str]) -> list[tuple[str, ...]]:
+        """Appendix II step 2: connected sets (2..MAX_CLUSTER agents) of unbundled agents with mutual
+        affinity, grown recursively from each agent; at most MAX_CLUSTERS, in a deterministic order."""
+        if self.MAX_CLUSTER < 2:
+            return []
+        pos = {a: n for n, a in enumerate(s.eligible)}
+        out: list[tuple[str, ...]] = []
+        seen: set[frozenset[str]] = set()
+        limit = self.MAX_CLUSTERS
+
+        def grow(members: list[str], frontier: list[str]) -> None:
+            if len(out) >= limit:
+                return
+            for n, c in enumerate(frontier):
+                new = [*members, c]
+                fs = frozenset(new)
+                if fs in seen:
+                    continue
+                seen.add(fs)
+                out.append(tuple(sorted(new, key=pos.__getitem__)))
+                if len(out) >= limit:
+                    return
+                if len(new) < self.MAX_CLUSTER:
+                    nxt = frontier[n + 1 :] + [
+                        x
+                        for x in s.nbrs.get(c, ())
+                        if x not in in_bundle and pos[x] > pos[new[0]] and x not in fs and x not in frontier
+                    ]
+                    grow(new, nxt)
+
+        for v in s.eligible:
+            if v in in_bundle or not s.nbrs.get(v):
+                continue
+            grow([v], [x for x in s.nbrs[v] if x not in in_bundle and pos[x] > pos[v]])
+            if len(out) >= limit:
+                break
+        return out
+
+    # ------------------------------------------------------------------ l. 82-92: distribute, consensus
+
+    def _distribute(self, s: _Session) -> None:
+        s.distribute_queued = False  # l. 83
+        if not s.ready or not (s.outbox or s.replies):
+            return
+        everyone = tuple(q for q in s.others if q not in s.replies)
+        if s.outbox and everyone:
+            self._send(s, everyone, tuple(s.outbox.values()))  # l. 84
+        for q in s.others:
+            extra = s.replies.get(q)
+            if extra:
+                bids = {**s.outbox, **{j: b for j, b in extra.items() if j not in s.outbox}}
+                self._send(s, (q,), tuple(bids.values()))
+        s.sent.update(s.outbox)
+        s.outbox = {}  # l. 85
+        s.replies = {}
+
+    def _send(self, s: _Session, dsts: tuple[str, ...], bids: tuple[Bid, ...]) -> None:
+        self._out.append(SendUpdate(dsts, BidUpdate(s.ses_id, bids, self.me)))
+        s.messages_sent += len(dsts)
+        self.stats["updates_out"] += 1
+        self.stats["messages_out"] += len(dsts)
+
+    def _check_consensus(self, s: _Session) -> None:
+        """l. 86-88: the leader decides once every allocatable agent is claimed and every member's last sent
+        bids equal its own."""
+        if not s.ready or s.decided or not s.group or s.group[0] != self.me:
+            return
+        if s.unclaimed or s.mismatch:
+            return
+        s.decided = True
+        alloc = {j: s.own[j].winner for j in s.agents if j in s.allocatable}  # type: ignore[misc]
+        fin = ProposeFinish(s.ses_id, alloc, self.me, s.unallocatable)  # type: ignore[arg-type]
+        self._pending_finish = fin
+        self._log("alloc.consensus", ses=s.ses_id, builds=s.builds, messages=s.messages_sent)
+        self._out.append(fin)
+
+    def on_finish_decided(self, ses_id: int, committed: bool) -> None:
+        """The OAC(finish) this host proposed was decided (l. 91). Aborted: propose it again while the
+        session is current and the group and agent list are unchanged (l. 92)."""
+        fin = self._pending_finish
+        if fin is None or fin.ses_id != ses_id:
+            return
+        if committed:
+            self._pending_finish = None
+            return
+        s = self.session
+        st = s.start if s is not None else None
+        if (
+            s is not None
+            and st is not None
+            and s.ses_id == ses_id
+            and self.group == st.group
+            and tuple(a.id for a in self.agents) == st.agent_ids
+        ):
+            self._log("alloc.retry_finish", ses=ses_id)
+            self._out.append(fin)
+        else:
+            self._pending_finish = None
+
+    # ------------------------------------------------------------------ l. 93-96: finish committed
+
+    def finish_valid(self, ses_id: int, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> str:
+        """Why a committed OAC(finish) is not accepted ("" = accepted): it must finish the last committed
+        start, which must not have expired since (group and agent list unchanged), and not be finished yet.
+        Depends only on totally ordered state, so every host decides the same."""
+        st = self.committed_start
+        if st is None or ses_id != self.committed_ses:
+            return f"not the last committed session ({self.committed_ses})"
+        if ses_id <= self.finished_ses:
+            return "session already finished"
+        if st.group != tuple(group):
+            return "group changed since the start"
+        if st.agent_ids != tuple(agent_ids):
+            return "agent list changed since the start"
+        return ""
+
+    def on_finish_committed(
+        self,
+        ses_id: int,
+        allocation: Mapping[str, str],
+        group: tuple[str, ...] | None = None,
+        agent_ids: tuple[str, ...] | None = None,
+    ) -> None:
+        """OAC(finish) committed (l. 93). `group`/`agent_ids`: hostGroup and agentList at this point of the
+        total order (default: as last given to `on_change`)."""
+        g = tuple(group) if group is not None else self.group
+        ids = tuple(agent_ids) if agent_ids is not None else tuple(a.id for a in self.agents)
+        why = self.finish_valid(ses_id, g, ids)
+        if why:
+            self._log("alloc.finish_ignored", ses=ses_id, reason=why)
+            return
+        self.finished_ses = ses_id
+        st = self.committed_start
+        unalloc = st.unallocatable() if st is not None else ()
+        self._log("alloc.allocated", ses=ses_id, agents=len(allocation))
+        self._out.append(Allocated(ses_id, dict(allocation), unalloc))  # l. 94
+        s = self.session
+        if s is not None and s.ses_id == ses_id:  # l. 95-96
+            s.decided = True
+        if self._pending_finish is not None and self._pending_finish.ses_id == ses_id:
+            self._pending_finish = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _log(self, event: str, **fields: Any) -> None:
+        self._out.append(Log(event, {"host": self.me, **fields}))
+
+
+# --------------------------------------------------------------------------------------------- rebalancing
+
+
+class RebalancePolicy:
+    """When to start an allocation session (Alg. 4 l. 17 and §6.1: "every time a new agent is requested,
+    whenever an agent or host fails, and at regular intervals in order to balance processing load").
+
+    * `changed(now)`: the group or agent list changed. A session is due at once, but never sooner than
+      `min_interval` after the previous one (rate limit: a burst of changes makes one session).
+    * periodic load balance: every `period` seconds after the last start, unless paused by the operator
+      (`pause()` / `resume()`) or a session is still running (at most `session_timeout`). Pausing stops only
+      the periodic sessions: a change still needs one, or agents of a failed host would stay unallocated.
+    * `due(now)` at `deadline()`: True when the host should call `Allocator.on_change(..., start=True)`.
+    * `finished(now)`: the host accepted an allocation (`Allocated`).
+
+    Sans-I/O: time is an argument; the host sets a timer for `deadline()`.
+    """
+
+    def __init__(self, period: float = 30.0, min_interval: float = 1.0, session_timeout: float = 10.0) -> None:
+        self.period = _finite(period, "RebalancePolicy.period", 0.0, lo_open=True)
+        self.min_interval = _finite(min_interval, "RebalancePolicy.min_interval", 0.0)
+        self.session_timeout = _finite(session_timeout, "RebalancePolicy.session_timeout", 0.0, lo_open=True)
+        self.paused = False
+        self.pending = False
+        self.running = False
+        self.last_start = -INF
+        self.starts = 0
+
+    def pause(self) -> None:
+        self.paused = True
+
+    def resume(self) -> None:
+        self.paused = False
+
+    def changed(self, now: float) -> bool:
+        self.pending = True
+        return self.due(now)
+
+    def finished(self, now: float) -> None:
+        self.running = False
+
+    def deadline(self) -> float | None:
+        if self.pending:
+            return self.last_start + self.min_interval
+        if self.paused:
+            return None
+        t = self.last_start + self.period
+        if self.running:
+            t = max(t, self.last_start + self.session_timeout)
+        return t
+
+    def due(self, now: float) -> bool:
+        if self.pending:
+            wait = now < self.last_start + self.min_interval
+        else:  # periodic
+            wait = self.paused or now < self.last_start + self.period
+            wait = wait or (self.running and now < self.last_start + self.session_timeout)
+        if wait:
+            return False
+        self.pending = False
+        self.running = True
+        self.last_start = now
+        self.starts += 1
+        return True
