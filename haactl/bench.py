@@ -208,3 +208,18 @@ def bench_ddb(
     print(markdown_table(rows))
     path = write_json("ddb", {"machine": machine(), "seconds": seconds, "rows": rows})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("sim")
+def bench_sim(
+    quick: bool = typer.Option(False, "--quick", help="short runs (a smoke run, not a measurement)"),
+) -> None:
+    """The simulator (haa.sim): stepping 10 avatars vs real time, camera frames, sonar readings."""
+    from haactl.ap1 import machine
+    from haactl.simbench import markdown, run_sim_bench
+
+    t0 = time.perf_counter()
+    r = run_sim_bench(quick=quick)
+    print(markdown(r))
+    path = write_json("sim", {"machine": machine(), **r})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
