@@ -116,7 +116,7 @@ def bench_camera(arena: str, kind: str, frames: int, seed: int = 2) -> dict[str,
         render_c.append(cpu)
         assert frame is not None
         bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
-        png_c.append(_timed(lambda b=bgr: cv2.imencode(".png", b))[1])
+        png_c.append(_timed(lambda b=bgr: cv2.imencode(".png", b, [cv2.IMWRITE_PNG_COMPRESSION, 1]))[1])
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
         ids = None
 

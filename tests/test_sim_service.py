@@ -111,10 +111,11 @@ def test_avatar_api_end_to_end(sim: SimProcess) -> None:
         assert [round(s.time - t0, 6) for s in scans] == [1.0, 2.0, 3.0]
         assert all(len(s.readings) == 5 for s in scans)
         # capture: PNG and raw decode to the same frame; detections are landmarks in view
-        f = c.capture(aid)
+        f = c.capture(aid, pb.IMAGE_ENCODING_PNG)
         img = decode_frame(f)
         assert img.shape == (480, 640, 3) and f.data[:4] == b"\x89PNG"
-        raw = decode_frame(c.capture(aid, pb.IMAGE_ENCODING_RAW_RGB))
+        raw = decode_frame(c.capture(aid))
+        assert len(c.capture(aid).data) == 640 * 480 * 3
         assert np.abs(raw.astype(int) - img).max() <= 12  # the same view, another draw of pixel noise
         assert len(f.floor_homography) == 9 and f.odometry.y == pytest.approx(rest[-1].odometry.y, abs=1e-6)
         det = c.detect(aid)

@@ -9,8 +9,8 @@ DESCRIPTOR: _descriptor.FileDescriptor
 
 class ImageEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
-    IMAGE_ENCODING_PNG: _ClassVar[ImageEncoding]
     IMAGE_ENCODING_RAW_RGB: _ClassVar[ImageEncoding]
+    IMAGE_ENCODING_PNG: _ClassVar[ImageEncoding]
     IMAGE_ENCODING_JPEG: _ClassVar[ImageEncoding]
 
 class ActionStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
@@ -20,8 +20,8 @@ class ActionStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     ACTION_STATUS_SUCCEEDED: _ClassVar[ActionStatus]
     ACTION_STATUS_FAILED: _ClassVar[ActionStatus]
     ACTION_STATUS_CANCELLED: _ClassVar[ActionStatus]
-IMAGE_ENCODING_PNG: ImageEncoding
 IMAGE_ENCODING_RAW_RGB: ImageEncoding
+IMAGE_ENCODING_PNG: ImageEncoding
 IMAGE_ENCODING_JPEG: ImageEncoding
 ACTION_STATUS_UNSPECIFIED: ActionStatus
 ACTION_STATUS_RUNNING: ActionStatus

@@ -15,7 +15,7 @@ haa-sim --arena small|large|FILE --listen HOST:PORT --seed S [--speed X | --step
   not, so readings do not depend on subscribers), action progress at the requested period.
 * AvatarSim is what avatar agents use (hardware stand-in): Register (create, or attach to an avatar that
   joined by schedule), Release (retire), Act (an AvatarBase action; the stream ends with its outcome),
-  Cancel, SetVelocity, Odometry and Sonar streams, Capture (a rendered frame, PNG by default), Detect (the
+  Cancel, SetVelocity, Odometry and Sonar streams, Capture (a rendered frame: raw RGB, PNG or JPEG), Detect (the
   camera's landmark and collectable detections), Events (joined / retired / crashed / picked / dropped /
   deposited). A retired or crashed avatar's streams end with UNAVAILABLE, like hardware that stopped
   answering; calls about it get UNAVAILABLE too.
@@ -128,8 +128,11 @@ def encode_frame(f: CameraFrame, encoding: int) -> pb.CameraFrame:
     if encoding == pb.IMAGE_ENCODING_RAW_RGB:
         data = np.ascontiguousarray(f.image).tobytes()
     else:
-        ext = ".jpg" if encoding == pb.IMAGE_ENCODING_JPEG else ".png"
-        ok, buf = cv2.imencode(ext, cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+        bgr = cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR)
+        if encoding == pb.IMAGE_ENCODING_JPEG:
+            ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        else:
+            ok, buf = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise RuntimeError("image encoding failed")
         data = buf.tobytes()
@@ -202,7 +205,7 @@ class _Watch:
     queue: asyncio.Queue[Any]
     period: float
     due: float
-    encoding: int = pb.IMAGE_ENCODING_PNG
+    encoding: int = pb.IMAGE_ENCODING_RAW_RGB
 
 
 class SimCore:
@@ -540,7 +543,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
             return
         period = request.progress_period if request.progress_period > 0 else DEFAULT_PERIOD
         q: asyncio.Queue[Any] = asyncio.Queue(QUEUE_MAX)
-        enc = request.capture.encoding if request.WhichOneof("action") == "capture" else pb.IMAGE_ENCODING_PNG
+        enc = request.capture.encoding if request.WhichOneof("action") == "capture" else pb.IMAGE_ENCODING_RAW_RGB
         wt = _Watch(request.avatar_id, action, q, period, self.world.time + period, enc)
         self.core.start_action(wt)
         while True:
@@ -921,7 +924,7 @@ class SimClient:
     def sonar(self, avatar_id: str, timeout: float | None = None) -> Any:
         return self._stream(self.avatars.Sonar, pb.StreamRequest(avatar_id=avatar_id), timeout)
 
-    def capture(self, avatar_id: str, encoding: int = pb.IMAGE_ENCODING_PNG) -> pb.CameraFrame:
+    def capture(self, avatar_id: str, encoding: int = pb.IMAGE_ENCODING_RAW_RGB) -> pb.CameraFrame:
         return self._call(self.avatars.Capture, pb.CaptureRequest(avatar_id=avatar_id, encoding=encoding))
 
     def detect(self, avatar_id: str) -> pb.Detections:
