@@ -62,9 +62,11 @@ def test_transfer_keeps_counters_no_loss_no_duplicate_order_kept():
     async def main():
         async with hosts() as H:
             a1, a2 = new_agent_id(), new_agent_id()
-            cfg = {"period": 0.005, "backup_every": 0, "ddb": False, "payload": 16}
+            cfg = {"period": 0.005, "backup_every": 0, "ddb": False, "payload": 16, "paused": True}
             await H.create("counter", {**cfg, "peer": a2}, "h1", agent_id=a1)
             await H.create("counter", {**cfg, "peer": a1}, "h1", agent_id=a2)
+            await H.request(a1, b"resume")
+            await H.request(a2, b"resume")
             await until(lambda: len(H.events) > 100, what="traffic")
             before = await H.request_json(a1, b"stats")
             held = 0
@@ -103,9 +105,11 @@ def test_recover_from_backup_counts_loss_separately():
     async def main():
         async with hosts() as H:
             a1, a2 = new_agent_id(), new_agent_id()
-            cfg = {"period": 0.005, "ddb": False}
+            cfg = {"period": 0.005, "ddb": False, "paused": True}
             await H.create("counter", {**cfg, "peer": a2, "backup_every": 1000}, "h1", agent_id=a1)
             await H.create("counter", {**cfg, "peer": a1, "backup_every": 25}, "h1", agent_id=a2)
+            await H.request(a1, b"resume")
+            await H.request(a2, b"resume")
             await until(lambda: a2 in H.backups, what="a backup of a2")
             await asyncio.sleep(0.1)
             os.kill(H.pid(a2), signal.SIGKILL)
@@ -396,9 +400,11 @@ def test_stats_measure_cpu_and_messages_per_peer():
             busy = await H.create("busy", {"cpu": 0.5, "slice": 0.02}, "h1")
             idle = await H.create("probe", {}, "h1")
             a1, a2 = new_agent_id(), new_agent_id()
-            cfg = {"period": 0.01, "ddb": False, "payload": 100, "backup_every": 0}
+            cfg = {"period": 0.01, "ddb": False, "payload": 100, "backup_every": 0, "paused": True}
             await H.create("counter", {**cfg, "peer": a2}, "h2", agent_id=a1)
             await H.create("counter", {**cfg, "peer": a1}, "h2", agent_id=a2)
+            await H.request(a1, b"resume")
+            await H.request(a2, b"resume")
             await asyncio.sleep(2.0)
             await H.request(a1, b"pause")
             await H.request(a2, b"pause")
@@ -412,7 +418,7 @@ def test_stats_measure_cpu_and_messages_per_peer():
             sent1 = s2[a1].msgs_out[a2]
             assert sent1 > 20
             assert s2[a2].msgs_in[a1] == sent1 and s2[a2].bytes_in[a1] == s2[a1].bytes_out[a2] == sent1 * 120
-            assert s2[a1].msgs_in[""] == s2[a1].msgs_out[""] == 1  # the operator's pause request and its reply
+            assert s2[a1].msgs_in[""] == s2[a1].msgs_out[""] == 2  # the operator's resume and pause, replies
 
     run(main())
 

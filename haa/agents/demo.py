@@ -22,7 +22,9 @@ the pinging (tests compare counts at rest), b"backup" makes a backup now.
 
     config (JSON): {"peer": "<agent id>"} or {"spawn_peer": true}   (the child gets {"peer": <parent id>})
                    "period": 0.05, "payload": 0 (extra bytes per message), "backup_every": 100,
-                   "stats_period": 1.0, "ddb": true (write the stats to the DDB)
+                   "stats_period": 1.0, "ddb": true (write the stats to the DDB),
+                   "paused": false (start without pinging, until the request b"resume": tests start both
+                   agents of a pair paused, so that no first ping goes to a peer that does not exist yet)
 
 spawner — spawns `count` children of `type` with `config` through spawn_child (parent/child naming:
 A3 -> A3.1, A3.2, ...); request b"children" -> JSON list of child ids.
@@ -142,7 +144,7 @@ class CounterAgent(AgentBase):
         self.gen = self.epoch
         self.next_seq = 1
         self.sent = 0
-        self.paused = False
+        self.paused = bool(cfg.get("paused", False))
         self.streams: dict[str, _Stream] = {}
         self.adopt_new = False
         self.since_backup = 0
