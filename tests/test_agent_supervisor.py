@@ -484,3 +484,33 @@ def test_runs_on_uvloop_and_spawn_latency():
         assert statistics.median(ready) < 0.5  # AP-4 budget for the whole spawn; this part is a fraction
 
     uvloop.run(asyncio.wait_for(main(), 60))
+
+
+def test_counter_spawns_its_peer_and_publishes_stats_to_the_ddb():
+    async def main():
+        async with hosts() as H:
+            a = await H.create("counter", {"spawn_peer": True, "period": 0.01, "stats_period": 0.2}, "h1")
+            name = H.specs[a].name
+            await until(lambda: f"demo/{name}" in H.ddb and f"demo/{name}.1" in H.ddb, what="stats in the DDB")
+            await until(lambda: json.loads(H.ddb[f"demo/{name}.1"][1])["received"] > 5, what="pings")
+            t, raw = H.ddb[f"demo/{name}.1"]
+            child = json.loads(raw)
+            assert t == "json" and child["peer"] == a and child["lost"] == 0 and child["duplicate"] == 0
+            parent = await H.request_json(a, b"stats")
+            assert parent["peer"] == child["id"] and H.specs[child["id"]].parent == a
+
+    run(main())
+
+
+def test_agent_log_lines_reach_the_host_log(caplog):
+    async def main():
+        async with hosts() as H:
+            a = await H.create("probe", {}, "h1")
+            with caplog.at_level("INFO", logger="haa.hostd.agents"):
+                await H.request(a, {"op": "log", "fields": {"x": 1, "why": "test"}})
+                await until(lambda: any(getattr(r, "event", "") == "probe_log" for r in caplog.records))
+            rec = next(r for r in caplog.records if getattr(r, "event", "") == "probe_log")
+            assert rec.fields == {"x": 1, "why": "test", "agent": a, "agent_name": H.specs[a].name,
+                                  "agent_type": "probe"}
+
+    run(main())

@@ -5,8 +5,9 @@ and of a failure (kill -9 -> Failed).
     python -m haa.agents.bench [-n 50] [--cold-n 10]     # prints markdown tables, writes bench-results/agents.json
 
 `measure_spawn(n)` is the function `haactl bench ap4` calls; it returns a dict of figures (seconds) and never
-fails on a timing. Everything runs on this machine with real processes (haa.agents.harness.LocalHosts is not
-involved: one AgentSupervisor, driven directly).
+fails on a timing. Everything runs on this machine with real processes: one AgentSupervisor driven directly
+for the spawn figures; `measure_throughput` routes one agent's messages to another through one supervisor
+(haa.agents.harness.LocalHosts: agent -> host -> agent, the local hop of every routed message).
 """
 
 from __future__ import annotations
@@ -142,6 +143,28 @@ def measure_spawn(n: int = 50, *, cold: bool = False, type_name: str = "probe", 
     return run_loop(ameasure_spawn(n, cold=cold, type_name=type_name, transfers=transfers, kills=kills))
 
 
+async def ameasure_throughput(count: int = 20000, size: int = 100) -> dict[str, Any]:
+    """Messages/s from one agent to another through their host (both on one supervisor)."""
+    from haa.agents.harness import LocalHosts
+
+    async with LocalHosts(("h1",), heartbeat_period=0.5, hang_timeout=10.0) as hosts:
+        a = await hosts.create("probe", {"record": False})
+        b = await hosts.create("probe", {"record": False})
+        t0 = time.perf_counter()
+        await hosts.request(a, {"op": "send", "to": b, "count": count, "size": size}, timeout=300)
+        t1 = time.perf_counter()
+        got = await hosts.request_json(b, {"op": "state"}, timeout=300)  # queued behind every message
+        t2 = time.perf_counter()
+    return {"count": count, "size": size, "received": got["received"], "send_s": t1 - t0, "total_s": t2 - t0,
+            "msgs_per_s": count / (t2 - t0), "mib_per_s": count * size / (t2 - t0) / 2**20}
+
+
+def measure_throughput(count: int = 20000, size: int = 100) -> dict[str, Any]:
+    from haa.agents.runner import run_loop
+
+    return run_loop(ameasure_throughput(count, size))
+
+
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     def ms(s: dict[str, float], k: str) -> str:
         return f"{s[k] * 1e3:.1f}" if s.get("n") else "-"
@@ -178,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="agent runtime benchmark (spawn latency, transfer steps, memory)")
     ap.add_argument("-n", type=int, default=50, help="agents spawned through the fork server")
     ap.add_argument("--cold-n", type=int, default=10, help="agents spawned by exec (0 = skip)")
+    ap.add_argument("--messages", type=int, default=20000, help="messages for the throughput figure")
     ap.add_argument("--no-json", action="store_true", help="do not write bench-results/agents.json")
     args = ap.parse_args(argv)
     import logging
@@ -188,10 +212,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.cold_n:
         rows.append(measure_spawn(args.cold_n, cold=True, transfers=min(5, args.cold_n), kills=0))
     print(markdown_table(rows))
+    tput = [measure_throughput(args.messages, size) for size in (100, 10_000)]
+    print("\n| agent -> host -> agent | messages | bytes each | msgs/s | MiB/s |")
+    print("|---|---|---|---|---|")
+    for t in tput:
+        print(f"| one supervisor | {t['count']} | {t['size']} | {t['msgs_per_s']:.0f} | {t['mib_per_s']:.1f} |")
     if not args.no_json:
         from haactl.bench import write_json
 
-        path = write_json("agents", {"machine": machine(), "rows": rows})
+        path = write_json("agents", {"machine": machine(), "rows": rows, "throughput": tput})
         print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
     return 0
 

@@ -34,8 +34,10 @@ measurement); request b"hang" blocks its event loop forever (to exercise hang de
 {"cpu": x} changes the share; b"stats" -> JSON.
 
 probe — a scriptable agent for tests and operators: every request is a JSON command {"op": ...} (echo,
-send, request, sleep, ddb_get, ddb_put, watch, unwatch, spawn_child, set, backup, state, timer, log, stop,
-raise, exit, hang, garbage, oversize); see `ProbeAgent.on_request`.
+send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, watch, unwatch, spawn_child, set,
+backup, state, timer, log, stop, raise, exit, hang, garbage, oversize); see `ProbeAgent.on_request`. It
+counts the plain messages it receives and keeps them (state "messages") unless its config says
+{"record": false}.
 """
 
 from __future__ import annotations
@@ -369,9 +371,11 @@ class ProbeAgent(AgentBase):
         self.value = ""
         self.messages: list[list[str]] = []  # [src, payload as text]
         self.events: list[list[Any]] = []  # watch events, timers, lifecycle
+        self.received = 0
         cfg = self.config_json()
         if isinstance(cfg, dict) and "value" in cfg:
             self.value = str(cfg["value"])
+        self.record = not (isinstance(cfg, dict) and cfg.get("record") is False)  # keep the messages received
 
     def _record(self, lst: list[Any], item: Any) -> None:
         lst.append(item)
@@ -388,7 +392,9 @@ class ProbeAgent(AgentBase):
         self._record(self.events, ["recover", backup is not None])
 
     async def on_message(self, src: str, payload: bytes) -> None:
-        self._record(self.messages, [src, payload.decode("utf-8", "replace")])
+        self.received += 1
+        if self.record:
+            self._record(self.messages, [src, payload.decode("utf-8", "replace")])
 
     def pack_state(self) -> bytes:
         return json.dumps({"value": self.value, "messages": self.messages, "events": self.events}).encode()
@@ -406,9 +412,12 @@ class ProbeAgent(AgentBase):
         out: Any = "ok"
         if op == "echo":
             out = cmd.get("data", "")
-        elif op == "send":  # "size": send that many bytes instead of "data"
+        elif op == "send":  # "size": send that many bytes instead of "data"; "count": that many times
             data = b"x" * int(cmd["size"]) if "size" in cmd else str(cmd.get("data", "")).encode()
-            self.send(cmd["to"], data)
+            for i in range(int(cmd.get("count", 1))):
+                self.send(cmd["to"], data)
+                if i % 256 == 255:
+                    await asyncio.sleep(0)  # let the heartbeat and the channel breathe
         elif op == "request":
             try:
                 data = str(cmd.get("data", "")).encode()
@@ -438,7 +447,8 @@ class ProbeAgent(AgentBase):
         elif op == "state":
             out = {"value": self.value, "messages": self.messages, "events": self.events, "name": self.name,
                    "id": self.id, "parent": self.parent, "epoch": self.epoch, "host": self.host, "pid": os.getpid(),
-                   "late_replies": self._ctx.late_replies, "handler_errors": self._ctx.handler_errors}
+                   "late_replies": self._ctx.late_replies, "handler_errors": self._ctx.handler_errors,
+                   "received": self.received}
         elif op == "timer":
             self.call_later(float(cmd.get("delay", 0.01)), lambda: self._record(self.events, ["timer", cmd.get("tag")]))
         elif op == "log":
