@@ -17,6 +17,8 @@ from haa.slam.sensors import (
     LandmarkMap,
     LandmarkModel,
     LandmarkReading,
+    Sighting,
+    SonarEcho,
     SonarModel,
     SonarReading,
     points_in_polygon,
@@ -69,7 +71,7 @@ def wall_map() -> OccupancyGrid:
 def test_sonar_density_prefers_the_true_pose_and_maps_the_echo():
     g = wall_map()
     m = SonarModel(resolution=0.1)
-    r = SonarReading("a", 0.0, 0.0, 2.0, 0.349, 2.0)  # wall 2 m ahead of (1, 2)
+    r = SonarReading("a", 0.0, (SonarEcho(0.0, 2.0),), 0.349, 2.0)  # wall 2 m ahead of (1, 2)
     states = np.array([[1.0, 2.0, 0.0], [1.5, 2.0, 0.0], [0.5, 2.0, 0.0], [1.0, 2.0, 0.6]])
     log_g = m.apply(r, states, np.array([1.0, 0.0, 0.0, 0.0]), g)
     assert log_g.argmax() == 0
@@ -80,8 +82,13 @@ def test_sonar_density_prefers_the_true_pose_and_maps_the_echo():
     assert p[20, 15] < 0.4 and p[20, 30] > 0.6
     # no echo: weak free evidence only
     free = OccupancyGrid(SPEC)
-    m.apply(SonarReading("a", 0.0, 0.0, None, 0.349, 2.0), states[:1], np.array([1.0]), free)
+    m.apply(SonarReading("a", 0.0, (SonarEcho(0.0, None),), 0.349, 2.0), states[:1], np.array([1.0]), free)
     assert 0.4 < free.prob()[20, 20] < 0.5 and free.prob().max() <= 0.5
+    # a scan is its echoes side by side: one density, the sum of theirs
+    e1, e2 = SonarEcho(0.0, 2.0), SonarEcho(math.pi / 2, None)
+    scan = m.apply(SonarReading("a", 0.0, (e1, e2)), states, np.full(4, 0.25), wall_map())
+    parts = [m.apply(SonarReading("a", 0.0, (e,)), states, np.full(4, 0.25), wall_map()) for e in (e1, e2)]
+    np.testing.assert_allclose(scan, parts[0] + parts[1], rtol=1e-5)
 
 
 def test_landmark_density_and_estimate():
@@ -89,7 +96,7 @@ def test_landmark_density_and_estimate():
     model = LandmarkModel(range_frac=0.05, sigma_bearing=0.02)
     truth = np.array([3.0, 2.0])
     states = np.array([[1.0, 2.0, 0.0], [1.3, 2.0, 0.0], [1.0, 2.4, 0.0]])
-    first = LandmarkReading("a", 0.0, 7, 2.0, 0.0)
+    first = LandmarkReading("a", 0.0, (Sighting(7, 2.0, 0.0),))
     assert model.apply(first, states[:1], np.array([1.0]), lms) is None  # first sighting: estimate only
     np.testing.assert_allclose(lms.get(7).mean, truth)
     cov0 = lms.get(7).cov.copy()
@@ -98,6 +105,9 @@ def test_landmark_density_and_estimate():
     assert np.trace(lms.get(7).cov) < np.trace(cov0)  # a second sighting sharpens it
     e = lms.errors({7: (3.1, 2.0)})
     assert e["landmarks"] == 1 and math.isclose(e["landmark_error"], 0.1, rel_tol=1e-6)
+    assert model.apply(LandmarkReading("a", 0.0, ()), states, np.full(3, 1 / 3), lms) is None  # nothing seen
+    two = LandmarkReading("a", 0.0, (Sighting(7, 2.0, 0.0), Sighting(8, 1.0, 1.0)))
+    assert model.apply(two, states, np.full(3, 1 / 3), lms) is not None and len(lms) == 2
 
 
 def test_cooccupancy_frees_the_footprint_and_penalizes_overlap():
@@ -121,10 +131,12 @@ def test_floor_polygon_is_free():
 
 
 def test_bad_readings_name_the_field():
-    with pytest.raises(ValueError, match=r"SonarReading\.range"):
-        SonarReading("a", 0.0, 0.0, 3.0, 0.349, 2.0)
-    with pytest.raises(ValueError, match=r"LandmarkReading\.range"):
-        LandmarkReading("a", 0.0, 1, -1.0, 0.0)
+    with pytest.raises(ValueError, match=r"SonarReading\.echoes\[1\]\.range"):
+        SonarReading("a", 0.0, (SonarEcho(0.0, 1.0), SonarEcho(0.0, 3.0)), 0.349, 2.0)
+    with pytest.raises(ValueError, match=r"SonarReading\.echoes: needs at least one"):
+        SonarReading("a", 0.0, ())
+    with pytest.raises(ValueError, match=r"LandmarkReading\.sightings\[0\]\.range"):
+        LandmarkReading("a", 0.0, (Sighting(1, -1.0, 0.0),))
     with pytest.raises(ValueError, match=r"FloorReading\.polygon"):
         FloorReading("a", 0.0, ((0.0, 0.0), (1.0, 0.0)))
     with pytest.raises(ValueError, match=r"grid\.resolution"):

@@ -24,7 +24,8 @@ def test_round_trip(tmp_path):
     assert back.predictions == rec.predictions
     key = lambda r: (r.t, r.kind, r.avatar, str(r))  # noqa: E731
     assert sorted(back.readings, key=key) == sorted(rec.readings, key=key)
-    assert any(r.kind == "sonar" and r.range is None for r in back.readings)  # the optional field
+    assert any(r.kind == "sonar" and any(e.range is None for e in r.echoes) for r in back.readings)  # optional
+    assert any(r.kind == "landmark" and len(r.sightings) > 1 for r in back.readings)
     for name in rec.truth:
         assert back.truth[name] == rec.truth[name] and back.odometry[name] == rec.odometry[name]
     np.testing.assert_array_equal(back.ideal_grid, rec.ideal_grid)
@@ -50,7 +51,7 @@ def test_not_a_recording(tmp_path):
         load(p)
 
 
-def test_events_are_time_ordered_with_staggered_requests():
+def test_events_are_time_ordered_and_requests_avoid_readings():
     rec = synthetic_recording(avatars=2, duration=6.0, seed=2)
     evs = rec.events(1.0)
     assert [e.t for e in evs] == sorted(e.t for e in evs)
@@ -60,7 +61,8 @@ def test_events_are_time_ordered_with_staggered_requests():
     req = [e for e in evs if e.kind == REQUEST]
     per = {a.name: [e.t for e in req if e.avatar == a.name] for a in rec.avatars}
     assert all(4 <= len(v) <= 6 for v in per.values())
-    assert per["a1"][0] != per["a2"][0]
+    own = {(r.avatar, r.t) for r in rec.readings}
+    assert not any((e.avatar, e.t) in own for e in req)  # a request never coincides with its avatar's reading
     assert sum(e.kind == PREDICTION for e in evs) == len(rec.predictions)
     assert sum(e.kind == READING for e in evs) == len(rec.readings)
     with pytest.raises(ValueError, match="request_period"):

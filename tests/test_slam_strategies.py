@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from haa.slam.replay import calibrate
 from haa.slam.strategies import STRATEGIES, Capacity, discard_share, run, strategy
 from haa.slam.synthetic import synthetic_recording
 from haa.slam.system import SlamConfig, SlamSystem
@@ -58,7 +59,7 @@ def assert_same(a, b):
 
 def test_lifo_ooo_equals_in_order_with_enough_processing(rec):
     sp = spaced(rec)
-    cap = Capacity(1, {k: 0.1 for k in COST})  # every reading done before the next arrives
+    cap = Capacity(1, {k: 0.02 for k in COST})  # every reading done before the next arrives (>= 0.05 s apart)
     runs = {name: replay(sp, name, cap) for name in ("jcslam", "fifo", "discard", "random")}
     ref_sys, ref_stats = runs["fifo"]
     assert ref_stats.processed + ref_stats.held_at_end == ref_stats.arrived == len(sp.readings)
@@ -76,7 +77,7 @@ def test_lifo_ooo_equals_in_order_with_enough_processing(rec):
 def test_equality_check_is_sensitive(rec):
     """The comparison above would notice a different processing: drop one reading and it differs."""
     sp = spaced(rec)
-    cap = Capacity(1, {k: 0.1 for k in COST})
+    cap = Capacity(1, {k: 0.02 for k in COST})
     a, _ = replay(sp, "fifo", cap)
     b, _ = replay(dataclasses.replace(sp, readings=sp.readings[:-5] + sp.readings[-4:]), "fifo", cap)
     with pytest.raises(AssertionError):
@@ -84,18 +85,19 @@ def test_equality_check_is_sensitive(rec):
 
 
 def test_constrained_strategies_behave_as_specified(rec):
-    cap = Capacity(2, {k: 0.1 * c for k, c in COST.items()})
+    cap = calibrate(rec, 0.7, workers=2, cost_ms=COST)  # Discard processes 70%
     out = {name: replay(rec, name, cap)[1] for name in ("baseline", "discard", "jcslam", "fifo", "random", "delay")}
     n = len(rec.readings)
     assert out["baseline"].processed == n and out["baseline"].delay_sum == 0
     d = out["discard"]
     assert d.dropped > 0 and d.processed + d.dropped + d.held_at_end == n and d.out_of_order == 0
-    assert abs((d.processed + d.held_at_end) / n - discard_share([(r.t, r.kind) for r in rec.readings], cap)) < 1e-12
+    share = discard_share([(r.t, r.kind) for r in rec.readings], cap)
+    assert abs((d.processed + d.held_at_end) / n - share) < 1e-12 and abs(share - 0.7) < 0.05
     j, f, r = out["jcslam"], out["fifo"], out["random"]
     assert j.processed >= d.processed  # held readings are processed during lulls
     assert j.out_of_order > 0 and f.out_of_order == 0
     # overloaded: FIFO falls behind (its delay grows), LIFO keeps processing the newest readings
-    over = Capacity(2, {k: 0.3 * c for k, c in COST.items()})
+    over = calibrate(rec, 0.3, workers=2, cost_ms=COST)
     j2, f2 = replay(rec, "jcslam", over)[1], replay(rec, "fifo", over)[1]
     assert j2.held_at_end > 0.2 * n and f2.held_at_end > 0.2 * n
     assert f2.delay_sum / f2.processed > 5 * (j2.delay_sum / j2.processed)

@@ -104,35 +104,47 @@ class SlamPose(_message.Message):
     theta: float
     def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., theta: _Optional[float] = ...) -> None: ...
 
-class SlamSonar(_message.Message):
-    __slots__ = ("avatar", "t", "bearing", "range", "fov", "max_range")
-    AVATAR_FIELD_NUMBER: _ClassVar[int]
-    T_FIELD_NUMBER: _ClassVar[int]
+class SlamEcho(_message.Message):
+    __slots__ = ("bearing", "range")
     BEARING_FIELD_NUMBER: _ClassVar[int]
     RANGE_FIELD_NUMBER: _ClassVar[int]
+    bearing: float
+    range: float
+    def __init__(self, bearing: _Optional[float] = ..., range: _Optional[float] = ...) -> None: ...
+
+class SlamSonar(_message.Message):
+    __slots__ = ("avatar", "t", "echoes", "fov", "max_range")
+    AVATAR_FIELD_NUMBER: _ClassVar[int]
+    T_FIELD_NUMBER: _ClassVar[int]
+    ECHOES_FIELD_NUMBER: _ClassVar[int]
     FOV_FIELD_NUMBER: _ClassVar[int]
     MAX_RANGE_FIELD_NUMBER: _ClassVar[int]
     avatar: str
     t: float
-    bearing: float
-    range: float
+    echoes: _containers.RepeatedCompositeFieldContainer[SlamEcho]
     fov: float
     max_range: float
-    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., bearing: _Optional[float] = ..., range: _Optional[float] = ..., fov: _Optional[float] = ..., max_range: _Optional[float] = ...) -> None: ...
+    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., echoes: _Optional[_Iterable[_Union[SlamEcho, _Mapping]]] = ..., fov: _Optional[float] = ..., max_range: _Optional[float] = ...) -> None: ...
 
-class SlamLandmark(_message.Message):
-    __slots__ = ("avatar", "t", "landmark_id", "range", "bearing")
-    AVATAR_FIELD_NUMBER: _ClassVar[int]
-    T_FIELD_NUMBER: _ClassVar[int]
+class SlamSighting(_message.Message):
+    __slots__ = ("landmark_id", "range", "bearing")
     LANDMARK_ID_FIELD_NUMBER: _ClassVar[int]
     RANGE_FIELD_NUMBER: _ClassVar[int]
     BEARING_FIELD_NUMBER: _ClassVar[int]
-    avatar: str
-    t: float
     landmark_id: int
     range: float
     bearing: float
-    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., landmark_id: _Optional[int] = ..., range: _Optional[float] = ..., bearing: _Optional[float] = ...) -> None: ...
+    def __init__(self, landmark_id: _Optional[int] = ..., range: _Optional[float] = ..., bearing: _Optional[float] = ...) -> None: ...
+
+class SlamLandmark(_message.Message):
+    __slots__ = ("avatar", "t", "sightings")
+    AVATAR_FIELD_NUMBER: _ClassVar[int]
+    T_FIELD_NUMBER: _ClassVar[int]
+    SIGHTINGS_FIELD_NUMBER: _ClassVar[int]
+    avatar: str
+    t: float
+    sightings: _containers.RepeatedCompositeFieldContainer[SlamSighting]
+    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., sightings: _Optional[_Iterable[_Union[SlamSighting, _Mapping]]] = ...) -> None: ...
 
 class SlamCooccupancy(_message.Message):
     __slots__ = ("avatar", "t", "radius")

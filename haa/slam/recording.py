@@ -27,7 +27,15 @@ import numpy as np
 from haa.pb import slam_pb2 as pb
 from haa.slam.grid import GridSpec
 from haa.slam.motion import DriftSpec, Prediction
-from haa.slam.sensors import CooccupancyReading, FloorReading, LandmarkReading, Reading, SonarReading
+from haa.slam.sensors import (
+    CooccupancyReading,
+    FloorReading,
+    LandmarkReading,
+    Reading,
+    Sighting,
+    SonarEcho,
+    SonarReading,
+)
 from haa.slam.strategies import PREDICTION, READING, REQUEST, StreamEvent
 
 NS = 1_000_000_000
@@ -88,8 +96,10 @@ class Recording:
     def events(self, request_period: float = 1.0) -> list[StreamEvent]:
         """Time-ordered replay stream: predictions, readings, and a weight request per avatar every period.
 
-        Requests are staggered across avatars and fall on prediction times; at equal times predictions come
-        first, then readings, then requests.
+        An avatar's requests fall half a period after its sensor times (its first reading + (k + 1/2) ·
+        period), snapped to its next prediction, so that a reading and a request never coincide: with
+        instantaneous processing a reading is always in the next estimate, and any processing latency
+        shows. At equal times predictions come first, then readings, then requests.
         """
         if not request_period > 0:
             raise ValueError(f"request_period: must be > 0, got {request_period}")
@@ -98,25 +108,24 @@ class Recording:
         for name, p in self.predictions:
             evs.append((p.t, PREDICTION, seq, StreamEvent(p.t, PREDICTION, name, p)))
             seq += 1
+        first_reading: dict[str, float] = {}
         for r in self.readings:
             evs.append((r.t, READING, seq, StreamEvent(r.t, READING, r.avatar, r)))
+            first_reading.setdefault(r.avatar, r.t)
             seq += 1
-        n = max(len(self.avatars), 1)
         by_avatar: dict[str, list[float]] = {}
         for name, p in self.predictions:
             by_avatar.setdefault(name, []).append(p.t)
-        for i, a in enumerate(self.avatars):
+        for a in self.avatars:
             times = by_avatar.get(a.name, [])
             if not times:
                 continue
-            offset = times[0] + request_period * (i + 1) / n
-            last_k = -1
+            nxt = first_reading.get(a.name, times[0]) + request_period / 2
             for t in times:
-                k = math.floor((t - offset) / request_period + 1e-9)
-                if k > last_k:
+                if t + 1e-9 >= nxt:
                     evs.append((t, REQUEST, seq, StreamEvent(t, REQUEST, a.name)))
                     seq += 1
-                    last_k = k
+                    nxt += request_period * (math.floor((t + 1e-9 - nxt) / request_period) + 1)
         evs.sort(key=lambda e: (e[0], e[1], e[2]))
         return [e[3] for e in evs]
 
@@ -184,12 +193,16 @@ def save(rec: Recording, path: Path | str) -> Path:
     for r in rec.readings:
         m: object
         if isinstance(r, SonarReading):
-            m = pb.SlamSonar(avatar=r.avatar, t=r.t, bearing=r.bearing, fov=r.fov, max_range=r.max_range)
-            if r.range is not None:
-                m.range = r.range
+            m = pb.SlamSonar(avatar=r.avatar, t=r.t, fov=r.fov, max_range=r.max_range)
+            for e in r.echoes:
+                pe = m.echoes.add(bearing=e.bearing)
+                if e.range is not None:
+                    pe.range = e.range
             topic = "/slam/sonar"
         elif isinstance(r, LandmarkReading):
-            m = pb.SlamLandmark(avatar=r.avatar, t=r.t, landmark_id=r.landmark_id, range=r.range, bearing=r.bearing)
+            m = pb.SlamLandmark(avatar=r.avatar, t=r.t)
+            for g in r.sightings:
+                m.sightings.add(landmark_id=g.landmark_id, range=g.range, bearing=g.bearing)
             topic = "/slam/landmark"
         elif isinstance(r, CooccupancyReading):
             m = pb.SlamCooccupancy(avatar=r.avatar, t=r.t, radius=r.radius)
@@ -264,10 +277,11 @@ def load(path: Path | str) -> Recording:
             tracks = rec.truth if topic == "/slam/truth" else rec.odometry
             tracks.setdefault(m.avatar, Track()).add(m.t, (m.x, m.y, m.theta))  # type: ignore[attr-defined]
         elif topic == "/slam/sonar":
-            rng = m.range if m.HasField("range") else None  # type: ignore[attr-defined]
-            rec.readings.append(SonarReading(m.avatar, m.t, m.bearing, rng, m.fov, m.max_range))  # type: ignore[attr-defined]
+            echoes = tuple(SonarEcho(e.bearing, e.range if e.HasField("range") else None) for e in m.echoes)  # type: ignore[attr-defined]
+            rec.readings.append(SonarReading(m.avatar, m.t, echoes, m.fov, m.max_range))  # type: ignore[attr-defined]
         elif topic == "/slam/landmark":
-            rec.readings.append(LandmarkReading(m.avatar, m.t, m.landmark_id, m.range, m.bearing))  # type: ignore[attr-defined]
+            sightings = tuple(Sighting(g.landmark_id, g.range, g.bearing) for g in m.sightings)  # type: ignore[attr-defined]
+            rec.readings.append(LandmarkReading(m.avatar, m.t, sightings))  # type: ignore[attr-defined]
         elif topic == "/slam/cooccupancy":
             rec.readings.append(CooccupancyReading(m.avatar, m.t, m.radius))  # type: ignore[attr-defined]
         elif topic == "/slam/floor":

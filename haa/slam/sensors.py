@@ -2,9 +2,14 @@
 
 Readings (plain frozen dataclasses, validated on construction with a one-line error naming the field):
 
-* `SonarReading` — one sonar's echo: bearing on the avatar, range (None: no echo within max_range), cone
-  field of view, max range (Table 6.2-4: 0.349 rad, 2 m).
-* `LandmarkReading` — a landmark seen by the camera: id, range, bearing (noise ∝ range, Table 6.2-4).
+* `SonarReading` — one scan of the sonar ring: an echo per sonar (bearing on the avatar, range or None for
+  no echo within max_range), the cone's field of view and max range (Table 6.2-4: 0.349 rad, 2 m).
+* `LandmarkReading` — the landmarks found in one camera image: (id, range, bearing) sightings (noise ∝
+  range, Table 6.2-4).
+
+A reading is the unit of processing the strategies schedule (one sensor-processing job in the thesis'
+system: a sonar scan, a camera image, ...); it gives one observation density, the sum of its parts' log
+densities.
 * `CooccupancyReading` — "if the area is occupied by the avatar it is not occupied by an obstacle"
   (AgentSensorCooccupancy): the disc under the avatar is free.
 * `FloorReading` — a floor region found in a camera image and already mapped to the ground plane (the
@@ -50,40 +55,66 @@ def _finite(obj: object, *names: str) -> None:
 
 
 @dataclass(frozen=True)
+class SonarEcho:
+    """One sonar of a scan: its bearing on the avatar and the echo range (None: nothing within max_range)."""
+
+    bearing: float  # rad, relative to the avatar heading
+    range: float | None  # m
+
+
+@dataclass(frozen=True)
 class SonarReading:
+    """One scan of an avatar's sonar ring (Table 6.2-4: period 1 s), processed as one reading."""
+
     avatar: str
     t: float
-    bearing: float  # rad, relative to the avatar heading
-    range: float | None  # m; None = no echo within max_range
+    echoes: tuple[SonarEcho, ...]
     fov: float = 0.349
     max_range: float = 2.0
     kind: str = field(default="sonar", init=False)
 
     def __post_init__(self) -> None:
-        _finite(self, "t", "bearing", "fov", "max_range")
+        _finite(self, "t", "fov", "max_range")
         if not 0 < self.fov < math.pi:
             raise ValueError(f"SonarReading.fov: must be in (0, π), got {self.fov}")
         if not self.max_range > 0:
             raise ValueError(f"SonarReading.max_range: must be > 0, got {self.max_range}")
-        if self.range is not None and not (math.isfinite(self.range) and 0 <= self.range <= self.max_range):
-            raise ValueError(
-                f"SonarReading.range: must be in [0, max_range={self.max_range}] or None, got {self.range}"
-            )
+        if not self.echoes:
+            raise ValueError("SonarReading.echoes: needs at least one echo")
+        for i, e in enumerate(self.echoes):
+            if not math.isfinite(e.bearing):
+                raise ValueError(f"SonarReading.echoes[{i}].bearing: must be finite, got {e.bearing}")
+            if e.range is not None and not (math.isfinite(e.range) and 0 <= e.range <= self.max_range):
+                raise ValueError(
+                    f"SonarReading.echoes[{i}].range: must be in [0, max_range={self.max_range}] or None, got {e.range}"
+                )
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """A landmark found in a camera image: id, range (m), bearing (rad, relative to the heading)."""
+
+    landmark_id: int
+    range: float
+    bearing: float
 
 
 @dataclass(frozen=True)
 class LandmarkReading:
+    """The landmarks found in one camera image (possibly none), processed as one reading."""
+
     avatar: str
     t: float
-    landmark_id: int
-    range: float
-    bearing: float
+    sightings: tuple[Sighting, ...]
     kind: str = field(default="landmark", init=False)
 
     def __post_init__(self) -> None:
-        _finite(self, "t", "range", "bearing")
-        if not self.range > 0:
-            raise ValueError(f"LandmarkReading.range: must be > 0, got {self.range}")
+        _finite(self, "t")
+        for i, g in enumerate(self.sightings):
+            if not (math.isfinite(g.range) and g.range > 0):
+                raise ValueError(f"LandmarkReading.sightings[{i}].range: must be > 0, got {g.range}")
+            if not math.isfinite(g.bearing):
+                raise ValueError(f"LandmarkReading.sightings[{i}].bearing: must be finite, got {g.bearing}")
 
 
 @dataclass(frozen=True)
@@ -182,17 +213,18 @@ class SonarModel:
     temper: float = 0.25
     _cache: OrderedDict = field(default_factory=OrderedDict, repr=False)
 
-    def template(self, r: SonarReading) -> Template:
-        rq = None if r.range is None else round(r.range / (self.resolution / 4))
-        key = (rq, round(r.bearing, 4), round(r.fov, 4), round(r.max_range, 3))
+    def echo_template(self, e: SonarEcho, fov: float, max_range: float) -> Template:
+        """The belief template of one echo (cached by quantized range, bearing and cone)."""
+        rq = None if e.range is None else round(e.range / (self.resolution / 4))
+        key = (rq, round(e.bearing, 4), round(fov, 4), round(max_range, 3))
         tpl = self._cache.get(key)
         if tpl is not None:
             self._cache.move_to_end(key)
             return tpl
-        half = r.fov / 2
+        half = fov / 2
         res = self.resolution
-        if r.range is None:
-            d, a = _cone_points(0.0, r.max_range, half, res)
+        if rq is None:
+            d, a = _cone_points(0.0, max_range, half, res)
             fall = 1.0 - 0.5 * (a / half) ** 2
             p = 0.5 - (0.5 - self.p_free_no_echo) * fall
         else:
@@ -203,23 +235,25 @@ class SonarModel:
                 d, a = _cone_points(0.0, d_free_end, half, res)
                 fall = 1.0 - 0.5 * (a / half) ** 2
                 pts_d.append(d), pts_a.append(a), pts_p.append(0.5 - (0.5 - self.p_free) * fall)
-            d, a = _cone_points(d_free_end, min(rng + self.arc_width / 2, r.max_range + self.arc_width / 2), half, res)
+            d, a = _cone_points(d_free_end, min(rng + self.arc_width / 2, max_range + self.arc_width / 2), half, res)
             fall = 1.0 - 0.5 * (a / half) ** 2
             pts_d.append(d), pts_a.append(a), pts_p.append(0.5 + (self.p_occ - 0.5) * fall)
             d, a, p = np.concatenate(pts_d), np.concatenate(pts_a), np.concatenate(pts_p)
-        ang = r.bearing + a
-        pts = np.stack(
-            [
-                self.mount_radius * math.cos(r.bearing) + d * np.cos(ang),
-                self.mount_radius * math.sin(r.bearing) + d * np.sin(ang),
-            ],
-            axis=1,
-        )
+        ang = e.bearing + a
+        mx, my = self.mount_radius * math.cos(e.bearing), self.mount_radius * math.sin(e.bearing)
+        pts = np.stack([mx + d * np.cos(ang), my + d * np.sin(ang)], axis=1)
         tpl = Template(pts, p)
         self._cache[key] = tpl
         if len(self._cache) > 4096:
             self._cache.popitem(last=False)
         return tpl
+
+    def template(self, r: SonarReading) -> Template:
+        """The scan's template: its echoes' templates side by side (one array operation per scan)."""
+        parts = [self.echo_template(e, r.fov, r.max_range) for e in r.echoes]
+        if len(parts) == 1:
+            return parts[0]
+        return Template(np.concatenate([t.points for t in parts]), np.concatenate([t.p for t in parts]))
 
     def apply(self, r: SonarReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
         return apply_template(grid, states, weights, self.template(r), self.temper)
@@ -337,21 +371,22 @@ class LandmarkModel:
     sigma_bearing: float = 0.05
     min_sigma: float = 0.02
 
-    def sensor_cov(self, r: LandmarkReading, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sensor_cov(self, g: Sighting, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World-frame covariance (xx, yy, xy) of the implied landmark position, per direction phi."""
-        sr = max(self.range_frac * r.range, self.min_sigma) ** 2
-        st = max(r.range * self.sigma_bearing, self.min_sigma) ** 2
+        sr = max(self.range_frac * g.range, self.min_sigma) ** 2
+        st = max(g.range * self.sigma_bearing, self.min_sigma) ** 2
         c, s = np.cos(phi), np.sin(phi)
         return sr * c * c + st * s * s, sr * s * s + st * c * c, (sr - st) * c * s
 
-    def apply(
-        self, r: LandmarkReading, states: np.ndarray, weights: np.ndarray, landmarks: LandmarkMap
+    def apply_sighting(
+        self, g: Sighting, states: np.ndarray, weights: np.ndarray, landmarks: LandmarkMap
     ) -> np.ndarray | None:
-        phi = states[:, 2] + r.bearing
-        px = states[:, 0] + r.range * np.cos(phi)
-        py = states[:, 1] + r.range * np.sin(phi)
-        rxx, ryy, rxy = self.sensor_cov(r, phi)
-        lm = landmarks.get(r.landmark_id)
+        """log g of one sighting (None for a first sighting), then the landmark estimate's update."""
+        phi = states[:, 2] + g.bearing
+        px = states[:, 0] + g.range * np.cos(phi)
+        py = states[:, 1] + g.range * np.sin(phi)
+        rxx, ryy, rxy = self.sensor_cov(g, phi)
+        lm = landmarks.get(g.landmark_id)
         log_g = None
         if lm is not None:
             sxx, syy, sxy = lm.cov[0, 0] + rxx, lm.cov[1, 1] + ryy, lm.cov[0, 1] + rxy
@@ -365,5 +400,16 @@ class LandmarkModel:
         cxx = float(weights @ (dx * dx + rxx))
         cyy = float(weights @ (dy * dy + ryy))
         cxy = float(weights @ (dx * dy + rxy))
-        landmarks.fuse(r.landmark_id, np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]))
+        landmarks.fuse(g.landmark_id, np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]))
         return log_g
+
+    def apply(
+        self, r: LandmarkReading, states: np.ndarray, weights: np.ndarray, landmarks: LandmarkMap
+    ) -> np.ndarray | None:
+        """The image's sightings in turn; log g is their sum (None if none had an estimate to compare with)."""
+        total: np.ndarray | None = None
+        for g in r.sightings:
+            lg = self.apply_sighting(g, states, weights, landmarks)
+            if lg is not None:
+                total = lg if total is None else total + lg
+        return total

@@ -5,7 +5,9 @@ closed loop of waypoints at constant speed. Odometry is the true motion with ran
 avatar type (Table 6.2-3); sensors follow Table 6.2-4: five sonars (±90°, ±45°, 0°, 0.349 rad cone, 2 m,
 σ = 3% of the range, one ray on the axis), a camera seeing landmarks within its field of view and range
 with line of sight (σ_range = 9% of the range, σ_bearing = `sigma_bearing`), and a co-occupancy reading per
-second. Everything is drawn from one seed.
+second; each sensor fires once a second (a sonar scan, a camera image, a co-occupancy reading) at its own
+random phase.
+Everything is drawn from one seed.
 
 This is a stand-in for the simulator of the haa-sim issue (AP-5.1 uses that one, via haa.slam.explorer);
 it is deliberately simple and shares no code with it.
@@ -21,7 +23,7 @@ import numpy as np
 from haa.slam.grid import GridSpec
 from haa.slam.motion import DRIFT, odometry_prediction, wrap_angle
 from haa.slam.recording import AvatarInfo, Recording, Track
-from haa.slam.sensors import CooccupancyReading, LandmarkReading, SonarReading
+from haa.slam.sensors import CooccupancyReading, LandmarkReading, Sighting, SonarEcho, SonarReading
 
 SONAR_BEARINGS = (-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4, math.pi / 2)
 
@@ -87,7 +89,7 @@ def synthetic_recording(
     seed: int = 0,
     dt: float = 0.05,
     prediction_period: float = 0.25,
-    camera_period: float = 0.5,
+    camera_period: float = 1.0,
     sonar_period: float = 1.0,
     speed: float = 0.3,
     sigma_bearing: float = 0.03,
@@ -114,8 +116,8 @@ def synthetic_recording(
         landmark_sigma_bearing=sigma_bearing,
     )
     steps_per_pred = round(prediction_period / dt)
-    cam_every = round(camera_period / dt)
-    sonar_slot = round(sonar_period / dt)
+    cam_every = max(1, round(camera_period / dt))
+    sonar_every = max(1, round(sonar_period / dt))
     for i in range(avatars):
         name = f"a{i + 1}"
         wps = _waypoints(rm, i, avatars)
@@ -130,6 +132,7 @@ def synthetic_recording(
         rec.truth[name].add(0.0, pose)
         rec.odometry[name].add(0.0, odo)
         wp = 1
+        phase = rng.integers(0, [sonar_every, cam_every, sonar_every])  # each sensor's own firing phase, in steps
         lin_k = spec.linear_m_per_10m / math.sqrt(10.0)
         ang_k = spec.angular_rad_per_10rot / math.sqrt(10 * 2 * math.pi)
         for step in range(1, round(duration / dt) + 1):
@@ -157,24 +160,27 @@ def synthetic_recording(
                 oy + ods * math.sin(oth + odth / 2),
                 float(wrap_angle(oth + odth)),
             )
-            if step % steps_per_pred == 0:
+            fire_sonar = kind == "sweeper" and (step - phase[0]) % sonar_every == 0
+            fire_cam = (step - phase[1]) % cam_every == 0
+            fire_coocc = (step - phase[2]) % sonar_every == 0
+            if step % steps_per_pred == 0 or fire_sonar or fire_cam or fire_coocc:
+                # a prediction at every sensor time too, so the filter has the state when a reading arrives
                 rec.predictions.append((name, odometry_prediction(t_prev, odo_prev, t, odo, spec)))
                 odo_prev, t_prev = odo, t
                 rec.truth[name].add(t, (x, y, th))
                 rec.odometry[name].add(t, odo)
-                # sensors fire on prediction times only (so the filter has the state when they arrive)
-                j = step // steps_per_pred
-                n_slots = max(1, sonar_slot // steps_per_pred)
-                for k, b in enumerate(SONAR_BEARINGS):
-                    if kind == "sweeper" and (j + i + k) % n_slots == 0:  # staggered firing
-                        r = raycast(rm, x, y, th + b, 2.0)
-                        if r is not None:
-                            r = min(2.0, max(0.0, r + 0.03 * r * rng.standard_normal()))
-                        rec.readings.append(SonarReading(name, t, b, r, 0.349, 2.0))
-                if step % cam_every == 0:
-                    _camera(rec, rm, name, t, (x, y, th), rng, sigma_bearing)
-                if step % sonar_slot == 0:
-                    rec.readings.append(CooccupancyReading(name, t, 0.15))
+            if fire_sonar:
+                echoes = []
+                for b in SONAR_BEARINGS:
+                    r = raycast(rm, x, y, th + b, 2.0)
+                    if r is not None:
+                        r = min(2.0, max(0.0, r + 0.03 * r * rng.standard_normal()))
+                    echoes.append(SonarEcho(b, r))
+                rec.readings.append(SonarReading(name, t, tuple(echoes), 0.349, 2.0))
+            if fire_cam:
+                _camera(rec, rm, name, t, (x, y, th), rng, sigma_bearing)
+            if fire_coocc:
+                rec.readings.append(CooccupancyReading(name, t, 0.15))
     rec.predictions.sort(key=lambda e: e[1].t)
     rec.readings.sort(key=lambda r: r.t)
     return rec
@@ -192,6 +198,7 @@ def _camera(
     max_range: float = 4.0,
 ) -> None:
     x, y, th = pose
+    seen = []
     for lid, (lx, ly) in rm.landmarks.items():
         d = math.hypot(lx - x, ly - y)
         b = float(wrap_angle(math.atan2(ly - y, lx - x) - th))
@@ -203,4 +210,5 @@ def _camera(
         rr = d + 0.09 * d * rng.standard_normal()
         bb = b + sigma_bearing * rng.standard_normal()
         if rr > 0:
-            rec.readings.append(LandmarkReading(name, t, lid, rr, bb))
+            seen.append(Sighting(lid, rr, bb))
+    rec.readings.append(LandmarkReading(name, t, tuple(seen)))
