@@ -18,6 +18,8 @@
 * AA-Validity: every accepted allocation places each allocatable agent of the agent list current at that
   point of the total order exactly once, on a member of the current group that has its hardware (and is not
   draining), and reports exactly the agents no member can run as unallocatable;
+* AA-Table-Fidelity: every bid a member sends is its own accepted bid at that moment, so that the leader's
+  copy of each member's row is that member's real opinion (what the thesis' consensus check relies on);
 * AA-Agreement: every host that delivers a given OAC(finish) takes the same accept/ignore decision, and all
   hosts accept the same allocation for a session id;
 * AA-Session-Order: committed (valid) start ids strictly increase, a leader never proposes an id twice, and
@@ -60,11 +62,13 @@ from haa.hostd.allocation import (
     RebalancePolicy,
     SendUpdate,
     SessionStart,
+    same_bid,
 )
 from haa.hostd.effects import Log
 
 PROPS = (
     "AA-Validity",
+    "AA-Table-Fidelity",
     "AA-Agreement",
     "AA-Session-Order",
     "AA-Liveness",
@@ -141,8 +145,12 @@ class AllocScenario:
         return max((f.at + (f.arg if f.kind == "pause" else 0.0) for f in self.faults), default=0.0)
 
 
+#: how likely a host has each kind of hardware (lidar is rare: some agents have no capable host)
+HARDWARE_P = {"gpu": 0.4, "camera": 0.4, "lidar": 0.1}
+
+
 def _host_spec(rng: random.Random, name: str) -> HostSpec:
-    hw = frozenset(h for h in HARDWARE if rng.random() < 0.35)
+    hw = frozenset(h for h in HARDWARE if rng.random() < HARDWARE_P[h])
     return HostSpec(name, round(rng.uniform(0.4, 2.0), 3), hw, draining=rng.random() < 0.04)
 
 
@@ -187,6 +195,7 @@ def draw_alloc(seed: int, hosts: int = 7) -> AllocScenario:
         period=rng.uniform(0.2, 1.5),
         min_interval=rng.uniform(0.0, 0.1),
         session_timeout=rng.uniform(0.3, 1.0),
+        proc=rng.uniform(0.0003, 0.003),
     )
     # faults and changes within [0.05, 1.5] s; at least one initial host is never crashed, paused or suspected
     survivors = {rng.choice(names)}
@@ -401,6 +410,7 @@ class AllocSim:
     def _effects(self, node: _Node, t_out: float) -> None:
         for e in node.alloc.drain():
             if isinstance(e, SendUpdate):
+                self._fidelity(node, e)
                 n = 0
                 for d in e.dsts:
                     dn = self.nodes.get(d)
@@ -442,6 +452,26 @@ class AllocSim:
                     f = {k: v for k, v in e.fields.items() if k != "host"}
                     self._t(f"{node.name}# {e.event} {f}")
         self._arm_timer(node)
+
+    def _fidelity(self, node: _Node, e: SendUpdate) -> None:
+        """AA-Table-Fidelity: a member only ever sends its own accepted bids (bidTable_q[q] at every other
+        host is then q's real row, which the leader's consensus check relies on, §4.7.2 l. 70)."""
+        s = node.alloc.session
+        if s is None or s.ses_id != e.update.ses_id:
+            self._bad(
+                "AA-Table-Fidelity", f"{node.name} sent bids of session {e.update.ses_id} it is not in", [node.name]
+            )
+            return
+        for b in e.update.bids:
+            own = s.bid(b.agent)
+            if not same_bid(own, b):
+                self._bad(
+                    "AA-Table-Fidelity",
+                    f"{node.name} sent {b.agent} -> {b.winner} ({b.reward:.3f}/{b.support:.3f}) in session "
+                    f"{s.ses_id} while it accepts {own.winner} ({own.reward:.3f}/{own.support:.3f})",
+                    [node.name],
+                )
+                return
 
     def _arm_timer(self, node: _Node) -> None:
         d = node.policy.deadline()

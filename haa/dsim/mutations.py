@@ -32,6 +32,18 @@ Host membership (Alg. 3) and the DDB, checked by `haactl verify membership|ddb` 
 * `reorder-restored` a replica restored from a snapshot (every joiner's) applies the ops of a batch in an
                      order of its own (reversed), as an iteration over a set might: replicas are no longer
                      identical by construction. Breaks DDB-Prefix.
+
+Agent allocation (Alg. 4), checked by `haactl verify allocation` (`haa.dsim.allocation`):
+
+* `thesis-accept`    Alg. 4 ll. 93-94 as printed: every committed OAC(finish) is accepted, even one whose
+                     session expired (group or agent list changed after its start). Breaks AA-Validity.
+* `cbba-reset`       Table 4.7-1 "reset & broadcast" as in the CBBA/ACBBA papers: the receiver resets but
+                     rebroadcasts the sender's bid instead of its own nil bid, so the leader's bid table no
+                     longer shows the members' real rows (the thesis' reason for its change). Breaks
+                     AA-Table-Fidelity.
+* `no-unallocatable` consensus waits for every agent, also those no host of the group can run: the session
+                     never ends. Breaks AA-Liveness.
+* `ignore-hardware`  hosts bid for agents whose hardware they lack. Breaks AA-Validity.
 """
 
 from __future__ import annotations
@@ -43,6 +55,7 @@ from collections.abc import Callable
 from google.protobuf.message import DecodeError
 
 from haa.dsim import group as group_mod
+from haa.hostd import allocation as alloc_mod
 from haa.hostd import ddb as ddb_mod
 from haa.hostd import membership as membership_mod
 from haa.hostd import oac as oac_mod
@@ -217,6 +230,35 @@ def reorder_restored() -> Undo:
     return undo
 
 
+def thesis_accept() -> Undo:
+    return _patch(alloc_mod.Allocator, "finish_valid", lambda self, ses_id, group, agent_ids: "")
+
+
+def cbba_reset() -> Undo:
+    def broadcast_bid(
+        self: alloc_mod.Allocator, s: alloc_mod._Session, j: str, sender_bid: alloc_mod.Bid, action: str
+    ) -> alloc_mod.Bid:
+        return sender_bid if action == alloc_mod.RESET else s.bid(j)
+
+    return _patch(alloc_mod.Allocator, "_broadcast_bid", broadcast_bid)
+
+
+def no_unallocatable() -> Undo:
+    return _patch(alloc_mod.SessionStart, "unallocatable", lambda self: ())
+
+
+def ignore_hardware() -> Undo:
+    cls = alloc_mod._Session
+    original = cls.make_ready
+
+    def make_ready(self: alloc_mod._Session, start: alloc_mod.SessionStart, me: str) -> None:
+        original(self, start, me)
+        if self.spec is not None:
+            self.eligible = tuple(a.id for a in start.agents if not self.spec.draining)
+
+    return _patch(cls, "make_ready", make_ready)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -230,6 +272,10 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "no-lock-wait": (_node_flag("no-lock-wait"), "ddb", "DDB-Durability"),
     "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
+    "thesis-accept": (thesis_accept, "allocation", "AA-Validity"),
+    "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
+    "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),
+    "ignore-hardware": (ignore_hardware, "allocation", "AA-Validity"),
 }
 
 

@@ -2,7 +2,8 @@
 
 Algorithms: `ufd` and `oac` run `haa.dsim.schedule` scenarios on bare host cores (checked by
 `haa.dsim.checks`); `membership` and `ddb` run `haa.dsim.group` scenarios on `MembershipNode`s (Alg. 3 and
-the replicated DDB; `ddb` with a heavier write workload) and report `haa.dsim.group.VERIFIER_PROPS`.
+the replicated DDB; `ddb` with a heavier write workload) and report `haa.dsim.group.VERIFIER_PROPS`;
+`allocation` runs `haa.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.dsim.allocation.PROPS`).
 
 `run_seed` draws one scenario, runs it, checks it, and returns a small picklable result. `sweep` fans
 seeds out to a process pool (one worker per core), reports progress and schedules per minute, and for each
@@ -28,7 +29,7 @@ from haa.dsim import schedule as sched
 from haa.dsim.checks import CheckResult, Violation, check_oac, check_ufd
 
 GROUP_ALGORITHMS = ("membership", "ddb")
-ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS)
+ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation")
 #: per-seed figures of the group verifiers that the summary adds up
 GROUP_TOTALS = ("faults_injected", "faults_dropped", "writes_acked", "views")
 
@@ -64,6 +65,10 @@ def run_seed(
     """Run one seed. `mutate` (tests only) is called first in the worker, e.g. to break the algorithm."""
     if mutate is not None:
         mutate()
+    if algorithm == "allocation":
+        from haa.dsim import allocation as alloc_sim
+
+        return SeedResult(**alloc_sim.seed_result(seed, hosts))
     if algorithm in GROUP_ALGORITHMS:
         return run_group_seed(algorithm, seed, hosts)
     sc = sched.draw(seed, hosts, algorithm)
@@ -115,6 +120,10 @@ _GROUP_TRACE_NOISE = ("Heartbeat(", "SetPeriod(", "StateSnapshot(", "StateForwar
 
 def full_trace(algorithm: str, seed: int, hosts: int) -> list[str]:
     """The scenario and the whole event trace of one seed (`haactl verify ... --trace`)."""
+    if algorithm == "allocation":
+        from haa.dsim import allocation as alloc_sim
+
+        return alloc_sim.full_trace(seed, hosts)
     if algorithm in GROUP_ALGORITHMS:
         sc = group.draw_group(seed, hosts, algorithm)
         sim = group.GroupSim(sc, trace=True)
@@ -153,6 +162,10 @@ def _group_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, li
 
 def trace_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lines: int = 40) -> list[str]:
     """Re-run a seed with tracing and pick the lines about the violating transactions or hosts."""
+    if algorithm == "allocation":
+        from haa.dsim import allocation as alloc_sim
+
+        return alloc_sim.trace_excerpt(seed, hosts, result.hosts, lines)
     if algorithm in GROUP_ALGORITHMS:
         return _group_excerpt(algorithm, seed, hosts, result, lines)
     sc = sched.draw(seed, hosts, algorithm)
