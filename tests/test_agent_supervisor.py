@@ -165,7 +165,9 @@ def test_hung_agent_is_killed_and_reported():
     async def main():
         async with hosts() as H:
             a = await H.create("busy", {"cpu": 0.0}, "h1")
-            pid = H.pid(a)
+            paused = await H.create("probe", {}, "h2")
+            pid, pid_paused = H.pid(a), H.pid(paused)
+            os.kill(pid_paused, signal.SIGSTOP)  # a stopped process (docker pause, ^Z) is a hang too
             t0 = time.monotonic()
             H.send(a, b"")  # a plain message first (ignored by busy), then the request that blocks its loop
             task = asyncio.create_task(H.request(a, b"hang", timeout=30))
@@ -174,6 +176,9 @@ def test_hung_agent_is_killed_and_reported():
             assert isinstance(ev, Failed) and ev.reason.startswith("hung: no heartbeat for "), ev
             assert dt < HANG + HB + 0.7, f"hang reported after {dt:.2f} s"
             assert gone(pid), "the hung process is still there"
+            ev2 = await H.wait_end(paused, timeout=HANG + 5)
+            assert isinstance(ev2, Failed) and ev2.reason.startswith("hung: no heartbeat for "), ev2
+            assert gone(pid_paused)
             task.cancel()
             print(f"\nhang -> Failed after {dt:.2f} s (hang_timeout {HANG} s, heartbeat {HB} s): {ev.reason}")
 
