@@ -371,6 +371,7 @@ class AgentSupervisor:
         self._fork: ForkServer | None = None
         self._fork_lock = asyncio.Lock()
         self._monitor: asyncio.Task[None] | None = None
+        self._tasks: set[asyncio.Task[None]] = set()  # every instance's task, also of ended ones still exiting
         self._closing = False
         self._started = False
         #: counters for the host's stats
@@ -415,13 +416,13 @@ class AgentSupervisor:
             self._monitor.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._monitor
-        insts = list(self._agents.values())
+        insts = list({*self._agents.values(), *self._by_pid.values()})
         for inst in insts:
             self._signal(inst, signal.SIGKILL)
-        for inst in insts:
-            if inst.task is not None:
-                inst.task.cancel()
-        await asyncio.gather(*(i.task for i in insts if i.task is not None), return_exceptions=True)
+        tasks = list(self._tasks)
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
         for inst in insts:
             if inst.chan is not None:
                 inst.chan.close()
@@ -567,6 +568,8 @@ class AgentSupervisor:
         inst.spawn_seconds = time.perf_counter() - t0
         self.spawned += 1
         inst.task = asyncio.create_task(self._serve(inst), name=f"agent-{spec.name}")
+        self._tasks.add(inst.task)
+        inst.task.add_done_callback(self._tasks.discard)
         log_event(self.log, logging.INFO, "agent_spawned", agent=spec.agent_id, name=spec.name, type=spec.type_name,
                   epoch=spec.epoch, pid=inst.pid, ms=round(inst.spawn_seconds * 1e3, 2))
 
@@ -766,6 +769,9 @@ class AgentSupervisor:
         except asyncio.CancelledError:
             inst.chan.close()
             raise
+        except Exception as e:  # a bug here must still end the instance with exactly one event
+            self.log.exception("agent_serve_error")
+            inst.fail_reason = inst.fail_reason or f"channel error: internal error: {type(e).__name__}: {e}"
         if inst.terminal:
             # Frozen / Stopped were reported; the process exits by itself (or is made to)
             inst.chan.close()
