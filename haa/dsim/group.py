@@ -420,7 +420,7 @@ class GroupSim:
         sets: set[tuple[Proc, ...]] = set()
         dead: set[Proc] = set()
         for h in cl.by_idx:
-            node = h.core
+            node = getattr(h.core, "m", h.core)  # an AgentNode (haa.dsim.agents) wraps the membership node
             if node is None or h.state == CRASHED or not isinstance(node, MembershipNode):
                 continue
             dead |= node.core.dead

@@ -18,10 +18,8 @@ every decision below is taken identically everywhere. The table is what Alg. 4-8
 
 Validity rules, applied identically everywhere (an invalid transaction is a no-op with a reason):
 
-* freeze (Alg. 5 l. 21): the proposer owns the agent, it is active, epochs match -> freezing, queues cleared
-  (l. 3: the thesis clears them before proposing; clearing on commit is equivalent and keeps the table the
-  only writer);
-* release (l. 14): the proposer owns the freezing agent -> frozen, state stored, owner cleared;
+* freeze (Alg. 5 l. 21): the proposer owns the agent, it is active, epochs match -> freezing;
+* release (l. 14): the proposer owns the freezing agent -> frozen, state stored (with queue1), owner cleared;
 * claim (Alg. 6 ll. 12-18): the agent is frozen and allocated to the claimer -> active, owned, epoch + 1;
   otherwise the claim is abandoned (l. 18);
 * recovered (Alg. 8 l. 13-14): the agent is new or crashed and allocated to the claimer -> active, owned,
@@ -30,7 +28,9 @@ Validity rules, applied identically everywhere (an invalid transaction is a no-o
   otherwise both run the agent;
 * backup: only from the owner's current epoch (a zombie instance cannot overwrite a newer backup);
 * failed: from the owner's current epoch, or implied when the owner is removed from the group -> crashed;
-* push: appends to queue1/queue2 (bounded: MAX_QUEUE messages, then counted as dropped).
+* claim and recovered hand queue1 + queue2 to the new owner (`AgentApplied.msgs`) and clear them;
+* push: appends to queue2 (bounded: MAX_QUEUE messages, then counted as dropped); a push that finds the
+  agent active again is not stored but handed to the owner.
 
 Pure and deterministic: no I/O, no clock, no randomness.
 """
@@ -209,6 +209,9 @@ class AgentTable:
         self.paused = False
         self.affinity: dict[tuple[str, str], float] = {}
         self.last_start = b""
+        self.start_group: tuple[str, ...] = ()
+        self.start_agents: tuple[str, ...] = ()
+        self._members: tuple[str, ...] = ()
 
     # ------------------------------------------------------------------ queries
 
@@ -253,17 +256,20 @@ class AgentTable:
         for agent in sorted(self.records):
             h.update(self.records[agent].to_pb().SerializeToString(deterministic=True))
         h.update(self.last_start)
+        h.update(("|".join(self.start_group) + "/" + "|".join(self.start_agents)).encode())
         return h.hexdigest()
 
     # ------------------------------------------------------------------ apply
 
-    def apply(self, data: bytes) -> AgentApplied:
-        """Apply one committed agent transaction (the caller guarantees the total order)."""
+    def apply(self, data: bytes, members: tuple[str, ...] = ()) -> AgentApplied:
+        """Apply one committed agent transaction (the caller guarantees the total order); `members` is the
+        group's member list (rank order) at this point of the order (Alg. 4's hostGroup)."""
         try:
             tx = decode(data)
         except AgentTxError as e:
             return AgentApplied("invalid", "", False, str(e))
         kind = tx.WhichOneof("body")
+        self._members = members
         return getattr(self, f"_tx_{kind}")(getattr(tx, kind))
 
     def _tx_create(self, c: apb.AgentCreate) -> AgentApplied:
@@ -295,13 +301,40 @@ class AgentTable:
         return AgentApplied("remove", m.id, True, "", m.host)
 
     def _tx_start(self, s: apb.AllocStartTx) -> AgentApplied:
+        """OAC(start) committed, Alg. 4 ll. 38-40: valid only if proposed by the leader of the current group
+        for the current agent list, with a session id above the last valid one."""
+        members = self._members
+        why = ""
+        if not members or s.leader != members[0]:
+            why = "proposer is not the leader"
+        elif tuple(s.group) != members:
+            why = "group changed"
+        elif tuple(s.agents) != self.agent_ids():
+            why = "agent list changed"
+        elif s.ses_id <= self.ses_id:
+            why = f"session id not above the last committed ({self.ses_id})"
+        if why:
+            return AgentApplied("start", "", False, why, s.leader)
         self.last_start = s.data
-        self.ses_id = max(self.ses_id, s.ses_id)
+        self.ses_id = s.ses_id
+        self.start_group = tuple(s.group)
+        self.start_agents = tuple(s.agents)
         return AgentApplied("start", "", True, "", s.leader)
 
     def _tx_finish(self, f: apb.AllocFinishTx) -> AgentApplied:
-        if f.ses_id < self.finished_ses:
-            return AgentApplied("finish", "", False, "older than the last finished session", f.leader)
+        """OAC(finish) committed, Alg. 4 ll. 93-96: accepted only for the last valid start, once, while the
+        group and the agent list are still those of the start (the same rule as `Allocator.finish_valid`)."""
+        why = ""
+        if f.ses_id != self.ses_id:
+            why = f"not the last committed session ({self.ses_id})"
+        elif f.ses_id <= self.finished_ses:
+            why = "session already finished"
+        elif self.start_group != self._members:
+            why = "group changed since the start"
+        elif self.start_agents != self.agent_ids():
+            why = "agent list changed since the start"
+        if why:
+            return AgentApplied("finish", "", False, why, f.leader)
         self.finished_ses = f.ses_id
         touched = []
         for agent, host in sorted(f.allocation.items()):
@@ -324,9 +357,9 @@ class AgentTable:
             return AgentApplied("freeze", m.id, False, "unknown agent", m.host)
         if r.owner != m.host or r.status != ACTIVE or r.epoch != m.epoch:
             return AgentApplied("freeze", m.id, False, f"not active on {m.host} at epoch {m.epoch}", m.host)
+        # Alg. 5 l. 3 clears the queues: they are empty whenever an agent is active (claim and recovered hand
+        # them over, a push to an active agent is not stored), so nothing is cleared here
         r.status = FREEZING
-        r.queue1 = []  # Alg. 5 l. 3
-        r.queue2 = []
         return AgentApplied("freeze", m.id, True, "", m.host)
 
     def _tx_release(self, m: apb.AgentRelease) -> AgentApplied:
@@ -340,7 +373,9 @@ class AgentTable:
         r.state = m.state
         r.inbox = list(m.inbox)
         r.outbox = list(m.outbox)
-        r.pending = list(m.pending)
+        # queue1 (Alg. 5 l. 4): what the old host received after it asked the agent to freeze; it is written
+        # with the release (one OAC instead of one per message; nobody reads queue1 before the release)
+        r.queue1 = list(m.pending) + r.queue1
         return AgentApplied("release", m.id, True, "", m.host)
 
     def _tx_claim(self, m: apb.AgentClaim) -> AgentApplied:
@@ -352,7 +387,7 @@ class AgentTable:
         r.status = ACTIVE
         r.owner = m.host
         r.epoch += 1
-        return AgentApplied("claim", m.id, True, "", m.host)
+        return AgentApplied("claim", m.id, True, "", m.host, msgs=self._take_queues(r))
 
     def _tx_recovered(self, m: apb.AgentRecovered) -> AgentApplied:
         r = self.records.get(m.id)
@@ -366,7 +401,14 @@ class AgentTable:
         r.life += 1
         # a recovered agent starts new streams: what the dead life expected or had numbered is gone
         r.inbox, r.outbox, r.pending, r.state = [], [], [], None
-        return AgentApplied("recovered", m.id, True, "", m.host)
+        return AgentApplied("recovered", m.id, True, "", m.host, msgs=self._take_queues(r))
+
+    @staticmethod
+    def _take_queues(r: AgentRecord) -> tuple[apb.RoutedMsg, ...]:
+        """queue1 then queue2 (Alg. 6 l. 21), handed to the new owner and cleared."""
+        out = (*r.queue1, *r.queue2)
+        r.queue1, r.queue2 = [], []
+        return out
 
     def _tx_backup(self, m: apb.AgentBackup) -> AgentApplied:
         r = self.records.get(m.id)
@@ -401,6 +443,10 @@ class AgentTable:
             return AgentApplied("push", m.id, False, "unknown agent")
         if m.queue not in (1, 2):
             return AgentApplied("push", m.id, False, "queue must be 1 or 2")
+        if r.status == ACTIVE:
+            # the agent is running again (the push was proposed before its owner's claim committed): nothing is
+            # stored, its owner passes the messages on (their stream numbers put them in order)
+            return AgentApplied("push", m.id, True, "deliver", r.owner, msgs=tuple(m.msgs))
         q = r.queue1 if m.queue == 1 else r.queue2
         room = max(0, MAX_QUEUE - len(q))
         kept = list(m.msgs[:room])
@@ -453,8 +499,13 @@ class AgentTable:
 
     def snapshot(self) -> bytes:
         s = apb.AgentTableSnapshot(
-            ses_id=self.ses_id, finished_ses=self.finished_ses, top=self.top, paused=self.paused,
+            ses_id=self.ses_id,
+            finished_ses=self.finished_ses,
+            top=self.top,
+            paused=self.paused,
             last_start=self.last_start,
+            start_group=self.start_group,
+            start_agents=self.start_agents,
         )
         for agent in sorted(self.records):
             s.records.append(self.records[agent].to_pb())
@@ -473,8 +524,13 @@ class AgentTable:
             raise AgentTxError(f"agent table snapshot does not decode: {e}") from None
         t = AgentTable()
         t.ses_id, t.finished_ses, t.top, t.paused, t.last_start = (
-            s.ses_id, s.finished_ses, s.top, s.paused, s.last_start,
+            s.ses_id,
+            s.finished_ses,
+            s.top,
+            s.paused,
+            s.last_start,
         )
+        t.start_group, t.start_agents = tuple(s.start_group), tuple(s.start_agents)
         for r in s.records:
             t.records[r.spec.id] = AgentRecord.from_pb(r)
         for h in s.hosts:

@@ -308,7 +308,7 @@ class GlobalState:
             except DdbError as e:
                 err = str(e)
         elif t is TxAgent:
-            ddb_result = self.agents.apply(tx.data)  # type: ignore[union-attr]
+            ddb_result = self.agents.apply(tx.data, tuple(m.name for m in self.members))  # type: ignore[union-attr]
         changed = self.members != before
         if changed:
             self.view += 1

@@ -1,0 +1,558 @@
+"""Deterministic simulation of the agent layer: allocation, transfer, backup and recovery on a host group.
+
+`draw_agents(seed, hosts, mix)` turns one seed into a scenario: a host group as in `haa.dsim.group` (joins,
+leaves, crashes, restarts, pauses, delay spikes that make the failure detector suspect correct hosts), plus
+a team of simulated agents that exchange numbered messages, operator moves (transfers), agent kills and
+hangs. `AgentSim` runs it: every host is an `AgentNode` (haa.hostd.agentnode) over its `MembershipNode`, and
+the agent instances are `SimAgent`s that execute the node's commands with a small, seeded latency, as agent
+processes would. `check_agents` then checks (`haactl verify transfer|recovery`; `mix` chooses the faults):
+
+* AA-Allocation: after healing every agent is active on exactly one member host, the one its last committed
+  allocation gives it, and no host runs an instance the table does not know.
+* AG-Single-Active (fencing): at no moment do two instances of one agent run on hosts that are members of the
+  group; an instance whose host has been removed is fenced (its sends are dropped by the members) and does
+  not count. Every (agent, epoch) has at most one instance.
+* AT-Consistency (Lemmas AT-1/AT-2): for a receiver that never crashed, the messages of each sender life are
+  processed exactly once and in order; if that sender life never crashed either, every message it sent was
+  processed. For a receiver that crashed: within each of its lives, no message twice and sender order kept.
+* AR-Recovery: an agent recovered from a backup starts from the latest backup committed before its recovery
+  (in the group's total order), or fresh if there was none.
+* AG-Liveness: after healing the run goes quiet with every message delivered and no agent left frozen,
+  freezing, crashed or waiting.
+
+Faults are gated as in `haa.dsim.group` (the thesis' assumptions: a correct majority in every view and every
+open OAC). Every schedule is reproducible from its seed.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import random
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+from haa.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
+from haa.dsim.group import GroupScenario, GroupSim, GroupViolation, draw_group
+from haa.hostd import agenttable as at
+from haa.hostd.agentio import (
+    AgentOpDone,
+    AgentTimeline,
+    AnswerAgent,
+    BackupMade,
+    DeliverAgent,
+    Failed,
+    FreezeAgent,
+    Frozen,
+    KillAgent,
+    Sent,
+    ShellReady,
+    SpawnShell,
+    StartAgent,
+)
+from haa.hostd.agentnode import AgentConfig, AgentNode
+from haa.hostd.globalstate import TxAgent, decode_tx
+from haa.hostd.membership import AppliedTx, MembershipNode, ViewChange
+
+Proc = tuple[str, int]
+
+MIXES = ("transfer", "recovery")
+#: agent-layer settings of the simulation (seconds of virtual time)
+SIM_AGENT = AgentConfig(rebalance_period=0.0, min_session_gap=0.05, poll=0.005, drain_timeout=3.0)
+#: simulated process latencies: spawn a shell, execute a command, emit an event
+SPAWN_DELAY = (0.005, 0.03)
+CMD_DELAY = (0.0002, 0.003)
+SEND_PERIOD = (0.02, 0.12)
+BACKUP_EVERY = 5  # processed messages between two backups
+
+
+@dataclass
+class AgentScenario:
+    group: GroupScenario
+    mix: str
+    n_agents: int
+    create_at: float
+    moves: list[tuple[float, int, int]] = field(default_factory=list)  # (time, agent index, host index)
+    kills: list[tuple[float, int]] = field(default_factory=list)  # (time, agent index)
+    hangs: list[tuple[float, int]] = field(default_factory=list)
+    sends_end: float = 0.0
+
+    def describe(self) -> list[str]:
+        out = self.group.describe()
+        out.append(f"mix={self.mix} agents={self.n_agents} created at {self.create_at:.2f}")
+        out += [f"t={t:.3f} move agent#{a} to host#{h}" for t, a, h in self.moves]
+        out += [f"t={t:.3f} kill agent#{a}" for t, a in self.kills]
+        out += [f"t={t:.3f} hang agent#{a}" for t, a in self.hangs]
+        return out
+
+
+def draw_agents(seed: int, hosts: int = 7, mix: str = "transfer") -> AgentScenario:
+    if mix not in MIXES:
+        raise ValueError(f"unknown mix {mix!r}; choose from {MIXES}")
+    g = draw_group(seed, hosts, "membership")
+    rng = random.Random(seed * 104729 + 17)
+    g.writes = []  # the agents are the workload
+    if mix == "transfer":
+        # transfers under pauses, spikes (false suspicions), joins and graceful leaves; no crash
+        g.faults = [f for f in g.faults if f.kind not in ("crash", "crash_mid", "restart")]
+    g.deadline = 60.0
+    sc = AgentScenario(g, mix, rng.randint(2, 6), rng.uniform(1.5, 2.0))
+    n_hosts = len(g.names)
+    for _ in range(rng.randint(2, 10)):
+        sc.moves.append((rng.uniform(sc.create_at + 0.2, g.fault_end), rng.randrange(sc.n_agents),
+                         rng.randrange(n_hosts)))
+    if mix == "recovery":
+        for _ in range(rng.randint(1, 4)):
+            sc.kills.append((rng.uniform(sc.create_at + 0.2, g.fault_end), rng.randrange(sc.n_agents)))
+        if rng.random() < 0.3:
+            sc.hangs.append((rng.uniform(sc.create_at + 0.2, g.fault_end), rng.randrange(sc.n_agents)))
+    sc.moves.sort()
+    sc.kills.sort()
+    sc.sends_end = g.fault_end
+    return sc
+
+
+# ------------------------------------------------------------------------------------------ simulated agents
+
+
+@dataclass
+class SimAgent:
+    """One agent instance on one host: a counter agent that sends numbered messages to every other agent and
+    records what it processes. Its state (packed as JSON bytes, as a real agent would pack its own) is the
+    next number per receiver, the generation (a new one per recovery) and the processed count."""
+
+    agent: str
+    epoch: int
+    host: Proc
+    started: bool = False
+    running: bool = True
+    gen: int = 0
+    next_n: dict[str, int] = field(default_factory=dict)
+    processed: int = 0
+    hung: bool = False
+
+    def pack(self) -> bytes:
+        return json.dumps({"gen": self.gen, "next": self.next_n, "processed": self.processed},
+                          sort_keys=True).encode()
+
+    def unpack(self, data: bytes) -> None:
+        d = json.loads(data)
+        self.gen, self.next_n, self.processed = d["gen"], dict(d["next"]), d["processed"]
+
+
+@dataclass
+class AgentHistory:
+    #: per receiver agent: (time, receiver epoch, receiver life key, sender, sender gen, n)
+    processed: dict[str, list[tuple[float, int, int, str, int, int]]] = field(
+        default_factory=lambda: defaultdict(list))
+    #: per (sender, gen): messages sent (count), and whether that sender generation ended in a crash
+    sent: dict[tuple[str, int, str], int] = field(default_factory=lambda: defaultdict(int))
+    crashed_gens: set[tuple[str, int]] = field(default_factory=set)
+    #: agents whose instance crashed at least once (receivers that lose messages by design)
+    crashed_agents: set[str] = field(default_factory=set)
+    #: instance intervals: agent -> list of [host proc, epoch, start, end]
+    intervals: dict[str, list[list[Any]]] = field(default_factory=lambda: defaultdict(list))
+    #: per agent, in total order: ("backup", data) / ("recovered", epoch)
+    order: dict[str, list[tuple[str, Any]]] = field(default_factory=lambda: defaultdict(list))
+    #: first starts and recoveries, in the order the instances ran them: (agent, epoch, mode, state given)
+    recovered_starts: list[tuple[str, int, str, bytes | None]] = field(default_factory=list)
+    removed_at: dict[Proc, float] = field(default_factory=dict)  # first time a process left the group
+    order_observer: Proc | None = None
+    ids: list[str] = field(default_factory=list)
+    timeline: list[tuple[float, str, str, str]] = field(default_factory=list)
+    gens: int = 0
+    epochs_seen: dict[tuple[str, int], Proc] = field(default_factory=dict)
+    double_epoch: list[str] = field(default_factory=list)
+
+
+class AgentSim(GroupSim):
+    """Runs one `AgentScenario` (see the module docstring)."""
+
+    def __init__(self, sc: AgentScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
+        super().__init__(sc.group, mutations, trace)
+        self.asc = sc
+        self.ah = AgentHistory()
+        self.arng = random.Random(sc.group.seed * 7 + 3)
+        self.inst: dict[Proc, dict[str, SimAgent]] = defaultdict(dict)
+        self.fifo: dict[tuple[str, int, str], float] = {}
+        self.ah.ids = [f"{sc.group.seed:x}-a{i}" for i in range(sc.n_agents)]
+
+    # ------------------------------------------------------------------ nodes
+
+    def _make_node(self, h: SimHost, inc: int) -> AgentNode:  # type: ignore[override]
+        node = super()._make_node(h, inc)
+        return AgentNode(node, SIM_AGENT, self.mutations)
+
+    def _on_effect(self, h: SimHost, e: Any) -> None:
+        t = type(e)
+        proc = (h.name, h.inc)
+        if t in (SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent, AnswerAgent):
+            self._command(h, e)
+            return
+        if t is AgentTimeline:
+            self.ah.timeline.append((self.cl.now, h.name, e.name, e.event))
+            self.cl._note(f"agent {e.name} {e.event} on {h.name} {e.detail}")
+            return
+        if t is AgentOpDone:
+            return
+        if t is AppliedTx:
+            self._observe_applied(proc, e)
+        if t is ViewChange:
+            for m in e.removed:
+                self.ah.removed_at.setdefault(m.proc, self.cl.now)
+                self._fence(m.proc)
+        super()._on_effect(h, e)
+
+    def _observe_applied(self, proc: Proc, e: AppliedTx) -> None:
+        """The total order of backups and recoveries, as seen by one member (all agree: HM-Agreement)."""
+        ah = self.ah
+        if ah.order_observer is None:
+            ah.order_observer = proc
+        if proc != ah.order_observer or e.kind != "agent":
+            return
+        tx = decode_tx(e.payload)
+        if type(tx) is not TxAgent:
+            return
+        atx = at.decode(tx.data)
+        kind = atx.WhichOneof("body")
+        res = e.result
+        if not isinstance(res, at.AgentApplied) or not res.ok:
+            return
+        if kind == "backup":
+            ah.order[atx.backup.id].append(("backup", atx.backup.data))
+        elif kind == "recovered":
+            ah.order[atx.recovered.id].append(("recovered", None))
+
+    def _fence(self, proc: Proc) -> None:
+        """`proc` left the group: its instances are fenced (they no longer count as running), and those that
+        were still running crashed as far as the group is concerned (they are recovered elsewhere)."""
+        for a in self.inst.get(proc, {}).values():
+            if a.running:
+                self.ah.crashed_agents.add(a.agent)
+                self.ah.crashed_gens.add((a.agent, a.gen))
+            self._end(a)
+
+    def _end(self, a: SimAgent) -> None:
+        if a.running:
+            a.running = False
+            for iv in self.ah.intervals[a.agent]:
+                if iv[0] == a.host and iv[1] == a.epoch and iv[3] is None:
+                    iv[3] = self.cl.now
+
+    # ------------------------------------------------------------------ executing commands
+
+    def _later(self, h: SimHost, delay: tuple[float, float], fn: Any, chan: str = "") -> None:
+        """Run `fn` at host `h` after a seeded delay; calls on one channel (an agent's command stream, or its
+        event stream) keep their order, as a pipe between a host and an agent process does."""
+        inc = h.inc
+        cl = self.cl
+        when = cl.now + self.arng.uniform(*delay)
+        if chan:
+            key = (h.name, inc, chan)
+            when = max(when, self.fifo.get(key, 0.0))
+            self.fifo[key] = when
+
+        def run() -> None:
+            if h.inc != inc or h.core is None or h.state == CRASHED:
+                return
+            if h.state == PAUSED:
+                h.backlog.append((EV_CALL, run))
+                return
+            fn()
+            cl._apply(h)
+
+        cl.at(when, run)
+
+    def _event(self, h: SimHost, ev: Any) -> None:
+        node = h.core
+        if node is not None:
+            node.on_agent_event(h.local(self.cl.now), ev)
+
+    def _command(self, h: SimHost, c: Any) -> None:
+        proc = (h.name, h.inc)
+        insts = self.inst[proc]
+        t = type(c)
+        if t is SpawnShell:
+            def spawn() -> None:
+                old = insts.get(c.agent)
+                if old is not None and old.epoch == c.epoch and old.running:
+                    return
+                insts[c.agent] = SimAgent(c.agent, c.epoch, proc)
+                self._event(h, ShellReady(c.agent, c.epoch))
+            self._later(h, SPAWN_DELAY, spawn, "c:" + c.agent)
+        elif t is StartAgent:
+            def start() -> None:
+                a = insts.get(c.agent)
+                if a is None or a.epoch != c.epoch or not a.running:
+                    return
+                a.started = True
+                key = (c.agent, c.epoch)
+                prev = self.ah.epochs_seen.get(key)
+                if prev is not None and prev != proc:
+                    self.ah.double_epoch.append(f"{c.agent} epoch {c.epoch} on {prev} and {proc}")
+                self.ah.epochs_seen[key] = proc
+                if c.mode == "thaw":
+                    a.unpack(c.state or b"{}")
+                else:
+                    self.ah.gens += 1
+                    self.ah.recovered_starts.append((c.agent, c.epoch, c.mode, c.state))
+                    if c.mode == "recover" and c.state is not None:
+                        a.unpack(c.state)
+                    # a fresh start or a recovery begins a new sender generation, numbered from 1
+                    a.gen = self.ah.gens
+                    a.next_n = {}
+                self.ah.intervals[c.agent].append([proc, c.epoch, self.cl.now, None])
+                for m in c.messages:
+                    self._process(a, m)
+                self._schedule_send(h, a)
+            self._later(h, CMD_DELAY, start, "c:" + c.agent)
+        elif t is DeliverAgent:
+            def deliver() -> None:
+                a = insts.get(c.agent)
+                if a is not None and a.epoch == c.epoch and a.running and a.started and not a.hung:
+                    self._process(a, c.msg)
+                    if a.processed % BACKUP_EVERY == 0:
+                        self._event(h, BackupMade(a.agent, a.epoch, a.pack()))
+            self._later(h, CMD_DELAY, deliver, "c:" + c.agent)
+        elif t is FreezeAgent:
+            def freeze() -> None:
+                a = insts.get(c.agent)
+                if a is None or a.epoch != c.epoch or not a.running:
+                    return
+                state = a.pack()
+                self._end(a)
+                insts.pop(c.agent, None)
+                self._event(h, Frozen(a.agent, a.epoch, state))
+            self._later(h, CMD_DELAY, freeze, "c:" + c.agent)
+        elif t is KillAgent:
+            a = insts.get(c.agent)
+            if a is not None and a.epoch == c.epoch:
+                self._end(a)
+                insts.pop(c.agent, None)
+
+    def _process(self, a: SimAgent, m: Any) -> None:
+        try:
+            d = json.loads(m.payload)
+        except ValueError:
+            return
+        a.processed += 1
+        self.ah.processed[a.agent].append((self.cl.now, a.epoch, a.gen, d["s"], d["g"], d["n"]))
+
+    def _schedule_send(self, h: SimHost, a: SimAgent) -> None:
+        if self.cl.now >= self.asc.sends_end:
+            return
+
+        def tick() -> None:
+            if not a.running or a.hung:
+                return
+            for dst in self.ah.ids:
+                if dst == a.agent:
+                    continue
+                n = a.next_n.get(dst, 1)
+                a.next_n[dst] = n + 1
+                self.ah.sent[(a.agent, a.gen, dst)] += 1
+                payload = json.dumps({"s": a.agent, "g": a.gen, "n": n}).encode()
+                self._event(h, Sent(a.agent, a.epoch, dst, payload))
+            self._schedule_send(h, a)
+
+        self._later(h, SEND_PERIOD, tick)
+
+    # ------------------------------------------------------------------ the scenario
+
+    def _members(self) -> list[SimHost]:
+        return [h for h in self.cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
+
+    def _create(self) -> None:
+        hs = self._members()
+        if not hs:
+            self.cl.at(self.cl.now + 0.1, self._create)
+            return
+        h = self.arng.choice(hs)
+        for i, agent in enumerate(self.ah.ids):
+            h.core.create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3),
+                                transfer_penalty=0.1, recovery="backup", req=("create", i))
+        self.cl._apply(h)
+
+    def _move(self, ai: int, hi: int) -> None:
+        hs = self._members()
+        if not hs:
+            return
+        h = self.arng.choice(hs)
+        names = [m.name for m in h.core.m.state.members]
+        target = names[hi % len(names)]
+        h.core.move_agent(h.local(self.cl.now), self.ah.ids[ai], target)
+        self.cl._apply(h)
+
+    def _kill(self, ai: int, hang: bool) -> None:
+        agent = self.ah.ids[ai]
+        for proc, insts in self.inst.items():
+            a = insts.get(agent)
+            h = self.cl.hosts[proc[0]]
+            if a is None or not a.running or h.inc != proc[1] or h.state != ALIVE:
+                continue
+            self.ah.crashed_agents.add(agent)
+            self.ah.crashed_gens.add((agent, a.gen))
+            self._end(a)
+            insts.pop(agent, None)
+            reason = "hung: no heartbeat" if hang else "killed by signal 9"
+            self._later(h, (0.01, 0.05) if not hang else (0.3, 0.6),
+                        lambda h=h, a=a, reason=reason: self._event(h, Failed(a.agent, a.epoch, reason)))
+            return
+
+    def run(self) -> None:
+        sc = self.asc
+        self.cl.at(sc.create_at, self._create)
+        for t, ai, hi in sc.moves:
+            self.cl.at(t, lambda ai=ai, hi=hi: self._move(ai, hi))
+        for t, ai in sc.kills:
+            self.cl.at(t, lambda ai=ai: self._kill(ai, False))
+        for t, ai in sc.hangs:
+            self.cl.at(t, lambda ai=ai: self._kill(ai, True))
+        self.cl.on_restart = lambda name, inc: None
+        super().run()
+
+    def _crash(self, f: Any, restart_after: float | None) -> None:
+        h = self.cl.hosts[f.host]
+        proc = (f.host, h.inc)
+        for a in self.inst.get(proc, {}).values():
+            if a.running:
+                self.ah.crashed_agents.add(a.agent)
+                self.ah.crashed_gens.add((a.agent, a.gen))
+                self._end(a)
+        super()._crash(f, restart_after)
+
+    def _quiet(self) -> bool:
+        if not super()._quiet():
+            return False
+        for h in self.cl.by_idx:
+            node = h.core
+            if node is None:
+                continue
+            for loc in node.local.values():
+                if loc.phase != "active":
+                    return False
+            if node.orphans or node._pushes:
+                return False
+        return True
+
+
+# ------------------------------------------------------------------------------------------------ checks
+
+AGENT_PROPS = frozenset({"AA-Allocation", "AG-Single-Active", "AT-Consistency", "AR-Recovery", "AG-Liveness"})
+
+
+def check_agents(sim: AgentSim) -> list[GroupViolation]:
+    out: list[GroupViolation] = []
+    ah = sim.ah
+    cl = sim.cl
+
+    def bad(prop: str, detail: str, *hosts: str) -> None:
+        out.append(GroupViolation(prop, detail, sorted(set(hosts))))
+
+    # AG-Single-Active
+    for d in ah.double_epoch:
+        bad("AG-Single-Active", f"two instances with one fencing epoch: {d}")
+    for agent, ivs in ah.intervals.items():
+        spans = []
+        for proc, epoch, t0, t1 in ivs:
+            end = t1 if t1 is not None else cl.now
+            removed = ah.removed_at.get(proc)
+            if removed is not None:
+                end = min(end, removed)
+            if end > t0:
+                spans.append((t0, end, proc, epoch))
+        spans.sort()
+        for (a0, a1, ap, ae), (b0, _b1, bp, be) in itertools.pairwise(spans):
+            if b0 < a1 - 1e-12:
+                bad("AG-Single-Active", f"agent {agent}: epoch {ae} on {ap[0]}#{ap[1]} [{a0:.3f}, {a1:.3f}] "
+                    f"overlaps epoch {be} on {bp[0]}#{bp[1]} from {b0:.3f}", ap[0], bp[0])
+    # AT-Consistency
+    for recv in ah.ids:
+        recs = ah.processed.get(recv, [])
+        crashed_recv = recv in ah.crashed_agents
+        by_stream: dict[tuple[Any, ...], list[int]] = defaultdict(list)
+        for _t, _epoch, rgen, s, g, n in recs:
+            key = (s, g) if not crashed_recv else (s, g, rgen)
+            by_stream[key].append(n)
+        for key, ns in by_stream.items():
+            for x, y in itertools.pairwise(ns):
+                if y <= x:
+                    bad("AT-Consistency", f"{recv} processed {key[0]} gen {key[1]} message {y} after {x} "
+                        f"({'duplicate' if y == x else 'out of order'})")
+                    break
+            if crashed_recv:
+                continue
+            s, g = key[0], key[1]
+            if ns and ns[0] != 1 and (s, g) not in ah.crashed_gens:
+                bad("AT-Consistency", f"{recv} lost {s} gen {g} messages before {ns[0]}")
+            if (s, g) in ah.crashed_gens:
+                continue
+            for x, y in itertools.pairwise(ns):
+                if y != x + 1 and y > x:
+                    bad("AT-Consistency", f"{recv} lost {s} gen {g} messages {x + 1}..{y - 1}")
+                    break
+        if not crashed_recv and sim.quiescent:
+            got = {(k[0], k[1]): len(v) for k, v in by_stream.items()}
+            for (s, g, dst), n in ah.sent.items():
+                if dst != recv or (s, g) in ah.crashed_gens:
+                    continue
+                if got.get((s, g), 0) != n:
+                    bad("AT-Consistency", f"{recv} processed {got.get((s, g), 0)} of the {n} messages "
+                        f"{s} gen {g} sent")
+    # AR-Recovery
+    seen: dict[str, int] = defaultdict(int)
+    for agent, epoch, mode, state in ah.recovered_starts:
+        order = ah.order.get(agent, [])
+        # the k-th recovery of the agent in the total order
+        k = seen[agent]
+        seen[agent] += 1
+        idx = [i for i, (kind, _) in enumerate(order) if kind == "recovered"]
+        if k >= len(idx):
+            continue  # the observer did not see it (it left); other runs check it
+        if mode != "recover":
+            continue  # the first start of a new agent (it has no backup)
+        before = [d for kind, d in order[: idx[k]] if kind == "backup"]
+        want = before[-1] if before else None
+        if state != want:
+            bad("AR-Recovery", f"{agent} epoch {epoch} recovered from "
+                f"{'no backup' if state is None else 'an older backup'} instead of the latest committed one")
+    # AA-Allocation and AG-Liveness after healing
+    if not sim.quiescent:
+        bad("AG-Liveness", "the run did not get quiet after healing")
+        return out
+    members = [h for h in cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
+    if not members:
+        return out
+    table = members[0].core.table
+    names = {h.name for h in members}
+    for r in table:
+        if r.status != at.ACTIVE or r.owner not in names:
+            bad("AG-Liveness", f"agent {r.name} ({r.id}) ends {r.status} owner={r.owner or '-'} alloc={r.alloc}")
+            continue
+        if r.alloc and r.alloc != r.owner and r.alloc in names:
+            bad("AA-Allocation", f"agent {r.name} runs on {r.owner} but is allocated to {r.alloc}")
+        runners = [h.name for h in members if r.id in h.core.local]
+        if runners != [r.owner]:
+            bad("AA-Allocation", f"agent {r.name} owned by {r.owner} runs on {runners}", *runners)
+    for h in members:
+        for agent in h.core.local:
+            if table.get(agent) is None:
+                bad("AA-Allocation", f"{h.name} runs unknown agent {agent}", h.name)
+    if len(table) != len(ah.ids) and sim.cl.now > sim.asc.create_at + 1:
+        bad("AG-Liveness", f"{len(table)} of {len(ah.ids)} agents were created")
+    return out
+
+
+def run_agents(seed: int, hosts: int = 7, mix: str = "transfer",
+               mutations: frozenset[str] | None = None) -> tuple[AgentSim, list[GroupViolation]]:
+    sc = draw_agents(seed, hosts, mix)
+    sim = AgentSim(sc, mutations)
+    sim.run()
+    return sim, check_agents(sim)
+
+
+def is_member_node(node: Any) -> MembershipNode | None:
+    """The membership node of a simulated host's state machine (an `AgentNode` wraps one)."""
+    m = getattr(node, "m", node)
+    return m if isinstance(m, MembershipNode) else None
