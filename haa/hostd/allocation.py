@@ -457,6 +457,7 @@ class _Session:
         self.unallocatable: tuple[str, ...] = ()
         self.spec: HostSpec | None = None
         self.eligible: tuple[str, ...] = ()
+        self.exclusive: frozenset[str] = frozenset()
         self.rev: dict[str, list[tuple[str, float]]] = {}  # j -> [(i, alpha_ij)]: who gains from j
         self.nbrs: dict[str, tuple[str, ...]] = {}  # mutual affinity among eligible agents
         self.mismatch = 0  # (q, j) with bidTable_p[q][j] != bidTable_p[p][j]
@@ -510,6 +511,10 @@ class _Session:
         self.allocatable = frozenset(self.agents) - frozenset(self.unallocatable)
         spec = self.spec
         self.eligible = tuple(a.id for a in start.agents if spec is not None and spec.can_run(a))
+        hosts = [start.host(g) for g in start.group]
+        self.exclusive = frozenset(  # agents only this host of the group can run
+            a.id for a in start.agents if a.id in self.eligible and sum(h.can_run(a) for h in hosts) == 1
+        )
         rev: dict[str, list[tuple[str, float]]] = {}
         for a in start.agents:
             for j, alpha in a.affinity.items():
@@ -521,7 +526,7 @@ class _Session:
             i: tuple(
                 j
                 for j in self.eligible
-                if j != i and self.agents[i].affinity.get(j, 0.0) > 0.0 and self.agents[j].affinity.get(i, 0.0) > 0.0
+                if j != i and self.agents[i].affinity.get(j, 0.0) + self.agents[j].affinity.get(i, 0.0) > 0.0
             )
             for i in self.eligible
             if i in el
@@ -556,6 +561,12 @@ class Allocator:
     MAX_CLUSTER = 4
     #: cluster candidates examined per bundle step (bounds the work on dense affinity graphs)
     MAX_CLUSTERS = 64
+    #: a bid's reward is the bundle's marginal gain in R(b_h): it also counts the affinity bonus alpha_ji the
+    #: agents already in the bundle gain from the new agent i (docs/allocation.md, "rewards")
+    BACK_AFFINITY = True
+    #: the support of our bids counts the cost of the agents only we can run as used, before they are in
+    #: the bundle, so that we do not fill up with agents others could take (docs/allocation.md, "rewards")
+    RESERVE = True
 
     def __init__(self, me: str, committed_ses: int = 0) -> None:
         self.me = _name(me, "Allocator.me")
@@ -813,12 +824,13 @@ class Allocator:
         agents = s.agents
         in_bundle: set[str] = set(s.entry_of)
         used = sum(agents[a].cost for a in in_bundle)
-        bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
-        for j in in_bundle:
-            for i, alpha in s.rev.get(j, ()):
-                if i in bonus:
-                    bonus[i] += alpha
+        if self.RESERVE:  # capacity kept for the agents no other member can run (docs/allocation.md)
+            used += sum(agents[a].cost for a in s.exclusive if a not in in_bundle)
         factor = {i: transfer_factor(agents[i], me) for i in s.eligible}
+        bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
+        back: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ji x factor_j, j in the bundle
+        for j in in_bundle:
+            self._add_bonus(s, j, bonus, back, factor)
         claims = self._claims(s)
         while True:
             prev = s.bundle[-1] if s.bundle else None
@@ -827,8 +839,8 @@ class Allocator:
                 if i in in_bundle:
                     continue
                 a = agents[i]
-                reward = (a.cost + bonus[i]) * factor[i]
-                support = (k - used - a.cost) / k
+                reward = (a.cost + bonus[i]) * factor[i] + back[i]
+                support = (k - used - (0.0 if i in s.exclusive and self.RESERVE else a.cost)) / k
                 raw = Bid(i, me, reward, support, s.r)
                 placed = self._warp(raw, prev)
                 if not bid_gt(placed, self._to_beat(s, i, claims)):
@@ -837,7 +849,7 @@ class Allocator:
                 if best is None or key > best[0]:
                     best = (key, (i,), placed.reward, placed.support)
             for cl in self._clusters(s, in_bundle):
-                cost = sum(agents[i].cost for i in cl)
+                cost = sum(agents[i].cost for i in cl if not (i in s.exclusive and self.RESERVE))
                 support = (k - used - cost) / k
                 if support <= 0.0:  # the whole cluster must fit
                     continue
@@ -845,7 +857,7 @@ class Allocator:
                 for i in cl:
                     a = agents[i]
                     inner = sum(a.affinity.get(j, 0.0) for j in cl if j != i)
-                    reward += (a.cost + bonus[i] + inner) * factor[i]
+                    reward += (a.cost + bonus[i] + inner) * factor[i] + back[i]
                 raw = Bid(cl[0], me, reward, support, s.r)
                 placed = self._warp(raw, prev)
                 if not all(bid_gt(placed._replace(agent=i), self._to_beat(s, i, claims)) for i in cl):
@@ -860,10 +872,9 @@ class Allocator:
             s.bundle.append(_Entry(chosen, reward, support))
             for i in chosen:  # step 3c i-iii
                 in_bundle.add(i)
-                used += agents[i].cost
-                for i2, alpha in s.rev.get(i, ()):
-                    if i2 in bonus:
-                        bonus[i2] += alpha
+                if not (i in s.exclusive and self.RESERVE):
+                    used += agents[i].cost
+                self._add_bonus(s, i, bonus, back, factor)
                 b = Bid(i, me, reward, support, s.r)
                 s.set_own(i, b)
                 s.outbox[i] = b
@@ -894,6 +905,20 @@ class Allocator:
         if c is not None and bid_gt(c, best):
             return c
         return best
+
+    def _add_bonus(
+        self, s: _Session, j: str, bonus: dict[str, float], back: dict[str, float], factor: dict[str, float]
+    ) -> None:
+        """Agent j joined the bundle: every i with affinity alpha_ij gains it (eq. 4.7-2), and, since j's own
+        reward r(a_j) gains alpha_ji once i joins, so does i's marginal gain (`BACK_AFFINITY`)."""
+        for i, alpha in s.rev.get(j, ()):
+            if i in bonus:
+                bonus[i] += alpha
+        if self.BACK_AFFINITY and j in factor:
+            fj = factor[j]
+            for i, alpha in s.agents[j].affinity.items():
+                if i in back:
+                    back[i] += alpha * fj
 
     def _warp(self, raw: Bid, prev: _Entry | None) -> Bid:
         """Cap a bid so that it does not beat the previous bid of the same bundle (diminishing marginal
@@ -973,7 +998,7 @@ class Allocator:
         bids equal its own."""
         if not s.ready or s.decided or not s.group or s.group[0] != self.me:
             return
-        if s.unclaimed or s.mismatch:
+        if s.unclaimed or s.mismatch or s.build_queued:  # l. 75-76 would decide before the queued build
             return
         s.decided = True
         alloc = {j: s.own[j].winner for j in s.agents if j in s.allocatable}  # type: ignore[misc]
