@@ -371,6 +371,8 @@ class SimCore:
     def grid(self, resolution: float) -> pb.GridReply:
         key = round(float(resolution), 6)
         if key not in self._grids:
+            if len(self._grids) >= 8:
+                self._grids.clear()
             g = self.world.ideal_grid(key)
             ex = explorable_grid(self.world.arena, key)
             self._grids[key] = pb.GridReply(
@@ -677,9 +679,9 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def OccupancyGrid(self, request: pb.GridRequest, context: aio.ServicerContext) -> pb.GridReply:
-        if not (0.005 <= request.resolution <= 2.0):
+        if not (0.01 <= request.resolution <= 2.0):
             await context.abort(
-                grpc.StatusCode.INVALID_ARGUMENT, f"resolution: {request.resolution} m is outside 0.005..2 m"
+                grpc.StatusCode.INVALID_ARGUMENT, f"resolution: {request.resolution} m is outside 0.01..2 m"
             )
         return self.core.grid(request.resolution)
 

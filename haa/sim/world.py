@@ -617,6 +617,8 @@ class World:
         """(grid, origin, resolution): the ideal occupancy grid, 1 occupied / 0 free (haa.sim.groundtruth)."""
         key = float(resolution)
         if key not in self._grids:
+            if len(self._grids) >= 8:
+                self._grids.clear()
             self._grids[key] = ideal_grid(self.arena, key)
         return self._grids[key]
 
