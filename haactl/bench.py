@@ -223,3 +223,40 @@ def bench_sim(
     print(markdown(r))
     path = write_json("sim", {"machine": machine(), **r})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ap3")
+def bench_ap3(
+    reps: int = typer.Option(5, "--reps", min=1, help="sessions per (hosts, agents) cell"),
+    max_hosts: int = typer.Option(10, "--max-hosts", min=2, max=10, help="largest group size"),
+    max_agents: int = typer.Option(60, "--max-agents", min=5, max=60, help="largest agent count"),
+    seed: int = typer.Option(1, "--seed"),
+) -> None:
+    """Experiment AP-3 (thesis §7.2.3): allocation time and messages, 2..10 hosts x 5..60 agents (simulated:
+    loopback gRPC delay model, bench ap1's OAC latency, real CPU time of the Allocator calls)."""
+    from haactl.ap1 import machine
+    from haactl.ap3 import AGENTS, HOSTS, markdown_tables, run_ap3
+
+    t0 = time.perf_counter()
+    hosts = tuple(h for h in HOSTS if h <= max_hosts)
+    agents = tuple(a for a in AGENTS if a <= max_agents)
+    rows = run_ap3(hosts, agents, reps=reps, seed=seed)
+    print(markdown_tables(rows))
+    path = write_json("ap3", {"machine": machine(), "reps": reps, "seed": seed, "mode": "simulated", "rows": rows})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("alloc-quality")
+def bench_alloc_quality(
+    instances: int = typer.Option(500, "--instances", "-n", min=10, help="random instances per family"),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Allocation quality: total reward (eq. 4.7-1) of the committed allocation vs the exhaustive optimum on
+    random instances of up to 8 agents and 4 hosts."""
+    from haactl.ap3 import quality_table, run_quality_study
+
+    t0 = time.perf_counter()
+    study = run_quality_study(instances, seed)
+    print(quality_table(study))
+    path = write_json("alloc_quality", study)
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
