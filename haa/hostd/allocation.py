@@ -297,6 +297,33 @@ def bid_gt(a: Bid, b: Bid) -> bool:
     return wa < wb
 
 
+def _vals_key(reward: float, support: float) -> tuple[int, float, float]:
+    """`bid_key` of a bid with a winner."""
+    return (1, reward, support) if support > 0.0 else (0, support, reward)
+
+
+def _beats(reward: float, support: float, me: str, t: Bid) -> bool:
+    """bid_gt(Bid(j, me, reward, support, r), t), without building the bid."""
+    tw = t[1]
+    if tw is None:
+        return True
+    tr, ts = t[2], t[3]
+    f = support > 0.0
+    if f != (ts > 0.0):
+        return f
+    if f:
+        if reward != tr:
+            return reward > tr
+        if support != ts:
+            return support > ts
+    else:
+        if support != ts:
+            return support > ts
+        if reward != tr:
+            return reward > tr
+    return me < tw
+
+
 def same_bid(a: Bid, b: Bid) -> bool:
     """Equal winner and value: the same bid, possibly confirmed in different rounds. Consensus (l. 87) and
     the "already sent" test compare bids this way; rounds only order information in Table 4.7-1."""
@@ -815,7 +842,14 @@ class Allocator:
 
     def _build_bundle(self, s: _Session) -> None:
         """Appendix II "HAA-AA Bundle Building Strategy": greedily add the winning bid (single agent or
-        cluster of mutually affine agents) with the highest return until no winning bid is left."""
+        cluster of affine agents) with the highest return until no winning bid is left.
+
+        A candidate's reward is its marginal gain in R(b_h) (eq. 4.7-2 plus the bonus the bundle gains from
+        it), its support eq. II-1 (with the capacity `RESERVE`d for agents only we can run). The highest
+        candidate by `bid_key` wins the step; the bid it places is warped (`WARP`): a bid that would beat the
+        previous bid of the bundle gets that bid's reward, so bids never increase along a bundle (diminishing
+        marginal gains, the condition of CBBA's convergence proof that affinity bonuses break). A bid is
+        winning if it beats `_to_beat`."""
         spec = s.spec
         if spec is None or not s.eligible:
             return
@@ -832,25 +866,32 @@ class Allocator:
         for j in in_bundle:
             self._add_bonus(s, j, bonus, back, factor)
         claims = self._claims(s)
+        to_beat = {i: self._to_beat(s, i, claims) for i in s.eligible if i not in in_bundle}
+        clusters = self._clusters(s, in_bundle)  # once per build; those that lose a member are skipped
+        excl = s.exclusive if self.RESERVE else frozenset()
+        warp = self.WARP
         while True:
-            prev = s.bundle[-1] if s.bundle else None
+            prev = s.bundle[-1] if s.bundle and warp else None
+            pkey = _vals_key(prev.reward, prev.support) if prev is not None else None
             best: tuple[tuple[int, float, float], tuple[str, ...], float, float] | None = None
             for i in s.eligible:
                 if i in in_bundle:
                     continue
                 a = agents[i]
                 reward = (a.cost + bonus[i]) * factor[i] + back[i]
-                support = (k - used - (0.0 if i in s.exclusive and self.RESERVE else a.cost)) / k
-                raw = Bid(i, me, reward, support, s.r)
-                placed = self._warp(raw, prev)
-                if not bid_gt(placed, self._to_beat(s, i, claims)):
+                support = (k - used - (0.0 if i in excl else a.cost)) / k
+                key = _vals_key(reward, support)
+                placed = reward
+                if pkey is not None and key > pkey:  # _warp, spelled out for speed
+                    placed = min(reward, prev.reward)  # type: ignore[union-attr]
+                if not _beats(placed, support, me, to_beat[i]):
                     continue
-                key = bid_key(raw)
                 if best is None or key > best[0]:
-                    best = (key, (i,), placed.reward, placed.support)
-            for cl in self._clusters(s, in_bundle):
-                cost = sum(agents[i].cost for i in cl if not (i in s.exclusive and self.RESERVE))
-                support = (k - used - cost) / k
+                    best = (key, (i,), placed, support)
+            for cl in clusters:
+                if any(i in in_bundle for i in cl):
+                    continue
+                support = (k - used - sum(agents[i].cost for i in cl if i not in excl)) / k
                 if support <= 0.0:  # the whole cluster must fit
                     continue
                 reward = 0.0
@@ -858,13 +899,14 @@ class Allocator:
                     a = agents[i]
                     inner = sum(a.affinity.get(j, 0.0) for j in cl if j != i)
                     reward += (a.cost + bonus[i] + inner) * factor[i] + back[i]
-                raw = Bid(cl[0], me, reward, support, s.r)
-                placed = self._warp(raw, prev)
-                if not all(bid_gt(placed._replace(agent=i), self._to_beat(s, i, claims)) for i in cl):
+                key = _vals_key(reward, support)
+                placed = reward
+                if pkey is not None and key > pkey:
+                    placed = min(reward, prev.reward)  # type: ignore[union-attr]
+                if not all(_beats(placed, support, me, to_beat[i]) for i in cl):
                     continue
-                key = bid_key(raw)
                 if best is None or key > best[0]:
-                    best = (key, cl, placed.reward, placed.support)
+                    best = (key, cl, placed, support)
             if best is None:
                 return
             _key, chosen, reward, support = best
@@ -872,7 +914,7 @@ class Allocator:
             s.bundle.append(_Entry(chosen, reward, support))
             for i in chosen:  # step 3c i-iii
                 in_bundle.add(i)
-                if not (i in s.exclusive and self.RESERVE):
+                if i not in excl:
                     used += agents[i].cost
                 self._add_bonus(s, i, bonus, back, factor)
                 b = Bid(i, me, reward, support, s.r)
@@ -919,17 +961,6 @@ class Allocator:
             for i, alpha in s.agents[j].affinity.items():
                 if i in back:
                     back[i] += alpha * fj
-
-    def _warp(self, raw: Bid, prev: _Entry | None) -> Bid:
-        """Cap a bid so that it does not beat the previous bid of the same bundle (diminishing marginal
-        gains, the condition of CBBA's convergence proof, which affinity bonuses would otherwise break)."""
-        if not self.WARP or prev is None:
-            return raw
-        prev_bid = raw._replace(reward=prev.reward, support=prev.support)
-        if bid_key(raw) <= bid_key(prev_bid):
-            return raw
-        # support never grows along a bundle, so capping the reward is enough
-        return raw._replace(reward=min(raw.reward, prev.reward))
 
     def _clusters(self, s: _Session, in_bundle: set[str]) -> list[tuple[str, ...]]:
         """Appendix II step 2: connected sets (2..MAX_CLUSTER agents) of unbundled agents with mutual
