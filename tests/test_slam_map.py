@@ -91,6 +91,21 @@ def test_sonar_density_prefers_the_true_pose_and_maps_the_echo():
     np.testing.assert_allclose(scan, parts[0] + parts[1], rtol=1e-5)
 
 
+def test_endpoint_density_and_distance_field():
+    g = wall_map()
+    df = g.distance_field()
+    from haa.slam.sensors import template_cells
+
+    probe = template_cells(g, np.array([[2.55, 2.05, 0.0], [3.05, 2.05, 0.0]]), np.zeros((1, 2)))[:, 0]
+    np.testing.assert_allclose(df[probe], [0.5, 0.0], atol=0.02)
+    m = SonarModel(resolution=0.1, density="endpoint")
+    r = SonarReading("a", 0.0, (SonarEcho(0.0, 2.0), SonarEcho(math.pi / 2, None)), 0.349, 2.0)
+    states = np.array([[1.0, 2.0, 0.0], [1.3, 2.0, 0.0], [0.6, 2.0, 0.0]])
+    log_g = m.apply(r, states, np.full(3, 1 / 3), g)
+    assert log_g.argmax() == 0 and log_g[0] > -0.5
+    assert OccupancyGrid(SPEC).distance_field()[0] == np.inf  # nothing mapped yet: no information
+
+
 def test_landmark_density_and_estimate():
     lms = LandmarkMap()
     model = LandmarkModel(range_frac=0.05, sigma_bearing=0.02)
@@ -116,7 +131,7 @@ def test_cooccupancy_frees_the_footprint_and_penalizes_overlap():
     r = CooccupancyReading("a", 0.0, 0.15)
     states = np.array([[1.0, 2.0, 0.0], [3.1, 2.0, 0.0]])  # the second sits in the wall
     log_g = m.apply(r, states, np.array([1.0, 0.0]), g)
-    assert log_g[0] > log_g[1]
+    assert log_g[0] == 0.0 and log_g[1] < -1.0  # only standing on a mapped obstacle costs
     assert g.prob()[20, 10] < 0.2
 
 

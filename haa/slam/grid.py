@@ -75,6 +75,8 @@ class OccupancyGrid:
         border[1:-1, 1:-1] = False
         self._border = np.flatnonzero(border)
         self.updates = 0
+        self._df: np.ndarray | None = None
+        self._df_version = -1
 
     @property
     def padded_size(self) -> int:
@@ -96,6 +98,7 @@ class OccupancyGrid:
         pc = np.clip(p, 1e-6, 1 - 1e-6)
         self.log_odds[:] = np.clip(logit(pc), -self.clamp, self.clamp)
         self._p[:] = 1.0 / (1.0 + np.exp(-self._lo))
+        self.updates += 1
 
     def cell_units(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """World -> padded cell coordinates (continuous): the cell is (floor(u), floor(v))."""
@@ -147,6 +150,33 @@ class OccupancyGrid:
 
     def prob_flat_at(self, flat: np.ndarray) -> np.ndarray:
         return self._p[flat]
+
+    def occupancy_penalty(self, flat: np.ndarray, temper: float = 1.0) -> np.ndarray:
+        """Per-particle log g of "these cells are free": τ Σ_k min(0, log(2 (1 − m_k))).
+
+        Cells known free or unknown cost nothing; a cell more likely occupied than not costs in proportion to
+        how sure the map is (an avatar cannot stand on an obstacle). Used by the co-occupancy and floor models.
+        """
+        m = self._p[flat]
+        return temper * np.minimum(0.0, np.log(2.0 * (1.0 - m) + 1e-6)).sum(axis=1, dtype=np.float64)
+
+    def distance_field(self, occupied: float = 0.7) -> np.ndarray:
+        """Flat padded distance (m, float32) from each cell to the nearest cell with p(C) > `occupied`.
+
+        Recomputed (OpenCV distance transform) only when the map changed since the last call; +inf everywhere
+        while nothing is occupied.
+        """
+        if self._df is None or self._df_version != self.updates:
+            import cv2
+
+            occ = self._p > occupied
+            if not occ.any():
+                self._df = np.full(self._p.shape, np.inf, dtype=np.float32)
+            else:
+                free = (~occ).astype(np.uint8).reshape(self.rows + 2, self.prow)
+                self._df = (cv2.distanceTransform(free, cv2.DIST_L2, 5) * self.spec.resolution).reshape(-1)
+            self._df_version = self.updates
+        return self._df
 
     def copy(self) -> OccupancyGrid:
         g = OccupancyGrid(self.spec, self.clamp)

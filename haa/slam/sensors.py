@@ -27,6 +27,11 @@ specular environments"): the cone in front of the echo is evidence of free space
 and fading to the cone's edges; the arc at the echo range is evidence of occupancy, but weaker than the
 free evidence because only one point of the arc reflected; a reading with no echo is weak evidence of free
 space only (in a specular environment a missing echo often means a glancing reflection, not empty space).
+The sonar density is, by default, the template's agreement with the map (`OccupancyGrid.log_likelihood`)
+tempered to τ = 0.05; `density="endpoint"` gives a likelihood-field alternative (distance from the echo arc
+to the nearest mapped obstacle). Co-occupancy and floor regions penalize particles that would put a seen-free
+region on mapped obstacles (`OccupancyGrid.occupancy_penalty`). docs/slam.md reports how much these grid
+densities help on the simulator's recordings (little: the landmarks carry the localization).
 
 Landmarks are point features with a shared estimate per id (mean and 2×2 covariance, `LandmarkMap`) — the
 thesis reports "landmark error" and "landmark covariance". For a sighting, particle i implies the landmark
@@ -188,6 +193,16 @@ def apply_template(
     return log_g
 
 
+def apply_free_region(
+    grid: OccupancyGrid, states: np.ndarray, weights: np.ndarray, tpl: Template, temper: float
+) -> np.ndarray:
+    """A region seen free: log g penalizes particles that put it on mapped obstacles; then the map update."""
+    flat = template_cells(grid, states, tpl.points)
+    log_g = grid.occupancy_penalty(flat, temper)
+    grid.mixture_update(flat, tpl.p, weights)
+    return log_g
+
+
 def _cone_points(d_min: float, d_max: float, half: float, res: float) -> tuple[np.ndarray, np.ndarray]:
     """Polar samples (distance, angle) of a cone, about one per cell area."""
     n_r = max(1, math.ceil((d_max - d_min) / res))
@@ -210,7 +225,11 @@ class SonarModel:
     p_free_no_echo: float = 0.42  # on the axis, for a reading without an echo
     arc_width: float = 0.1  # m, thickness of the occupied arc
     mount_radius: float = 0.0  # m, sonar distance from the avatar centre along its bearing
-    temper: float = 0.25
+    density: str = "template"  # "template" (map agreement) | "endpoint" (likelihood field of the echo arcs)
+    temper: float = 0.05  # for density="template" (docs/slam.md: why so small)
+    sigma_hit: float = 0.08  # m, for density="endpoint" (plus 3% of the range)
+    max_miss: float = 0.4  # m, an echo farther than this from any mapped obstacle counts as this far
+    arc_samples: int = 5
     _cache: OrderedDict = field(default_factory=OrderedDict, repr=False)
 
     def echo_template(self, e: SonarEcho, fov: float, max_range: float) -> Template:
@@ -255,8 +274,39 @@ class SonarModel:
             return parts[0]
         return Template(np.concatenate([t.points for t in parts]), np.concatenate([t.p for t in parts]))
 
+    def arc_points(self, r: SonarReading) -> tuple[np.ndarray, np.ndarray]:
+        """Avatar-frame points on the echo arcs (E·S, 2) and each echo's σ (E,); only echoes with a range."""
+        hits = [e for e in r.echoes if e.range is not None]
+        if not hits:
+            return np.zeros((0, 2)), np.zeros(0)
+        half = r.fov / 2
+        offs = np.linspace(-half, half, self.arc_samples)
+        pts = []
+        for e in hits:
+            assert e.range is not None
+            a = e.bearing + offs
+            mx, my = self.mount_radius * math.cos(e.bearing), self.mount_radius * math.sin(e.bearing)
+            pts.append(np.stack([mx + e.range * np.cos(a), my + e.range * np.sin(a)], axis=1))
+        sig = np.array([math.hypot(self.sigma_hit, 0.03 * e.range) for e in hits if e.range is not None])
+        return np.concatenate(pts), sig
+
+    def endpoint_log_g(self, r: SonarReading, states: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
+        """Likelihood field: −d²/2σ² per echo, d = distance from the echo arc to the nearest mapped obstacle."""
+        pts, sig = self.arc_points(r)
+        if len(sig) == 0:
+            return np.zeros(states.shape[0])
+        df = grid.distance_field()
+        d = df[template_cells(grid, states, pts)].reshape(states.shape[0], len(sig), self.arc_samples).min(axis=2)
+        d = np.minimum(d, self.max_miss)
+        return -((d / sig) ** 2).sum(axis=1, dtype=np.float64) / 2.0
+
     def apply(self, r: SonarReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
-        return apply_template(grid, states, weights, self.template(r), self.temper)
+        if self.density == "template":
+            return apply_template(grid, states, weights, self.template(r), self.temper)
+        log_g = self.endpoint_log_g(r, states, grid)  # against the map before this reading
+        tpl = self.template(r)
+        grid.mixture_update(template_cells(grid, states, tpl.points), tpl.p, weights)
+        return log_g
 
 
 @dataclass
@@ -265,7 +315,7 @@ class CooccupancyModel:
 
     resolution: float = 0.1
     p_free: float = 0.25
-    temper: float = 0.25
+    temper: float = 1.0
     _cache: dict = field(default_factory=dict, repr=False)
 
     def template(self, radius: float) -> Template:
@@ -283,7 +333,7 @@ class CooccupancyModel:
         return tpl
 
     def apply(self, r: CooccupancyReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
-        return apply_template(grid, states, weights, self.template(r.radius), self.temper)
+        return apply_free_region(grid, states, weights, self.template(r.radius), self.temper)
 
 
 def points_in_polygon(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -305,7 +355,7 @@ class FloorModel:
 
     resolution: float = 0.1
     p_free: float = 0.35
-    temper: float = 0.25
+    temper: float = 0.5
 
     def template(self, r: FloorReading) -> Template:
         poly = np.asarray(r.polygon, dtype=np.float64)
@@ -319,7 +369,7 @@ class FloorModel:
         return Template(pts, np.full(len(pts), self.p_free))
 
     def apply(self, r: FloorReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
-        return apply_template(grid, states, weights, self.template(r), self.temper)
+        return apply_free_region(grid, states, weights, self.template(r), self.temper)
 
 
 @dataclass
