@@ -136,7 +136,7 @@ class Explorer:
         while path[-1] != start:
             path.append(parent[path[-1]])
         path.reverse()
-        pts = path[:: max(1, round(0.3 / self.res))] + [goal]
+        pts = [*path[:: max(1, round(0.3 / self.res))], goal]
         self.goals[aid] = goal
         self.paths[aid] = [((c[1] + 0.5) * self.res, (c[0] + 0.5) * self.res) for c in pts]
 
