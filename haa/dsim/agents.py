@@ -146,11 +146,8 @@ class AgentHistory:
     #: per receiver agent: (time, receiver epoch, receiver life key, sender, sender gen, n)
     processed: dict[str, list[tuple[float, int, int, str, int, int]]] = field(
         default_factory=lambda: defaultdict(list))
-    #: per (sender, gen): messages sent (count), and whether that sender generation ended in a crash
+    #: per (sender, gen, receiver): messages sent
     sent: dict[tuple[str, int, str], int] = field(default_factory=lambda: defaultdict(int))
-    crashed_gens: set[tuple[str, int]] = field(default_factory=set)
-    #: agents whose instance crashed at least once (receivers that lose messages by design)
-    crashed_agents: set[str] = field(default_factory=set)
     #: instance intervals: agent -> list of [host proc, epoch, start, end]
     intervals: dict[str, list[list[Any]]] = field(default_factory=lambda: defaultdict(list))
     #: per agent, in total order: ("backup", data) / ("recovered", epoch)
@@ -162,6 +159,7 @@ class AgentHistory:
     ids: list[str] = field(default_factory=list)
     timeline: list[tuple[float, str, str, str]] = field(default_factory=list)
     gens: int = 0
+    gen_of_start: list[tuple[str, int]] = field(default_factory=list)  # (agent, generation) per start
     epochs_seen: dict[tuple[str, int], Proc] = field(default_factory=dict)
     double_epoch: list[str] = field(default_factory=list)
 
@@ -195,6 +193,8 @@ class AgentSim(GroupSim):
             self.cl._note(f"agent {e.name} {e.event} on {h.name} {e.detail}")
             return
         if t is AgentOpDone:
+            if not e.ok and isinstance(e.req, tuple) and e.req[0] == "create":
+                self.cl.at(self.cl.now + 0.2, lambda i=e.req[1]: self._create(only=i))
             return
         if t is AppliedTx:
             self._observe_applied(proc, e)
@@ -225,12 +225,8 @@ class AgentSim(GroupSim):
             ah.order[atx.recovered.id].append(("recovered", None))
 
     def _fence(self, proc: Proc) -> None:
-        """`proc` left the group: its instances are fenced (they no longer count as running), and those that
-        were still running crashed as far as the group is concerned (they are recovered elsewhere)."""
+        """`proc` left the group: its instances are fenced (they no longer count as running)."""
         for a in self.inst.get(proc, {}).values():
-            if a.running:
-                self.ah.crashed_agents.add(a.agent)
-                self.ah.crashed_gens.add((a.agent, a.gen))
             self._end(a)
 
     def _end(self, a: SimAgent) -> None:
@@ -297,6 +293,7 @@ class AgentSim(GroupSim):
                 else:
                     self.ah.gens += 1
                     self.ah.recovered_starts.append((c.agent, c.epoch, c.mode, c.state))
+                    self.ah.gen_of_start.append((c.agent, self.ah.gens))
                     if c.mode == "recover" and c.state is not None:
                         a.unpack(c.state)
                     # a fresh start or a recovery begins a new sender generation, numbered from 1
@@ -346,9 +343,10 @@ class AgentSim(GroupSim):
         def tick() -> None:
             if not a.running or a.hung:
                 return
+            table = h.core.table if h.core is not None else None
             for dst in self.ah.ids:
-                if dst == a.agent:
-                    continue
+                if dst == a.agent or table is None or table.get(dst) is None:
+                    continue  # a real agent sends to the agents it knows of
                 n = a.next_n.get(dst, 1)
                 a.next_n[dst] = n + 1
                 self.ah.sent[(a.agent, a.gen, dst)] += 1
@@ -363,16 +361,29 @@ class AgentSim(GroupSim):
     def _members(self) -> list[SimHost]:
         return [h for h in self.cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
 
-    def _create(self) -> None:
+    def _create(self, only: int | None = None) -> None:
         hs = self._members()
         if not hs:
-            self.cl.at(self.cl.now + 0.1, self._create)
+            self.cl.at(self.cl.now + 0.1, lambda: self._create(only))
             return
         h = self.arng.choice(hs)
         for i, agent in enumerate(self.ah.ids):
+            if only is not None and i != only:
+                continue
             h.core.create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3),
                                 transfer_penalty=0.1, recovery="backup", req=("create", i))
         self.cl._apply(h)
+
+    def _ensure_created(self) -> None:
+        """An operator whose request died with its host asks again (until the end of the fault window)."""
+        hs = self._members()
+        if hs:
+            table = hs[0].core.table
+            for i, agent in enumerate(self.ah.ids):
+                if table.get(agent) is None:
+                    self._create(only=i)
+        if self.cl.now + 0.5 <= self.asc.group.fault_end:
+            self.cl.at(self.cl.now + 0.5, self._ensure_created)
 
     def _move(self, ai: int, hi: int) -> None:
         hs = self._members()
@@ -391,8 +402,6 @@ class AgentSim(GroupSim):
             h = self.cl.hosts[proc[0]]
             if a is None or not a.running or h.inc != proc[1] or h.state != ALIVE:
                 continue
-            self.ah.crashed_agents.add(agent)
-            self.ah.crashed_gens.add((agent, a.gen))
             self._end(a)
             insts.pop(agent, None)
             reason = "hung: no heartbeat" if hang else "killed by signal 9"
@@ -403,6 +412,7 @@ class AgentSim(GroupSim):
     def run(self) -> None:
         sc = self.asc
         self.cl.at(sc.create_at, self._create)
+        self.cl.at(sc.create_at + 0.5, self._ensure_created)
         for t, ai, hi in sc.moves:
             self.cl.at(t, lambda ai=ai, hi=hi: self._move(ai, hi))
         for t, ai in sc.kills:
@@ -416,10 +426,7 @@ class AgentSim(GroupSim):
         h = self.cl.hosts[f.host]
         proc = (f.host, h.inc)
         for a in self.inst.get(proc, {}).values():
-            if a.running:
-                self.ah.crashed_agents.add(a.agent)
-                self.ah.crashed_gens.add((a.agent, a.gen))
-                self._end(a)
+            self._end(a)
         super()._crash(f, restart_after)
 
     def _quiet(self) -> bool:
@@ -467,10 +474,18 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
             if b0 < a1 - 1e-12:
                 bad("AG-Single-Active", f"agent {agent}: epoch {ae} on {ap[0]}#{ap[1]} [{a0:.3f}, {a1:.3f}] "
                     f"overlaps epoch {be} on {bp[0]}#{bp[1]} from {b0:.3f}", ap[0], bp[0])
+    # an agent crashed (from the group's point of view: its instance died, or its host left the group while
+    # running or freezing it) exactly when it was started again other than by a thaw; every generation but
+    # its last ended in a crash
+    gens_of: dict[str, list[int]] = defaultdict(list)
+    for agent, gen in ah.gen_of_start:
+        gens_of[agent].append(gen)
+    crashed_agents = {a for a, gs in gens_of.items() if len(gs) > 1}
+    crashed_gens = {(a, g) for a, gs in gens_of.items() for g in gs[:-1]}
     # AT-Consistency
     for recv in ah.ids:
         recs = ah.processed.get(recv, [])
-        crashed_recv = recv in ah.crashed_agents
+        crashed_recv = recv in crashed_agents
         by_stream: dict[tuple[Any, ...], list[int]] = defaultdict(list)
         for _t, _epoch, rgen, s, g, n in recs:
             key = (s, g) if not crashed_recv else (s, g, rgen)
@@ -484,9 +499,9 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
             if crashed_recv:
                 continue
             s, g = key[0], key[1]
-            if ns and ns[0] != 1 and (s, g) not in ah.crashed_gens:
+            if ns and ns[0] != 1 and (s, g) not in crashed_gens:
                 bad("AT-Consistency", f"{recv} lost {s} gen {g} messages before {ns[0]}")
-            if (s, g) in ah.crashed_gens:
+            if (s, g) in crashed_gens:
                 continue
             for x, y in itertools.pairwise(ns):
                 if y != x + 1 and y > x:
@@ -495,7 +510,7 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
         if not crashed_recv and sim.quiescent:
             got = {(k[0], k[1]): len(v) for k, v in by_stream.items()}
             for (s, g, dst), n in ah.sent.items():
-                if dst != recv or (s, g) in ah.crashed_gens:
+                if dst != recv or (s, g) in crashed_gens:
                     continue
                 if got.get((s, g), 0) != n:
                     bad("AT-Consistency", f"{recv} processed {got.get((s, g), 0)} of the {n} messages "

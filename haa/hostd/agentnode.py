@@ -408,6 +408,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
             self.create_agent(now, ev.child_id, ev.type, ev.config, parent=loc.id,
                               req=("child", loc.id, loc.epoch, ev.req))
 
+    def undeliverable(self, now: float, agent: str, epoch: int, m: apb.RoutedMsg) -> None:
+        """The driver could not hand `m` to the instance (its process is ending): hold the message until the
+        table says where the agent is (its failure is being reported, or it stopped itself)."""
+        self._now = now
+        loc = self.local.get(agent)
+        if loc is not None and loc.epoch == epoch and loc.phase == "freezing" and not loc.after_l11:
+            loc.q1.append(m)
+        else:
+            self.orphans.setdefault(agent, []).append(m)
+
     def _on_sent(self, loc: Local, ev: Sent) -> None:
         if loc.phase not in ("active", "freezing"):
             self.counters["sent_by_inactive_instance"] += 1

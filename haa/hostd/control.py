@@ -24,7 +24,8 @@ suspicions, DDB size/hash/seq, global sequence and state hash) and serves the DD
   every view change; a fresh snapshot whenever the replica was replaced or the subscriber fell behind.
 * `Leave`: graceful leave (Alg. 3 ll. 14-21); with `exit` the process stops once the group removed it.
 
-Static mode answers the DDB calls with `FAILED_PRECONDITION`.
+Static mode answers the DDB calls with `FAILED_PRECONDITION`. The agent calls (AgentList, AgentSpawn, AgentKill,
+AgentRemove, AgentMove, AgentSend, Alloc, AgentEvents) are in `haa.hostd.agentcontrol`.
 
 `ControlClient` is a small blocking client for tests, benchmarks and tools.
 """
@@ -39,6 +40,7 @@ import grpc
 from grpc import aio
 
 from haa.hostd import ddb as ddbmod
+from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.oac import OacError
 from haa.hostd.runtime import (
     HostReincarnated,
@@ -92,7 +94,7 @@ def _group_fields(st: dict[str, Any]) -> dict[str, Any]:
     return {k: st[k] for k in _GROUP_KEYS} | {"member_info": [cpb.MemberInfo(**m) for m in st["member_info"]]}
 
 
-class HostControlService(control_pb2_grpc.HostControlServicer):
+class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
     """`haa.v1.HostControl` backed by a `HostRuntime`."""
 
     def __init__(self, runtime: HostRuntime) -> None:
@@ -370,8 +372,8 @@ class HostControlService(control_pb2_grpc.HostControlServicer):
         return cpb.LatencyReply(decide_to_deliver=d2d, propose_to_decide=p2d)
 
 
-class ControlClient:
-    """Blocking client of one host's control API."""
+class ControlClient(AgentClientMixin):
+    """Blocking client of one host's control API (the agent calls come from `AgentClientMixin`)."""
 
     def __init__(self, address: str, token: str, timeout: float = 5.0) -> None:
         self.address = address

@@ -59,6 +59,7 @@ from pydantic import (
     model_validator,
 )
 
+from haa.hostd.agentnode import AgentConfig
 from haa.hostd.core import CoreConfig
 from haa.hostd.membership import NodeConfig
 from haa.hostd.qos import CLUSTER_QOS, QosTargets
@@ -130,6 +131,13 @@ class HostSettings(BaseModel):
     exclude_after: float = Field(default=CoreConfig().exclude_after, gt=0, allow_inf_nan=False)
     leave_timeout: float = Field(default=3.0, gt=0, allow_inf_nan=False)
     forget_group: bool = False
+    #: the agent layer (membership mode): off with --no-agents
+    agents: bool = True
+    capacity: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    hardware: list[str] = Field(default_factory=list)
+    rebalance_period: float = Field(default=30.0, ge=0, allow_inf_nan=False)
+    drain_timeout: float = Field(default=10.0, gt=0, allow_inf_nan=False)
+    agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
@@ -214,6 +222,14 @@ class HostSettings(BaseModel):
             node=NodeConfig(core=core, **self.membership.model_dump()),
             forget_group=self.forget_group,
             leave_timeout=self.leave_timeout,
+            agents=self.agents,
+            agent=AgentConfig(
+                capacity=self.capacity,
+                hardware=tuple(self.hardware),
+                rebalance_period=self.rebalance_period,
+                drain_timeout=self.drain_timeout,
+            ),
+            agent_hang_timeout=self.agent_hang_timeout,
         )
 
 
@@ -244,6 +260,12 @@ _OPTIONS = (
     "forget_group",
     "log_level",
     "log_stderr",
+    "agents",
+    "capacity",
+    "hardware",
+    "rebalance_period",
+    "drain_timeout",
+    "agent_hang_timeout",
 )
 
 
@@ -276,6 +298,13 @@ def build_parser() -> argparse.ArgumentParser:
         const=True,
         help="ignore the hosts a previous life knew (needed when every host of a group was lost)",
     )
+    p.add_argument("--no-agents", dest="agents", action="store_const", const=False,
+                   help="membership mode without the agent layer (no agent processes)")
+    p.add_argument("--capacity", type=float, help="processing capacity K_h for the allocation (1.0 = one core)")
+    p.add_argument("--hardware", help="comma-separated hardware this host offers agents (e.g. camera,sonar)")
+    p.add_argument("--rebalance-period", type=float, help="periodic allocation sessions, s (30; 0 = none)")
+    p.add_argument("--drain-timeout", type=float, help="graceful leave: hand agents over for at most this long, s (10)")
+    p.add_argument("--agent-hang-timeout", type=float, help="an agent silent this long is hung, s (3)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
@@ -348,7 +377,7 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
     for opt in _OPTIONS:
         env = os.environ.get("HAA_" + opt.upper())
         if env is not None and env != "":
-            if opt in ("forget_group", "log_stderr"):
+            if opt in ("forget_group", "log_stderr", "agents"):
                 try:
                     merged[opt] = _bool(env)
                 except ValueError as e:
@@ -363,6 +392,9 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
             fail(f"--{opt.replace('_', '-')} (or HAA_{opt.upper()}) is required")
     for opt in ("peers", "core"):
         merged[opt] = _host_list(merged.get(opt) or "", opt)
+    hw = merged.get("hardware")
+    if isinstance(hw, str):
+        merged["hardware"] = [x.strip() for x in hw.split(",") if x.strip()]
     try:
         token = read_token(str(merged.pop("token_file")))
     except ValueError as e:

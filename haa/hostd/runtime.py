@@ -49,7 +49,9 @@ from typing import Any, NamedTuple
 import psutil
 from grpc import aio
 
+from haa.hostd import agentio
 from haa.hostd import ddb as ddbmod
+from haa.hostd.agentnode import AgentConfig, AgentNode
 from haa.hostd.core import CoreConfig, HostCore
 from haa.hostd.effects import (
     CancelTimer,
@@ -196,12 +198,21 @@ class RuntimeConfig:
     node: NodeConfig | None = None
     #: ignore the hosts a previous incarnation knew (`<data-dir>/known_hosts.json`)
     forget_group: bool = False
-    #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s
+    #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s (with agents: after
+    #: handing them over, which takes at most `agent.drain_timeout`)
     leave_timeout: float = 3.0
+    #: membership mode runs the agent layer (haa.hostd.agentnode) and supervises agent processes
+    agents: bool = True
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    #: hang detection of agent processes (no heartbeat for this long), s
+    agent_hang_timeout: float = 3.0
 
     @property
     def membership(self) -> bool:
         return bool(self.core_processes)
+
+
+_AGENT_COMMANDS = agentio.AGENT_COMMANDS
 
 
 class HostRuntime:
@@ -214,8 +225,11 @@ class HostRuntime:
         self.counters: Counter[str] = Counter()
         self.ident = HostIdentity(config.name, 0)
         self.membership = config.membership
-        #: the state machine this runtime drives: a `MembershipNode` (membership mode) or a bare `HostCore`
-        self.node: MembershipNode | HostCore | None = None
+        #: the state machine this runtime drives: an `AgentNode` over a `MembershipNode` (membership mode; a bare
+        #: `MembershipNode` with agents off) or a bare `HostCore` (static mode)
+        self.node: AgentNode | MembershipNode | HostCore | None = None
+        #: the agent processes of this host (membership mode with agents)
+        self.agents: Any = None
         #: the failure detector + OAC core (the node's own in membership mode)
         self.core: HostCore | None = None
         self.transport = Transport(
@@ -258,6 +272,7 @@ class HostRuntime:
         self._ddb_inflight = 0
         self._write_seq = 0
         self._left_waiters: list[asyncio.Future[None]] = []
+        self._agent_ops: dict[Any, asyncio.Future[agentio.AgentOpDone]] = {}
         self.left = False
         self._exit_after_leave = False
         #: mirror stream subscribers (`MirrorSub`), fed from applied transactions and view changes
@@ -265,6 +280,12 @@ class HostRuntime:
         self._ddb_ref: object | None = None
 
     # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def mnode(self) -> MembershipNode | None:
+        """The membership node (inside the agent layer when agents run), None in static mode."""
+        node = getattr(self.node, "m", self.node)
+        return node if isinstance(node, MembershipNode) else None
 
     @property
     def incarnation(self) -> int:
@@ -290,12 +311,12 @@ class HostRuntime:
             self.node = self.core = HostCore(self.name, inc, list(cfg.peers), cfg.core, evaluate=self.evaluate)
             return
         known = [] if cfg.forget_group else self._load_known_hosts()
-        if self.node is not None and isinstance(self.node, MembershipNode):
+        if self.mnode is not None:
             # a reincarnation: apply to the hosts the previous incarnation knew as members
-            known = [(m.name, m.addr) for m in self.node.state.members if m.name != self.name] or known
+            known = [(m.name, m.addr) for m in self.mnode.state.members if m.name != self.name] or known
         ncfg = dataclass_replace(cfg.node, core=cfg.core) if cfg.node is not None else NodeConfig(core=cfg.core)
         node = MembershipNode(self.name, inc, self.advertise, cfg.core_processes, ncfg, known_hosts=known)
-        self.node = node
+        self.node = AgentNode(node, cfg.agent) if cfg.agents else node
         self.core = node.core
 
     def _known_hosts_file(self) -> Path | None:
@@ -374,6 +395,11 @@ class HostRuntime:
             qos={"td": ufd.qos.td_upper, "tmr": ufd.qos.tmr_lower, "tm": ufd.qos.tm_upper},
             exclude_after=cfg.core.exclude_after,
         )
+        if self.membership and cfg.agents:
+            from haa.hostd.agentdriver import AgentDriver
+
+            self.agents = AgentDriver(self, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout)
+            await self.agents.start()
         self.transport.start()
         self._feed(self.node.start)
 
@@ -396,7 +422,8 @@ class HostRuntime:
 
     async def _leave_then_stop(self) -> None:
         try:
-            await self.leave(timeout=self.config.leave_timeout)
+            drain = self.config.agent.drain_timeout if self.agents is not None else 0.0
+            await self.leave(timeout=self.config.leave_timeout + drain)
         except (TimeoutError, WriteFailed) as e:
             log_event(log, logging.WARNING, "leave_incomplete", reason=str(e) or "timeout")
         finally:
@@ -427,6 +454,8 @@ class HostRuntime:
                 fut.set_exception(RuntimeError(f"{self.name} is shutting down"))
         for sub in list(self.mirrors):
             sub.close()
+        if self.agents is not None:
+            await self.agents.close()
         await self.transport.stop()
         for task in list(self.stream_tasks):
             task.cancel()
@@ -543,8 +572,18 @@ class HostRuntime:
                 self._on_write_done(e)  # type: ignore[arg-type]
             elif t is Left:
                 self._on_left()
+            elif t in _AGENT_COMMANDS:
+                if self.agents is not None:
+                    self.agents.command(e)
+            elif t is agentio.AgentTimeline:
+                if self.agents is not None:
+                    self.agents.on_timeline(e)
+            elif t is agentio.AgentOpDone:
+                self._on_agent_op(e)  # type: ignore[arg-type]
         if self.mirrors:
             self._check_replica()
+        if self.agents is not None:
+            self.agents.check_replica()
         if reincarnate_by is not None:
             self._reincarnate(reincarnate_by)
 
@@ -616,6 +655,8 @@ class HostRuntime:
         self._decided_at.clear()
         self._p2d.clear()
         self._participants_cache.clear()
+        if self.agents is not None:
+            self.agents.kill_all("this host restarted as a new incarnation")
         self._make_node(inc)
         self.transport.set_incarnation(inc)
         now = time.monotonic()
@@ -655,6 +696,29 @@ class HostRuntime:
         else:
             fut.set_exception(WriteFailed(e.reason))
 
+    def _on_agent_op(self, e: agentio.AgentOpDone) -> None:
+        fut = self._agent_ops.pop(e.req, None)  # type: ignore[arg-type]
+        if fut is not None and not fut.done():
+            fut.set_result(e)
+
+    async def agent_op(self, call: Callable[..., Any], *args: Any, timeout: float = 10.0, **kw: Any) -> Any:
+        """Run an operator request of the agent layer (`AgentNode.create_agent`, `remove_agent`, `move_agent`,
+        `set_paused`) and wait for its `AgentOpDone`."""
+        if not isinstance(self.node, AgentNode):
+            raise NotMembershipMode(f"{self.name} does not run the agent layer")
+        self._write_seq += 1
+        req = ("op", self._write_seq)
+        fut: asyncio.Future[agentio.AgentOpDone] = asyncio.get_running_loop().create_future()
+        self._agent_ops[req] = fut
+        def operator_request(now: float, *a: Any) -> Any:
+            return call(now, *a, req=req, **kw)
+
+        try:
+            self._feed(operator_request, *args)
+            return await asyncio.wait_for(fut, timeout)
+        finally:
+            self._agent_ops.pop(req, None)
+
     def _on_left(self) -> None:
         self.left = True
         self._forget_known_hosts()
@@ -666,8 +730,8 @@ class HostRuntime:
     def _check_replica(self) -> None:
         """A joiner that installed its sponsor's state, or a new incarnation, has a new replica object:
         mirror subscribers need a fresh snapshot."""
-        node = self.node
-        if not isinstance(node, MembershipNode):
+        node = self.mnode
+        if node is None:
             return
         ddb = node.state.ddb
         if ddb is not self._ddb_ref:
@@ -723,8 +787,8 @@ class HostRuntime:
     # ------------------------------------------------------------------ global-state changes (membership mode)
 
     def _member_node(self) -> MembershipNode:
-        node = self.node
-        if not isinstance(node, MembershipNode):
+        node = self.mnode
+        if node is None:
             raise NotMembershipMode(f"{self.name} runs a static peer list (--peers): no group, no DDB")
         return node
 
@@ -743,7 +807,7 @@ class HostRuntime:
         self._writes[req] = fut
         self.counters["writes_submitted"] += 1
         try:
-            self._feed(node.submit, payload, req, kind)
+            self._feed(self.node.submit, payload, req, kind)  # type: ignore[union-attr]
             try:
                 return await asyncio.wait_for(fut, timeout)
             except TimeoutError:
@@ -816,9 +880,8 @@ class HostRuntime:
             self.counters["ddb_batches"] += 1
             self.counters["ddb_merged_writes"] += len(group) - 1
             gfut.add_done_callback(lambda f, g=group: self._ddb_group_done(g, f))
-            node = self.node
-            assert isinstance(node, MembershipNode)
-            self._feed(node.submit, payload, req, "ddb")
+            assert self.mnode is not None
+            self._feed(self.node.submit, payload, req, "ddb")  # type: ignore[union-attr]
 
     def _ddb_group_done(self, group: list[_QueuedWrite], gfut: asyncio.Future[WriteResult]) -> None:
         self._ddb_inflight -= 1
@@ -847,12 +910,12 @@ class HostRuntime:
     async def leave(self, timeout: float = 10.0) -> None:
         """Leave the group (Alg. 3 ll. 14-21) and wait until the group has removed this host. The process
         keeps running (stop it with `request_stop`); `TimeoutError` if the removal did not commit in time."""
-        node = self._member_node()
+        self._member_node()
         if self.left:
             return
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._left_waiters.append(fut)
-        self._feed(node.leave)
+        self._feed(self.node.leave)  # type: ignore[union-attr]  # the agent layer hands its agents over first
         await asyncio.wait_for(fut, timeout)
 
     # ------------------------------------------------------------------ queries
@@ -891,8 +954,8 @@ class HostRuntime:
         mem = self._proc.memory_info()
         cpu = self._proc.cpu_times()
         group: dict[str, Any] = {"mode": "static"}
-        node = self.node
-        if isinstance(node, MembershipNode):
+        node = self.mnode
+        if node is not None:
             st = node.state
             ns = node.status()
             group = {

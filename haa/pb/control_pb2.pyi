@@ -300,3 +300,141 @@ class LeaveReply(_message.Message):
     left: bool
     reason: str
     def __init__(self, left: _Optional[bool] = ..., reason: _Optional[str] = ...) -> None: ...
+
+class AgentListRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class AgentInfo(_message.Message):
+    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    PARENT_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    OWNER_FIELD_NUMBER: _ClassVar[int]
+    ALLOC_FIELD_NUMBER: _ClassVar[int]
+    EPOCH_FIELD_NUMBER: _ClassVar[int]
+    LIFE_FIELD_NUMBER: _ClassVar[int]
+    CPU_FIELD_NUMBER: _ClassVar[int]
+    LOCAL_PHASE_FIELD_NUMBER: _ClassVar[int]
+    LOCAL_CPU_FIELD_NUMBER: _ClassVar[int]
+    PID_FIELD_NUMBER: _ClassVar[int]
+    HAS_BACKUP_FIELD_NUMBER: _ClassVar[int]
+    QUEUED_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_FIELD_NUMBER: _ClassVar[int]
+    RECOVERY_FIELD_NUMBER: _ClassVar[int]
+    id: str
+    name: str
+    type: str
+    parent: str
+    status: str
+    owner: str
+    alloc: str
+    epoch: int
+    life: int
+    cpu: float
+    local_phase: str
+    local_cpu: float
+    pid: int
+    has_backup: bool
+    queued: int
+    dropped: int
+    recovery: str
+    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ...) -> None: ...
+
+class AgentListReply(_message.Message):
+    __slots__ = ("host", "agents", "session", "finished_session", "paused", "agent_types")
+    HOST_FIELD_NUMBER: _ClassVar[int]
+    AGENTS_FIELD_NUMBER: _ClassVar[int]
+    SESSION_FIELD_NUMBER: _ClassVar[int]
+    FINISHED_SESSION_FIELD_NUMBER: _ClassVar[int]
+    PAUSED_FIELD_NUMBER: _ClassVar[int]
+    AGENT_TYPES_FIELD_NUMBER: _ClassVar[int]
+    host: str
+    agents: _containers.RepeatedCompositeFieldContainer[AgentInfo]
+    session: int
+    finished_session: int
+    paused: bool
+    agent_types: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, host: _Optional[str] = ..., agents: _Optional[_Iterable[_Union[AgentInfo, _Mapping]]] = ..., session: _Optional[int] = ..., finished_session: _Optional[int] = ..., paused: _Optional[bool] = ..., agent_types: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class AgentSpawnRequest(_message.Message):
+    __slots__ = ("type", "config", "parent", "cost", "hardware", "transfer_penalty", "recovery")
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    CONFIG_FIELD_NUMBER: _ClassVar[int]
+    PARENT_FIELD_NUMBER: _ClassVar[int]
+    COST_FIELD_NUMBER: _ClassVar[int]
+    HARDWARE_FIELD_NUMBER: _ClassVar[int]
+    TRANSFER_PENALTY_FIELD_NUMBER: _ClassVar[int]
+    RECOVERY_FIELD_NUMBER: _ClassVar[int]
+    type: str
+    config: bytes
+    parent: str
+    cost: float
+    hardware: _containers.RepeatedScalarFieldContainer[str]
+    transfer_penalty: float
+    recovery: str
+    def __init__(self, type: _Optional[str] = ..., config: _Optional[bytes] = ..., parent: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ...) -> None: ...
+
+class AgentRef(_message.Message):
+    __slots__ = ("ref",)
+    REF_FIELD_NUMBER: _ClassVar[int]
+    ref: str
+    def __init__(self, ref: _Optional[str] = ...) -> None: ...
+
+class AgentMoveRequest(_message.Message):
+    __slots__ = ("ref", "host")
+    REF_FIELD_NUMBER: _ClassVar[int]
+    HOST_FIELD_NUMBER: _ClassVar[int]
+    ref: str
+    host: str
+    def __init__(self, ref: _Optional[str] = ..., host: _Optional[str] = ...) -> None: ...
+
+class AgentOpReply(_message.Message):
+    __slots__ = ("ok", "id", "name", "reason")
+    OK_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    ok: bool
+    id: str
+    name: str
+    reason: str
+    def __init__(self, ok: _Optional[bool] = ..., id: _Optional[str] = ..., name: _Optional[str] = ..., reason: _Optional[str] = ...) -> None: ...
+
+class AllocRequest(_message.Message):
+    __slots__ = ("action",)
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    action: str
+    def __init__(self, action: _Optional[str] = ...) -> None: ...
+
+class AgentEventsRequest(_message.Message):
+    __slots__ = ("history",)
+    HISTORY_FIELD_NUMBER: _ClassVar[int]
+    history: bool
+    def __init__(self, history: _Optional[bool] = ...) -> None: ...
+
+class AgentEvent(_message.Message):
+    __slots__ = ("time", "agent", "name", "event", "host", "detail")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    EVENT_FIELD_NUMBER: _ClassVar[int]
+    HOST_FIELD_NUMBER: _ClassVar[int]
+    DETAIL_FIELD_NUMBER: _ClassVar[int]
+    time: float
+    agent: str
+    name: str
+    event: str
+    host: str
+    detail: str
+    def __init__(self, time: _Optional[float] = ..., agent: _Optional[str] = ..., name: _Optional[str] = ..., event: _Optional[str] = ..., host: _Optional[str] = ..., detail: _Optional[str] = ...) -> None: ...
+
+class AgentSendRequest(_message.Message):
+    __slots__ = ("ref", "payload")
+    REF_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    ref: str
+    payload: bytes
+    def __init__(self, ref: _Optional[str] = ..., payload: _Optional[bytes] = ...) -> None: ...

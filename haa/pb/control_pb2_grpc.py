@@ -74,6 +74,46 @@ class HostControlStub:
                 request_serializer=haa_dot_pb_dot_control__pb2.LeaveRequest.SerializeToString,
                 response_deserializer=haa_dot_pb_dot_control__pb2.LeaveReply.FromString,
                 _registered_method=True)
+        self.AgentList = channel.unary_unary(
+                '/haa.v1.HostControl/AgentList',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentListRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentListReply.FromString,
+                _registered_method=True)
+        self.AgentSpawn = channel.unary_unary(
+                '/haa.v1.HostControl/AgentSpawn',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentSpawnRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+                _registered_method=True)
+        self.AgentKill = channel.unary_unary(
+                '/haa.v1.HostControl/AgentKill',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentRef.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+                _registered_method=True)
+        self.AgentRemove = channel.unary_unary(
+                '/haa.v1.HostControl/AgentRemove',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentRef.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+                _registered_method=True)
+        self.AgentMove = channel.unary_unary(
+                '/haa.v1.HostControl/AgentMove',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentMoveRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+                _registered_method=True)
+        self.AgentSend = channel.unary_unary(
+                '/haa.v1.HostControl/AgentSend',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+                _registered_method=True)
+        self.Alloc = channel.unary_unary(
+                '/haa.v1.HostControl/Alloc',
+                request_serializer=haa_dot_pb_dot_control__pb2.AllocRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentListReply.FromString,
+                _registered_method=True)
+        self.AgentEvents = channel.unary_stream(
+                '/haa.v1.HostControl/AgentEvents',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentEventsRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentEvent.FromString,
+                _registered_method=True)
 
 
 class HostControlServicer:
@@ -127,6 +167,54 @@ class HostControlServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def AgentList(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentSpawn(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentKill(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentRemove(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentMove(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentSend(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Alloc(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AgentEvents(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_HostControlServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -169,6 +257,46 @@ def add_HostControlServicer_to_server(servicer, server):
                     servicer.Leave,
                     request_deserializer=haa_dot_pb_dot_control__pb2.LeaveRequest.FromString,
                     response_serializer=haa_dot_pb_dot_control__pb2.LeaveReply.SerializeToString,
+            ),
+            'AgentList': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentList,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentListRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentListReply.SerializeToString,
+            ),
+            'AgentSpawn': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentSpawn,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentSpawnRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'AgentKill': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentKill,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentRef.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'AgentRemove': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentRemove,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentRef.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'AgentMove': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentMove,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentMoveRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'AgentSend': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentSend,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'Alloc': grpc.unary_unary_rpc_method_handler(
+                    servicer.Alloc,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AllocRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentListReply.SerializeToString,
+            ),
+            'AgentEvents': grpc.unary_stream_rpc_method_handler(
+                    servicer.AgentEvents,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentEventsRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentEvent.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -387,6 +515,222 @@ class HostControl:
             '/haa.v1.HostControl/Leave',
             haa_dot_pb_dot_control__pb2.LeaveRequest.SerializeToString,
             haa_dot_pb_dot_control__pb2.LeaveReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentList(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentList',
+            haa_dot_pb_dot_control__pb2.AgentListRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentListReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentSpawn(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentSpawn',
+            haa_dot_pb_dot_control__pb2.AgentSpawnRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentKill(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentKill',
+            haa_dot_pb_dot_control__pb2.AgentRef.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentRemove(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentRemove',
+            haa_dot_pb_dot_control__pb2.AgentRef.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentMove(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentMove',
+            haa_dot_pb_dot_control__pb2.AgentMoveRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentSend(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentSend',
+            haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Alloc(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/Alloc',
+            haa_dot_pb_dot_control__pb2.AllocRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentListReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentEvents(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentEvents',
+            haa_dot_pb_dot_control__pb2.AgentEventsRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentEvent.FromString,
             options,
             channel_credentials,
             insecure,

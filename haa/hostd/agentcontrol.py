@@ -1,0 +1,219 @@
+"""The agent part of the control API (`haa.v1.HostControl`, proto/haa/pb/control.proto), and its client.
+
+Served by `HostControlService` (haa.hostd.control), which inherits `AgentControl`; every call needs the
+cluster token like the rest of the API. Operator requests go through the host's agent layer
+(`haa.hostd.agentnode.AgentNode`) and are committed to the replicated agent table:
+
+* `AgentList`: the table as this host holds it (identical on every member), with what this host knows of
+  the instances it runs (phase, CPU, pid), the allocation session ids and the paused flag.
+* `AgentSpawn`: create an agent of a registered type (a new UUID; display name A<n>, or the parent's name
+  plus a number); the allocation then places it. Defaults for cost, hardware, transfer penalty and recovery
+  come from the type's class attributes.
+* `AgentKill`: SIGKILL the agent's process — an agent failure, recovered by the group (only the host that
+  runs it can; other hosts answer with the owner's name).
+* `AgentRemove`: end an agent for good. `AgentMove`: allocate it to a host until the next session.
+* `AgentSend`: an operator message to an agent (no sender agent).
+* `Alloc`: status | pause | resume | run (pause/resume the periodic rebalancing; run starts a session).
+* `AgentEvents`: the allocation timeline of this host (spawning, active, freezing, frozen, thawing, thawed,
+  crashed, recovering, recovered, removed), kept entries first if asked, then live.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import uuid
+from collections.abc import AsyncIterator, Iterator
+from typing import TYPE_CHECKING, Any
+
+import grpc
+from grpc import aio
+
+from haa.hostd.agentnode import AgentNode
+from haa.hostd.runtime import NotMembershipMode
+from haa.pb import control_pb2 as cpb
+
+if TYPE_CHECKING:
+    from haa.hostd.runtime import HostRuntime
+
+MD_TOKEN = "x-haa-token"
+
+
+class AgentControl:
+    """Mixin of `HostControlService`: the agent RPCs."""
+
+    rt: HostRuntime
+
+    async def _auth(self, context: aio.ServicerContext) -> None:  # provided by HostControlService
+        raise NotImplementedError
+
+    async def _agent_node(self, context: aio.ServicerContext) -> AgentNode:
+        await self._auth(context)
+        node = self.rt.node
+        if not isinstance(node, AgentNode) or self.rt.agents is None:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION,
+                                f"{self.rt.name} does not run the agent layer (static mode or --no-agents)")
+            raise NotMembershipMode("no agent layer")
+        return node
+
+    def _list(self, node: AgentNode) -> cpb.AgentListReply:
+        t = node.table
+        drv = self.rt.agents
+        stats = drv.sup.stats() if drv is not None else {}
+        out = []
+        for r in sorted(t, key=lambda x: x.name):
+            loc = node.local.get(r.id)
+            st = stats.get(r.id)
+            out.append(
+                cpb.AgentInfo(
+                    id=r.id, name=r.name, type=r.type, parent=r.parent, status=r.status, owner=r.owner,
+                    alloc=r.alloc, epoch=r.epoch, life=r.life, cpu=r.cpu,
+                    local_phase=loc.phase if loc is not None else "",
+                    local_cpu=st.cpu if st is not None else 0.0,
+                    pid=st.pid if st is not None else 0,
+                    has_backup=r.backup is not None, queued=len(r.queue1) + len(r.queue2), dropped=r.dropped,
+                    recovery=r.spec.recovery,
+                )
+            )
+        types = sorted(drv.sup.types) if drv is not None else []
+        return cpb.AgentListReply(host=self.rt.name, agents=out, session=t.ses_id, finished_session=t.finished_ses,
+                                  paused=t.paused, agent_types=types)
+
+    async def AgentList(self, request: cpb.AgentListRequest, context: aio.ServicerContext) -> cpb.AgentListReply:
+        node = await self._agent_node(context)
+        return self._list(node)
+
+    @staticmethod
+    def _reply(done: Any) -> cpb.AgentOpReply:
+        return cpb.AgentOpReply(ok=done.ok, id=done.agent, name=done.name, reason=done.reason)
+
+    async def AgentSpawn(self, request: cpb.AgentSpawnRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
+        node = await self._agent_node(context)
+        drv = self.rt.agents
+        info = drv.sup.types.get(request.type) if drv is not None else None
+        if info is None:
+            known = ", ".join(sorted(drv.sup.types)) if drv is not None else ""
+            return cpb.AgentOpReply(ok=False, reason=f"unknown agent type {request.type!r} (registered: {known})")
+        parent = ""
+        if request.parent:
+            r = node.table.resolve(request.parent)
+            if r is None:
+                return cpb.AgentOpReply(ok=False, reason=f"unknown parent {request.parent!r}")
+            parent = r.id
+        agent_id = str(uuid.uuid4())
+        done = await self.rt.agent_op(
+            node.create_agent, agent_id, request.type, request.config,
+            parent=parent,
+            cost=request.cost if request.cost > 0 else info.cost,
+            hardware=list(request.hardware) or list(info.hardware),
+            transfer_penalty=request.transfer_penalty if request.transfer_penalty >= 0 else info.transfer_penalty,
+            recovery=request.recovery or info.recovery or "backup",
+        )
+        return self._reply(done)
+
+    async def AgentKill(self, request: cpb.AgentRef, context: aio.ServicerContext) -> cpb.AgentOpReply:
+        node = await self._agent_node(context)
+        r = node.table.resolve(request.ref)
+        if r is None:
+            return cpb.AgentOpReply(ok=False, reason=f"unknown agent {request.ref!r}")
+        drv = self.rt.agents
+        if drv is None or r.id not in drv.sup.agents():
+            return cpb.AgentOpReply(ok=False, id=r.id, name=r.name,
+                                    reason=f"not running here; its owner is {r.owner or 'nobody'}")
+        drv.sup.kill(r.id)
+        return cpb.AgentOpReply(ok=True, id=r.id, name=r.name)
+
+    async def AgentRemove(self, request: cpb.AgentRef, context: aio.ServicerContext) -> cpb.AgentOpReply:
+        node = await self._agent_node(context)
+        return self._reply(await self.rt.agent_op(node.remove_agent, request.ref))
+
+    async def AgentMove(self, request: cpb.AgentMoveRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
+        node = await self._agent_node(context)
+        return self._reply(await self.rt.agent_op(node.move_agent, request.ref, request.host))
+
+    async def AgentSend(self, request: cpb.AgentSendRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
+        node = await self._agent_node(context)
+        ok = self.rt._feed(node.operator_send, request.ref, request.payload)
+        return cpb.AgentOpReply(ok=bool(ok), reason="" if ok else f"unknown agent {request.ref!r}")
+
+    async def Alloc(self, request: cpb.AllocRequest, context: aio.ServicerContext) -> cpb.AgentListReply:
+        node = await self._agent_node(context)
+        a = request.action or "status"
+        if a in ("pause", "resume"):
+            done = await self.rt.agent_op(node.set_paused, a == "pause")
+            if not done.ok:
+                await context.abort(grpc.StatusCode.UNAVAILABLE, done.reason)
+        elif a == "run":
+            self.rt._feed(node.run_allocation)
+        elif a != "status":
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"unknown action {a!r} (status|pause|resume|run)")
+        return self._list(node)
+
+    async def AgentEvents(self, request: cpb.AgentEventsRequest,
+                          context: aio.ServicerContext) -> AsyncIterator[cpb.AgentEvent]:
+        await self._agent_node(context)
+        drv = self.rt.agents
+        assert drv is not None
+        q: asyncio.Queue[dict[str, Any]] = asyncio.Queue(maxsize=10_000)
+
+        def push(item: dict[str, Any]) -> None:
+            if not q.full():
+                q.put_nowait(item)
+
+        history = list(drv.timeline) if request.history else []
+        drv.subscribers.add(push)
+        task = asyncio.current_task()
+        if task is not None:
+            self.rt.stream_tasks.add(task)
+        try:
+            for item in history:
+                yield _event(item)
+            while True:
+                yield _event(await q.get())
+        except asyncio.CancelledError:
+            if not self.rt.stopping:
+                raise
+        finally:
+            drv.subscribers.discard(push)
+            if task is not None:
+                self.rt.stream_tasks.discard(task)
+
+
+def _event(item: dict[str, Any]) -> cpb.AgentEvent:
+    return cpb.AgentEvent(time=item["t"], agent=item["agent"], name=item["name"], event=item["event"],
+                          host=item["host"], detail=item["detail"])
+
+
+class AgentClientMixin:
+    """Blocking client calls of the agent RPCs (mixed into `haa.hostd.control.ControlClient`)."""
+
+    _stub: Any
+    _md: tuple[tuple[str, str], ...]
+    timeout: float
+
+    def agent_list(self) -> cpb.AgentListReply:
+        return self._stub.AgentList(cpb.AgentListRequest(), metadata=self._md, timeout=self.timeout)
+
+    def agent_spawn(self, type_name: str, config: bytes = b"", parent: str = "", recovery: str = "",
+                    hardware: tuple[str, ...] = (), timeout: float = 15.0) -> cpb.AgentOpReply:
+        req = cpb.AgentSpawnRequest(type=type_name, config=config, parent=parent, recovery=recovery,
+                                    hardware=list(hardware), transfer_penalty=-1.0)
+        return self._stub.AgentSpawn(req, metadata=self._md, timeout=timeout)
+
+    def agent_kill(self, ref: str) -> cpb.AgentOpReply:
+        return self._stub.AgentKill(cpb.AgentRef(ref=ref), metadata=self._md, timeout=self.timeout)
+
+    def agent_remove(self, ref: str, timeout: float = 15.0) -> cpb.AgentOpReply:
+        return self._stub.AgentRemove(cpb.AgentRef(ref=ref), metadata=self._md, timeout=timeout)
+
+    def agent_move(self, ref: str, host: str, timeout: float = 15.0) -> cpb.AgentOpReply:
+        return self._stub.AgentMove(cpb.AgentMoveRequest(ref=ref, host=host), metadata=self._md, timeout=timeout)
+
+    def agent_send(self, ref: str, payload: bytes) -> cpb.AgentOpReply:
+        return self._stub.AgentSend(cpb.AgentSendRequest(ref=ref, payload=payload), metadata=self._md,
+                                    timeout=self.timeout)
+
+    def alloc(self, action: str = "status", timeout: float = 15.0) -> cpb.AgentListReply:
+        return self._stub.Alloc(cpb.AllocRequest(action=action), metadata=self._md, timeout=timeout)
+
+    def agent_events(self, history: bool = True, timeout: float | None = None) -> Iterator[cpb.AgentEvent]:
+        return self._stub.AgentEvents(cpb.AgentEventsRequest(history=history), metadata=self._md, timeout=timeout)

@@ -1,0 +1,287 @@
+"""AgentDriver: carries out the agent layer's commands on real agent processes, and feeds their events back.
+
+The sans-I/O `AgentNode` (haa.hostd.agentnode) says what should happen to this host's agent instances
+(`haa.hostd.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver, owned
+by the daemon's `HostRuntime`, joins the two:
+
+* SpawnShell -> `supervisor.spawn` (a task; ShellReady when the process said hello, Failed if it could not
+  start); StartAgent -> start_fresh / thaw / recover with the messages; DeliverAgent -> deliver (a message
+  the process no longer takes goes back to the node, `AgentNode.undeliverable`); FreezeAgent -> freeze;
+  KillAgent -> kill; AnswerAgent -> answer;
+* supervisor events -> `AgentNode.on_agent_event` (with the instance's epoch: the supervisor runs one
+  instance per agent id here), and the agents' DDB requests, served from the local replica (reads, watches)
+  or through the group (writes, `HostRuntime.ddb_write`);
+* every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
+  `AgentNode.report_costs`, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from haa.hostd import agentio as io
+from haa.hostd import agentproc as ap
+from haa.hostd import ddb as ddbmod
+from haa.hostd.logs import log_event
+from haa.pb import agenttx_pb2 as apb
+
+if TYPE_CHECKING:
+    from haa.hostd.runtime import HostRuntime
+
+log = logging.getLogger("haa.hostd.agents")
+
+#: timeline entries kept for `AgentEvents` subscribers that connect late
+TIMELINE_KEEP = 2000
+
+
+def to_env(m: apb.RoutedMsg) -> ap.Envelope:
+    return ap.Envelope(src=m.src, dst=m.dst, payload=m.payload, conv=m.conv, reply=m.reply, error=m.error)
+
+
+class AgentDriver:
+    """See the module docstring."""
+
+    def __init__(self, rt: HostRuntime, workdir: Path | None, stats_period: float = 2.0,
+                 hang_timeout: float = 3.0) -> None:
+        self.rt = rt
+        self.sup = ap.AgentSupervisor(rt.name, self._on_event, workdir=workdir, hang_timeout=hang_timeout)
+        self.epochs: dict[str, int] = {}  # agent id -> epoch of the instance the supervisor runs here
+        self.stats_period = stats_period
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._stats_task: asyncio.Task[None] | None = None
+        self._watches: dict[tuple[str, int], str] = {}  # (agent, watch id) -> key prefix
+        self._ddb_ref: object | None = None
+        self._ddb_watch = 0
+        self._last_bytes: dict[tuple[str, str], int] = {}
+        self._last_stats = 0.0
+        self.timeline: deque[dict[str, Any]] = deque(maxlen=TIMELINE_KEEP)
+        self.subscribers: set[Callable[[dict[str, Any]], None]] = set()
+        self.started = False
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        await self.sup.start()
+        self.started = True
+        self._stats_task = asyncio.create_task(self._stats_loop(), name="agent-stats")
+
+    async def close(self) -> None:
+        if self._stats_task is not None:
+            self._stats_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._stats_task
+        for t in list(self._tasks):
+            t.cancel()
+        await self.sup.close()
+        self.epochs.clear()
+
+    def kill_all(self, reason: str) -> None:
+        """A new incarnation of this host: the old one's agents are not ours any more."""
+        for agent in list(self.sup.agents()):
+            self.sup.kill(agent)
+        self.epochs.clear()
+        log_event(log, logging.WARNING, "agents_killed", reason=reason)
+
+    # ------------------------------------------------------------------ commands from the node
+
+    def command(self, c: Any) -> None:
+        t = type(c)
+        sup = self.sup
+        try:
+            if t is io.SpawnShell:
+                self._spawn(c)
+            elif t is io.StartAgent:
+                msgs = [to_env(m) for m in c.messages]
+                if c.mode == "fresh":
+                    for e in msgs:  # messages sent to the agent before it first started
+                        sup.deliver(c.agent, e)
+                    sup.start_fresh(c.agent)
+                elif c.mode == "thaw":
+                    sup.thaw(c.agent, c.state or b"", msgs)
+                else:
+                    sup.recover(c.agent, c.state, msgs)
+            elif t is io.DeliverAgent:
+                if not sup.deliver(c.agent, to_env(c.msg)):
+                    self.rt._feed(self.rt.node.undeliverable, c.agent, c.epoch, c.msg)  # type: ignore[union-attr]
+            elif t is io.FreezeAgent:
+                if sup.state(c.agent) == "running":
+                    sup.freeze(c.agent)
+            elif t is io.KillAgent:
+                if self.epochs.get(c.agent) == c.epoch:
+                    sup.kill(c.agent)
+            elif t is io.AnswerAgent:
+                sup.answer(c.agent, c.req, c.ok, c.value.encode(), c.error)
+        except (KeyError, RuntimeError, ValueError) as e:
+            log_event(log, logging.WARNING, "agent_command_failed", command=t.__name__, agent=c.agent, error=str(e))
+
+    def _spawn(self, c: io.SpawnShell) -> None:
+        spec = ap.InstanceSpec(c.agent, c.name, c.type, c.config, c.epoch, c.parent or None)
+        self.epochs[c.agent] = c.epoch
+
+        async def run() -> None:
+            try:
+                await self.sup.spawn(spec)
+            except (ap.SpawnError, ValueError) as e:
+                if self.epochs.get(c.agent) == c.epoch:
+                    self.epochs.pop(c.agent, None)
+                self._feed_event(io.Failed(c.agent, c.epoch, f"spawn failed: {e}"))
+                return
+            self._feed_event(io.ShellReady(c.agent, c.epoch))
+
+        task = asyncio.create_task(run(), name=f"spawn-{c.name}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _feed_event(self, ev: Any) -> None:
+        node = self.rt.node
+        if node is not None and hasattr(node, "on_agent_event"):
+            self.rt._feed(node.on_agent_event, ev)
+
+    # ------------------------------------------------------------------ events of the processes
+
+    def _on_event(self, ev: ap.AgentEvent) -> None:
+        a = ev.agent_id
+        epoch = self.epochs.get(a)
+        if epoch is None:
+            return
+        t = type(ev)
+        if t is ap.Sent:
+            e = ev.env  # type: ignore[union-attr]
+            self._feed_event(io.Sent(a, epoch, e.dst, e.payload, e.conv, e.reply, e.error))
+        elif t is ap.Backup:
+            self._feed_event(io.BackupMade(a, epoch, ev.data))  # type: ignore[union-attr]
+        elif t is ap.Frozen:
+            self.epochs.pop(a, None)
+            self._feed_event(io.Frozen(a, epoch, ev.state))  # type: ignore[union-attr]
+        elif t is ap.Failed:
+            self.epochs.pop(a, None)
+            self._feed_event(io.Failed(a, epoch, ev.reason))  # type: ignore[union-attr]
+        elif t is ap.Stopped:
+            self.epochs.pop(a, None)
+            self._feed_event(io.Stopped(a, epoch))
+        elif t is ap.SpawnChild:
+            self._feed_event(io.SpawnChild(a, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4())))  # type: ignore[union-attr]
+        elif t is ap.DdbGet:
+            self._ddb_get(ev)  # type: ignore[arg-type]
+        elif t is ap.DdbPut:
+            self._ddb_put(ev)  # type: ignore[arg-type]
+        elif t is ap.DdbWatch:
+            self._watches[(a, ev.watch_id)] = ev.prefix  # type: ignore[union-attr]
+            self._ensure_ddb_watch()
+        elif t is ap.DdbUnwatch:
+            self._watches.pop((a, ev.watch_id), None)  # type: ignore[union-attr]
+
+    # ------------------------------------------------------------------ DDB for agents
+
+    def _replica(self) -> Any:
+        node = self.rt.node
+        st = getattr(node, "state", None)
+        return getattr(st, "ddb", None)
+
+    def _ddb_get(self, ev: ap.DdbGet) -> None:
+        ddb = self._replica()
+        obj = ddb.get(ev.key) if ddb is not None else None
+        if obj is None:
+            self.sup.answer(ev.agent_id, ev.req_id, True, b"", missing=True)
+        else:
+            self.sup.answer(ev.agent_id, ev.req_id, True, obj.data())
+
+    def _ddb_put(self, ev: ap.DdbPut) -> None:
+        async def run() -> None:
+            try:
+                op = ddbmod.put(ev.key, ev.type_name, _decode_value(ev.type_name, ev.value))
+                res = await self.rt.ddb_write([op])
+                bad = [r.reason for r in res.results if not r.ok]
+                self.sup.answer(ev.agent_id, ev.req_id, not bad, b"", "; ".join(bad))
+            except Exception as e:
+                self.sup.answer(ev.agent_id, ev.req_id, False, b"", f"{type(e).__name__}: {e}")
+
+        task = asyncio.create_task(run(), name="agent-ddb-put")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _ensure_ddb_watch(self) -> None:
+        ddb = self._replica()
+        if ddb is None or ddb is self._ddb_ref:
+            return
+        self._ddb_ref = ddb
+        self._ddb_watch = ddb.watch(self._on_ddb_event)
+
+    def check_replica(self) -> None:
+        """The replica object changed (a joiner's snapshot, a new incarnation): watch the new one."""
+        if self._watches:
+            self._ensure_ddb_watch()
+
+    def _on_ddb_event(self, ev: Any) -> None:
+        for (agent, wid), prefix in list(self._watches.items()):
+            if ev.key.startswith(prefix):
+                value = None
+                if ev.kind in ("add", "write") and ev.value is not None:
+                    with contextlib.suppress(Exception):
+                        value = ddbmod.encode_value(ev.type_name, ev.value)
+                self.sup.notify_watch(agent, wid, ev.kind, ev.key, value)
+
+    # ------------------------------------------------------------------ measurements
+
+    async def _stats_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.stats_period)
+            try:
+                self._report()
+            except Exception:
+                log.exception("agent stats failed")
+
+    def _report(self) -> None:
+        node = self.rt.node
+        if node is None or not hasattr(node, "report_costs"):
+            return
+        now = time.monotonic()
+        dt = now - self._last_stats if self._last_stats else self.stats_period
+        self._last_stats = now
+        cpu: dict[str, float] = {}
+        pair_bytes: dict[tuple[str, str], int] = {}
+        for agent, st in self.sup.stats().items():
+            cpu[agent] = st.cpu
+            for peer, b in st.bytes_out.items():
+                if peer:
+                    key = (agent, peer) if agent < peer else (peer, agent)
+                    pair_bytes[key] = pair_bytes.get(key, 0) + b
+        rates: dict[tuple[str, str], float] = {}
+        for key, total in pair_bytes.items():
+            prev = self._last_bytes.get(key, 0)
+            rates[key] = max(0.0, (total - prev) / dt)
+        self._last_bytes = pair_bytes
+        self.rt._feed(node.report_costs, cpu, rates)
+
+    # ------------------------------------------------------------------ the timeline
+
+    def on_timeline(self, e: io.AgentTimeline) -> None:
+        item = {"t": time.time(), "agent": e.agent, "name": e.name, "event": e.event, "host": e.host,
+                "detail": e.detail}
+        self.timeline.append(item)
+        log_event(log, logging.INFO, "agent_" + e.event, agent=e.agent, name=e.name, detail=e.detail)
+        for sub in list(self.subscribers):
+            sub(item)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "agents_running": len(self.sup.agents()),
+            "spawned": self.sup.spawned,
+            "failed": self.sup.failed,
+            "forkserver_pid": self.sup.forkserver_pid or 0,
+        }
+
+
+def _decode_value(type_name: str, value: bytes) -> Any:
+    if type_name == "json":
+        return json.loads(value)
+    return value
