@@ -260,3 +260,55 @@ def bench_alloc_quality(
     print(quality_table(study))
     path = write_json("alloc_quality", study)
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("slam")
+def bench_slam(
+    duration: float = typer.Option(60.0, "--duration", min=5, help="seconds of the 8-sweeper recording replayed"),
+) -> None:
+    """JC-SLAM library speed: readings per CPU-second at 100..1000 particles, history memory (haactl.slambench)."""
+    from haactl.slambench import bench_slam_table, machine, run_bench_slam
+
+    t0 = time.perf_counter()
+    data = run_bench_slam(duration=duration)
+    print()
+    print(bench_slam_table(data))
+    path = write_json("slam", {"machine": machine(), **data})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ap5.2")
+def bench_ap52(
+    particles: int = typer.Option(500, "--particles", min=1),
+    quick: bool = typer.Option(False, "--quick", help="short recordings"),
+) -> None:
+    """Experiment AP-5.2 (thesis §7.2.5.2): operations saved by delayed weight updates."""
+    from haactl.slambench import ap52_table, machine, run_ap52
+
+    t0 = time.perf_counter()
+    rows = run_ap52(particles, quick=quick)
+    print()
+    print(ap52_table(rows))
+    path = write_json("ap5.2", {"machine": machine(), "quick": quick, "rows": rows})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ap5.1")
+def bench_ap51(
+    quick: bool = typer.Option(False, "--quick", help="short recordings, 100 and 500 particles, 2 seeds"),
+    seeds: int = typer.Option(0, "--seeds", min=0, help="seeds per variant (0: 2 quick, 10 full)"),
+    particles: str = typer.Option("", "--particles", help="comma-separated particle counts (default by mode)"),
+    scenario: list[str] = typer.Option([], "--scenario", help="basic | advanced_a | advanced_b (repeatable)"),
+    jobs: int = typer.Option(1, "--jobs", min=1, help="worker processes"),
+) -> None:
+    """Experiment AP-5.1 (thesis §7.2.5.1): SLAM strategies at nominal and constrained capacity (haactl.slambench)."""
+    from haactl.slambench import ap51_tables, machine, run_ap51
+
+    t0 = time.perf_counter()
+    ps = tuple(int(p) for p in particles.split(",") if p.strip()) or None
+    keys = tuple(scenario) or ("basic", "advanced_a", "advanced_b")
+    data = run_ap51(quick=quick, particles=ps, seeds=seeds or None, scenarios=keys, jobs=jobs)
+    print()
+    print(ap51_tables(data))
+    path = write_json("ap5.1-quick" if quick else "ap5.1", {"machine": machine(), **data})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
