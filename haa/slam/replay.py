@@ -164,6 +164,12 @@ def replay(
 
     stats = run(rec.events(request_period), strat, capacity, system, seed=seed, on_request=on_request)
     obs = [m for pf in system.filters.values() for m in pf.obs_per_update]
+    counts = {
+        "corrections": sum(pf.corrections for pf in system.filters.values()),
+        "weight_updates": sum(pf.weight_updates for pf in system.filters.values()),
+        "weight_requests": sum(pf.weight_requests for pf in system.filters.values()),
+        "obs_in_updates": int(sum(obs)),
+    }
     res = ReplayResult(
         scenario=rec.team,
         strategy=strategy_name,
@@ -173,7 +179,7 @@ def replay(
         loc_error=float(np.mean(errs)) if errs else math.nan,
         heading_error=float(np.mean(herrs)) if herrs else math.nan,
         uncorrected_error=float(np.mean(unc)) if unc else math.nan,
-        stats=stats.row(),
+        stats={**stats.row(), **counts},
         obs_per_update=float(np.mean(obs)) if obs else math.nan,
         landmark=system.landmarks.errors(rec.landmarks),
     )
