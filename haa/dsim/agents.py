@@ -193,9 +193,7 @@ class AgentSim(GroupSim):
             self.cl._note(f"agent {e.name} {e.event} on {h.name} {e.detail}")
             return
         if t is AgentOpDone:
-            if not e.ok and isinstance(e.req, tuple) and e.req[0] == "create":
-                self.cl.at(self.cl.now + 0.2, lambda i=e.req[1]: self._create(only=i))
-            return
+            return  # a refused creation is asked again by `_ensure_created`
         if t is AppliedTx:
             self._observe_applied(proc, e)
         if t is ViewChange:
@@ -571,3 +569,66 @@ def is_member_node(node: Any) -> MembershipNode | None:
     """The membership node of a simulated host's state machine (an `AgentNode` wraps one)."""
     m = getattr(node, "m", node)
     return m if isinstance(m, MembershipNode) else None
+
+
+# ------------------------------------------------------------------------------------------------ the verifier
+
+
+def seed_result(seed: int, hosts: int, mix: str) -> dict[str, Any]:
+    """The fields of `haa.dsim.sweep.SeedResult` for one seed (`haactl verify transfer|recovery`)."""
+    sim, vs = run_agents(seed, hosts, mix)
+    ah = sim.ah
+    transfers = sum(1 for _t, _h, _n, ev in ah.timeline if ev == "thawed")
+    recoveries = sum(1 for _a, _e, mode, _s in ah.recovered_starts if mode == "recover")
+    return {
+        "seed": seed,
+        "violations": [str(v) for v in vs],
+        "liveness_checked": sim.quiescent,
+        "trace_hash": sim.cl.trace_hash(),
+        "events": sim.cl.events,
+        "messages": sum(sim.cl.msg_counts.values()),
+        "stats": {
+            "transfers": float(transfers),
+            "recoveries": float(recoveries),
+            "processed": float(sum(len(v) for v in ah.processed.values())),
+            "faults_dropped": float(len(sim.gh.dropped)),
+        },
+        "hosts": [h for v in vs for h in v.hosts],
+        "description": " | ".join(sim.asc.describe()[:3]),
+    }
+
+
+_NOISE = ("Heartbeat(", "SetPeriod(", "StateSnapshot(", "StateForward(")
+
+
+def full_trace(seed: int, hosts: int, mix: str) -> list[str]:
+    sc = draw_agents(seed, hosts, mix)
+    sim = AgentSim(sc, trace=True)
+    sim.run()
+    vs = check_agents(sim)
+    out = [f"# {ln}" for ln in sc.describe()]
+    out += [ln for ln in sim.cl.trace or [] if not any(k in ln for k in _NOISE)]
+    out += [f"# {v}" for v in vs]
+    out.append(f"# trace hash {sim.cl.trace_hash()}")
+    return out
+
+
+def trace_excerpt(seed: int, hosts: int, mix: str, bad_hosts: list[str], lines: int = 40) -> list[str]:
+    """Scenario, then the agent timeline, views and faults (and the concerned hosts' logs)."""
+    sc = draw_agents(seed, hosts, mix)
+    sim = AgentSim(sc, trace=True)
+    sim.run()
+    keys = tuple(f"{h}#" for h in sorted(set(bad_hosts)))
+    words = (" agent ", " view ", "crash", "pause")
+
+    def wanted(ln: str) -> bool:
+        if " -> " in ln or " <- " in ln:
+            return False
+        return any(w in ln for w in words) or bool(keys and any(k in ln for k in keys))
+
+    picked = [ln for ln in sim.cl.trace or [] if wanted(ln)]
+    out = [f"  scenario: {ln}" for ln in sc.describe()[:16]]
+    if len(picked) > lines:
+        out.append(f"  ... {len(picked) - lines} earlier lines ...")
+        picked = picked[-lines:]
+    return out + [f"  {ln}" for ln in picked]

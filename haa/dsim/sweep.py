@@ -3,7 +3,9 @@
 Algorithms: `ufd` and `oac` run `haa.dsim.schedule` scenarios on bare host cores (checked by
 `haa.dsim.checks`); `membership` and `ddb` run `haa.dsim.group` scenarios on `MembershipNode`s (Alg. 3 and
 the replicated DDB; `ddb` with a heavier write workload) and report `haa.dsim.group.VERIFIER_PROPS`;
-`allocation` runs `haa.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.dsim.allocation.PROPS`).
+`allocation` runs `haa.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.dsim.allocation.PROPS`);
+`transfer` and `recovery` run `haa.dsim.agents` schedules (the whole agent layer on `AgentNode`s over a host
+group: allocation, Alg. 5-8, routing; `haa.dsim.agents.AGENT_PROPS`).
 
 `run_seed` draws one scenario, runs it, checks it, and returns a small picklable result. `sweep` fans
 seeds out to a process pool (one worker per core), reports progress and schedules per minute, and for each
@@ -29,7 +31,9 @@ from haa.dsim import schedule as sched
 from haa.dsim.checks import CheckResult, Violation, check_oac, check_ufd
 
 GROUP_ALGORITHMS = ("membership", "ddb")
-ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation")
+#: the agent layer (haa.dsim.agents): transfers under pauses and false suspicions; recoveries under crashes
+AGENT_ALGORITHMS = ("transfer", "recovery")
+ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation", *AGENT_ALGORITHMS)
 #: per-seed figures of the group verifiers that the summary adds up
 GROUP_TOTALS = ("faults_injected", "faults_dropped", "writes_acked", "views")
 
@@ -69,6 +73,10 @@ def run_seed(
         from haa.dsim import allocation as alloc_sim
 
         return SeedResult(**alloc_sim.seed_result(seed, hosts))
+    if algorithm in AGENT_ALGORITHMS:
+        from haa.dsim import agents as agent_sim
+
+        return SeedResult(**agent_sim.seed_result(seed, hosts, algorithm))
     if algorithm in GROUP_ALGORITHMS:
         return run_group_seed(algorithm, seed, hosts)
     sc = sched.draw(seed, hosts, algorithm)
@@ -124,6 +132,10 @@ def full_trace(algorithm: str, seed: int, hosts: int) -> list[str]:
         from haa.dsim import allocation as alloc_sim
 
         return alloc_sim.full_trace(seed, hosts)
+    if algorithm in AGENT_ALGORITHMS:
+        from haa.dsim import agents as agent_sim
+
+        return agent_sim.full_trace(seed, hosts, algorithm)
     if algorithm in GROUP_ALGORITHMS:
         sc = group.draw_group(seed, hosts, algorithm)
         sim = group.GroupSim(sc, trace=True)
@@ -166,6 +178,10 @@ def trace_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lin
         from haa.dsim import allocation as alloc_sim
 
         return alloc_sim.trace_excerpt(seed, hosts, result.hosts, lines)
+    if algorithm in AGENT_ALGORITHMS:
+        from haa.dsim import agents as agent_sim
+
+        return agent_sim.trace_excerpt(seed, hosts, algorithm, result.hosts, lines)
     if algorithm in GROUP_ALGORITHMS:
         return _group_excerpt(algorithm, seed, hosts, result, lines)
     sc = sched.draw(seed, hosts, algorithm)
@@ -252,6 +268,8 @@ def sweep(
     messages = 0
     shown = 0
     totals: dict[str, float] = dict.fromkeys(GROUP_TOTALS, 0.0) if algorithm in GROUP_ALGORITHMS else {}
+    if algorithm in AGENT_ALGORITHMS:
+        totals = dict.fromkeys(("transfers", "recoveries", "processed", "faults_dropped"), 0.0)
     again = f" --mutate {mutate}" if mutate else ""
 
     def results() -> Iterator[SeedResult]:

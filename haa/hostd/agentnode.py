@@ -267,8 +267,10 @@ class AgentNode(TransferMixin, RecoveryMixin):
     def _drain_check(self, force: bool = False) -> None:
         if not self.draining or self._left_group:
             return
-        if self.local and not force:
-            return
+        hosts = self.table.hosts
+        takers = [n for n in self._member_names() if n != self.name and not (n in hosts and hosts[n].draining)]
+        if self.local and not force and takers:
+            return  # wait until every agent is handed over (or the deadline); nobody to take them: go now
         self._left_group = True
         for loc in list(self.local.values()):  # the deadline passed: these will be recovered elsewhere
             self._cmd(KillAgent(loc.id, loc.epoch, "host leaving"))
