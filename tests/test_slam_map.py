@@ -58,6 +58,23 @@ def test_mixture_update_adjusts_by_particle_weight():
     np.testing.assert_array_equal(two.prob(), before)
 
 
+def test_mixture_over_a_weighted_subsample_matches_the_full_mixture():
+    from haa.slam.sensors import template_cells
+
+    rng = np.random.default_rng(0)
+    n = 1000
+    states = np.zeros((n, 3))
+    states[:, 0] = np.where(np.arange(n) < 300, 1.05, 3.05) + 0.001 * rng.standard_normal(n)
+    states[:, 1] = 2.05
+    w = np.where(np.arange(n) < 300, 1.0, 0.2)
+    w /= w.sum()
+    full, sub = OccupancyGrid(SPEC, map_particles=0), OccupancyGrid(SPEC, map_particles=64)
+    for g in (full, sub):
+        g.mixture_update(template_cells(g, states, np.array([[0.0, 0.0]])), np.array([0.9]), w)
+    np.testing.assert_allclose(sub.prob(), full.prob(), atol=0.01)
+    assert full.prob()[20, 10] > 0.7  # the heavier cluster (weight 0.68)
+
+
 def wall_map() -> OccupancyGrid:
     """Free floor for x < 3, a wall at 3 <= x < 3.2."""
     g = OccupancyGrid(SPEC)

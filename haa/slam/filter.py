@@ -202,7 +202,7 @@ class ParticleFilter:
         self.marker: int | None = None  # absolute index of the earliest block with a forward density
         # counters (AP-5.2 and the benches)
         self.corrections = 0
-        self.weight_updates = 0  # weight computations of the newest block with something accumulated
+        self.weight_updates = 0  # weight computations of the newest block with observations since the last one
         self.weight_requests = 0  # estimate() calls on the newest block
         self.resamples = 0
         self.pending_obs = 0  # corrections since the last weight computation of the newest block
@@ -318,12 +318,11 @@ class ParticleFilter:
         b = self.last if t is None else self.locate(t)
         tq = self.time if t is None else t
         self._propagate_forward(b.index)
-        folded = self._fold(b)
+        self._fold(b)
         if b is self.last:
             self.weight_requests += 1
-            if folded:
+            if self.pending_obs:  # a weight computation that the observations since the last one needed
                 self.weight_updates += 1
-            if self.pending_obs:
                 self.obs_per_update.append(self.pending_obs)
                 self.pending_obs = 0
         states = b.states_at(tq)

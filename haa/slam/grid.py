@@ -64,8 +64,9 @@ class OccupancyGrid:
     hot paths. Flat cell indices (`cells`) refer to the padded array.
     """
 
-    def __init__(self, spec: GridSpec, clamp: float = float(logit(0.999))) -> None:
+    def __init__(self, spec: GridSpec, clamp: float = float(logit(0.999)), map_particles: int = 256) -> None:
         self.spec = spec
+        self.map_particles = map_particles  # mixture updates use at most this many particles (0: all)
         self.rows, self.cols = spec.shape
         self.clamp = clamp
         self.prow = self.cols + 2  # padded row length
@@ -127,7 +128,18 @@ class OccupancyGrid:
         """Apply a belief template at every particle, adjusted by the particle weights (§5.1.4).
 
         flat: (N, K) cells of particle i's template points; p: (K,) or (N, K) p_i(s|C); weights: (N,).
+        With more than `map_particles` particles the mixture is taken over that many drawn by weight
+        (deterministic systematic pointers at (k + ½)/M, equal weights): the same mixture in expectation, at a
+        fraction of the cost for 1000 particles.
         """
+        n = flat.shape[0]
+        if self.map_particles and n > self.map_particles:
+            m = self.map_particles
+            cdf = np.cumsum(weights)
+            idx = np.minimum(np.searchsorted(cdf / cdf[-1], (np.arange(m) + 0.5) / m, side="right"), n - 1)
+            flat = flat[idx]
+            p = p[idx] if np.ndim(p) == 2 else p
+            weights = np.full(m, 1.0 / m)
         contrib = weights[:, None] * (np.broadcast_to(p, flat.shape) - 0.5)
         delta = np.bincount(flat.reshape(-1), weights=contrib.reshape(-1), minlength=self.padded_size)
         delta[self._border] = 0.0
@@ -179,7 +191,7 @@ class OccupancyGrid:
         return self._df
 
     def copy(self) -> OccupancyGrid:
-        g = OccupancyGrid(self.spec, self.clamp)
+        g = OccupancyGrid(self.spec, self.clamp, self.map_particles)
         g._lo = self._lo.copy()
         g._p = self._p.copy()
         g.updates = self.updates

@@ -36,8 +36,10 @@ from haa.slam.sensors import LandmarkModel, SonarModel
 from haa.slam.strategies import Capacity, discard_share, run, strategy
 from haa.slam.system import SlamConfig, SlamSystem
 
-#: per-reading processing cost in ms at REF_PARTICLES particles (haactl bench slam, 2-core dev machine)
-COST_MS: dict[str, float] = {"sonar": 0.60, "landmark": 0.20, "cooccupancy": 0.30, "floor": 0.50}
+#: per-reading processing cost in ms at REF_PARTICLES particles, measured by `haactl bench slam` (thread CPU
+#: time, 2-core dev machine): a 5-echo sonar scan, a camera image's landmark sightings, a co-occupancy
+#: reading; the floor region is not in the recordings (an estimate: a template twice the co-occupancy's)
+COST_MS: dict[str, float] = {"sonar": 2.0, "landmark": 0.27, "cooccupancy": 0.48, "floor": 1.0}
 REF_PARTICLES = 500
 WORKERS = 4
 
