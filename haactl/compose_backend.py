@@ -9,6 +9,8 @@
 * The control API of hN is the port its container publishes for 7000/tcp (127.0.0.1:17001..17010); the
   token is compose/token (next to the compose file).
 * Core hosts are the names in the services' `--core` argument (h1, h2, h3).
+* Only services that run `haa-hostd --name <service>` are hosts (`host_service`). Others — the `sim`
+  service (profile `sim`, the avatar simulator) — are never listed, started, named or counted as hosts.
 
 Environment: HAA_COMPOSE_FILE (default: compose/compose.yaml under the current directory, else the one of
 this checkout), HAA_COMPOSE_PROJECT (default haa), HAA_COMPOSE_CMD (e.g. "docker-compose").
@@ -89,6 +91,15 @@ def docker_client() -> Any:
     return client
 
 
+def host_service(name: str, svc: Any) -> bool:
+    """A service of the compose file is a host when its command passes `--name <service name>` (haa-hostd);
+    any other service (the simulator `sim`, tools) is not."""
+    if not isinstance(svc, dict):
+        return False
+    cmd = [str(x) for x in svc.get("command") or []]
+    return "--name" in cmd[:-1] and cmd[cmd.index("--name") + 1] == name
+
+
 class ComposeBackend(Backend):
     kind = "compose"
 
@@ -101,9 +112,14 @@ class ComposeBackend(Backend):
             raise ClusterError(f"cannot read the compose file {self.file}: {e.strerror}") from None
         except yaml.YAMLError as e:
             raise ClusterError(f"compose file {self.file}: broken YAML: {str(e).splitlines()[0]}") from None
-        self.services: dict[str, Any] = dict((spec or {}).get("services") or {})
-        if not self.services:
+        services: dict[str, Any] = dict((spec or {}).get("services") or {})
+        if not services:
             raise ClusterError(f"compose file {self.file} defines no services")
+        #: the hosts (haa-hostd services), and every other service (not hosts: e.g. `sim`)
+        self.services: dict[str, Any] = {n: s for n, s in services.items() if host_service(n, s)}
+        self.other_services: dict[str, Any] = {n: s for n, s in services.items() if n not in self.services}
+        if not self.services:
+            raise ClusterError(f"compose file {self.file}: no service runs haa-hostd with --name <service>")
         self.core_names = self._core_names()
         self.token_file = self.file.parent / "token"
         token = ""
