@@ -456,6 +456,12 @@ class _Entry(NamedTuple):
     support: float
 
 
+class _Cluster(NamedTuple):
+    agents: tuple[str, ...]
+    cost: float  # of the members not already reserved
+    inner: tuple[float, ...]  # per member: sum of its affinities with the other members
+
+
 class _Session:
     """The per-session state of Alg. 4 ll. 3-16 (sesId, bidTable, outbox, bundle, r, flags)."""
 
@@ -486,7 +492,8 @@ class _Session:
         self.eligible: tuple[str, ...] = ()
         self.exclusive: frozenset[str] = frozenset()
         self.rev: dict[str, list[tuple[str, float]]] = {}  # j -> [(i, alpha_ij)]: who gains from j
-        self.nbrs: dict[str, tuple[str, ...]] = {}  # mutual affinity among eligible agents
+        self.nbrs: dict[str, tuple[str, ...]] = {}  # affinity (either way) among eligible agents
+        self.clusters: list[_Cluster] | None = None  # enumerated at the first build
         self.mismatch = 0  # (q, j) with bidTable_p[q][j] != bidTable_p[p][j]
         self.unclaimed = 0  # allocatable j with bidTable_p[p][j].z == none
         self.messages_sent = 0
@@ -888,17 +895,16 @@ class Allocator:
                     continue
                 if best is None or key > best[0]:
                     best = (key, (i,), placed, support)
-            for cl in clusters:
+            for c in clusters:
+                cl = c.agents
                 if any(i in in_bundle for i in cl):
                     continue
-                support = (k - used - sum(agents[i].cost for i in cl if i not in excl)) / k
+                support = (k - used - c.cost) / k
                 if support <= 0.0:  # the whole cluster must fit
                     continue
                 reward = 0.0
-                for i in cl:
-                    a = agents[i]
-                    inner = sum(a.affinity.get(j, 0.0) for j in cl if j != i)
-                    reward += (a.cost + bonus[i] + inner) * factor[i] + back[i]
+                for i, inner in zip(cl, c.inner, strict=True):
+                    reward += (agents[i].cost + bonus[i] + inner) * factor[i] + back[i]
                 key = _vals_key(reward, support)
                 placed = reward
                 if pkey is not None and key > pkey:
@@ -962,42 +968,53 @@ class Allocator:
                 if i in back:
                     back[i] += alpha * fj
 
-    def _clusters(self, s: _Session, in_bundle: set[str]) -> list[tuple[str, ...]]:
-        """Appendix II step 2: connected sets (2..MAX_CLUSTER agents) of unbundled agents with mutual
-        affinity, grown recursively from each agent; at most MAX_CLUSTERS, in a deterministic order."""
+    def _clusters(self, s: _Session, in_bundle: set[str]) -> list[_Cluster]:
+        """Appendix II step 2: connected sets (2..MAX_CLUSTER agents) of unbundled agents linked by affinity,
+        grown recursively from each agent (enumerated once per session, in a deterministic order); at most
+        MAX_CLUSTERS of those without a bundled member."""
         if self.MAX_CLUSTER < 2:
             return []
+        if s.clusters is None:
+            s.clusters = self._enumerate_clusters(s)
+        out = []
+        for c in s.clusters:
+            if not any(i in in_bundle for i in c.agents):
+                out.append(c)
+                if len(out) >= self.MAX_CLUSTERS:
+                    break
+        return out
+
+    def _enumerate_clusters(self, s: _Session) -> list[_Cluster]:
         pos = {a: n for n, a in enumerate(s.eligible)}
-        out: list[tuple[str, ...]] = []
+        found: list[tuple[str, ...]] = []
         seen: set[frozenset[str]] = set()
-        limit = self.MAX_CLUSTERS
+        limit = 4 * self.MAX_CLUSTERS
 
         def grow(members: list[str], frontier: list[str]) -> None:
-            if len(out) >= limit:
-                return
             for n, c in enumerate(frontier):
+                if len(found) >= limit:
+                    return
                 new = [*members, c]
                 fs = frozenset(new)
                 if fs in seen:
                     continue
                 seen.add(fs)
-                out.append(tuple(sorted(new, key=pos.__getitem__)))
-                if len(out) >= limit:
-                    return
+                found.append(tuple(sorted(new, key=pos.__getitem__)))
                 if len(new) < self.MAX_CLUSTER:
                     nxt = frontier[n + 1 :] + [
-                        x
-                        for x in s.nbrs.get(c, ())
-                        if x not in in_bundle and pos[x] > pos[new[0]] and x not in fs and x not in frontier
+                        x for x in s.nbrs.get(c, ()) if pos[x] > pos[new[0]] and x not in fs and x not in frontier
                     ]
                     grow(new, nxt)
 
         for v in s.eligible:
-            if v in in_bundle or not s.nbrs.get(v):
-                continue
-            grow([v], [x for x in s.nbrs[v] if x not in in_bundle and pos[x] > pos[v]])
-            if len(out) >= limit:
-                break
+            if s.nbrs.get(v):
+                grow([v], [x for x in s.nbrs[v] if pos[x] > pos[v]])
+        excl = s.exclusive if self.RESERVE else frozenset()
+        out = []
+        for cl in found:
+            inner = tuple(sum(s.agents[i].affinity.get(j, 0.0) for j in cl if j != i) for i in cl)
+            cost = sum(s.agents[i].cost for i in cl if i not in excl)
+            out.append(_Cluster(cl, cost, inner))
         return out
 
     # ------------------------------------------------------------------ l. 82-92: distribute, consensus
