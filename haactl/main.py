@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import typer
 
+from haactl.agentcli import agent_app, alloc_app
 from haactl.bench import bench_app
 from haactl.cluster import cluster_app, host_app
 from haactl.ddbcli import ddb_app
@@ -40,6 +41,8 @@ app.add_typer(host_app, name="host")
 app.add_typer(ddb_app, name="ddb")
 app.command("logs")(logs)
 app.add_typer(sim_app, name="sim")
+app.add_typer(agent_app, name="agent")
+app.add_typer(alloc_app, name="alloc")
 
 if __name__ == "__main__":
     app()

@@ -1,0 +1,841 @@
+"""`haactl agent list|tree|spawn|kill|move|remove|events` and `haactl alloc status|pause|resume|run`.
+
+The operator commands of the agent layer (issue 4 §5), written like `haactl ddb`: the cluster is the local
+one (`--root`) or, with `--compose`, the docker compose cluster (`haactl.cliopts.open_backend`), and
+commands that change something go through one alive member (`--host`, default the first one).
+
+What each host can tell (haa.hostd.agentcontrol): the replicated agent table (the same on every member, up
+to the last few commits) and, for the instances it runs or prepares, their local phase (claiming, thawing,
+recovering, active, freezing), measured CPU and pid. So the reading commands ask *every* alive host and
+merge (`merge_agents`): an agent's state is the local phase of the host that runs or prepares it where one
+reports it (a "recovering" of a never-started agent is shown as "spawning", "claiming" as "thawing"), else
+its table status (new, active, freezing, frozen, crashed); its host is that host, else the table owner.
+
+`agent events` merges the allocation timelines (`AgentEvents` streams) of every host into one time-ordered
+transcript in the style of the thesis' Fig. 7.1-3 ("00:51 A1 (counter) freezing on h4", "00:53 A1
+(counter) thawed by h3"); `EventFeed` does the merging and is reused by `haactl demo`. Events that every
+member reports once for the same table change (created, removed, crashed by a host's removal) are shown once.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from typing import Annotated, Any
+
+import grpc
+import typer
+from rich.markup import escape
+from rich.table import Table
+from rich.tree import Tree
+
+from haa.agents.base import RECOVERY_STRATEGIES
+from haa.hostd.control import ControlClient
+from haa.pb import control_pb2 as cpb
+from haactl.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, err, open_backend, out
+
+agent_app = typer.Typer(
+    help="List, spawn, kill, move and remove agents; follow the allocation timeline.", no_args_is_help=True
+)
+alloc_app = typer.Typer(
+    help="The agent allocation: status, pause/resume the periodic rebalancing, run a session now.",
+    no_args_is_help=True,
+)
+
+JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
+WaitTimeoutOpt = Annotated[float, typer.Option("--timeout", min=0.5, help="seconds to wait")]
+
+#: table statuses (haa.hostd.agenttable) and local phases (haa.hostd.agentnode.Local) -> the state shown
+PHASE_STATE = {"claiming": "thawing", "thawing": "thawing", "recovering": "recovering", "active": "active",
+               "freezing": "freezing"}
+STATE_STYLE = {"active": "green", "spawning": "cyan", "thawing": "cyan", "recovering": "magenta",
+               "freezing": "yellow", "frozen": "yellow", "crashed": "red", "new": "dim"}
+
+
+# ---------------------------------------------------------------------------------------------- reading
+
+
+def agent_lists(backend: Backend, timeout: float | None = None) -> dict[str, cpb.AgentListReply | Exception]:
+    """AgentList of every alive host, in parallel; failures as exceptions (raises if no cluster)."""
+    hosts = [h for h in backend.require_hosts() if h.state == ALIVE]
+    if not hosts:
+        raise ClusterError(f"no host is alive in the {backend.describe()}")
+
+    def one(h: Any) -> tuple[str, cpb.AgentListReply | Exception]:
+        c = ControlClient(h.address, backend.token, timeout=timeout or backend.rpc_timeout)
+        try:
+            return h.name, c.agent_list()
+        except grpc.RpcError as e:
+            return h.name, e
+        finally:
+            c.close()
+
+    with ThreadPoolExecutor(max_workers=min(16, len(hosts))) as pool:
+        return dict(pool.map(one, hosts))
+
+
+def answering(backend: Backend, replies: dict[str, cpb.AgentListReply | Exception]) -> dict[str, cpb.AgentListReply]:
+    """The hosts that answered; a clear error if none did (a wrong token, no agent layer, ...)."""
+    ok = {n: r for n, r in replies.items() if isinstance(r, cpb.AgentListReply)}
+    if ok:
+        return ok
+    name, e = next(iter(replies.items()))
+    if isinstance(e, grpc.RpcError):
+        raise ClusterError(rpc_error_text(name, backend.host(name).address, e, "AgentList"))
+    raise ClusterError(f"no host answered AgentList in the {backend.describe()}")
+
+
+@dataclass
+class AgentRow:
+    """One agent as the whole cluster sees it (`merge_agents`)."""
+
+    name: str
+    id: str
+    type: str
+    state: str
+    host: str  # the host that runs / prepares it, else the table owner ("" if none)
+    cpu: float  # fraction of one core (the running host's latest measurement, else the table's)
+    parent: str  # parent's display name ("" for a top-level agent)
+    parent_id: str
+    epoch: int
+    backup: bool
+    status: str  # table status
+    owner: str
+    alloc: str
+    pid: int = 0
+    queued: int = 0
+    dropped: int = 0
+    recovery: str = ""
+    phases: dict[str, str] = field(default_factory=dict)  # host -> local phase, every host reporting one
+
+
+def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
+    """Merge what every host reports into one row per agent (module docstring)."""
+    rows: dict[str, cpb.AgentInfo] = {}
+    phases: dict[str, dict[str, cpb.AgentInfo]] = {}
+    for host in sorted(replies, key=natural_key):
+        for a in replies[host].agents:
+            prev = rows.get(a.id)
+            if prev is None or a.epoch > prev.epoch:
+                rows[a.id] = a  # the most advanced replica's row
+            if a.local_phase:
+                phases.setdefault(a.id, {})[host] = a
+    names = {i: a.name for i, a in rows.items()}
+    out: list[AgentRow] = []
+    for agent_id, a in rows.items():
+        loc = phases.get(agent_id, {})
+        mine = loc.get(a.owner) or next(iter(loc.values()), None)
+        if mine is not None:
+            host = next(h for h, x in loc.items() if x is mine)
+            state = PHASE_STATE.get(mine.local_phase, mine.local_phase)
+            if mine.local_phase == "recovering" and a.status == "new":
+                state = "spawning"  # the first start of a new agent goes through recoverAgent (Alg. 8)
+            cpu = mine.local_cpu or a.cpu
+            pid = mine.pid
+        else:
+            host, state, cpu, pid = a.owner, a.status, a.cpu, 0
+        out.append(AgentRow(
+            name=a.name, id=a.id, type=a.type, state=state, host=host, cpu=cpu,
+            parent=names.get(a.parent, a.parent[:8]) if a.parent else "", parent_id=a.parent, epoch=a.epoch,
+            backup=a.has_backup, status=a.status, owner=a.owner, alloc=a.alloc, pid=pid, queued=a.queued,
+            dropped=a.dropped, recovery=a.recovery, phases={h: x.local_phase for h, x in loc.items()},
+        ))
+    return sorted(out, key=lambda r: name_key(r.name))
+
+
+def name_key(name: str) -> tuple[Any, ...]:
+    """A2 before A10, A1.2 before A1.10."""
+    parts = name[1:].split(".") if name[:1] == "A" else [name]
+    return tuple((0, int(p)) if p.isdigit() else (1, p) for p in parts)
+
+
+def resolve(rows: Iterable[AgentRow], ref: str) -> AgentRow:
+    """An agent by id, display name or unique id prefix (>= 4 characters), like the hosts resolve it."""
+    rows = list(rows)
+    for r in rows:
+        if ref in (r.id, r.name):
+            return r
+    hits = [r for r in rows if len(ref) >= 4 and r.id.startswith(ref)]
+    if len(hits) == 1:
+        return hits[0]
+    if len(hits) > 1:
+        raise ClusterError(f"agent id prefix {ref!r} is ambiguous ({', '.join(r.name for r in hits)})")
+    known = ", ".join(r.name for r in rows[:12]) + (" ..." if len(rows) > 12 else "")
+    raise ClusterError(f"unknown agent {ref!r} (agents: {known or 'none'})")
+
+
+def row_json(r: AgentRow) -> dict[str, Any]:
+    d = asdict(r)
+    d["cpu"] = round(r.cpu, 4)
+    return d
+
+
+def where(r: AgentRow) -> str:
+    """The host column: the running host, or for a frozen/new/crashed agent where the allocation puts it."""
+    if r.state in ("frozen", "new", "crashed") and r.alloc and r.alloc != r.host:
+        return f"{r.host or '-'} → {r.alloc}"
+    return r.host or "-"
+
+
+def agent_table(rows: list[AgentRow], title: str) -> Table:
+    t = Table(title=title, title_justify="left")
+    for col, just in (("name", "left"), ("id", "left"), ("type", "left"), ("state", "left"), ("host", "left"),
+                      ("cpu %", "right"), ("parent", "left"), ("epoch", "right"), ("backup", "left")):
+        t.add_column(col, justify=just)  # type: ignore[arg-type]
+    for r in rows:
+        t.add_row(
+            r.name, r.id[:8], escape(r.type), f"[{STATE_STYLE.get(r.state, 'white')}]{r.state}[/]", where(r),
+            f"{100 * r.cpu:.1f}", r.parent or "-", str(r.epoch),
+            "yes" if r.backup else ("-" if r.recovery == "backup" else f"- ({r.recovery})"),
+        )
+    return t
+
+
+def warn_unanswered(replies: dict[str, Any]) -> None:
+    for n, r in replies.items():
+        if not isinstance(r, cpb.AgentListReply):
+            code = r.code().name if isinstance(r, grpc.RpcError) else type(r).__name__
+            err.print(f"[yellow]warning:[/] {n} did not answer ({code}); its local phases are missing")
+
+
+@agent_app.command("list")
+@cli_errors
+def agent_list(
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """Every agent: name, id prefix, type, state, host, CPU, parent, epoch, backup (merged from every host)."""
+    backend = open_backend(compose, root, compose_file)
+    replies = agent_lists(backend)
+    ok = answering(backend, replies)
+    rows = merge_agents(ok)
+    if json_out:
+        print(json.dumps({"hosts": sorted(ok, key=natural_key),
+                          "unanswered": sorted(set(replies) - set(ok), key=natural_key),
+                          "agents": [row_json(r) for r in rows]}))
+        return
+    warn_unanswered(replies)
+    out.print(agent_table(rows, f"{len(rows)} agents ({len(ok)} hosts answered)"))
+
+
+@agent_app.command("tree")
+@cli_errors
+def agent_tree(
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+) -> None:
+    """The parentage tree (A1 -> A1.1 -> A1.1.1), each agent with its type, state and host."""
+    backend = open_backend(compose, root, compose_file)
+    replies = agent_lists(backend)
+    rows = merge_agents(answering(backend, replies))
+    warn_unanswered(replies)
+    out.print(build_tree(rows))
+
+
+def build_tree(rows: list[AgentRow]) -> Tree:
+    ids = {r.id for r in rows}
+    tree = Tree(f"[bold]{len(rows)} agents[/]")
+    children: dict[str, list[AgentRow]] = {}
+    for r in rows:
+        children.setdefault(r.parent_id if r.parent_id in ids else "", []).append(r)
+
+    def label(r: AgentRow) -> str:
+        style = STATE_STYLE.get(r.state, "white")
+        orphan = " [dim](parent gone)[/]" if r.parent_id and r.parent_id not in ids else ""
+        return f"[bold]{r.name}[/] ({escape(r.type)}) [{style}]{r.state}[/] on {where(r)}{orphan}"
+
+    def add(node: Tree, parent: str, seen: set[str]) -> None:
+        for r in children.get(parent, []):
+            if r.id in seen:  # a cycle cannot happen (a parent exists before its child); be safe anyway
+                continue
+            add(node.add(label(r)), r.id, seen | {r.id})
+
+    add(tree, "", set())
+    return tree
+
+
+# ---------------------------------------------------------------------------------------------- changing
+
+
+def load_rows(backend: Backend) -> tuple[dict[str, cpb.AgentListReply], list[AgentRow]]:
+    ok = answering(backend, agent_lists(backend))
+    return ok, merge_agents(ok)
+
+
+def wait_rows(backend: Backend, pred: Callable[[list[AgentRow]], Any], timeout: float, what: str) -> Any:
+    """Poll the merged agent list until `pred` returns something truthy."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            v = pred(merge_agents(answering(backend, agent_lists(backend))))
+            if v:
+                return v
+        except ClusterError:
+            pass
+        if time.monotonic() > deadline:
+            raise ClusterError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(0.1)
+
+
+def active_row(rows: list[AgentRow], agent_id: str, host: str | None = None, min_epoch: int = 0) -> AgentRow | None:
+    for r in rows:
+        if r.id == agent_id and r.state == "active" and r.epoch >= min_epoch and (host is None or r.host == host):
+            return r
+    return None
+
+
+def parse_config(text: str) -> bytes:
+    if not text:
+        return b""
+    try:
+        json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ClusterError(f"--config is not JSON ({e.msg} at column {e.colno}): {text[:60]!r}") from None
+    return text.encode()
+
+
+@agent_app.command("spawn")
+@cli_errors
+def agent_spawn(
+    type_name: Annotated[str, typer.Argument(metavar="TYPE", help="a registered agent type (counter, probe, ...)")],
+    config: Annotated[str, typer.Option("--config", "-c", help="the agent's config, JSON")] = "",
+    parent: Annotated[str, typer.Option("--parent", help="parent agent (name, id or id prefix)")] = "",
+    recovery: Annotated[str, typer.Option("--recovery", help="backup | restart | none (default: the type's)")] = "",
+    hardware: Annotated[str, typer.Option("--hardware", help="required hardware, comma separated")] = "",
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active on some host")] = True,
+    timeout: WaitTimeoutOpt = 30.0,
+    json_out: JsonOpt = False,
+) -> None:
+    """Create an agent of a registered type; the allocation places it (committed before the command returns)."""
+    if recovery and recovery not in RECOVERY_STRATEGIES:
+        raise ClusterError(f"--recovery must be one of {', '.join(sorted(RECOVERY_STRATEGIES))}, not {recovery!r}")
+    hw = tuple(h.strip() for h in hardware.split(",") if h.strip())
+    cfg = parse_config(config)
+    backend = open_backend(compose, root, compose_file)
+    h = backend.pick_host(host)
+    t0 = time.monotonic()
+    reply: cpb.AgentOpReply = backend.call(
+        h, lambda c: c.agent_spawn(type_name, cfg, parent=parent, recovery=recovery, hardware=hw, timeout=timeout),
+        "AgentSpawn", timeout=timeout,
+    )
+    if not reply.ok:
+        raise ClusterError(f"spawn {type_name}: {reply.reason}")
+    row = None
+    if wait:
+        row = wait_rows(backend, lambda rows: active_row(rows, reply.id), timeout, f"{reply.name} to become active")
+    took = time.monotonic() - t0
+    if json_out:
+        print(json.dumps({"ok": True, "id": reply.id, "name": reply.name, "via": h,
+                          "host": row.host if row else "", "seconds": round(took, 3)}))
+        return
+    tail = f": active on {row.host} after {took:.2f} s" if row else ""
+    out.print(f"spawned {reply.name} ({type_name}, id {reply.id}) via {h}{tail}")
+
+
+@agent_app.command("kill")
+@cli_errors
+def agent_kill(
+    ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the group has recovered it")] = True,
+    timeout: WaitTimeoutOpt = 30.0,
+) -> None:
+    """SIGKILL the agent's process on the host running it: an agent failure that the group recovers (Alg. 8)."""
+    backend = open_backend(compose, root, compose_file)
+    _, rows = load_rows(backend)
+    r = resolve(rows, ref)
+    owner = next((h for h, p in r.phases.items() if p == "active"), r.owner)
+    if not owner:
+        raise ClusterError(f"{r.name} runs nowhere now (state {r.state}): nothing to kill")
+    t0 = time.monotonic()
+    reply: cpb.AgentOpReply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
+    if not reply.ok and "its owner is " in reply.reason:  # it moved meanwhile: ask the new owner once
+        owner = reply.reason.rsplit("its owner is ", 1)[1].strip()
+        if owner not in {h.name for h in backend.hosts()}:
+            raise ClusterError(f"kill {r.name}: {reply.reason}")
+        reply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
+    if not reply.ok:
+        raise ClusterError(f"kill {r.name} on {owner}: {reply.reason}")
+    out.print(f"killed {r.name} on {owner} (SIGKILL{f' of pid {r.pid}' if r.pid else ''})")
+    if not wait:
+        return
+    if r.recovery == "none":
+        out.print(f"{r.name} has recovery strategy 'none': it is not recovered")
+        return
+    row = wait_rows(backend, lambda rows: active_row(rows, r.id, min_epoch=r.epoch + 1), timeout,
+                    f"{r.name} to be recovered")
+    out.print(f"{r.name} recovered on {row.host} (epoch {row.epoch}) {time.monotonic() - t0:.2f} s after the kill")
+
+
+@agent_app.command("move")
+@cli_errors
+def agent_move(
+    ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
+    to: Annotated[str, typer.Argument(metavar="HOST", help="destination host (a member)")],
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active there")] = True,
+    timeout: WaitTimeoutOpt = 30.0,
+) -> None:
+    """Allocate an agent to HOST (until the next allocation session): frozen where it runs, thawed there."""
+    backend = open_backend(compose, root, compose_file)
+    backend.host(to)  # unknown host names get the list of hosts
+    h = backend.pick_host(host)
+    t0 = time.monotonic()
+    reply: cpb.AgentOpReply = backend.call(h, lambda c: c.agent_move(ref, to, timeout=timeout), "AgentMove",
+                                           timeout=timeout)
+    if not reply.ok:
+        if reply.reason == "unknown agent":
+            _, rows = load_rows(backend)
+            resolve(rows, ref)  # raises with the list of agents
+        raise ClusterError(f"move {reply.name or ref} to {to}: {reply.reason}")
+    if not wait:
+        out.print(f"{reply.name} allocated to {to}")
+        return
+    wait_rows(backend, lambda rows: active_row(rows, reply.id, host=to), timeout, f"{reply.name} to be active on {to}")
+    out.print(f"{reply.name} moved to {to} in {time.monotonic() - t0:.2f} s")
+
+
+@agent_app.command("remove")
+@cli_errors
+def agent_remove(
+    ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    timeout: WaitTimeoutOpt = 30.0,
+) -> None:
+    """End an agent for good (its process is stopped; its children stay)."""
+    backend = open_backend(compose, root, compose_file)
+    h = backend.pick_host(host)
+    reply: cpb.AgentOpReply = backend.call(h, lambda c: c.agent_remove(ref, timeout=timeout), "AgentRemove",
+                                           timeout=timeout)
+    if not reply.ok:
+        if reply.reason == "unknown agent":
+            _, rows = load_rows(backend)
+            resolve(rows, ref)
+        raise ClusterError(f"remove {reply.name or ref}: {reply.reason}")
+    out.print(f"removed {reply.name or ref}")
+
+
+# ---------------------------------------------------------------------------------------------- timeline
+
+#: events every member reports for the same committed table change (shown once)
+TABLE_EVENTS = frozenset({"created", "removed"})
+#: events that mean "the agent runs on the event's host from now on"
+RUNS_ON = frozenset({"active", "thawed", "recovered"})
+
+
+@dataclass
+class TimelineEvent:
+    """One line of the merged timeline."""
+
+    time: float  # unix time at the reporting host
+    agent: str
+    name: str
+    event: str
+    host: str
+    detail: str = ""
+    type: str = ""
+    text: str = ""  # the transcript line without the clock ("A1 (counter) freezing on h4 (to h3)")
+
+    def clock(self, t0: float, absolute: bool = False) -> str:
+        if absolute:
+            return time.strftime("%H:%M:%S", time.localtime(self.time))
+        s = max(0, int(self.time - t0))
+        return f"{s // 60:02d}:{s % 60:02d}"
+
+
+def host_event(t: float, host: str, what: str) -> TimelineEvent:
+    return TimelineEvent(t, "", host, what, host, text=f"{host} {what}")
+
+
+class EventFeed:
+    """The `AgentEvents` streams of every alive host (each host's kept history first), merged into one timeline.
+
+    One thread per host pushes what its stream yields into a queue; `poll()` returns the events that are at
+    least `delay` seconds old in time order, each described once (module docstring). With `views`, `poll()`
+    also reports hosts joining and leaving the group (from the members' status, checked every second).
+    New hosts are picked up by `connect()` (called by `poll()` every second).
+    """
+
+    def __init__(self, backend: Backend, delay: float = 0.6, views: bool = False) -> None:
+        self.backend = backend
+        self.delay = delay
+        self.views = views
+        self.q: queue.Queue[tuple[str, cpb.AgentEvent | None]] = queue.Queue()
+        self.streams: dict[str, Any] = {}
+        self.threads: dict[str, threading.Thread] = {}
+        self.ended: dict[str, str] = {}  # host -> why its stream ended
+        self.buffer: list[TimelineEvent] = []
+        self.seen: set[tuple[str, float, str, str]] = set()
+        self.types: dict[str, str] = {}  # agent id -> type
+        self.runs_on: dict[str, str] = {}  # agent id -> the host it last became active on
+        self.shown: dict[tuple[str, str], float] = {}  # (agent, event) -> time of the last shown table event
+        self.members: list[str] | None = None
+        self.last_connect = 0.0
+        self.last_view = 0.0
+        self.received = 0
+        self.closed = False
+
+    def start(self, settle: float = 0.4, limit: float = 5.0) -> list[str]:
+        """Connect to every alive host and take their kept histories (until no event came for `settle` s),
+        so that the first `poll()` returns them all in time order. Returns the hosts connected."""
+        hosts = self.connect()
+        t = time.monotonic()
+        deadline, quiet = t + limit, t
+        while hosts and time.monotonic() < deadline:
+            n = self.received
+            self._take(0.05)
+            if self.received != n:
+                quiet = time.monotonic()
+            elif time.monotonic() - quiet > settle:
+                break
+        return hosts
+
+    def connect(self) -> list[str]:
+        """Open a stream to every alive host that has none; returns the hosts newly connected."""
+        self.last_connect = time.monotonic()
+        new = []
+        for h in self.backend.hosts():
+            t = self.threads.get(h.name)
+            if h.state != ALIVE or (t is not None and t.is_alive()):
+                continue
+            c = ControlClient(h.address, self.backend.token, timeout=self.backend.rpc_timeout)
+            stream = c.agent_events(history=True)
+            self.streams[h.name] = stream
+            th = threading.Thread(target=self._pump, args=(h.name, c, stream), daemon=True, name=f"events-{h.name}")
+            self.threads[h.name] = th
+            th.start()
+            new.append(h.name)
+        return new
+
+    def _pump(self, host: str, c: ControlClient, stream: Any) -> None:
+        try:
+            for ev in stream:
+                self.q.put((host, ev))
+            self.ended[host] = "stream ended"
+        except grpc.RpcError as e:
+            self.ended[host] = e.code().name if hasattr(e, "code") else str(e)
+        finally:
+            c.close()
+            self.q.put((host, None))
+
+    def close(self) -> None:
+        self.closed = True
+        for s in self.streams.values():
+            s.cancel()
+        for t in self.threads.values():
+            t.join(2)
+
+    def _take(self, timeout: float) -> None:
+        try:
+            item: tuple[str, cpb.AgentEvent | None] | None = self.q.get(timeout=timeout)
+        except queue.Empty:
+            return
+        while item is not None:
+            host, ev = item
+            if ev is not None:
+                key = (host, ev.time, ev.agent, ev.event)
+                if key not in self.seen:  # a reconnect replays the history
+                    self.seen.add(key)
+                    self.received += 1
+                    self.buffer.append(TimelineEvent(ev.time, ev.agent, ev.name, ev.event, ev.host, ev.detail))
+            try:
+                item = self.q.get_nowait()
+            except queue.Empty:
+                item = None
+
+    def _views(self) -> list[TimelineEvent]:
+        self.last_view = time.monotonic()
+        replies = self.backend.statuses()
+        ok = {n: r for n, r in replies.items() if isinstance(r, cpb.StatusReply)}
+        members, _, _ = agreed_group(ok)
+        if not members:
+            return []
+        now = time.time()
+        evs: list[TimelineEvent] = []
+        if self.members is not None:
+            evs += [host_event(now, m, "joined") for m in members if m not in self.members]
+            evs += [host_event(now, m, "removed") for m in self.members if m not in members]
+        self.members = members
+        return evs
+
+    def poll(self, timeout: float = 0.2, flush: bool = False) -> list[TimelineEvent]:
+        """Events ready to show (all of them with `flush`), in time order."""
+        self._take(timeout)
+        if time.monotonic() - self.last_connect > 1.0:
+            self.connect()
+        if self.views and time.monotonic() - self.last_view > 1.0:
+            self.buffer += self._views()
+        cut = time.time() - self.delay
+        self.buffer.sort(key=lambda e: e.time)
+        ready = [e for e in self.buffer if flush or e.time <= cut]
+        self.buffer = [e for e in self.buffer if not (flush or e.time <= cut)]
+        shown = []
+        for e in ready:
+            if self.describe(e, ready):
+                shown.append(e)
+        return shown
+
+    def describe(self, e: TimelineEvent, batch: list[TimelineEvent]) -> bool:
+        """Fill `e.text`; False if the event repeats one already shown (a table event of another member)."""
+        if not e.agent:
+            return True  # a host line, already described
+        kind = e.event
+        if kind == "created" and e.detail:
+            self.types[e.agent] = e.detail
+        e.type = self.types.get(e.agent, "")
+        if kind in TABLE_EVENTS or (kind == "crashed" and not e.detail):
+            last = self.shown.get((e.agent, kind))
+            if last is not None and abs(e.time - last) < 3.0:
+                return False
+            if kind == "crashed" and any(
+                x.agent == e.agent and x.event == "crashed" and x.detail and abs(x.time - e.time) < 3.0
+                for x in (*batch, *self.buffer)
+            ):
+                return False  # the host that ran it reported the cause
+            self.shown[(e.agent, kind)] = e.time
+        elif kind == "crashed":
+            last = self.shown.get((e.agent, kind))
+            if last is not None and abs(e.time - last) < 3.0:
+                return False
+            self.shown[(e.agent, kind)] = e.time
+        who = f"{e.name} ({e.type})" if e.type else e.name
+        d = e.detail
+        if kind == "created":
+            parent = e.name.rsplit(".", 1)[0] if "." in e.name else ""
+            text = f"{who} requested by {parent if parent else 'the operator'}"
+        elif kind == "spawning":
+            text = f"{who} spawning on {e.host}"
+        elif kind == "active":
+            text = f"{who} spawned by {e.host}"
+        elif kind == "freezing":
+            text = f"{who} freezing on {e.host}" + (f" ({d})" if d else "")
+        elif kind == "frozen":
+            text = f"{who} frozen on {e.host}"
+        elif kind == "thawing":
+            text = f"{who} thawing on {e.host}"
+        elif kind == "thawed":
+            if d.startswith("1 queued messages"):
+                d = "1 queued message"
+            text = f"{who} thawed by {e.host}" + (f" ({d})" if d and not d.startswith("0 ") else "")
+        elif kind == "crashed":
+            if d:
+                text = f"{who} crashed on {e.host}: {d}"
+            else:
+                last_host = self.runs_on.get(e.agent)
+                text = f"{who} crashed" + (f" on {last_host}" if last_host else "")
+        elif kind == "recovering":
+            text = f"{who} recovering on {e.host}"
+        elif kind == "recovered":
+            text = f"{who} recovered by {e.host}" + (f" ({d})" if d else "")
+        elif kind == "removed":
+            text = f"{who} removed"
+        else:
+            text = f"{who} {kind} on {e.host}" + (f" ({d})" if d else "")
+        if kind in RUNS_ON:
+            self.runs_on[e.agent] = e.host
+        e.text = text
+        return True
+
+
+EVENT_STYLE = {"freezing": "yellow", "frozen": "yellow", "thawing": "cyan", "thawed": "green", "active": "green",
+               "spawning": "cyan", "crashed": "bold red", "recovering": "magenta", "recovered": "green",
+               "removed": "dim", "created": "white"}
+
+
+def event_line(e: TimelineEvent, t0: float, absolute: bool = False) -> str:
+    """The rich-markup transcript line of an event."""
+    style = "bold blue" if not e.agent else EVENT_STYLE.get(e.event, "white")
+    return f"[dim]{e.clock(t0, absolute)}[/] [{style}]{escape(e.text)}[/]"
+
+
+def event_json(e: TimelineEvent, t0: float) -> dict[str, Any]:
+    return {"time": e.time, "clock": e.clock(t0), "agent": e.agent, "name": e.name, "type": e.type,
+            "event": e.event, "host": e.host, "detail": e.detail, "text": e.text}
+
+
+@agent_app.command("events")
+@cli_errors
+def agent_events(
+    follow: Annotated[bool, typer.Option("--follow", "-f", help="keep following new events until Ctrl-C")] = False,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    absolute: Annotated[bool, typer.Option("--clock", help="wall-clock times instead of mm:ss")] = False,
+    count: Annotated[int, typer.Option("--count", min=0, help="stop after this many lines (0 = no limit)")] = 0,
+    json_out: Annotated[bool, typer.Option("--json", help="one JSON object per event")] = False,
+) -> None:
+    """The allocation timeline of the whole cluster (every host's AgentEvents, merged, Fig. 7.1-3 style).
+
+    Times are mm:ss since the first event kept by the hosts (each host keeps its last 2000). With -f, new
+    events follow as they happen, with hosts joining and leaving the group."""
+    backend = open_backend(compose, root, compose_file)
+    backend.require_hosts()
+    feed = EventFeed(backend, views=follow)
+    if not feed.start():
+        raise ClusterError(f"no host is alive in the {backend.describe()}")
+    printed = 0
+    t0 = 0.0
+    try:
+        while True:
+            evs = feed.poll(0.1, flush=not follow)
+            failed = [h for h, why in feed.ended.items() if why == "UNAUTHENTICATED"]
+            if failed:
+                h = failed[0]
+                raise ClusterError(f"host {h} ({backend.host(h).address}) rejected the cluster token")
+            for e in evs:
+                if not t0:
+                    t0 = e.time
+                if json_out:
+                    print(json.dumps(event_json(e, t0)), flush=True)
+                else:
+                    out.print(event_line(e, t0, absolute))
+                printed += 1
+                if count and printed >= count:
+                    return
+            if not follow:
+                if not printed and not json_out:
+                    out.print("[dim](no agent events yet)[/]")
+                return
+    except KeyboardInterrupt:
+        return
+    finally:
+        feed.close()
+
+
+# ---------------------------------------------------------------------------------------------- alloc
+
+
+def alloc_summary(reply: cpb.AgentListReply, rows: list[AgentRow]) -> dict[str, Any]:
+    load: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        if r.host and r.state in ("active", "freezing", "thawing", "recovering", "spawning"):
+            d = load.setdefault(r.host, {"agents": 0, "cpu": 0.0})
+            d["agents"] += 1
+            d["cpu"] = round(d["cpu"] + r.cpu, 4)
+    pending = [r.name for r in rows if r.alloc and r.alloc != r.host]
+    return {"via": reply.host, "session": reply.session, "finished_session": reply.finished_session,
+            "paused": reply.paused, "agent_types": list(reply.agent_types),
+            "load": dict(sorted(load.items(), key=lambda kv: natural_key(kv[0]))),
+            "to_move": pending, "agents": [row_json(r) for r in rows]}
+
+
+def print_alloc(s: dict[str, Any], rows: list[AgentRow]) -> None:
+    state = "[yellow]paused[/]" if s["paused"] else "[green]running[/]"
+    sess = f"session {s['session']}" + ("" if s["finished_session"] >= s["session"] else " (in progress)")
+    out.print(f"allocation {state}: last {sess}; via {s['via']}; agent types: {', '.join(s['agent_types'])}")
+    if s["load"]:
+        out.print("load: " + ", ".join(f"{h} {d['agents']} agents {100 * d['cpu']:.1f}% cpu"
+                                       for h, d in s["load"].items()))
+    if s["to_move"]:
+        out.print(f"allocated elsewhere, not moved yet: {', '.join(s['to_move'])}")
+    out.print(agent_table(rows, f"{len(rows)} agents"))
+
+
+def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file: Any,
+           timeout: float) -> tuple[Backend, cpb.AgentListReply]:
+    backend = open_backend(compose, root, compose_file)
+    h = backend.pick_host(host)
+    reply = backend.call(h, lambda c: c.alloc(action, timeout=timeout), f"Alloc({action})", timeout=timeout)
+    return backend, reply
+
+
+@alloc_app.command("status")
+@cli_errors
+def alloc_status(
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """Session ids, paused or not, load per host and every agent's host, state, CPU and parent."""
+    backend, reply = _alloc("status", host, compose, root, compose_file, 10.0)
+    rows = merge_agents(answering(backend, agent_lists(backend)))
+    s = alloc_summary(reply, rows)
+    if json_out:
+        print(json.dumps(s))
+        return
+    print_alloc(s, rows)
+
+
+@alloc_app.command("pause")
+@cli_errors
+def alloc_pause(
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+) -> None:
+    """Pause the periodic rebalancing (membership and agent-list changes still start sessions)."""
+    _, reply = _alloc("pause", host, compose, root, compose_file, 15.0)
+    out.print(f"allocation paused (committed via {reply.host}; last session {reply.session})")
+
+
+@alloc_app.command("resume")
+@cli_errors
+def alloc_resume(
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+) -> None:
+    """Resume the periodic rebalancing."""
+    _, reply = _alloc("resume", host, compose, root, compose_file, 15.0)
+    out.print(f"allocation resumed (committed via {reply.host}; last session {reply.session})")
+
+
+@alloc_app.command("run")
+@cli_errors
+def alloc_run(
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the session has finished")] = True,
+    timeout: WaitTimeoutOpt = 30.0,
+) -> None:
+    """Start an allocation session now (Alg. 4); with --wait report the agents it moved."""
+    backend = open_backend(compose, root, compose_file)
+    h = backend.pick_host(host)
+    before = backend.call(h, lambda c: c.alloc("status", timeout=timeout), "Alloc(status)", timeout=timeout)
+    rows0 = {r.id: r for r in merge_agents(answering(backend, agent_lists(backend)))}
+    t0 = time.monotonic()
+    backend.call(h, lambda c: c.alloc("run", timeout=timeout), "Alloc(run)", timeout=timeout)
+    if not wait:
+        out.print(f"allocation session requested via {h} (last session {before.session})")
+        return
+    deadline = t0 + timeout
+    while True:
+        r = backend.call(h, lambda c: c.alloc("status", timeout=timeout), "Alloc(status)", timeout=timeout)
+        if r.session > before.session and r.finished_session >= r.session:
+            break
+        if time.monotonic() > deadline:
+            raise ClusterError(f"no allocation session finished within {timeout:g} s (last {r.session}, "
+                               f"finished {r.finished_session})")
+        time.sleep(0.1)
+    rows = merge_agents(answering(backend, agent_lists(backend)))
+    moves = [f"{x.name} {rows0[x.id].host or '-'}→{x.alloc}" for x in rows
+             if x.id in rows0 and x.alloc and x.alloc != rows0[x.id].host]
+    out.print(f"allocation session {r.session} finished in {time.monotonic() - t0:.2f} s: "
+              + (f"{len(moves)} agents to move ({', '.join(moves)})" if moves else "no agent moves"))
