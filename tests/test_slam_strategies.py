@@ -85,7 +85,7 @@ def test_equality_check_is_sensitive(rec):
 
 
 def test_constrained_strategies_behave_as_specified(rec):
-    cap = calibrate(rec, 0.7, workers=2, cost_ms=COST)  # Discard processes 70%
+    cap = calibrate(rec, 0.7, workers=2, cost_ms=COST, per_kind=False)  # one shared pool; Discard processes 70%
     out = {name: replay(rec, name, cap)[1] for name in ("baseline", "discard", "jcslam", "fifo", "random", "delay")}
     n = len(rec.readings)
     assert out["baseline"].processed == n and out["baseline"].delay_sum == 0
@@ -97,7 +97,7 @@ def test_constrained_strategies_behave_as_specified(rec):
     assert j.processed >= d.processed  # held readings are processed during lulls
     assert j.out_of_order > 0 and f.out_of_order == 0
     # overloaded: FIFO falls behind (its delay grows), LIFO keeps processing the newest readings
-    over = calibrate(rec, 0.3, workers=2, cost_ms=COST)
+    over = calibrate(rec, 0.3, workers=2, cost_ms=COST, per_kind=False)
     j2, f2 = replay(rec, "jcslam", over)[1], replay(rec, "fifo", over)[1]
     assert j2.held_at_end > 0.2 * n and f2.held_at_end > 0.2 * n
     assert f2.delay_sum / f2.processed > 5 * (j2.delay_sum / j2.processed)
@@ -106,6 +106,20 @@ def test_constrained_strategies_behave_as_specified(rec):
     assert [t for _, t in f.order] == sorted(t for _, t in f.order)
     dl = out["delay"]
     assert dl.dropped == 0 and dl.processed == n - dl.held_at_end and dl.waited > 0 and dl.out_of_order == 0
+
+
+def test_per_kind_pools(rec):
+    """Each kind has its own processors (and held readings); calibration hits each kind's share."""
+    cap = calibrate(rec, 0.5, workers=1, cost_ms=COST)
+    arrivals = [(r.t, r.kind) for r in rec.readings]
+    for kind in ("sonar", "landmark", "cooccupancy"):
+        assert abs(discard_share(arrivals, cap, kind) - 0.5) < 0.15, kind
+    d = replay(rec, "discard", cap)[1]
+    j = replay(rec, "jcslam", cap)[1]
+    assert j.processed > d.processed and d.out_of_order == 0
+    # a shared pool of the same size processes less: sonar scans block the landmark readings
+    shared = Capacity(cap.workers, cap.cost, per_kind=False)
+    assert replay(rec, "discard", shared)[1].processed < d.processed
 
 
 def test_random_is_reproducible_from_its_seed(rec):

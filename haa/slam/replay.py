@@ -13,17 +13,19 @@ and measures
 * map coverage and accuracy (eq. 7.1-1, 7.1-2) against the ideal map: the same sensor models run on the
   true poses ("an ideal map generated with zero localization error", §7.1), cached per recording.
 
-Processing capacity (`calibrate`): `WORKERS` processors; each reading kind costs its measured per-reading
-cost at `REF_PARTICLES` particles (`COST_MS`, from `haactl bench slam` on the development machine) times a
-scale factor, found by bisection so that Discard processes the wanted share of the readings (0.9 nominal,
-0.5 constrained, as in §7.2.5.1). The same capacity is then used for every strategy and particle count of
-that scenario, as the thesis did. The clock is simulated, so results do not depend on the machine's load.
+Processing capacity (`calibrate`): `WORKERS` processors per reading kind (the thesis' system runs sensor
+processing agents per type); each kind costs its measured per-reading cost at `REF_PARTICLES` particles
+(`COST_MS`, from `haactl bench slam` on the development machine) times a factor of its own, found by
+bisection so that Discard processes the wanted share of that kind's readings (0.9 nominal, 0.5
+constrained, as in §7.2.5.1). The same capacity is then used for every strategy and particle count of that
+scenario, as the thesis did. The clock is simulated, so results do not depend on the machine's load.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,7 +43,7 @@ from haa.slam.system import SlamConfig, SlamSystem
 #: reading; the floor region is not in the recordings (an estimate: a template twice the co-occupancy's)
 COST_MS: dict[str, float] = {"sonar": 2.0, "landmark": 0.27, "cooccupancy": 0.48, "floor": 1.0}
 REF_PARTICLES = 500
-WORKERS = 4
+WORKERS = 2  # processors per reading kind
 
 
 def config_for(rec: Recording, n_particles: int, forward_propagation: bool = True) -> SlamConfig:
@@ -54,26 +56,52 @@ def config_for(rec: Recording, n_particles: int, forward_propagation: bool = Tru
     )
 
 
-def calibrate(
-    rec: Recording, share: float, workers: int = WORKERS, cost_ms: dict[str, float] | None = None
-) -> Capacity:
-    """Capacity under which Discard processes `share` of the readings (bisection on the cost scale)."""
-    if not 0 < share < 1:
-        raise ValueError(f"share: must be in (0, 1), got {share}")
-    base = Capacity(workers, {k: v / 1000.0 for k, v in (cost_ms or COST_MS).items()})
-    arrivals = [(r.t, r.kind) for r in rec.readings]
-    lo, hi = 1e-3, 1e6  # scale: lo processes everything, hi almost nothing
-    for _ in range(100):
+def _bisect(share_at: Callable[[float], float], share: float) -> float:
+    """Factor at which `share_at` (decreasing, a step function) is closest to `share`."""
+    lo, hi = 1e-3, 1e7  # factor: lo processes everything, hi almost nothing
+    for _ in range(200):
         mid = math.sqrt(lo * hi)
-        if discard_share(arrivals, base.scaled(mid)) > share:
+        if share_at(mid) > share:
             lo = mid
         else:
             hi = mid
         if hi / lo < 1.0005:
             break
-    # the share is a step function of the scale (arrivals are periodic): take the closer side
-    s_lo, s_hi = discard_share(arrivals, base.scaled(lo)), discard_share(arrivals, base.scaled(hi))
-    return base.scaled(lo if abs(s_lo - share) <= abs(s_hi - share) else hi)
+    return lo if abs(share_at(lo) - share) <= abs(share_at(hi) - share) else hi
+
+
+def calibrate(
+    rec: Recording,
+    share: float,
+    workers: int = WORKERS,
+    cost_ms: dict[str, float] | None = None,
+    per_kind: bool = True,
+) -> Capacity:
+    """Capacity under which Discard processes `share` of the readings.
+
+    per_kind (default): each kind has `workers` processors and its cost is its measured cost times a factor of
+    its own, so that Discard processes `share` of that kind's readings; otherwise one shared pool and one
+    factor for all. The share is a step function of the factor (arrivals are periodic): the closer side of
+    the step is taken.
+    """
+    if not 0 < share < 1:
+        raise ValueError(f"share: must be in (0, 1), got {share}")
+    base = {k: v / 1000.0 for k, v in (cost_ms or COST_MS).items()}
+    arrivals = [(r.t, r.kind) for r in rec.readings]
+    for kind in {k for _, k in arrivals}:
+        if kind not in base:
+            raise ValueError(f"cost_ms: no cost for reading kind {kind!r}")
+    if not per_kind:
+        shared = Capacity(workers, base, per_kind=False)
+        return shared.scaled(_bisect(lambda f: discard_share(arrivals, shared.scaled(f)), share))
+    cost = dict(base)
+    for kind in sorted({k for _, k in arrivals}):
+
+        def share_at(f: float, kind: str = kind) -> float:
+            return discard_share(arrivals, Capacity(workers, {**cost, kind: base[kind] * f}), kind)
+
+        cost[kind] = base[kind] * _bisect(share_at, share)
+    return Capacity(workers, cost)
 
 
 _IDEAL: dict[int, np.ndarray] = {}

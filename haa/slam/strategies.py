@@ -2,11 +2,13 @@
 
 A replay is a time-ordered stream of `StreamEvent`s: predictions (applied at once, in order — event (b)),
 reading arrivals, and weight requests (an avatar asks for its pose: event (d), then (e) if needed).
-Processing is modelled, not measured: there are `Capacity.workers` identical processors and a reading of
-kind k occupies one for `Capacity.cost[k]` simulated seconds; its effect (density + map update) is applied
-when it completes. So a run is deterministic for a seed and does not depend on the machine's load; the
-costs are our implementation's measured per-reading costs (haactl bench slam) scaled so that Discard
-processes ~90% (nominal) or ~50% (constrained) of the readings (see haa.slam.replay.calibrate).
+Processing is modelled, not measured: each reading kind has `Capacity.workers` processors of its own (the
+thesis' system runs one sensor processing agent per type per host: Cooccupancy, Sonar, Landmark, FloorFinder)
+and a reading of kind k occupies one for `Capacity.cost[k]` simulated seconds; its effect (density + map
+update) is applied when it completes. Held readings are kept per kind too. So a run is deterministic for a
+seed and does not depend on the machine's load; the costs are our implementation's measured per-reading
+costs (haactl bench slam), each kind's scaled so that Discard processes ~90% (nominal) or ~50%
+(constrained) of that kind's readings (haa.slam.replay.calibrate).
 
 Strategies (all share the filter, map and sensor models; they differ only in what is processed when):
 
@@ -23,7 +25,7 @@ Strategies (all share the filter, map and sensor models; they differ only in wha
 |          | is free the recording's clock stops   |                                    |                |
 |          | until one is (the avatars wait)       |                                    |                |
 
-A reading is *out of order* when a reading generated later had already started processing. The delay of a
+A reading is *out of order* when a reading of the same queue (kind) generated later had already started. The delay of a
 reading is its completion time minus its generation time. Held readings are never dropped by the
 scheduler; the filter rejects those older than its history horizon (`rejected`).
 """
@@ -86,10 +88,16 @@ def strategy(name: str) -> Strategy:
 
 @dataclass(frozen=True)
 class Capacity:
-    """`workers` processors; cost[kind] = simulated seconds one reading of that kind occupies one."""
+    """Processors and per-reading costs (simulated seconds one reading of a kind occupies a processor).
+
+    `per_kind=True` (the default, as in the thesis' system, where each host runs at most one sensor
+    processing agent of each type — Table 7.2-4): every reading kind has its own `workers` processors and
+    its own held readings; `per_kind=False`: one shared pool of `workers` processors for everything.
+    """
 
     workers: int
     cost: dict[str, float]
+    per_kind: bool = True
 
     def __post_init__(self) -> None:
         if self.workers < 1:
@@ -99,13 +107,17 @@ class Capacity:
                 raise ValueError(f"capacity.cost[{k}]: must be finite and >= 0, got {c}")
 
     def scaled(self, factor: float) -> Capacity:
-        return Capacity(self.workers, {k: c * factor for k, c in self.cost.items()})
+        return Capacity(self.workers, {k: c * factor for k, c in self.cost.items()}, self.per_kind)
 
     def of(self, kind: str) -> float:
         c = self.cost.get(kind)
         if c is None:
             raise ValueError(f"capacity.cost: no cost for reading kind {kind!r}")
         return c
+
+    def pool_of(self, kind: str) -> str:
+        """The processor pool a reading kind uses."""
+        return kind if self.per_kind else "all"
 
 
 @dataclass
@@ -196,22 +208,31 @@ def run(
             f"system.config.forward_propagation: must be {strat.forward_propagation} for strategy {strat.name!r}"
         )
     stats = RunStats(strat.name)
-    pool = _Pool(strat.policy, np.random.default_rng(seed))
+    rng = np.random.default_rng(seed)
+    pools: dict[str, _Pool] = {}  # held readings per processor pool
+    free: dict[str, int] = {}  # idle processors per pool
     busy: list[tuple[float, int, Reading]] = []  # heap of (completion time, seq, reading)
-    free = capacity.workers if capacity is not None else 0
     seq = 0
-    max_started = -math.inf
+    max_started: dict[str, float] = {}  # newest reading time started, per pool (out-of-order is per queue)
     shift = 0.0  # Delay: how long the recording's clock has been stopped so far
     t_first: float | None = None
     t_last = 0.0
 
-    def start(r: Reading, now: float) -> None:
-        nonlocal free, seq, max_started
+    def pool_key(r: Reading) -> str:
         assert capacity is not None
-        if r.t < max_started:
+        key = capacity.pool_of(r.kind)
+        if key not in free:
+            free[key] = capacity.workers
+            pools[key] = _Pool(strat.policy, rng)
+        return key
+
+    def start(r: Reading, key: str, now: float) -> None:
+        nonlocal seq
+        assert capacity is not None
+        if r.t < max_started.get(key, -math.inf):
             stats.out_of_order += 1
-        max_started = max(max_started, r.t)
-        free -= 1
+        max_started[key] = max(max_started.get(key, -math.inf), r.t)
+        free[key] -= 1
         seq += 1
         heapq.heappush(busy, (now + capacity.of(r.kind), seq, r))
 
@@ -229,13 +250,14 @@ def run(
             on_processed(r, now)
 
     def complete_until(now: float) -> None:
-        nonlocal free
         while busy and busy[0][0] <= now:
             t_done, _, r = heapq.heappop(busy)
-            free += 1
+            key = pool_key(r)
+            free[key] += 1
             apply(r, t_done - shift)
-            while free > 0 and len(pool):
-                start(pool.pop()[1], t_done)
+            pool = pools[key]
+            while free[key] > 0 and len(pool):
+                start(pool.pop()[1], key, t_done)
 
     for ev in events:
         if t_first is None:
@@ -252,22 +274,25 @@ def run(
             seq += 1
             if strat.policy == "instant":
                 apply(r, ev.t)
-            elif strat.policy == "discard":
-                if free > 0:
-                    start(r, now)
+                continue
+            key = pool_key(r)
+            if strat.policy == "discard":
+                if free[key] > 0:
+                    start(r, key, now)
                 else:
                     stats.dropped += 1
             elif strat.policy == "delay":
-                while free == 0:  # the avatars wait: the recording's clock stops
+                while free[key] == 0:  # the avatars wait: the recording's clock stops
                     t_free = busy[0][0]
                     shift += t_free - now
                     now = t_free
                     complete_until(now)
-                start(r, now)
+                start(r, key, now)
             else:
+                pool = pools[key]
                 pool.push((seq, r))
-                while free > 0 and len(pool):
-                    start(pool.pop()[1], now)
+                while free[key] > 0 and len(pool):
+                    start(pool.pop()[1], key, now)
         elif ev.kind == REQUEST:
             est, resampled = system.request(ev.avatar)
             stats.requests += 1
@@ -276,21 +301,25 @@ def run(
         else:
             raise ValueError(f"event.kind: unknown {ev.kind}")
     complete_until(t_last + shift)  # what finishes exactly at the end still counts
-    stats.held_at_end = len(pool) + len(busy)
+    stats.held_at_end = sum(len(p) for p in pools.values()) + len(busy)
     stats.duration = t_last - (t_first or 0.0)
     stats.waited = shift
     stats.resamples = sum(pf.resamples for pf in system.filters.values())
     return stats
 
 
-def discard_share(arrivals: list[tuple[float, str]], capacity: Capacity) -> float:
-    """Share of readings Discard would process: scheduling only, no filter (used to calibrate capacity)."""
-    busy: list[float] = []
-    done = 0
-    for t, kind in arrivals:
-        while busy and busy[0] <= t:
-            heapq.heappop(busy)
-        if len(busy) < capacity.workers:
-            heapq.heappush(busy, t + capacity.of(kind))
+def discard_share(arrivals: list[tuple[float, str]], capacity: Capacity, kind: str | None = None) -> float:
+    """Share of readings (of `kind`, or all) Discard would process: scheduling only, no filter."""
+    busy: dict[str, list[float]] = {}
+    done = total = 0
+    for t, k in arrivals:
+        if kind is not None and k != kind:
+            continue
+        total += 1
+        heap = busy.setdefault(capacity.pool_of(k), [])
+        while heap and heap[0] <= t:
+            heapq.heappop(heap)
+        if len(heap) < capacity.workers:
+            heapq.heappush(heap, t + capacity.of(k))
             done += 1
-    return done / len(arrivals) if arrivals else math.nan
+    return done / total if total else math.nan
