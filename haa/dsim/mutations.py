@@ -259,6 +259,51 @@ def ignore_hardware() -> Undo:
     return _patch(cls, "make_ready", make_ready)
 
 
+def no_stream_order() -> Undo:
+    """The receiver's host passes agent messages on as they arrive, without the sender-stream numbers
+    (haa.hostd.routing): a message that overtook an earlier one on another path is processed first, and one
+    that reached the agent twice is processed twice."""
+    from haa.hostd import routing as routing_mod
+
+    def offer(self: routing_mod.Inbox, m: object) -> list[object]:
+        return [m]
+
+    return _patch(routing_mod.Inbox, "offer", offer)
+
+
+def oldest_backup() -> Undo:
+    """Recovery starts from the first backup an agent ever committed instead of the latest (Alg. 7 l. 5 keeps
+    only the first)."""
+    from haa.hostd import agenttable as table_mod
+
+    original = table_mod.AgentTable._tx_backup
+
+    def tx_backup(self: table_mod.AgentTable, m: object) -> object:
+        r = self.records.get(m.id)  # type: ignore[attr-defined]
+        if r is not None and r.backup is not None:
+            return table_mod.AgentApplied("backup", m.id, True, "", m.host)  # type: ignore[attr-defined]
+        return original(self, m)  # type: ignore[arg-type]
+
+    return _patch(table_mod.AgentTable, "_tx_backup", tx_backup)
+
+
+def unchecked_claim() -> Undo:
+    """OAC(claim) is accepted whatever the agent's state (Alg. 6 l. 13 without its test): a host that thaws an
+    agent another host has already claimed runs a second instance."""
+    from haa.hostd import agenttable as table_mod
+
+    def tx_claim(self: table_mod.AgentTable, m: object) -> object:
+        r = self.records.get(m.id)  # type: ignore[attr-defined]
+        if r is None:
+            return table_mod.AgentApplied("claim", m.id, False, "unknown agent", m.host)  # type: ignore[attr-defined]
+        r.status = table_mod.ACTIVE
+        r.owner = m.host  # type: ignore[attr-defined]
+        r.epoch += 1
+        return table_mod.AgentApplied("claim", m.id, True, "", m.host, msgs=self._take_queues(r))  # type: ignore[attr-defined]
+
+    return _patch(table_mod.AgentTable, "_tx_claim", tx_claim)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -276,6 +321,9 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),
     "ignore-hardware": (ignore_hardware, "allocation", "AA-Validity"),
+    "no-stream-order": (no_stream_order, "transfer", "AT-Consistency"),
+    "oldest-backup": (oldest_backup, "recovery", "AR-Recovery"),
+    "unchecked-claim": (unchecked_claim, "transfer", "AG-Single-Active"),
 }
 
 
