@@ -780,6 +780,10 @@ class Allocator:
         if bundle_changed or bid_gt(old, s.bid(j)):  # l. 71-72 (got worse), or our bundle shrank
             s.build_queued = True
 
+    #: Table 4.7-1 "broadcast" to every member even when the bid is unchanged (the text as printed; for
+    #: comparisons in docs/allocation.md only)
+    LITERAL_BROADCAST = False
+
     #: rows 10, 11, 28, 29 reset when the sender's (lower or higher) bid is newer than the receiver's
     #: accepted bid of a third host m; the receiver keeps it if m's own last update still claims it
     OWNER_GUARD = True
@@ -804,7 +808,7 @@ class Allocator:
         to every member, the rebroadcast is news only to q, whose view differs, and only when this host is
         the authority on it: b is our own claim, or q's bid names us as the winner. Every other member's
         bid reaches q from its owner, which replies to q itself (docs/allocation.md, "messages")."""
-        if j in s.outbox or not same_bid(s.sent.get(j, nil_bid(j)), b):
+        if self.LITERAL_BROADCAST or j in s.outbox or not same_bid(s.sent.get(j, nil_bid(j)), b):
             s.outbox[j] = b
         elif b.winner == self.me or sender_bid.winner == self.me:
             s.replies.setdefault(q, {})[j] = b
