@@ -104,12 +104,12 @@ def calibrate(
     return Capacity(workers, cost)
 
 
-_IDEAL: dict[int, np.ndarray] = {}
+_IDEAL: dict[tuple[Any, ...], np.ndarray] = {}
 
 
 def ideal_map(rec: Recording) -> np.ndarray:
     """The map the same sensor models make from the true poses (zero localization error), cached."""
-    key = id(rec)
+    key = (rec.arena, rec.team, rec.seed, rec.duration, rec.grid, len(rec.readings), len(rec.predictions))
     if key in _IDEAL:
         return _IDEAL[key]
     system = SlamSystem(rec.grid, config_for(rec, 1), seed=0)
@@ -122,6 +122,8 @@ def ideal_map(rec: Recording) -> np.ndarray:
         system.filters[a.name] = pf
     for r in sorted(rec.readings, key=lambda r: r.t):
         system.process(r)
+    if len(_IDEAL) > 8:
+        _IDEAL.clear()
     _IDEAL[key] = system.grid.prob()
     return _IDEAL[key]
 
