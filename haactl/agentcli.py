@@ -130,9 +130,12 @@ def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
     out: list[AgentRow] = []
     for agent_id, a in rows.items():
         loc = phases.get(agent_id, {})
-        mine = loc.get(a.owner) or next(iter(loc.values()), None)
+        # whose phase counts: the owner's, else the allocated host's (claiming, recovering), else a host that
+        # prepares it rather than one still freezing it on an older replica
+        order = sorted(loc, key=lambda h: (h != a.owner, h != a.alloc, loc[h].local_phase == "freezing"))
+        mine = loc[order[0]] if order else None
         if mine is not None:
-            host = next(h for h, x in loc.items() if x is mine)
+            host = order[0]
             state = PHASE_STATE.get(mine.local_phase, mine.local_phase)
             if mine.local_phase == "recovering" and a.status == "new":
                 state = "spawning"  # the first start of a new agent goes through recoverAgent (Alg. 8)
@@ -629,7 +632,7 @@ class EventFeed:
         elif kind == "active":
             text = f"{who} spawned by {e.host}"
         elif kind == "freezing":
-            text = f"{who} freezing on {e.host}" + (f" ({d})" if d else "")
+            text = f"{who} freezing on {e.host}" + (f" ({d})" if d and d != f"to {e.host}" else "")
         elif kind == "frozen":
             text = f"{who} frozen on {e.host}"
         elif kind == "thawing":
@@ -752,6 +755,17 @@ def print_alloc(s: dict[str, Any], rows: list[AgentRow]) -> None:
     out.print(agent_table(rows, f"{len(rows)} agents"))
 
 
+def leader_of(backend: Backend) -> str:
+    """The leader of the group as the most advanced member sees it (it runs the allocation sessions)."""
+    backend.require_hosts()
+    replies = backend.statuses()
+    backend.check_token(replies)
+    _, leader, _ = agreed_group({n: r for n, r in replies.items() if isinstance(r, cpb.StatusReply)})
+    if not leader:
+        raise ClusterError(f"no group has formed in the {backend.describe()} (no member answers)")
+    return leader
+
+
 def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file: Any,
            timeout: float) -> tuple[Backend, cpb.AgentListReply]:
     backend = open_backend(compose, root, compose_file)
@@ -815,9 +829,10 @@ def alloc_run(
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the session has finished")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
-    """Start an allocation session now (Alg. 4); with --wait report the agents it moved."""
+    """Start an allocation session now (Alg. 4; the group's leader starts sessions, so it is asked unless --host
+    says otherwise); with --wait report the agents it moved."""
     backend = open_backend(compose, root, compose_file)
-    h = backend.pick_host(host)
+    h = host or leader_of(backend)
     before = backend.call(h, lambda c: c.alloc("status", timeout=timeout), "Alloc(status)", timeout=timeout)
     rows0 = {r.id: r for r in merge_agents(answering(backend, agent_lists(backend)))}
     t0 = time.monotonic()
