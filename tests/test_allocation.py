@@ -379,6 +379,28 @@ def test_an_expired_start_opens_no_session(group, ids, committed, reason):
     assert not [e for e in b.drain() if isinstance(e, SendUpdate)]
 
 
+def test_a_start_id_used_up_by_an_expired_start_is_proposed_again_under_a_new_id():
+    """The former leader h1's start 1 commits after the membership change (expired: h1 is not the leader) but
+    before h2's own start 1, which h2 proposed without knowing of it: every host rejects h2's start 1 as
+    'not above', so h2 proposes the session again as 2."""
+    group = ("h2", "h3")
+    ags = tuple(agents(2))
+    old = SessionStart("h1", 1, ("h1", "h2", "h3"), ags, HOSTS3)
+    h2, h3 = Allocator("h2"), Allocator("h3")
+    for x in (h2, h3):
+        x.on_change(group, ags, HOSTS3)
+    mine = h2.drain()[-1].start
+    assert mine.ses_id == 1
+    for x in (h2, h3):
+        x.on_start_committed(old, group, st_ids := tuple(a.id for a in ags))
+        x.on_start_committed(mine, group, st_ids)
+        assert x.committed_ses == 1 and x.committed_start is None
+    again = [e.start for e in h2.drain() if isinstance(e, ProposeStart)]
+    assert [s.ses_id for s in again] == [2] and again[0].group == group
+    h3.on_start_committed(again[0], group, st_ids)
+    assert h3.committed_start == again[0]
+
+
 def test_a_finish_is_accepted_once_and_only_for_the_unexpired_last_session():
     net = Net(HOSTS3, agents())
     net.change()

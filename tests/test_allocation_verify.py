@@ -40,10 +40,10 @@ def test_ci_sweep_2000_schedules_at_7_hosts():
 @pytest.mark.parametrize(
     ("name", "seeds"),
     [
-        ("thesis-accept", (12, 43)),
-        ("cbba-reset", (0, 3)),
+        ("thesis-accept", (12, 52)),
+        ("cbba-reset", (3, 6)),
         ("no-unallocatable", (4, 11)),
-        ("ignore-hardware", (2, 3)),
+        ("ignore-hardware", (2, 24)),
     ],
 )
 def test_the_verifier_catches_each_broken_variant(name, seeds):

@@ -121,6 +121,7 @@ class AllocScenario:
     oac_base: float = 0.002
     oac_scale: float = 0.004
     p_abort: float = 0.0
+    p_slow: float = 0.0  # probability that an OAC takes 50-600 ms longer
     detect: tuple[float, float] = (0.1, 0.3)
     period: float = 1.0
     min_interval: float = 0.05
@@ -134,6 +135,7 @@ class AllocScenario:
         out = [
             f"seed={self.seed} hosts={len(self.names)} agents={len(self.agents)} delay={self.delay.describe()} "
             f"oac={self.oac_base * 1e3:.1f}+exp({self.oac_scale * 1e3:.1f})ms p_abort={self.p_abort:.2f} "
+            f"p_slow={self.p_slow:.2f} "
             f"period={self.period:.2f}s min_interval={self.min_interval:.3f}s faults={len(self.faults)}"
         ]
         out += [f"host {h}" for h in self.hosts.values()]
@@ -192,6 +194,7 @@ def draw_alloc(seed: int, hosts: int = 7) -> AllocScenario:
         oac_base=rng.uniform(0.0005, 0.004),
         oac_scale=rng.uniform(0.001, 0.01),
         p_abort=rng.choice([0.0, 0.0, 0.1, 0.3]),
+        p_slow=rng.choice([0.0, 0.05, 0.2]),
         detect=(0.05, rng.uniform(0.1, 0.3)),
         period=rng.uniform(0.2, 1.5),
         min_interval=rng.uniform(0.0, 0.1),
@@ -487,6 +490,8 @@ class AllocSim:
             d = self.oac_delay(self.rng, n)
         else:
             d = self.sc.oac_base + self.rng.expovariate(1 / self.sc.oac_scale)
+            if self.rng.random() < self.sc.p_slow:  # a slow round (a suspected coordinator, retried phases)
+                d += self.rng.uniform(0.05, 0.6)
         self._push(t_out + d, "oac", (node.name, kind, payload))
 
     # ------------------------------------------------------------------ the total order
@@ -542,7 +547,7 @@ class AllocSim:
 
     def _ev_oac(self, proposer: str, kind: str, payload: Any) -> None:
         node = self.nodes[proposer]
-        commit = proposer in self.world.group and self.rng.random() >= self.sc.p_abort
+        commit = self.rng.random() >= self.sc.p_abort  # a removed proposer's transaction may still commit
         if commit:
             if kind == "start":
                 self._append("start", self.world, start=payload, proposer=proposer)

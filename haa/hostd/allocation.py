@@ -584,8 +584,9 @@ class _Session:
 class Allocator:
     """Alg. 4 for host `me` (see the module docstring for the inputs and effects).
 
-    `committed_ses` is the id of the last committed valid OAC(start) when this host joins an existing group
-    (part of the replicated state a new member receives); a fresh group starts at 0.
+    `committed_ses` is the highest id of any committed OAC(start), valid or expired, when this host joins an
+    existing group (part of the replicated state a new member receives, e.g. the agent table's `ses_id`); a
+    fresh group starts at 0.
     """
 
     #: bids later in a bundle never beat earlier ones (see the module docstring); class attribute so that the
@@ -608,7 +609,7 @@ class Allocator:
         self.agents: tuple[AgentSpec, ...] = ()  # agentList, with the current costs and affinities
         self.hosts: dict[str, HostSpec] = {}
         self.ses_id = committed_ses  # sesId_p: the newest session this host knows of
-        self.committed_ses = committed_ses  # the last committed valid OAC(start)
+        self.committed_ses = committed_ses  # the highest id of any committed OAC(start), valid or expired
         self.committed_start: SessionStart | None = None
         self.finished_ses = 0  # the last accepted OAC(finish)
         self.session: _Session | None = None
@@ -699,17 +700,22 @@ class Allocator:
         if start.agent_ids != tuple(agent_ids):
             return "agent list changed"
         if start.ses_id <= self.committed_ses:
-            return f"session id not above the last committed ({self.committed_ses})"
+            return f"session id not above the last committed start ({self.committed_ses})"
         return ""
 
     def on_start_committed(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> None:
         """OAC(start) committed (l. 38); `group` and `agent_ids` are this host's hostGroup and agentList at
         this point of the total order."""
         why = self.start_valid(start, tuple(group), tuple(agent_ids))
+        # every committed start id is used up, even an expired one: the next leader proposes a higher one, and
+        # a joiner that only knows the highest committed id decides like everyone else
+        self.committed_ses = max(self.committed_ses, start.ses_id)
         if why:  # l. 39-40 expired session
             self._log("alloc.start_expired", ses=start.ses_id, reason=why)
+            mine = self._pending_start
+            if mine is not None and mine == start and "not above" in why and self.ses_id == start.ses_id:
+                self._retry_with_new_id(start, tuple(group), tuple(agent_ids))
             return
-        self.committed_ses = start.ses_id
         self.committed_start = start
         if self.me not in start.group:
             return
@@ -724,6 +730,20 @@ class Allocator:
         self._build(s)  # l. 50
 
     # ------------------------------------------------------------------ l. 59-76: bid updates
+
+    def _retry_with_new_id(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> None:
+        """Our OAC(start) committed after another (expired) start with the same id, proposed by a former
+        leader before we learned of it: propose the session again under a fresh id, if nothing else changed."""
+        if group != start.group or agent_ids != start.agent_ids or not group or group[0] != self.me:
+            self._pending_start = None
+            return
+        ses = max(self.ses_id, self.committed_ses) + 1
+        st = SessionStart(self.me, ses, start.group, start.agents, start.hosts)
+        self.ses_id = ses
+        self.session = _Session(ses, self.me)
+        self._pending_start = st
+        self._log("alloc.propose_start", ses=ses, group=list(st.group), agents=len(st.agents), retry=True)
+        self._out.append(ProposeStart(st))
 
     def on_update(self, src: str, upd: BidUpdate) -> None:
         """A bid update from `src` (l. 59). Conflicts are resolved now; the build and distribution this
@@ -1089,8 +1109,8 @@ class Allocator:
         start, which must not have expired since (group and agent list unchanged), and not be finished yet.
         Depends only on totally ordered state, so every host decides the same."""
         st = self.committed_start
-        if st is None or ses_id != self.committed_ses:
-            return f"not the last committed session ({self.committed_ses})"
+        if st is None or ses_id != st.ses_id:
+            return f"not the last valid session ({st.ses_id if st is not None else 0})"
         if ses_id <= self.finished_ses:
             return "session already finished"
         if st.group != tuple(group):
