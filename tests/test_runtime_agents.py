@@ -1,0 +1,127 @@
+"""The agent layer on real haa-hostd processes: a 4-host local cluster runs a counter pair while agents are
+moved, killed, handed over by a graceful leave (thesis AF-1) and recovered after a host crash."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import psutil
+import pytest
+
+from haactl.local import MemberHost, free_port
+from haactl.local import wait_for as wait
+
+TOKEN = "agents-test-token"
+NAMES = ["h1", "h2", "h3", "h4"]
+CORE = ["h1", "h2", "h3"]
+ARGS = ["--rebalance-period", "0", "--drain-timeout", "8", "--agent-hang-timeout", "2"]
+
+
+@pytest.fixture(scope="module")
+def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, MemberHost]]:
+    root: Path = tmp_path_factory.mktemp("agents")
+    (root / "token").write_text(TOKEN + "\n")
+    ports = {n: free_port() for n in NAMES}
+    core = {n: f"127.0.0.1:{ports[n]}" for n in CORE}
+    hs = {n: MemberHost(n, ports[n], core, root, TOKEN, ARGS) for n in NAMES}
+    for h in hs.values():
+        h.start()
+    try:
+        wait(lambda: all(len(h.status().members) == 4 for h in hs.values()), 40, "a group of 4")
+        yield hs
+    finally:
+        for h in hs.values():
+            h.kill()
+
+
+def live(hs: dict[str, MemberHost]) -> list[MemberHost]:
+    return [h for h in hs.values() if h.alive()]
+
+
+def table(hs: dict[str, MemberHost]) -> dict[str, object]:
+    return {a.name: a for a in live(hs)[0].client.agent_list().agents}
+
+
+def active_on(hs: dict[str, MemberHost], name: str) -> str | None:
+    """The host whose instance of `name` is active and which the table names owner; None while moving."""
+    t = table(hs)
+    a = t.get(name)
+    if a is None or a.status != "active":
+        return None
+    runners = [h.name for h in live(hs) for x in h.client.agent_list().agents if x.name == name and x.local_phase]
+    return a.owner if runners == [a.owner] else None
+
+
+def counters(hs: dict[str, MemberHost], name: str) -> dict[str, int]:
+    r = live(hs)[0].client.ddb_get(keys=[f"demo/{name}"])
+    return json.loads(r.objects[0].value) if r.objects else {}
+
+
+def settled(hs: dict[str, MemberHost]) -> bool:
+    return all(active_on(hs, n) for n in ("A1", "A1.1"))
+
+
+def test_counter_pair_survives_moves_kills_leave_and_crash(hosts: dict[str, MemberHost]) -> None:
+    h1 = hosts["h1"].client
+    r = h1.agent_spawn("counter", json.dumps({"spawn_peer": True, "period": 0.03, "backup_every": 25}).encode())
+    assert r.ok and r.name == "A1", r
+    wait(lambda: settled(hosts), 20, "A1 and its child A1.1 active")
+    tree = table(hosts)
+    assert tree["A1.1"].parent == tree["A1"].id
+
+    # an operator move is a transfer (Alg. 5-6): nothing lost
+    src = active_on(hosts, "A1")
+    dst = next(n for n in NAMES if n != src)
+    assert h1.agent_move("A1", dst).ok
+    wait(lambda: active_on(hosts, "A1") == dst, 15, f"A1 thawed on {dst}")
+    # SIGKILL of the agent process: a failure, recovered from its latest backup (Alg. 8)
+    owner = active_on(hosts, "A1.1")
+    assert owner is not None
+    pid = next(a.pid for a in hosts[owner].client.agent_list().agents if a.name == "A1.1")
+    assert pid > 0
+    os.kill(pid, signal.SIGKILL)
+    wait(lambda: (a := table(hosts)["A1.1"]).status == "active" and a.life == 2 and active_on(hosts, "A1.1"), 20,
+         "A1.1 recovered")
+    # a graceful leave hands the agents over first (thesis AF-1): a transfer, not a recovery
+    wait(lambda: settled(hosts), 15, "settled")
+    leaver = active_on(hosts, "A1")
+    assert leaver is not None
+    lives = {n: table(hosts)[n].life for n in ("A1", "A1.1")}
+    hosts[leaver].proc.send_signal(signal.SIGTERM)
+    assert hosts[leaver].proc.wait(30) == 0
+    wait(lambda: settled(hosts) and active_on(hosts, "A1") != leaver, 20, "A1 handed over")
+    assert {n: table(hosts)[n].life for n in ("A1", "A1.1")} == lives  # thawed, not recovered
+    # a host crash: its agents are recovered elsewhere once the group removed it
+    victim = active_on(hosts, "A1")
+    assert victim is not None
+    agent_pids = [a.pid for a in hosts[victim].client.agent_list().agents if a.local_phase]
+    hosts[victim].kill()
+    wait(lambda: settled(hosts) and active_on(hosts, "A1") != victim, 30, "A1 recovered after the crash")
+    # the dead host's agent processes did not outlive it
+    wait(lambda: not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+                         for p in agent_pids), 10, "the crashed host's agents gone")
+
+    # at rest: every message of a sender life that did not crash arrived once, in order
+    time.sleep(1.5)
+    for name in ("A1", "A1.1"):
+        c = counters(hosts, name)
+        assert c["received"] > 50, c
+        assert (c["lost"], c["out_of_order"], c["duplicate"]) == (0, 0, 0), (name, c)
+    assert table(hosts)["A1"].recovery == "backup"
+
+
+def test_spawn_errors_are_clear(hosts: dict[str, MemberHost]) -> None:
+    c = live(hosts)[0].client
+    r = c.agent_spawn("no-such-type")
+    assert not r.ok and "unknown agent type" in r.reason and "counter" in r.reason
+    assert not c.agent_move("A99", "h1").ok
+    assert "not running here" in c.agent_kill("A1").reason or c.agent_kill("A1").ok
+    lst = c.alloc("status")
+    assert lst.session >= 1 and not lst.paused
+    assert c.alloc("pause").paused
+    assert not c.alloc("resume").paused
