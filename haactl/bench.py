@@ -312,3 +312,29 @@ def bench_ap51(
     print(ap51_tables(data))
     path = write_json("ap5.1-quick" if quick else "ap5.1", {"machine": machine(), **data})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("ap4")
+def bench_ap4(
+    hosts: str = typer.Option("2,4,6,8,10", "--hosts", help="comma-separated group sizes (2..16)"),
+    reps: int = typer.Option(10, "--reps", min=1, help="samples of each action per group size"),
+    quick: bool = typer.Option(False, "--quick", help="groups of 2 and 3, 3 samples each (a smoke run)"),
+    state_kb: float = typer.Option(111.0, "--state-kb", min=0, help="agent state, kB (thesis average: 111)"),
+    root: Path | None = typer.Option(None, "--root", help="data dirs and logs (default: a temporary dir)"),
+) -> None:
+    """Experiment AP-4 (thesis §7.2.4): spawn, freeze, transfer and recovery delays vs. hosts (haactl.ap4)."""
+    from haactl.ap4 import compact_table, machine, markdown_table, parse_hosts, run_ap4
+
+    t0 = time.perf_counter()
+    try:
+        sizes = (2, 3) if quick else parse_hosts(hosts)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+    reps = 3 if quick else reps
+    rows = run_ap4(sizes, reps=reps, root=root, state_bytes=int(state_kb * 1000))
+    print()
+    print(markdown_table(rows))
+    print()
+    print(compact_table(rows))
+    path = write_json("ap4-quick" if quick else "ap4", {"machine": machine(), "reps": reps, "rows": rows})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
