@@ -117,19 +117,23 @@ def test_backups_only_from_the_current_epoch_and_recovery_takes_the_latest() -> 
 def test_allocation_start_and_finish_validity() -> None:
     t = at.AgentTable()
     create(t, "a")
-    start = apb.AllocStartTx(ses_id=1, leader="h1", group=list(MEMBERS), agents=["a"])
     assert not t.apply(tx(start=apb.AllocStartTx(ses_id=1, leader="h2", group=list(MEMBERS), agents=["a"])),
                        MEMBERS).ok  # not the leader
+    # the expired start used its id up (as the allocator does): the leader's must be higher
+    assert not t.apply(tx(start=apb.AllocStartTx(ses_id=1, leader="h1", group=list(MEMBERS), agents=["a"])),
+                       MEMBERS).ok
+    start = apb.AllocStartTx(ses_id=2, leader="h1", group=list(MEMBERS), agents=["a"])
     assert t.apply(tx(start=start), MEMBERS).ok
     assert not t.apply(tx(start=start), MEMBERS).ok  # session ids increase
-    fin = apb.AllocFinishTx(ses_id=1, leader="h1", allocation={"a": "h3"})
+    assert not t.apply(tx(finish=apb.AllocFinishTx(ses_id=1, leader="h1", allocation={"a": "h2"})), MEMBERS).ok
+    fin = apb.AllocFinishTx(ses_id=2, leader="h1", allocation={"a": "h3"})
     assert not t.apply(tx(finish=fin), ("h1", "h2")).ok  # the group changed since the start
     assert t.apply(tx(finish=fin), MEMBERS).ok and t.get("a").alloc == "h3"
     assert not t.apply(tx(finish=fin), MEMBERS).ok  # finished once
     create(t, "b")
-    t.apply(tx(start=apb.AllocStartTx(ses_id=2, leader="h1", group=list(MEMBERS), agents=["a", "b"])), MEMBERS)
+    t.apply(tx(start=apb.AllocStartTx(ses_id=3, leader="h1", group=list(MEMBERS), agents=["a", "b"])), MEMBERS)
     create(t, "c")  # the agent list changed: the session's finish is void
-    assert not t.apply(tx(finish=apb.AllocFinishTx(ses_id=2, leader="h1", allocation={})), MEMBERS).ok
+    assert not t.apply(tx(finish=apb.AllocFinishTx(ses_id=3, leader="h1", allocation={})), MEMBERS).ok
 
 
 def test_snapshot_round_trip_keeps_the_content_hash() -> None:

@@ -202,7 +202,8 @@ class AgentTable:
 
     def __init__(self) -> None:
         self.records: dict[str, AgentRecord] = {}
-        self.ses_id = 0  # last committed OAC(start) (Alg. 4 ll. 41-43)
+        self.ses_id = 0  # highest committed OAC(start) id, valid or expired (Alg. 4 ll. 41-43)
+        self.valid_ses = 0  # the last valid one
         self.finished_ses = 0  # last committed OAC(finish)
         self.top = 0  # top-level agents named so far (A1, A2, ...)
         self.hosts: dict[str, apb.HostInfo] = {}
@@ -248,7 +249,7 @@ class AgentTable:
 
     def content_hash(self) -> str:
         h = hashlib.sha256()
-        h.update(f"{self.ses_id}|{self.finished_ses}|{self.top}|{int(self.paused)}|".encode())
+        h.update(f"{self.ses_id}|{self.valid_ses}|{self.finished_ses}|{self.top}|{int(self.paused)}|".encode())
         for name in sorted(self.hosts):
             h.update(self.hosts[name].SerializeToString(deterministic=True))
         for k in sorted(self.affinity):
@@ -313,10 +314,12 @@ class AgentTable:
             why = "agent list changed"
         elif s.ses_id <= self.ses_id:
             why = f"session id not above the last committed ({self.ses_id})"
+        # every committed start id is used up, even an expired one (as in `Allocator.on_start_committed`)
+        self.ses_id = max(self.ses_id, s.ses_id)
         if why:
             return AgentApplied("start", "", False, why, s.leader)
         self.last_start = s.data
-        self.ses_id = s.ses_id
+        self.valid_ses = s.ses_id
         self.start_group = tuple(s.group)
         self.start_agents = tuple(s.agents)
         return AgentApplied("start", "", True, "", s.leader)
@@ -325,8 +328,8 @@ class AgentTable:
         """OAC(finish) committed, Alg. 4 ll. 93-96: accepted only for the last valid start, once, while the
         group and the agent list are still those of the start (the same rule as `Allocator.finish_valid`)."""
         why = ""
-        if f.ses_id != self.ses_id:
-            why = f"not the last committed session ({self.ses_id})"
+        if f.ses_id != self.valid_ses:
+            why = f"not the last valid session ({self.valid_ses})"
         elif f.ses_id <= self.finished_ses:
             why = "session already finished"
         elif self.start_group != self._members:
@@ -506,6 +509,7 @@ class AgentTable:
             last_start=self.last_start,
             start_group=self.start_group,
             start_agents=self.start_agents,
+            valid_ses=self.valid_ses,
         )
         for agent in sorted(self.records):
             s.records.append(self.records[agent].to_pb())
@@ -530,7 +534,7 @@ class AgentTable:
             s.paused,
             s.last_start,
         )
-        t.start_group, t.start_agents = tuple(s.start_group), tuple(s.start_agents)
+        t.start_group, t.start_agents, t.valid_ses = tuple(s.start_group), tuple(s.start_agents), s.valid_ses
         for r in s.records:
             t.records[r.spec.id] = AgentRecord.from_pb(r)
         for h in s.hosts:

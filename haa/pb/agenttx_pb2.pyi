@@ -322,7 +322,7 @@ class AgentRecordPb(_message.Message):
     def __init__(self, spec: _Optional[_Union[AgentCreate, _Mapping]] = ..., name: _Optional[str] = ..., children: _Optional[int] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., state: _Optional[bytes] = ..., has_state: _Optional[bool] = ..., backup: _Optional[bytes] = ..., has_backup: _Optional[bool] = ..., backup_epoch: _Optional[int] = ..., queue1: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., queue2: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., inbox: _Optional[_Iterable[_Union[StreamPos, _Mapping]]] = ..., outbox: _Optional[_Iterable[_Union[SendPos, _Mapping]]] = ..., pending: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., cpu: _Optional[float] = ..., dropped: _Optional[int] = ..., since: _Optional[float] = ...) -> None: ...
 
 class AgentTableSnapshot(_message.Message):
-    __slots__ = ("records", "ses_id", "finished_ses", "top", "hosts", "paused", "affinity", "last_start", "start_group", "start_agents")
+    __slots__ = ("records", "ses_id", "finished_ses", "top", "hosts", "paused", "affinity", "last_start", "start_group", "start_agents", "valid_ses")
     RECORDS_FIELD_NUMBER: _ClassVar[int]
     SES_ID_FIELD_NUMBER: _ClassVar[int]
     FINISHED_SES_FIELD_NUMBER: _ClassVar[int]
@@ -333,6 +333,7 @@ class AgentTableSnapshot(_message.Message):
     LAST_START_FIELD_NUMBER: _ClassVar[int]
     START_GROUP_FIELD_NUMBER: _ClassVar[int]
     START_AGENTS_FIELD_NUMBER: _ClassVar[int]
+    VALID_SES_FIELD_NUMBER: _ClassVar[int]
     records: _containers.RepeatedCompositeFieldContainer[AgentRecordPb]
     ses_id: int
     finished_ses: int
@@ -343,4 +344,5 @@ class AgentTableSnapshot(_message.Message):
     last_start: bytes
     start_group: _containers.RepeatedScalarFieldContainer[str]
     start_agents: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, records: _Optional[_Iterable[_Union[AgentRecordPb, _Mapping]]] = ..., ses_id: _Optional[int] = ..., finished_ses: _Optional[int] = ..., top: _Optional[int] = ..., hosts: _Optional[_Iterable[_Union[HostInfo, _Mapping]]] = ..., paused: _Optional[bool] = ..., affinity: _Optional[_Iterable[_Union[Affinity, _Mapping]]] = ..., last_start: _Optional[bytes] = ..., start_group: _Optional[_Iterable[str]] = ..., start_agents: _Optional[_Iterable[str]] = ...) -> None: ...
+    valid_ses: int
+    def __init__(self, records: _Optional[_Iterable[_Union[AgentRecordPb, _Mapping]]] = ..., ses_id: _Optional[int] = ..., finished_ses: _Optional[int] = ..., top: _Optional[int] = ..., hosts: _Optional[_Iterable[_Union[HostInfo, _Mapping]]] = ..., paused: _Optional[bool] = ..., affinity: _Optional[_Iterable[_Union[Affinity, _Mapping]]] = ..., last_start: _Optional[bytes] = ..., start_group: _Optional[_Iterable[str]] = ..., start_agents: _Optional[_Iterable[str]] = ..., valid_ses: _Optional[int] = ...) -> None: ...
