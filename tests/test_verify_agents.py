@@ -1,0 +1,26 @@
+"""`haactl verify transfer|recovery`: the agent-layer verifier (haa.dsim.agents) over seeded fault schedules."""
+
+import pytest
+
+from haa.dsim.sweep import sweep
+
+
+@pytest.mark.parametrize("algorithm", ["transfer", "recovery"])
+def test_twenty_schedules_have_no_violation(algorithm):
+    lines: list[str] = []
+    summary = sweep(algorithm, 20, 0, 7, workers=2, report=lines.append)
+    assert summary.violations == 0, "\n".join(lines[:40])
+    assert summary.liveness_checked == 20
+    assert summary.totals["transfers"] > 0 and summary.totals["processed"] > 0
+    if algorithm == "recovery":
+        assert summary.totals["recoveries"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algorithm", ["transfer", "recovery"])
+def test_ci_sweep_2000_schedules_at_7_hosts(algorithm):
+    """What CI runs (`make test`): 2,000 schedules of each agent verifier, no violation, liveness included."""
+    lines: list[str] = []
+    summary = sweep(algorithm, 2000, 0, 7, report=lines.append)
+    assert summary.violations == 0, "\n".join(lines[:60])
+    assert summary.liveness_checked == 2000
