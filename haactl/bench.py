@@ -231,18 +231,34 @@ def bench_ap3(
     max_hosts: int = typer.Option(10, "--max-hosts", min=2, max=10, help="largest group size"),
     max_agents: int = typer.Option(60, "--max-agents", min=5, max=60, help="largest agent count"),
     seed: int = typer.Option(1, "--seed"),
+    real: bool = typer.Option(False, "--real", help="real haa-hostd processes, 2,4..10 hosts (haactl.ap3real)"),
 ) -> None:
     """Experiment AP-3 (thesis §7.2.3): allocation time and messages, 2..10 hosts x 5..60 agents (simulated:
     loopback gRPC delay model, bench ap1's OAC latency, real CPU time of the Allocator calls)."""
     from haactl.ap1 import machine
     from haactl.ap3 import AGENTS, HOSTS, markdown_tables, run_ap3
+    from haactl.ap3real import existing, merge_json
 
     t0 = time.perf_counter()
+    if real:
+        from haactl.ap3real import HOSTS as REAL_HOSTS
+        from haactl.ap3real import markdown_tables as real_tables
+        from haactl.ap3real import run_ap3_real
+
+        rows = run_ap3_real(tuple(h for h in REAL_HOSTS if h <= max_hosts),
+                            tuple(a for a in AGENTS if a <= max_agents), reps=reps, seed=seed)
+        print(real_tables(rows))
+        path = write_json("ap3", merge_json(RESULTS / "ap3.json", {"machine": machine(), "reps": reps, "seed": seed,
+                                                                    "mode": "real", "rows": rows}))
+        print(f"\nwrote {path} (key \"real\") in {time.perf_counter() - t0:.0f} s")
+        return
     hosts = tuple(h for h in HOSTS if h <= max_hosts)
     agents = tuple(a for a in AGENTS if a <= max_agents)
     rows = run_ap3(hosts, agents, reps=reps, seed=seed)
     print(markdown_tables(rows))
-    path = write_json("ap3", {"machine": machine(), "reps": reps, "seed": seed, "mode": "simulated", "rows": rows})
+    old = existing(RESULTS / "ap3.json").get("real")  # keep the real-hosts results of --real
+    data = {"machine": machine(), "reps": reps, "seed": seed, "mode": "simulated", "rows": rows}
+    path = write_json("ap3", {**data, "real": old} if old else data)
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 
