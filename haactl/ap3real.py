@@ -1,0 +1,250 @@
+"""Experiment AP-3 (thesis §7.2.3) on real processes: `haactl bench ap3 --real`.
+
+The simulated `bench ap3` (haactl.ap3) runs the real Allocator objects in the deterministic simulator with a
+delay model; this module measures the same two quantities — time to allocation consensus and messages sent
+— on real `haa-hostd` processes on loopback (h1-h3 core, `--rebalance-period 0`), for n = 2..10 hosts and
+5..60 agents:
+
+* the agents are idle `ballast` agents without state (haa.agents.benchagents; this machine has 2 cores, so
+  60 CPU-burning agents would measure the machine, not the algorithm) with declared costs drawn from a
+  seeded RNG: cost U(0.5, 1.5) x 0.6 n / 60 of a host's capacity 1.0 (60 agents fill ~60% of the group),
+  transfer penalty U(0, 0.5). Idle agents measure ~0 CPU, below the threshold (0.02) at which a host
+  commits measured costs, so the allocation works on the declared costs throughout;
+* per group size, agents are added level by level (5, 10, 20, 30, 45, 60: each spawn changes the agent list
+  and starts a session; the benchmark waits until every agent is active and no session has started for
+  1.2 s), then at each level `reps` sessions are forced with `Alloc(run)` on the leader, each after the
+  group has been quiet (no session started for 1.2 s, every agent active);
+* times come from the hosts' JSON-lines logs (one machine, one clock): the leader's `alloc.propose_start`
+  (OAC(start) proposed) -> the leader's `alloc.consensus` (l. 86-88: every bid agrees; OAC(finish) is
+  proposed) = **consensus**; -> the last host's `allocation_accepted` (OAC(finish) committed and applied
+  everywhere) = **allocated**;
+* messages: bid updates = the sum over hosts of the Status counter `tx_msgs.agent_host` across the session
+  (bid updates, plus the freeze/claim acknowledgements of the transfers the new allocation starts: 2 (n-1)
+  per transfer, subtracted; the idle agents send nothing); OAC messages = the sum of `tx_msgs.oac_*`
+  across the same window, which also holds the transfers' OACs (freeze, release, claim) and anything else
+  committed meanwhile, next to the count for the session's two OACs alone, 2 (n^2 + 4n - 6), the formula
+  `bench ap1` measured. The agent layer's own counter of bid messages (`AgentNode.counters["sent_alloc"]`)
+  is not exposed in Status, hence the subtraction.
+
+Results go into bench-results/ap3.json under the key "real", next to the simulated results.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import statistics
+import tempfile
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from haa.pb import control_pb2 as cpb
+from haactl.ap4 import BenchCluster
+from haactl.local import wait_for
+
+HOSTS = (2, 4, 6, 8, 10)
+AGENTS = (5, 10, 20, 30, 45, 60)
+#: a session that has not committed everywhere within this long is counted as failed
+SESSION_TIMEOUT = 60.0
+
+
+def oac_messages(n: int) -> int:
+    """Messages of one failure-free OAC with n participants (bench ap1: n^2 + 4n - 6)."""
+    return n * n + 4 * n - 6 if n > 1 else 0
+
+
+def _counters(c: BenchCluster) -> tuple[int, int]:
+    """(agent_host messages, OAC messages) sent so far, summed over the hosts."""
+    ah = oac = 0
+    for h in c.hosts.values():
+        for k, v in h.status().counters.values.items():
+            if k == "tx_msgs.agent_host":
+                ah += v
+            elif k.startswith("tx_msgs.oac_"):
+                oac += v
+    return ah, oac
+
+
+def spawn_idle(c: BenchCluster, rng: random.Random, n_hosts: int, via: str) -> str:
+    """One idle agent with a seeded declared cost and transfer penalty (module docstring)."""
+    cost = rng.uniform(0.5, 1.5) * 0.6 * n_hosts / max(AGENTS)
+    req = cpb.AgentSpawnRequest(
+        type="ballast", config=json.dumps({"state_bytes": 0, "backup": False}).encode(),
+        cost=round(cost, 4), transfer_penalty=round(rng.uniform(0.0, 0.5), 3),
+    )
+    client = c.hosts[via].client
+    r = client._stub.AgentSpawn(req, metadata=client._md, timeout=15.0)
+    if not r.ok:
+        raise RuntimeError(f"spawn failed: {r.reason}")
+    return str(r.id)
+
+
+def _log_events(c: BenchCluster, since: float, names: set[str]) -> list[tuple[str, dict[str, Any]]]:
+    return [(x, e) for x, h in c.hosts.items() for e in h.events(since, names)]
+
+
+def session_sample(c: BenchCluster, n: int) -> dict[str, Any]:
+    """Force one session on the leader and measure it (module docstring)."""
+    c.wait_quiet()
+    leader = c.h1.status().leader or "h1"
+    ah0, oac0 = _counters(c)
+    t0 = time.time()
+    c.hosts[leader].client.alloc("run")
+    deadline = time.monotonic() + SESSION_TIMEOUT
+    ses = None
+    accepted: dict[str, float] = {}
+    while time.monotonic() < deadline:
+        evs = _log_events(c, t0, {"alloc.propose_start", "allocation_accepted"})
+        starts = sorted((float(e["ts"]), e["fields"]["ses"]) for x, e in evs
+                        if e["event"] == "alloc.propose_start" and x == leader)
+        if starts:
+            ses = starts[0][1]
+            accepted = {x: float(e["ts"]) for x, e in evs
+                        if e["event"] == "allocation_accepted" and e["fields"].get("session") == ses}
+            if len(accepted) == n:
+                break
+        time.sleep(0.05)
+    t_start = next((float(e["ts"]) for x, e in _log_events(c, t0, {"alloc.propose_start"})
+                    if x == leader and e["fields"]["ses"] == ses), math.nan)
+    cons = [(float(e["ts"]), e["fields"]) for x, e in _log_events(c, t0, {"alloc.consensus"})
+            if x == leader and e["fields"]["ses"] == ses]
+    ok = ses is not None and len(accepted) == n
+    with_transfers_settled = True
+    try:
+        c.wait_quiet(timeout=30.0, settle=0.1)
+    except AssertionError:
+        with_transfers_settled = False
+    ah1, oac1 = _counters(c)
+    transfers = len(_log_events(c, t0, {"agent_freezing"}))
+    acks = 2 * (n - 1) * transfers
+    return {
+        "hosts": n,
+        "session": ses,
+        "ok": ok,
+        "settled": with_transfers_settled,
+        "request_s": (max(accepted.values()) - t0) if ok else math.nan,
+        "consensus_s": (cons[0][0] - t_start) if cons else math.nan,
+        "allocated_s": (max(accepted.values()) - t_start) if ok else math.nan,
+        "leader_bid_messages": cons[0][1].get("messages") if cons else None,
+        "builds_at_leader": cons[0][1].get("builds") if cons else None,
+        "bid_messages": ah1 - ah0 - acks,
+        "oac_messages_window": oac1 - oac0,
+        "oac_messages_session": 2 * oac_messages(n),
+        "transfers": transfers,
+    }
+
+
+def _agg(xs: Iterable[float]) -> dict[str, float]:
+    v = [x for x in xs if not math.isnan(x)]
+    if not v:
+        return {"mean": math.nan, "sd": math.nan, "median": math.nan, "max": math.nan, "n": 0}
+    return {"mean": statistics.fmean(v), "sd": statistics.stdev(v) if len(v) > 1 else 0.0,
+            "median": statistics.median(v), "max": max(v), "n": len(v)}
+
+
+def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 1,
+              log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    rng = random.Random(f"ap3real-{seed}-{n}")
+    rows = []
+    with BenchCluster(root, n) as c:
+        took = c.start()
+        log(f"n={n}: group formed in {took:.1f} s")
+        c.wait_quiet()
+        have = 0
+        for a in sorted(agents):
+            while have < a:
+                spawn_idle(c, rng, n, c.names[have % n])
+                have += 1
+            wait_for(lambda a=a: sum(1 for x in c.agents().values() if x.status == "active") == a, 120,
+                     f"{a} active agents")
+            c.wait_quiet(timeout=120.0)
+            runs = []
+            for _ in range(reps):
+                try:
+                    runs.append(session_sample(c, n))
+                except (grpc.RpcError, AssertionError) as e:
+                    log(f"n={n} agents={a}: a session sample failed: {e}")
+                    runs.append({"ok": False})
+            row = {
+                "hosts": n, "agents": a, "reps": reps,
+                "consensus_ms": _agg(r.get("consensus_s", math.nan) * 1e3 for r in runs),
+                "allocated_ms": _agg(r.get("allocated_s", math.nan) * 1e3 for r in runs),
+                "request_ms": _agg(r.get("request_s", math.nan) * 1e3 for r in runs),
+                "bid_messages": _agg(float(r["bid_messages"]) for r in runs if "bid_messages" in r),
+                "oac_messages_window": _agg(float(r["oac_messages_window"]) for r in runs
+                                            if "oac_messages_window" in r),
+                "oac_messages_session": 2 * oac_messages(n),
+                "transfers": _agg(float(r["transfers"]) for r in runs if "transfers" in r),
+                "failed": sum(1 for r in runs if not r.get("ok")),
+                "samples": runs,
+            }
+            rows.append(row)
+            log(f"n={n} agents={a}: consensus {row['consensus_ms']['median']:.1f} ms, allocated "
+                f"{row['allocated_ms']['median']:.1f} ms, bid messages {row['bid_messages']['median']:.0f}, "
+                f"transfers {row['transfers']['mean']:.1f}")
+    return rows
+
+
+def run_ap3_real(hosts: Iterable[int] = HOSTS, agents: Iterable[int] = AGENTS, reps: int = 5, seed: int = 1,
+                 root: Path | None = None, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="haa-ap3-") as tmp:
+        base = root or Path(tmp)
+        for n in hosts:
+            rows += run_group(n, agents, reps, base / f"n{n}", seed, log)
+    return rows
+
+
+def _table(rows: list[dict[str, Any]], key: str, stat: str, fmt: str, title: str) -> str:
+    hosts = sorted({r["hosts"] for r in rows})
+    agents = sorted({r["agents"] for r in rows})
+    cell = {(r["hosts"], r["agents"]): r[key] for r in rows}
+    out = [f"### {title}\n", "| hosts \\ agents | " + " | ".join(str(a) for a in agents) + " |",
+           "|---" * (len(agents) + 1) + "|"]
+    for h in hosts:
+        vals = []
+        for a in agents:
+            v = cell.get((h, a))
+            if v is None:
+                vals.append("")
+            elif isinstance(v, dict):
+                vals.append(f"{v[stat]:{fmt}}" + (f" ± {v['sd']:{fmt}}" if stat == "mean" else "")
+                            if v["n"] else "n/a")
+            else:
+                vals.append(f"{v:{fmt}}")
+        out.append(f"| {h} | " + " | ".join(vals) + " |")
+    return "\n".join(out)
+
+
+def markdown_tables(rows: list[dict[str, Any]]) -> str:
+    return "\n\n".join([
+        _table(rows, "consensus_ms", "median", ".1f",
+               "Real hosts: OAC(start) proposal to the leader's consensus, ms (median)"),
+        _table(rows, "allocated_ms", "median", ".1f",
+               "Real hosts: OAC(start) proposal to OAC(finish) applied on every host, ms (median)"),
+        _table(rows, "allocated_ms", "max", ".1f", "Real hosts: the same, ms (max)"),
+        _table(rows, "bid_messages", "mean", ".0f", "Real hosts: bid-update messages per session (mean ± sd)"),
+        _table(rows, "oac_messages_session", "", "d", "OAC messages of the session's two OACs, 2 (n²+4n−6)"),
+        _table(rows, "oac_messages_window", "mean", ".0f",
+               "Real hosts: all OAC messages during the session and the transfers it started (mean ± sd)"),
+        _table(rows, "transfers", "mean", ".1f", "Real hosts: transfers the session started (mean ± sd)"),
+    ])
+
+
+def existing(path: Path) -> dict[str, Any]:
+    """The JSON object in `path`, or {} if there is none (or it does not parse)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def merge_json(path: Path, real: dict[str, Any]) -> dict[str, Any]:
+    """bench-results/ap3.json with `real` under the key "real"; the simulated results are kept as they are."""
+    return {**existing(path), "real": real}
