@@ -87,15 +87,15 @@ def calibrate(
     if not 0 < share < 1:
         raise ValueError(f"share: must be in (0, 1), got {share}")
     base = {k: v / 1000.0 for k, v in (cost_ms or COST_MS).items()}
-    arrivals = [(r.t, r.kind) for r in rec.readings]
-    for kind in {k for _, k in arrivals}:
+    arrivals = rec.readings
+    for kind in {r.kind for r in arrivals}:
         if kind not in base:
             raise ValueError(f"cost_ms: no cost for reading kind {kind!r}")
     if not per_kind:
         shared = Capacity(workers, base, per_kind=False)
         return shared.scaled(_bisect(lambda f: discard_share(arrivals, shared.scaled(f)), share))
     cost = dict(base)
-    for kind in sorted({k for _, k in arrivals}):
+    for kind in sorted({r.kind for r in arrivals}):
 
         def share_at(f: float, kind: str = kind) -> float:
             return discard_share(arrivals, Capacity(workers, {**cost, kind: base[kind] * f}), kind)

@@ -4,7 +4,9 @@ A replay is a time-ordered stream of `StreamEvent`s: predictions (applied at onc
 reading arrivals, and weight requests (an avatar asks for its pose: event (d), then (e) if needed).
 Processing is modelled, not measured: each reading kind has `Capacity.workers` processors of its own (the
 thesis' system runs one sensor processing agent per type per host: Cooccupancy, Sonar, Landmark, FloorFinder)
-and a reading of kind k occupies one for `Capacity.cost[k]` simulated seconds; its effect (density + map
+and a reading of kind k occupies one for `Capacity.cost[k]` simulated seconds times a log-normal factor
+(σ = `Capacity.jitter`, mean 1, a hash of the reading: real processing times vary, and without it the share
+Discard processes moves in coarse steps because sensors fire periodically); its effect (density + map
 update) is applied when it completes. Held readings are kept per kind too. So a run is deterministic for a
 seed and does not depend on the machine's load; the costs are our implementation's measured per-reading
 costs (haactl bench slam), each kind's scaled so that Discard processes ~90% (nominal) or ~50%
@@ -34,9 +36,11 @@ from __future__ import annotations
 
 import heapq
 import math
+import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -98,6 +102,7 @@ class Capacity:
     workers: int
     cost: dict[str, float]
     per_kind: bool = True
+    jitter: float = 0.5  # σ of the log-normal factor on each reading's cost (mean 1); 0: constant costs
 
     def __post_init__(self) -> None:
         if self.workers < 1:
@@ -105,15 +110,28 @@ class Capacity:
         for k, c in self.cost.items():
             if not (math.isfinite(c) and c >= 0):
                 raise ValueError(f"capacity.cost[{k}]: must be finite and >= 0, got {c}")
+        if not (math.isfinite(self.jitter) and self.jitter >= 0):
+            raise ValueError(f"capacity.jitter: must be finite and >= 0, got {self.jitter}")
 
     def scaled(self, factor: float) -> Capacity:
-        return Capacity(self.workers, {k: c * factor for k, c in self.cost.items()}, self.per_kind)
+        return Capacity(self.workers, {k: c * factor for k, c in self.cost.items()}, self.per_kind, self.jitter)
 
     def of(self, kind: str) -> float:
         c = self.cost.get(kind)
         if c is None:
             raise ValueError(f"capacity.cost: no cost for reading kind {kind!r}")
         return c
+
+    def duration(self, r: Reading) -> float:
+        """Simulated seconds reading `r` occupies a processor: its kind's cost times a log-normal factor.
+
+        The factor is a pure function of the reading (a hash of avatar, kind and time), so a reading costs the
+        same under every strategy, and a run is reproducible in any process.
+        """
+        c = self.of(r.kind)
+        if self.jitter == 0 or c == 0:
+            return c
+        return c * cost_factor(r, self.jitter)
 
     def pool_of(self, kind: str) -> str:
         """The processor pool a reading kind uses."""
@@ -234,7 +252,7 @@ def run(
         max_started[key] = max(max_started.get(key, -math.inf), r.t)
         free[key] -= 1
         seq += 1
-        heapq.heappush(busy, (now + capacity.of(r.kind), seq, r))
+        heapq.heappush(busy, (now + capacity.duration(r), seq, r))
 
     def apply(r: Reading, now: float) -> None:
         try:
@@ -308,18 +326,28 @@ def run(
     return stats
 
 
-def discard_share(arrivals: list[tuple[float, str]], capacity: Capacity, kind: str | None = None) -> float:
+_NORMAL = NormalDist()
+
+
+def cost_factor(r: Reading, sigma: float) -> float:
+    """exp(σ z − σ²/2), z standard normal from a hash of the reading: mean 1, the same in every process."""
+    h = zlib.crc32(f"{r.avatar}|{r.kind}|{r.t:.6f}".encode())
+    z = _NORMAL.inv_cdf((h + 0.5) / 2**32)
+    return math.exp(sigma * z - sigma * sigma / 2)
+
+
+def discard_share(readings: list[Reading], capacity: Capacity, kind: str | None = None) -> float:
     """Share of readings (of `kind`, or all) Discard would process: scheduling only, no filter."""
     busy: dict[str, list[float]] = {}
     done = total = 0
-    for t, k in arrivals:
-        if kind is not None and k != kind:
+    for r in readings:
+        if kind is not None and r.kind != kind:
             continue
         total += 1
-        heap = busy.setdefault(capacity.pool_of(k), [])
-        while heap and heap[0] <= t:
+        heap = busy.setdefault(capacity.pool_of(r.kind), [])
+        while heap and heap[0] <= r.t:
             heapq.heappop(heap)
         if len(heap) < capacity.workers:
-            heapq.heappush(heap, t + capacity.of(k))
+            heapq.heappush(heap, r.t + capacity.duration(r))
             done += 1
     return done / total if total else math.nan
