@@ -12,7 +12,8 @@ cluster token like the rest of the API. Operator requests go through the host's 
 * `AgentKill`: SIGKILL the agent's process — an agent failure, recovered by the group (only the host that
   runs it can; other hosts answer with the owner's name).
 * `AgentRemove`: end an agent for good. `AgentMove`: allocate it to a host until the next session.
-* `AgentSend`: an operator message to an agent (no sender agent).
+* `AgentSend`: an operator message to an agent (no sender agent). `AgentRequest`: an operator request (the
+  agent's `on_request`), answered through the host that was asked, wherever the agent runs.
 * `Alloc`: status | pause | resume | run (pause/resume the periodic rebalancing; run starts a session).
 * `AgentEvents`: the allocation timeline of this host (spawning, active, freezing, frozen, thawing, thawed,
   crashed, recovering, recovered, removed), kept entries first if asked, then live.
@@ -135,6 +136,18 @@ class AgentControl:
         ok = self.rt._feed(node.operator_send, request.ref, request.payload)
         return cpb.AgentOpReply(ok=bool(ok), reason="" if ok else f"unknown agent {request.ref!r}")
 
+    async def AgentRequest(self, request: cpb.AgentSendRequest,
+                           context: aio.ServicerContext) -> cpb.AgentRequestReply:
+        await self._agent_node(context)
+        timeout = request.timeout if request.timeout > 0 else 5.0
+        try:
+            rep = await self.rt.agent_request(request.ref, request.payload, timeout=timeout)
+        except LookupError as e:
+            return cpb.AgentRequestReply(ok=False, error=str(e).strip("'\""))
+        except TimeoutError:
+            return cpb.AgentRequestReply(ok=False, error=f"no reply within {timeout:g} s")
+        return cpb.AgentRequestReply(ok=not rep.error, payload=rep.payload, error=rep.error)
+
     async def Alloc(self, request: cpb.AllocRequest, context: aio.ServicerContext) -> cpb.AgentListReply:
         node = await self._agent_node(context)
         a = request.action or "status"
@@ -211,6 +224,11 @@ class AgentClientMixin:
     def agent_send(self, ref: str, payload: bytes) -> cpb.AgentOpReply:
         return self._stub.AgentSend(cpb.AgentSendRequest(ref=ref, payload=payload), metadata=self._md,
                                     timeout=self.timeout)
+
+    def agent_request(self, ref: str, payload: bytes, timeout: float = 5.0) -> cpb.AgentRequestReply:
+        """An operator request to an agent (its `on_request`); the reply, or ok=False with the error."""
+        req = cpb.AgentSendRequest(ref=ref, payload=payload, timeout=timeout)
+        return self._stub.AgentRequest(req, metadata=self._md, timeout=timeout + 5.0)
 
     def alloc(self, action: str = "status", timeout: float = 15.0) -> cpb.AgentListReply:
         return self._stub.Alloc(cpb.AllocRequest(action=action), metadata=self._md, timeout=timeout)

@@ -94,6 +94,15 @@ class AgentOpDone:
 
 
 @dataclass(slots=True)
+class OperatorReply:
+    """An agent answered the operator request `conv` (made through this host)."""
+
+    conv: int
+    payload: bytes
+    error: str = ""
+
+
+@dataclass(slots=True)
 class AgentTimeline:
     """One line of the allocation timeline (thesis Fig. 7.1-2 style): `event` on agent `name` at this host."""
 

@@ -45,6 +45,7 @@ from haa.hostd.agentio import (
     Failed,
     Frozen,
     KillAgent,
+    OperatorReply,
     Sent,
     ShellReady,
     SpawnChild,
@@ -344,7 +345,13 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self._op_tx(now, tx, req)
 
     def run_allocation(self, now: float) -> None:
+        """An operator asks for an allocation session now: the leader starts one; another member passes the
+        request on to the leader."""
         self._now = now
+        members = self._member_names()
+        if members and members[0] != self.name:
+            self._send_agent_host(members[0], "alloc_run", "", 0, b"")
+            return
         self._maybe_session(now, "operator", force=True)
 
     def report_costs(self, now: float, cpu: dict[str, float], affinity: dict[tuple[str, str], float]) -> None:
@@ -369,6 +376,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 changed = True
         if changed:
             self._propose(tx, ("costs", "", 0))
+
+    def operator_request(self, now: float, dst: str, payload: bytes, conv: int) -> bool:
+        """A request from the operator, answered with an `OperatorReply` effect here (the reply travels back
+        from the agent's host: the request's sender is "@<this host>")."""
+        self._now = now
+        r = self.table.resolve(dst)
+        if r is None:
+            return False
+        self._route(apb.RoutedMsg(src="@" + self.name, dst=r.id, payload=payload, conv=conv))
+        return True
 
     def operator_send(self, now: float, dst: str, payload: bytes) -> bool:
         """A message from the operator (no sender agent, unsequenced)."""
@@ -423,6 +440,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
     def _on_sent(self, loc: Local, ev: Sent) -> None:
         if loc.phase not in ("active", "freezing"):
             self.counters["sent_by_inactive_instance"] += 1
+            return
+        if ev.dst.startswith("@"):  # a reply to an operator request made through host ev.dst[1:]
+            if ev.reply:
+                host = ev.dst[1:]
+                if host == self.name:
+                    self.out.append(OperatorReply(ev.conv, ev.payload, ev.error))
+                else:
+                    m = apb.RoutedMsg(src=loc.id, dst=ev.dst, payload=ev.payload, conv=ev.conv, reply=True,
+                                      error=ev.error)
+                    self._send_agent_host(host, "op_reply", loc.id, 0, m.SerializeToString())
             return
         dst = self.table.get(ev.dst)
         if dst is None:
@@ -510,6 +537,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 return
             self.allocator.on_update(src, upd)  # Alg. 4 l. 59
             self._alloc_msgs += 1
+        elif k == "alloc_run":
+            self.run_allocation(self._now)
+        elif k == "op_reply":
+            m = apb.RoutedMsg()
+            try:
+                m.ParseFromString(msg.data)
+            except DecodeError:
+                self.counters["malformed_agent_msg"] += 1
+                return
+            self.out.append(OperatorReply(m.conv, m.payload, m.error))
 
     # ------------------------------------------------------------------ drain: membership effects + ours
 

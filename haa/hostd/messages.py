@@ -212,14 +212,16 @@ class StateRequest:
 
 # --- the agent layer (Alg. 4-8) ----------------------------------------------------------------------
 
-AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc")
+AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc", "alloc_run", "op_reply")
 
 
 @dataclass(slots=True)
 class AgentHostMsg:
     """Host-to-host message of the agent layer (`haa.hostd.agentnode`): kind "msg" (a routed agent message,
-    `data` = haa.v1.RoutedMsg), "freeze_ack" (Alg. 5 l. 24), "claim_ack" (Alg. 6 l. 16) or "alloc" (a bid
-    update of Alg. 4 l. 84, `data` encoded by `haa.hostd.allocation`)."""
+    `data` = haa.v1.RoutedMsg), "freeze_ack" (Alg. 5 l. 24), "claim_ack" (Alg. 6 l. 16), "alloc" (a bid
+    update of Alg. 4 l. 84, `data` encoded by `haa.hostd.allocwire`) or "alloc_run" (an operator asked a
+    member that is not the leader for an allocation session: passed on to the leader) or "op_reply" (an
+    agent's reply to an operator request, sent back to the host the operator asked; `data` = RoutedMsg)."""
 
     kind: str
     agent: str

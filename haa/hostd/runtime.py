@@ -273,6 +273,7 @@ class HostRuntime:
         self._write_seq = 0
         self._left_waiters: list[asyncio.Future[None]] = []
         self._agent_ops: dict[Any, asyncio.Future[agentio.AgentOpDone]] = {}
+        self._agent_requests: dict[int, asyncio.Future[agentio.OperatorReply]] = {}
         self.left = False
         self._exit_after_leave = False
         #: mirror stream subscribers (`MirrorSub`), fed from applied transactions and view changes
@@ -580,6 +581,10 @@ class HostRuntime:
                     self.agents.on_timeline(e)
             elif t is agentio.AgentOpDone:
                 self._on_agent_op(e)  # type: ignore[arg-type]
+            elif t is agentio.OperatorReply:
+                fut = self._agent_requests.pop(e.conv, None)  # type: ignore[union-attr]
+                if fut is not None and not fut.done():
+                    fut.set_result(e)
         if self.mirrors:
             self._check_replica()
         if self.agents is not None:
@@ -718,6 +723,23 @@ class HostRuntime:
             return await asyncio.wait_for(fut, timeout)
         finally:
             self._agent_ops.pop(req, None)
+
+    async def agent_request(self, ref: str, payload: bytes, timeout: float = 5.0) -> agentio.OperatorReply:
+        """Send an operator request to an agent and wait for its reply (TimeoutError; LookupError for an
+        unknown agent)."""
+        node = self.node
+        if not isinstance(node, AgentNode):
+            raise NotMembershipMode(f"{self.name} does not run the agent layer")
+        self._write_seq += 1
+        conv = self._write_seq
+        fut: asyncio.Future[agentio.OperatorReply] = asyncio.get_running_loop().create_future()
+        self._agent_requests[conv] = fut
+        try:
+            if not self._feed(node.operator_request, ref, payload, conv):
+                raise LookupError(f"unknown agent {ref!r}")
+            return await asyncio.wait_for(fut, timeout)
+        finally:
+            self._agent_requests.pop(conv, None)
 
     def _on_left(self) -> None:
         self.left = True

@@ -47,7 +47,7 @@ class TransferMixin:
         self._cmd(FreezeAgent(loc.id, loc.epoch))  # l. 2
         # l. 3 (clear the queues): they are empty while the agent is active (haa.hostd.agenttable)
         # l. 4: from now on, messages for a are held as queue1 (`_route`, phase "freezing")
-        self._timeline(loc.id, "freezing", f"to {r.alloc or '?'}")
+        self._timeline(loc.id, "freezing", f"to {r.alloc}" if r.alloc and r.alloc != self.name else "")
         self._propose_freeze(loc)
 
     def _propose_freeze(self: AgentNode, loc: Local) -> None:

@@ -432,9 +432,21 @@ class AgentEvent(_message.Message):
     def __init__(self, time: _Optional[float] = ..., agent: _Optional[str] = ..., name: _Optional[str] = ..., event: _Optional[str] = ..., host: _Optional[str] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class AgentSendRequest(_message.Message):
-    __slots__ = ("ref", "payload")
+    __slots__ = ("ref", "payload", "timeout")
     REF_FIELD_NUMBER: _ClassVar[int]
     PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    TIMEOUT_FIELD_NUMBER: _ClassVar[int]
     ref: str
     payload: bytes
-    def __init__(self, ref: _Optional[str] = ..., payload: _Optional[bytes] = ...) -> None: ...
+    timeout: float
+    def __init__(self, ref: _Optional[str] = ..., payload: _Optional[bytes] = ..., timeout: _Optional[float] = ...) -> None: ...
+
+class AgentRequestReply(_message.Message):
+    __slots__ = ("ok", "payload", "error")
+    OK_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    ok: bool
+    payload: bytes
+    error: str
+    def __init__(self, ok: _Optional[bool] = ..., payload: _Optional[bytes] = ..., error: _Optional[str] = ...) -> None: ...

@@ -104,6 +104,11 @@ class HostControlStub:
                 request_serializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
                 response_deserializer=haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
                 _registered_method=True)
+        self.AgentRequest = channel.unary_unary(
+                '/haa.v1.HostControl/AgentRequest',
+                request_serializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.AgentRequestReply.FromString,
+                _registered_method=True)
         self.Alloc = channel.unary_unary(
                 '/haa.v1.HostControl/Alloc',
                 request_serializer=haa_dot_pb_dot_control__pb2.AllocRequest.SerializeToString,
@@ -203,6 +208,12 @@ class HostControlServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def AgentRequest(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Alloc(self, request, context):
         """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
@@ -287,6 +298,11 @@ def add_HostControlServicer_to_server(servicer, server):
                     servicer.AgentSend,
                     request_deserializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.FromString,
                     response_serializer=haa_dot_pb_dot_control__pb2.AgentOpReply.SerializeToString,
+            ),
+            'AgentRequest': grpc.unary_unary_rpc_method_handler(
+                    servicer.AgentRequest,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.AgentSendRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.AgentRequestReply.SerializeToString,
             ),
             'Alloc': grpc.unary_unary_rpc_method_handler(
                     servicer.Alloc,
@@ -677,6 +693,33 @@ class HostControl:
             '/haa.v1.HostControl/AgentSend',
             haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
             haa_dot_pb_dot_control__pb2.AgentOpReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AgentRequest(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/AgentRequest',
+            haa_dot_pb_dot_control__pb2.AgentSendRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.AgentRequestReply.FromString,
             options,
             channel_credentials,
             insecure,
