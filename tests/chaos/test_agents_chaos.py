@@ -95,6 +95,8 @@ MAX_TROUBLE = 2 if N_HOSTS >= 8 else 1
 CORE = ("h1", "h2", "h3")
 KINDS = ("kill", "pause_short", "pause_long", "agent_kill", "move", "stop")
 SAMPLE_EVERY = 0.5
+#: two samples of one host further apart than this prove nothing about the time between them
+MAX_GAP = 1.2
 COUNTER_KEYS = ("sent", "received", "lost", "out_of_order", "duplicate", "lost_after_recovery",
                 "resent_after_recovery", "stale", "thaws", "recoveries")
 
@@ -456,12 +458,22 @@ class Sampler:
         self.pool.shutdown(wait=False, cancel_futures=True)
 
 
-def double_active(obs: list[Obs]) -> tuple[list[str], int]:
+@dataclass
+class Overlaps:
+    """What the AgentList samples say about agents running twice (see `double_active`)."""
+
+    proven: list[str]  # two instances proven to run at the same time: a failure
+    foreign: list[str]  # a host runs an agent that its own table gives to another host: a failure
+    same_round: list[str]  # two hosts reported it active in one sampling round, no overlap proven: reported
+
+
+def double_active(obs: list[Obs]) -> Overlaps:
     """Proven overlaps of two instances of one agent: host A reported it active with the same pid in two
-    consecutive samples (so it ran it throughout [end of the first call, start of the second]) and host B
-    reported it active in a call that lies entirely inside that interval. Returns the violations and how
-    often two hosts reported one agent active in the same sampling round (not proven overlaps: a transfer
-    can fall between two calls of one round)."""
+    samples of consecutive rounds (at most MAX_GAP apart: a paused host is not sampled, and a frozen process
+    does not run), so it ran it throughout [end of the first call, start of the second], and host B reported
+    it active in a call that lies entirely inside that interval. Also every report of an agent active on a
+    host whose own table names another owner, and (not failures: a transfer or a zombie's last moment can
+    fall between two calls of one round) the rounds in which two hosts reported one agent active."""
     by_host: dict[str, list[Obs]] = {}
     for o in obs:
         by_host.setdefault(o.host, []).append(o)
@@ -469,28 +481,36 @@ def double_active(obs: list[Obs]) -> tuple[list[str], int]:
     for host, lst in by_host.items():
         lst.sort(key=lambda o: o.t0)
         for a, b in itertools.pairwise(lst):
+            if b.t0 - a.t1 > MAX_GAP:
+                continue
             for aid, row in a.rows.items():
                 other = b.rows.get(aid)
                 if row[1] == "active" and other and other[1] == "active" and row[5] and row[5] == other[5]:
                     sure.setdefault(aid, []).append((a.t1, b.t0, host, row[4], row[5]))
-    out = []
+    proven, foreign = [], []
     for o in obs:
         for aid, row in o.rows.items():
             if row[1] != "active":
                 continue
+            if row[3] != o.host:
+                foreign.append(f"{row[0]} active on {o.host} (pid {row[5]}) at {o.t0:.2f} s, whose table says: "
+                               f"{row[2]}, owner {row[3] or '-'}, epoch {row[4]}")
             for lo, hi, host, epoch, pid in sure.get(aid, []):
                 if host != o.host and lo <= o.t0 and o.t1 <= hi:
-                    out.append(f"{row[0]} ran on {host} (epoch {epoch}, pid {pid}) throughout {lo:.2f}-{hi:.2f} s "
-                               f"while {o.host} reported it active (epoch {row[4]}, pid {row[5]}) at "
-                               f"{o.t0:.2f}-{o.t1:.2f} s")
-    rounds: dict[int, dict[str, set[str]]] = {}
+                    proven.append(f"{row[0]} ran on {host} (epoch {epoch}, pid {pid}) throughout {lo:.2f}-{hi:.2f} s "
+                                  f"while {o.host} reported it active (epoch {row[4]}, pid {row[5]}) at "
+                                  f"{o.t0:.2f}-{o.t1:.2f} s")
+    rounds: dict[int, dict[str, list[tuple[str, str, int, float]]]] = {}  # round -> agent -> reports
     for o in obs:
         r = rounds.setdefault(int(o.t0 / SAMPLE_EVERY), {})
         for aid, row in o.rows.items():
             if row[1] == "active":
-                r.setdefault(aid, set()).add(o.host)
-    same_round = sum(1 for r in rounds.values() for hosts in r.values() if len(hosts) > 1)
-    return out, same_round
+                r.setdefault(aid, []).append((row[0], o.host, row[4], o.t0))
+    same_round = [
+        f"{reports[0][0]} active on " + ", ".join(f"{h} (its table: epoch {e}) at {t:.2f} s" for _, h, e, t in reports)
+        for r in rounds.values() for reports in r.values() if len({h for _, h, _, _ in reports}) > 1
+    ]
+    return Overlaps(proven, foreign, same_round)
 
 
 # ---------------------------------------------------------------------------------------------- the chaos
@@ -806,20 +826,23 @@ def test_counter_pairs_survive_container_chaos(cluster: Cluster) -> None:
             print(f"{c.now():6.1f}s  healed in {healed_s:.1f} s: {placed}")
             stats = wait_for("stable, progressing counters", 40, lambda: stable_counters(c, rng))
             time.sleep(1.0)  # a last sample round on the healed cluster
-        overlaps, same_round = double_active(sampler.obs)
+        ov = double_active(sampler.obs)
         report += [
             f"seed {c.seed}; {len(c.names)} hosts; chaos {chaos_s:.1f} s, healed in {healed_s:.1f} s; "
             f"test {time.monotonic() - t_test:.1f} s",
             f"actions: {monkey.done}; errors: {monkey.errors or 'none'}",
-            f"AgentList samples: {len(sampler.obs)} answered, {sampler.failed} not; two hosts active in one round: "
-            f"{same_round} (not proven overlaps); proven overlaps: {len(overlaps)}",
+            f"AgentList samples: {len(sampler.obs)} answered, {sampler.failed} not; proven overlaps: "
+            f"{len(ov.proven)}; active on a host that is not the owner in its own table: {len(ov.foreign)}; "
+            f"two hosts active in one round (no overlap proven): {len(ov.same_round)}",
+            *[f"  same round: {x}" for x in ov.same_round[:10]],
             f"timeline events: {dict(sorted(events.counts.items()))}",
             counter_table(stats),
         ]
         print("\n".join(report))
         missing = [k for k, v in monkey.done.items() if not v]
         assert not missing, f"the chaos never managed to {missing} (seed {c.seed})"
-        assert not overlaps, "two hosts ran one agent at the same time:\n" + "\n".join(overlaps[:20])
+        assert not ov.proven, "two hosts ran one agent at the same time:\n" + "\n".join(ov.proven[:20])
+        assert not ov.foreign, "a host ran an agent it does not own:\n" + "\n".join(ov.foreign[:20])
         bad = {n: {k: s[k] for k in ("lost", "out_of_order", "duplicate")} for n, s in stats.items()
                if s["lost"] or s["out_of_order"] or s["duplicate"]}
         assert not bad, f"messages lost / out of order / duplicated: {bad}"
@@ -840,22 +863,24 @@ def test_counter_pairs_survive_container_chaos(cluster: Cluster) -> None:
 
 def test_double_active_finds_proven_overlaps_only() -> None:
     """The overlap check itself (no docker): a report inside another host's proven run is a violation; a
-    handover between two samples is not."""
+    handover between two samples, a gap in one host's samples (paused) or a new process are not."""
     a = "agent-a"
 
-    def obs(host: str, t0: float, phase: str = "active", pid: int = 10, epoch: int = 1) -> Obs:
-        return Obs(host, t0, t0 + 0.05, {a: ("A1", phase, "active", host, epoch, pid)})
+    def obs(host: str, t0: float, phase: str = "active", pid: int = 10, epoch: int = 1, owner: str = "") -> Obs:
+        return Obs(host, t0, t0 + 0.05, {a: ("A1", phase, "active", owner or host, epoch, pid)})
 
     # h1 runs A1 (pid 10) in samples at 0.0 and 0.5; h2 reports it active at 0.2: two instances at once
-    bad, _ = double_active([obs("h1", 0.0), obs("h2", 0.2, pid=20, epoch=2), obs("h1", 0.5)])
-    assert len(bad) == 1 and "A1 ran on h1" in bad[0] and "while h2 reported it active" in bad[0]
+    ov = double_active([obs("h1", 0.0), obs("h2", 0.2, pid=20, epoch=2), obs("h1", 0.5)])
+    assert len(ov.proven) == 1 and "A1 ran on h1" in ov.proven[0] and "while h2 reported it active" in ov.proven[0]
     # a handover: h1 active at 0.0, frozen at 0.5; h2 active from 0.6 on
-    ok, same = double_active([obs("h1", 0.0), obs("h2", 0.1, phase="thawing", pid=20),
-                              obs("h1", 0.5, phase=""), obs("h2", 0.6, pid=20), obs("h2", 1.1, pid=20)])
-    assert ok == [] and same == 0
+    ov = double_active([obs("h1", 0.0), obs("h2", 0.1, phase="thawing", pid=20),
+                        obs("h1", 0.5, phase=""), obs("h2", 0.6, pid=20), obs("h2", 1.1, pid=20)])
+    assert ov.proven == [] and ov.same_round == [] and ov.foreign == []
     # a new process on h1 between two samples (a local recovery) proves nothing about the time between
-    ok, _ = double_active([obs("h1", 0.0), obs("h2", 0.2, pid=20), obs("h1", 0.5, pid=11)])
-    assert ok == []
-    # both active in one round, neither proven to overlap: counted, not failed
-    ok, same = double_active([obs("h1", 0.0), obs("h2", 0.01, pid=20)])
-    assert ok == [] and same == 1
+    assert double_active([obs("h1", 0.0), obs("h2", 0.2, pid=20), obs("h1", 0.5, pid=11)]).proven == []
+    # h1 paused from 0.1 to 5.0 (not sampled): its process did not run meanwhile, h2 recovered the agent
+    ov = double_active([obs("h1", 0.0), obs("h2", 2.0, pid=20, epoch=2), obs("h1", 5.1), obs("h2", 5.1, pid=20)])
+    assert ov.proven == [] and len(ov.same_round) == 1 and "h1 (its table: epoch 1)" in ov.same_round[0]
+    # a host that runs an agent its own table gives to another host
+    ov = double_active([obs("h1", 0.0, owner="h2")])
+    assert len(ov.foreign) == 1 and "owner h2" in ov.foreign[0]
