@@ -439,6 +439,32 @@ def agent_remove(
     out.print(f"removed {reply.name or ref}")
 
 
+@agent_app.command("request")
+@cli_errors
+def agent_request(
+    ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
+    payload: Annotated[str, typer.Argument(help="the request (text, given to the agent's on_request)")],
+    host: HostOpt = None,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    compose_file: ComposeFileOpt = None,
+    timeout: WaitTimeoutOpt = 10.0,
+) -> None:
+    """Send an operator request to an agent and print its reply (e.g. `agent request A1 stats` for a counter).
+    The reply comes back through the host asked, wherever the agent runs."""
+    backend = open_backend(compose, root, compose_file)
+    h = backend.pick_host(host)
+    reply: cpb.AgentRequestReply = backend.call(
+        h, lambda c: c.agent_request(ref, payload.encode(), timeout=timeout), "AgentRequest", timeout=timeout + 5
+    )
+    if not reply.ok:
+        raise ClusterError(f"request to {ref}: {reply.error}")
+    try:
+        out.print(reply.payload.decode())
+    except UnicodeDecodeError:
+        out.print(f"{len(reply.payload)} bytes: {reply.payload[:64].hex()}...")
+
+
 # ---------------------------------------------------------------------------------------------- timeline
 
 #: events every member reports for the same committed table change (shown once)

@@ -162,6 +162,12 @@ def test_move(cli: Cli) -> None:
     assert a["A1"]["host"] == to and a["A1"]["state"] == "active"
 
 
+def test_request(cli: Cli) -> None:
+    stats = json.loads(cli("agent", "request", "A1", "stats").stdout)
+    assert stats["name"] == "A1" and stats["sent"] > 0
+    assert "unknown counter request" in cli.fails("agent", "request", "A1", "nonsense")
+
+
 def test_kill_is_recovered(cli: Cli) -> None:
     before = cli.agents()["A1.1"]
     out = cli("agent", "kill", "A1.1").stdout
