@@ -179,3 +179,19 @@ def test_bench_alloc_quality_smoke():
     assert set(study["regimes"]) == {"roomy", "tight"}
     assert all(0 < q["mean_ratio"] <= 1.0 + 1e-9 for q in study["regimes"].values())
     assert "roomy (20)" in quality_table(study)
+
+
+def test_without_bid_warping_an_affinity_rich_instance_never_converges(monkeypatch):
+    """Affinity bonuses make rewards grow along a bundle (no diminishing marginal gains): without warping, the
+    two hosts of this instance outbid each other for ever; with it, the session ends."""
+    from haa.hostd.allocation import Allocator
+
+    sc = sim_mod.quality_instance(69, "roomy")
+    sim = AllocSim(sc)
+    sim.run(until=5.0)
+    assert any(e.kind == "finish" and e.accepted for e in sim.log) and sim.quiet
+    monkeypatch.setattr(Allocator, "WARP", False)
+    sim = AllocSim(sim_mod.quality_instance(69, "roomy"))
+    sim.run(until=1.0)  # sessions take ~20 ms
+    assert not any(e.kind == "finish" for e in sim.log) and not sim.quiet
+    assert sim.messages > 200

@@ -678,9 +678,7 @@ class Allocator:
         """The OAC(start) this host proposed was decided (l. 27). Aborted: propose it again while this host
         is still the leader of that session and the group and agent list are unchanged (l. 28)."""
         if committed or self._pending_start is None or self._pending_start.ses_id != start.ses_id:
-            if committed and self._pending_start is not None and self._pending_start.ses_id == start.ses_id:
-                self._pending_start = None
-            return
+            return  # committed: kept pending until delivered (on_start_committed may have to retry it)
         ids = tuple(a if isinstance(a, str) else a.id for a in agents)
         if tuple(group) == start.group and ids == start.agent_ids and self.ses_id == start.ses_id:
             self._log("alloc.retry_start", ses=start.ses_id)
@@ -710,10 +708,12 @@ class Allocator:
         # every committed start id is used up, even an expired one: the next leader proposes a higher one, and
         # a joiner that only knows the highest committed id decides like everyone else
         self.committed_ses = max(self.committed_ses, start.ses_id)
+        mine = self._pending_start is not None and self._pending_start == start
+        if mine:
+            self._pending_start = None
         if why:  # l. 39-40 expired session
             self._log("alloc.start_expired", ses=start.ses_id, reason=why)
-            mine = self._pending_start
-            if mine is not None and mine == start and "not above" in why and self.ses_id == start.ses_id:
+            if mine and "not above" in why and self.ses_id == start.ses_id:
                 self._retry_with_new_id(start, tuple(group), tuple(agent_ids))
             return
         self.committed_start = start
@@ -735,7 +735,6 @@ class Allocator:
         """Our OAC(start) committed after another (expired) start with the same id, proposed by a former
         leader before we learned of it: propose the session again under a fresh id, if nothing else changed."""
         if group != start.group or agent_ids != start.agent_ids or not group or group[0] != self.me:
-            self._pending_start = None
             return
         ses = max(self.ses_id, self.committed_ses) + 1
         st = SessionStart(self.me, ses, start.group, start.agents, start.hosts)
