@@ -151,8 +151,9 @@ class AgentHistory:
     sent: dict[tuple[str, int, str], int] = field(default_factory=lambda: defaultdict(int))
     #: instance intervals: agent -> list of [host proc, epoch, start, end]
     intervals: dict[str, list[list[Any]]] = field(default_factory=lambda: defaultdict(list))
-    #: per agent, in total order: ("backup", data) / ("recovered", epoch)
+    #: per agent, in total order (as one member applied them): ("backup", data) / ("recovered", epoch it gave)
     order: dict[str, list[tuple[str, Any]]] = field(default_factory=lambda: defaultdict(list))
+    epochs: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     #: first starts and recoveries, in the order the instances ran them: (agent, epoch, mode, state given)
     recovered_starts: list[tuple[str, int, str, bytes | None]] = field(default_factory=list)
     removed_at: dict[Proc, float] = field(default_factory=dict)  # first time a process left the group
@@ -223,8 +224,12 @@ class AgentSim(GroupSim):
             return
         if kind == "backup":
             ah.order[atx.backup.id].append(("backup", atx.backup.data))
-        elif kind == "recovered":
-            ah.order[atx.recovered.id].append(("recovered", None))
+        elif kind in ("claim", "recovered"):
+            # every valid claim or recovery raises the agent's epoch by one: the epoch it gives
+            agent = getattr(atx, kind).id
+            ah.epochs[agent] += 1
+            if kind == "recovered":
+                ah.order[agent].append(("recovered", ah.epochs[agent]))
 
     def _fence(self, proc: Proc) -> None:
         """`proc` left the group: its instances are fenced (they no longer count as running)."""
@@ -520,19 +525,16 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
                 if got.get((s, g), 0) != n:
                     bad("AT-Consistency", f"{recv} processed {got.get((s, g), 0)} of the {n} messages "
                         f"{s} gen {g} sent")
-    # AR-Recovery
-    seen: dict[str, int] = defaultdict(int)
+    # AR-Recovery: the state a recovered instance got is the latest backup committed before the OAC(recovered)
+    # that gave it its epoch (some recoveries never start an instance: their host left first)
     for agent, epoch, mode, state in ah.recovered_starts:
-        order = ah.order.get(agent, [])
-        # the k-th recovery of the agent in the total order
-        k = seen[agent]
-        seen[agent] += 1
-        idx = [i for i, (kind, _) in enumerate(order) if kind == "recovered"]
-        if k >= len(idx):
-            continue  # the observer did not see it (it left); other runs check it
         if mode != "recover":
             continue  # the first start of a new agent (it has no backup)
-        before = [d for kind, d in order[: idx[k]] if kind == "backup"]
+        order = ah.order.get(agent, [])
+        at_ = next((i for i, (kind, e) in enumerate(order) if kind == "recovered" and e == epoch), None)
+        if at_ is None:
+            continue  # the observer did not see it (it left the group first)
+        before = [d for kind, d in order[:at_] if kind == "backup"]
         want = before[-1] if before else None
         if state != want:
             bad("AR-Recovery", f"{agent} epoch {epoch} recovered from "
