@@ -26,13 +26,19 @@ In short:
 * bid order (Fig. II-1): a bid within capacity (support > 0) beats one over it; within capacity higher reward,
   then higher support; over capacity higher support (the less overloaded host; eq. 4.7-3 rewards it with
   s = support), then higher reward; then the lower host name. The nil bid is below every bid.
-* bid warping: a bid placed later in a bundle never beats one placed earlier in it (its reward is capped at
-  its predecessor's), which restores the diminishing-marginal-gains property that affinity bonuses break.
+* bundle building: single agents and clusters of affine agents; a bid's reward is its marginal gain in
+  R(b_h); capacity is reserved for agents only this host can run; bids are warped so that a later bid of a
+  bundle never beats an earlier one (diminishing marginal gains, which affinity bonuses break).
 * trim (rows 1, 17) resets the bids of the agents removed after the lost one to nil and broadcasts them.
-* rounds: a build always bids in a round no other bid of this host used (l. 53-55 generalised).
-* a committed finish is accepted only if it belongs to the last committed start and the group and agent list
-  are still those of that start (l. 94 accepts unconditionally; see docs/allocation.md "expired finish").
-* committed start ids strictly increase (a start whose id is not above the last committed one is expired).
+* rounds: a build always bids in a round no other bid of this host used (l. 53-55 generalised); consensus
+  compares winners and values, not rounds.
+* damping of the asynchronous rules (the verifier found message storms): resets of rows 10, 11, 28, 29 are
+  skipped while the bid's owner still claims it; a new bid must beat every claim members made for themselves;
+  a rebroadcast of an unchanged bid goes only to the stale sender, and only from the authority on that bid.
+* consensus is not checked while a build is queued (l. 75-76 would decide before the queued build).
+* a committed start is valid if its proposer is the leader, group and agent list are current (ll. 39-40) and
+  its id is above every committed start id; a committed finish is accepted only for the last valid start,
+  unchanged since (l. 94 accepts unconditionally). Both depend only on the total order.
 * hardware: a host bids only for agents whose hardware it has; agents no host of the group can run are
   reported as `unallocatable` and left out of the consensus check (otherwise the session never ends).
 
@@ -589,10 +595,12 @@ class Allocator:
     fresh group starts at 0.
     """
 
-    #: bids later in a bundle never beat earlier ones (see the module docstring); class attribute so that the
-    #: verifier's deliberately broken variant can switch it off
+    # The choices below are class attributes so that tests and docs/allocation.md can measure each of them.
+
+    #: bids later in a bundle never beat earlier ones (`_build_bundle`); without it affinity-rich instances
+    #: can fail to converge (tests/test_allocation_verify.py)
     WARP = True
-    #: largest cluster of mutually affine agents bid for as one (Appendix II, bundle building step 2)
+    #: largest cluster of affine agents bid for as one (Appendix II, bundle building step 2)
     MAX_CLUSTER = 4
     #: cluster candidates examined per bundle step (bounds the work on dense affinity graphs)
     MAX_CLUSTERS = 64
