@@ -8,9 +8,11 @@ AP-3 runs one allocation session of the real `haa.hostd.allocation.Allocator`s i
   `bench transport` measured (bench-results/transport.json, variant "transport": p50 0.39 ms, p99 0.99 ms);
 * OAC(start) and OAC(finish) decided after the propose-to-decide latency `bench ap1` measured for that
   many participants on real haa-hostd processes (bench-results/ap1.json, paced p50, x log-normal jitter);
-* the real CPU time of every Allocator call (time.perf_counter around it) added to its host's virtual clock:
-  a host is busy while it builds a bundle or resolves conflicts, messages wait, and inboxes batch up as on a
-  real host (one core per host, as in a cluster of containers; this machine's load inflates it).
+* the real CPU time of every Allocator call added to its host's virtual clock: a host is busy while it builds
+  a bundle or resolves conflicts, messages wait, and inboxes batch up as on a real host (one core per host, as
+  in a cluster of containers). `clock="thread"` (the default) measures it with time.thread_time, the CPU time
+  of the call itself; `clock="perf"` with time.perf_counter, which also counts the time other processes of a
+  loaded machine (this one is shared) took the core away.
 
 Each session is a rebalance: most agents already run somewhere (transfer penalties apply), some are new,
 costs fill 40-80% of the group's capacity, a few agents need hardware only some hosts have, and agents have
@@ -122,7 +124,10 @@ def ap3_scenario(seed: int, hosts: int, agents: int) -> AllocScenario:
     )
 
 
-def run_session(seed: int, hosts: int, agents: int, oac_ms: dict[int, float]) -> dict[str, Any]:
+CLOCKS = {"thread": time.thread_time, "perf": time.perf_counter}
+
+
+def run_session(seed: int, hosts: int, agents: int, oac_ms: dict[int, float], clock: str = "thread") -> dict[str, Any]:
     """One AP-3 session; times in seconds of virtual time (network model + measured CPU)."""
     sc = ap3_scenario(seed, hosts, agents)
 
@@ -130,7 +135,7 @@ def run_session(seed: int, hosts: int, agents: int, oac_ms: dict[int, float]) ->
         p50 = oac_ms.get(n) or oac_ms[min(oac_ms, key=lambda k: abs(k - n))] * n / max(1, min(oac_ms))
         return p50 / 1e3 * rng.lognormvariate(0.0, 0.25) if n > 1 else 0.0002
 
-    sim = AllocSim(sc, cpu=True, oac_delay=oac_delay)
+    sim = AllocSim(sc, cpu=True, oac_delay=oac_delay, clock=CLOCKS[clock])
     wall = time.perf_counter()
     sim.run(until=60.0)
     wall = time.perf_counter() - wall
@@ -160,13 +165,19 @@ def _agg(xs: list[float]) -> dict[str, float]:
 
 
 def run_ap3(
-    hosts: tuple[int, ...] = HOSTS, agents: tuple[int, ...] = AGENTS, reps: int = 5, seed: int = 1
+    hosts: tuple[int, ...] = HOSTS,
+    agents: tuple[int, ...] = AGENTS,
+    reps: int = 5,
+    seed: int = 1,
+    clock: str = "thread",
 ) -> list[dict[str, Any]]:
+    if clock not in CLOCKS:
+        raise ValueError(f"clock: must be one of {sorted(CLOCKS)}, got {clock!r}")
     oac_ms = oac_table()
     rows = []
     for h in hosts:
         for a in agents:
-            runs = [run_session(seed + r, h, a, oac_ms) for r in range(reps)]
+            runs = [run_session(seed + r, h, a, oac_ms, clock) for r in range(reps)]
             rows.append(
                 {
                     "hosts": h,

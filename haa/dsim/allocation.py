@@ -304,8 +304,8 @@ class _Node:
 
 
 class AllocSim:
-    """See the module docstring. `cpu=True` measures every Allocator call and advances the host's clock by it
-    (AP-3); `oac_delay(n)` overrides the decide delay for n participants."""
+    """See the module docstring. `cpu=True` measures every Allocator call with `clock` and advances the
+    host's virtual clock by it (AP-3); `oac_delay(rng, n)` overrides the decide delay for n participants."""
 
     def __init__(
         self,
@@ -313,8 +313,10 @@ class AllocSim:
         trace: bool = False,
         cpu: bool = False,
         oac_delay: Callable[[random.Random, int], float] | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.sc = sc
+        self.clock = clock
         self.rng = random.Random(f"alloc-sim-{sc.seed}")
         self.now = 0.0
         self.cpu = cpu
@@ -400,9 +402,9 @@ class AllocSim:
 
     def _call(self, node: _Node, fn: Callable[..., None], *args: Any) -> None:
         if self.cpu:
-            t0 = time.perf_counter()
+            t0 = self.clock()
             fn(*args)
-            dt = time.perf_counter() - t0
+            dt = self.clock() - t0
             self.cpu_time += dt
             node.busy_until = max(node.busy_until, self.now) + dt
             t_out = node.busy_until
