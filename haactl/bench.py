@@ -232,6 +232,7 @@ def bench_ap3(
     max_agents: int = typer.Option(60, "--max-agents", min=5, max=60, help="largest agent count"),
     seed: int = typer.Option(1, "--seed"),
     real: bool = typer.Option(False, "--real", help="real haa-hostd processes, 2,4..10 hosts (haactl.ap3real)"),
+    clock: str = typer.Option("thread", "--clock", help="simulated: CPU time per Allocator call, thread or perf"),
 ) -> None:
     """Experiment AP-3 (thesis §7.2.3): allocation time and messages, 2..10 hosts x 5..60 agents (simulated:
     loopback gRPC delay model, bench ap1's OAC latency, real CPU time of the Allocator calls)."""
@@ -254,10 +255,10 @@ def bench_ap3(
         return
     hosts = tuple(h for h in HOSTS if h <= max_hosts)
     agents = tuple(a for a in AGENTS if a <= max_agents)
-    rows = run_ap3(hosts, agents, reps=reps, seed=seed)
+    rows = run_ap3(hosts, agents, reps=reps, seed=seed, clock=clock)
     print(markdown_tables(rows))
     old = existing(RESULTS / "ap3.json").get("real")  # keep the real-hosts results of --real
-    data = {"machine": machine(), "reps": reps, "seed": seed, "mode": "simulated", "rows": rows}
+    data = {"machine": machine(), "reps": reps, "seed": seed, "mode": "simulated", "clock": clock, "rows": rows}
     path = write_json("ap3", {**data, "real": old} if old else data)
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
