@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import random
 import statistics
 import tempfile
@@ -171,7 +172,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                     log(f"n={n} agents={a}: a session sample failed: {e}")
                     runs.append({"ok": False})
             row = {
-                "hosts": n, "agents": a, "reps": reps,
+                "hosts": n, "agents": a, "reps": reps, "load_avg_1min": os.getloadavg()[0],
                 "consensus_ms": _agg(r.get("consensus_s", math.nan) * 1e3 for r in runs),
                 "allocated_ms": _agg(r.get("allocated_s", math.nan) * 1e3 for r in runs),
                 "request_ms": _agg(r.get("request_s", math.nan) * 1e3 for r in runs),

@@ -455,6 +455,7 @@ def summarize(xs: list[float | None]) -> dict[str, float]:
 def run_one(n: int, reps: int, root: Path, state_bytes: int = THESIS_STATE_BYTES, period: float = 0.005,
             host_crash: bool = True, log: Callable[[str], None] = print) -> dict[str, Any]:
     """All four actions on a fresh group of n hosts; the samples and their summaries."""
+    load0 = os.getloadavg()[0]
     with BenchCluster(root, n) as c:
         took = c.start()
         log(f"n={n}: group formed in {took:.1f} s")
@@ -507,6 +508,7 @@ def run_one(n: int, reps: int, root: Path, state_bytes: int = THESIS_STATE_BYTES
                                     if k in ("spawn", "freeze", "transfer", "recovery", "host_recovery")
                                     and v.get("n")))
         return {"hosts": n, "reps": reps, "state_bytes": state_bytes, "ping_period": period,
+                "load_avg_1min": [load0, os.getloadavg()[0]],
                 "host_crash_blocked": blocked, "host_crash_skipped": skipped, "summary": summary,
                 "samples": samples}
 
