@@ -531,7 +531,9 @@ class _Session:
             self.mismatch += (not same_bid(t, b)) - (not same_bid(t, old))
 
     def set_row(self, q: str, j: str, b: Bid) -> None:
-        row = self.rows.setdefault(q, {})
+        row = self.rows.get(q)
+        if row is None:
+            row = self.rows[q] = {}
         old = row.get(j)
         if old is None:
             old = nil_bid(j)
@@ -779,17 +781,21 @@ class Allocator:
             self._check_consensus(s)
 
     def _process_bid(self, s: _Session, q: str, b: Bid) -> None:
-        j = b.agent
-        if s.ready and (j not in s.agents or (b.winner is not None and b.winner not in s.group)):
+        j, w, _reward, _support, rnd = b
+        if s.ready and (j not in s.agents or (w is not None and w not in s.group)):
             return
         s.set_row(q, j, b)  # l. 66
-        if b.round >= s.r:  # l. 67-68
-            s.r = b.round + 1
+        if rnd >= s.r:  # l. 67-68
+            s.r = rnd + 1
         old = s.bid(j)  # l. 69
         rule = resolve(self.me, q, b, old)  # l. 70
         if rule.action == RESET and rule.row in _GUARDED_RESETS and self._owner_confirms(s, old):
             rule = Rule(rule.row, LEAVE, True)
         act = rule.action
+        if act == LEAVE:
+            if rule.broadcast:
+                self._broadcast(s, q, j, self._broadcast_bid(s, j, b, act), b)
+            return
         bundle_changed = False
         if act == UPDATE:
             s.set_own(j, b)
