@@ -40,10 +40,10 @@ def test_ci_sweep_2000_schedules_at_7_hosts():
 @pytest.mark.parametrize(
     ("name", "seeds"),
     [
-        ("thesis-accept", (12, 52)),
-        ("cbba-reset", (3, 6)),
-        ("no-unallocatable", (4, 11)),
-        ("ignore-hardware", (2, 24)),
+        ("thesis-accept", (6, 12)),
+        ("cbba-reset", (2, 6)),
+        ("no-unallocatable", (3, 5)),
+        ("ignore-hardware", (9, 27)),
     ],
 )
 def test_the_verifier_catches_each_broken_variant(name, seeds):
@@ -123,14 +123,14 @@ def test_cli_contract_clean_and_broken():
     assert r.stdout.strip().splitlines()[-1] == "verify allocation: 12 schedules, 0 violations", r.stdout + r.stderr
     assert r.returncode == 0
     r = subprocess.run(
-        [str(BIN), "verify", "allocation", "-n", "2", "--seed", "2", "--mutate", "ignore-hardware", "-j", "1"],
+        [str(BIN), "verify", "allocation", "-n", "2", "--seed", "9", "--mutate", "ignore-hardware", "-j", "1"],
         capture_output=True,
         text=True,
     )
     lines = r.stdout.strip().splitlines()
     assert r.returncode == 1 and lines[-1].startswith("verify allocation: 2 schedules, ")
-    assert any(ln.startswith("VIOLATION seed=2 AA-Validity:") for ln in lines)
-    again = "reproduce: haactl verify allocation --seed 2"
+    assert any(ln.startswith("VIOLATION seed=9 AA-Validity:") for ln in lines)
+    again = "reproduce: haactl verify allocation --seed 9"
     assert any(again in ln and "--mutate ignore-hardware" in ln for ln in lines)
 
 

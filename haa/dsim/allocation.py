@@ -159,7 +159,7 @@ def _host_spec(rng: random.Random, name: str) -> HostSpec:
 
 def _agent_spec(rng: random.Random, aid: str, others: list[str], hosts: list[str]) -> AgentSpec:
     hw = frozenset([rng.choice(HARDWARE)]) if rng.random() < 0.2 else frozenset()
-    aff = {o: round(rng.uniform(0.01, 0.4), 3) for o in others if rng.random() < 0.25}
+    aff = {o: round(rng.uniform(0.01, 0.4), 3) for o in others if rng.random() < 0.15}
     cur = rng.choice(hosts) if hosts and rng.random() < 0.6 else None
     return AgentSpec(aid, round(rng.uniform(0.02, 0.7), 3), hw, aff, round(rng.uniform(0.0, 0.6), 3), cur)
 
