@@ -24,13 +24,18 @@ delay model; this module measures the same two quantities — time to allocation
   across the same window, which also holds the transfers' OACs (freeze, release, claim) and anything else
   committed meanwhile, next to the count for the session's two OACs alone, 2 (n^2 + 4n - 6), the formula
   `bench ap1` measured. The agent layer's own counter of bid messages (`AgentNode.counters["sent_alloc"]`)
-  is not exposed in Status, hence the subtraction.
+  is not exposed in Status, hence the subtraction;
+* CPU: the user + system time of all haa-hostd processes from the `Alloc(run)` request until every host has
+  applied the finish (polled through AgentList every 20 ms: the benchmark reads the logs only once the
+  session is over, so that parsing them does not compete with the hosts for the CPU). All hosts share this
+  machine's cores, so with n hosts on 2 cores the session's time is bounded below by that CPU time / 2.
 
 Results go into bench-results/ap3.json under the key "real", next to the simulated results.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -43,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 import grpc
+import psutil
 
 from haa.pb import control_pb2 as cpb
 from haactl.ap4 import BenchCluster
@@ -89,48 +95,64 @@ def _log_events(c: BenchCluster, since: float, names: set[str]) -> list[tuple[st
     return [(x, e) for x, h in c.hosts.items() for e in h.events(since, names)]
 
 
+def _hostd_cpu(c: BenchCluster) -> float:
+    """CPU seconds (user + system) used so far by the haa-hostd processes (not their agents)."""
+    total = 0.0
+    for h in c.hosts.values():
+        if h.proc is not None:
+            with contextlib.suppress(psutil.Error):
+                t = psutil.Process(h.proc.pid).cpu_times()
+                total += t.user + t.system
+    return total
+
+
 def session_sample(c: BenchCluster, n: int) -> dict[str, Any]:
-    """Force one session on the leader and measure it (module docstring)."""
+    """Force one session on the leader and measure it (module docstring). Progress is polled through
+    AgentList (cheap); the logs are read once, after the session."""
     c.wait_quiet()
     leader = c.h1.status().leader or "h1"
+    s0 = c.hosts[leader].client.agent_list().session
     ah0, oac0 = _counters(c)
+    cpu0 = _hostd_cpu(c)
     t0 = time.time()
     c.hosts[leader].client.alloc("run")
     deadline = time.monotonic() + SESSION_TIMEOUT
-    ses = None
-    accepted: dict[str, float] = {}
-    while time.monotonic() < deadline:
-        evs = _log_events(c, t0, {"alloc.propose_start", "allocation_accepted"})
-        starts = sorted((float(e["ts"]), e["fields"]["ses"]) for x, e in evs
-                        if e["event"] == "alloc.propose_start" and x == leader)
-        if starts:
-            ses = starts[0][1]
-            accepted = {x: float(e["ts"]) for x, e in evs
-                        if e["event"] == "allocation_accepted" and e["fields"].get("session") == ses}
-            if len(accepted) == n:
-                break
-        time.sleep(0.05)
-    t_start = next((float(e["ts"]) for x, e in _log_events(c, t0, {"alloc.propose_start"})
-                    if x == leader and e["fields"]["ses"] == ses), math.nan)
-    cons = [(float(e["ts"]), e["fields"]) for x, e in _log_events(c, t0, {"alloc.consensus"})
-            if x == leader and e["fields"]["ses"] == ses]
-    ok = ses is not None and len(accepted) == n
-    with_transfers_settled = True
+    ses = 0
+    done = False
+    while time.monotonic() < deadline and not done:
+        if not ses:
+            cur = c.hosts[leader].client.agent_list().session
+            ses = cur if cur > s0 else 0
+        if ses:
+            done = all(h.client.agent_list().finished_session >= ses for h in c.hosts.values())
+        if not done:
+            time.sleep(0.02)
+    cpu = _hostd_cpu(c) - cpu0
+    settled = True
     try:
         c.wait_quiet(timeout=30.0, settle=0.1)
     except AssertionError:
-        with_transfers_settled = False
+        settled = False
     ah1, oac1 = _counters(c)
-    transfers = len(_log_events(c, t0, {"agent_freezing"}))
+    evs = _log_events(c, t0, {"alloc.propose_start", "alloc.consensus", "allocation_accepted", "agent_freezing"})
+    t_start = next((float(e["ts"]) for x, e in evs
+                    if x == leader and e["event"] == "alloc.propose_start" and e["fields"]["ses"] == ses), math.nan)
+    cons = [(float(e["ts"]), e["fields"]) for x, e in evs
+            if x == leader and e["event"] == "alloc.consensus" and e["fields"]["ses"] == ses]
+    accepted = {x: float(e["ts"]) for x, e in evs
+                if e["event"] == "allocation_accepted" and e["fields"].get("session") == ses}
+    ok = bool(ses) and len(accepted) == n
+    transfers = sum(1 for _x, e in evs if e["event"] == "agent_freezing")
     acks = 2 * (n - 1) * transfers
     return {
         "hosts": n,
         "session": ses,
         "ok": ok,
-        "settled": with_transfers_settled,
+        "settled": settled,
         "request_s": (max(accepted.values()) - t0) if ok else math.nan,
         "consensus_s": (cons[0][0] - t_start) if cons else math.nan,
         "allocated_s": (max(accepted.values()) - t_start) if ok else math.nan,
+        "hostd_cpu_s": cpu if done else math.nan,
         "leader_bid_messages": cons[0][1].get("messages") if cons else None,
         "builds_at_leader": cons[0][1].get("builds") if cons else None,
         "bid_messages": ah1 - ah0 - acks,
@@ -181,6 +203,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                                             if "oac_messages_window" in r),
                 "oac_messages_session": 2 * oac_messages(n),
                 "transfers": _agg(float(r["transfers"]) for r in runs if "transfers" in r),
+                "hostd_cpu_ms": _agg(r.get("hostd_cpu_s", math.nan) * 1e3 for r in runs),
                 "failed": sum(1 for r in runs if not r.get("ok")),
                 "samples": runs,
             }
@@ -234,6 +257,8 @@ def markdown_tables(rows: list[dict[str, Any]]) -> str:
         _table(rows, "oac_messages_window", "mean", ".0f",
                "Real hosts: all OAC messages during the session and the transfers it started (mean ± sd)"),
         _table(rows, "transfers", "mean", ".1f", "Real hosts: transfers the session started (mean ± sd)"),
+        _table(rows, "hostd_cpu_ms", "median", ".0f",
+               "Real hosts: CPU of all haa-hostd processes from Alloc(run) to the last commit, ms (median)"),
     ])
 
 
