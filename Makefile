@@ -38,6 +38,9 @@ verify: setup
 	$(BIN)/haactl verify oac --schedules 2000 --hosts 7
 	$(BIN)/haactl verify membership --schedules 2000 --hosts 7
 	$(BIN)/haactl verify ddb --schedules 2000 --hosts 7
+	$(BIN)/haactl verify allocation --schedules 2000 --hosts 7
+	$(BIN)/haactl verify transfer --schedules 2000 --hosts 7
+	$(BIN)/haactl verify recovery --schedules 2000 --hosts 7
 
 bench: setup
 	$(BIN)/haactl bench ap1

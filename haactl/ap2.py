@@ -56,7 +56,8 @@ class Ap2Run:
         names = [f"h{i}" for i in range(1, max_hosts + 1)]
         ports = {n: free_port() for n in names}
         core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
-        self.hosts = {n: MemberHost(n, ports[n], core, root, self.token) for n in names}
+        # membership only: the agent layer's own transactions would add OAC traffic to what AP-2 measures
+        self.hosts = {n: MemberHost(n, ports[n], core, root, self.token, ["--no-agents"]) for n in names}
         self.log = log
 
     def close(self) -> None:

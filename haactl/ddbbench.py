@@ -46,7 +46,7 @@ def run_ddb_bench(
         names = [f"h{i}" for i in range(1, hosts + 1)]
         ports = {n: free_port() for n in names}
         core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
-        group = [MemberHost(n, ports[n], core, base, token) for n in names]
+        group = [MemberHost(n, ports[n], core, base, token, ["--no-agents"]) for n in names]
         rows: list[dict[str, Any]] = []
         try:
             for h in group:

@@ -362,6 +362,10 @@ class LocalBackend(Backend):
                     out[h.name] = "SIGKILL"
                 else:
                     out[h.name] = "SIGTERM"
+                p = self._procs.get(h.name)
+                if p is not None:  # our own child: reap it (no zombie left behind)
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        p.wait(1)
                 self.state["hosts"][h.name]["stopped_by"] = "down"
             hosts = self.state.get("hosts", {})
             if purge:

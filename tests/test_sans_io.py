@@ -20,6 +20,13 @@ CORE_MODULES = [
     "haa/hostd/globalstate.py",
     "haa/hostd/membership.py",
     "haa/hostd/agenttable.py",
+    "haa/hostd/agentio.py",
+    "haa/hostd/routing.py",
+    "haa/hostd/transfer.py",
+    "haa/hostd/recovery.py",
+    "haa/hostd/agentnode.py",
+    "haa/hostd/allocation.py",
+    "haa/hostd/allocwire.py",
 ]
 FORBIDDEN = {
     "asyncio",
@@ -60,8 +67,8 @@ def _haa_imports(tree: ast.AST) -> list[str]:
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("haa"):
-            if node.module == "haa.pb":
-                out += [f"haa.pb.{a.name}" for a in node.names]
+            if node.module in ("haa.pb", "haa.hostd"):
+                out += [f"{node.module}.{a.name}" for a in node.names]
             else:
                 out.append(node.module)
         elif isinstance(node, ast.Import):

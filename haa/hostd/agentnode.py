@@ -63,6 +63,7 @@ from haa.hostd.allocation import (
     SessionStart,
 )
 from haa.hostd.effects import Log, Send, SetTimer
+from haa.hostd.globalstate import decode_tx
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
 from haa.hostd.messages import AgentHostMsg, Message
 from haa.hostd.oac import DONE
@@ -644,8 +645,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 self.out.append(AgentTimeline(res.agent, res.agent[:8], "removed", self.name))
                 self._maybe_session(self._now, "agent list changed")
         elif k == "start":
-            if res.ok:
-                self._on_start_applied()
+            self._on_start_applied(e.payload)  # expired starts too: their ids are used up (allocation.py)
         elif k == "finish":
             if res.ok:
                 self._on_finish_applied()
@@ -687,6 +687,9 @@ class AgentNode(TransferMixin, RecoveryMixin):
     def _publish_host(self, force: bool = False) -> None:
         want = (self.config.capacity, tuple(sorted(self.config.hardware)), self.draining)
         if not force and self._host_published == want:
+            return
+        if self._host_published is None and want == (1.0, (), False) and self.name not in self.table.hosts:
+            self._host_published = want  # the defaults need no transaction: a host without info is read so
             return
         self._host_published = want
         tx = apb.AgentTx()
@@ -740,6 +743,10 @@ class AgentNode(TransferMixin, RecoveryMixin):
             pol.pause()
         else:
             pol.resume()
+        if not len(self.table) and not force:
+            # nothing to allocate: no session (its OAC(start)/OAC(finish) would only add traffic)
+            self.allocator.on_change(group, (), self._host_specs(), start=False)
+            return
         if why == "periodic":
             due = leader and pol.due(now)
         else:
@@ -797,10 +804,11 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self.allocator.on_finish_decided(ses_id, ok)
         self._alloc_effects()
 
-    def _on_start_applied(self) -> None:
+    def _on_start_applied(self, payload: bytes) -> None:
         try:
-            start = allocwire.decode_start(self.table.last_start)
-        except ValueError as e:
+            tx = decode_tx(payload)
+            start = allocwire.decode_start(at.decode(tx.data).start.data)  # type: ignore[union-attr]
+        except (ValueError, AttributeError) as e:
             self._log("allocation_bad_start", reason=str(e))
             return
         self.allocator.on_start_committed(start, tuple(self._member_names()), self.table.agent_ids())  # l. 38
