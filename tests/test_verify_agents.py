@@ -18,9 +18,10 @@ def test_twenty_schedules_have_no_violation(algorithm):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("algorithm", ["transfer", "recovery"])
-def test_ci_sweep_2000_schedules_at_7_hosts(algorithm):
-    """What CI runs (`make test`): 2,000 schedules of each agent verifier, no violation, liveness included."""
+def test_ci_sweep_2000_schedules_at_5_hosts(algorithm):
+    """What CI runs (`make test`): 2,000 schedules of each agent verifier (groups of 3 to 5 hosts: 0.17 s of
+    CPU per schedule against 0.36 s at up to 7, which `make verify` runs), no violation, liveness included."""
     lines: list[str] = []
-    summary = sweep(algorithm, 2000, 0, 7, report=lines.append)
+    summary = sweep(algorithm, 2000, 0, 5, report=lines.append)
     assert summary.violations == 0, "\n".join(lines[:60])
     assert summary.liveness_checked == 2000
