@@ -6,8 +6,8 @@ agents of the `ballast` type (haa.agents.benchagents) whose state is 111 kB of i
 thesis' average agent state:
 
 * spawn: `AgentSpawn` (through h1, h2, ... in turn) of a new ballast agent; it is removed again after each
-  sample, and each spawn waits 1.2 s after the previous allocation session, so that the leader's rate limit
-  (one session per `min_session_gap` = 1 s) does not add to it. Measured from the request to the host's
+  sample, and each spawn waits until no allocation session has started for 1.2 s, so that the leader's rate
+  limit (one session per `min_session_gap` = 1 s) does not add to it. Measured from the request to the host's
   timeline event "active" (the agent was allocated in a session, its process forked and told to start),
   and to the agent's own ready stamp (`bench/ready/<id>`, written by the agent when `on_start` runs).
   Breakdown: request -> "created" (the OAC(create) applied), -> "spawning" (the session's allocation applied
@@ -16,8 +16,9 @@ thesis' average agent state:
   old host's "frozen" event (OAC(release) with the 111 kB state applied: the thesis' "agent submitting its
   frozen state to the DDB"); transfer = request -> the new host's "thawed" event (the shell got the state
   and the queued messages), and -> B's ready stamp (`on_resume("thaw")` ran in the new process).
-  Throughout, a `pinger` agent on h1 sends B the request b"ping" every 5 ms; `unreachable` is the longest
-  gap between two consecutive replies around the action, `max_rtt` the longest round trip.
+  First `reps` transfers with no traffic ("transfer_idle"), then `reps` while a `pinger` agent on h1 sends
+  B the request b"ping" every 5 ms (as for the crashes below); `unreachable` is the longest gap between two
+  consecutive replies around the action, `max_rtt` the longest round trip.
 * agent crash: `AgentKill` (SIGKILL of B's process) on B's owner. detection = kill -> the owner's first
   "crashed" event (the supervisor saw the process die); recovery (after detection, as the thesis reports
   it: "does not include the time taken to detect an agent failure") = first "crashed" -> "recovered" (the
@@ -26,7 +27,11 @@ thesis' average agent state:
   calls; B is moved off h1 first when needed). removal = kill -> the first survivor's view without it
   (from the hosts' JSON-lines logs); recovery after removal = that view -> "recovered" (this includes the
   allocation session that the membership change starts); total = kill -> "recovered". The host is then
-  restarted (a new incarnation joins again) before the next sample.
+  restarted (a new incarnation joins again) before the next sample. Only for n >= 3: a group of two blocks
+  for ever if a transaction is in flight when one of its two hosts crashes (the OAC tolerates f < n/2,
+  docs/oac.md, docs/membership.md "fault gate"), and with agents running one often is.
+
+docs/bench-agents.md has the choices where the thesis is vague, the results and what the time is spent on.
 
 Clocks: every timestamp is unix time taken on this one machine (the timeline events' `time`, the log
 lines' `ts`, the agents' stamps, the benchmark's own `time.time()` before each request), so differences
