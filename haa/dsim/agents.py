@@ -279,8 +279,8 @@ class AgentSim(GroupSim):
         if t is SpawnShell:
             def spawn() -> None:
                 old = insts.get(c.agent)
-                if old is not None and old.epoch == c.epoch and old.running:
-                    return
+                if old is not None:  # a shell left over (killed meanwhile, or never started): replaced
+                    self._end(old)
                 insts[c.agent] = SimAgent(c.agent, c.epoch, proc)
                 self._event(h, ShellReady(c.agent, c.epoch))
             self._later(h, SPAWN_DELAY, spawn, "c:" + c.agent)

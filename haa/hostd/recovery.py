@@ -130,9 +130,11 @@ class RecoveryMixin:
             for m in self.orphans.pop(res.agent, []):
                 self._route(m)
             return
-        if loc is None or loc.phase != "recovering" or loc.epoch != r.epoch:
+        if loc is None or loc.phase != "recovering":
             self._report_failed(r.id, r.epoch, "recovered without a shell")
             return
+        if loc.epoch != r.epoch:  # committed after other recoveries raised the epoch: a shell for this one
+            self._reshell(loc, r)
         loc.claimed = True
         loc.life = r.life
         loc.outbox = Outbox()

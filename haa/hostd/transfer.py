@@ -171,10 +171,14 @@ class TransferMixin:
             # l. 15: route to the new host (`_route` reads the table: active, owner q)
             self._send_agent_host(res.host, "claim_ack", res.agent, r.epoch, b"")
             return
-        if loc is None or loc.phase != "claiming" or loc.epoch != r.epoch:
+        if loc is None or loc.phase != "claiming":
             # we claimed but no longer hold the shell (should not happen): release the claim as a failure
             self._report_failed(r.id, r.epoch, "claimed without a shell")
             return
+        if loc.epoch != r.epoch:
+            # the claim was proposed long ago and committed after other claims raised the epoch (the agent came
+            # back to us): the shell was spawned for the epoch we expected then; start one for the real one
+            self._reshell(loc, r)
         loc.phase = "thawing"
         loc.state = r.state
         loc.inbox = Inbox(r.inbox)
@@ -211,6 +215,13 @@ class TransferMixin:
         loc.state = None
         self._timeline(loc.id, "thawed", f"{len(msgs)} queued messages")
         self._reconcile_one(loc.id)
+
+    def _reshell(self: AgentNode, loc: Local, r: at.AgentRecord) -> None:
+        """Replace a shell spawned for a stale epoch by one for the agent's current epoch."""
+        self._cmd(KillAgent(loc.id, loc.epoch, f"stale shell (epoch {loc.epoch}, now {r.epoch})"))
+        loc.epoch = r.epoch
+        loc.ready = False
+        self._cmd(SpawnShell(r.id, loc.epoch, r.type, r.name, r.spec.config, r.parent))
 
     def _abandon(self: AgentNode, loc: Local, why: str) -> None:
         self.local.pop(loc.id, None)
