@@ -78,17 +78,28 @@ def _counters(c: BenchCluster) -> tuple[int, int]:
 
 
 def spawn_idle(c: BenchCluster, rng: random.Random, n_hosts: int, via: str) -> str:
-    """One idle agent with a seeded declared cost and transfer penalty (module docstring)."""
+    """One idle agent with a seeded declared cost and transfer penalty (module docstring). A host that is not a
+    member right now (removed after a false suspicion under load, rejoining) refuses: wait for the group and
+    ask h1 instead."""
     cost = rng.uniform(0.5, 1.5) * 0.6 * n_hosts / max(AGENTS)
     req = cpb.AgentSpawnRequest(
         type="ballast", config=json.dumps({"state_bytes": 0, "backup": False}).encode(),
         cost=round(cost, 4), transfer_penalty=round(rng.uniform(0.0, 0.5), 3),
     )
-    client = c.hosts[via].client
-    r = client._stub.AgentSpawn(req, metadata=client._md, timeout=15.0)
-    if not r.ok:
-        raise RuntimeError(f"spawn failed: {r.reason}")
-    return str(r.id)
+    reason = ""
+    for _attempt in range(5):
+        client = c.hosts[via].client
+        try:
+            r = client._stub.AgentSpawn(req, metadata=client._md, timeout=15.0)
+        except grpc.RpcError as e:
+            reason = f"{e.code().name}: {e.details()}"
+        else:
+            if r.ok:
+                return str(r.id)
+            reason = r.reason
+        c.wait_group(timeout=120.0)
+        via = "h1"
+    raise RuntimeError(f"spawn failed 5 times: {reason}")
 
 
 def _log_events(c: BenchCluster, since: float, names: set[str]) -> list[tuple[str, dict[str, Any]]]:
@@ -110,7 +121,8 @@ def session_sample(c: BenchCluster, n: int) -> dict[str, Any]:
     """Force one session on the leader and measure it (module docstring). Progress is polled through
     AgentList (cheap); the logs are read once, after the session."""
     c.wait_quiet()
-    leader = c.h1.status().leader or "h1"
+    st = c.h1.status()
+    leader, view0 = st.leader or "h1", st.view
     s0 = c.hosts[leader].client.agent_list().session
     ah0, oac0 = _counters(c)
     cpu0 = _hostd_cpu(c)
@@ -149,6 +161,7 @@ def session_sample(c: BenchCluster, n: int) -> dict[str, Any]:
         "session": ses,
         "ok": ok,
         "settled": settled,
+        "view_changed": c.h1.status().view != view0,
         "request_s": (max(accepted.values()) - t0) if ok else math.nan,
         "consensus_s": (cons[0][0] - t_start) if cons else math.nan,
         "allocated_s": (max(accepted.values()) - t_start) if ok else math.nan,
@@ -180,12 +193,17 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
         c.wait_quiet()
         have = 0
         for a in sorted(agents):
-            while have < a:
-                spawn_idle(c, rng, n, c.names[have % n])
-                have += 1
-            wait_for(lambda a=a: sum(1 for x in c.agents().values() if x.status == "active") == a, 120,
-                     f"{a} active agents")
-            c.wait_quiet(timeout=120.0)
+            try:
+                while have < a:
+                    spawn_idle(c, rng, n, c.names[have % n])
+                    have += 1
+                wait_for(lambda a=a: sum(1 for x in c.agents().values() if x.status == "active") == a, 120,
+                         f"{a} active agents")
+                c.wait_quiet(timeout=120.0)
+            except (grpc.RpcError, AssertionError, RuntimeError) as e:
+                log(f"n={n} agents={a}: could not set the level up, stopping this group size: {e}")
+                rows.append({"hosts": n, "agents": a, "reps": reps, "error": str(e)[:500]})
+                break
             runs = []
             for _ in range(reps):
                 try:
@@ -195,6 +213,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                     runs.append({"ok": False})
             row = {
                 "hosts": n, "agents": a, "reps": reps, "load_avg_1min": os.getloadavg()[0],
+                "view_changes": sum(1 for r in runs if r.get("view_changed")),
                 "consensus_ms": _agg(r.get("consensus_s", math.nan) * 1e3 for r in runs),
                 "allocated_ms": _agg(r.get("allocated_s", math.nan) * 1e3 for r in runs),
                 "request_ms": _agg(r.get("request_s", math.nan) * 1e3 for r in runs),
@@ -227,7 +246,7 @@ def run_ap3_real(hosts: Iterable[int] = HOSTS, agents: Iterable[int] = AGENTS, r
 def _table(rows: list[dict[str, Any]], key: str, stat: str, fmt: str, title: str) -> str:
     hosts = sorted({r["hosts"] for r in rows})
     agents = sorted({r["agents"] for r in rows})
-    cell = {(r["hosts"], r["agents"]): r[key] for r in rows}
+    cell = {(r["hosts"], r["agents"]): r[key] for r in rows if key in r}
     out = [f"### {title}\n", "| hosts \\ agents | " + " | ".join(str(a) for a in agents) + " |",
            "|---" * (len(agents) + 1) + "|"]
     for h in hosts:

@@ -526,7 +526,11 @@ def run_ap4(hosts: Iterable[int] = HOSTS, reps: int = 10, root: Path | None = No
         if root is None:
             root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="haa-ap4-")))
         for n in hosts:
-            rows.append(run_one(n, reps, root / f"n{n}", state_bytes, period, host_crash, log))
+            try:
+                rows.append(run_one(n, reps, root / f"n{n}", state_bytes, period, host_crash, log))
+            except (grpc.RpcError, AssertionError, RuntimeError) as e:  # a broken group: the next size goes on
+                log(f"n={n}: stopped: {e}")
+                rows.append({"hosts": n, "reps": reps, "error": str(e)[:500], "summary": {}, "samples": {}})
     return rows
 
 
