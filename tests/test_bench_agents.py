@@ -92,6 +92,7 @@ def test_bench_ap4_smoke_two_hosts(tmp_path) -> None:
     rows = run_ap4((2,), reps=2, root=tmp_path, log=lambda _s: None)
     assert len(rows) == 1
     r = json.loads(json.dumps(rows[0]))
+    assert "error" not in r, r.get("error")
     assert r["hosts"] == 2 and r["reps"] == 2 and r["state_bytes"] == 111_000
     # a group of two cannot survive a host crash with an OAC in flight: skipped, with the reason
     assert r["host_crash_skipped"] and r["samples"]["host_crash"] == []
@@ -122,6 +123,7 @@ def test_bench_ap3_real_smoke_two_hosts(tmp_path) -> None:
     rows = run_ap3_real((2,), (5,), reps=2, root=tmp_path, log=lambda _s: None)
     assert len(rows) == 1
     r = json.loads(json.dumps(rows[0]))
+    assert "error" not in r, r.get("error")
     assert (r["hosts"], r["agents"], r["reps"], r["failed"]) == (2, 5, 2, 0)
     assert r["consensus_ms"]["n"] == 2 and r["allocated_ms"]["n"] == 2
     for s in r["samples"]:
