@@ -366,6 +366,10 @@ class LocalBackend(Backend):
                 if p is not None:  # our own child: reap it (no zombie left behind)
                     with contextlib.suppress(subprocess.TimeoutExpired):
                         p.wait(1)
+                pid = self.state["hosts"][h.name].get("pid")
+                if pid:  # started by this process through another backend object: reap it too
+                    with contextlib.suppress(ChildProcessError, OSError):
+                        os.waitpid(int(pid), os.WNOHANG)
                 self.state["hosts"][h.name]["stopped_by"] = "down"
             hosts = self.state.get("hosts", {})
             if purge:
