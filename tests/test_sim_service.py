@@ -211,13 +211,27 @@ def test_schedule_join_crash_retire_and_attach(tmp_path: Path) -> None:
             events = c.events(replay=True)
             assert {next(events).avatar_id for _ in range(2)} == {"s1", "s2"}
             sonar = c.sonar("s2")
+            got: list[float] = []
+            ended: list[grpc.RpcError] = []
+
+            def read_sonar() -> None:
+                try:
+                    for reading in sonar:
+                        got.append(reading.time)
+                except grpc.RpcError as err:
+                    ended.append(err)
+
+            reader = threading.Thread(target=read_sonar, daemon=True)
+            reader.start()
+            # the stream is served once its first message is asked for: give the server time to subscribe it
+            # before the clock moves (under load the call can reach the server after a step)
+            time.sleep(1.0)
             c.step(3.0)
             seen = [(e.kind, e.avatar_id, round(e.time, 3)) for e in (next(events) for _ in range(3))]
             assert seen == [("crashed", "s2", 1.5), ("retired", "s1", 2.0), ("joined", "s3", 2.5)]
-            assert next(sonar).time == pytest.approx(1.0)
-            with pytest.raises(grpc.RpcError) as e:
-                next(sonar)
-            assert e.value.code() == grpc.StatusCode.UNAVAILABLE and "crashed" in e.value.details()
+            reader.join(10)
+            assert got == [pytest.approx(1.0)]
+            assert ended and ended[0].code() == grpc.StatusCode.UNAVAILABLE and "crashed" in ended[0].details()
             with pytest.raises(grpc.RpcError) as e:
                 c.capture("s2")
             assert e.value.code() == grpc.StatusCode.UNAVAILABLE
