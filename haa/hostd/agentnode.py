@@ -150,6 +150,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self._drain_deadline = 0.0
         self._left_group = False
         self.backups_proposed = 0
+        #: (agent, epoch) whose OAC(failed) this host has proposed and not yet seen decided
+        self.failed_reported: set[tuple[str, int]] = set()
         self._starts: dict[int, SessionStart] = {}
         self._retries: list[tuple[Any, str, int]] = []
         self._retry_armed = False

@@ -73,12 +73,16 @@ class RecoveryMixin:
                 self._route(m)
 
     def _report_failed(self: AgentNode, agent: str, epoch: int, reason: str) -> None:
+        if (agent, epoch) in self.failed_reported:
+            return  # already in OAC (every applied transaction re-checks the table: report once)
+        self.failed_reported.add((agent, epoch))
         tx = apb.AgentTx()
         f = tx.failed
         f.id, f.host, f.epoch, f.reason = agent, self.name, epoch, reason[:200]
         self._propose(tx, ("failed", agent, epoch))
 
     def _on_failed_done(self: AgentNode, agent: str, epoch: int, ok: bool) -> None:
+        self.failed_reported.discard((agent, epoch))
         r = self.table.get(agent)
         if not ok and r is not None and r.owner == self.name and r.epoch == epoch and agent not in self.local:
             self._report_failed(agent, epoch, "retry")
