@@ -517,6 +517,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
             n = self._propose(tx, ("push", agent, 0))
             self._push_reqs[n] = (agent, part)
 
+    def _routed(self, data: bytes) -> apb.RoutedMsg | None:
+        """A RoutedMsg from a peer's bytes; malformed bytes are counted, never fatal."""
+        m = apb.RoutedMsg()
+        try:
+            m.ParseFromString(data)
+        except DecodeError:
+            self.counters["malformed_agent_msg"] += 1
+            return None
+        return m
+
     def _on_host_msg(self, src: str, src_inc: int, msg: Message) -> None:
         """An `AgentHostMsg` from another host (the core checked the sender's incarnation)."""
         if not isinstance(msg, AgentHostMsg):
@@ -526,11 +536,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
             return
         k = msg.kind
         if k == "msg":
-            m = apb.RoutedMsg()
-            try:
-                m.ParseFromString(msg.data)
-            except DecodeError:  # malformed bytes from a peer: counted, never fatal
-                self.counters["malformed_agent_msg"] += 1
+            m = self._routed(msg.data)
+            if m is None:
                 return
             self.counters["routed_in"] += 1
             self._route(m)
@@ -549,13 +556,9 @@ class AgentNode(TransferMixin, RecoveryMixin):
         elif k == "alloc_run":
             self.run_allocation(self._now)
         elif k == "op_reply":
-            m = apb.RoutedMsg()
-            try:
-                m.ParseFromString(msg.data)
-            except DecodeError:
-                self.counters["malformed_agent_msg"] += 1
-                return
-            self.out.append(OperatorReply(m.conv, m.payload, m.error))
+            m = self._routed(msg.data)
+            if m is not None:
+                self.out.append(OperatorReply(m.conv, m.payload, m.error))
 
     # ------------------------------------------------------------------ drain: membership effects + ours
 
@@ -760,9 +763,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
         else:
             due = pol.changed(now) if leader else False
         if force and leader and not due:
-            pol.pending = True
-            pol.last_start = -1e18
-            due = pol.due(now)
+            pol.force(now)
+            due = True
         self.allocator.committed_ses = max(self.allocator.committed_ses, self.table.ses_id)
         self.allocator.on_change(group, self._agent_specs(), self._host_specs(), start=due)
         if due:

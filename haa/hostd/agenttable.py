@@ -209,7 +209,6 @@ class AgentTable:
         self.hosts: dict[str, apb.HostInfo] = {}
         self.paused = False
         self.affinity: dict[tuple[str, str], float] = {}
-        self.last_start = b""
         self.start_group: tuple[str, ...] = ()
         self.start_agents: tuple[str, ...] = ()
         self._members: tuple[str, ...] = ()
@@ -256,7 +255,6 @@ class AgentTable:
             h.update(f"{k[0]}:{k[1]}={self.affinity[k]!r}|".encode())
         for agent in sorted(self.records):
             h.update(self.records[agent].to_pb().SerializeToString(deterministic=True))
-        h.update(self.last_start)
         h.update(("|".join(self.start_group) + "/" + "|".join(self.start_agents)).encode())
         return h.hexdigest()
 
@@ -318,7 +316,6 @@ class AgentTable:
         self.ses_id = max(self.ses_id, s.ses_id)
         if why:
             return AgentApplied("start", "", False, why, s.leader)
-        self.last_start = s.data
         self.valid_ses = s.ses_id
         self.start_group = tuple(s.group)
         self.start_agents = tuple(s.agents)
@@ -506,7 +503,6 @@ class AgentTable:
             finished_ses=self.finished_ses,
             top=self.top,
             paused=self.paused,
-            last_start=self.last_start,
             start_group=self.start_group,
             start_agents=self.start_agents,
             valid_ses=self.valid_ses,
@@ -527,13 +523,7 @@ class AgentTable:
         except DecodeError as e:
             raise AgentTxError(f"agent table snapshot does not decode: {e}") from None
         t = AgentTable()
-        t.ses_id, t.finished_ses, t.top, t.paused, t.last_start = (
-            s.ses_id,
-            s.finished_ses,
-            s.top,
-            s.paused,
-            s.last_start,
-        )
+        t.ses_id, t.finished_ses, t.top, t.paused = s.ses_id, s.finished_ses, s.top, s.paused
         t.start_group, t.start_agents, t.valid_ses = tuple(s.start_group), tuple(s.start_agents), s.valid_ses
         for r in s.records:
             t.records[r.spec.id] = AgentRecord.from_pb(r)

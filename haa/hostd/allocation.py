@@ -1205,6 +1205,13 @@ class RebalancePolicy:
     def finished(self, now: float) -> None:
         self.running = False
 
+    def force(self, now: float) -> None:
+        """An operator asks for a session now: start one whatever the rate limit (counted like any start)."""
+        self.pending = False
+        self.running = True
+        self.last_start = now
+        self.starts += 1
+
     def deadline(self) -> float | None:
         if self.pending:
             return self.last_start + self.min_interval

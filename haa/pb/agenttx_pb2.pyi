@@ -322,7 +322,7 @@ class AgentRecordPb(_message.Message):
     def __init__(self, spec: _Optional[_Union[AgentCreate, _Mapping]] = ..., name: _Optional[str] = ..., children: _Optional[int] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., state: _Optional[bytes] = ..., has_state: _Optional[bool] = ..., backup: _Optional[bytes] = ..., has_backup: _Optional[bool] = ..., backup_epoch: _Optional[int] = ..., queue1: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., queue2: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., inbox: _Optional[_Iterable[_Union[StreamPos, _Mapping]]] = ..., outbox: _Optional[_Iterable[_Union[SendPos, _Mapping]]] = ..., pending: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., cpu: _Optional[float] = ..., dropped: _Optional[int] = ..., since: _Optional[float] = ...) -> None: ...
 
 class AgentTableSnapshot(_message.Message):
-    __slots__ = ("records", "ses_id", "finished_ses", "top", "hosts", "paused", "affinity", "last_start", "start_group", "start_agents", "valid_ses")
+    __slots__ = ("records", "ses_id", "finished_ses", "top", "hosts", "paused", "affinity", "start_group", "start_agents", "valid_ses")
     RECORDS_FIELD_NUMBER: _ClassVar[int]
     SES_ID_FIELD_NUMBER: _ClassVar[int]
     FINISHED_SES_FIELD_NUMBER: _ClassVar[int]
@@ -330,7 +330,6 @@ class AgentTableSnapshot(_message.Message):
     HOSTS_FIELD_NUMBER: _ClassVar[int]
     PAUSED_FIELD_NUMBER: _ClassVar[int]
     AFFINITY_FIELD_NUMBER: _ClassVar[int]
-    LAST_START_FIELD_NUMBER: _ClassVar[int]
     START_GROUP_FIELD_NUMBER: _ClassVar[int]
     START_AGENTS_FIELD_NUMBER: _ClassVar[int]
     VALID_SES_FIELD_NUMBER: _ClassVar[int]
@@ -341,8 +340,7 @@ class AgentTableSnapshot(_message.Message):
     hosts: _containers.RepeatedCompositeFieldContainer[HostInfo]
     paused: bool
     affinity: _containers.RepeatedCompositeFieldContainer[Affinity]
-    last_start: bytes
     start_group: _containers.RepeatedScalarFieldContainer[str]
     start_agents: _containers.RepeatedScalarFieldContainer[str]
     valid_ses: int
-    def __init__(self, records: _Optional[_Iterable[_Union[AgentRecordPb, _Mapping]]] = ..., ses_id: _Optional[int] = ..., finished_ses: _Optional[int] = ..., top: _Optional[int] = ..., hosts: _Optional[_Iterable[_Union[HostInfo, _Mapping]]] = ..., paused: _Optional[bool] = ..., affinity: _Optional[_Iterable[_Union[Affinity, _Mapping]]] = ..., last_start: _Optional[bytes] = ..., start_group: _Optional[_Iterable[str]] = ..., start_agents: _Optional[_Iterable[str]] = ..., valid_ses: _Optional[int] = ...) -> None: ...
+    def __init__(self, records: _Optional[_Iterable[_Union[AgentRecordPb, _Mapping]]] = ..., ses_id: _Optional[int] = ..., finished_ses: _Optional[int] = ..., top: _Optional[int] = ..., hosts: _Optional[_Iterable[_Union[HostInfo, _Mapping]]] = ..., paused: _Optional[bool] = ..., affinity: _Optional[_Iterable[_Union[Affinity, _Mapping]]] = ..., start_group: _Optional[_Iterable[str]] = ..., start_agents: _Optional[_Iterable[str]] = ..., valid_ses: _Optional[int] = ...) -> None: ...
