@@ -2,13 +2,15 @@
 
 import pytest
 
+from haa.dsim import mutations
+from haa.dsim.cluster import CRASHED
 from haa.dsim.group import GroupScenario, GroupSim, check_group, draw_group, run_group
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
 from haa.hostd import ddb
-from haa.hostd.globalstate import GlobalState, TxDdb, TxMembership, TxRemove, decode_tx, encode_tx
+from haa.hostd.globalstate import GlobalState, TxDdb, TxFormation, TxMembership, TxRemove, decode_tx, encode_tx
 from haa.hostd.membership import MembershipNode, NodeConfig
-from haa.hostd.messages import Member, TxId
+from haa.hostd.messages import Excluded, Member, TxId
 
 SAFETY = {
     "HM-Agreement",
@@ -84,6 +86,77 @@ def test_voluntary_leave_and_a_restarted_host_rejoins_with_the_same_state():
     assert len({st["state_hash"] for st in final.values()}) == 1
 
 
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_every_member_leaving_at_once_dissolves_the_group(n):
+    """`haactl cluster down`: SIGTERM to every host at once. The leader's new member list is empty; before
+    HAA let a group dissolve, that transaction did not decode, was applied as a no-op and every member
+    stayed locked until it was killed."""
+    names = [f"h{i + 1}" for i in range(n)]
+    sim = GroupSim(_scenario(n=n, core=min(3, n), leaves=[(2.0 + 0.001 * i, nm) for i, nm in enumerate(names)]))
+    sim.run()
+    assert check_group(sim) == []
+    assert sim.quiescent
+    assert set(sim.gh.left) == {(nm, 1) for nm in names}
+    assert _final(sim) == {}
+    last = {p: vs[-1][2] for p, vs in sim.gh.views.items()}
+    assert len(last) == n and all(m == () for m in last.values())  # one last view, empty, everywhere
+
+
+def test_without_dissolution_the_checker_sees_the_group_stay_locked():
+    undo = mutations.apply("no-dissolution")
+    try:
+        sim = GroupSim(_scenario(n=3, leaves=[(2.0, "h1"), (2.0, "h2"), (2.0, "h3")]))
+        sim.run()
+    finally:
+        undo()
+    assert not sim.quiescent and sim.gh.left == {}
+    assert "HM-Termination" in {v.prop for v in check_group(sim)}
+
+
+def test_a_leaving_applicant_withdraws_its_application():
+    """h4 applies late and leaves while h1 sponsors it: every host drops it from its join list within
+    milliseconds (Alg. 3 keeps it there until its failure is detected, and an update meanwhile can accept a
+    host that is gone: a leader left alone then proposes a group with it, which Alg. 2 cannot decide)."""
+    sc = _scenario(starts={"h1": 0.0, "h2": 0.01, "h3": 0.02, "h4": 2.0, "h5": 0.04})
+    sim = GroupSim(sc)
+    seen: dict[str, set[str]] = {}
+
+    def applicants(label):
+        seen[label] = {h.name for h in sim.cl.by_idx if h.core is not None and ("h4", 1) in h.core.join_list}
+
+    sim.cl.at(2.0035, lambda: applicants("before"))
+    sim.cl.at(2.0036, lambda: sim._leave("h4"))
+    sim.cl.at(2.03, lambda: applicants("after"))
+    sim.run()
+    assert check_group(sim) == []
+    assert "h1" in seen["before"]  # h1 sponsors it
+    assert seen["after"] == set()
+    assert ("h4", 1) in sim.gh.left
+    assert sorted(_final(sim)["h1"]["members"]) == ["h1", "h2", "h3", "h5"]
+
+
+def test_a_leaving_member_that_is_excluded_has_left():
+    """Excluded (permanently suspected) by a peer before its own leave committed, a leaving host is out of
+    the group all the same: `Left`, not a new incarnation that would re-apply (seen when a whole group left
+    at once and its last two members suspected each other)."""
+    sim = GroupSim(_scenario(n=3))
+    got: list = []
+
+    def leave_then_excluded():
+        h = sim.cl.hosts["h3"]
+        node = h.core
+        now = h.local(sim.cl.now)
+        node.leave(now)
+        node.on_message(now, "h1", 1, h.inc, Excluded(h.inc))
+        got.extend(type(e).__name__ for e in node.drain())
+        h.state = CRASHED  # the simulator stops it here (its effects were taken)
+        h.core = None
+
+    sim.cl.at(2.0, leave_then_excluded)
+    sim.run()
+    assert "Left" in got and "Reincarnate" not in got
+
+
 def test_first_core_process_down_at_start_the_core_head_forms_the_group_by_fallback():
     sim = GroupSim(_scenario(faults=[Fault(0.0, "crash", "h1")]))
     sim.run()
@@ -133,6 +206,10 @@ def test_group_transactions_round_trip_and_reject_garbage():
         decode_tx(b"\xff\xff\xff")
     with pytest.raises(ValueError):
         decode_tx(encode_tx(TxMembership("", ("h1", 3), (Member("h1", 3, "a"), Member("h1", 4, "b")))))
+    empty = TxMembership("k", ("h1", 3), ())  # the group dissolves (every member leaves)
+    assert decode_tx(encode_tx(empty)) == empty
+    with pytest.raises(ValueError, match="empty member list"):
+        decode_tx(encode_tx(TxFormation(("h1", 3), ())))
 
 
 def test_global_state_snapshot_restores_and_continues_identically():

@@ -91,7 +91,7 @@ class AgentScenario:
 def draw_agents(seed: int, hosts: int = 7, mix: str = "transfer") -> AgentScenario:
     if mix not in MIXES:
         raise ValueError(f"unknown mix {mix!r}; choose from {MIXES}")
-    g = draw_group(seed, hosts, "membership")
+    g = draw_group(seed, hosts, "membership", dissolve=False)
     rng = random.Random(seed * 104729 + 17)
     g.writes = []  # the agents are the workload
     if mix == "transfer":

@@ -91,6 +91,9 @@ class GroupScenario:
     faults: list[Fault] = field(default_factory=list)
     writes: list[tuple[float, str]] = field(default_factory=list)  # (time, host)
     leaves: list[tuple[float, str]] = field(default_factory=list)
+    #: once the healed group is quiet, every running host asks to leave within 50 ms (the group dissolves, as
+    #: in `haactl cluster down`)
+    dissolve: bool = False
     fault_end: float = 4.0
     deadline: float = 40.0
     workload: str = "membership"  # or "ddb": many more writes, in batches
@@ -104,6 +107,8 @@ class GroupScenario:
         ]
         out += [f.describe() for f in self.faults]
         out += [f"t={t:.3f} leave {h}" for t, h in self.leaves]
+        if self.dissolve:
+            out.append("once the group is quiet, every running host leaves (dissolution)")
         out.append(f"{len(self.writes)} writes ({self.workload} workload, up to {self.batch_max} ops per batch)")
         return out
 
@@ -111,7 +116,11 @@ class GroupScenario:
 WORKLOADS = ("membership", "ddb")
 
 
-def draw_group(seed: int, hosts: int = 7, workload: str = "membership") -> GroupScenario:
+#: share of the membership and DDB schedules that end with the whole group leaving (`GroupScenario.dissolve`)
+DISSOLVE_SHARE = 0.1
+
+
+def draw_group(seed: int, hosts: int = 7, workload: str = "membership", dissolve: bool = True) -> GroupScenario:
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; choose from {WORKLOADS}")
     rng = random.Random(seed)
@@ -188,6 +197,9 @@ def draw_group(seed: int, hosts: int = 7, workload: str = "membership") -> Group
     for _ in range(n_writes):
         sc.writes.append((rng.uniform(0.5, sc.fault_end), rng.choice(names)))
     sc.faults.sort(key=lambda f: f.time)
+    # one schedule in DISSOLVE_SHARE ends with every host leaving at once. Drawn from a generator of its own
+    # so that the rest of every seed's schedule stays what it was before this was added.
+    sc.dissolve = dissolve and random.Random(seed * 7907 + 23).random() < DISSOLVE_SHARE
     return sc
 
 
@@ -239,6 +251,9 @@ class GroupSim:
         self.rreq = random.Random(sc.seed * 31 + 7)
         self.trouble: dict[Proc, float] = {}  # process -> until when it counts as failed for `_safe`
         self.quiescent = False
+        self.restart_due = 0.0  # the latest restart scheduled so far
+        self.dissolved = False
+        self.before_dissolution: list[GroupViolation] = []
         for h in self.cl.by_idx:
             h.state = CRASHED  # not started yet
 
@@ -276,8 +291,7 @@ class GroupSim:
             self.known[h.name] = {m.name: m.addr for m in e.members}
         if t is AppliedTx:
             st = h.core.state  # type: ignore[union-attr]
-            front = st.members[0].proc if st.members else None
-            gh.applied[proc].append((e.seq, e.txid, e.state_hash, st.genesis, front, st.view))
+            gh.applied[proc].append((e.seq, e.txid, e.state_hash, st.genesis, e.front, e.view))
             if e.kind in ("remove", "membership"):
                 gh.group_txs[proc].append((st.genesis, e.seq, e.txid, decode_tx(e.payload)))
         elif t is ViewChange:
@@ -378,7 +392,14 @@ class GroupSim:
             if self._quiet() and self._activity() == before:
                 quiet_for += QUIET_STEP
                 if quiet_for >= QUIET_FOR:
-                    break
+                    if not sc.dissolve or self.dissolved:
+                        break
+                    if cl.now >= self.restart_due:  # a host restarted after its group is gone re-applies forever
+                        # the checks of the settled group, before it is gone (`check_group` adds them)
+                        self.quiescent = True
+                        self.before_dissolution = _check(self)
+                        self._dissolve()
+                        quiet_for = 0.0
             else:
                 quiet_for = 0.0
         self.quiescent = quiet_for >= QUIET_FOR
@@ -453,7 +474,21 @@ class GroupSim:
             self.gh.mid_commit.append((f.host, h.inc))
             self._write(f.host)
         if restart_after is not None:
+            self.restart_due = max(self.restart_due, self.cl.now + restart_after)
             self.cl.at(self.cl.now + restart_after, lambda: self._restart(f.host))
+
+    def _dissolve(self) -> None:
+        """Every host leaves within 50 ms (`GroupScenario.dissolve`).
+
+        Only a quiet group is dissolved, once no restart is due (by design, a host restarted after its group
+        is gone re-applies to it forever). Leaving all at once in the middle of membership changes can block:
+        a leader left alone that accepts an applicant whose incarnation has meanwhile ended proposes an OAC
+        to the two of them, which Alg. 2 cannot decide with one of two participants gone (docs/membership.md,
+        "dissolution")."""
+        self.dissolved = True
+        rd = random.Random(self.sc.seed * 7907 + 29)
+        for nm in self.sc.names:
+            self.cl.at(self.cl.now + rd.uniform(0.0, 0.05), lambda nm=nm: self._leave(nm))
 
     def _pause(self, f: Fault) -> None:
         cl = self.cl
@@ -528,6 +563,8 @@ def _p(p: Proc | None) -> str:
 def check_group(sim: GroupSim, props: frozenset[str] | None = None) -> list[GroupViolation]:
     """Check a finished run (see the module docstring); `props` keeps only those properties."""
     out = _check(sim)
+    seen = {(v.prop, v.detail) for v in out}
+    out += [v for v in sim.before_dissolution if (v.prop, v.detail) not in seen]
     if props is not None:
         out = [v for v in out if v.prop in props]
     return out
@@ -657,6 +694,10 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
         return out
     # after healing and quiescence
     live = [h for h in cl.by_idx if h.state == ALIVE and isinstance(h.core, MembershipNode)]
+    for p, t in sorted(gh.leave_requested.items()):  # HM-Non-Triviality-Leave, also when nobody stays
+        h = cl.hosts[p[0]]
+        if p not in gh.left and (h.name, h.inc) == p and h.state == ALIVE:
+            bad("HM-Non-Triviality-Leave", f"{_p(p)} asked to leave at {t:.3f} and is still running", p)
     if not live:
         return out
     if not gh.correct_groups:

@@ -32,6 +32,9 @@ Host membership (Alg. 3) and the DDB, checked by `haactl verify membership|ddb` 
 * `reorder-restored` a replica restored from a snapshot (every joiner's) applies the ops of a batch in an
                      order of its own (reversed), as an iteration over a set might: replicas are no longer
                      identical by construction. Breaks DDB-Prefix.
+* `no-dissolution`   a membership transaction with an empty member list does not decode (as before HAA let
+                     a group dissolve): when every member leaves at once it is applied as a no-op and every
+                     member stays locked. Breaks HM-Termination.
 
 Agent allocation (Alg. 4), checked by `haactl verify allocation` (`haa.dsim.allocation`):
 
@@ -57,6 +60,7 @@ from google.protobuf.message import DecodeError
 from haa.dsim import group as group_mod
 from haa.hostd import allocation as alloc_mod
 from haa.hostd import ddb as ddb_mod
+from haa.hostd import globalstate as globalstate_mod
 from haa.hostd import membership as membership_mod
 from haa.hostd import oac as oac_mod
 from haa.hostd import ufd as ufd_mod
@@ -195,6 +199,11 @@ def stale_snapshot() -> Undo:
     return _patch(cls, "_sponsor", sponsor)
 
 
+def no_dissolution() -> Undo:
+    dec = globalstate_mod._dec_members
+    return _patch(globalstate_mod, "_dec_members", lambda rep, what, allow_empty=False: dec(rep, what))
+
+
 def reorder_restored() -> Undo:
     cls = ddb_mod.Ddb
     restore = cls.restore.__func__  # type: ignore[attr-defined]
@@ -317,6 +326,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "no-lock-wait": (_node_flag("no-lock-wait"), "ddb", "DDB-Durability"),
     "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
+    "no-dissolution": (no_dissolution, "membership", "HM-Termination"),
     "thesis-accept": (thesis_accept, "allocation", "AA-Validity"),
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),

@@ -60,7 +60,12 @@ class TxRemove:
 
 @dataclass(frozen=True, slots=True)
 class TxMembership:
-    """OAC(membership, key, q, newMemberList), Alg. 3 l. 43 and l. 106."""
+    """OAC(membership, key, q, newMemberList), Alg. 3 l. 43 and l. 106.
+
+    The list is empty when every member asked to leave at once (`haactl cluster down`, `docker-compose down`):
+    the group dissolves and every member receives its `Left`. Alg. 3 assumes a group remains; without this the
+    leader's l. 105 list was empty, the transaction did not decode, was applied as a no-op and left every member
+    locked (docs/membership.md, "dissolution")."""
 
     key: str
     proposer: Proc
@@ -137,11 +142,13 @@ def _dec_proc(m: gpb.GroupProc, what: str) -> Proc:
     return (m.name, m.incarnation)
 
 
-def _dec_members(rep: object, what: str) -> tuple[Member, ...]:
+def _dec_members(rep: object, what: str, allow_empty: bool = False) -> tuple[Member, ...]:
     out = [Member(x.name, x.incarnation, x.addr) for x in rep]  # type: ignore[attr-defined]
     names = [x.name for x in out]
-    if not out or any(not x.name or x.inc == 0 for x in out):
-        raise GroupTxError(f"{what}: empty member list or a member without name/incarnation")
+    if not out and not allow_empty:
+        raise GroupTxError(f"{what}: empty member list")
+    if any(not x.name or x.inc == 0 for x in out):
+        raise GroupTxError(f"{what}: a member without name/incarnation")
     if len(set(names)) != len(names):
         raise GroupTxError(f"{what}: duplicate member")
     return tuple(out)
@@ -161,9 +168,8 @@ def decode_tx(payload: bytes) -> GroupTx:
         )
     if kind == "membership":
         r2 = m.membership
-        return TxMembership(
-            r2.key, _dec_proc(r2.proposer, "membership.proposer"), _dec_members(r2.members, "membership")
-        )
+        members = _dec_members(r2.members, "membership", allow_empty=True)
+        return TxMembership(r2.key, _dec_proc(r2.proposer, "membership.proposer"), members)
     if kind == "formation":
         r3 = m.formation
         return TxFormation(_dec_proc(r3.proposer, "formation.proposer"), _dec_members(r3.members, "formation"))
@@ -291,9 +297,11 @@ class GlobalState:
                 stale = True
         elif t is TxMembership:
             if not self.members and not self.genesis:
-                self.genesis = str(txid)  # l. 43: the first core process' group of one
-                self.members = list(tx.members)  # type: ignore[union-attr]
+                if tx.members:  # type: ignore[union-attr]
+                    self.genesis = str(txid)  # l. 43: the first core process' group of one
+                    self.members = list(tx.members)  # type: ignore[union-attr]
             elif not self.members or self.members[0].proc == tx.proposer:  # type: ignore[union-attr]
+                # l. 141; an empty list dissolves the group (every member asked to leave, `TxMembership`)
                 self.members = list(tx.members)  # type: ignore[union-attr]  # l. 141
             else:
                 stale = True

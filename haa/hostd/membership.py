@@ -113,7 +113,9 @@ class ViewChange:
 @dataclass(slots=True)
 class AppliedTx:
     """This host applied the `seq`-th global transaction; `state_hash` is its content hash afterwards
-    (only computed when `NodeConfig.hash_every_apply` is set: the simulator's prefix-consistency check)."""
+    (only computed when `NodeConfig.hash_every_apply` is set: the simulator's prefix-consistency check);
+    `view` and `front` (the first member, None once the group dissolved) are the view right after it: the
+    node may apply more transactions before its effects are carried out."""
 
     seq: int
     txid: TxId
@@ -121,6 +123,8 @@ class AppliedTx:
     payload: bytes
     state_hash: str
     result: object | None
+    view: int = 0
+    front: Proc | None = None
 
 
 @dataclass(slots=True)
@@ -300,8 +304,15 @@ class MembershipNode:
                 continue
             for e in effects:
                 t = type(e)
-                if t is Reincarnate and self.leaving and self.left:
-                    continue  # we left on purpose: a peer's removal notice is no reason to come back
+                if t is Reincarnate and self.leaving:
+                    # we are leaving on purpose: a peer's removal notice is no reason to come back. Removed
+                    # (excluded) before our leave committed, we are out of the group all the same (seen when
+                    # the whole group leaves at once and the last two members suspect each other)
+                    if not self.left:
+                        self.left = True
+                        self._log("left", view=self.state.view, excluded_by=e.by)
+                        res.append(Left())
+                    continue
                 res.append(e)
                 if t is Deliver:
                     self._on_deliver(e)
@@ -458,6 +469,10 @@ class MembershipNode:
         self.leaving = True
         self._log("leave_requested")
         if not self.is_member():
+            # an applicant withdraws: every host it knows drops it from its join list (`_on_leave`), so that
+            # no leader proposes a group with it after it is gone (that transaction would wait for it)
+            for q, peer in sorted(self.core.peers.items()):
+                self._send((q, peer.inc), Leave())  # inc 0: any incarnation (as our Apply went)
             self.left = True
             self.out.append(Left())
             return
@@ -608,7 +623,9 @@ class MembershipNode:
         was_leader = self._leader_now()
         res = self.state.apply(txid, payload)
         h = self.state.content_hash() if self.config.hash_every_apply else ""
-        self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result))
+        st = self.state
+        front = st.members[0].proc if st.members else None
+        self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result, st.view, front))
         for a in sorted(self.sponsees):  # l. 61: forward to every applicant we sponsor (sorted: deterministic)
             self._send(a, StateForward(res.seq, txid, payload))
         pending = self.state_requests.pop(txid, None)
@@ -870,6 +887,8 @@ class MembershipNode:
             a.membership_txid = self.core.propose_to(self._now, encode_tx(tx), parts)  # l. 106
             self.group_txs.add(a.membership_txid)
             self._log("membership_proposed", tx=str(a.membership_txid), members=[m.name for m in new])
+            if not new:  # every member asked to leave: the group dissolves (`TxMembership`)
+                self._log("group_dissolving", leaving=sorted(q[0] for q in leave))
         else:  # ll. 107-109
             self.attempt = None
             self._retry_later()
@@ -1122,9 +1141,15 @@ class MembershipNode:
             self.out.append(Reincarnate(by=self.name))
 
     def _on_leave(self, q: Proc) -> None:
-        """ll. 18-21."""
+        """ll. 18-21. An applicant that leaves also withdraws its application: it is dropped from the join
+        list (the pseudo-code keeps it there, and a later update would accept a host that is gone)."""
         if self.state.is_member(q) or q in self.join_list:
             self.leave_list.add(q)
+            if not self.state.is_member(q):
+                del self.join_list[q]
+                self.sponsees.discard(q)
+                self.conns_of.pop(q, None)
+                self._log("application_withdrawn", applicant=f"{q[0]}.{q[1]}")
             self._update()
 
     # ------------------------------------------------------------------ failure detector changes
