@@ -47,6 +47,7 @@ The class does no I/O, reads no clock and uses no randomness; iteration orders a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -76,7 +77,7 @@ def _name(x: object, what: str) -> str:
     return x
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class AgentSpec:
     """One agent a_i of §4.7: id, processing cost c_i (>= 0, in units of host capacity), required hardware
     Q_i, affinities A_i (other agent id -> alpha_ij >= 0), transfer penalty t_i in [0, 1] and the host that runs
@@ -113,8 +114,22 @@ class AgentSpec:
             (self.id, self.cost, self.hardware, tuple(self.affinity.items()), self.transfer_penalty, self.current_host)
         )
 
+    def __repr__(self) -> str:
+        return _repr_sorted_hardware(self)
 
-@dataclass(frozen=True)
+
+def _repr_sorted_hardware(spec: AgentSpec | HostSpec) -> str:
+    """The dataclass repr with `hardware` sorted: a frozenset's own repr follows PYTHONHASHSEED, and these
+    reprs go into the simulators' traces, whose hashes must not depend on it."""
+    fields = ", ".join(
+        f"{f.name}={sorted(v) if f.name == 'hardware' else v!r}"
+        for f in dataclasses.fields(spec)
+        for v in (getattr(spec, f.name),)
+    )
+    return f"{type(spec).__name__}({fields})"
+
+
+@dataclass(frozen=True, repr=False)
 class HostSpec:
     """One host h of §4.7: processor capacity K_h (> 0) and available hardware H_h. A `draining` host (leaving
     gracefully) takes part in the session but bids for nothing."""
@@ -137,6 +152,9 @@ class HostSpec:
     def can_run(self, agent: AgentSpec) -> bool:
         """Q_i subset of H_h, and not draining."""
         return not self.draining and agent.hardware <= self.hardware
+
+    def __repr__(self) -> str:
+        return _repr_sorted_hardware(self)
 
 
 @dataclass(frozen=True)
@@ -900,14 +918,17 @@ class Allocator:
         me = self.me
         k = spec.capacity
         agents = s.agents
+        # float sums run in a fixed order (the bundle's, then the session's agent order), never over a set:
+        # the order of a set of strings changes with PYTHONHASHSEED, and so would the last bits of the sums,
+        # the ties they break and the whole simulated schedule (a seed must reproduce its trace anywhere)
         in_bundle: set[str] = set(s.entry_of)
-        used = sum(agents[a].cost for a in in_bundle)
+        used = sum(agents[a].cost for a in s.entry_of)
         if self.RESERVE:  # capacity kept for the agents no other member can run (docs/allocation.md)
-            used += sum(agents[a].cost for a in s.exclusive if a not in in_bundle)
+            used += sum(agents[a].cost for a in s.eligible if a in s.exclusive and a not in in_bundle)
         factor = {i: transfer_factor(agents[i], me) for i in s.eligible}
         bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
         back: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ji x factor_j, j in the bundle
-        for j in in_bundle:
+        for j in s.entry_of:
             self._add_bonus(s, j, bonus, back, factor)
         claims = self._claims(s)
         to_beat = {i: self._to_beat(s, i, claims) for i in s.eligible if i not in in_bundle}
