@@ -121,12 +121,11 @@ class AgentSpec:
 def _repr_sorted_hardware(spec: AgentSpec | HostSpec) -> str:
     """The dataclass repr with `hardware` sorted: a frozenset's own repr follows PYTHONHASHSEED, and these
     reprs go into the simulators' traces, whose hashes must not depend on it."""
-    fields = ", ".join(
-        f"{f.name}={sorted(v) if f.name == 'hardware' else v!r}"
-        for f in dataclasses.fields(spec)
-        for v in (getattr(spec, f.name),)
-    )
-    return f"{type(spec).__name__}({fields})"
+    parts = []
+    for f in dataclasses.fields(spec):
+        v = getattr(spec, f.name)
+        parts.append(f"{f.name}={sorted(v) if f.name == 'hardware' else repr(v)}")
+    return f"{type(spec).__name__}({', '.join(parts)})"
 
 
 @dataclass(frozen=True, repr=False)
