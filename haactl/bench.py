@@ -164,6 +164,11 @@ def bench_idle(
             f"({r['tx_frames_per_s_per_host']:.1f} frames, {r['acks_per_s_per_host']:.1f} acks); "
             f"heartbeats {r['heartbeats_per_s_per_pair']:.2f}/s per pair"
         )
+    if "tree_cpu_percent_total" in r:
+        print(
+            f"\nwith each host's fork server ({r['tree_processes_per_host']:.0f} processes per host): "
+            f"{r['tree_cpu_percent_total']:.1f} % of one core in all, {r['tree_pss_mib_mean']:.0f} MiB PSS per host"
+        )
     if compose:
         print(f"\nengine processes: {r['engine_cpu_percent_total']:.1f} % of one core {r['engine_cpu_percent']}")
     path = RESULTS / "idle.json"

@@ -38,6 +38,30 @@ def _proc_cpu(pids: dict[str, int]) -> dict[str, tuple[float, int]]:
     return out
 
 
+def _tree_cpu(pids: dict[str, int]) -> dict[str, tuple[float, int]]:
+    """Like `_proc_cpu`, over each host's whole process tree (haa-hostd, its agent fork server and any agent
+    processes), as the compose measurement sees a container's cgroup; memory is the tree's proportional set
+    size (PSS: pages the fork server shares with its children are counted once)."""
+    out = {}
+    for n, pid in pids.items():
+        try:
+            root = psutil.Process(pid)
+            procs = [root, *root.children(recursive=True)]
+        except psutil.NoSuchProcess:
+            continue
+        cpu = 0.0
+        mem = 0
+        for p in procs:
+            try:
+                t = p.cpu_times()
+                cpu += t.user + t.system
+                mem += p.memory_full_info().pss
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+        out[n] = (cpu, mem)
+    return out
+
+
 def _engine_pids() -> dict[str, int]:
     out = {}
     for p in psutil.process_iter(["name", "pid"]):
@@ -127,15 +151,28 @@ def measure_local(hosts: int, duration: float, settle: float, log: Callable[[str
             time.sleep(settle)
             pids = {h.name: h.pid for h in backend.hosts() if h.pid}
             t0 = _traffic(backend)
-            per, rss, secs, busy = _window(lambda: _proc_cpu(pids), duration)
+
+            def sample() -> dict[str, tuple[float, int]]:
+                return {**_proc_cpu(pids), **{f"tree/{k}": v for k, v in _tree_cpu(pids).items()}}
+
+            per_all, rss_all, secs, busy = _window(sample, duration)
             traffic = _rates(t0, _traffic(backend), secs)
+            procs = {n: 1 + len(psutil.Process(pid).children(recursive=True)) for n, pid in pids.items()}
         finally:
             backend.down(grace=2.0, purge=True)
+    per = {n: v for n, v in per_all.items() if not n.startswith("tree/")}
+    rss = {n: v for n, v in rss_all.items() if not n.startswith("tree/")}
+    tree = {n[len("tree/") :]: v for n, v in per_all.items() if n.startswith("tree/")}
+    pss = [v for n, v in rss_all.items() if n.startswith("tree/")]
     return {
         **_summary(per, rss, secs),
         **traffic,
         "formed_seconds": round(formed, 2),
         "machine_busy_percent": round(busy, 1),
+        "tree_processes_per_host": round(sum(procs.values()) / max(1, len(procs)), 1),
+        "tree_cpu_percent_total": round(sum(tree.values()), 2),
+        "tree_pss_mib_mean": round(sum(pss) / max(1, len(pss)) / 2**20, 1),
+        "tree": "haa-hostd with its fork server and agents: CPU % of one core, PSS",
     }
 
 
