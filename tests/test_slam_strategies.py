@@ -140,3 +140,67 @@ def test_strategy_and_capacity_errors(rec):
         run([], STRATEGIES["nfp"], Capacity(1, COST), system)
     with pytest.raises(ValueError, match="needs a processing capacity"):
         run([], STRATEGIES["jcslam"], None, system)
+
+
+def _logged_replay(rec, name, capacity, n=40):
+    """Replay with every correction logged and, at each weight request of the newest block, the weights
+    recomputed from the log by brute force: the un-resampled-twin reading of eq. 5.2-4 / 5.2-5 (a density
+    applied to block b while block c was the newest counts for c's particles through their ancestors in b;
+    once c is resampled its weights carry it, so it counts no further). Returns (stats, checks, max |Δw|)."""
+    from haa.slam.filter import ParticleFilter
+    from haa.slam.resample import normalize_log
+
+    s = strategy(name)
+    system = SlamSystem(rec.grid, SlamConfig(n_particles=n, forward_propagation=s.forward_propagation), seed=0)
+    for a in rec.avatars:
+        system.add_avatar(a.name, a.start, 0.0)
+    worst = [0.0, 0]
+    for pf in system.filters.values():
+        log: list[tuple[int, int, np.ndarray]] = []  # (block, newest block when applied, log g)
+
+        def correct(t, log_g, pf=pf, log=log):
+            idx = ParticleFilter.correct(pf, t, log_g)
+            log.append((idx, pf.last.index, log_g.copy()))
+            return idx
+
+        def estimate(t=None, pf=pf, log=log):
+            est = ParticleFilter.estimate(pf, t)
+            if t is None:
+                cur = pf.last
+                anc = {cur.index: np.arange(pf.n)}
+                b = cur
+                while b.parents is not None:
+                    anc[b.index - 1] = b.parents[anc[b.index]]
+                    b = pf.block(b.index - 1)
+                total = np.zeros(pf.n)
+                for idx, newest, lg in log:
+                    if newest == cur.index:
+                        total += lg if idx == cur.index else lg[anc[idx]]
+                worst[0] = max(worst[0], float(np.max(np.abs(normalize_log(total) - est.weights))))
+                worst[1] += 1
+            return est
+
+        pf.correct, pf.estimate = correct, estimate
+    stats = run(rec.events(1.0), s, capacity, system, seed=0)
+    return stats, worst[1], worst[0]
+
+
+def test_lazy_propagation_exact_in_a_constrained_lifo_replay(rec):
+    """AP-5.1 investigation (docs/slam.md): under JC-SLAM at constrained capacity, with late readings applied
+    to closed blocks in any order, the current weights at every request equal the brute-force recomputation
+    from all densities applied so far (§5.2.1 Strategy 3, eq. 5.2-4 / 5.2-5) — so the filter is not where
+    JC-SLAM loses to Discard in the 4-sweeper runs."""
+    cap = calibrate(rec, 0.5, workers=2, cost_ms=COST)
+    stats, checks, worst = _logged_replay(rec, "jcslam", cap)
+    assert stats.out_of_order > 0 and stats.resamples > 10 and checks > 50
+    assert worst < 1e-9
+
+
+def test_lazy_propagation_check_is_sensitive(rec, monkeypatch):
+    """The same check fails when the parent mapping of eq. 5.2-4 is broken (densities not re-indexed)."""
+    from haa.slam.filter import ParticleFilter
+
+    monkeypatch.setattr(ParticleFilter, "through_parents", staticmethod(lambda log_fwd, parents: log_fwd))
+    cap = calibrate(rec, 0.5, workers=2, cost_ms=COST)
+    _, _, worst = _logged_replay(rec, "jcslam", cap)
+    assert worst > 1e-3
