@@ -245,6 +245,7 @@ def test_down(cli: Cli) -> None:
     pids = [h["pid"] for h in cli.status()["hosts"] if h["state"] == "alive"]
     r = cli("cluster", "down")
     assert "stopped 3 hosts" in r.output
+    assert "SIGKILL" not in r.output, r.output  # every host left gracefully
     for pid in pids:  # gone (and reaped: `cluster up` ran in this process, so they were our children)
         deadline = time.monotonic() + 3
         while True:
@@ -256,6 +257,8 @@ def test_down(cli: Cli) -> None:
             time.sleep(0.05)
     r = cli("cluster", "status", ok=False)
     assert "no cluster running" in r.output
-    assert "shutdown" in cli("logs", "--host", "h1", "--tail", "5").output  # the logs outlive the cluster
+    # the logs outlive the cluster; "shutdown" is not always among the last lines: a stopping host still
+    # logs its links going down and the exclusions its peers send it, one line per peer each
+    assert "shutdown" in cli("logs", "--host", "h1", "--tail", "30").output
     cli("cluster", "down", "--purge")
     assert not (cli.root / "h1").exists() and not (cli.root / "token").exists()
