@@ -48,13 +48,16 @@ def table(hs: dict[str, MemberHost]) -> dict[str, object]:
 
 
 def active_on(hs: dict[str, MemberHost], name: str) -> str | None:
-    """The host whose instance of `name` is active and which the table names owner; None while moving."""
+    """The host whose instance of `name` is active and which the table names owner; None while moving or
+    starting. The owner's own phase must be "active": the table says active as soon as OAC(recovered) commits,
+    while the process may still be starting (a shell killed then is replaced, not recovered: recovery.py)."""
     t = table(hs)
     a = t.get(name)
     if a is None or a.status != "active":
         return None
-    runners = [h.name for h in live(hs) for x in h.client.agent_list().agents if x.name == name and x.local_phase]
-    return a.owner if runners == [a.owner] else None
+    runners = [(h.name, x.local_phase) for h in live(hs) for x in h.client.agent_list().agents
+               if x.name == name and x.local_phase]
+    return a.owner if runners == [(a.owner, "active")] else None
 
 
 def counters(hs: dict[str, MemberHost], name: str) -> dict[str, int]:
