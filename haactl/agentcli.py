@@ -497,6 +497,11 @@ def host_event(t: float, host: str, what: str) -> TimelineEvent:
     return TimelineEvent(t, "", host, what, host, text=f"{host} {what}")
 
 
+def operator_event(t: float, text: str) -> TimelineEvent:
+    """A line of the operator's own (the demo's "▶ h4 retires: SIGTERM"), ordered with the hosts' events."""
+    return TimelineEvent(t, "", "", "operator", "", text=text)
+
+
 class EventFeed:
     """The `AgentEvents` streams of every alive host (each host's kept history first), merged into one timeline.
 
@@ -524,6 +529,7 @@ class EventFeed:
         self.last_view = 0.0
         self.received = 0
         self.closed = False
+        self.extra: queue.Queue[TimelineEvent] = queue.Queue()  # lines added by `add()`, from any thread
 
     def start(self, settle: float = 0.4, limit: float = 5.0) -> list[str]:
         """Connect to every alive host and take their kept histories (until no event came for `settle` s),
@@ -608,9 +614,19 @@ class EventFeed:
         self.members = members
         return evs
 
+    def add(self, e: TimelineEvent) -> None:
+        """Show a line of the caller's (already described: `e.text`) in time order with the hosts' events, which
+        reach us up to `delay` s late; callable from any thread."""
+        self.extra.put(e)
+
     def poll(self, timeout: float = 0.2, flush: bool = False) -> list[TimelineEvent]:
         """Events ready to show (all of them with `flush`), in time order."""
         self._take(timeout)
+        while True:
+            try:
+                self.buffer.append(self.extra.get_nowait())
+            except queue.Empty:
+                break
         if time.monotonic() - self.last_connect > 1.0:
             self.connect()
         if self.views and time.monotonic() - self.last_view > 1.0:
@@ -694,6 +710,8 @@ EVENT_STYLE = {"freezing": "yellow", "frozen": "yellow", "thawing": "cyan", "tha
 
 def event_line(e: TimelineEvent, t0: float, absolute: bool = False) -> str:
     """The rich-markup transcript line of an event."""
+    if not e.agent and e.event == "operator":
+        return f"[dim]{e.clock(t0, absolute)}[/] [bold]▶ {escape(e.text)}[/]"
     style = "bold blue" if not e.agent else EVENT_STYLE.get(e.event, "white")
     return f"[dim]{e.clock(t0, absolute)}[/] [{style}]{escape(e.text)}[/]"
 

@@ -54,7 +54,7 @@ from rich.table import Table
 
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import AgentRow, EventFeed, TimelineEvent, event_line, host_event, merge_agents
+from haactl.agentcli import AgentRow, EventFeed, TimelineEvent, event_line, host_event, merge_agents, operator_event
 from haactl.backend import ALIVE, ClusterError, Formation, agreed_group
 from haactl.ddbcli import plain_value
 from haactl.local_backend import LocalBackend
@@ -120,8 +120,14 @@ class Demo:
         return f"{s // 60:02d}:{s % 60:02d}"
 
     def say(self, text: str) -> None:
+        """An operator line. Once the timeline runs it goes through it: the hosts' events reach us up to the
+        feed's delay late, and printed at once the line could come before an event stamped earlier."""
+        e = operator_event(time.time(), text)
+        if self.feed is not None and not self.stop.is_set():
+            self.feed.add(e)
+            return
         with self.lock:
-            console.print(f"[dim]{self.clock()}[/] [bold]▶ {text}[/]")
+            console.print(event_line(e, self.t0))
 
     def note(self, text: str) -> None:
         with self.lock:
@@ -208,7 +214,8 @@ class Demo:
             return
         with self.lock:
             for e in evs:
-                self.checks.events.append(e)
+                if e.event != "operator":
+                    self.checks.events.append(e)
                 console.print(event_line(e, self.t0))
 
     def _sampler(self) -> None:

@@ -11,9 +11,11 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
-from haactl.agentcli import TimelineEvent
+from haa.pb import control_pb2 as cpb
+from haactl.agentcli import EventFeed, TimelineEvent, event_line, operator_event
 from haactl.demo import Demo
 
 BIN = Path(sys.executable).parent / "haactl"
@@ -92,3 +94,21 @@ def test_overlap_check_finds_an_agent_active_twice() -> None:
     ]
     dups = replay(events)
     assert [(d[1], d[2], d[3]) for d in dups] == [("A1", "h1", "h2"), ("A2", "h3", "h1")]
+
+
+def test_operator_lines_are_ordered_with_late_host_events() -> None:
+    """An operator line said now is printed after a host event stamped earlier that reaches us later (the
+    demo printed "▶ quiet for 8 s" before events a second older), and before events stamped after it."""
+    feed = EventFeed(backend=None, delay=0.6)  # type: ignore[arg-type]  # no hosts: events are fed by hand
+    feed.last_connect = time.monotonic() + 60  # poll() must not look for hosts
+    now = time.time()
+    feed.add(operator_event(now - 1.0, "h4 retires: SIGTERM"))
+    assert [e.text for e in feed.poll(0.0)] == ["h4 retires: SIGTERM"]  # nothing else is known yet
+    feed.add(operator_event(now - 0.9, "quiet for 8 s"))
+    for t, what in ((now - 0.95, "freezing"), (now - 0.8, "thawed"), (now + 5.0, "frozen")):
+        feed.q.put(("h4", cpb.AgentEvent(time=t, agent="id-A1", name="A1", event=what, host="h4")))
+    shown = feed.poll(0.0)
+    assert [e.event for e in shown] == ["freezing", "operator", "thawed"]  # "frozen" is not 0.6 s old yet
+    assert [e.event for e in feed.poll(0.0, flush=True)] == ["frozen"]
+    line = event_line(shown[1], now - 61.0)
+    assert line.startswith("[dim]01:00[/]") and "▶ quiet for 8 s" in line
