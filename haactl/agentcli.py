@@ -8,7 +8,7 @@ What each host can tell (haa.hostd.agentcontrol): the replicated agent table (th
 to the last few commits) and, for the instances it runs or prepares, their local phase (claiming, thawing,
 recovering, active, freezing), measured CPU and pid. So the reading commands ask *every* alive host and
 merge (`merge_agents`): an agent's state is the local phase of the host that runs or prepares it where one
-reports it (a "recovering" of a never-started agent is shown as "spawning", "claiming" as "thawing"), else
+reports it (a "recovering" of a never-started agent, life 0 or 1, is shown as "spawning", "claiming" as "thawing"), else
 its table status (new, active, freezing, frozen, crashed); its host is that host, else the table owner.
 
 `agent events` merges the allocation timelines (`AgentEvents` streams) of every host into one time-ordered
@@ -137,8 +137,10 @@ def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
         if mine is not None:
             host = order[0]
             state = PHASE_STATE.get(mine.local_phase, mine.local_phase)
-            if mine.local_phase == "recovering" and a.status == "new":
-                state = "spawning"  # the first start of a new agent goes through recoverAgent (Alg. 8)
+            if mine.local_phase == "recovering" and (a.status == "new" or (a.status == "active" and a.life == 1)):
+                # the first start of a new agent goes through recoverAgent (Alg. 8); once its OAC(recovered)
+                # committed (life 1: no recovery yet) the process may still be starting
+                state = "spawning"
             cpu = mine.local_cpu or a.cpu
             pid = mine.pid
         else:

@@ -61,6 +61,12 @@ def test_merge_prefers_the_local_phase_of_the_host_running_the_agent() -> None:
     # h3's replica is one commit ahead (frozen, epoch 4) and h3 is claiming it: thawing on h3
     assert (rows["A2"].state, rows["A2"].host, rows["A2"].epoch) == ("thawing", "h3", 4)
     assert [r.name for r in merge_agents(replies)] == ["A1", "A1.1", "A2"]
+    # OAC(recovered) of the first start committed (active, life 1), the process not started yet: spawning;
+    # the same phase after a crash (life 2) is a recovery
+    for life, want in ((1, "spawning"), (2, "recovering")):
+        rows = {r.name: r for r in merge_agents({"h2": cpb.AgentListReply(host="h2", agents=[
+            info("b2", "A1.1", "active", "h2", "recovering", life=life)])})}
+        assert rows["A1.1"].state == want, (life, rows["A1.1"])
 
 
 def test_timeline_shows_each_table_event_once() -> None:
