@@ -147,3 +147,31 @@ def test_spawn_errors_are_clear(hosts: dict[str, MemberHost]) -> None:
     wait(lambda: follower.alloc("status").session > before, 10, "a session started by the leader")
     assert c.alloc("pause").paused
     assert not c.alloc("resume").paused
+
+
+def test_kill_of_an_agent_still_starting_is_refused(hosts: dict[str, MemberHost]) -> None:
+    """While an agent's process is a shell (here: every fork server stopped, so no shell says hello), its host
+    refuses to kill it: a killed shell is only replaced (recovery.py), and the operator would wait for a
+    recovery that never comes. Once the fork servers run again the agent starts normally."""
+    servers = [p for h in live(hosts) for p in psutil.Process(h.proc.pid).children()
+               if "forkserver" in " ".join(p.cmdline())]
+    assert len(servers) == len(live(hosts)), servers
+    for p in servers:
+        p.suspend()
+    try:
+        c = live(hosts)[0].client
+        r = c.agent_spawn("counter", json.dumps({"period": 0.05}).encode())
+        assert r.ok, r
+
+        def starting() -> str | None:
+            return next((h.name for h in live(hosts) for x in h.client.agent_list().agents
+                         if x.name == r.name and x.local_phase == "recovering"), None)
+
+        owner = wait(starting, 10, f"{r.name} being prepared by a host")
+        k = hosts[owner].client.agent_kill(r.name)
+        assert not k.ok and f"still starting on {owner} (recovering)" in k.reason, k
+    finally:
+        for p in servers:
+            p.resume()
+    wait(lambda: active_on(hosts, r.name), 20, f"{r.name} active once the fork servers run")
+    assert table(hosts)[r.name].life == 1  # started once, never recovered

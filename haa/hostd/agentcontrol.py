@@ -120,6 +120,12 @@ class AgentControl:
         if drv is None or r.id not in drv.sup.agents():
             return cpb.AgentOpReply(ok=False, id=r.id, name=r.name,
                                     reason=f"not running here; its owner is {r.owner or 'nobody'}")
+        loc = node.local.get(r.id)
+        if loc is not None and loc.phase in ("claiming", "thawing", "recovering"):
+            # its process is still a shell (the agent is not in it yet): killed, it would only be replaced
+            # (recovery.py, "shell_respawn") and no recovery would follow
+            return cpb.AgentOpReply(ok=False, id=r.id, name=r.name,
+                                    reason=f"still starting on {self.rt.name} ({loc.phase}): kill it once it is active")
         drv.sup.kill(r.id)
         return cpb.AgentOpReply(ok=True, id=r.id, name=r.name)
 
