@@ -381,6 +381,11 @@ def agent_crash_sample(c: BenchCluster, b: str, pinger: Pinger) -> dict[str, Any
     owner = c.owner(b)
     t0 = time.time()
     r = c.hosts[owner].client.agent_kill(b)
+    deadline = time.monotonic() + 10
+    while not r.ok and "still starting" in r.reason and time.monotonic() < deadline:
+        time.sleep(0.05)  # its process has not said hello yet (the table is active once OAC(recovered) commits)
+        t0 = time.time()
+        r = c.hosts[owner].client.agent_kill(b)
     if not r.ok:
         raise RuntimeError(f"kill of B on {owner} failed: {r.reason}")
     recovered = c.tap.wait(b, "recovered", t0)
