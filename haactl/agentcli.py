@@ -499,9 +499,10 @@ def host_event(t: float, host: str, what: str) -> TimelineEvent:
     return TimelineEvent(t, "", host, what, host, text=f"{host} {what}")
 
 
-def operator_event(t: float, text: str) -> TimelineEvent:
-    """A line of the operator's own (the demo's "▶ h4 retires: SIGTERM"), ordered with the hosts' events."""
-    return TimelineEvent(t, "", "", "operator", "", text=text)
+def operator_event(t: float, text: str, kind: str = "operator") -> TimelineEvent:
+    """A line of the operator's own, ordered with the hosts' events: a step ("operator": the demo's "▶ h4
+    retires: SIGTERM") or a remark on it ("note": an indented line without a clock)."""
+    return TimelineEvent(t, "", "", kind, "", text=text)
 
 
 class EventFeed:
@@ -714,6 +715,8 @@ def event_line(e: TimelineEvent, t0: float, absolute: bool = False) -> str:
     """The rich-markup transcript line of an event."""
     if not e.agent and e.event == "operator":
         return f"[dim]{e.clock(t0, absolute)}[/] [bold]▶ {escape(e.text)}[/]"
+    if not e.agent and e.event == "note":
+        return f"      [dim]{escape(e.text)}[/]"
     style = "bold blue" if not e.agent else EVENT_STYLE.get(e.event, "white")
     return f"[dim]{e.clock(t0, absolute)}[/] [{style}]{escape(e.text)}[/]"
 

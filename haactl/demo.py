@@ -119,10 +119,10 @@ class Demo:
         s = max(0, int((t if t is not None else time.time()) - self.t0))
         return f"{s // 60:02d}:{s % 60:02d}"
 
-    def say(self, text: str) -> None:
+    def say(self, text: str, kind: str = "operator") -> None:
         """An operator line. Once the timeline runs it goes through it: the hosts' events reach us up to the
         feed's delay late, and printed at once the line could come before an event stamped earlier."""
-        e = operator_event(time.time(), text)
+        e = operator_event(time.time(), text, kind)
         if self.feed is not None and not self.stop.is_set():
             self.feed.add(e)
             return
@@ -130,8 +130,8 @@ class Demo:
             console.print(event_line(e, self.t0))
 
     def note(self, text: str) -> None:
-        with self.lock:
-            console.print(f"      [dim]{text}[/]")
+        """A remark on the last step (indented, no clock), in order with it (`say`)."""
+        self.say(text, "note")
 
     # ------------------------------------------------------------------ cluster access
 
@@ -214,7 +214,7 @@ class Demo:
             return
         with self.lock:
             for e in evs:
-                if e.event != "operator":
+                if e.event not in ("operator", "note"):
                     self.checks.events.append(e)
                 console.print(event_line(e, self.t0))
 

@@ -112,3 +112,5 @@ def test_operator_lines_are_ordered_with_late_host_events() -> None:
     assert [e.event for e in feed.poll(0.0, flush=True)] == ["frozen"]
     line = event_line(shown[1], now - 61.0)
     assert line.startswith("[dim]01:00[/]") and "▶ quiet for 8 s" in line
+    assert event_line(operator_event(now, "h4 exited 0.4 s after SIGTERM", "note"), now) == (
+        "      [dim]h4 exited 0.4 s after SIGTERM[/]")
