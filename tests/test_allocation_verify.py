@@ -3,13 +3,13 @@ reproducibility, the allocation-quality study and smoke runs of `bench ap3` / `b
 
 from __future__ import annotations
 
-import os
 import statistics
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from hashseed import trace_hashes
 
 from haa.dsim import allocation as sim_mod
 from haa.dsim import mutations
@@ -109,14 +109,7 @@ def test_schedules_do_not_depend_on_string_hashing():
     """A seed must reproduce in any process. Bundle building once summed floats over a set of agent ids (the
     last bits of a reward, and then the schedule, followed PYTHONHASHSEED: seed 6 under the thesis-accept
     mutation went uncaught in one CI run of four), and a host's hardware set was printed into the trace."""
-    code = (
-        "from haa.dsim.sweep import run_seed\n"
-        "print(' '.join(run_seed('allocation', s, 7).trace_hash for s in range(40)))"
-    )
-    outs = set()
-    for hs in ("1", "2", "6", "9"):
-        env = {**os.environ, "PYTHONHASHSEED": hs}
-        outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout)
+    outs = trace_hashes([("allocation", s, 7) for s in range(40)], ("1", "2", "6", "9"))
     assert len(outs) == 1 and len(outs.pop().split()) == 40
 
 

@@ -1,10 +1,8 @@
 """`haactl verify transfer|recovery`: the agent-layer verifier (haa.dsim.agents) over seeded fault schedules."""
 
-import os
-import subprocess
-import sys
 
 import pytest
+from hashseed import trace_hashes
 
 from haa.dsim.sweep import sweep
 
@@ -34,12 +32,5 @@ def test_ci_sweep_2000_schedules_at_5_hosts(algorithm):
 def test_schedules_do_not_depend_on_string_hashing():
     """A seed must reproduce in any process: the same trace hashes under other PYTHONHASHSEEDs (the
     allocation simulator once depended on it: tests/test_allocation_verify.py)."""
-    code = (
-        "from haa.dsim.sweep import run_seed\n"
-        "print(' '.join(run_seed(a, s, 5).trace_hash for a in ('transfer', 'recovery') for s in range(6)))"
-    )
-    outs = set()
-    for hs in ("1", "6"):
-        env = {**os.environ, "PYTHONHASHSEED": hs}
-        outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout)
+    outs = trace_hashes([(a, s, 5) for a in ("transfer", "recovery") for s in range(6)], ("1", "6"))
     assert len(outs) == 1 and len(outs.pop().split()) == 12

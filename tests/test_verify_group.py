@@ -1,11 +1,9 @@
 """`haactl verify membership|ddb`: the group verifiers, the broken variants they must catch, and the fixes
 of the liveness bugs they found (docs/membership.md, "verification")."""
 
-import os
-import subprocess
-import sys
 
 import pytest
+from hashseed import trace_hashes
 
 from haa.dsim import mutations
 from haa.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group
@@ -82,14 +80,7 @@ def test_each_verifier_reports_only_its_properties():
 
 def test_runs_do_not_depend_on_string_hashing():
     """A seed must reproduce in another process (the membership node once iterated a set of sponsees)."""
-    code = (
-        "from haa.dsim.sweep import run_seed\n"
-        "print(' '.join(run_seed(a, s, 7).trace_hash for a in ('membership', 'ddb') for s in (3, 11)))"
-    )
-    outs = set()
-    for hs in ("1", "2"):
-        env = {**os.environ, "PYTHONHASHSEED": hs}
-        outs.add(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout)
+    outs = trace_hashes([(a, s, 7) for a in ("membership", "ddb") for s in (3, 11)], ("1", "2"))
     assert len(outs) == 1 and len(outs.pop().split()) == 4
 
 
