@@ -97,6 +97,24 @@ def _proc_state(pid: int | None, create_time: float | None) -> str | None:
     return ALIVE
 
 
+def _reap(pid: int, timeout: float) -> bool:
+    """Wait up to `timeout` s for our child `pid` to exit and reap it; True once reaped or if it is not our
+    child. Needed after `_proc_state` said "gone" on seeing a zombie: a zombie thread-group leader may still
+    have threads running (haa-hostd's gRPC threads wind down after its main thread returned), so the reap
+    there can come too early and the process would stay a zombie of ours."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            done, _ = os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:
+            return True
+        if done:
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+
+
 class LocalBackend(Backend):
     kind = "local"
 
@@ -337,6 +355,9 @@ class LocalBackend(Backend):
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.02)
+        pid = self._rec(name).get("pid")
+        if pid:
+            _reap(int(pid), max(0.0, deadline - time.monotonic()))
         return True
 
     def mark_left(self, name: str) -> None:
@@ -368,8 +389,7 @@ class LocalBackend(Backend):
                         p.wait(1)
                 pid = self.state["hosts"][h.name].get("pid")
                 if pid:  # started by this process through another backend object: reap it too
-                    with contextlib.suppress(ChildProcessError, OSError):
-                        os.waitpid(int(pid), os.WNOHANG)
+                    _reap(int(pid), 5.0)
                 self.state["hosts"][h.name]["stopped_by"] = "down"
             hosts = self.state.get("hosts", {})
             if purge:
