@@ -52,6 +52,9 @@ from haa.hostd.agentio import (
     Stopped,
 )
 from haa.hostd.allocation import (
+    MAX_CAPACITY,
+    MAX_COST,
+    MIN_CAPACITY,
     AgentSpec,
     Allocated,
     Allocator,
@@ -575,19 +578,34 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 break
             for e in effs:
                 t = type(e)
-                if t is WriteDone and isinstance(e.req, tuple) and e.req and e.req[0] == "agent":
-                    self._on_write_done(e)
-                    continue
-                res.append(e)
-                if t is AppliedTx:
-                    self._on_applied(e)
-                elif t is ViewChange:
-                    self._on_view(e)
-                elif t is Left:
-                    self._left_group = True
+                if t is not WriteDone or not (isinstance(e.req, tuple) and e.req and e.req[0] == "agent"):
+                    res.append(e)
+                try:
+                    self._on_membership_effect(e)
+                except Exception as err:
+                    # A bug in the agent layer's reaction to one committed transaction must not take the rest
+                    # of this drain with it: the remaining effects (sends, timers, deliveries) would be lost and
+                    # the host would fall behind the group for good (issue 13, defect 1). The replicated state
+                    # is already applied (identically everywhere); what is lost is this host's local reaction
+                    # to one effect, which the next `_reconcile` repairs. Logged as an error, counted.
+                    self.counters["core_errors"] += 1
+                    self.out.append(Log("agent_layer_error", {
+                        "effect": type(e).__name__, "error": f"{type(err).__name__}: {err}",
+                    }))
             res.extend(self.out)
             self.out = []
         return res
+
+    def _on_membership_effect(self, e: Any) -> None:
+        t = type(e)
+        if t is WriteDone and isinstance(e.req, tuple) and e.req and e.req[0] == "agent":
+            self._on_write_done(e)
+        elif t is AppliedTx:
+            self._on_applied(e)
+        elif t is ViewChange:
+            self._on_view(e)
+        elif t is Left:
+            self._left_group = True
 
     # ------------------------------------------------------------------ committed transactions
 
@@ -722,10 +740,12 @@ class AgentNode(TransferMixin, RecoveryMixin):
             r = t.records[agent]
             # affinity alpha_ij: bytes/s between the two agents, on the scale of costs (100 kB/s ~ 1.0)
             alphas = {k: min(1.0, v / AFFINITY_SCALE) for k, v in aff.get(agent, {}).items()}
+            cost = r.cost()  # the table refuses costs outside [0, MAX_COST]; clamped anyway (NaN -> 0)
+            cost = min(max(cost, 0.0), MAX_COST) if cost == cost else 0.0
             out.append(
                 AgentSpec(
                     id=agent,
-                    cost=r.cost(),
+                    cost=cost,
                     hardware=frozenset(r.spec.hardware),
                     affinity=alphas,
                     transfer_penalty=r.spec.transfer_penalty,
@@ -738,7 +758,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
         out = []
         for n in self._member_names():
             h = self.table.hosts.get(n)
-            cap = h.capacity if h is not None and h.capacity > 0 else 1.0
+            cap = h.capacity if h is not None and MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
             out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
         return tuple(out)
 

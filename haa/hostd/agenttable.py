@@ -38,11 +38,13 @@ Pure and deterministic: no I/O, no clock, no randomness.
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from google.protobuf.message import DecodeError
 
+from haa.hostd.allocation import MAX_CAPACITY, MAX_COST, MAX_NAME, MIN_CAPACITY
 from haa.pb import agenttx_pb2 as apb
 
 NEW = "new"
@@ -57,6 +59,10 @@ RECOVERY_MODES = ("backup", "restart", "none")
 MAX_QUEUE = 10_000
 #: bytes of one agent's state, backup or config
 MAX_BLOB = 64 * 1024 * 1024
+#: hardware names one agent may require or one host may offer
+MAX_HARDWARE = 64
+#: measured message rate between two agents (bytes/s) a host may report; beyond it the value is refused
+MAX_RATE = 1e12
 
 
 class AgentTxError(ValueError):
@@ -180,21 +186,57 @@ def decode(data: bytes) -> apb.AgentTx:
     return tx
 
 
+def _bad_number(x: float, lo: float, hi: float) -> bool:
+    """True unless lo <= x <= hi and x is finite (NaN compares false everywhere)."""
+    return not (math.isfinite(x) and lo <= x <= hi)
+
+
+def _bad_names(names: Iterable[str]) -> str:
+    """'' when every name is 1-MAX_NAME characters and there are at most MAX_HARDWARE of them, else the reason."""
+    names = list(names)
+    if len(names) > MAX_HARDWARE:
+        return f"at most {MAX_HARDWARE} hardware names, got {len(names)}"
+    for h in names:
+        if not h or len(h) > MAX_NAME:
+            return f"hardware names must be 1-{MAX_NAME} characters, got {h[:80]!r}"
+    return ""
+
+
 def check_create(c: apb.AgentCreate) -> str:
-    """'' when an AgentCreate is well formed, else the reason."""
-    if not c.id or len(c.id) > 64:
-        return "create: agent id must be 1-64 characters"
-    if not c.type or len(c.type) > 64:
-        return "create: type name must be 1-64 characters"
-    if not 0.0 <= c.transfer_penalty <= 1.0:
-        return "create: transfer_penalty must be in [0, 1]"
-    if not (c.cost >= 0.0):  # also rejects NaN
-        return "create: cost must be >= 0"
+    """'' when an AgentCreate is well formed, else the reason. Called at the edge (before proposing) and again
+    when the transaction applies, so a create proposed by a buggy or hostile peer is refused identically on
+    every replica instead of reaching the allocator (docs/limits.md, "Agent and host numbers")."""
+    if not c.id or len(c.id) > MAX_NAME:
+        return f"create: agent id must be 1-{MAX_NAME} characters"
+    if not c.type or len(c.type) > MAX_NAME:
+        return f"create: type name must be 1-{MAX_NAME} characters"
+    if len(c.parent) > MAX_NAME:
+        return f"create: parent id must be at most {MAX_NAME} characters"
+    if len(c.host) > MAX_NAME:
+        return f"create: host name must be at most {MAX_NAME} characters"
+    if _bad_number(c.transfer_penalty, 0.0, 1.0):
+        return f"create: transfer_penalty must be a finite number in [0, 1], got {c.transfer_penalty!r}"
+    if _bad_number(c.cost, 0.0, MAX_COST):  # also rejects NaN and +-inf
+        return f"create: cost must be a finite number in [0, {MAX_COST:g}], got {c.cost!r}"
+    why = _bad_names(c.hardware)
+    if why:
+        return f"create: {why}"
     if c.recovery not in RECOVERY_MODES:
         return f"create: recovery must be one of {', '.join(RECOVERY_MODES)}"
     if len(c.config) > MAX_BLOB:
         return "create: config too large"
     return ""
+
+
+def check_host(m: apb.HostInfo) -> str:
+    """'' when a HostInfo is well formed, else the reason (same bounds as `haa.hostd.allocation.HostSpec`)."""
+    if not m.name or len(m.name) > MAX_NAME:
+        return f"host info: name must be 1-{MAX_NAME} characters"
+    if _bad_number(m.capacity, MIN_CAPACITY, MAX_CAPACITY):
+        bounds = f"[{MIN_CAPACITY:g}, {MAX_CAPACITY:g}]"
+        return f"host info: capacity must be a finite number in {bounds}, got {m.capacity!r}"
+    why = _bad_names(m.hardware)
+    return f"host info: {why}" if why else ""
 
 
 class AgentTable:
@@ -269,7 +311,16 @@ class AgentTable:
             return AgentApplied("invalid", "", False, str(e))
         kind = tx.WhichOneof("body")
         self._members = members
-        return getattr(self, f"_tx_{kind}")(getattr(tx, kind))
+        handler = _HANDLERS.get(kind)
+        if handler is None:  # a body this version does not know (decode keeps unknown oneof cases unset)
+            return AgentApplied("invalid", "", False, f"unknown agent transaction kind {kind!r}")
+        try:
+            return handler(self, getattr(tx, kind))
+        except Exception as e:  # pragma: no cover - a bug; the handlers validate before they change anything
+            # Applying a committed transaction is total: every replica runs the same code on the same bytes,
+            # so it fails the same way everywhere and the outcome is a deterministic refusal, not a crash that
+            # would leave this replica behind the others (issue 13, defect 1).
+            return AgentApplied(kind, "", False, f"apply failed: {type(e).__name__}: {e}")
 
     def _tx_create(self, c: apb.AgentCreate) -> AgentApplied:
         why = check_create(c)
@@ -339,7 +390,7 @@ class AgentTable:
         touched = []
         for agent, host in sorted(f.allocation.items()):
             r = self.records.get(agent)
-            if r is not None and r.alloc != host:
+            if r is not None and r.alloc != host and len(host) <= MAX_NAME:
                 r.alloc = host
                 touched.append(agent)
         return AgentApplied("finish", "", True, "", f.leader, touched=tuple(touched))
@@ -348,6 +399,8 @@ class AgentTable:
         r = self.records.get(m.id)
         if r is None:
             return AgentApplied("move", m.id, False, "unknown agent")
+        if len(m.host) > MAX_NAME:
+            return AgentApplied("move", m.id, False, f"host name must be at most {MAX_NAME} characters")
         r.alloc = m.host
         return AgentApplied("move", m.id, True, "", m.host, touched=(m.id,))
 
@@ -457,10 +510,11 @@ class AgentTable:
     def _tx_costs(self, m: apb.AgentCosts) -> AgentApplied:
         for c in m.costs:
             r = self.records.get(c.id)
-            if r is not None and r.owner == m.host and c.cpu >= 0.0:
+            # a measured CPU share beyond MAX_COST (or inf, NaN, negative) is not a measurement: ignored
+            if r is not None and r.owner == m.host and not _bad_number(c.cpu, 0.0, MAX_COST):
                 r.cpu = c.cpu
         for a in m.affinity:
-            if a.a in self.records and a.b in self.records and a.a != a.b and a.rate >= 0.0:
+            if a.a in self.records and a.b in self.records and a.a != a.b and not _bad_number(a.rate, 0.0, MAX_RATE):
                 key = (a.a, a.b) if a.a < a.b else (a.b, a.a)
                 if a.rate > 0:
                     self.affinity[key] = a.rate
@@ -469,8 +523,9 @@ class AgentTable:
         return AgentApplied("costs", "", True, "", m.host)
 
     def _tx_host(self, m: apb.HostInfo) -> AgentApplied:
-        if not m.name or not (m.capacity >= 0.0):
-            return AgentApplied("host", "", False, "host info needs a name and a capacity >= 0")
+        why = check_host(m)
+        if why:
+            return AgentApplied("host", "", False, why)
         self.hosts[m.name] = m
         return AgentApplied("host", "", True, "", m.name)
 
@@ -532,3 +587,23 @@ class AgentTable:
         for a in s.affinity:
             t.affinity[(a.a, a.b)] = a.rate
         return t
+
+
+#: `AgentTx.body` case -> its apply method (a closed table: a kind missing here is refused as unknown)
+_HANDLERS = {
+    "create": AgentTable._tx_create,
+    "remove": AgentTable._tx_remove,
+    "start": AgentTable._tx_start,
+    "finish": AgentTable._tx_finish,
+    "move": AgentTable._tx_move,
+    "freeze": AgentTable._tx_freeze,
+    "release": AgentTable._tx_release,
+    "claim": AgentTable._tx_claim,
+    "recovered": AgentTable._tx_recovered,
+    "backup": AgentTable._tx_backup,
+    "failed": AgentTable._tx_failed,
+    "push": AgentTable._tx_push,
+    "costs": AgentTable._tx_costs,
+    "host": AgentTable._tx_host,
+    "control": AgentTable._tx_control,
+}

@@ -57,6 +57,19 @@ from haa.hostd.effects import Log
 
 INF = math.inf
 
+#: Bounds on the problem data (docs/limits.md, "Agent and host numbers"). Costs and capacities are in units of
+#: one host's processor (K_h = 1.0 by default): no agent declares more than MAX_COST of them and no host more than
+#: MAX_CAPACITY, and a capacity is at least MIN_CAPACITY. Within these bounds every sum and ratio the bundle
+#: building computes (eq. 4.7-1 to 4.7-3, over at most a few thousand agents) stays finite, so comparisons of
+#: bids never meet inf or NaN; `haa.hostd.agenttable` refuses transactions outside them before they apply.
+MAX_COST = 1000.0
+MAX_CAPACITY = 1000.0
+MIN_CAPACITY = 1e-3
+#: affinity alpha_ij (eq. 4.7-2) is clamped to [0, 1] by the host; a spec may not claim more than this
+MAX_AFFINITY = 1000.0
+#: longest agent id, host name and hardware name
+MAX_NAME = 64
+
 # --------------------------------------------------------------------------------------------- problem data
 
 
@@ -74,6 +87,8 @@ def _finite(x: object, what: str, lo: float | None = None, hi: float | None = No
 def _name(x: object, what: str) -> str:
     if not isinstance(x, str) or not x:
         raise ValueError(f"{what}: must be a non-empty string, got {x!r}")
+    if len(x) > MAX_NAME:
+        raise ValueError(f"{what}: must be at most {MAX_NAME} characters, got {len(x)}")
     return x
 
 
@@ -92,7 +107,7 @@ class AgentSpec:
 
     def __post_init__(self) -> None:
         _name(self.id, "AgentSpec.id")
-        object.__setattr__(self, "cost", _finite(self.cost, f"AgentSpec({self.id}).cost", 0.0))
+        object.__setattr__(self, "cost", _finite(self.cost, f"AgentSpec({self.id}).cost", 0.0, MAX_COST))
         pen = _finite(self.transfer_penalty, f"AgentSpec({self.id}).transfer_penalty", 0.0, 1.0)
         object.__setattr__(self, "transfer_penalty", pen)
         hw = frozenset(self.hardware)
@@ -104,7 +119,7 @@ class AgentSpec:
             _name(k, f"AgentSpec({self.id}).affinity key")
             if k == self.id:
                 raise ValueError(f"AgentSpec({self.id}).affinity: an agent has no affinity with itself")
-            aff[k] = _finite(v, f"AgentSpec({self.id}).affinity[{k}]", 0.0)
+            aff[k] = _finite(v, f"AgentSpec({self.id}).affinity[{k}]", 0.0, MAX_AFFINITY)
         object.__setattr__(self, "affinity", aff)
         if self.current_host is not None:
             _name(self.current_host, f"AgentSpec({self.id}).current_host")
@@ -141,7 +156,7 @@ class HostSpec:
     def __post_init__(self) -> None:
         _name(self.name, "HostSpec.name")
         object.__setattr__(
-            self, "capacity", _finite(self.capacity, f"HostSpec({self.name}).capacity", 0.0, lo_open=True)
+            self, "capacity", _finite(self.capacity, f"HostSpec({self.name}).capacity", MIN_CAPACITY, MAX_CAPACITY)
         )
         hw = frozenset(self.hardware)
         for h in hw:

@@ -76,6 +76,8 @@ log = logging.getLogger(LOGGER_NAME + ".runtime")
 GENESIS_HASH = "0" * 64
 #: core `Log` events that duplicate a typed effect (`PeerDead`) the runtime logs itself
 _TYPED_EVENTS = frozenset({"peer_dead"})
+#: core Log events that report a bug caught by a safety net (logged at error level)
+_ERROR_EVENTS = frozenset({"agent_layer_error"})
 #: how many latency samples are kept (oldest dropped first)
 MAX_SAMPLES = 100_000
 #: group commit of DDB writes (`HostRuntime.ddb_write`): at most this many of this host's DDB batches are in
@@ -524,7 +526,14 @@ class HostRuntime:
         node = self.node
         if node is None:
             return
-        effects = node.drain()
+        try:
+            effects = node.drain()
+        except Exception:
+            # a bug in the core: never let it end the caller (a link's receive loop, a timer, an RPC) — a link
+            # that stops reading wedges the whole group (issue 13, defect 1)
+            self.counters["core_errors"] += 1
+            log.exception("core drain failed", extra={"event": "core_error", "fields": {"input": "drain"}})
+            return
         if not effects:
             return
         send = self.transport.send
@@ -561,7 +570,8 @@ class HostRuntime:
                 reincarnate_by = e.by  # type: ignore[union-attr]
             elif t is Log:
                 # the core also logs what a typed effect above already carries: keep those at debug level
-                level = logging.DEBUG if e.event in _TYPED_EVENTS else logging.INFO  # type: ignore[union-attr]
+                ev = e.event  # type: ignore[union-attr]
+                level = logging.DEBUG if ev in _TYPED_EVENTS else logging.ERROR if ev in _ERROR_EVENTS else logging.INFO
                 log_event(log, level, e.event, **e.fields)  # type: ignore[union-attr]
             elif t is Connect:
                 self.transport.add_peer(e.name, e.addr)  # type: ignore[union-attr]
