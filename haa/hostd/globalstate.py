@@ -315,7 +315,10 @@ class GlobalState:
                 ddb_result = self.ddb.apply(tx.data)  # type: ignore[union-attr]
             except DdbError as e:
                 err = str(e)
+            except Exception as e:  # a bug: the same bytes fail the same way on every replica (apply is total)
+                err = f"ddb apply failed: {type(e).__name__}: {e}"
         elif t is TxAgent:
+            # total: AgentTable.apply turns anything it cannot apply into a refusal (AgentApplied.ok False)
             ddb_result = self.agents.apply(tx.data, tuple(m.name for m in self.members))  # type: ignore[union-attr]
         changed = self.members != before
         if changed:
