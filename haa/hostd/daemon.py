@@ -13,8 +13,10 @@ Every option can also be given as environment variable `HAA_<OPTION>` (`HAA_CORE
 or as a key of a YAML file (`--config` / `HAA_CONFIG`; keys are the option names, plus a `membership:`
 section with the Alg. 3 tunables of `NodeConfig`); the command line wins over the environment, the
 environment over the file. The settings are validated by a pydantic model (`HostSettings`); anything wrong —
-an unreadable or empty token file, broken YAML, an unknown key, a bad address, duplicate names, both
-`--peers` and `--core`, c_f or c_H out of range, a non-positive timeout — ends the process with exit code 2
+an unreadable or empty token file, broken YAML, a file over its limits (256 KiB, 64 levels, 10,000 nodes,
+no duplicate keys: `haa.files`, docs/limits.md), an unknown key, more than 1,000 `--core` or `--peers`
+entries, a bad address, duplicate names, both `--peers` and `--core`, c_f or c_H out of range, a
+non-positive timeout — ends the process with exit code 2
 and one line on stderr naming the option and the reason, before anything starts. A port that cannot be
 bound exits with code 1.
 
@@ -47,7 +49,6 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any, Literal, NoReturn
 
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -59,6 +60,7 @@ from pydantic import (
     model_validator,
 )
 
+from haa import files
 from haa.hostd.agentnode import AgentConfig
 from haa.hostd.core import CoreConfig
 from haa.hostd.membership import NodeConfig
@@ -70,10 +72,24 @@ from haa.hostd.ufd import UfdConfig
 PROG = "haa-hostd"
 _HOST_RE = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)$")
 DEFAULT_INITIAL_PERIOD = UfdConfig().initial_period
+#: at most this many entries in --core and in --peers: every one costs the event loop setup work at start
+#: (a failure detector each, ~0.5 ms), so a list of a million kept the loop, and SIGTERM, waiting for minutes
+MAX_HOSTS = 1000
+#: --config file limits (haa.files): a settings file is small
+CONFIG_MAX_BYTES = 256 << 10
+CONFIG_MAX_NODES = 10_000
+#: --hardware: at most this many items of at most MAX_HARDWARE_CHARS characters each
+MAX_HARDWARE = 64
+MAX_HARDWARE_CHARS = 64
+#: longest HOST:PORT (a DNS name is at most 253 characters) and --data-dir path
+MAX_ADDRESS_CHARS = 300
+MAX_PATH_CHARS = 4096
 
 
 def check_address(value: str, allow_port_zero: bool = False) -> str:
     """Validate "HOST:PORT" (HOST a name, an IPv4 address or a bracketed IPv6 address)."""
+    if len(value) > MAX_ADDRESS_CHARS:
+        raise ValueError(f"an address of {len(value)} characters (at most {MAX_ADDRESS_CHARS})")
     host, sep, port = value.rpartition(":")
     if not sep or not host:
         raise ValueError(f"{value!r} is not HOST:PORT")
@@ -85,14 +101,17 @@ def check_address(value: str, allow_port_zero: bool = False) -> str:
 
 
 def parse_peers(text: str) -> list[tuple[str, str]]:
-    """Parse "NAME=HOST:PORT,NAME=HOST:PORT,..." (an empty string is a host without peers)."""
+    """Parse "NAME=HOST:PORT,NAME=HOST:PORT,..." (an empty string is a host without peers; at most
+    MAX_HOSTS entries)."""
+    if text.count(",") >= MAX_HOSTS and len([s for s in text.split(",") if s.strip()]) > MAX_HOSTS:
+        raise ValueError(f"more than {MAX_HOSTS} hosts")
     out: list[tuple[str, str]] = []
     for item in (s.strip() for s in text.split(",")):
         if not item:
             continue
         name, sep, addr = item.partition("=")
         if not sep:
-            raise ValueError(f"{item!r} is not NAME=HOST:PORT")
+            raise ValueError(f"{files.one_line(repr(item), 100)} is not NAME=HOST:PORT")
         out.append((name.strip(), addr.strip()))
     return out
 
@@ -120,8 +139,8 @@ class HostSettings(BaseModel):
 
     name: str
     listen: str
-    peers: list[tuple[str, str]] = Field(default_factory=list)
-    core: list[tuple[str, str]] = Field(default_factory=list)
+    peers: list[tuple[str, str]] = Field(default_factory=list, max_length=MAX_HOSTS)
+    core: list[tuple[str, str]] = Field(default_factory=list, max_length=MAX_HOSTS)
     advertise: str | None = None
     token: SecretStr
     data_dir: Path
@@ -134,7 +153,7 @@ class HostSettings(BaseModel):
     #: the agent layer (membership mode): off with --no-agents
     agents: bool = True
     capacity: float = Field(default=1.0, gt=0, allow_inf_nan=False)
-    hardware: list[str] = Field(default_factory=list)
+    hardware: list[str] = Field(default_factory=list, max_length=MAX_HARDWARE)
     rebalance_period: float = Field(default=30.0, ge=0, allow_inf_nan=False)
     drain_timeout: float = Field(default=10.0, gt=0, allow_inf_nan=False)
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
@@ -145,6 +164,7 @@ class HostSettings(BaseModel):
     @field_validator("name")
     @classmethod
     def _name(cls, v: str) -> str:
+        _check_name(v)
         if not NAME_RE.match(v):
             raise ValueError(f"{v!r} is not a host name (letters, digits, '_', '.', '-'; at most 63)")
         return v
@@ -165,6 +185,7 @@ class HostSettings(BaseModel):
         seen: set[str] = set()
         own = info.data.get("name")
         for name, addr in v:
+            _check_name(name)
             if not NAME_RE.match(name):
                 raise ValueError(f"{name!r} is not a host name")
             if name == own:
@@ -180,6 +201,7 @@ class HostSettings(BaseModel):
     def _core(cls, v: list[tuple[str, str]], info: ValidationInfo) -> list[tuple[str, str]]:
         seen: set[str] = set()
         for name, addr in v:
+            _check_name(name)
             if not NAME_RE.match(name):
                 raise ValueError(f"{name!r} is not a host name")
             if name in seen:
@@ -188,6 +210,21 @@ class HostSettings(BaseModel):
             check_address(addr)
         if v and info.data.get("peers"):
             raise ValueError("give either --peers (static mode) or --core (membership), not both")
+        return v
+
+    @field_validator("hardware")
+    @classmethod
+    def _hardware(cls, v: list[str]) -> list[str]:
+        for item in v:
+            if not item or len(item) > MAX_HARDWARE_CHARS or not item.isprintable():
+                raise ValueError(f"an item must be 1 to {MAX_HARDWARE_CHARS} printable characters")
+        return v
+
+    @field_validator("data_dir")
+    @classmethod
+    def _data_dir(cls, v: Path) -> Path:
+        if len(str(v)) > MAX_PATH_CHARS:
+            raise ValueError(f"a path of more than {MAX_PATH_CHARS} characters")
         return v
 
     @model_validator(mode="after")
@@ -233,13 +270,19 @@ class HostSettings(BaseModel):
         )
 
 
+def _check_name(name: str) -> None:
+    """Refuse an overlong host name before it is quoted in an error message."""
+    if len(name) > 63:
+        raise ValueError(f"a host name of {len(name)} characters (at most 63)")
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         fail(message)
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
-    print(f"{PROG}: error: {message}", file=sys.stderr)
+    print(f"{PROG}: error: {files.one_line(message, 1000)}", file=sys.stderr)
     sys.exit(code)
 
 
@@ -311,35 +354,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def read_token(path: str) -> str:
+    """The token of --token-file (at most `haa.files.MAX_TOKEN_BYTES`, UTF-8, not empty)."""
     try:
-        token = Path(path).read_text(encoding="utf-8").strip()
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"cannot read token file {path!r}: {getattr(e, 'strerror', None) or e}") from None
+        token = files.read_text(path, what="token file", max_bytes=files.MAX_TOKEN_BYTES).strip()
+    except files.FileError as e:
+        raise ValueError(f"cannot read token file {e}") from None
     if not token:
         raise ValueError(f"token file {path!r} is empty")
     return token
 
 
 def _read_yaml(path: str) -> dict[str, Any]:
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"cannot read {path!r}: {getattr(e, 'strerror', None) or e}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ValueError(f"{path!r} is not valid YAML{where}: {getattr(e, 'problem', None) or e}") from None
+    """The --config file as {option: value}; ValueError (a `haa.files.FileError`, one line) if it is
+    unreadable, too large or deep, not UTF-8, broken YAML, has a duplicate key or an unknown option."""
+    data = files.load_yaml(
+        path, what="config file", max_bytes=CONFIG_MAX_BYTES, max_nodes=CONFIG_MAX_NODES
+    )
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ValueError(f"{path!r} must hold a mapping of option: value")
+        raise files.FileError(path, "must hold a mapping of option: value")
     out: dict[str, Any] = {}
     for k, v in data.items():
         key = str(k).replace("-", "_")
         if key not in _OPTIONS and key != "membership":
-            raise ValueError(f"{path!r}: unknown option {k!r}")
+            raise files.FileError(path, f"unknown option {files.one_line(repr(k), 80)}")
         out[key] = v
     return out
 
@@ -354,6 +393,8 @@ def _bool(text: str) -> bool:
 
 
 def _host_list(value: Any, opt: str) -> list[tuple[str, str]]:
+    if isinstance(value, dict | list) and len(value) > MAX_HOSTS:
+        fail(f"--{opt}: more than {MAX_HOSTS} hosts")
     if isinstance(value, dict):  # YAML mapping form
         return [(str(k), str(v)) for k, v in value.items()]
     if isinstance(value, list):  # YAML list of "NAME=HOST:PORT"
