@@ -99,28 +99,28 @@ def read_bytes(path: str | os.PathLike[str], *, what: str = "file", max_bytes: i
     except OSError as e:
         raise FileError(path, f"cannot read: {e.strerror or e}", e.errno) from None
     if total > max_bytes:
-        raise FileError(path, f"{what} is larger than {_size(max_bytes)}")
+        raise FileError(path, f"larger than {_size(max_bytes)} (the limit for a {what})")
     return b"".join(chunks)
 
 
-def decode(data: bytes, path: str | os.PathLike[str], *, what: str = "file") -> str:
+def decode(data: bytes, path: str | os.PathLike[str]) -> str:
     """Strict UTF-8 (a leading byte-order mark is dropped); FileError naming the first bad byte's offset."""
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise FileError(path, f"{what} is not UTF-8 text (byte 0x{data[e.start]:02x} at offset {e.start})") from None
+        raise FileError(path, f"not UTF-8 text (byte 0x{data[e.start]:02x} at offset {e.start})") from None
 
 
 def read_text(path: str | os.PathLike[str], *, what: str = "file", max_bytes: int = MAX_BYTES) -> str:
     """A small UTF-8 text file (size-limited like `load_yaml`); FileError otherwise."""
-    return decode(read_bytes(path, what=what, max_bytes=max_bytes), path, what=what)
+    return decode(read_bytes(path, what=what, max_bytes=max_bytes), path)
 
 
 def read_token(path: str | os.PathLike[str], *, what: str = "token file") -> str:
     """A token file: at most `MAX_TOKEN_BYTES`, UTF-8, stripped, not empty; FileError otherwise."""
     token = read_text(path, what=what, max_bytes=MAX_TOKEN_BYTES).strip()
     if not token:
-        raise FileError(path, f"{what} is empty")
+        raise FileError(path, "empty")
     return token
 
 
@@ -212,7 +212,6 @@ def parse_yaml(
     text: str,
     path: str | os.PathLike[str],
     *,
-    what: str = "file",
     max_depth: int = MAX_DEPTH,
     max_nodes: int = MAX_NODES,
 ) -> Any:
@@ -230,20 +229,20 @@ def parse_yaml(
         finally:
             loader.dispose()
     except _Refused as e:
-        raise FileError(path, f"{what}: {e}") from None
+        raise FileError(path, str(e)) from None
     except yaml.MarkedYAMLError as e:
-        reason = f"{what} is not valid YAML{_mark(e.problem_mark or e.context_mark)}: {e.problem or 'cannot parse'}"
+        reason = f"not valid YAML{_mark(e.problem_mark or e.context_mark)}: {e.problem or 'cannot parse'}"
         if e.context:
             reason += f" ({e.context}{_mark(e.context_mark) if e.problem_mark else ''})"
         raise FileError(path, reason) from None
     except yaml.reader.ReaderError as e:
         char = e.character if isinstance(e.character, int) else ord(e.character)
         where = f"character #x{char:04x} at index {e.position}"
-        raise FileError(path, f"{what} is not valid YAML: {where}: {e.reason}") from None
+        raise FileError(path, f"not valid YAML: {where}: {e.reason}") from None
     except yaml.YAMLError as e:
-        raise FileError(path, f"{what} is not valid YAML: {' '.join(str(e).split())}") from None
+        raise FileError(path, f"not valid YAML: {' '.join(str(e).split())}") from None
     except (ValueError, OverflowError) as e:  # a scalar Python refuses (a date like 2001-02-30, ...)
-        raise FileError(path, f"{what} has a bad value: {e}") from None
+        raise FileError(path, f"bad value: {e}") from None
 
 
 def load_yaml(
@@ -255,13 +254,13 @@ def load_yaml(
     max_nodes: int = MAX_NODES,
 ) -> Any:
     """Read, check and parse a YAML file (see the module docstring for the limits); FileError on anything
-    wrong. `what` names the file in the reasons ("config file", "arena file", ...)."""
+    wrong. `what` names the kind of file in the size error ("config file", "arena file", ...)."""
     text = read_text(path, what=what, max_bytes=max_bytes)
-    return parse_yaml(text, path, what=what, max_depth=max_depth, max_nodes=max_nodes)
+    return parse_yaml(text, path, max_depth=max_depth, max_nodes=max_nodes)
 
 
 # --------------------------------------------------------------------------- JSON
-def _json_depth(text: str, max_depth: int, path: str | os.PathLike[str], what: str) -> None:
+def _json_depth(text: str, max_depth: int, path: str | os.PathLike[str]) -> None:
     """Refuse JSON nested deeper than `max_depth` before `json.loads` recurses into it."""
     depth = 0
     in_string = escaped = False
@@ -278,7 +277,7 @@ def _json_depth(text: str, max_depth: int, path: str | os.PathLike[str], what: s
         elif c in "[{":
             depth += 1
             if depth > max_depth:
-                raise FileError(path, f"{what}: nested deeper than {max_depth} levels (at offset {i})")
+                raise FileError(path, f"nested deeper than {max_depth} levels (at offset {i})")
         elif c in "]}":
             depth -= 1
 
@@ -300,26 +299,25 @@ def parse_json(
     text: str,
     path: str | os.PathLike[str],
     *,
-    what: str = "file",
     max_depth: int = MAX_DEPTH,
     max_nodes: int = MAX_NODES,
 ) -> Any:
     """The value of a JSON text within the limits (no NaN/Infinity, no duplicate keys); FileError otherwise."""
-    _json_depth(text, max_depth, path, what)
+    _json_depth(text, max_depth, path)
     try:
         data = json.loads(text, object_pairs_hook=_json_pairs, parse_constant=_json_constant)
     except _Refused as e:
-        raise FileError(path, f"{what}: {e}") from None
+        raise FileError(path, str(e)) from None
     except json.JSONDecodeError as e:
-        raise FileError(path, f"{what} is not valid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+        raise FileError(path, f"not valid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
     except (ValueError, RecursionError) as e:
-        raise FileError(path, f"{what} has a bad value: {e}") from None
+        raise FileError(path, f"bad value: {e}") from None
     nodes, todo = 0, [data]
     while todo:
         v = todo.pop()
         nodes += 1
         if nodes > max_nodes:
-            raise FileError(path, f"{what}: more than {max_nodes} nodes")
+            raise FileError(path, f"more than {max_nodes} nodes")
         if isinstance(v, dict):
             todo.extend(v.values())
             nodes += len(v)
@@ -338,5 +336,5 @@ def load_json(
 ) -> Any:
     """Read, check and parse a JSON file with the same limits as `load_yaml`; FileError on anything wrong."""
     text = read_text(path, what=what, max_bytes=max_bytes)
-    return parse_json(text, path, what=what, max_depth=max_depth, max_nodes=max_nodes)
+    return parse_json(text, path, max_depth=max_depth, max_nodes=max_nodes)
 

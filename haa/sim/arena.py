@@ -17,23 +17,28 @@ y up) closed by outer walls, plus:
 
 `load_arena("small" | "large" | path)` validates the file and returns an `Arena`; a bad file raises
 `ArenaError` with one line naming the field and the reason (e.g.
-`arena foo.yaml: landmarks[3].pos: not on a wall or obstacle face (nearest is 0.31 m away)`).
+`arena foo.yaml: landmarks[3].pos: not on a wall or obstacle face (nearest is 0.31 m away)`). The file is
+read by `haa.files` (at most 1 MiB, 64 levels, 100,000 nodes, no duplicate keys) and the schema bounds
+every list (`MAX_WALLS`, `MAX_OBSTACLES`, ... below; docs/limits.md), so that no file keeps the
+simulator busy for long before it starts.
 The two thesis arenas ship in `haa/sim/arenas/` (designed by `haa.sim.arenas.design`; docs/sim.md).
 """
 
 from __future__ import annotations
 
+import errno
 import itertools
 import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
 
+from haa import files
 from haa.sim.geometry import (
     Edges,
     Point,
@@ -45,7 +50,7 @@ from haa.sim.geometry import (
     segment_distance,
     thick_segment,
 )
-from haa.sim.schedule import ScheduleEntry
+from haa.sim.schedule import MAX_ENTRIES, ScheduleEntry
 
 BUILTIN = ("small", "large")
 
@@ -65,12 +70,25 @@ START_CLEARANCE = 0.25
 COLLECTABLE_RADIUS = 0.05
 COLLECTABLE_HEIGHT = 0.10
 
+#: the most elements an arena file may hold (the compile checks are walls x landmarks and the like)
+MAX_WALLS = 100
+MAX_OBSTACLES = 100
+MAX_POLYGON_POINTS = 16
+MAX_LANDMARKS = 1000  # the largest marker dictionary has 1000 ids
+MAX_COLLECTABLES = 1000
+MAX_REGIONS = 32
+MAX_START_POSES = 100
+MAX_ID_CHARS = 64
+MAX_DESCRIPTION_CHARS = 10_000
+MAX_SIDE = 100.0
+
 
 class ArenaError(ValueError):
     """An arena file is invalid; the message is one line naming the field and the reason."""
 
 
-XY = tuple[float, float]
+#: coordinates are finite (no inf or NaN); an arena side is at most MAX_SIDE metres
+XY = tuple[FiniteFloat, FiniteFloat]
 
 
 class _Model(BaseModel):
@@ -79,8 +97,8 @@ class _Model(BaseModel):
 
 class BoxSpec(_Model):
     center: XY
-    size: tuple[float, float] = Field(description="width (along x before rotation), height")
-    angle: float = Field(0.0, description="rotation, radians counter-clockwise")
+    size: XY = Field(description="width (along x before rotation), height")
+    angle: FiniteFloat = Field(0.0, description="rotation, radians counter-clockwise")
 
     @model_validator(mode="after")
     def _positive(self) -> BoxSpec:
@@ -89,8 +107,11 @@ class BoxSpec(_Model):
         return self
 
 
+Id = Annotated[str, Field(min_length=1, max_length=MAX_ID_CHARS)]
+
+
 class WallSpec(_Model):
-    id: str
+    id: Id
     start: XY
     end: XY
     thickness: float = Field(0.05, gt=0, le=1.0)
@@ -105,8 +126,8 @@ class WallSpec(_Model):
 class ShapeSpec(_Model):
     """A convex polygon, or a box."""
 
-    id: str
-    polygon: list[XY] | None = None
+    id: Id
+    polygon: list[XY] | None = Field(None, max_length=MAX_POLYGON_POINTS)
     box: BoxSpec | None = None
 
     @model_validator(mode="after")
@@ -140,29 +161,31 @@ class CongregationSpec(_Model):
 
 
 class CollectableSpec(_Model):
-    id: str
+    id: Id
     pos: XY
 
 
 class ArenaSpec(_Model):
     """The arena file (YAML) as validated by pydantic; `compile_arena` adds the geometric checks."""
 
-    name: str
-    description: str = ""
-    size: tuple[float, float]
+    name: Id
+    description: str = Field("", max_length=MAX_DESCRIPTION_CHARS)
+    size: tuple[Annotated[float, Field(le=MAX_SIDE)], Annotated[float, Field(le=MAX_SIDE)]]
     wall_height: float = Field(0.6, gt=0, le=5)
     outer_wall_thickness: float = Field(0.05, gt=0, le=1)
     marker_dictionary: Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000"] = "DICT_4X4_250"
     marker_size: float = Field(0.2, gt=0.01, le=2.0, description="side of the black marker square, m")
-    marker_height: float = Field(0.3, gt=0, description="height of the marker centres above the floor, m")
-    walls: list[WallSpec] = []
-    obstacles: list[ShapeSpec] = []
-    landmarks: list[LandmarkSpec] = []
+    marker_height: float = Field(
+        0.3, gt=0, allow_inf_nan=False, description="height of the marker centres above the floor, m"
+    )
+    walls: list[WallSpec] = Field([], max_length=MAX_WALLS)
+    obstacles: list[ShapeSpec] = Field([], max_length=MAX_OBSTACLES)
+    landmarks: list[LandmarkSpec] = Field([], max_length=MAX_LANDMARKS)
     congregation: CongregationSpec | None = None
-    collectables: list[CollectableSpec] = []
-    collection_regions: list[ShapeSpec] = []
-    start_poses: list[tuple[float, float, float]] = Field(min_length=1)
-    schedule: list[ScheduleEntry] = []
+    collectables: list[CollectableSpec] = Field([], max_length=MAX_COLLECTABLES)
+    collection_regions: list[ShapeSpec] = Field([], max_length=MAX_REGIONS)
+    start_poses: list[tuple[FiniteFloat, FiniteFloat, FiniteFloat]] = Field(min_length=1, max_length=MAX_START_POSES)
+    schedule: list[ScheduleEntry] = Field([], max_length=MAX_ENTRIES)
 
     @model_validator(mode="after")
     def _sizes(self) -> ArenaSpec:
@@ -287,23 +310,23 @@ def load_arena(arena: str | Path) -> Arena:
         path = builtin_path(arena)
     else:
         path = Path(arena)
-    label = f"arena {path.name}"
+    label = f"arena {files.one_line(path.name)}"
     try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ArenaError(f"arena {arena}: no such file (built-in arenas: {', '.join(BUILTIN)})") from None
-    except OSError as e:
-        raise ArenaError(f"arena {arena}: cannot read: {e.strerror or e}") from None
+        text = files.read_text(path, what="arena file")
+    except files.FileError as e:
+        if e.os_errno == errno.ENOENT:
+            where = files.one_line(str(arena))
+            raise ArenaError(f"arena {where}: no such file (built-in arenas: {', '.join(BUILTIN)})") from None
+        raise ArenaError(f"arena {e}") from None
     return parse_arena(text, label)
 
 
 def parse_arena(text: str, label: str = "arena") -> Arena:
+    """Validate and compile arena YAML text (`label` starts the error lines); raises ArenaError."""
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise ArenaError(f"{label}:{where} not valid YAML: {getattr(e, 'problem', None) or e}") from None
+        data = files.parse_yaml(text, label)
+    except files.FileError as e:
+        raise ArenaError(str(e)) from None
     if not isinstance(data, dict):
         raise ArenaError(f"{label}: expected a mapping at the top level")
     try:
@@ -311,7 +334,7 @@ def parse_arena(text: str, label: str = "arena") -> Arena:
     except ValidationError as e:
         err = e.errors()[0]
         msg = str(err["msg"]).removeprefix("Value error, ")
-        raise ArenaError(f"{label}: {_fmt_loc(tuple(err['loc']))}: {msg}") from None
+        raise ArenaError(files.one_line(f"{label}: {_fmt_loc(tuple(err['loc']))}: {msg}", 500)) from None
     arena = compile_arena(spec, label)
     arena.source = text
     return arena
@@ -370,6 +393,27 @@ def compile_arena(spec: ArenaSpec, label: str = "arena") -> Arena:
         )
     dict_size = DICTIONARIES[spec.marker_dictionary]
 
+    # Two prefilters keep the checks below linear in practice (a file may hold 1000 landmarks and 2000
+    # edges): both return a superset of what the exact scalar tests accept, in index order, so the
+    # results are those of testing everything.
+    edge_d = edges.b - edges.a
+    edge_l2 = (edge_d * edge_d).sum(axis=1)
+    edge_l2_safe = np.where(edge_l2 > 0, edge_l2, 1.0)
+    box_lo = np.array([np.min(s.polygon, axis=0) for s in structures]) - 1e-9
+    box_hi = np.array([np.max(s.polygon, axis=0) for s in structures]) + 1e-9
+
+    def near_edges(p: XY) -> list[int]:
+        """The edges within 1 um of the nearest one to p."""
+        rel = np.asarray(p, dtype=float) - edges.a
+        t = np.clip(np.where(edge_l2 > 0, (rel * edge_d).sum(axis=1) / edge_l2_safe, 0.0), 0.0, 1.0)
+        dist = np.hypot(*(rel - t[:, None] * edge_d).T)
+        return np.nonzero(dist <= dist.min() + 1e-6)[0].tolist() if len(dist) else []
+
+    def solids_near(x: float, y: float) -> list[Structure]:
+        """The structures whose bounding box holds (x, y)."""
+        hit = (box_lo[:, 0] <= x) & (x <= box_hi[:, 0]) & (box_lo[:, 1] <= y) & (y <= box_hi[:, 1])
+        return [structures[i] for i in np.nonzero(hit)[0]]
+
     markers: list[Marker] = []
     landmarks: dict[int, Point] = {}
     for i, lm in enumerate(spec.landmarks):
@@ -378,7 +422,7 @@ def compile_arena(spec: ArenaSpec, label: str = "arena") -> Arena:
         if lm.id >= dict_size:
             fail(f"landmarks[{i}].id", f"{lm.id} is not in {spec.marker_dictionary} (ids 0..{dict_size - 1})")
         best, best_d, best_s = -1, math.inf, 0.0
-        for k in range(len(edges)):
+        for k in near_edges(lm.pos):
             d, s = segment_distance(lm.pos, tuple(edges.a[k]), tuple(edges.b[k]))
             if d < best_d:
                 best, best_d, best_s = k, d, s
@@ -392,7 +436,7 @@ def compile_arena(spec: ArenaSpec, label: str = "arena") -> Arena:
         u = (edges.b[best] - a) / L
         centre = (float(a[0] + u[0] * best_s), float(a[1] + u[1] * best_s))
         probe = (centre[0] + n[0] * 0.05, centre[1] + n[1] * 0.05)
-        if not inside(probe) or any(point_in_polygon(*probe, s.polygon) for s in structures):
+        if not inside(probe) or any(point_in_polygon(*probe, s.polygon) for s in solids_near(*probe)):
             fail(f"landmarks[{i}].pos", "its face is not visible from free space")
         markers.append(Marker(lm.id, best, best_s - plate / 2, plate, centre, n))
         landmarks[lm.id] = centre
@@ -431,7 +475,7 @@ def compile_arena(spec: ArenaSpec, label: str = "arena") -> Arena:
                 fail("landmarks", f"markers {m1.id} and {m2.id} overlap on the same face")
 
     def solid_at(x: float, y: float) -> Structure | None:
-        for s in structures:
+        for s in solids_near(x, y):
             if point_in_polygon(x, y, s.polygon):
                 return s
         return None

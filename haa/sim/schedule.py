@@ -14,17 +14,27 @@ schedule:
   - {at: 200, crash: s2}                             # stops responding, stays where it is, event "crashed"
 ```
 
+A schedule file is read by `haa.files` (at most 1 MiB, 64 levels, 100,000 nodes, no duplicate keys) and holds
+at most `MAX_ENTRIES` entries (docs/limits.md).
+
 The world applies every entry exactly at its time (a `World.step` that spans it is split there); entries
 with the same time apply in file order. The gRPC API can do the same on demand (haa.sim.service).
 """
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
+
+from haa import files
+
+#: the most entries a schedule (file or arena) may hold
+MAX_ENTRIES = 1000
+#: avatar ids are at most this long
+MAX_ID_CHARS = 64
 
 AvatarTypeName = Literal["seeker", "enhanced_seeker", "sweeper", "carrier"]
 
@@ -32,8 +42,8 @@ AvatarTypeName = Literal["seeker", "enhanced_seeker", "sweeper", "carrier"]
 class JoinSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
     type: AvatarTypeName
-    id: str | None = Field(None, min_length=1, max_length=64)
-    start: int | tuple[float, float, float] | None = Field(
+    id: str | None = Field(None, min_length=1, max_length=MAX_ID_CHARS)
+    start: int | tuple[FiniteFloat, FiniteFloat, FiniteFloat] | None = Field(
         None, description="start pose index of the arena, or [x, y, theta]; none: the next free start pose"
     )
 
@@ -42,8 +52,8 @@ class ScheduleEntry(BaseModel):
     model_config = ConfigDict(extra="forbid")
     at: float = Field(ge=0, description="simulated time, s")
     join: JoinSpec | None = None
-    retire: str | None = None
-    crash: str | None = None
+    retire: str | None = Field(None, max_length=MAX_ID_CHARS)
+    crash: str | None = Field(None, max_length=MAX_ID_CHARS)
 
     @model_validator(mode="after")
     def _one(self) -> ScheduleEntry:
@@ -88,17 +98,20 @@ class ScheduleError(ValueError):
 def load_schedule(path: str | Path, start_poses: int) -> list[ScheduleEntry]:
     """The `schedule` list of a mission (or arena) file, validated; raises ScheduleError."""
     p = Path(path)
+    name = files.one_line(p.name)
     try:
-        data = yaml.safe_load(p.read_text())
-    except FileNotFoundError:
-        raise ScheduleError(f"schedule {path}: no such file") from None
-    except yaml.YAMLError as e:
-        raise ScheduleError(f"schedule {p.name}: not valid YAML: {getattr(e, 'problem', None) or e}") from None
+        data = files.load_yaml(p, what="schedule file")
+    except files.FileError as e:
+        if e.os_errno == errno.ENOENT:
+            raise ScheduleError(f"schedule {files.one_line(str(path))}: no such file") from None
+        raise ScheduleError(f"schedule {name}: {e.reason}") from None
     if not isinstance(data, dict) or "schedule" not in data:
-        raise ScheduleError(f"schedule {p.name}: expected a mapping with a `schedule` list")
+        raise ScheduleError(f"schedule {name}: expected a mapping with a `schedule` list")
     raw = data["schedule"] or []
     if not isinstance(raw, list):
-        raise ScheduleError(f"schedule {p.name}: schedule: expected a list")
+        raise ScheduleError(f"schedule {name}: schedule: expected a list")
+    if len(raw) > MAX_ENTRIES:
+        raise ScheduleError(f"schedule {name}: schedule: more than {MAX_ENTRIES} entries")
     entries = []
     for i, item in enumerate(raw):
         try:
@@ -107,8 +120,8 @@ def load_schedule(path: str | Path, start_poses: int) -> list[ScheduleEntry]:
             err = e.errors()[0]
             loc = "".join(f".{x}" if isinstance(x, str) else f"[{x}]" for x in err["loc"])
             msg = str(err["msg"]).removeprefix("Value error, ")
-            raise ScheduleError(f"schedule {p.name}: schedule[{i}]{loc}: {msg}") from None
+            raise ScheduleError(files.one_line(f"schedule {name}: schedule[{i}]{loc}: {msg}", 500)) from None
     problem = check_schedule(entries, start_poses)
     if problem:
-        raise ScheduleError(f"schedule {p.name}: {problem[0]}: {problem[1]}")
+        raise ScheduleError(files.one_line(f"schedule {name}: {problem[0]}: {problem[1]}", 500))
     return entries

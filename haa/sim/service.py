@@ -50,6 +50,7 @@ import grpc
 import numpy as np
 from grpc import aio
 
+from haa import files
 from haa.pb import sim_pb2 as pb
 from haa.pb import sim_pb2_grpc as pbg
 from haa.sim import actions as act
@@ -795,9 +796,10 @@ def build(s: Settings) -> tuple[SimCore, str | None]:
     world = World(arena, seed=s.seed, schedule=schedule)
     token = None
     if s.token_file is not None:
-        token = s.token_file.read_text().strip()
-        if not token:
-            raise OSError(f"--token-file: {s.token_file} is empty")
+        try:
+            token = files.read_token(s.token_file)
+        except files.FileError as e:
+            raise OSError(f"--token-file: {e}") from None
     core = SimCore(world, arena.name, "step" if s.step else "realtime", s.speed, s.tick)
     return core, token
 
