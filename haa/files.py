@@ -99,7 +99,7 @@ def read_bytes(path: str | os.PathLike[str], *, what: str = "file", max_bytes: i
     except OSError as e:
         raise FileError(path, f"cannot read: {e.strerror or e}", e.errno) from None
     if total > max_bytes:
-        raise FileError(path, f"larger than {_size(max_bytes)} (the limit for a {what})")
+        raise FileError(path, f"larger than {_size(max_bytes)} ({what} limit)")
     return b"".join(chunks)
 
 

@@ -31,8 +31,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from haa import files
 from haactl.backend import (
     ALIVE,
     DEAD,
@@ -107,11 +106,11 @@ class ComposeBackend(Backend):
         self.file = (compose_file or default_compose_file()).absolute()
         self.project = project or os.environ.get("HAA_COMPOSE_PROJECT", "haa")
         try:
-            spec = yaml.safe_load(self.file.read_text())
-        except OSError as e:
-            raise ClusterError(f"cannot read the compose file {self.file}: {e.strerror}") from None
-        except yaml.YAMLError as e:
-            raise ClusterError(f"compose file {self.file}: broken YAML: {str(e).splitlines()[0]}") from None
+            spec = files.load_yaml(self.file, what="compose file")
+        except files.FileError as e:
+            raise ClusterError(f"compose file {e}") from None
+        if not isinstance(spec, dict | None) or not isinstance((spec or {}).get("services") or {}, dict):
+            raise ClusterError(f"compose file {self.file}: expected a mapping with a `services` mapping")
         services: dict[str, Any] = dict((spec or {}).get("services") or {})
         if not services:
             raise ClusterError(f"compose file {self.file} defines no services")
@@ -124,7 +123,10 @@ class ComposeBackend(Backend):
         self.token_file = self.file.parent / "token"
         token = ""
         if self.token_file.is_file():
-            token = self.token_file.read_text().strip()
+            try:
+                token = files.read_text(self.token_file, what="token file", max_bytes=files.MAX_TOKEN_BYTES).strip()
+            except files.FileError as e:
+                raise ClusterError(f"cannot read the cluster token {e}") from None
         super().__init__(token)
         self._docker: Any = None
 

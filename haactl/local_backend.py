@@ -32,8 +32,8 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-import yaml
 
+from haa import files
 from haactl.backend import (
     ALIVE,
     DEAD,
@@ -60,18 +60,14 @@ def default_root() -> Path:
 
 
 def check_yaml(path: Path) -> None:
-    """Parse a hostd config file here, so that a broken file gives one error instead of N dead hosts."""
+    """Parse a hostd config file here, so that a broken file gives one error instead of N dead hosts (with
+    haa-hostd's limits: haa.files)."""
+    from haa.hostd.daemon import CONFIG_MAX_BYTES, CONFIG_MAX_NODES
+
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ClusterError(f"cannot read config file {path}: {getattr(e, 'strerror', None) or e}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ClusterError(f"config file {path}:{where}: broken YAML: {problem}") from None
+        data = files.load_yaml(path, what="config file", max_bytes=CONFIG_MAX_BYTES, max_nodes=CONFIG_MAX_NODES)
+    except files.FileError as e:
+        raise ClusterError(f"config file {e.path}: {e.reason.replace('not valid YAML', 'broken YAML', 1)}") from None
     if data is not None and not isinstance(data, dict):
         kind = type(data).__name__
         raise ClusterError(f"config file {path}: the top level must be a mapping (key: value), not {kind}")
@@ -128,9 +124,9 @@ class LocalBackend(Backend):
         tf = self.state.get("token_file")
         if tf:
             try:
-                token = Path(tf).read_text().strip()
-            except OSError as e:
-                raise ClusterError(f"cannot read the cluster token {tf}: {e.strerror}") from None
+                token = files.read_token(tf)
+            except files.FileError as e:
+                raise ClusterError(f"cannot read the cluster token {e}") from None
         super().__init__(token)
 
     # ------------------------------------------------------------------ state file

@@ -37,6 +37,7 @@ def show(
     labels: Annotated[bool, typer.Option("--labels/--no-labels", help="draw ids")] = True,
 ) -> None:
     """Render a top-down picture of an arena (or of a running simulation's true state) to a PNG."""
+    from haa import files
     from haa.sim.arena import ArenaError, load_arena
     from haa.sim.render import render_topdown, save_png
 
@@ -49,7 +50,7 @@ def show(
 
             from haa.sim.service import SimClient, truth_from_server
 
-            token = token_file.read_text().strip() if token_file else None
+            token = files.read_token(token_file) if token_file else None
             try:
                 with SimClient(server, token=token, timeout=10.0) as c:
                     a, truth = truth_from_server(c)
@@ -62,7 +63,7 @@ def show(
             a = load_arena(arena)
             img = render_topdown(a, scale=scale, labels=labels)
         path = save_png(img, output)
-    except ArenaError as e:
+    except (ArenaError, files.FileError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None
     except OSError as e:
