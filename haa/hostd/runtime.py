@@ -242,6 +242,7 @@ class HostRuntime:
             on_peer_incarnation=self._on_peer_incarnation,
             counters=self.counters,
             accept_unknown=config.membership,
+            on_superseded=self._on_superseded,
         )
         self.advertise = config.advertise
         self.server: aio.Server | None = None
@@ -648,10 +649,18 @@ class HostRuntime:
         if fut is not None and not fut.done():
             fut.set_result(ProposeResult(txid, self.participants_of(txid), p2d, d2d))
 
-    def _reincarnate(self, by: str) -> None:
+    def _on_superseded(self, peer: str, newer: int) -> None:
+        """`peer` knows a newer incarnation of this host's name: this process was displaced (a second daemon
+        under our name, or a claim, was accepted while we were silent). Rejoin as a new incarnation above it,
+        dropping our agent instances (docs/membership.md, "incarnation claims")."""
+        if self.node is None or self._stopping or self.left or newer <= self.incarnation:
+            return
+        self._reincarnate(f"superseded at {peer} by incarnation {newer}", above=newer)
+
+    def _reincarnate(self, by: str, above: int = 0) -> None:
         old = self.core
         assert old is not None
-        inc = self._new_incarnation(old.inc)
+        inc = self._new_incarnation(max(old.inc, above))
         log_event(log, logging.WARNING, "reincarnate", by=by, old=old.inc, new=inc)
         self._past_core_counters.update(old.counters)
         self.counters["reincarnations"] += 1

@@ -54,6 +54,7 @@ import contextlib
 import hmac
 import logging
 import re
+import time
 from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -64,7 +65,7 @@ from grpc import aio
 
 from haa.hostd import wire
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
-from haa.hostd.messages import Message
+from haa.hostd.messages import Heartbeat, Message
 from haa.pb import hostlink_pb2 as pb
 
 log = logging.getLogger(LOGGER_NAME + ".transport")
@@ -73,6 +74,8 @@ OPEN_METHOD = "/haa.v1.HostLink/Open"
 MD_TOKEN = "x-haa-token"
 MD_SENDER = "x-haa-sender"
 MD_INC = "x-haa-incarnation"
+#: trailing metadata of a stale-incarnation refusal: the newer incarnation of the sender the receiver knows
+MD_NEWER = "x-haa-newer-incarnation"
 
 #: (dst_inc, envelope chunk) — what a link queues
 Entry = tuple[int, bytes]
@@ -80,6 +83,28 @@ Entry = tuple[int, bytes]
 OnEnvelopes = Callable[[str, int, list[tuple[int, Message]]], None]
 #: called with (peer, incarnation) when a handshake shows a receiver incarnation this link did not know
 OnPeerIncarnation = Callable[[str, int], None]
+#: called with (peer, newer) when `peer` refused this host's incarnation because it knows a newer one of this
+#: host's name (`newer`): this process has been superseded (docs/membership.md, "incarnation claims")
+OnSuperseded = Callable[[str, int], None]
+
+#: incarnations are unsigned 64-bit numbers (the wire's `uint64`); 0 means "unknown" and is never valid
+MAX_INCARNATION = (1 << 64) - 1
+#: an incarnation is `time.time_ns()` when the daemon (re)started (haa.hostd.runtime): a claim more than this
+#: many seconds ahead of the receiver's clock is refused (`rejected_future_incarnation`, OUT_OF_RANGE)
+MAX_INCARNATION_AHEAD = 60.0
+#: a sender incarnation counts as live on this host while one of its streams is open and it sent a valid
+#: message within this many seconds plus twice the heartbeat period it announced last
+LIVE_WINDOW = 1.0
+_INC_RE = re.compile(r"[1-9][0-9]{0,19}")
+
+
+def parse_incarnation(text: str) -> int | None:
+    """The `x-haa-incarnation` metadata value as an incarnation, or None: plain decimal digits only (no sign,
+    spaces, underscores or non-ASCII digits, which `int()` would accept), 1 .. `MAX_INCARNATION`."""
+    if not isinstance(text, str) or not _INC_RE.fullmatch(text):
+        return None
+    inc = int(text)
+    return inc if inc <= MAX_INCARNATION else None
 
 MAX_MESSAGE = 64 << 20
 
@@ -264,6 +289,8 @@ class OutLink:
             except grpc.RpcError as e:
                 code = e.code() if isinstance(e, aio.AioRpcError) else None
                 reason = f"{code.name if code else 'rpc error'}: {e.details() if code else e}"
+                if code is not None:
+                    self._refused(e, code, reason)
             except asyncio.InvalidStateError as e:  # grpc.aio: a write on a call that has just finished
                 reason = f"stream finished: {e}"
             except Exception as e:  # a link must survive anything and reconnect
@@ -281,6 +308,28 @@ class OutLink:
                     log_event(log, logging.DEBUG, "link_connect_failed", peer=self.peer, reason=reason)
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2.0, t.max_backoff)
+
+    def _refused(self, e: aio.AioRpcError, code: grpc.StatusCode, reason: str) -> None:
+        """The receiver refused this host's stream: say why (rate-limited), and if it knows a newer incarnation
+        of this host's name, this process has been superseded (`Transport.on_superseded`)."""
+        t = self.t
+        if code not in (grpc.StatusCode.FAILED_PRECONDITION, grpc.StatusCode.OUT_OF_RANGE) and not (
+            code == grpc.StatusCode.UNAVAILABLE and " is live on " in reason
+        ):
+            return
+        t.counters["link_refused"] += 1
+        if t.limiter.allow("refused." + self.peer):
+            log_event(log, logging.WARNING, "link_refused", peer=self.peer, reason=reason[:300])
+        if code != grpc.StatusCode.FAILED_PRECONDITION:
+            return
+        newer = None
+        for key, value in e.trailing_metadata() or ():
+            if key == MD_NEWER and isinstance(value, str):
+                newer = parse_incarnation(value)
+        if newer is not None and newer > t.incarnation:
+            t.counters["link_superseded"] += 1
+            # not from inside this task: the callback reincarnates, which restarts (cancels) every link task
+            asyncio.get_running_loop().call_soon(t.on_superseded, self.peer, newer)
 
     async def _session(self) -> None:
         t = self.t
@@ -454,12 +503,16 @@ class OutLink:
 
 
 class _RxState:
-    __slots__ = ("gaps", "inc", "last")
+    __slots__ = ("confirmed", "gaps", "heard", "inc", "last", "period", "streams")
 
     def __init__(self, inc: int) -> None:
         self.inc = inc
         self.last = 0  # highest link sequence number delivered from this sender incarnation
         self.gaps = 0  # streams ended in a row because of a gap in the numbering
+        self.streams = 0  # open inbound streams of this incarnation
+        self.confirmed = False  # it delivered a valid envelope (more than a claim in metadata)
+        self.heard = float("-inf")  # loop time of its last valid envelope
+        self.period = 0.0  # the heartbeat period it announced last, s
 
 
 class LinkGap(Exception):
@@ -476,6 +529,9 @@ class Transport:
         on_envelopes: receives every frame's new, valid messages (see `OnEnvelopes`).
         on_peer_incarnation: learns receiver incarnations from handshakes (see `OnPeerIncarnation`).
         counters: where to count (shared with the runtime); a new Counter if not given.
+        on_superseded: told when a peer refuses this host's incarnation as stale (see `OnSuperseded`).
+        max_ahead: seconds a sender's incarnation may be ahead of `wall_ns()` (`MAX_INCARNATION_AHEAD`).
+        live_window: see `LIVE_WINDOW`; wall_ns: the wall clock in ns (tests move it).
     The caller sets `incarnation` before `start()` and calls `set_incarnation` when the host reincarnates.
     """
 
@@ -497,6 +553,10 @@ class Transport:
         precontact_limit: int = 16,
         max_queue: int = 1_000_000,
         accept_unknown: bool = False,
+        on_superseded: OnSuperseded | None = None,
+        max_ahead: float = MAX_INCARNATION_AHEAD,
+        live_window: float = LIVE_WINDOW,
+        wall_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
@@ -517,6 +577,10 @@ class Transport:
         self.precontact_limit = precontact_limit
         self.max_queue = max_queue
         self.accept_unknown = accept_unknown
+        self.on_superseded: OnSuperseded = on_superseded or (lambda _p, _i: None)
+        self.max_ahead = max_ahead
+        self.live_window = live_window
+        self.wall_ns = wall_ns
         self.limiter = RateLimiter(1.0)
         self.links: dict[str, OutLink] = {}
         self._rx: dict[str, _RxState] = {}
@@ -639,6 +703,10 @@ class Transport:
                 return hmac.compare_digest(v, self._token_b)
         return False
 
+    def _live(self, st: _RxState, now: float) -> bool:
+        """The sender incarnation `st` lives: a stream of it is open and it spoke recently (see `LIVE_WINDOW`)."""
+        return st.streams > 0 and now - st.heard <= self.live_window + 2.0 * st.period
+
     def _reject(self, counter: str, event: str, **fields: Any) -> None:
         self.counters[counter] += 1
         if self.limiter.allow(counter):
@@ -654,20 +722,54 @@ class Transport:
         if sender not in self.peers and not (self.accept_unknown and valid_name(sender) and sender != self.name):
             self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=context.peer())
             await context.abort(grpc.StatusCode.PERMISSION_DENIED, f"{sender[:100]!r} is not a configured peer")
-        try:
-            inc = int(mdd.get(MD_INC, ""))
-            if inc <= 0:
-                raise ValueError
-        except ValueError:
+        inc = parse_incarnation(mdd.get(MD_INC, ""))
+        if inc is None:
             self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender)
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_INC}")
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_INC}: a decimal in 1..2**64-1")
+            return
+        ahead = (inc - self.wall_ns()) / 1e9
+        if ahead > self.max_ahead:
+            # incarnations are wall-clock timestamps: one far in the future is a forgery (or a broken clock);
+            # believed, it would make every real incarnation of that host look stale
+            self._reject("rejected_future_incarnation", "reject_future_incarnation", sender=sender, inc=inc,
+                         ahead_s=round(ahead, 3))
+            await context.abort(
+                grpc.StatusCode.OUT_OF_RANGE,
+                f"incarnation {inc} is {ahead:.0f} s ahead of {self.name}'s clock (at most {self.max_ahead:g} s)",
+            )
+            return
         st = self._rx.get(sender)
-        if st is None or st.inc < inc:
+        now = asyncio.get_running_loop().time()
+        if st is None or st.inc == inc:
+            pass
+        elif st.inc < inc:
+            if self._live(st, now):
+                # a second process under a live host's name (an impostor, or a claim made with the token):
+                # refused while the incarnation we hear from lives; a real restart ends the old process and
+                # its streams, and is accepted at the next attempt (docs/membership.md, "incarnation claims")
+                self._reject("rejected_live_incarnation", "reject_live_incarnation", sender=sender, inc=inc,
+                             live=st.inc)
+                await context.abort(
+                    grpc.StatusCode.UNAVAILABLE, f"{sender} incarnation {st.inc} is live on {self.name}"
+                )
+                return
+        elif st.confirmed or self._live(st, now):
+            self._reject("rejected_stale_incarnation", "reject_stale_incarnation", sender=sender, inc=inc,
+                         newer=st.inc)
+            await context.abort(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                "a newer incarnation of the sender exists",
+                trailing_metadata=((MD_NEWER, str(st.inc)),),
+            )
+            return
+        else:
+            # the newer incarnation was only ever a claim (no valid message came with it) and it is gone:
+            # forget it, so that a claim alone can never lock the real host out
+            self.counters["rx_claim_forgotten"] += 1
+        if st is None or st.inc != inc:
             st = _RxState(inc)
             self._rx[sender] = st
-        elif st.inc > inc:
-            self._reject("rejected_stale_incarnation", "reject_stale_incarnation", sender=sender, inc=inc)
-            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "a newer incarnation of the sender exists")
+        st.streams += 1
         self._inbound[sender] += 1
         self.counters["link_accepts"] += 1
         link = self.links.get(sender)
@@ -698,6 +800,7 @@ class Transport:
             if task is not None:
                 self._handlers.discard(task)
             self._inbound[sender] -= 1
+            st.streams -= 1
 
     async def _receive(
         self,
@@ -761,7 +864,11 @@ class Transport:
                 counters["rx_msgs." + kind] += 1
                 counters["rx_bytes." + kind] += env.ByteSize()
                 items.append((dst_inc, msg))
+                if type(msg) is Heartbeat:
+                    st.period = min(msg.period, 10.0)  # (wire.decode checked it is finite and positive)
             if items:
+                st.confirmed = True
+                st.heard = asyncio.get_running_loop().time()
                 self.on_envelopes(sender, inc, items)
             acker.frame()
 

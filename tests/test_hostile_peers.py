@@ -1,0 +1,397 @@
+"""Peers that claim another host's name or incarnation (issue 13, defects 4 and 5).
+
+With the cluster token anybody can open a host link under any name. These tests do what a hostile or
+careless peer would, through a raw `HostLink.Open` client (metadata built by hand) or by starting a second
+real `haa-hostd` under a name that is taken, against a live 3-host cluster running a counter pair, and check
+after each that every host lives, the group agrees on one view, the DDB replicas are equal, a write commits
+within a second and no agent has two live instances (docs/membership.md, "Incarnation claims").
+
+The rules of the receiving transport are also checked in-process (two `Transport`s on loopback): a claim
+alone never locks the real host out, and a host displaced by a newer incarnation is told so and rejoins above
+it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import grpc
+import psutil
+import pytest
+from grpc import aio
+
+from haa.hostd import ddb, wire
+from haa.hostd.messages import Heartbeat, Message
+from haa.hostd.transport import (
+    MD_INC,
+    MD_SENDER,
+    MD_TOKEN,
+    OPEN_METHOD,
+    Transport,
+    encode_frame,
+    envelope_chunk,
+    parse_incarnation,
+)
+from haa.pb import hostlink_pb2 as pb
+from haactl.local import MemberHost, free_port
+from haactl.local import wait_for as wait
+
+TOKEN = "hostile-peers-token"
+NAMES = ["h1", "h2", "h3"]
+ARGS = ["--rebalance-period", "0", "--agent-hang-timeout", "2"]
+AGENTS = ("A1", "A1.1")
+
+
+# ------------------------------------------------------------------------------------------- the cluster
+
+
+class Cluster:
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        (root / "token").write_text(TOKEN + "\n")
+        ports = {n: free_port() for n in NAMES}
+        self.core = {n: f"127.0.0.1:{ports[n]}" for n in NAMES}
+        self.hosts = {n: MemberHost(n, ports[n], self.core, root, TOKEN, ARGS) for n in NAMES}
+        self.extra: list[MemberHost] = []  # second daemons under a taken name
+
+    def second(self, name: str, tag: str) -> MemberHost:
+        """Another haa-hostd under `name` (its own port and data directory), not started yet."""
+        root = self.root / tag
+        root.mkdir()
+        (root / "token").write_text(TOKEN + "\n")
+        h = MemberHost(name, free_port(), self.core, root, TOKEN, ARGS)
+        self.extra.append(h)
+        return h
+
+    def members(self) -> list[MemberHost]:
+        """The three hosts of the fixture (their current processes)."""
+        return list(self.hosts.values())
+
+    def close(self) -> None:
+        for h in [*self.hosts.values(), *self.extra]:
+            h.kill()
+            h.client.close()
+
+
+def view(h: MemberHost) -> tuple[tuple[tuple[str, int], ...], int]:
+    s = h.status()
+    return tuple((m.name, m.incarnation) for m in s.member_info), s.view
+
+
+def agreed(hosts: list[MemberHost]) -> tuple[tuple[str, int], ...] | None:
+    """The common member list (name, incarnation) if every host is a member of one and the same view whose
+    names are exactly `hosts`' names, each at the incarnation its process reports; else None."""
+    vs = {view(h) for h in hosts}
+    if len(vs) != 1:
+        return None
+    members = next(iter(vs))[0]
+    mine = {(h.name, h.status().incarnation) for h in hosts}
+    return members if set(members) == mine else None
+
+
+def live_instances(procs: list[MemberHost]) -> dict[str, list[str]]:
+    """Agent name -> the hosts whose instance of it may output (phase active or freezing, process alive)."""
+    out: dict[str, list[str]] = {}
+    for h in procs:
+        if not h.alive():
+            continue
+        try:
+            agents = h.client.agent_list().agents
+        except grpc.RpcError:
+            continue
+        for a in agents:
+            if a.local_phase in ("active", "freezing") and a.pid > 0 and psutil.pid_exists(a.pid):
+                out.setdefault(a.name, []).append(f"{h.name}@{h.address}")
+    return out
+
+
+def owner_runs(c: Cluster, name: str) -> str | None:
+    """The host that owns `name` in the table and runs it alone, in phase active; None otherwise."""
+    hs = c.members()
+    rec = {a.name: a for a in hs[0].client.agent_list().agents}.get(name)
+    if rec is None or rec.status != "active":
+        return None
+    runners = [(h.name, a.local_phase) for h in hs for a in h.client.agent_list().agents
+               if a.name == name and a.local_phase]
+    return rec.owner if runners == [(rec.owner, "active")] else None
+
+
+def settled(c: Cluster) -> bool:
+    return all(owner_runs(c, n) for n in AGENTS)
+
+
+def assert_healthy(c: Cluster, extra: list[MemberHost] = ()) -> None:  # type: ignore[assignment]
+    """Every host lives, one view with all three, equal DDB replicas, a write commits within a second, and
+    no agent has two instances that may output."""
+    hs = c.members()
+    assert all(h.alive() for h in hs), [h.name for h in hs if not h.alive()]
+    wait(lambda: agreed(hs), 20, "one view of h1, h2, h3")
+    wait(lambda: len({(s.ddb_seq, s.ddb_hash) for s in (h.status() for h in hs)}) == 1, 10, "equal replicas")
+    t0 = time.monotonic()
+    r = hs[0].client.ddb_write([ddb.put(f"probe/{t0}", "blob", b"x")])
+    took = time.monotonic() - t0
+    assert r.committed, r.reason
+    assert took < 1.0, f"a DDB write took {took:.2f} s"
+    twice = {n: where for n, where in live_instances([*hs, *extra]).items() if len(where) > 1}
+    assert not twice, f"agents with two live instances: {twice}"
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    c = Cluster(tmp_path_factory.mktemp("hostile"))
+    for h in c.members():
+        h.start()
+    try:
+        wait(lambda: agreed(c.members()), 30, "a group of 3")
+        h1 = c.hosts["h1"].client
+        r = h1.agent_spawn("counter", json.dumps({"spawn_peer": True, "period": 0.03, "backup_every": 10}).encode())
+        assert r.ok, r
+        wait(lambda: settled(c), 30, "A1 and A1.1 active")
+        # h2 runs both agents: the host that is impersonated and displaced below
+        for n in AGENTS:
+            if owner_runs(c, n) != "h2":
+                assert h1.agent_move(n, "h2").ok
+                wait(lambda n=n: owner_runs(c, n) == "h2", 20, f"{n} on h2")  # type: ignore[misc]
+        yield c
+    finally:
+        c.close()
+
+
+# ------------------------------------------------------------------------------------------- raw links
+
+
+def open_link(address: str, sender: str, inc: str, frames: list[bytes] = ()) -> grpc.StatusCode | bytes:  # type: ignore[assignment]
+    """Open `HostLink.Open` as `sender` with incarnation metadata `inc` (as given, unchecked), write `frames`;
+    the handshake's bytes, or the status code the receiver refused with."""
+    with grpc.insecure_channel(address) as ch:
+        call = ch.stream_stream(OPEN_METHOD)(iter(frames), metadata=((MD_TOKEN, TOKEN), (MD_SENDER, sender),
+                                                                      (MD_INC, inc)), timeout=5)
+        try:
+            return next(call)
+        except grpc.RpcError as e:
+            return e.code()
+
+
+def test_incarnation_metadata_is_parsed_strictly() -> None:
+    assert parse_incarnation("1") == 1
+    assert parse_incarnation(str(2**64 - 1)) == 2**64 - 1
+    for bad in ["", "0", "-1", "+5", " 5", "5 ", "1_000", "0x10", "05", "١٢", str(2**64), str(2**70), "9" * 100]:
+        assert parse_incarnation(bad) is None, bad
+
+
+def test_claims_of_a_live_hosts_name_are_refused_and_change_nothing(cluster: Cluster) -> None:
+    """Defect 4: as `h1` on h2's port, incarnation 2**70 (locked h1 out for good), strings int() accepts, one
+    an hour ahead of the clock, one 30 s ahead while h1 lives, and an older one — all refused and counted;
+    h1 keeps its incarnation, nobody suspects it, the view does not change."""
+    h1, h2 = cluster.hosts["h1"], cluster.hosts["h2"]
+    before = view(h2)
+    inc1 = h1.status().incarnation
+    now = time.time_ns()
+    cases = {
+        str(2**70): grpc.StatusCode.INVALID_ARGUMENT,
+        f"+{inc1 + 1}": grpc.StatusCode.INVALID_ARGUMENT,
+        f"{inc1 + 1:_}": grpc.StatusCode.INVALID_ARGUMENT,
+        f" {inc1 + 1}": grpc.StatusCode.INVALID_ARGUMENT,
+        str(now + 3600 * 10**9): grpc.StatusCode.OUT_OF_RANGE,
+        str(2**64 - 1): grpc.StatusCode.OUT_OF_RANGE,
+        str(now + 30 * 10**9): grpc.StatusCode.UNAVAILABLE,  # h1 is live here
+        str(inc1 - 1): grpc.StatusCode.FAILED_PRECONDITION,  # stale
+    }
+    got = {inc: open_link(h2.address, "h1", inc) for inc in cases}
+    assert got == cases
+    counters = h2.status().counters.values
+    assert counters["rejected_future_incarnation"] >= 2
+    assert counters["rejected_live_incarnation"] >= 1
+    assert counters["rejected_bad_metadata"] >= 4
+    # for two seconds (h1's stream to h2 would have been cut at its next heartbeat): h1 stays trusted
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        s = h2.status()
+        assert "h1" not in s.suspicions, "h2 lost h1"
+        time.sleep(0.1)
+    assert h1.status().incarnation == inc1
+    assert view(h2) == before
+    assert_healthy(cluster)
+
+
+def test_a_second_daemon_under_a_live_name_is_refused(cluster: Cluster) -> None:
+    """Defect 5: `haa-hostd --name h2` with the core list while h2 lives is refused by every member (it
+    joined and recovered h2's agents while h2 still ran them); the group does not change."""
+    before = view(cluster.hosts["h1"])
+    imp = cluster.second("h2", "impostor")
+    imp.start()
+    others = [cluster.hosts["h1"], cluster.hosts["h3"]]
+    wait(lambda: view(cluster.hosts["h1"]) != before
+         or all(h.status().counters.values["rejected_live_incarnation"] >= 1 for h in others), 20,
+         "the impostor refused by h1 and h3 (or accepted)")
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        assert view(cluster.hosts["h1"]) == before
+        assert not imp.status().member
+        time.sleep(0.1)
+    assert not [a.name for a in imp.client.agent_list().agents if a.local_phase]
+    assert_healthy(cluster, [imp])
+    imp.kill()
+    assert view(cluster.hosts["h1"]) == before
+    assert_healthy(cluster)
+
+
+def test_silent_host_is_superseded_in_bounded_time_and_rejoins_by_itself(cluster: Cluster) -> None:
+    """A host restarted elsewhere while the old process is frozen (SIGSTOP: its streams stay open, silent):
+    the new process is accepted within the live window + reconnect backoff and joins; the old one, resumed,
+    learns it was superseded, kills its agent instances and rejoins as a newer incarnation once the new one is
+    gone (it stayed cut off for good before)."""
+    old = cluster.hosts["h2"]
+    assert old.proc is not None
+    assert settled(cluster) and owner_runs(cluster, "A1") == "h2"
+    pids = [a.pid for a in old.client.agent_list().agents if a.local_phase and a.pid > 0]
+    assert pids
+    old.proc.send_signal(signal.SIGSTOP)
+    try:
+        new = cluster.second("h2", "restarted")
+        t0 = time.monotonic()
+        new.start()
+        trio = [cluster.hosts["h1"], new, cluster.hosts["h3"]]
+        wait(lambda: agreed(trio), 30, "the new h2 in every view")
+        took = time.monotonic() - t0
+        assert took < 15.0, f"the new h2 took {took:.1f} s to supersede the silent one and join"
+        wait(lambda: all(owner_runs_among(trio, n) for n in AGENTS), 30, "h2's agents recovered")
+    finally:
+        old.proc.send_signal(signal.SIGCONT)
+    # the old process learns it was superseded: a new incarnation, its agent instances killed
+    wait(lambda: not any(_alive(p) for p in pids), 15, "the displaced host's agent processes gone")
+    wait(lambda: any(e.get("event") == "reincarnate" and "superseded" in str(e.get("fields", {}).get("by"))
+                     for e in old.events(0)), 10, "the displaced host reincarnated")
+    twice = {n: w for n, w in live_instances([*trio, old]).items() if len(w) > 1}
+    assert not twice, twice
+    assert not old.status().member
+    # the new process goes away: the displaced one rejoins by itself
+    new.kill()
+    wait(lambda: agreed(cluster.members()), 30, "the displaced h2 back in every view")
+    wait(lambda: settled(cluster), 30, "agents active again")
+    assert_healthy(cluster)
+
+
+def owner_runs_among(hs: list[MemberHost], name: str) -> bool:
+    rec = {a.name: a for a in hs[0].client.agent_list().agents}.get(name)
+    if rec is None or rec.status != "active":
+        return False
+    runners = [(h.name, a.local_phase) for h in hs for a in h.client.agent_list().agents
+               if a.name == name and a.local_phase]
+    return runners == [(rec.owner, "active")]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+# ------------------------------------------------------------------------------------------- in-process
+
+
+class Node:
+    """A Transport with its own server, recording what it receives and who superseded it."""
+
+    def __init__(self, name: str, inc: int, port: int, peers: dict[str, int], **kw: Any) -> None:
+        self.got: list[tuple[str, int, Message]] = []
+        self.superseded: list[tuple[str, int]] = []
+        self.t = Transport(name, TOKEN, {p: f"127.0.0.1:{pp}" for p, pp in peers.items()},
+                           on_envelopes=self._on_envelopes, on_superseded=self._on_superseded,
+                           min_backoff=0.01, max_backoff=0.1, handshake_timeout=1.0, **kw)
+        self.t.incarnation = inc
+        self.port = port
+        self.server: aio.Server | None = None
+
+    def _on_envelopes(self, src: str, src_inc: int, items: list[tuple[int, Message]]) -> None:
+        self.got += [(src, src_inc, m) for _d, m in items]
+
+    def _on_superseded(self, peer: str, newer: int) -> None:
+        self.superseded.append((peer, newer))
+        self.t.set_incarnation(newer + 1)  # what HostRuntime does: reincarnate above it
+
+    async def serve(self) -> None:
+        self.server = aio.server(options=Transport.server_options())
+        self.t.add_to_server(self.server)
+        self.server.add_insecure_port(f"127.0.0.1:{self.port}")
+        await self.server.start()
+
+    async def close(self) -> None:
+        await self.t.stop()
+        if self.server is not None:
+            await self.server.stop(0)
+
+
+async def until(cond: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.005)
+
+
+async def claim(port: int, sender: str, inc: int, heartbeat: bool) -> aio.StreamStreamCall:
+    """A raw stream claiming to be `sender`#`inc`, with one valid heartbeat envelope or none; left open."""
+    ch = aio.insecure_channel(f"127.0.0.1:{port}")
+    call = ch.stream_stream(OPEN_METHOD)(metadata=((MD_TOKEN, TOKEN), (MD_SENDER, sender), (MD_INC, str(inc))))
+    reply = pb.LinkReply.FromString(await call.read())
+    assert reply.receiver == "b"
+    if heartbeat:
+        env = wire.encode(sender, inc, 0, Heartbeat(1, 0.05, 1.0)).SerializeToString()
+        await call.write(encode_frame(1, [envelope_chunk(env)]))
+    call._haa_channel = ch  # type: ignore[attr-defined]
+    return call
+
+
+def test_a_claim_alone_never_locks_the_real_host_out() -> None:
+    """Defect 4: a stream claiming a newer incarnation of `a` that carries no valid message (made while `a` was
+    not connected) is forgotten once it is gone; the real `a` connects (it was refused as stale for good)."""
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        b = Node("b", 5, pb_, {"a": pa})
+        await b.serve()
+        fake = await claim(pb_, "a", time.time_ns() + 10**9, heartbeat=False)
+        fake.cancel()
+        a = Node("a", time.time_ns(), pa, {"b": pb_})
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="the real a connected")
+        a.t.send("b", 5, Heartbeat(1, 0.05, 1.0))
+        await until(lambda: b.got, what="a's heartbeat delivered")
+        assert b.t.counters["rx_claim_forgotten"] == 1 and not a.superseded
+        await a.close()
+        await b.close()
+
+    asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_a_displaced_host_is_told_and_rejoins_above_the_newer_incarnation() -> None:
+    """Defect 4/5: a newer incarnation of `a` that spoke (a valid heartbeat) while the real `a` was silent
+    displaces it; the real `a` is refused as stale with the newer incarnation, reincarnates above it and
+    is accepted once the newer one is gone — never locked out for good."""
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        b = Node("b", 5, pb_, {"a": pa})
+        await b.serve()
+        forged = time.time_ns() + 20 * 10**9  # within MAX_INCARNATION_AHEAD
+        fake = await claim(pb_, "a", forged, heartbeat=True)
+        await until(lambda: b.got, what="the claim's heartbeat")
+        a = Node("a", time.time_ns(), pa, {"b": pb_})
+        a.t.start()
+        await until(lambda: a.superseded == [("b", forged)], what="a told it was superseded")
+        assert b.t.counters["rejected_stale_incarnation"] >= 1
+        assert a.t.incarnation == forged + 1
+        fake.cancel()
+        await until(lambda: a.t.connected("b"), what="a (above the claim) connected")
+        a.t.send("b", 5, Heartbeat(2, 0.05, 2.0))
+        await until(lambda: any(i == forged + 1 for _s, i, _m in b.got), what="a's heartbeat delivered")
+        await a.close()
+        await b.close()
+
+    asyncio.run(asyncio.wait_for(main(), 30))
