@@ -56,6 +56,7 @@ import uuid
 from collections.abc import Awaitable, Callable
 from typing import Any, ClassVar
 
+from haa.agents.channel import message_too_large
 from haa.pb import agent_pb2 as pb
 
 #: recovery strategies an agent type declares (docs/agents.md, "Recovery strategies")
@@ -243,7 +244,8 @@ class AgentBase:
     # ------------------------------------------------------------------ calls
 
     def send(self, to: str, payload: bytes) -> None:
-        """Send a message to agent `to` through the hosts (FIFO per sender-receiver pair)."""
+        """Send a message to agent `to` through the hosts (FIFO per sender-receiver pair); ValueError if the
+        payload exceeds `haa.agents.channel.MAX_AGENT_MESSAGE` (4 MiB)."""
         self._ctx.send(to, payload)
 
     async def request(self, to: str, payload: bytes, timeout: float = REQUEST_TIMEOUT) -> bytes:
@@ -548,6 +550,8 @@ class AgentContext:
             raise TypeError(f"payload: expected bytes, not {type(payload).__name__}")
         if self.state == "done":
             raise RuntimeError(f"agent {self.name} has ended; it cannot send")
+        if too_large := message_too_large(len(payload)):  # every hop's frame must fit it (haa.agents.channel)
+            raise ValueError(f"send to {to}: {too_large}")
         self._emit(pb.AgentToHost(sent=pb.AgentMsg(src=self.agent_id, dst=to, payload=bytes(payload), conv=conv)))
 
     async def request(self, to: str, payload: bytes, timeout: float) -> bytes:

@@ -43,6 +43,21 @@ DEFAULT_MAX_FRAME = 16 * 1024 * 1024
 HEADER = struct.Struct(">I")
 #: bytes a frame adds around a message payload (header + protobuf field tags); used for size checks
 FRAME_OVERHEAD = 64
+#: the largest payload of one agent message, in bytes: an operator's `AgentSend` / `AgentRequest` (refused by
+#: the control API with ok=false and a reason) and an agent's `send` / `request` (ValueError in the agent).
+#: A message travels wrapped - in an AgentMsg with two agent ids inside a channel frame, in a host-link
+#: envelope, batched with others into a queue2 push transaction while its receiver is frozen - so it is kept
+#: well below `DEFAULT_MAX_FRAME - FRAME_OVERHEAD`: what passes this check always fits every hop's frame.
+#: docs/limits.md, "Control API and agent messages".
+MAX_AGENT_MESSAGE = 4 * 1024 * 1024
+assert MAX_AGENT_MESSAGE <= DEFAULT_MAX_FRAME - FRAME_OVERHEAD
+
+
+def message_too_large(size: int) -> str:
+    """The reason an agent message payload of `size` bytes is refused, or "" if it is small enough."""
+    if size > MAX_AGENT_MESSAGE:
+        return f"message of {size} bytes exceeds the limit of {MAX_AGENT_MESSAGE} bytes (MAX_AGENT_MESSAGE)"
+    return ""
 
 M = TypeVar("M", bound=Message)
 

@@ -13,7 +13,9 @@ cluster token like the rest of the API. Operator requests go through the host's 
   runs it can; other hosts answer with the owner's name).
 * `AgentRemove`: end an agent for good. `AgentMove`: allocate it to a host until the next session.
 * `AgentSend`: an operator message to an agent (no sender agent). `AgentRequest`: an operator request (the
-  agent's `on_request`), answered through the host that was asked, wherever the agent runs.
+  agent's `on_request`), answered through the host that was asked, wherever the agent runs. A payload over
+  `haa.agents.channel.MAX_AGENT_MESSAGE` (4 MiB) is refused up front (ok=false and the reason; counted as
+  `control_oversized`) instead of being accepted and then dropped by the agent's owner.
 * `Alloc`: status | pause | resume | run (pause/resume the periodic rebalancing; run starts a session).
 * `AgentEvents`: the allocation timeline of this host (spawning, active, freezing, frozen, thawing, thawed,
   crashed, recovering, recovered, removed), kept entries first if asked, then live.
@@ -29,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import grpc
 from grpc import aio
 
+from haa.agents.channel import message_too_large
 from haa.hostd.agentnode import AgentNode
 from haa.hostd.runtime import NotMembershipMode
 from haa.pb import control_pb2 as cpb
@@ -37,6 +40,8 @@ if TYPE_CHECKING:
     from haa.hostd.runtime import HostRuntime
 
 MD_TOKEN = "x-haa-token"
+#: the longest an `AgentRequest` waits for the agent's reply, s (a larger or infinite `timeout` is cut to it)
+MAX_REQUEST_TIMEOUT = 3600.0
 
 
 class AgentControl:
@@ -139,13 +144,21 @@ class AgentControl:
 
     async def AgentSend(self, request: cpb.AgentSendRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
+        too_large = message_too_large(len(request.payload))
+        if too_large:
+            self.rt.counters["control_oversized"] += 1
+            return cpb.AgentOpReply(ok=False, reason=too_large)
         ok = self.rt._feed(node.operator_send, request.ref, request.payload)
         return cpb.AgentOpReply(ok=bool(ok), reason="" if ok else f"unknown agent {request.ref!r}")
 
     async def AgentRequest(self, request: cpb.AgentSendRequest,
                            context: aio.ServicerContext) -> cpb.AgentRequestReply:
         await self._agent_node(context)
-        timeout = request.timeout if request.timeout > 0 else 5.0
+        too_large = message_too_large(len(request.payload))
+        if too_large:
+            self.rt.counters["control_oversized"] += 1
+            return cpb.AgentRequestReply(ok=False, error=too_large)
+        timeout = min(request.timeout, MAX_REQUEST_TIMEOUT) if request.timeout > 0 else 5.0  # NaN: 5 s
         try:
             rep = await self.rt.agent_request(request.ref, request.payload, timeout=timeout)
         except LookupError as e:

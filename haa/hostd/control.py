@@ -1,7 +1,14 @@
 """The operator/control API of one haa-hostd (`haa.v1.HostControl`, proto/haa/pb/control.proto).
 
-`HostControlService` serves it on the host's gRPC server, next to the transport; every call must carry the
-cluster token in metadata `x-haa-token` (else `UNAUTHENTICATED`, counted as `rejected_unauthenticated`).
+`HostControlService` serves it on the host's gRPC server, next to the transport, through `haa.rpcguard`
+(requests arrive as raw bytes): every call must carry the cluster token in metadata `x-haa-token`, checked
+*before* the request is decoded (else `UNAUTHENTICATED`, counted as `rejected_unauthenticated` and
+`control_rejected`); an authenticated request that does not parse gets `INVALID_ARGUMENT` (counted as
+`control_malformed` and `control_rejected`); an exception escaping a handler gets a proper status, never
+UNKNOWN (counted as `control_errors`): `DEADLINE_EXCEEDED` for a timeout (e.g. an `AgentSpawn` whose commit
+did not come back in time), `INVALID_ARGUMENT` for bad input, `FAILED_PRECONDITION` without the membership
+or agent layer, `UNAVAILABLE` for a write the group gave up, `INTERNAL` for a bug (logged with its
+traceback). Limits: docs/limits.md, "Control API and agent messages".
 
 * `Status`: who this host is, its view of every peer (incarnation, suspected, excluded, link connected,
   the heartbeat period eta it asked for and the safety margin alpha), OAC activity, the delivered count and
@@ -33,14 +40,17 @@ AgentRemove, AgentMove, AgentSend, Alloc, AgentEvents) are in `haa.hostd.agentco
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 import grpc
 from grpc import aio
 
+from haa import rpcguard
 from haa.hostd import ddb as ddbmod
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
+from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.oac import OacError
 from haa.hostd.runtime import (
     HostReincarnated,
@@ -59,8 +69,19 @@ if TYPE_CHECKING:
     from haa.hostd.messages import TxId
     from haa.hostd.runtime import HostRuntime
 
+log = logging.getLogger(LOGGER_NAME + ".control")
+
 MD_TOKEN = "x-haa-token"
 DEFAULT_WAIT = 30.0
+#: the service as protobuf describes it (methods, request and reply types): what `add_to_server` registers
+SERVICE = cpb.DESCRIPTOR.services_by_name["HostControl"]
+#: exceptions of the runtime that escape a handler, and the status each gets (before rpcguard's defaults)
+STATUSES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
+    (NotMembershipMode, grpc.StatusCode.FAILED_PRECONDITION),
+    (WriteFailed, grpc.StatusCode.UNAVAILABLE),
+    (HostReincarnated, grpc.StatusCode.ABORTED),
+    (TransactionAborted, grpc.StatusCode.ABORTED),
+)
 
 
 def _txid(t: TxId) -> pb.TxId:
@@ -99,9 +120,37 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
 
     def __init__(self, runtime: HostRuntime) -> None:
         self.rt = runtime
+        self._limiter = RateLimiter(1.0)
 
     def add_to_server(self, server: aio.Server) -> None:
-        control_pb2_grpc.add_HostControlServicer_to_server(self, server)
+        """Register every method with raw requests: the token is checked before decoding (haa.rpcguard)."""
+        guard = rpcguard.Guard(
+            authenticate=lambda ctx: self.rt.transport.check_token(ctx.invocation_metadata()),
+            on_event=self._guard_event,
+            statuses=STATUSES,
+            log=log,
+        )
+        server.add_generic_rpc_handlers((rpcguard.guarded_handler(SERVICE, self, guard),))
+
+    def _guard_event(self, kind: str, method: str, detail: str, exc: BaseException | None) -> None:
+        """Count (and log, rate-limited) a call refused before its handler or a handler's exception."""
+        c = self.rt.counters
+        if kind == "unauthenticated":
+            c["rejected_unauthenticated"] += 1
+            c["control_rejected"] += 1
+            event, level = "control_reject_unauthenticated", logging.WARNING
+        elif kind == "malformed":
+            c["control_malformed"] += 1
+            c["control_rejected"] += 1
+            event, level = "control_reject_malformed", logging.WARNING
+        else:
+            c["control_errors"] += 1
+            internal = detail.startswith("INTERNAL")
+            event, level = ("control_internal_error", logging.ERROR) if internal else ("control_error", logging.INFO)
+            if internal and exc is not None and self._limiter.allow("internal_trace"):
+                log.error("control_internal_error in %s", method, exc_info=exc)
+        if self._limiter.allow(event):
+            log_event(log, level, event, method=method, detail=detail[:300])
 
     async def _auth(self, context: aio.ServicerContext) -> None:
         if not self.rt.transport.check_token(context.invocation_metadata()):
