@@ -57,6 +57,7 @@ def _check_allocatable(g: GlobalState) -> None:
     """What the agent layer builds from the table for the allocator (AgentNode._agent_specs/_host_specs) must
     construct: every number finite and within the allocator's bounds."""
     t = g.agents
+    assert t.invalid_values() == []
     for r in t:
         AgentSpec(id=r.id, cost=r.cost(), hardware=frozenset(r.spec.hardware),
                   transfer_penalty=r.spec.transfer_penalty, current_host=r.owner or None)

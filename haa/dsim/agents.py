@@ -17,6 +17,9 @@ processes would. `check_agents` then checks (`haactl verify transfer|recovery`; 
   processed. For a receiver that crashed: within each of its lives, no message twice and sender order kept.
 * AR-Recovery: an agent recovered from a backup starts from the latest backup committed before its recovery
   (in the group's total order), or fresh if there was none.
+* AG-Refuse-Invalid: transactions with out-of-bounds values that members propose without the edge checks
+  (`haa.dsim.hostile.refusable_agent_tx`, a few per schedule, issue 13) are refused by every replica, and no
+  table ever holds a value outside the allocator's bounds (`AgentTable.invalid_values`).
 * AG-Liveness: after healing the run goes quiet with every message delivered and no agent left frozen,
   freezing, crashed or waiting.
 
@@ -34,6 +37,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
+from haa.dsim import hostile
 from haa.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
 from haa.dsim.group import GroupScenario, GroupSim, GroupViolation, draw_group
 from haa.hostd import agenttable as at
@@ -78,6 +82,9 @@ class AgentScenario:
     kills: list[tuple[float, int]] = field(default_factory=list)  # (time, agent index)
     hangs: list[tuple[float, int]] = field(default_factory=list)
     sends_end: float = 0.0
+    #: (time, seed) of transactions with out-of-bounds values that a member proposes without the edge checks
+    #: (haa.dsim.hostile.refusable_agent_tx): every replica must refuse them and nothing may raise (issue 13)
+    hostile: list[tuple[float, int]] = field(default_factory=list)
 
     def describe(self) -> list[str]:
         out = self.group.describe()
@@ -85,6 +92,7 @@ class AgentScenario:
         out += [f"t={t:.3f} move agent#{a} to host#{h}" for t, a, h in self.moves]
         out += [f"t={t:.3f} kill agent#{a}" for t, a in self.kills]
         out += [f"t={t:.3f} hang agent#{a}" for t, a in self.hangs]
+        out += [f"t={t:.3f} hostile transaction (seed {s})" for t, s in self.hostile]
         return out
 
 
@@ -108,6 +116,9 @@ def draw_agents(seed: int, hosts: int = 7, mix: str = "transfer") -> AgentScenar
             sc.kills.append((rng.uniform(sc.create_at + 0.2, g.fault_end), rng.randrange(sc.n_agents)))
         if rng.random() < 0.3:
             sc.hangs.append((rng.uniform(sc.create_at + 0.2, g.fault_end), rng.randrange(sc.n_agents)))
+    # drawn from their own generator, so that the rest of a seed's scenario is what it was before they existed
+    hr = random.Random(seed * 7919 + 5)
+    sc.hostile = sorted((hr.uniform(sc.create_at, g.fault_end), hr.randrange(2**32)) for _ in range(hr.randint(0, 3)))
     sc.moves.sort()
     sc.kills.sort()
     sc.sends_end = g.fault_end
@@ -161,6 +172,9 @@ class AgentHistory:
     ids: list[str] = field(default_factory=list)
     timeline: list[tuple[float, str, str, str]] = field(default_factory=list)
     gens: int = 0
+    #: encoded hostile agent transactions injected (data -> kind), and those some replica accepted
+    hostile: dict[bytes, str] = field(default_factory=dict)
+    hostile_accepted: list[str] = field(default_factory=list)
     gen_of_start: list[tuple[str, int]] = field(default_factory=list)  # (agent, generation) per start
     epochs_seen: dict[tuple[str, int], Proc] = field(default_factory=dict)
     double_epoch: list[str] = field(default_factory=list)
@@ -210,6 +224,13 @@ class AgentSim(GroupSim):
     def _observe_applied(self, proc: Proc, e: AppliedTx) -> None:
         """The total order of backups and recoveries, as seen by one member (all agree: HM-Agreement)."""
         ah = self.ah
+        if ah.hostile and e.kind == "agent":
+            gtx = decode_tx(e.payload)
+            hk = ah.hostile.get(gtx.data) if type(gtx) is TxAgent else None
+            res0 = e.result
+            # a costs transaction applies (ok) but ignores values out of bounds; every other kind is refused
+            if hk is not None and hk != "costs" and isinstance(res0, at.AgentApplied) and res0.ok:
+                ah.hostile_accepted.append(f"{hk} accepted at {proc[0]}#{proc[1]} seq {e.seq}")
         if ah.order_observer is None:
             ah.order_observer = proc
         if proc != ah.order_observer or e.kind != "agent":
@@ -426,8 +447,21 @@ class AgentSim(GroupSim):
             self.cl.at(t, lambda ai=ai: self._kill(ai, False))
         for t, ai in sc.hangs:
             self.cl.at(t, lambda ai=ai: self._kill(ai, True))
+        for t, hs in sc.hostile:
+            self.cl.at(t, lambda hs=hs: self._hostile(hs))
         self.cl.on_restart = lambda name, inc: None
         super().run()
+
+    def _hostile(self, seed: int) -> None:
+        hs = self._members()
+        if not hs:
+            return
+        rng = random.Random(seed)
+        h = rng.choice(hs)
+        kind, data = hostile.refusable_agent_tx(rng, self.ah.ids, [m.name for m in h.core.m.state.members])
+        self.ah.hostile[data] = kind
+        h.core.m.submit(h.local(self.cl.now), data, ("hostile", seed), kind="agent")
+        self.cl._apply(h)
 
     def _crash(self, f: Any, restart_after: float | None) -> None:
         h = self.cl.hosts[f.host]
@@ -453,7 +487,9 @@ class AgentSim(GroupSim):
 
 # ------------------------------------------------------------------------------------------------ checks
 
-AGENT_PROPS = frozenset({"AA-Allocation", "AG-Single-Active", "AT-Consistency", "AR-Recovery", "AG-Liveness"})
+AGENT_PROPS = frozenset(
+    {"AA-Allocation", "AG-Single-Active", "AT-Consistency", "AR-Recovery", "AG-Liveness", "AG-Refuse-Invalid"}
+)
 
 
 def check_agents(sim: AgentSim) -> list[GroupViolation]:
@@ -539,6 +575,13 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
         if state != want:
             bad("AR-Recovery", f"{agent} epoch {epoch} recovered from "
                 f"{'no backup' if state is None else 'an older backup'} instead of the latest committed one")
+    # AG-Refuse-Invalid: out-of-bounds values proposed without the edge checks never enter a table (issue 13)
+    for d in ah.hostile_accepted:
+        bad("AG-Refuse-Invalid", f"a hostile transaction was applied: {d}")
+    for h in cl.by_idx:
+        if h.state == ALIVE and h.core is not None:
+            for d in h.core.table.invalid_values():
+                bad("AG-Refuse-Invalid", f"{h.name}'s table holds {d}", h.name)
     # AA-Allocation and AG-Liveness after healing
     if not sim.quiescent:
         bad("AG-Liveness", "the run did not get quiet after healing")

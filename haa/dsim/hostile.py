@@ -120,6 +120,40 @@ def hostile_agent_tx(rng: random.Random, agents: Sequence[str] = (), hosts: Sequ
     return mutate(rng, data) if rng.random() < 0.1 else data
 
 
+#: numbers outside every bound the agent table checks (costs, CPU shares, capacities, penalties)
+OUT_OF_BOUNDS = (float("nan"), float("inf"), float("-inf"), -1.0, 1e308, 1.7976931348623157e308, 1e300, 1e9)
+
+
+def refusable_agent_tx(rng: random.Random, agents: Sequence[str], hosts: Sequence[str]) -> tuple[str, bytes]:
+    """(kind, encoded AgentTx) that every replica must refuse or ignore, whatever the state: a member that skips
+    the edge checks (a bug, or a hostile process with the token) proposes it. Unlike `hostile_agent_tx`, nothing
+    here can be a valid operation by chance, so the agent verifiers can inject it into any schedule and still
+    check their properties: create with an out-of-bounds number, host info with an out-of-bounds capacity, CPU
+    and rate measurements out of bounds, a move to an over-long host name, a push to an unknown agent."""
+    kind = rng.choice(("create", "host", "costs", "move", "push"))
+    tx = apb.AgentTx()
+    bad = rng.choice(OUT_OF_BOUNDS)
+    if kind == "create":
+        c = tx.create
+        c.id, c.type, c.recovery, c.host = f"hostile-{rng.randrange(10**9)}", "counter", "backup", _s(rng, hosts)
+        c.cost, c.transfer_penalty = 0.1, 0.1
+        setattr(c, rng.choice(("cost", "transfer_penalty")), bad)
+    elif kind == "host":
+        tx.host.name, tx.host.capacity = _s(rng, hosts) or "h1", bad
+    elif kind == "costs":
+        tx.costs.host = _s(rng, hosts)
+        for a in agents:
+            tx.costs.costs.add(id=a, cpu=bad if bad != -1.0 else float("nan"))
+        if len(agents) >= 2:
+            tx.costs.affinity.add(a=agents[0], b=agents[1], rate=rng.choice((float("inf"), float("nan"), -5.0, 1e300)))
+    elif kind == "move":
+        tx.move.id, tx.move.host = rng.choice(list(agents)) if agents else "a", "h" * 65
+    else:
+        tx.push.id, tx.push.queue = f"unknown-{rng.randrange(10**9)}", 2
+        tx.push.msgs.append(_msg(rng, agents))
+    return kind, tx.SerializeToString()
+
+
 def hostile_ddb_batch(rng: random.Random) -> bytes:
     """One encoded `DdbBatch` with hostile ops (bad keys, type mismatches, counter overflows, bad JSON)."""
     b = dpb.DdbBatch(origin=_s(rng), client_seq=_u(rng), atomic=rng.random() < 0.3)

@@ -47,6 +47,11 @@ Agent allocation (Alg. 4), checked by `haactl verify allocation` (`haa.dsim.allo
 * `no-unallocatable` consensus waits for every agent, also those no host of the group can run: the session
                      never ends. Breaks AA-Liveness.
 * `ignore-hardware`  hosts bid for agents whose hardware they lack. Breaks AA-Validity.
+
+Agent transactions with out-of-bounds values (issue 13), checked by `haactl verify recovery`:
+
+* `unbounded-values` the table's number checks as before issue 13 (`x >= lo` only): a create with cost=+inf
+                     from a member that skips the edge checks is applied everywhere. Breaks AG-Refuse-Invalid.
 """
 
 from __future__ import annotations
@@ -313,6 +318,15 @@ def unchecked_claim() -> Undo:
     return _patch(table_mod.AgentTable, "_tx_claim", tx_claim)
 
 
+def unbounded_values() -> Undo:
+    """The agent table's number checks as before issue 13: only `x >= lo` (NaN refused; inf, 1e308 and values
+    above the upper bounds accepted). A create with cost=+inf, proposed by a member that skips the edge checks,
+    enters every table. Breaks AG-Refuse-Invalid."""
+    from haa.hostd import agenttable as table_mod
+
+    return _patch(table_mod, "_bad_number", lambda x, lo, hi: not x >= lo)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -334,6 +348,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "no-stream-order": (no_stream_order, "transfer", "AT-Consistency"),
     "oldest-backup": (oldest_backup, "recovery", "AR-Recovery"),
     "unchecked-claim": (unchecked_claim, "transfer", "AG-Single-Active"),
+    "unbounded-values": (unbounded_values, "recovery", "AG-Refuse-Invalid"),
 }
 
 

@@ -57,8 +57,19 @@ RECOVERY_MODES = ("backup", "restart", "none")
 
 #: messages kept per queue of one agent; more are counted as dropped
 MAX_QUEUE = 10_000
-#: bytes of one agent's state, backup or config
-MAX_BLOB = 64 * 1024 * 1024
+#: bytes of one agent's config (AgentSpawn): a config is parameters, not data. Checked at the edge and again
+#: when the create applies (docs/limits.md, "Sizes and memory")
+MAX_CONFIG = 64 * 1024 * 1024
+#: bytes of one agent's state (frozen for a transfer) or backup: what one OAC transaction carries to every
+#: host, and every host keeps (the backup). Like a DDB batch (haa.hostd.ddb.MAX_BATCH_BYTES) it is copied and
+#: decoded many times within one event-loop callback on every host, at 50-140 ms per MiB measured on a loaded
+#: group: 2 MiB keeps the stall well below the failure detector's margin (bench-results/memory.json)
+MAX_STATE = 2 * 1024 * 1024
+#: (the former name of MAX_STATE)
+MAX_BLOB = MAX_STATE
+#: payload bytes kept per queue of one agent (messages for it while it is frozen or crashed); more are
+#: counted as dropped, like messages beyond MAX_QUEUE
+MAX_QUEUE_BYTES = 1 << 40
 #: hardware names one agent may require or one host may offer
 MAX_HARDWARE = 64
 #: measured message rate between two agents (bytes/s) a host may report; beyond it the value is refused
@@ -223,8 +234,8 @@ def check_create(c: apb.AgentCreate) -> str:
         return f"create: {why}"
     if c.recovery not in RECOVERY_MODES:
         return f"create: recovery must be one of {', '.join(RECOVERY_MODES)}"
-    if len(c.config) > MAX_BLOB:
-        return "create: config too large"
+    if len(c.config) > MAX_CONFIG:
+        return f"create: config of {len(c.config)} bytes exceeds the limit of {MAX_CONFIG} bytes (MAX_CONFIG)"
     return ""
 
 
@@ -300,6 +311,25 @@ class AgentTable:
         h.update(("|".join(self.start_group) + "/" + "|".join(self.start_agents)).encode())
         return h.hexdigest()
 
+    def invalid_values(self) -> list[str]:
+        """What the table holds outside the bounds its transactions are checked against ([] normally): the
+        allocator builds its problem from these values, so one of them would make it raise (issue 13)."""
+        out = []
+        for r in self.records.values():
+            why = check_create(r.spec)
+            if why:
+                out.append(f"agent {r.name}: {why}")
+            if _bad_number(r.cpu, 0.0, MAX_COST):
+                out.append(f"agent {r.name}: cpu {r.cpu!r}")
+        for name, h in self.hosts.items():
+            why = check_host(h)
+            if why or name != h.name:
+                out.append(f"host {name}: {why or 'name mismatch'}")
+        for k, v in self.affinity.items():
+            if _bad_number(v, 0.0, MAX_RATE):
+                out.append(f"affinity {k}: {v!r}")
+        return out
+
     # ------------------------------------------------------------------ apply
 
     def apply(self, data: bytes, members: tuple[str, ...] = ()) -> AgentApplied:
@@ -315,7 +345,7 @@ class AgentTable:
         if handler is None:  # a body this version does not know (decode keeps unknown oneof cases unset)
             return AgentApplied("invalid", "", False, f"unknown agent transaction kind {kind!r}")
         try:
-            return handler(self, getattr(tx, kind))
+            return getattr(self, handler)(getattr(tx, kind))  # type: ignore[no-any-return]
         except Exception as e:  # pragma: no cover - a bug; the handlers validate before they change anything
             # Applying a committed transaction is total: every replica runs the same code on the same bytes,
             # so it fails the same way everywhere and the outcome is a deterministic refusal, not a crash that
@@ -469,8 +499,8 @@ class AgentTable:
             return AgentApplied("backup", m.id, False, "unknown agent", m.host)
         if r.owner != m.host or r.epoch != m.epoch or r.status not in (ACTIVE, FREEZING):
             return AgentApplied("backup", m.id, False, "stale epoch or not the owner", m.host)
-        if len(m.data) > MAX_BLOB:
-            return AgentApplied("backup", m.id, False, "backup too large", m.host)
+        if len(m.data) > MAX_STATE:
+            return AgentApplied("backup", m.id, False, f"backup larger than {MAX_STATE} bytes (MAX_STATE)", m.host)
         r.backup = m.data  # Alg. 7 l. 5
         r.backup_epoch = m.epoch
         return AgentApplied("backup", m.id, True, "", m.host)
@@ -502,7 +532,13 @@ class AgentTable:
             return AgentApplied("push", m.id, True, "deliver", r.owner, msgs=tuple(m.msgs))
         q = r.queue1 if m.queue == 1 else r.queue2
         room = max(0, MAX_QUEUE - len(q))
-        kept = list(m.msgs[:room])
+        room_bytes = MAX_QUEUE_BYTES - sum(len(x.payload) for x in q)
+        kept = []
+        for x in m.msgs[:room]:
+            room_bytes -= len(x.payload)
+            if room_bytes < 0:
+                break
+            kept.append(x)
         q.extend(kept)
         r.dropped += len(m.msgs) - len(kept)
         return AgentApplied("push", m.id, True, "", msgs=tuple(kept))
@@ -589,21 +625,9 @@ class AgentTable:
         return t
 
 
-#: `AgentTx.body` case -> its apply method (a closed table: a kind missing here is refused as unknown)
-_HANDLERS = {
-    "create": AgentTable._tx_create,
-    "remove": AgentTable._tx_remove,
-    "start": AgentTable._tx_start,
-    "finish": AgentTable._tx_finish,
-    "move": AgentTable._tx_move,
-    "freeze": AgentTable._tx_freeze,
-    "release": AgentTable._tx_release,
-    "claim": AgentTable._tx_claim,
-    "recovered": AgentTable._tx_recovered,
-    "backup": AgentTable._tx_backup,
-    "failed": AgentTable._tx_failed,
-    "push": AgentTable._tx_push,
-    "costs": AgentTable._tx_costs,
-    "host": AgentTable._tx_host,
-    "control": AgentTable._tx_control,
-}
+#: `AgentTx.body` case -> the name of its apply method (a closed table: a kind missing here is refused as
+#: unknown; looked up by name so that haa.dsim.mutations can patch a method)
+_HANDLERS = {kind: f"_tx_{kind}" for kind in (
+    "create", "remove", "start", "finish", "move", "freeze", "release", "claim", "recovered", "backup", "failed",
+    "push", "costs", "host", "control",
+)}
