@@ -59,7 +59,7 @@ RECOVERY_MODES = ("backup", "restart", "none")
 MAX_QUEUE = 10_000
 #: bytes of one agent's config (AgentSpawn): a config is parameters, not data. Checked at the edge and again
 #: when the create applies (docs/limits.md, "Sizes and memory")
-MAX_CONFIG = 64 * 1024 * 1024
+MAX_CONFIG = 1024 * 1024
 #: bytes of one agent's state (frozen for a transfer) or backup: what one OAC transaction carries to every
 #: host, and every host keeps (the backup). Like a DDB batch (haa.hostd.ddb.MAX_BATCH_BYTES) it is copied and
 #: decoded many times within one event-loop callback on every host, at 50-140 ms per MiB measured on a loaded
@@ -69,7 +69,7 @@ MAX_STATE = 2 * 1024 * 1024
 MAX_BLOB = MAX_STATE
 #: payload bytes kept per queue of one agent (messages for it while it is frozen or crashed); more are
 #: counted as dropped, like messages beyond MAX_QUEUE
-MAX_QUEUE_BYTES = 1 << 40
+MAX_QUEUE_BYTES = 4 * 1024 * 1024
 #: hardware names one agent may require or one host may offer
 MAX_HARDWARE = 64
 #: measured message rate between two agents (bytes/s) a host may report; beyond it the value is refused
