@@ -14,19 +14,29 @@ it.
 from __future__ import annotations
 
 import asyncio
-import json
 import signal
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import grpc
 import psutil
 import pytest
 from grpc import aio
+from hostilecluster import (
+    AGENTS,
+    TOKEN,
+    Cluster,
+    agreed,
+    assert_healthy,
+    live_instances,
+    owner_runs,
+    settled,
+    start_cluster,
+    view,
+)
 
-from haa.hostd import ddb, wire
+from haa.hostd import wire
 from haa.hostd.messages import Heartbeat, Message
 from haa.hostd.transport import (
     MD_INC,
@@ -42,122 +52,11 @@ from haa.pb import hostlink_pb2 as pb
 from haactl.local import MemberHost, free_port
 from haactl.local import wait_for as wait
 
-TOKEN = "hostile-peers-token"
-NAMES = ["h1", "h2", "h3"]
-ARGS = ["--rebalance-period", "0", "--agent-hang-timeout", "2"]
-AGENTS = ("A1", "A1.1")
-
-
-# ------------------------------------------------------------------------------------------- the cluster
-
-
-class Cluster:
-    def __init__(self, root: Path) -> None:
-        self.root = root
-        (root / "token").write_text(TOKEN + "\n")
-        ports = {n: free_port() for n in NAMES}
-        self.core = {n: f"127.0.0.1:{ports[n]}" for n in NAMES}
-        self.hosts = {n: MemberHost(n, ports[n], self.core, root, TOKEN, ARGS) for n in NAMES}
-        self.extra: list[MemberHost] = []  # second daemons under a taken name
-
-    def second(self, name: str, tag: str) -> MemberHost:
-        """Another haa-hostd under `name` (its own port and data directory), not started yet."""
-        root = self.root / tag
-        root.mkdir()
-        (root / "token").write_text(TOKEN + "\n")
-        h = MemberHost(name, free_port(), self.core, root, TOKEN, ARGS)
-        self.extra.append(h)
-        return h
-
-    def members(self) -> list[MemberHost]:
-        """The three hosts of the fixture (their current processes)."""
-        return list(self.hosts.values())
-
-    def close(self) -> None:
-        for h in [*self.hosts.values(), *self.extra]:
-            h.kill()
-            h.client.close()
-
-
-def view(h: MemberHost) -> tuple[tuple[tuple[str, int], ...], int]:
-    s = h.status()
-    return tuple((m.name, m.incarnation) for m in s.member_info), s.view
-
-
-def agreed(hosts: list[MemberHost]) -> tuple[tuple[str, int], ...] | None:
-    """The common member list (name, incarnation) if every host is a member of one and the same view whose
-    names are exactly `hosts`' names, each at the incarnation its process reports; else None."""
-    vs = {view(h) for h in hosts}
-    if len(vs) != 1:
-        return None
-    members = next(iter(vs))[0]
-    mine = {(h.name, h.status().incarnation) for h in hosts}
-    return members if set(members) == mine else None
-
-
-def live_instances(procs: list[MemberHost]) -> dict[str, list[str]]:
-    """Agent name -> the hosts whose instance of it may output (phase active or freezing, process alive)."""
-    out: dict[str, list[str]] = {}
-    for h in procs:
-        if not h.alive():
-            continue
-        try:
-            agents = h.client.agent_list().agents
-        except grpc.RpcError:
-            continue
-        for a in agents:
-            if a.local_phase in ("active", "freezing") and a.pid > 0 and psutil.pid_exists(a.pid):
-                out.setdefault(a.name, []).append(f"{h.name}@{h.address}")
-    return out
-
-
-def owner_runs(c: Cluster, name: str) -> str | None:
-    """The host that owns `name` in the table and runs it alone, in phase active; None otherwise."""
-    hs = c.members()
-    rec = {a.name: a for a in hs[0].client.agent_list().agents}.get(name)
-    if rec is None or rec.status != "active":
-        return None
-    runners = [(h.name, a.local_phase) for h in hs for a in h.client.agent_list().agents
-               if a.name == name and a.local_phase]
-    return rec.owner if runners == [(rec.owner, "active")] else None
-
-
-def settled(c: Cluster) -> bool:
-    return all(owner_runs(c, n) for n in AGENTS)
-
-
-def assert_healthy(c: Cluster, extra: list[MemberHost] = ()) -> None:  # type: ignore[assignment]
-    """Every host lives, one view with all three, equal DDB replicas, a write commits within a second, and
-    no agent has two instances that may output."""
-    hs = c.members()
-    assert all(h.alive() for h in hs), [h.name for h in hs if not h.alive()]
-    wait(lambda: agreed(hs), 20, "one view of h1, h2, h3")
-    wait(lambda: len({(s.ddb_seq, s.ddb_hash) for s in (h.status() for h in hs)}) == 1, 10, "equal replicas")
-    t0 = time.monotonic()
-    r = hs[0].client.ddb_write([ddb.put(f"probe/{t0}", "blob", b"x")])
-    took = time.monotonic() - t0
-    assert r.committed, r.reason
-    assert took < 1.0, f"a DDB write took {took:.2f} s"
-    twice = {n: where for n, where in live_instances([*hs, *extra]).items() if len(where) > 1}
-    assert not twice, f"agents with two live instances: {twice}"
-
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    c = Cluster(tmp_path_factory.mktemp("hostile"))
-    for h in c.members():
-        h.start()
+    c = start_cluster(tmp_path_factory.mktemp("hostile"))
     try:
-        wait(lambda: agreed(c.members()), 30, "a group of 3")
-        h1 = c.hosts["h1"].client
-        r = h1.agent_spawn("counter", json.dumps({"spawn_peer": True, "period": 0.03, "backup_every": 10}).encode())
-        assert r.ok, r
-        wait(lambda: settled(c), 30, "A1 and A1.1 active")
-        # h2 runs both agents: the host that is impersonated and displaced below
-        for n in AGENTS:
-            if owner_runs(c, n) != "h2":
-                assert h1.agent_move(n, "h2").ok
-                wait(lambda n=n: owner_runs(c, n) == "h2", 20, f"{n} on h2")  # type: ignore[misc]
         yield c
     finally:
         c.close()

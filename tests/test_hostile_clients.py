@@ -1,0 +1,164 @@
+"""Hostile and careless clients against a live cluster (issue 13): single requests that once wedged the group.
+
+A 3-host cluster on loopback (real `haa-hostd` processes, a counter pair on h2: tests/hostilecluster.py) gets,
+through the raw control API with the cluster token — not through haactl, whose own checks do not protect the
+cluster — the request classes the probe found harmful: agent spawns with out-of-bounds numbers (defect 1: a
+`cost=+inf` spawn wedged the group), DDB writes with bad keys and values, operator requests naming nothing,
+undecodable and mutated protobuf requests on every control method (defect 8). After each class every host
+lives, the group agrees on one view, the DDB replicas are equal at a common sequence number, a write commits
+within a second and no agent has two live instances (`assert_healthy`).
+
+Oversized requests (defect 2), bad agent configs (defect 3) and impersonating peers (defects 4, 5) have their
+own suites: tests/test_limits.py, tests/test_agent_limits.py, tests/test_hostile_peers.py.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Iterator
+
+import grpc
+import pytest
+from hostilecluster import TOKEN, Cluster, assert_healthy, start_cluster
+
+from haa.hostd import ddb
+from haa.hostd.allocation import MAX_COST
+from haa.hostd.transport import MD_TOKEN
+from haa.pb import control_pb2 as cpb
+from haa.pb import ddb_pb2 as dpb
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    c = start_cluster(tmp_path_factory.mktemp("hostile-clients"))
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def _agents(c: Cluster) -> list[str]:
+    return sorted(a.name for a in c.hosts["h1"].client.agent_list().agents)
+
+
+def _spawn(c: Cluster, host: str, **kw: object) -> cpb.AgentOpReply:
+    cl = c.hosts[host].client
+    req = cpb.AgentSpawnRequest(type="counter", transfer_penalty=-1.0)
+    for k, v in kw.items():
+        if k == "hardware":
+            req.hardware.extend(v)  # type: ignore[arg-type]
+        else:
+            setattr(req, k, v)
+    return cl._stub.AgentSpawn(req, metadata=((MD_TOKEN, TOKEN),), timeout=15)
+
+
+BAD_SPAWNS = [
+    ("cost", {"cost": math.inf}),
+    ("cost", {"cost": 1e308}),
+    ("cost", {"cost": MAX_COST * 2}),
+    ("transfer_penalty", {"transfer_penalty": math.inf}),
+    ("transfer_penalty", {"transfer_penalty": 1.5}),
+    ("hardware", {"hardware": [""]}),
+    ("hardware", {"hardware": ["x" * 65]}),
+    ("hardware", {"hardware": [f"hw{i}" for i in range(70)]}),
+]
+
+
+def test_spawn_with_out_of_bounds_numbers_is_refused_and_the_group_stays_whole(cluster: Cluster) -> None:
+    """Defect 1: `AgentSpawn cost=+inf` was accepted, the receiving host's allocator raised while applying it,
+    its inbound link ended and the group wedged with diverged replicas. Every bad number is refused with the
+    field in the reason, on whichever host receives it, and nothing is committed."""
+    before = _agents(cluster)
+    for i, (field, kw) in enumerate(BAD_SPAWNS):
+        host = ("h1", "h2", "h3")[i % 3]
+        r = _spawn(cluster, host, **kw)
+        assert not r.ok, (field, kw, r)
+        assert field in r.reason, (field, r.reason)
+    assert _agents(cluster) == before
+    assert_healthy(cluster)
+    # the group still takes a good spawn after all that (then removes it again)
+    r = _spawn(cluster, "h3", config=b'{"paused": true}')
+    assert r.ok, r
+    assert cluster.hosts["h1"].client.agent_remove(r.id).ok
+    assert_healthy(cluster)
+
+
+def test_hostile_ddb_writes_are_refused_per_op_and_change_nothing(cluster: Cluster) -> None:
+    h1 = cluster.hosts["h1"].client
+    h3 = cluster.hosts["h3"].client
+    bad_ops = [
+        dpb.DdbOp(put=dpb.DdbPut(key="k" * (ddb.MAX_KEY + 1), type="blob", value=b"x")),
+        dpb.DdbOp(put=dpb.DdbPut(key="hostile/json", type="json", value=b'{"a": NaN}')),
+        dpb.DdbOp(put=dpb.DdbPut(key="hostile/json", type="json", value=b'{"a": 1, "a": 2}')),
+        dpb.DdbOp(put=dpb.DdbPut(key="hostile/deep", type="json", value=b"[" * 5000 + b"]" * 5000)),
+        dpb.DdbOp(put=dpb.DdbPut(key="hostile/type", type="no-such-type", value=b"x")),
+        dpb.DdbOp(add=dpb.DdbAdd(key="hostile/c", delta=2**63 - 1)),
+        dpb.DdbOp(add=dpb.DdbAdd(key="hostile/c", delta=1)),  # overflows the counter the op before made
+    ]
+    r = h1.ddb_write(bad_ops)
+    assert r.committed, r.reason
+    oks = [x.ok for x in r.results]
+    assert oks == [False, False, False, False, False, True, False], [x.reason for x in r.results]
+    r = h3.ddb_write(bad_ops[:2], atomic=True)
+    assert r.committed and not any(x.ok for x in r.results)
+    assert_healthy(cluster)
+
+
+def test_operator_requests_naming_nothing_are_refused(cluster: Cluster) -> None:
+    h2 = cluster.hosts["h2"].client
+    before = _agents(cluster)
+    for ref in ("", "nobody", "A99", "x" * 10_000, "\x00", "A1.1.1.1"):
+        for call in (h2.agent_kill, h2.agent_remove):
+            assert not call(ref).ok
+        assert not h2.agent_move(ref, "h1").ok
+        assert not h2.agent_send(ref, b"hi").ok
+    for host in ("", "nobody", "h" * 1000):
+        assert not h2.agent_move("A1", host).ok
+    assert _agents(cluster) == before
+    assert_healthy(cluster)
+
+
+CONTROL_METHODS = [m.name for m in cpb.DESCRIPTOR.services_by_name["HostControl"].methods]
+STREAMING = {m.name for m in cpb.DESCRIPTOR.services_by_name["HostControl"].methods if m.server_streaming}
+#: methods whose random input may legitimately do something (a test payload proposal, a leave): not fuzzed
+#: with the token on the shared cluster
+SKIP_WITH_TOKEN = {"Leave", "Propose", "AgentKill", "AgentRemove", "AgentMove", "Alloc", "AgentSpawn", "DdbWrite"}
+
+
+def _raw_call(address: str, method: str, data: bytes, token: str | None) -> grpc.StatusCode:
+    md = ((MD_TOKEN, token),) if token is not None else ()
+    with grpc.insecure_channel(address) as ch:
+        path = f"/haa.v1.HostControl/{method}"
+        try:
+            if method in STREAMING:
+                it = ch.unary_stream(path)(data, metadata=md, timeout=2)
+                for _ in it:
+                    break
+                it.cancel()
+            else:
+                ch.unary_unary(path)(data, metadata=md, timeout=5)
+        except grpc.RpcError as e:
+            return e.code()
+    return grpc.StatusCode.OK
+
+
+def test_undecodable_and_mutated_requests_get_a_clean_status(cluster: Cluster) -> None:
+    """Defect 8 on a live host: random bytes and mutated encodings on every control method. Without the token
+    every one is UNAUTHENTICATED (even when it does not decode); with it, never UNKNOWN or INTERNAL (a Python
+    exception escaping a handler); the host keeps serving and the group stays whole."""
+    rng = random.Random(13)
+    addr = cluster.hosts["h3"].address
+    valid = cpb.AgentSpawnRequest(type="counter", config=b"{}", cost=0.5).SerializeToString()
+    inputs = [b"\xff", b"\x0a\xff\xff\xff\xff\x0f", b"\x08" + b"\xff" * 10, valid[:-1], rng.randbytes(64)]
+    for method in CONTROL_METHODS:
+        for data in inputs:
+            assert _raw_call(addr, method, data, None) == grpc.StatusCode.UNAUTHENTICATED, method
+            assert _raw_call(addr, method, data, "wrong-token") == grpc.StatusCode.UNAUTHENTICATED, method
+            if method in SKIP_WITH_TOKEN:
+                continue
+            code = _raw_call(addr, method, data, TOKEN)
+            assert code not in (grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL), (method, data, code)
+    counters = cluster.hosts["h3"].status().counters.values
+    assert counters["rejected_unauthenticated"] >= 2 * len(CONTROL_METHODS) * len(inputs)
+    assert_healthy(cluster)
