@@ -360,3 +360,24 @@ def bench_ap4(
     print(compact_table(rows))
     path = write_json("ap4-quick" if quick else "ap4", {"machine": machine(), "reps": reps, "rows": rows})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+@bench_app.command("memory")
+def bench_memory(
+    seconds: float = typer.Option(600.0, "--seconds", min=1.0, help="duration of the maximum-size traffic"),
+    settle: float = typer.Option(20.0, "--settle", min=0.0, help="seconds to keep sampling after the traffic"),
+    interval: float = typer.Option(1.0, "--interval", min=0.1, help="RSS sampling interval, s"),
+    root: Path | None = typer.Option(None, "--root", help="data dirs and logs (default: a temporary dir)"),
+    out: str = typer.Option("memory", "--out", help="result name: bench-results/<out>.json"),
+) -> None:
+    """RSS per host and event-loop stalls of a 4-host group under maximum-size requests (haactl.membench)."""
+    from haactl.ap4 import machine
+    from haactl.membench import markdown, run_memory_bench
+
+    t0 = time.perf_counter()
+    res = run_memory_bench(seconds=seconds, interval=interval, settle=settle, root=root)
+    print()
+    print(markdown(res))
+    print(f"\nlargest stall {res['largest_stall_ms']} ms; view changed: {res['view_changed']}")
+    path = write_json(out, {"machine": machine(), **res})
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")

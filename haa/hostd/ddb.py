@@ -47,16 +47,26 @@ import haa.pb.ddb_pb2 as pb
 #: longest key, in characters
 MAX_KEY = 512
 #: largest stored value (blob bytes, canonical JSON text, a list's items in total), in bytes
-MAX_VALUE_BYTES = 4 * 1024 * 1024
-#: largest encoded batch (one OAC payload), in bytes
-MAX_BATCH_BYTES = 16 * 1024 * 1024
+MAX_VALUE_BYTES = 1024 * 1024
+#: largest encoded batch (one OAC payload), in bytes. A batch is copied, decoded and hashed about a dozen times
+#: on every host within one event-loop callback; measured on a loaded 4-host group (bench-results/memory.json,
+#: docs/limits.md "Sizes and memory") that costs 50-140 ms per MiB, and a stall must stay well below the
+#: failure detector's margin (~0.7 s): 2 MiB stalled at most ~0.22 s, 16 MiB (the former bound) up to 2.2 s
+MAX_BATCH_BYTES = 2 * 1024 * 1024
+#: largest JSON value (put/cas of type json), in bytes. JSON is parsed and checked on every replica when the
+#: batch applies, at up to ~250 ms per MiB for the costliest texts (`[{},{},...]`, many floats) against ~1 ms
+#: per MiB for a blob: these bounds, not MAX_BATCH_BYTES, bound the event-loop stall of a JSON batch
+MAX_JSON_VALUE_BYTES = 256 * 1024
+#: JSON value bytes (put/cas of type json) in one batch, in total
+MAX_BATCH_JSON_BYTES = 256 * 1024
 #: deepest JSON nesting accepted (bounds the recursion of the json module, so that acceptance cannot depend
 #: on the caller's stack depth)
 JSON_MAX_DEPTH = 100
 #: default number of batches kept for `mirror_since`
 MIRROR_CAPACITY = 10_000
-#: default bound on the payload bytes kept for `mirror_since`
-MIRROR_MAX_BYTES = 256 * 1024 * 1024
+#: default bound on the payload bytes kept for `mirror_since` (every host keeps this ring: it is part of the
+#: host's memory bound, docs/limits.md "Sizes and memory"; a subscriber further behind gets a snapshot)
+MIRROR_MAX_BYTES = 16 * 1024 * 1024
 #: snapshot format written by `snapshot()`
 SNAPSHOT_FORMAT = 1
 
@@ -644,6 +654,9 @@ class Ddb:
         kinds = [op.WhichOneof("op") for op in batch.ops]
         if None in kinds:
             raise DdbError(f"op {kinds.index(None)} has no operation set (unknown op kind?)")
+        why = check_json_sizes(batch.ops)
+        if why:
+            raise DdbError(why)
 
         seq = self._seq + 1
         overlay: dict[str, DdbObject | None] = {}  # this batch's writes (None = deleted), read through
@@ -795,6 +808,8 @@ def encode_value(type_name: str, value: Any) -> bytes:
     data = t.client_encode(value)
     if len(data) > MAX_VALUE_BYTES:
         raise DdbError(f"value too large: {len(data)} bytes > {MAX_VALUE_BYTES}")
+    if type_name == JsonType.name and len(data) > MAX_JSON_VALUE_BYTES:
+        raise DdbError(f"json value too large: {len(data)} bytes > {MAX_JSON_VALUE_BYTES} (MAX_JSON_VALUE_BYTES)")
     return data
 
 
@@ -847,8 +862,33 @@ def add(key: str, delta: int) -> pb.DdbOp:
     return _op(add=body)
 
 
+def json_bytes(op: pb.DdbOp) -> int:
+    """Bytes of JSON text an op makes a replica parse (put/cas of type json), else 0."""
+    kind = op.WhichOneof("op")
+    if kind in ("put", "cas"):
+        body = getattr(op, kind)
+        if body.type == JsonType.name:
+            return len(body.value)
+    return 0
+
+
+def check_json_sizes(ops: Iterable[pb.DdbOp]) -> str:
+    """'' if no JSON value exceeds MAX_JSON_VALUE_BYTES and their sum MAX_BATCH_JSON_BYTES, else the reason.
+    Cheap (lengths only): run before any parsing, at the edge and when a batch applies."""
+    total = 0
+    for i, op in enumerate(ops):
+        n = json_bytes(op)
+        if n > MAX_JSON_VALUE_BYTES:
+            return f"op {i}: json value of {n} bytes > {MAX_JSON_VALUE_BYTES} (MAX_JSON_VALUE_BYTES)"
+        total += n
+    if total > MAX_BATCH_JSON_BYTES:
+        return f"json values of {total} bytes in one batch > {MAX_BATCH_JSON_BYTES} (MAX_BATCH_JSON_BYTES)"
+    return ""
+
+
 def encode_batch(ops: Iterable[pb.DdbOp], origin: str = "", client_seq: int = 0, atomic: bool = False) -> bytes:
-    """Encode ops as one OAC payload; raises `DdbError` if it has no ops or exceeds `MAX_BATCH_BYTES`."""
+    """Encode ops as one OAC payload; raises `DdbError` if it has no ops or exceeds `MAX_BATCH_BYTES` or the
+    JSON bounds (`check_json_sizes`)."""
     try:
         batch = pb.DdbBatch(ops=list(ops), origin=origin, client_seq=client_seq, atomic=atomic)
     except (TypeError, ValueError) as e:
@@ -858,4 +898,7 @@ def encode_batch(ops: Iterable[pb.DdbOp], origin: str = "", client_seq: int = 0,
     data = batch.SerializeToString()
     if len(data) > MAX_BATCH_BYTES:
         raise DdbError(f"batch too large: {len(data)} bytes > {MAX_BATCH_BYTES}")
+    why = check_json_sizes(batch.ops)
+    if why:
+        raise DdbError(why)
     return data

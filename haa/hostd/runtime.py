@@ -69,6 +69,7 @@ from haa.hostd.globalstate import decode_tx
 from haa.hostd.logs import LOGGER_NAME, HostIdentity, log_event, setup_logging, teardown_logging
 from haa.hostd.membership import AppliedTx, Connect, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.hostd.messages import Message, TxId
+from haa.hostd.resources import LoopWatch, tune_malloc
 from haa.hostd.transport import Transport
 
 log = logging.getLogger(LOGGER_NAME + ".runtime")
@@ -85,10 +86,15 @@ MAX_SAMPLES = 100_000
 #: DDB_GROUP_MAX_OPS ops / DDB_GROUP_MAX_BYTES bytes (atomic writes always go alone)
 DDB_MAX_INFLIGHT = 2
 DDB_GROUP_MAX_OPS = 2000
-DDB_GROUP_MAX_BYTES = 4 << 20
+DDB_GROUP_MAX_BYTES = ddbmod.MAX_BATCH_BYTES // 2
 #: the delivered log keeps at most this many entries in memory (the older half is dropped when it is full;
 #: the hash chain and the count go on)
 MAX_DELIVERED = 200_000
+#: ... and at most this many payload bytes (a few maximum-size DDB batches; the older entries are dropped
+#: until half of it is left): part of the host's memory bound (docs/limits.md, "Sizes and memory")
+MAX_DELIVERED_BYTES = 16 << 20
+#: a mirror subscriber whose queue holds more payload bytes than this is cut back to a resync (a snapshot)
+MIRROR_SUB_MAX_BYTES = 16 << 20
 
 
 def chain_hash(prev: str, txid: TxId, payload: bytes) -> str:
@@ -180,6 +186,7 @@ class _QueuedWrite:
     atomic: bool
     size: int
     fut: asyncio.Future[DdbWriteResult]
+    json: int = 0  # JSON value bytes (a group stays within ddb.MAX_BATCH_JSON_BYTES)
     abandoned: bool = False
 
 
@@ -249,6 +256,7 @@ class HostRuntime:
         self.port = 0
         self.delivered: list[DeliveredEntry] = []
         self.delivered_base = 0  # index of delivered[0]: entries before it were dropped (MAX_DELIVERED)
+        self.delivered_bytes = 0  # payload bytes in `delivered` (MAX_DELIVERED_BYTES)
         self.delivered_hash = GENESIS_HASH
         self.propose_to_decide: deque[float] = deque(maxlen=MAX_SAMPLES)
         self.decide_to_deliver: deque[float] = deque(maxlen=MAX_SAMPLES)
@@ -282,6 +290,8 @@ class HostRuntime:
         #: mirror stream subscribers (`MirrorSub`), fed from applied transactions and view changes
         self.mirrors: set[MirrorSub] = set()
         self._ddb_ref: object | None = None
+        #: event-loop stall watchdog and heap trimming (haa.hostd.resources)
+        self.loopwatch = LoopWatch(self.counters, self._moved_bytes)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -376,6 +386,7 @@ class HostRuntime:
         # imported here because haa.hostd.control imports this module
         from haa.hostd.control import HostControlService
 
+        tune_malloc()  # before the gRPC server starts its threads (their arenas)
         server = aio.server(options=Transport.server_options())
         self.transport.add_to_server(server)
         HostControlService(self).add_to_server(server)
@@ -405,6 +416,7 @@ class HostRuntime:
             self.agents = AgentDriver(self, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout)
             await self.agents.start()
         self.transport.start()
+        self.loopwatch.start()
         self._feed(self.node.start)
 
     def request_stop(self) -> None:
@@ -450,6 +462,7 @@ class HostRuntime:
             return
         self._stopping = True
         log_event(log, logging.INFO, "shutdown", delivered=self.delivered_count, hash=self.delivered_hash)
+        self.loopwatch.stop()
         for h in self._timers.values():
             h.cancel()
         self._timers.clear()
@@ -470,6 +483,10 @@ class HostRuntime:
         teardown_logging(self._log_handlers)
         self._log_handlers = []
         self._stopped.set()
+
+    def _moved_bytes(self) -> int:
+        """Bytes this host's links sent and received so far (the heap-trim trigger of `LoopWatch`)."""
+        return sum(v for k, v in self.counters.items() if k.startswith(("rx_bytes.", "tx_bytes.")))
 
     # ------------------------------------------------------------------ inputs
 
@@ -636,10 +653,9 @@ class HostRuntime:
         self.delivered_hash = chain_hash(self.delivered_hash, txid, e.payload)
         log_ = self.delivered
         log_.append(DeliveredEntry(self.delivered_count, txid, e.order, e.payload, self.delivered_hash))
-        if len(log_) > MAX_DELIVERED:
-            drop = len(log_) // 2
-            del log_[:drop]
-            self.delivered_base += drop
+        self.delivered_bytes += len(e.payload)
+        if len(log_) > MAX_DELIVERED or self.delivered_bytes > MAX_DELIVERED_BYTES:
+            self._trim_delivered()
         self.counters["oac_delivered"] += 1
         ev = self._delivery_event
         self._delivery_event = asyncio.Event()
@@ -656,6 +672,21 @@ class HostRuntime:
         if self.node is None or self._stopping or self.left or newer <= self.incarnation:
             return
         self._reincarnate(f"superseded at {peer} by incarnation {newer}", above=newer)
+
+    def _trim_delivered(self) -> None:
+        """Drop the oldest entries of the delivered log until at most half of MAX_DELIVERED entries and half of
+        MAX_DELIVERED_BYTES payload bytes are left (the newest entry always stays)."""
+        log_ = self.delivered
+        left = self.delivered_bytes
+        drop = max(0, len(log_) - MAX_DELIVERED // 2)
+        for entry in log_[:drop]:
+            left -= len(entry.payload)
+        while drop < len(log_) - 1 and left > MAX_DELIVERED_BYTES // 2:
+            left -= len(log_[drop].payload)
+            drop += 1
+        del log_[:drop]
+        self.delivered_base += drop
+        self.delivered_bytes = left
 
     def _reincarnate(self, by: str, above: int = 0) -> None:
         old = self.core
@@ -869,10 +900,16 @@ class HostRuntime:
             raise WriteFailed("this host is leaving the group")
         if not ops:
             raise WriteFailed("empty batch")
+        size = sum(op.ByteSize() for op in ops)
+        if size > ddbmod.MAX_BATCH_BYTES:  # checked before anything is queued (docs/limits.md)
+            raise WriteFailed(f"batch of {size} bytes > {ddbmod.MAX_BATCH_BYTES} (MAX_BATCH_BYTES)")
+        why = ddbmod.check_json_sizes(ops)
+        if why:
+            raise WriteFailed(why)
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[DdbWriteResult] = loop.create_future()
         fut.add_done_callback(_retrieve)
-        q = _QueuedWrite(list(ops), atomic, sum(op.ByteSize() for op in ops), fut)
+        q = _QueuedWrite(list(ops), atomic, size, fut, sum(ddbmod.json_bytes(op) for op in ops))
         self._ddb_queue.append(q)
         self.counters["ddb_writes"] += 1
         self._flush_ddb()
@@ -895,24 +932,35 @@ class HostRuntime:
             group: list[_QueuedWrite] = []
             ops: list[Any] = []
             size = 0
+            json_size = 0
             while queue:
                 q = queue[0]
                 if q.abandoned or q.fut.done():
                     queue.popleft()
                     continue
                 if group and (
-                    q.atomic or len(ops) + len(q.ops) > DDB_GROUP_MAX_OPS or size + q.size > DDB_GROUP_MAX_BYTES
+                    q.atomic
+                    or len(ops) + len(q.ops) > DDB_GROUP_MAX_OPS
+                    or size + q.size > DDB_GROUP_MAX_BYTES
+                    or json_size + q.json > ddbmod.MAX_BATCH_JSON_BYTES
                 ):
                     break
                 queue.popleft()
                 group.append(q)
                 ops.extend(q.ops)
                 size += q.size
+                json_size += q.json
                 if q.atomic:
                     break
             if not group:
                 return
-            payload = ddbmod.encode_batch(ops, origin=self.name, atomic=group[0].atomic)
+            try:
+                payload = ddbmod.encode_batch(ops, origin=self.name, atomic=group[0].atomic)
+            except ddbmod.DdbError as e:  # (ddb_write checked each request; a group of them stays in bounds)
+                for q in group:
+                    if not q.fut.done():
+                        q.fut.set_exception(WriteFailed(str(e)))
+                continue
             self._write_seq += 1
             req = self._write_seq
             gfut: asyncio.Future[WriteResult] = loop.create_future()
@@ -1052,18 +1100,23 @@ class MirrorSub:
     and ("resync",) items the control service turns into `MirrorEvent`s. A subscriber more than `limit`
     items behind is cut back to one ("resync",): it gets a fresh snapshot instead of the batches."""
 
-    def __init__(self, views: bool, limit: int = 10_000) -> None:
+    def __init__(self, views: bool, limit: int = 10_000, limit_bytes: int = MIRROR_SUB_MAX_BYTES) -> None:
         self.views = views
         self.limit = limit
+        self.limit_bytes = limit_bytes
         self.queue: deque[tuple[Any, ...]] = deque()
+        self.bytes = 0  # payload bytes of the queued batches
         self.closed = False
         self._event = asyncio.Event()
 
     def push(self, item: tuple[Any, ...]) -> None:
-        if len(self.queue) >= self.limit:
+        size = len(item[2]) if item[0] == "batch" else 0
+        if len(self.queue) >= self.limit or (self.queue and self.bytes + size > self.limit_bytes):
             self.queue.clear()
-            item = ("resync",)
+            self.bytes = 0
+            item, size = ("resync",), 0
         self.queue.append(item)
+        self.bytes += size
         self._event.set()
 
     def close(self) -> None:
@@ -1077,7 +1130,10 @@ class MirrorSub:
                 return None
             self._event.clear()
             await self._event.wait()
-        return self.queue.popleft()
+        item = self.queue.popleft()
+        if item[0] == "batch":
+            self.bytes -= len(item[2])
+        return item
 
 
 def advertised_address(listen: str, port: int) -> str:

@@ -106,7 +106,15 @@ def parse_incarnation(text: str) -> int | None:
     inc = int(text)
     return inc if inc <= MAX_INCARNATION else None
 
+#: the largest gRPC message a host sends or accepts, host-link frames and control requests alike (one server
+#: serves both, and gRPC's limits are per server): a larger one is refused by gRPC itself before it is decoded
+#: (RESOURCE_EXHAUSTED). It is this large because one host-link message carries a joiner's whole state
+#: (`StateSnapshot`: the DDB and the agent table with every backup); the requests a client may send are bounded
+#: much lower, by their handlers, before any work (docs/limits.md, "Sizes and memory")
 MAX_MESSAGE = 64 << 20
+#: concurrent streams (RPCs) per client connection: a host link is one stream on a connection of its own, a
+#: control client needs a few (a watch, an event stream, a request); more are queued by the client's gRPC
+MAX_CONCURRENT_STREAMS = 64
 
 
 def _varint(n: int) -> bytes:
@@ -688,6 +696,7 @@ class Transport:
             ("grpc.so_reuseport", 0),
             ("grpc.max_receive_message_length", MAX_MESSAGE),
             ("grpc.max_send_message_length", MAX_MESSAGE),
+            ("grpc.max_concurrent_streams", MAX_CONCURRENT_STREAMS),
             ("grpc.http2.min_ping_interval_without_data_ms", 1000),
             ("grpc.http2.min_recv_ping_interval_without_data_ms", 1000),
             ("grpc.keepalive_permit_without_calls", 1),
