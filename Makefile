@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image chaos compose-up compose-down \
-	compose-status idle
+	compose-status idle fuzz
 
 setup: $(STAMP)
 
@@ -28,6 +28,12 @@ test-fast: setup
 lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check . || true
+
+# A longer fuzzing run: every decoder that reads bytes from outside (tests/test_fuzz.py: host links, agent
+# channel, control and sim APIs, agent transactions, DDB) and every YAML file (tests/test_files.py), about
+# 20,000 fresh random inputs per target (CI runs a fixed few thousand). A crash found becomes a named test.
+fuzz: setup
+	HAA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py tests/test_files.py
 
 # Regenerate the committed protobuf/gRPC modules (tests/test_proto_fresh.py fails when they are stale).
 proto: setup

@@ -60,6 +60,7 @@ from haa.hostd.runtime import (
     TransactionAborted,
     WriteFailed,
 )
+from haa.hostd.transport import MAX_MESSAGE
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
 from haa.pb import ddb_pb2 as dpb
@@ -428,7 +429,12 @@ class ControlClient(AgentClientMixin):
         self.address = address
         self.timeout = timeout
         self._md = ((MD_TOKEN, token),)
-        self._channel = grpc.insecure_channel(address)
+        # the server's limits (64 MiB each way), not gRPC's client default of 4 MiB replies: a DdbGet or a
+        # Mirror snapshot of a large DDB is bigger than that
+        self._channel = grpc.insecure_channel(
+            address,
+            options=[("grpc.max_receive_message_length", MAX_MESSAGE), ("grpc.max_send_message_length", MAX_MESSAGE)],
+        )
         self._stub = control_pb2_grpc.HostControlStub(self._channel)
 
     def status(self) -> cpb.StatusReply:

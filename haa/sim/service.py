@@ -23,7 +23,10 @@ haa-sim --arena small|large|FILE --listen HOST:PORT --seed S [--speed X | --step
   OccupancyGrid with the explorable mask (eq. 7.1-1/7.1-2), Landmarks, Collectables.
 * SimControl: Step (step mode only), Join / Retire / Crash on demand (the schedule's actions).
 
-With `--token-file`, every call must carry the token in metadata `x-haa-token` (else UNAUTHENTICATED).
+With `--token-file`, every call must carry the token in metadata `x-haa-token` (else UNAUTHENTICATED, checked
+before the request is decoded: haa.rpcguard); a request that does not parse is INVALID_ARGUMENT, and no call
+ends in UNKNOWN. Requests up to gRPC's default 4 MiB are accepted (larger: RESOURCE_EXHAUSTED), replies up
+to 32 MiB (a raw 640x480 capture is 0.9 MiB).
 Logs are JSON lines on stderr; the first is {"event": "listening", "address": ..., "port": ...}.
 """
 
@@ -33,12 +36,14 @@ import argparse
 import asyncio
 import contextlib
 import functools
+import hmac
 import inspect
 import json
 import math
 import signal
 import sys
 import time
+import traceback
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
@@ -50,7 +55,7 @@ import grpc
 import numpy as np
 from grpc import aio
 
-from haa import files
+from haa import files, rpcguard
 from haa.pb import sim_pb2 as pb
 from haa.pb import sim_pb2_grpc as pbg
 from haa.sim import actions as act
@@ -432,16 +437,45 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
         self.core = core
         self.token = token
         self.rejected = 0
+        self.malformed = 0
+        self.errors = 0
+
+    def add_to_server(self, server: aio.Server) -> None:
+        """Register the three services with raw requests (haa.rpcguard): the token is checked before a request
+        is decoded (UNAUTHENTICATED), a request that does not parse is INVALID_ARGUMENT, and an exception
+        escaping a handler gets a proper status (INVALID_ARGUMENT for a ValueError, INTERNAL for a bug), never
+        UNKNOWN."""
+        guard = rpcguard.Guard(authenticate=self._token_ok, on_event=self._guard_event)
+        handlers = tuple(
+            rpcguard.guarded_handler(pb.DESCRIPTOR.services_by_name[name], self, guard)
+            for name in ("AvatarSim", "GroundTruth", "SimControl")
+        )
+        server.add_generic_rpc_handlers(handlers)
+
+    def _token_ok(self, context: aio.ServicerContext) -> bool:
+        if self.token is None:
+            return True
+        tok = dict(context.invocation_metadata() or ()).get(MD_TOKEN)
+        return isinstance(tok, str) and hmac.compare_digest(tok.encode(), self.token.encode())
+
+    def _guard_event(self, kind: str, method: str, detail: str, exc: BaseException | None) -> None:
+        if kind == "unauthenticated":
+            self.rejected += 1
+        elif kind == "malformed":
+            self.malformed += 1
+        else:
+            self.errors += 1
+            internal = detail.startswith("INTERNAL")
+            if internal or self.errors <= 100:  # refusals of bad requests: the first 100 are enough to see
+                log("rpc_error", method=method, detail=detail[:300],
+                    trace="".join(traceback.format_exception(exc))[-2000:] if internal and exc else "")
 
     @property
     def world(self) -> World:
         return self.core.world
 
     async def check_token(self, context: aio.ServicerContext) -> None:
-        if self.token is None:
-            return
-        md = dict(context.invocation_metadata() or ())
-        if md.get(MD_TOKEN) != self.token:
+        if not self._token_ok(context):
             self.rejected += 1
             await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong x-haa-token")
 
@@ -807,9 +841,7 @@ def build(s: Settings) -> tuple[SimCore, str | None]:
 async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Event | None = None) -> None:
     server = aio.server(options=[("grpc.max_send_message_length", 32 << 20)])
     svc = SimService(core, token)
-    pbg.add_AvatarSimServicer_to_server(svc, server)
-    pbg.add_GroundTruthServicer_to_server(svc, server)
-    pbg.add_SimControlServicer_to_server(svc, server)
+    svc.add_to_server(server)
     port = server.add_insecure_port(listen)
     if port == 0:
         raise RuntimeError(f"cannot bind {listen}")
@@ -839,7 +871,8 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
         core.close_streams()
         await asyncio.sleep(0.1)
         await server.stop(grace=1.0)
-        log("stopped", time=round(core.world.time, 3), dropped=core.dropped, rejected=svc.rejected)
+        log("stopped", time=round(core.world.time, 3), dropped=core.dropped, rejected=svc.rejected,
+            malformed=svc.malformed, errors=svc.errors)
 
 
 def main(argv: list[str] | None = None) -> None:
