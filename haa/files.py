@@ -129,6 +129,16 @@ def _mark(mark: Any) -> str:
     return f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
 
 
+#: explicitly tagged scalars PyYAML's constructors would crash on (AttributeError, KeyError) unless they
+#: look like what the tag's implicit resolver accepts: checked against that resolver's pattern
+_STRICT_TAGS = {
+    tag: regexp
+    for resolvers in yaml.resolver.Resolver.yaml_implicit_resolvers.values()
+    for tag, regexp in resolvers
+    if tag in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:timestamp")
+}
+
+
 class _Refused(Exception):
     """Internal: a limit was exceeded (turned into a FileError by `parse_yaml`)."""
 
@@ -152,6 +162,9 @@ def _check_events(loader: Any, max_depth: int, max_nodes: int) -> None:
         ev = loader.get_event()
         if isinstance(ev, yaml.ScalarEvent):
             nodes += 1
+            if ev.tag in _STRICT_TAGS and not _STRICT_TAGS[ev.tag].match(ev.value):
+                name = ev.tag.rpartition(":")[2]
+                raise _Refused(f"{one_line(repr(ev.value), 40)} is not a !!{name}{_mark(ev.start_mark)}")
             if len(ev.value) > MAX_INT_CHARS:
                 tag = ev.tag
                 if tag is None or tag == "!":
@@ -241,8 +254,9 @@ def parse_yaml(
         raise FileError(path, f"not valid YAML: {where}: {e.reason}") from None
     except yaml.YAMLError as e:
         raise FileError(path, f"not valid YAML: {' '.join(str(e).split())}") from None
-    except (ValueError, OverflowError) as e:  # a scalar Python refuses (a date like 2001-02-30, ...)
-        raise FileError(path, f"bad value: {e}") from None
+    except (ValueError, OverflowError, TypeError, KeyError, AttributeError, IndexError) as e:
+        # a scalar PyYAML's constructors cannot convert (a date like 2001-02-30, a malformed !!omap, ...)
+        raise FileError(path, f"bad value: {type(e).__name__}: {e}") from None
 
 
 def load_yaml(

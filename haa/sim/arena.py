@@ -310,14 +310,13 @@ def load_arena(arena: str | Path) -> Arena:
         path = builtin_path(arena)
     else:
         path = Path(arena)
-    label = f"arena {files.one_line(path.name)}"
+    label = f"arena {files.one_line(str(arena))}"  # as the user named it
     try:
         text = files.read_text(path, what="arena file")
     except files.FileError as e:
         if e.os_errno == errno.ENOENT:
-            where = files.one_line(str(arena))
-            raise ArenaError(f"arena {where}: no such file (built-in arenas: {', '.join(BUILTIN)})") from None
-        raise ArenaError(f"arena {e}") from None
+            raise ArenaError(f"{label}: no such file (built-in arenas: {', '.join(BUILTIN)})") from None
+        raise ArenaError(f"{label}: {e.reason}") from None
     return parse_arena(text, label)
 
 
