@@ -90,6 +90,10 @@ BAD = [
     ("exclude-zero", {"--exclude-after": "0"}, "--exclude-after:"),
     ("qos-not-a-number", {"--qos-td": "fast"}, "--qos-td: invalid float value"),
     ("log-level", {"--log-level": "loud"}, "--log-level"),
+    # the allocator's bounds (docs/limits.md): an infinite or huge capacity would be refused by every replica
+    ("capacity-inf", {"--capacity": "inf"}, "--capacity:"),
+    ("capacity-huge", {"--capacity": "1e9"}, "--capacity: Input should be less than or equal to 1000"),
+    ("capacity-tiny", {"--capacity": "1e-9"}, "--capacity:"),
 ]
 
 

@@ -62,6 +62,7 @@ from pydantic import (
 
 from haa import files
 from haa.hostd.agentnode import AgentConfig
+from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY
 from haa.hostd.core import CoreConfig
 from haa.hostd.membership import NodeConfig
 from haa.hostd.qos import CLUSTER_QOS, QosTargets
@@ -152,7 +153,8 @@ class HostSettings(BaseModel):
     forget_group: bool = False
     #: the agent layer (membership mode): off with --no-agents
     agents: bool = True
-    capacity: float = Field(default=1.0, gt=0, allow_inf_nan=False)
+    # the allocator's bounds (docs/limits.md, "Agent and host numbers"): a capacity outside them is refused here
+    capacity: float = Field(default=1.0, ge=MIN_CAPACITY, le=MAX_CAPACITY, allow_inf_nan=False)
     hardware: list[str] = Field(default_factory=list, max_length=MAX_HARDWARE)
     rebalance_period: float = Field(default=30.0, ge=0, allow_inf_nan=False)
     drain_timeout: float = Field(default=10.0, gt=0, allow_inf_nan=False)
