@@ -136,15 +136,15 @@ class LocalBackend(Backend):
 
     def load(self, path: Path | None = None) -> None:
         path = path or self.state_path
-        try:
-            text = path.read_text()
-        except FileNotFoundError:
+        if not path.exists():
             self.state = {}
             return
         try:
-            self.state = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ClusterError(f"broken state file {path}: {e}") from None
+            self.state = files.load_json(path, what="cluster state file")
+        except files.FileError as e:
+            raise ClusterError(f"broken state file: {e}") from None
+        if not isinstance(self.state, dict):
+            raise ClusterError(f"broken state file {path}: not a JSON object")
         if self.state.get("version") != STATE_VERSION:
             raise ClusterError(f"state file {path} has an unknown version; remove it (`haactl cluster down --purge`)")
 

@@ -423,3 +423,34 @@ def test_fuzz_arena_files_only_arena_error_escapes(text: str) -> None:
         parse_arena(text, "arena f.yaml")
     except ArenaError as e:
         assert len(str(e).splitlines()) == 1 and str(e).startswith("arena f.yaml"), str(e)
+
+
+# ------------------------------------------------------------------ files HAA writes itself
+
+
+def test_a_corrupt_known_hosts_file_is_ignored_with_a_warning(tmp_path: Path) -> None:
+    """haa-hostd reads `<data-dir>/known_hosts.json` at start: a huge, deep or broken one is ignored (the host
+    starts without the hint), never read without limit."""
+    from types import SimpleNamespace
+
+    from haa.hostd.runtime import HostRuntime
+
+    f = tmp_path / "known_hosts.json"
+    fake = SimpleNamespace(name="h1", _known_hosts_file=lambda: f)
+    for text in ("[" * 100_000, '{"members": 5}', "\xff", " " * (2 << 20), '{"members": [["h1", "a"], ["h1", "a"]]'):
+        f.write_text(text, errors="surrogateescape")
+        assert HostRuntime._load_known_hosts(fake) == []  # type: ignore[arg-type]
+    f.write_text('{"members": [["h1", "127.0.0.1:1"], ["h2", "127.0.0.1:2"]]}')
+    assert HostRuntime._load_known_hosts(fake) == [("h2", "127.0.0.1:2")]  # type: ignore[arg-type]
+
+
+def test_a_broken_cluster_state_file_is_one_clear_error(tmp_path: Path) -> None:
+    from haactl.backend import ClusterError
+    from haactl.local_backend import STATE_FILE, LocalBackend
+
+    b = LocalBackend(tmp_path)
+    for text in ("[" * 100_000, "[1, 2]", '{"a": 1, "a": 2}'):
+        (tmp_path / STATE_FILE).write_text(text)
+        with pytest.raises(ClusterError, match="broken state file") as e:
+            b.load()
+        assert "\n" not in str(e.value)

@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 import psutil
 from grpc import aio
 
+from haa import files
 from haa.hostd import agentio
 from haa.hostd import ddb as ddbmod
 from haa.hostd.agentnode import AgentConfig, AgentNode
@@ -79,6 +80,8 @@ GENESIS_HASH = "0" * 64
 _TYPED_EVENTS = frozenset({"peer_dead"})
 #: core Log events that report a bug caught by a safety net (logged at error level)
 _ERROR_EVENTS = frozenset({"agent_layer_error"})
+#: hosts taken from a previous incarnation's known_hosts.json (as many as --core accepts)
+MAX_KNOWN_HOSTS = 1000
 #: how many latency samples are kept (oldest dropped first)
 MAX_SAMPLES = 100_000
 #: group commit of DDB writes (`HostRuntime.ddb_write`): at most this many of this host's DDB batches are in
@@ -343,8 +346,9 @@ class HostRuntime:
         if f is None or not f.exists():
             return []
         try:
-            data = json.loads(f.read_text())
-            out = [(str(n), str(a)) for n, a in data["members"] if n != self.name]
+            # a file of our own, read with the limits of every file HAA reads (a corrupt or huge one is ignored)
+            data = files.load_json(f, what="known hosts file", max_bytes=1 << 20)
+            out = [(str(n), str(a)) for n, a in data["members"] if n != self.name][:MAX_KNOWN_HOSTS]
         except (OSError, ValueError, KeyError, TypeError) as e:
             log_event(log, logging.WARNING, "known_hosts_unreadable", file=str(f), error=str(e))
             return []
