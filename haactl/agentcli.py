@@ -55,7 +55,7 @@ WaitTimeoutOpt = Annotated[float, typer.Option("--timeout", min=0.5, help="secon
 PHASE_STATE = {"claiming": "thawing", "thawing": "thawing", "recovering": "recovering", "active": "active",
                "freezing": "freezing"}
 STATE_STYLE = {"active": "green", "spawning": "cyan", "thawing": "cyan", "recovering": "magenta",
-               "freezing": "yellow", "frozen": "yellow", "crashed": "red", "new": "dim"}
+               "freezing": "yellow", "frozen": "yellow", "crashed": "red", "new": "dim", "failed": "bold red"}
 
 
 # ---------------------------------------------------------------------------------------------- reading
@@ -113,6 +113,8 @@ class AgentRow:
     dropped: int = 0
     recovery: str = ""
     phases: dict[str, str] = field(default_factory=dict)  # host -> local phase, every host reporting one
+    fail_reason: str = ""  # the latest failure's reason (state "failed": why it is not recovered)
+    failures: int = 0  # consecutive start failures
 
 
 def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
@@ -150,6 +152,7 @@ def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
             parent=names.get(a.parent, a.parent[:8]) if a.parent else "", parent_id=a.parent, epoch=a.epoch,
             backup=a.has_backup, status=a.status, owner=a.owner, alloc=a.alloc, pid=pid, queued=a.queued,
             dropped=a.dropped, recovery=a.recovery, phases={h: x.local_phase for h, x in loc.items()},
+            fail_reason=a.fail_reason, failures=a.failures,
         ))
     return sorted(out, key=lambda r: name_key(r.name))
 
@@ -229,6 +232,10 @@ def agent_list(
         return
     warn_unanswered(replies)
     out.print(agent_table(rows, f"{len(rows)} agents ({len(ok)} hosts answered)"))
+    for r in rows:
+        if r.state == "failed":  # not recovered any more: say why, and how to retry
+            out.print(f"[bold red]{r.name} failed[/] after {r.failures} start failures: {escape(r.fail_reason)} "
+                      f"(retry: haactl agent move {r.name} <host>)")
 
 
 @agent_app.command("tree")
@@ -340,7 +347,14 @@ def agent_spawn(
         raise ClusterError(f"spawn {type_name}: {reply.reason}")
     row = None
     if wait:
-        row = wait_rows(backend, lambda rows: active_row(rows, reply.id), timeout, f"{reply.name} to become active")
+        def up_or_failed(rows: list[AgentRow]) -> AgentRow | None:
+            return active_row(rows, reply.id) or next((r for r in rows if r.id == reply.id and r.state == "failed"),
+                                                      None)
+
+        row = wait_rows(backend, up_or_failed, timeout, f"{reply.name} to become active")
+        if row.state == "failed":  # committed, but it could not start (its type's start raised, ...)
+            raise ClusterError(f"spawn {type_name}: {reply.name} failed after {row.failures} start failures: "
+                               f"{row.fail_reason}")
     took = time.monotonic() - t0
     if json_out:
         print(json.dumps({"ok": True, "id": reply.id, "name": reply.name, "via": h,

@@ -195,7 +195,7 @@ def test_exit_codes_and_agent_errors(tmp_path):
             task.cancel()
             # a constructor error: the spawn fails with the agent's own message, and nothing is reported
             n = len(H.events)
-            with pytest.raises(SpawnError, match=r"did not start: .*config\.period: must be a number"):
+            with pytest.raises(SpawnError, match=r"did not start: .*config\.period: Input should be greater"):
                 await H.create("counter", {"period": -1}, "h1")
             assert len(H.events) == n
             # a fatal error after start (corrupt state at a thaw): "exited code 1 (agent error: ...)"

@@ -56,11 +56,17 @@ import uuid
 from collections.abc import Awaitable, Callable
 from typing import Any, ClassVar
 
+import pydantic
+
 from haa.agents.channel import message_too_large
 from haa.pb import agent_pb2 as pb
 
 #: recovery strategies an agent type declares (docs/agents.md, "Recovery strategies")
 RECOVERY_STRATEGIES = frozenset({"backup", "restart", "none"})
+
+#: defaults of `AgentBase.MEMORY_LIMIT_MB` and `AgentBase.CPU_LIMIT` (docs/limits.md)
+DEFAULT_MEMORY_LIMIT_MB = 512
+DEFAULT_CPU_LIMIT = 0.9
 
 #: default timeout of `request()`, seconds
 REQUEST_TIMEOUT = 5.0
@@ -164,9 +170,34 @@ class AgentBase:
     RECOVERY: ClassVar[str] = "backup"
     #: if True an exception in on_message / a timer / a watch callback kills the agent (an agent failure)
     CRASH_ON_ERROR: ClassVar[bool] = False
+    #: the pydantic model of the agent's config (JSON; an empty config reads as {}), or None for a type that
+    #: parses its config itself. With a model, the host refuses a spawn whose config does not validate before
+    #: anything is committed (`check_config`, asked of the fork server), and `self.cfg` is the validated model
+    CONFIG: ClassVar[type[pydantic.BaseModel] | None] = None
+    #: resident memory (RSS, MiB) the agent's process may use; over it, its host kills it (docs/agents.md,
+    #: "Resource limits"). The address space is capped too, at a margin above it (`haa.hostd.agentproc`)
+    MEMORY_LIMIT_MB: ClassVar[int] = DEFAULT_MEMORY_LIMIT_MB
+    #: CPU the agent may use, as a fraction of one core, sustained over `haa.hostd.agentproc.CPU_LIMIT_WINDOW`
+    #: (10 s); over it, its host kills it. Per type: a sensor agent may need a whole core (1.0) or more
+    CPU_LIMIT: ClassVar[float] = DEFAULT_CPU_LIMIT
 
     def __init__(self, ctx: AgentContext) -> None:
         self._ctx = ctx
+        #: the validated config (an instance of CONFIG) when the type declares a model, else None
+        self.cfg: Any = None
+        if self.CONFIG is not None:
+            why = self.check_config(ctx.config)
+            if why:
+                raise ValueError(f"config of agent {ctx.name} ({self.TYPE}): {why}")
+            self.cfg = self.CONFIG.model_validate_json(ctx.config.strip() or b"{}")
+
+    @classmethod
+    def check_config(cls, data: bytes) -> str:
+        """'' when `data` is a valid config of this type, else the reason in one line: the first error of
+        the model, as `config.<field path>: <message>` (the host shows it to whoever asked for the spawn)."""
+        if cls.CONFIG is None:
+            return ""
+        return config_error(cls.CONFIG, data)
 
     # ------------------------------------------------------------------ identity
 
@@ -293,6 +324,33 @@ class AgentBase:
     def stop(self) -> None:
         """End this agent once the current handler returns: on_stop(), the host is told, the process exits."""
         self._ctx.request_stop()
+
+
+def config_error(model: type[pydantic.BaseModel], data: bytes) -> str:
+    """'' when `data` (JSON; empty = {}) validates into `model`, else its first error in one line."""
+    try:
+        model.model_validate_json(data.strip() or b"{}")
+    except pydantic.ValidationError as e:
+        errs = e.errors(include_url=False)
+        if not errs:
+            return "config: invalid"
+        first = errs[0]
+        loc = ".".join(str(x) for x in first.get("loc", ()))
+        where = f"config.{loc}" if loc else "config"
+        msg = " ".join(str(first.get("msg", "invalid")).split())
+        got = ""
+        if first.get("type") not in ("missing", "json_invalid") and loc:
+            got = f" (got {_short(first.get('input'))})"
+        more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+        return f"{where}: {msg}{got}{more}"[:400]
+    except (ValueError, RecursionError) as e:  # pragma: no cover - pydantic reports JSON errors as above
+        return f"config: {type(e).__name__}: {' '.join(str(e).split())}"[:400]
+    return ""
+
+
+def _short(v: Any) -> str:
+    text = " ".join(repr(v).split())
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _config_bytes(config: bytes | str | dict | list) -> bytes:

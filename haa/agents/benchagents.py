@@ -52,6 +52,8 @@ import zlib
 from collections import deque
 from typing import Any
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from haa.agents.base import AgentBase, AgentContext, RemoteError
 from haa.agents.registry import register
 
@@ -64,18 +66,26 @@ STATE_MAGIC = b"HAAb"
 MAX_STATE_BYTES = 32 * 1024 * 1024
 
 
-def _num(cfg: dict[str, Any], key: str, default: float, lo: float, hi: float) -> float:
-    v = cfg.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
-        raise ValueError(f"config.{key}: must be a number in [{lo:g}, {hi:g}], got {v!r}")
-    return float(v)
+class BallastConfig(BaseModel):
+    """Config of `ballast` (module docstring); a spawn with anything else is refused before it commits."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    state_bytes: int = Field(THESIS_STATE_BYTES, ge=0, le=MAX_STATE_BYTES)
+    seed: int = Field(0, ge=0, le=2**63)
+    backup: bool = True
+    report_ready: bool = False
 
 
-def _config(agent: AgentBase) -> dict[str, Any]:
-    cfg = agent.config_json()
-    if not isinstance(cfg, dict):
-        raise ValueError(f"config of {agent.TYPE}: must be a JSON object")
-    return cfg
+class PingerConfig(BaseModel):
+    """Config of `pinger` (module docstring)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    target: str | None = Field(None, min_length=1, max_length=256)
+    period: float = Field(0.005, ge=0.001, le=60)
+    timeout: float = Field(5.0, ge=0.01, le=3600)
+    max_outstanding: int = Field(2000, ge=1, le=100_000)
+    keep: int = Field(50_000, ge=10, le=10**7)
+    paused: bool = False
 
 
 @register
@@ -85,14 +95,15 @@ class BallastAgent(AgentBase):
     TYPE = "ballast"
     COST = 0.01
     RECOVERY = "backup"
+    CONFIG = BallastConfig
 
     def __init__(self, ctx: AgentContext) -> None:
         super().__init__(ctx)
-        cfg = _config(self)
-        self.state_bytes = int(_num(cfg, "state_bytes", THESIS_STATE_BYTES, 0, MAX_STATE_BYTES))
-        self.seed = int(_num(cfg, "seed", 0, 0, 2**63))
-        self.backup_at_start = bool(cfg.get("backup", True))
-        self.report_ready = bool(cfg.get("report_ready", False))
+        cfg: BallastConfig = self.cfg
+        self.state_bytes = cfg.state_bytes
+        self.seed = cfg.seed
+        self.backup_at_start = cfg.backup
+        self.report_ready = cfg.report_ready
         self.blob = random.Random(self.seed).randbytes(self.state_bytes)
         self.pings = 0
         self.thaws = 0
@@ -186,20 +197,18 @@ class PingerAgent(AgentBase):
     COST = 0.05
     TRANSFER_PENALTY = 1.0
     RECOVERY = "restart"
+    CONFIG = PingerConfig
 
     def __init__(self, ctx: AgentContext) -> None:
         super().__init__(ctx)
-        cfg = _config(self)
-        target = cfg.get("target")
-        if target is not None and not (isinstance(target, str) and target):
-            raise ValueError(f"config.target: must be an agent id, got {target!r}")
-        self.target: str | None = target
-        self.period = _num(cfg, "period", 0.005, 0.001, 60)
-        self.timeout = _num(cfg, "timeout", 5.0, 0.01, 3600)
-        self.max_outstanding = int(_num(cfg, "max_outstanding", 2000, 1, 100_000))
-        self.paused = bool(cfg.get("paused", False))
+        cfg: PingerConfig = self.cfg
+        self.target: str | None = cfg.target
+        self.period = cfg.period
+        self.timeout = cfg.timeout
+        self.max_outstanding = cfg.max_outstanding
+        self.paused = cfg.paused
         #: (sent, answered or 0, ok) per request, oldest first
-        self.records: deque[tuple[float, float, bool]] = deque(maxlen=int(_num(cfg, "keep", 50_000, 10, 10**7)))
+        self.records: deque[tuple[float, float, bool]] = deque(maxlen=cfg.keep)
         self.outstanding = 0
         self.sent = self.answered = self.failed = 0
         self._tasks: set[asyncio.Task[None]] = set()

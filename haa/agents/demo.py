@@ -38,6 +38,10 @@ send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, watch
 backup, state, timer, log, stop, raise, exit, hang, garbage, oversize); see `ProbeAgent.on_request`. It
 counts the plain messages it receives and keeps them (state "messages") unless its config says
 {"record": false}.
+
+Each type declares its config as a pydantic model (`CONFIG`: CounterConfig, SpawnerConfig, BusyConfig,
+ProbeConfig), so a spawn with a config the type cannot start with is refused with the reason before it is
+committed (docs/agents.md, "Configs"); the agent reads the validated values from `self.cfg`.
 """
 
 from __future__ import annotations
@@ -50,6 +54,8 @@ import struct
 import time
 from typing import Any
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from haa.agents.base import AgentBase, AgentContext, RemoteError
 from haa.agents.registry import register
 
@@ -58,6 +64,50 @@ PING = struct.Struct(">4sQQ")
 PING_MAGIC = b"HAAc"
 #: gaps remembered per stream (older ones are given up as lost)
 MAX_MISSING = 1000
+
+
+#: config models: unknown keys and values of the wrong JSON type are refused (strict: "1" is not a number)
+_STRICT = ConfigDict(extra="forbid", strict=True)
+
+
+class CounterConfig(BaseModel):
+    """Config of `counter` (module docstring)."""
+
+    model_config = _STRICT
+    period: float = Field(0.05, ge=0.001, le=3600)
+    payload: int = Field(0, ge=0, le=8 * 1024 * 1024)
+    backup_every: int = Field(100, ge=0, le=10**12)
+    stats_period: float = Field(1.0, ge=0.01, le=3600)
+    ddb: bool = True
+    spawn_peer: bool = False
+    peer: str | None = Field(None, min_length=1, max_length=256)
+    paused: bool = False
+
+
+class SpawnerConfig(BaseModel):
+    """Config of `spawner`: `count` children of `type` with `config`."""
+
+    model_config = _STRICT
+    type: str = Field("probe", min_length=1, max_length=64)
+    count: int = Field(1, ge=0, le=1000)
+    config: dict[str, Any] | list[Any] | str = Field(default_factory=dict)
+
+
+class BusyConfig(BaseModel):
+    """Config of `busy`: the share of one core it burns, in slices of `slice` seconds."""
+
+    model_config = _STRICT
+    cpu: float = Field(0.3, ge=0.0, le=1.0)
+    slice: float = Field(0.05, ge=0.005, le=1.0)
+
+
+class ProbeConfig(BaseModel):
+    """Config of `probe`: a JSON object; "value" (its initial value), "record" (false: do not keep the
+    messages received). Other keys are allowed: tests give it whatever they like."""
+
+    model_config = ConfigDict(extra="allow")
+    value: Any = None
+    record: Any = True
 
 
 def _number(cfg: dict[str, Any], key: str, default: float, lo: float, hi: float) -> float:
@@ -130,23 +180,22 @@ class CounterAgent(AgentBase):
     TYPE = "counter"
     COST = 0.02
     RECOVERY = "backup"
+    CONFIG = CounterConfig
 
     def __init__(self, ctx: AgentContext) -> None:
         super().__init__(ctx)
-        cfg = self.config_json()
-        if not isinstance(cfg, dict):
-            raise ValueError("config: must be a JSON object")
-        self.period = _number(cfg, "period", 0.05, 0.001, 3600)
-        self.payload = int(_number(cfg, "payload", 0, 0, 8 * 1024 * 1024))
-        self.backup_every = int(_number(cfg, "backup_every", 100, 0, 1e12))
-        self.stats_period = _number(cfg, "stats_period", 1.0, 0.01, 3600)
-        self.use_ddb = bool(cfg.get("ddb", True))
-        self.spawn_peer = bool(cfg.get("spawn_peer", False))
-        self.peer: str | None = cfg.get("peer")
+        cfg: CounterConfig = self.cfg
+        self.period = cfg.period
+        self.payload = cfg.payload
+        self.backup_every = cfg.backup_every
+        self.stats_period = cfg.stats_period
+        self.use_ddb = cfg.ddb
+        self.spawn_peer = cfg.spawn_peer
+        self.peer: str | None = cfg.peer
         self.gen = self.epoch
         self.next_seq = 1
         self.sent = 0
-        self.paused = bool(cfg.get("paused", False))
+        self.paused = cfg.paused
         self.streams: dict[str, _Stream] = {}
         self.adopt_new = False
         self.since_backup = 0
@@ -285,13 +334,14 @@ class SpawnerAgent(AgentBase):
 
     TYPE = "spawner"
     RECOVERY = "backup"
+    CONFIG = SpawnerConfig
 
     def __init__(self, ctx: AgentContext) -> None:
         super().__init__(ctx)
-        cfg = self.config_json()
-        self.child_type = str(cfg.get("type", "probe"))
-        self.count = int(_number(cfg, "count", 1, 0, 1000))
-        self.child_config = cfg.get("config", {})
+        cfg: SpawnerConfig = self.cfg
+        self.child_type = cfg.type
+        self.count = cfg.count
+        self.child_config = cfg.config
         self.children: list[str] = []
 
     async def on_start(self) -> None:
@@ -319,12 +369,15 @@ class BusyAgent(AgentBase):
     TYPE = "busy"
     COST = 0.3
     RECOVERY = "restart"
+    CONFIG = BusyConfig
+    #: it burns up to a whole core on purpose (plus its own overhead)
+    CPU_LIMIT = 1.5
 
     def __init__(self, ctx: AgentContext) -> None:
         super().__init__(ctx)
-        cfg = self.config_json()
-        self.share = _number(cfg, "cpu", 0.3, 0.0, 1.0)
-        self.slice = _number(cfg, "slice", 0.05, 0.005, 1.0)
+        cfg: BusyConfig = self.cfg
+        self.share = cfg.cpu
+        self.slice = cfg.slice
         self.burned = 0.0
 
     async def on_start(self) -> None:
@@ -364,6 +417,7 @@ class ProbeAgent(AgentBase):
 
     TYPE = "probe"
     RECOVERY = "backup"
+    CONFIG = ProbeConfig
     MAX_RECORDED = 10_000
 
     def __init__(self, ctx: AgentContext) -> None:
@@ -372,10 +426,10 @@ class ProbeAgent(AgentBase):
         self.messages: list[list[str]] = []  # [src, payload as text]
         self.events: list[list[Any]] = []  # watch events, timers, lifecycle
         self.received = 0
-        cfg = self.config_json()
-        if isinstance(cfg, dict) and "value" in cfg:
-            self.value = str(cfg["value"])
-        self.record = not (isinstance(cfg, dict) and cfg.get("record") is False)  # keep the messages received
+        cfg: ProbeConfig = self.cfg
+        if "value" in cfg.model_fields_set:
+            self.value = str(cfg.value)
+        self.record = cfg.record is not False  # keep the messages received
 
     def _record(self, lst: list[Any], item: Any) -> None:
         lst.append(item)

@@ -13,6 +13,10 @@ Protocol (proto/haa/pb/agent.proto, one message per packet on a SOCK_SEQPACKET s
 * host -> zygote: `ForkServerRequest` (req_id, type_name, agent_id, log_path, exec) with the agent's end of
   its channel attached as SCM_RIGHTS; the zygote checks the type, forks, closes its copy of the fd and
   answers `ForkServerEvent.reply` (pid, or an error such as an unknown type — then nothing was forked);
+* host -> zygote: `ForkServerRequest` with `validate` set: check a config against the type's model
+  (`AgentBase.check_config`) without forking, answered `Reply.config_error` ("" = valid). The config
+  travels in a memfd attached as SCM_RIGHTS (a packet is bounded by the socket buffer; a config may be
+  1 MiB, `haa.hostd.agenttable.MAX_CONFIG`), `config_size` bytes of it; at most MAX_VALIDATE_BYTES are read;
 * zygote -> host: `ForkServerEvent.exit` (pid, exit code or signal) for every child it reaps. The agents
   are the zygote's children, so it is the one that learns how each ended ("exited code 1", "killed by
   signal 9"); the host turns that into the agent's Failed event.
@@ -54,6 +58,9 @@ from haa.pb import agent_pb2 as pb
 PR_SET_PDEATHSIG = 1
 #: largest packet on the control socket (the ready message with the type table is the big one)
 MAX_PACKET = 1 << 20
+#: the largest config a validate request may carry (the memfd is not read beyond it); the agent table's own
+#: limit (haa.hostd.agenttable.MAX_CONFIG) is smaller and checked by the host first
+MAX_VALIDATE_BYTES = 16 * 1024 * 1024
 #: environment defaults for the zygote (one math thread per agent process)
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
@@ -188,6 +195,9 @@ def _fork_one(sock: socket.socket, data: bytes, fds: list[int], children: set[in
         return refuse(f"a fork request needs exactly one channel fd, got {len(fds)}")
     if req.type_name not in registry.REGISTRY:
         return refuse(str(registry.UnknownAgentType(req.type_name, registry.REGISTRY)))
+    if req.validate:
+        _validate_one(sock, req, fds[0], registry.REGISTRY[req.type_name])
+        return 0
     (fd,) = fds
     sys.stdout.flush()
     sys.stderr.flush()
@@ -231,6 +241,30 @@ def _fork_one(sock: socket.socket, data: bytes, fds: list[int], children: set[in
     os.close(fd)  # ---------------------------------------------------------------------- the zygote
     _send(sock, pb.ForkServerEvent(reply=pb.ForkServerEvent.Reply(req_id=req.req_id, pid=pid)))
     return pid
+
+
+def _validate_one(sock: socket.socket, req: pb.ForkServerRequest, fd: int, cls: type) -> None:
+    """Answer a validate request: read the config from the memfd `fd` and check it (no fork)."""
+    try:
+        size = req.config_size
+        if size > MAX_VALIDATE_BYTES:
+            why = f"config of {size} bytes exceeds the fork server's limit of {MAX_VALIDATE_BYTES} bytes"
+        else:
+            data = bytearray()
+            while len(data) < size:
+                chunk = os.pread(fd, min(size - len(data), 1 << 20), len(data))
+                if not chunk:
+                    break
+                data += chunk
+            if len(data) != size:
+                why = f"config: expected {size} bytes, the memfd holds {len(data)}"
+            else:
+                why = cls.check_config(bytes(data))
+    except Exception as e:  # a bug in a model (a validator that raises something else) is the type's problem
+        why = f"config: the check raised {type(e).__name__}: {' '.join(str(e).split())}"[:400]
+    finally:
+        os.close(fd)
+    _send(sock, pb.ForkServerEvent(reply=pb.ForkServerEvent.Reply(req_id=req.req_id, config_error=why)))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -278,7 +312,7 @@ class ForkServer:
         self.load_errors: list[str] = []
         self.preload_seconds = 0.0
         self.start_seconds = 0.0
-        self._pending: dict[int, asyncio.Future[int]] = {}
+        self._pending: dict[int, asyncio.Future[pb.ForkServerEvent.Reply]] = {}
         self._next = 1
         self._reader: asyncio.Task[None] | None = None
         self._closing = False
@@ -338,18 +372,44 @@ class ForkServer:
         """Fork an agent process with `channel_fd` as its channel; its pid. SpawnError if refused."""
         if not self.alive or self.sock is None:
             raise SpawnError("the agent fork server is not running")
+        req = pb.ForkServerRequest(type_name=type_name, agent_id=agent_id, log_path=log_path, exec=exec_)
+        reply = await self._ask(req, channel_fd, timeout)
+        if reply.error:
+            raise SpawnError(reply.error)
+        return reply.pid
+
+    async def validate(self, type_name: str, config: bytes, timeout: float = 10.0) -> str:
+        """'' when `config` is valid for `type_name` (its model, `AgentBase.check_config`), else the reason.
+        SpawnError if the fork server cannot answer (not running, unknown type)."""
+        if not self.alive or self.sock is None:
+            raise SpawnError("the agent fork server is not running")
+        fd = os.memfd_create("haa-agent-config", os.MFD_CLOEXEC)
+        try:
+            view = memoryview(config)
+            while view:
+                view = view[os.write(fd, view):]
+            req = pb.ForkServerRequest(type_name=type_name, validate=True, config_size=len(config))
+            reply = await self._ask(req, fd, timeout)
+        finally:
+            os.close(fd)  # the zygote got its own copy when the request was sent
+        if reply.error:
+            raise SpawnError(reply.error)
+        return reply.config_error
+
+    async def _ask(self, req: pb.ForkServerRequest, fd: int, timeout: float) -> pb.ForkServerEvent.Reply:
+        """Send one request with `fd` attached and wait for its reply."""
+        assert self.sock is not None
         req_id = self._next
         self._next += 1
-        req = pb.ForkServerRequest(req_id=req_id, type_name=type_name, agent_id=agent_id, log_path=log_path,
-                                   exec=exec_)
-        fut: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        req.req_id = req_id
+        fut: asyncio.Future[pb.ForkServerEvent.Reply] = asyncio.get_running_loop().create_future()
         self._pending[req_id] = fut
         data = req.SerializeToString()
         try:
             deadline = time.monotonic() + timeout
             while True:
                 try:
-                    socket.send_fds(self.sock, [data], [channel_fd])
+                    socket.send_fds(self.sock, [data], [fd])
                     break
                 except BlockingIOError:
                     if time.monotonic() > deadline:
@@ -387,10 +447,7 @@ class ForkServer:
                 if kind == "reply":
                     fut = self._pending.get(ev.reply.req_id)
                     if fut is not None and not fut.done():
-                        if ev.reply.error:
-                            fut.set_exception(SpawnError(ev.reply.error))
-                        else:
-                            fut.set_result(ev.reply.pid)
+                        fut.set_result(ev.reply)
                 elif kind == "exit":
                     try:
                         self.on_exit(ev.exit.pid, exit_reason(ev.exit.exit_code, ev.exit.signal))

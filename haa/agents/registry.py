@@ -35,12 +35,20 @@ import re
 from collections.abc import Iterable
 from typing import Any, TypeVar
 
+import pydantic
+
 from haa.agents.base import RECOVERY_STRATEGIES, AgentBase
 
 ENTRY_POINT_GROUP = "haa.agents"
 ENV_MODULES = "HAA_AGENT_MODULES"
 #: modules of haa.agents that are the runtime, not agent types
 RUNTIME_MODULES = frozenset({"base", "channel", "registry", "runner", "forkserver", "bench", "harness"})
+
+#: bounds of the resource limits a type may declare (AgentBase.MEMORY_LIMIT_MB, AgentBase.CPU_LIMIT)
+MIN_MEMORY_LIMIT_MB = 16
+MAX_MEMORY_LIMIT_MB = 1024 * 1024
+MIN_CPU_LIMIT = 0.01
+MAX_CPU_LIMIT = 1024.0
 
 TYPE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.\-]{0,63}$")
 
@@ -80,6 +88,15 @@ def validate(cls: Any, name: str | None = None) -> None:
         raise ValueError(f"{where}: TRANSFER_PENALTY must be in [0, 1], got {p!r}")
     if cls.RECOVERY not in RECOVERY_STRATEGIES:
         raise ValueError(f"{where}: RECOVERY must be one of {sorted(RECOVERY_STRATEGIES)}, got {cls.RECOVERY!r}")
+    if cls.CONFIG is not None and not (isinstance(cls.CONFIG, type) and issubclass(cls.CONFIG, pydantic.BaseModel)):
+        raise ValueError(f"{where}: CONFIG must be a pydantic model class or None, got {cls.CONFIG!r}")
+    m = cls.MEMORY_LIMIT_MB
+    if isinstance(m, bool) or not isinstance(m, int) or not MIN_MEMORY_LIMIT_MB <= m <= MAX_MEMORY_LIMIT_MB:
+        raise ValueError(f"{where}: MEMORY_LIMIT_MB must be an int in [{MIN_MEMORY_LIMIT_MB}, "
+                         f"{MAX_MEMORY_LIMIT_MB}], got {m!r}")
+    c = cls.CPU_LIMIT
+    if isinstance(c, bool) or not isinstance(c, int | float) or not MIN_CPU_LIMIT <= c <= MAX_CPU_LIMIT:
+        raise ValueError(f"{where}: CPU_LIMIT must be a number in [{MIN_CPU_LIMIT}, {MAX_CPU_LIMIT}], got {c!r}")
 
 
 def register(cls: A) -> A:
@@ -109,7 +126,9 @@ def get(type_name: str) -> type[AgentBase]:
 
 
 def type_info(cls: type[AgentBase]) -> dict[str, Any]:
-    """What a host needs of a type without importing it: cost, hardware, transfer penalty, recovery."""
+    """What a host needs of a type without importing it: cost, hardware, transfer penalty, recovery, whether
+    it has a config model (the host then asks the fork server to check a config before a spawn commits) and
+    its resource limits."""
     return {
         "type_name": cls.TYPE,
         "cost": float(cls.COST),
@@ -117,6 +136,9 @@ def type_info(cls: type[AgentBase]) -> dict[str, Any]:
         "transfer_penalty": float(cls.TRANSFER_PENALTY),
         "recovery": cls.RECOVERY,
         "module": cls.__module__,
+        "has_config": cls.CONFIG is not None,
+        "memory_limit_mb": int(cls.MEMORY_LIMIT_MB),
+        "cpu_limit": float(cls.CPU_LIMIT),
     }
 
 

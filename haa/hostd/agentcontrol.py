@@ -33,6 +33,7 @@ from grpc import aio
 
 from haa.agents.channel import message_too_large
 from haa.hostd.agentnode import AgentNode
+from haa.hostd.agenttable import MAX_CONFIG
 from haa.hostd.runtime import NotMembershipMode
 from haa.pb import control_pb2 as cpb
 
@@ -77,7 +78,7 @@ class AgentControl:
                     local_cpu=st.cpu if st is not None else 0.0,
                     pid=st.pid if st is not None else 0,
                     has_backup=r.backup is not None, queued=len(r.queue1) + len(r.queue2), dropped=r.dropped,
-                    recovery=r.spec.recovery,
+                    recovery=r.spec.recovery, fail_reason=r.fail_reason, failures=r.failures,
                 )
             )
         types = sorted(drv.sup.types) if drv is not None else []
@@ -105,6 +106,12 @@ class AgentControl:
             if r is None:
                 return cpb.AgentOpReply(ok=False, reason=f"unknown parent {request.parent!r}")
             parent = r.id
+        if drv is not None and len(request.config) <= MAX_CONFIG:  # larger: refused by create_agent
+            # a config the type's model refuses would commit an agent that can never start (issue 13, defect 3):
+            # the fork server, which has the agent classes, checks it before anything is proposed
+            why = await drv.sup.validate_config(request.type, request.config)
+            if why:
+                return cpb.AgentOpReply(ok=False, reason=f"{request.type}: {why}")
         agent_id = str(uuid.uuid4())
         done = await self.rt.agent_op(
             node.create_agent, agent_id, request.type, request.config,

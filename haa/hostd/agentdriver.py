@@ -9,8 +9,10 @@ by the daemon's `HostRuntime`, joins the two:
   the process no longer takes goes back to the node, `AgentNode.undeliverable`); FreezeAgent -> freeze;
   KillAgent -> kill; AnswerAgent -> answer;
 * supervisor events -> `AgentNode.on_agent_event` (with the instance's epoch: the supervisor runs one
-  instance per agent id here), and the agents' DDB requests, served from the local replica (reads, watches)
-  or through the group (writes, `HostRuntime.ddb_write`);
+  instance per agent id here); an agent's `spawn_child` of an unknown type, or with a config the child
+  type's model refuses (`AgentSupervisor.validate_config`, asked of the fork server), is answered with the
+  error at once instead of being committed as an agent that can never start; and the agents' DDB requests,
+  served from the local replica (reads, watches) or through the group (writes, `HostRuntime.ddb_write`);
 * every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
   `AgentNode.report_costs`, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
 """
@@ -31,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 from haa.hostd import agentio as io
 from haa.hostd import agentproc as ap
 from haa.hostd import ddb as ddbmod
+from haa.hostd.agenttable import MAX_CONFIG
 from haa.hostd.logs import log_event
 from haa.pb import agenttx_pb2 as apb
 
@@ -141,6 +144,30 @@ class AgentDriver:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
+    def _spawn_child(self, agent: str, epoch: int, ev: ap.SpawnChild) -> None:
+        """Check the child's type and config (module docstring), then pass the request to the node."""
+        info = self.sup.types.get(ev.type_name)
+        if info is None:
+            known = ", ".join(sorted(self.sup.types))
+            why = f"unknown agent type {ev.type_name[:64]!r} (registered: {known})"
+            self.sup.answer(agent, ev.req_id, False, b"", why)
+            return
+        child = io.SpawnChild(agent, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4()))
+        if not info.has_config or len(ev.config) > MAX_CONFIG:  # too large: the node refuses it (check_create)
+            self._feed_event(child)
+            return
+
+        async def run() -> None:
+            why = await self.sup.validate_config(ev.type_name, ev.config)
+            if why:
+                self.sup.answer(agent, ev.req_id, False, b"", f"{ev.type_name}: {why}")
+                return
+            self._feed_event(child)
+
+        task = asyncio.create_task(run(), name="agent-spawn-child-check")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
     def _feed_event(self, ev: Any) -> None:
         node = self.rt.node
         if node is not None and hasattr(node, "on_agent_event"):
@@ -169,7 +196,7 @@ class AgentDriver:
             self.epochs.pop(a, None)
             self._feed_event(io.Stopped(a, epoch))
         elif t is ap.SpawnChild:
-            self._feed_event(io.SpawnChild(a, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4())))  # type: ignore[union-attr]
+            self._spawn_child(a, epoch, ev)  # type: ignore[arg-type]
         elif t is ap.DdbGet:
             self._ddb_get(ev)  # type: ignore[arg-type]
         elif t is ap.DdbPut:

@@ -108,7 +108,8 @@ class AgentTimeline:
 
     agent: str
     name: str
-    event: str  # spawning, active, freezing, frozen, thawing, thawed, crashed, recovering, recovered, removed
+    #: spawning, active, freezing, frozen, thawing, thawed, crashed, backoff, failed, recovering, recovered, removed
+    event: str
     host: str
     detail: str = ""
 

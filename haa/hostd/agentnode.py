@@ -49,6 +49,7 @@ from haa.hostd.agentio import (
     Sent,
     ShellReady,
     SpawnChild,
+    StartAgent,
     Stopped,
 )
 from haa.hostd.allocation import (
@@ -95,6 +96,13 @@ class AgentConfig:
     max_push: int = 512
     #: graceful leave: hand agents over for at most this long, then leave anyway (they are recovered)
     drain_timeout: float = 10.0
+    #: an instance that dies within this long after it was started (or before) failed early: a start failure,
+    #: counted in the table (`AgentFailed.early`; agenttable.MAX_START_FAILURES of them in a row -> "failed")
+    start_grace: float = 10.0
+    #: the host that recovers an agent after n consecutive start failures first waits
+    #: min(backoff_cap, backoff_base * 2 ** (n - 1)) seconds (docs/agents-host.md, "Start failures")
+    backoff_base: float = 0.5
+    backoff_cap: float = 30.0
 
 
 @dataclass(slots=True)
@@ -120,6 +128,7 @@ class Local:
     wait_acks: set[str] = field(default_factory=set)
     acks: set[str] = field(default_factory=set)
     respawns: int = 0
+    started: float = -1.0  # when StartAgent was issued (the start grace counts from it); -1: not yet
 
 
 class AgentNode(TransferMixin, RecoveryMixin):
@@ -155,6 +164,12 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self.backups_proposed = 0
         #: (agent, epoch) whose OAC(failed) this host has proposed and not yet seen decided
         self.failed_reported: set[tuple[str, int]] = set()
+        #: (agent, epoch) -> (reason, early) of the failures reported, for a retry of the OAC(failed)
+        self._failed_why: dict[tuple[str, int], tuple[str, bool]] = {}
+        #: agent -> ((epoch, failures), due): a crashed agent whose recovery waits (start failure backoff)
+        self._backoff: dict[str, tuple[tuple[int, int], float]] = {}
+        #: agent -> (epoch, reason): a shell that could not start before its OAC(recovered) committed
+        self._spawn_failed: dict[str, tuple[int, str]] = {}
         self._starts: dict[int, SessionStart] = {}
         self._retries: list[tuple[Any, str, int]] = []
         self._retry_armed = False
@@ -173,6 +188,10 @@ class AgentNode(TransferMixin, RecoveryMixin):
         return self.m.state.agents
 
     def _cmd(self, c: Any) -> None:
+        if type(c) is StartAgent:  # the start grace of this instance counts from here
+            loc = self.local.get(c.agent)
+            if loc is not None and loc.epoch == c.epoch:
+                loc.started = self._now
         self.out.append(c)
 
     def _log(self, event: str, **fields: Any) -> None:
@@ -250,6 +269,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 handler(agent, arg, False)
         elif k == "rebalance":
             self._maybe_session(now, "periodic")
+        elif k == "backoff" and len(key) > 2:
+            self._reconcile_one(key[2])
         elif k == "drain":
             self._drain_check(force=now >= self._drain_deadline)
 
@@ -688,7 +709,11 @@ class AgentNode(TransferMixin, RecoveryMixin):
             self._on_recovered_applied(res)
         elif k == "failed":
             if res.ok:
-                self._on_crashed(res.agent)
+                r = self.table.get(res.agent)
+                if r is not None and r.status == at.FAILED:
+                    self._on_failed_for_good(r)
+                else:
+                    self._on_crashed(res.agent)
         elif k == "push":
             if res.ok and res.reason == "deliver" and res.host == self.name:
                 for m in res.msgs:
@@ -742,6 +767,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
             alphas = {k: min(1.0, v / AFFINITY_SCALE) for k, v in aff.get(agent, {}).items()}
             cost = r.cost()  # the table refuses costs outside [0, MAX_COST]; clamped anyway (NaN -> 0)
             cost = min(max(cost, 0.0), MAX_COST) if cost == cost else 0.0
+            if r.status == at.FAILED:
+                cost = 0.0  # runs nowhere until an operator retries it
             out.append(
                 AgentSpec(
                     id=agent,
@@ -883,7 +910,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 if r.status == at.FROZEN:
                     self._thaw(r)
                 elif r.status == at.NEW or (r.status == at.CRASHED and r.spec.recovery != "none"):
-                    self._recover(r)
+                    if not self._backing_off(r):
+                        self._recover(r)
             return
         if loc.phase == "active" and r.owner == me and r.status == at.ACTIVE:
             target = r.alloc

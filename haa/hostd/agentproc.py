@@ -28,6 +28,7 @@ agent came up. Failed reasons start with one of
     "killed by signal S"      e.g. kill -9, the OOM killer, `kill()`
     "fork server died: ..."   the agents' parent died, and they with it (no exit status is known)
     "hung: no heartbeat for X s"   it stopped heartbeating for `hang_timeout`; the supervisor SIGKILLed it
+    "over its memory limit ..."    / "over its CPU limit ...": the supervisor SIGKILLed it (Resource limits)
     "channel error: ..."      it sent a malformed, oversized or out-of-place frame, or closed its channel
                               while alive; the supervisor SIGKILLed it
 
@@ -37,6 +38,19 @@ Failure detection: exit statuses come from the fork server, which reaps the agen
 stream tells that the process is closing; heartbeats (every `heartbeat_period` from the agent's own loop)
 tell that it is alive: no frame for `hang_timeout` = hung. If haa-hostd's own loop was stalled (a monitor
 tick came much later than due), no agent is judged hung on that tick: their frames may just be unread.
+
+Resource limits (per agent type, `AgentBase.MEMORY_LIMIT_MB` and `AgentBase.CPU_LIMIT`, carried in the fork
+server's type table): the monitor samples every agent's RSS every `mem_period` and its CPU every
+`cpu_window`; an agent whose RSS exceeds its memory limit, or whose CPU share averaged over `cpu_limit_window`
+exceeds its CPU limit, is SIGKILLed with the reason "over its memory limit of N MiB (RSS M MiB)" or "over its
+CPU limit of X cores (Y over Z s)" (event Failed, logged as `agent_over_limit`). Between two samples the
+address space is capped (RLIMIT_AS, set on the process once it said hello: its size then plus
+`AS_MARGIN_FACTOR` times the limit), so that an agent cannot take the host's memory faster than the monitor
+looks; an allocation past that cap raises MemoryError in the agent.
+
+Config validation (`validate_config`): a type with a config model (`AgentTypeInfo.has_config`) has a config
+checked by the fork server, which has the agent classes (the host does not import agent code), before the
+host commits a spawn.
 
 Measurements (`stats()`, for the allocation's cost and affinity): per agent the CPU share of one core over
 the last `cpu_window` seconds (psutil), total CPU seconds and RSS, and messages and bytes in and out per peer
@@ -87,6 +101,14 @@ __all__ = [
 ]
 
 LOGGER = logging.getLogger("haa.hostd.agents")
+
+#: the window over which an agent's CPU share is compared with its type's CPU_LIMIT (seconds)
+CPU_LIMIT_WINDOW = 10.0
+#: how often every agent's RSS is compared with its type's MEMORY_LIMIT_MB (seconds)
+MEM_PERIOD = 0.25
+#: the address-space cap of an agent process: its size when it said hello + this times its memory limit
+AS_MARGIN_FACTOR = 4
+MIB = 1024 * 1024
 
 _LOG_LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 UINT64_MAX = 2**64 - 1
@@ -305,7 +327,10 @@ class _Instance:
         self.cpu = 0.0
         self.cpu_seconds = 0.0
         self.cpu_sample: tuple[float, float] | None = None
+        self.cpu_hist: deque[tuple[float, float]] = deque()  # (time, total CPU seconds), for the CPU limit
         self.rss = 0
+        self.memory_limit = 0  # bytes (0: none)
+        self.cpu_limit = 0.0  # cores (0: none)
         self.mailbox = 0
         self.handled = 0
 
@@ -342,6 +367,8 @@ class AgentSupervisor:
         max_frame: int = DEFAULT_MAX_FRAME,
         spawn_timeout: float = 10.0,
         cpu_window: float = 1.0,
+        cpu_limit_window: float = CPU_LIMIT_WINDOW,
+        mem_period: float = MEM_PERIOD,
         cold_start: bool = False,
         preload: Sequence[str] = (),
         logger: logging.Logger | None = None,
@@ -354,6 +381,10 @@ class AgentSupervisor:
             raise ValueError(f"spawn_timeout: must be > 0, got {spawn_timeout}")
         if not cpu_window > 0:
             raise ValueError(f"cpu_window: must be > 0, got {cpu_window}")
+        if not cpu_limit_window >= cpu_window:
+            raise ValueError(f"cpu_limit_window: must be >= cpu_window ({cpu_window}), got {cpu_limit_window}")
+        if not mem_period > 0:
+            raise ValueError(f"mem_period: must be > 0, got {mem_period}")
         self.host = host
         self.events = events
         self.heartbeat_period = heartbeat_period
@@ -362,6 +393,8 @@ class AgentSupervisor:
         self.max_frame = max_frame
         self.spawn_timeout = spawn_timeout
         self.cpu_window = cpu_window
+        self.cpu_limit_window = cpu_limit_window
+        self.mem_period = mem_period
         self.cold_start = cold_start
         self.preload = list(preload)
         self.log = logger or LOGGER
@@ -379,6 +412,7 @@ class AgentSupervisor:
         self.failed = 0
         self.event_errors = 0
         self.forkserver_restarts = 0
+        self.over_limit = 0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -489,6 +523,20 @@ class AgentSupervisor:
             raise KeyError(f"agent {agent_id} has no process on host {self.host}")
         return inst
 
+    async def validate_config(self, type_name: str, config: bytes, timeout: float = 10.0) -> str:
+        """'' when `config` is valid for `type_name`, else the reason (one line). A type without a config
+        model (`AgentTypeInfo.has_config` false) or unknown here is not checked (''): the caller refuses an
+        unknown type itself. When the fork server cannot be asked, the config is refused (the reason says
+        so): accepting it unchecked could commit an agent that never starts (issue 13, defect 3)."""
+        info = self.types.get(type_name)
+        if info is None or not info.has_config:
+            return ""
+        try:
+            fs = await self._ensure_forkserver()
+            return await fs.validate(type_name, config, timeout=timeout)
+        except (SpawnError, OSError) as e:
+            return f"the config could not be checked: {e}"
+
     # ------------------------------------------------------------------ spawning
 
     async def spawn(self, spec: InstanceSpec) -> None:
@@ -565,6 +613,7 @@ class AgentSupervisor:
             raise SpawnError(f"agent {spec.name}: {type(e).__name__}: {e}") from e
         inst.state = "shell"
         inst.last_heard = time.monotonic()
+        self._set_limits(inst, fs)
         inst.spawn_seconds = time.perf_counter() - t0
         self.spawned += 1
         inst.task = asyncio.create_task(self._serve(inst), name=f"agent-{spec.name}")
@@ -572,6 +621,33 @@ class AgentSupervisor:
         inst.task.add_done_callback(self._tasks.discard)
         log_event(self.log, logging.INFO, "agent_spawned", agent=spec.agent_id, name=spec.name, type=spec.type_name,
                   epoch=spec.epoch, pid=inst.pid, ms=round(inst.spawn_seconds * 1e3, 2))
+
+    def _set_limits(self, inst: _Instance, fs: ForkServer) -> None:
+        """The type's resource limits for this instance; the address-space cap on its process."""
+        info = fs.types.get(inst.spec.type_name)
+        if info is None:
+            return
+        inst.memory_limit = int(info.memory_limit_mb) * MIB
+        inst.cpu_limit = float(info.cpu_limit)
+        if not inst.memory_limit or inst.proc is None:
+            return
+        try:
+            vms = inst.proc.memory_info().vms
+            cap = vms + AS_MARGIN_FACTOR * inst.memory_limit
+            inst.proc.rlimit(psutil.RLIMIT_AS, (cap, cap))
+        except (psutil.Error, OSError, ValueError, AttributeError) as e:
+            log_event(self.log, logging.WARNING, "agent_rlimit_failed", agent=inst.id, name=inst.spec.name,
+                      error=f"{type(e).__name__}: {e}")
+
+    def _over_limit(self, inst: _Instance, reason: str) -> None:
+        """Kill an agent over one of its type's limits; Failed(reason) follows."""
+        if inst.fail_reason is not None or inst.terminal:
+            return
+        inst.fail_reason = reason
+        self.over_limit += 1
+        log_event(self.log, logging.WARNING, "agent_over_limit", agent=inst.id, name=inst.spec.name,
+                  type=inst.spec.type_name, pid=inst.pid, reason=reason)
+        self._signal(inst, signal.SIGKILL)
 
     # ------------------------------------------------------------------ driving an agent
 
@@ -867,9 +943,10 @@ class AgentSupervisor:
     # ------------------------------------------------------------------ monitor: hangs and CPU
 
     async def _monitor_loop(self) -> None:
-        tick = max(0.02, self.heartbeat_period / 4)
+        tick = max(0.02, min(self.heartbeat_period / 4, self.mem_period))
         last = time.monotonic()
         last_cpu = 0.0
+        last_mem = 0.0
         while True:
             await asyncio.sleep(tick)
             now = time.monotonic()
@@ -892,10 +969,46 @@ class AgentSupervisor:
                     self._signal(inst, signal.SIGKILL)
             if now - last_cpu >= self.cpu_window:
                 last_cpu = now
+                last_mem = now
                 self._sample_cpu(now)
+            elif now - last_mem >= self.mem_period:
+                last_mem = now
+                self._sample_memory()
+
+    def _sample_memory(self) -> None:
+        """RSS of the agents with a memory limit, checked against it (between CPU samples)."""
+        for inst in list(self._agents.values()):
+            if inst.proc is None or not inst.memory_limit or inst.fail_reason is not None or inst.terminal:
+                continue
+            try:
+                inst.rss = inst.proc.memory_info().rss
+            except psutil.Error:
+                continue
+            self._check_memory(inst)
+
+    def _check_memory(self, inst: _Instance) -> None:
+        if inst.memory_limit and inst.rss > inst.memory_limit:
+            self._over_limit(inst, f"over its memory limit of {inst.memory_limit // MIB} MiB "
+                                   f"(RSS {inst.rss / MIB:.0f} MiB)")
+
+    def _check_cpu(self, inst: _Instance, now: float, total: float) -> None:
+        """The CPU share over the last `cpu_limit_window` seconds (once that much has been sampled)."""
+        if not inst.cpu_limit:
+            return
+        h = inst.cpu_hist
+        h.append((now, total))
+        while len(h) > 2 and now - h[1][0] >= self.cpu_limit_window:
+            h.popleft()
+        t0, c0 = h[0]
+        span = now - t0
+        if span >= self.cpu_limit_window * 0.95:
+            share = (total - c0) / span
+            if share > inst.cpu_limit:
+                self._over_limit(inst, f"over its CPU limit of {inst.cpu_limit:g} cores "
+                                       f"({share:.2f} over {span:.0f} s)")
 
     def _sample_cpu(self, now: float) -> None:
-        for inst in self._agents.values():
+        for inst in list(self._agents.values()):
             if inst.proc is None:
                 continue
             try:
@@ -911,3 +1024,6 @@ class AgentSupervisor:
                     inst.cpu = max(0.0, (total - c_prev) / (now - t_prev))
             inst.cpu_sample = (now, total)
             inst.cpu_seconds = total
+            if inst.fail_reason is None and not inst.terminal and inst.state != "spawning":
+                self._check_memory(inst)
+                self._check_cpu(inst, now, total)

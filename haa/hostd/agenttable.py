@@ -28,6 +28,10 @@ Validity rules, applied identically everywhere (an invalid transaction is a no-o
   otherwise both run the agent;
 * backup: only from the owner's current epoch (a zombie instance cannot overwrite a newer backup);
 * failed: from the owner's current epoch, or implied when the owner is removed from the group -> crashed;
+  an early failure (`AgentFailed.early`: the instance was not up yet, or died within its host's start grace)
+  adds one to `failures`, any other failure resets it; at MAX_START_FAILURES consecutive early failures the
+  agent is "failed" (terminal: not recovered; `fail_reason` says why) until an operator move retries it;
+* move: allocates the agent to a host; a failed agent becomes crashed again with failures 0 (a retry);
 * claim and recovered hand queue1 + queue2 to the new owner (`AgentApplied.msgs`) and clear them;
 * push: appends to queue2 (bounded: MAX_QUEUE messages, then counted as dropped); a push that finds the
   agent active again is not stored but handed to the owner.
@@ -52,8 +56,15 @@ ACTIVE = "active"
 FREEZING = "freezing"
 FROZEN = "frozen"
 CRASHED = "crashed"
-STATUSES = (NEW, ACTIVE, FREEZING, FROZEN, CRASHED)
+#: crashed MAX_START_FAILURES times in a row before it was up: not recovered any more (an operator move retries)
+FAILED = "failed"
+STATUSES = (NEW, ACTIVE, FREEZING, FROZEN, CRASHED, FAILED)
 RECOVERY_MODES = ("backup", "restart", "none")
+
+#: consecutive early failures (start failures) after which an agent is "failed" instead of "crashed"
+MAX_START_FAILURES = 5
+#: characters of a failure reason the table keeps
+MAX_FAIL_REASON = 300
 
 #: messages kept per queue of one agent; more are counted as dropped
 MAX_QUEUE = 10_000
@@ -100,6 +111,8 @@ class AgentRecord:
     pending: list[apb.RoutedMsg] = field(default_factory=list)
     cpu: float = 0.0
     dropped: int = 0
+    failures: int = 0
+    fail_reason: str = ""
 
     @property
     def id(self) -> str:
@@ -133,6 +146,8 @@ class AgentRecord:
             backup_epoch=self.backup_epoch,
             cpu=self.cpu,
             dropped=self.dropped,
+            failures=self.failures,
+            fail_reason=self.fail_reason,
         )
         r.spec.CopyFrom(self.spec)
         r.queue1.extend(self.queue1)
@@ -163,6 +178,8 @@ class AgentRecord:
             pending=list(r.pending),
             cpu=r.cpu,
             dropped=r.dropped,
+            failures=r.failures,
+            fail_reason=r.fail_reason,
         )
 
 
@@ -321,6 +338,8 @@ class AgentTable:
                 out.append(f"agent {r.name}: {why}")
             if _bad_number(r.cpu, 0.0, MAX_COST):
                 out.append(f"agent {r.name}: cpu {r.cpu!r}")
+            if r.status not in STATUSES or r.failures > MAX_START_FAILURES or len(r.fail_reason) > MAX_FAIL_REASON:
+                out.append(f"agent {r.name}: status {r.status!r}, failures {r.failures}")
         for name, h in self.hosts.items():
             why = check_host(h)
             if why or name != h.name:
@@ -432,6 +451,9 @@ class AgentTable:
         if len(m.host) > MAX_NAME:
             return AgentApplied("move", m.id, False, f"host name must be at most {MAX_NAME} characters")
         r.alloc = m.host
+        if r.status == FAILED:  # an operator retries a failed agent: recovered again, from a clean count
+            r.status = CRASHED
+            r.failures = 0
         return AgentApplied("move", m.id, True, "", m.host, touched=(m.id,))
 
     def _tx_freeze(self, m: apb.AgentFreeze) -> AgentApplied:
@@ -459,6 +481,7 @@ class AgentTable:
         # queue1 (Alg. 5 l. 4): what the old host received after it asked the agent to freeze; it is written
         # with the release (one OAC instead of one per message; nobody reads queue1 before the release)
         r.queue1 = list(m.pending) + r.queue1
+        r.failures = 0  # it ran until it was frozen: it was up
         return AgentApplied("release", m.id, True, "", m.host)
 
     def _tx_claim(self, m: apb.AgentClaim) -> AgentApplied:
@@ -512,7 +535,12 @@ class AgentTable:
         if r.owner != m.host or r.epoch != m.epoch or r.status not in (ACTIVE, FREEZING):
             return AgentApplied("failed", m.id, False, "stale epoch or not the owner", m.host)
         self._crash(r)
-        return AgentApplied("failed", m.id, True, m.reason, m.host, touched=(m.id,))
+        # bounded: whatever a proposer puts in the transaction, the table keeps a short line
+        r.fail_reason = " ".join(m.reason[: MAX_FAIL_REASON * 4].split())[:MAX_FAIL_REASON]
+        r.failures = min(r.failures + 1, MAX_START_FAILURES) if m.early else 0
+        if r.failures >= MAX_START_FAILURES:
+            r.status = FAILED
+        return AgentApplied("failed", m.id, True, m.reason[:MAX_FAIL_REASON], m.host, touched=(m.id,))
 
     def _crash(self, r: AgentRecord) -> None:
         r.status = CRASHED

@@ -17,6 +17,13 @@ A mixin of `haa.hostd.agentnode.AgentNode`, in its own file so that the pseudo-c
   Messages addressed to the agent while it was down were kept in its queue and are handed over too.
 * Recovery strategies (`AgentCreate.recovery`): "backup" (the latest backup, or a fresh start if there is
   none), "restart" (always fresh), "none" (the agent stays crashed; an operator can remove it).
+* Start failures (issue 13, defect 3): a failure is *early* when the instance was not up yet (its shell
+  could not start, or it died before or within `AgentConfig.start_grace` of its StartAgent); the host that
+  ran it says so in the OAC(failed) (`AgentFailed.early`), and the table counts consecutive early failures.
+  The host that recovers an agent with n > 0 of them first waits min(backoff_cap, backoff_base * 2^(n-1))
+  (a node timer: no clock is read here), so an agent that cannot start costs a few attempts, not a loop;
+  at agenttable.MAX_START_FAILURES the table marks it "failed" and nobody recovers it (timeline "failed" with
+  the reason) until an operator moves it (a retry, from a clean count) or removes it.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from typing import TYPE_CHECKING
 
 from haa.hostd import agenttable as at
 from haa.hostd.agentio import SpawnShell, StartAgent
+from haa.hostd.effects import SetTimer
 from haa.hostd.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
@@ -55,7 +63,13 @@ class RecoveryMixin:
 
     def _on_instance_failed(self: AgentNode, loc: Local, reason: str) -> None:
         r = self.table.get(loc.id)
-        if loc.phase in ("claiming", "thawing", "recovering") and loc.respawns < MAX_RESPAWNS and r is not None:
+        # a spawn that failed on a first start or a recovery is a start failure like any other (counted, backed
+        # off): replacing the shell at once would only repeat it (a config its type refuses, ...). A thaw's
+        # shell is replaced: the frozen state is only good while the claim stands
+        spawn_failed = loc.phase == "recovering" and reason.startswith("spawn failed")
+        early = loc.phase != "active" or loc.started < 0 or self._now - loc.started < self.config.start_grace
+        if (loc.phase in ("claiming", "thawing", "recovering") and loc.respawns < MAX_RESPAWNS and r is not None
+                and not spawn_failed):
             # the shell died before it was started: nothing of the agent was in it, start another one
             loc.respawns += 1
             loc.ready = False
@@ -65,27 +79,61 @@ class RecoveryMixin:
         self.local.pop(loc.id, None)
         self._timeline(loc.id, "crashed", reason)
         if r is not None and r.owner == self.name and r.epoch == loc.epoch:
-            self._report_failed(loc.id, loc.epoch, reason)
+            self._report_failed(loc.id, loc.epoch, reason, early)
             # messages held for the dead instance wait for the table to say where the agent is
             self.orphans.setdefault(loc.id, []).extend([*loc.local_q, *loc.handed, *loc.q1])
         else:
+            if loc.phase == "recovering" and not loc.claimed:
+                # its OAC(recovered) may still commit: then the failure is reported with this reason
+                self._spawn_failed[loc.id] = (loc.epoch, reason)
             for m in (*loc.local_q, *loc.handed, *loc.q1):
                 self._route(m)
 
-    def _report_failed(self: AgentNode, agent: str, epoch: int, reason: str) -> None:
+    def _report_failed(self: AgentNode, agent: str, epoch: int, reason: str, early: bool = False) -> None:
         if (agent, epoch) in self.failed_reported:
             return  # already in OAC (every applied transaction re-checks the table: report once)
         self.failed_reported.add((agent, epoch))
+        self._failed_why[(agent, epoch)] = (reason, early)
         tx = apb.AgentTx()
         f = tx.failed
-        f.id, f.host, f.epoch, f.reason = agent, self.name, epoch, reason[:200]
+        f.id, f.host, f.epoch, f.reason, f.early = agent, self.name, epoch, reason[:200], early
         self._propose(tx, ("failed", agent, epoch))
 
     def _on_failed_done(self: AgentNode, agent: str, epoch: int, ok: bool) -> None:
         self.failed_reported.discard((agent, epoch))
+        reason, early = self._failed_why.pop((agent, epoch), ("retry", False))
         r = self.table.get(agent)
         if not ok and r is not None and r.owner == self.name and r.epoch == epoch and agent not in self.local:
-            self._report_failed(agent, epoch, "retry")
+            self._report_failed(agent, epoch, reason, early)
+
+    def _backing_off(self: AgentNode, r: at.AgentRecord) -> bool:
+        """Whether the recovery of crashed `r` waits (start failure backoff); arms the node timer if so."""
+        if r.status != at.CRASHED or r.failures <= 0:
+            self._backoff.pop(r.id, None)
+            return False
+        key = (r.epoch, r.failures)
+        entry = self._backoff.get(r.id)
+        if entry is None or entry[0] != key:
+            delay = min(self.config.backoff_cap, self.config.backoff_base * 2 ** (r.failures - 1))
+            entry = (key, self._now + delay)
+            self._backoff[r.id] = entry
+            self.out.append(SetTimer(("a", "backoff", r.id), entry[1]))
+            self._log("agent_start_backoff", agent=r.id, name=r.name, failures=r.failures,
+                      max_failures=at.MAX_START_FAILURES, delay=delay, reason=r.fail_reason)
+            self._timeline(r.id, "backoff", f"start failure {r.failures} of {at.MAX_START_FAILURES}: "
+                                            f"retry in {delay:g} s ({r.fail_reason})")
+        if self._now < entry[1]:
+            return True
+        del self._backoff[r.id]
+        return False
+
+    def _on_failed_for_good(self: AgentNode, r: at.AgentRecord) -> None:
+        """The table marked `r` failed: it is not recovered (until an operator move); say why."""
+        self._backoff.pop(r.id, None)
+        self._timeline(r.id, "failed", f"{r.failures} start failures in a row: {r.fail_reason}")
+        self._log("agent_failed_for_good", agent=r.id, name=r.name, failures=r.failures, reason=r.fail_reason)
+        for m in self.orphans.pop(r.id, []):
+            self._route(m)
 
     def _on_crashed(self: AgentNode, agent: str) -> None:
         """The table marked `agent` crashed (failed committed, or its host was removed)."""
@@ -135,7 +183,9 @@ class RecoveryMixin:
                 self._route(m)
             return
         if loc is None or loc.phase != "recovering":
-            self._report_failed(r.id, r.epoch, "recovered without a shell")
+            failed = self._spawn_failed.pop(res.agent, None)
+            why = failed[1] if failed is not None and failed[0] == r.epoch else "recovered without a shell"
+            self._report_failed(r.id, r.epoch, why, early=True)
             return
         if loc.epoch != r.epoch:  # committed after other recoveries raised the epoch: a shell for this one
             self._reshell(loc, r)
@@ -160,6 +210,7 @@ class RecoveryMixin:
             msgs += loc.inbox.offer(m)
         loc.handed, loc.local_q = [], []
         loc.phase = "active"  # l. 5
+        self._spawn_failed.pop(loc.id, None)
         self._cmd(StartAgent(loc.id, loc.epoch, loc.mode, loc.state, msgs))  # l. 4
         self._timeline(loc.id, "active" if loc.mode == "fresh" else "recovered",
                        "from backup" if loc.state is not None else "fresh state")

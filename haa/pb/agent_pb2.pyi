@@ -237,34 +237,44 @@ class AgentToHost(_message.Message):
     def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ...) -> None: ...
 
 class ForkServerRequest(_message.Message):
-    __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec")
+    __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec", "validate", "config_size")
     REQ_ID_FIELD_NUMBER: _ClassVar[int]
     TYPE_NAME_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     LOG_PATH_FIELD_NUMBER: _ClassVar[int]
     EXEC_FIELD_NUMBER: _ClassVar[int]
+    VALIDATE_FIELD_NUMBER: _ClassVar[int]
+    CONFIG_SIZE_FIELD_NUMBER: _ClassVar[int]
     req_id: int
     type_name: str
     agent_id: str
     log_path: str
     exec: bool
-    def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., agent_id: _Optional[str] = ..., log_path: _Optional[str] = ..., exec: _Optional[bool] = ...) -> None: ...
+    validate: bool
+    config_size: int
+    def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., agent_id: _Optional[str] = ..., log_path: _Optional[str] = ..., exec: _Optional[bool] = ..., validate: _Optional[bool] = ..., config_size: _Optional[int] = ...) -> None: ...
 
 class AgentTypeInfo(_message.Message):
-    __slots__ = ("type_name", "cost", "hardware", "transfer_penalty", "recovery", "module")
+    __slots__ = ("type_name", "cost", "hardware", "transfer_penalty", "recovery", "module", "has_config", "memory_limit_mb", "cpu_limit")
     TYPE_NAME_FIELD_NUMBER: _ClassVar[int]
     COST_FIELD_NUMBER: _ClassVar[int]
     HARDWARE_FIELD_NUMBER: _ClassVar[int]
     TRANSFER_PENALTY_FIELD_NUMBER: _ClassVar[int]
     RECOVERY_FIELD_NUMBER: _ClassVar[int]
     MODULE_FIELD_NUMBER: _ClassVar[int]
+    HAS_CONFIG_FIELD_NUMBER: _ClassVar[int]
+    MEMORY_LIMIT_MB_FIELD_NUMBER: _ClassVar[int]
+    CPU_LIMIT_FIELD_NUMBER: _ClassVar[int]
     type_name: str
     cost: float
     hardware: _containers.RepeatedScalarFieldContainer[str]
     transfer_penalty: float
     recovery: str
     module: str
-    def __init__(self, type_name: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., module: _Optional[str] = ...) -> None: ...
+    has_config: bool
+    memory_limit_mb: int
+    cpu_limit: float
+    def __init__(self, type_name: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., module: _Optional[str] = ..., has_config: _Optional[bool] = ..., memory_limit_mb: _Optional[int] = ..., cpu_limit: _Optional[float] = ...) -> None: ...
 
 class ForkServerEvent(_message.Message):
     __slots__ = ("ready", "reply", "exit")
@@ -280,14 +290,16 @@ class ForkServerEvent(_message.Message):
         preload_seconds: float
         def __init__(self, pid: _Optional[int] = ..., types: _Optional[_Iterable[_Union[AgentTypeInfo, _Mapping]]] = ..., load_errors: _Optional[_Iterable[str]] = ..., preload_seconds: _Optional[float] = ...) -> None: ...
     class Reply(_message.Message):
-        __slots__ = ("req_id", "pid", "error")
+        __slots__ = ("req_id", "pid", "error", "config_error")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
         PID_FIELD_NUMBER: _ClassVar[int]
         ERROR_FIELD_NUMBER: _ClassVar[int]
+        CONFIG_ERROR_FIELD_NUMBER: _ClassVar[int]
         req_id: int
         pid: int
         error: str
-        def __init__(self, req_id: _Optional[int] = ..., pid: _Optional[int] = ..., error: _Optional[str] = ...) -> None: ...
+        config_error: str
+        def __init__(self, req_id: _Optional[int] = ..., pid: _Optional[int] = ..., error: _Optional[str] = ..., config_error: _Optional[str] = ...) -> None: ...
     class ChildExit(_message.Message):
         __slots__ = ("pid", "exit_code", "signal")
         PID_FIELD_NUMBER: _ClassVar[int]

@@ -135,16 +135,18 @@ class AgentBackup(_message.Message):
     def __init__(self, id: _Optional[str] = ..., host: _Optional[str] = ..., epoch: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class AgentFailed(_message.Message):
-    __slots__ = ("id", "host", "epoch", "reason")
+    __slots__ = ("id", "host", "epoch", "reason", "early")
     ID_FIELD_NUMBER: _ClassVar[int]
     HOST_FIELD_NUMBER: _ClassVar[int]
     EPOCH_FIELD_NUMBER: _ClassVar[int]
     REASON_FIELD_NUMBER: _ClassVar[int]
+    EARLY_FIELD_NUMBER: _ClassVar[int]
     id: str
     host: str
     epoch: int
     reason: str
-    def __init__(self, id: _Optional[str] = ..., host: _Optional[str] = ..., epoch: _Optional[int] = ..., reason: _Optional[str] = ...) -> None: ...
+    early: bool
+    def __init__(self, id: _Optional[str] = ..., host: _Optional[str] = ..., epoch: _Optional[int] = ..., reason: _Optional[str] = ..., early: _Optional[bool] = ...) -> None: ...
 
 class AgentPush(_message.Message):
     __slots__ = ("id", "queue", "msgs")
@@ -276,7 +278,7 @@ class AgentTx(_message.Message):
     def __init__(self, create: _Optional[_Union[AgentCreate, _Mapping]] = ..., remove: _Optional[_Union[AgentRemove, _Mapping]] = ..., start: _Optional[_Union[AllocStartTx, _Mapping]] = ..., finish: _Optional[_Union[AllocFinishTx, _Mapping]] = ..., freeze: _Optional[_Union[AgentFreeze, _Mapping]] = ..., release: _Optional[_Union[AgentRelease, _Mapping]] = ..., claim: _Optional[_Union[AgentClaim, _Mapping]] = ..., recovered: _Optional[_Union[AgentRecovered, _Mapping]] = ..., backup: _Optional[_Union[AgentBackup, _Mapping]] = ..., failed: _Optional[_Union[AgentFailed, _Mapping]] = ..., push: _Optional[_Union[AgentPush, _Mapping]] = ..., costs: _Optional[_Union[AgentCosts, _Mapping]] = ..., host: _Optional[_Union[HostInfo, _Mapping]] = ..., control: _Optional[_Union[AllocControl, _Mapping]] = ..., move: _Optional[_Union[AgentMove, _Mapping]] = ...) -> None: ...
 
 class AgentRecordPb(_message.Message):
-    __slots__ = ("spec", "name", "children", "status", "owner", "alloc", "epoch", "life", "state", "has_state", "backup", "has_backup", "backup_epoch", "queue1", "queue2", "inbox", "outbox", "pending", "cpu", "dropped", "since")
+    __slots__ = ("spec", "name", "children", "status", "owner", "alloc", "epoch", "life", "state", "has_state", "backup", "has_backup", "backup_epoch", "queue1", "queue2", "inbox", "outbox", "pending", "cpu", "dropped", "since", "failures", "fail_reason")
     SPEC_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     CHILDREN_FIELD_NUMBER: _ClassVar[int]
@@ -298,6 +300,8 @@ class AgentRecordPb(_message.Message):
     CPU_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     SINCE_FIELD_NUMBER: _ClassVar[int]
+    FAILURES_FIELD_NUMBER: _ClassVar[int]
+    FAIL_REASON_FIELD_NUMBER: _ClassVar[int]
     spec: AgentCreate
     name: str
     children: int
@@ -319,7 +323,9 @@ class AgentRecordPb(_message.Message):
     cpu: float
     dropped: int
     since: float
-    def __init__(self, spec: _Optional[_Union[AgentCreate, _Mapping]] = ..., name: _Optional[str] = ..., children: _Optional[int] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., state: _Optional[bytes] = ..., has_state: _Optional[bool] = ..., backup: _Optional[bytes] = ..., has_backup: _Optional[bool] = ..., backup_epoch: _Optional[int] = ..., queue1: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., queue2: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., inbox: _Optional[_Iterable[_Union[StreamPos, _Mapping]]] = ..., outbox: _Optional[_Iterable[_Union[SendPos, _Mapping]]] = ..., pending: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., cpu: _Optional[float] = ..., dropped: _Optional[int] = ..., since: _Optional[float] = ...) -> None: ...
+    failures: int
+    fail_reason: str
+    def __init__(self, spec: _Optional[_Union[AgentCreate, _Mapping]] = ..., name: _Optional[str] = ..., children: _Optional[int] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., state: _Optional[bytes] = ..., has_state: _Optional[bool] = ..., backup: _Optional[bytes] = ..., has_backup: _Optional[bool] = ..., backup_epoch: _Optional[int] = ..., queue1: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., queue2: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., inbox: _Optional[_Iterable[_Union[StreamPos, _Mapping]]] = ..., outbox: _Optional[_Iterable[_Union[SendPos, _Mapping]]] = ..., pending: _Optional[_Iterable[_Union[RoutedMsg, _Mapping]]] = ..., cpu: _Optional[float] = ..., dropped: _Optional[int] = ..., since: _Optional[float] = ..., failures: _Optional[int] = ..., fail_reason: _Optional[str] = ...) -> None: ...
 
 class AgentTableSnapshot(_message.Message):
     __slots__ = ("records", "ses_id", "finished_ses", "top", "hosts", "paused", "affinity", "start_group", "start_agents", "valid_ses")

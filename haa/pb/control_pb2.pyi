@@ -306,7 +306,7 @@ class AgentListRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class AgentInfo(_message.Message):
-    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery")
+    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery", "fail_reason", "failures")
     ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
@@ -324,6 +324,8 @@ class AgentInfo(_message.Message):
     QUEUED_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     RECOVERY_FIELD_NUMBER: _ClassVar[int]
+    FAIL_REASON_FIELD_NUMBER: _ClassVar[int]
+    FAILURES_FIELD_NUMBER: _ClassVar[int]
     id: str
     name: str
     type: str
@@ -341,7 +343,9 @@ class AgentInfo(_message.Message):
     queued: int
     dropped: int
     recovery: str
-    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ...) -> None: ...
+    fail_reason: str
+    failures: int
+    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ..., fail_reason: _Optional[str] = ..., failures: _Optional[int] = ...) -> None: ...
 
 class AgentListReply(_message.Message):
     __slots__ = ("host", "agents", "session", "finished_session", "paused", "agent_types")
