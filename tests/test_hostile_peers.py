@@ -294,3 +294,36 @@ def test_a_displaced_host_is_told_and_rejoins_above_the_newer_incarnation() -> N
         await b.close()
 
     asyncio.run(asyncio.wait_for(main(), 30))
+
+
+# ------------------------------------------------------------------------------------------- hearsay
+
+
+def test_hearsay_never_supersedes_a_peer_we_hear_from() -> None:
+    """Defect 4 through the messages of a member: an OAC participant list or a relayed introduction naming
+    (h1, 2**64 - 1) made every host treat the live h1 as restarted (its real incarnation dead, locked out for
+    good: the transport refuses an incarnation that far ahead). Hearsay is believed only while no incarnation
+    of the peer is trusted; a peer that really restarted is suspected first, then believed."""
+    from haa.hostd.core import HostCore
+
+    core = HostCore("h2", 5, ["h1", "h2", "h3"])
+    core.start(0.0)
+    core.on_message(0.01, "h1", 7, 0, Heartbeat(0, 0.05, 0.0))
+    core.drain()
+    p = core.peers["h1"]
+    assert p.inc == 7 and not p.suspected
+    core._learn_participants((("h1", 2**64 - 1), ("h3", 9)))  # h3 was never heard from: believed
+    core.add_peer(0.02, "h1", 2**64 - 2, hearsay=True)
+    assert p.inc == 7 and ("h1", 7) not in core.dead
+    assert core.peers["h3"].inc == 9
+    assert core.counters["hearsay_incarnation_ignored"] == 2
+    # h1 falls silent and is suspected: now a mention of its new incarnation is believed
+    fresh = p.observer.freshness
+    core.on_timer(fresh, ("fd", "h1"))
+    core.drain()
+    assert p.suspected
+    core._learn_participants((("h1", 8),))
+    assert p.inc == 8
+    # the new incarnation's own word (the handshake) is believed at once, suspected or not
+    core.on_peer_info(fresh + 0.1, "h1", 9)
+    assert p.inc == 9

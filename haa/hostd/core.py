@@ -297,17 +297,30 @@ class HostCore:
         if p is not None and inc > p.inc:
             self._new_incarnation(now, p, inc)
 
-    def add_peer(self, now: float, name: str, inc: int = 0) -> _Peer:
-        """Start monitoring a host learned at run time (an applicant, or a member we were introduced to)."""
+    def add_peer(self, now: float, name: str, inc: int = 0, hearsay: bool = False) -> _Peer:
+        """Start monitoring a host learned at run time (an applicant, or a member we were introduced to).
+        `hearsay`: `inc` comes from a third host (a relayed introduction), not from `name` itself."""
         self._now = now
         p = self.peers.get(name)
         if p is None:
             p = self.peers[name] = _Peer(name)
             if self.started and self.config.fd_mode == FD_UFD:
                 self._start_ufd(now, p)
-        if inc > p.inc:
+        if inc > p.inc and (not hearsay or self._believe_hearsay(p)):
             self._new_incarnation(now, p, inc)
         return p
+
+    def _believe_hearsay(self, p: _Peer) -> bool:
+        """Whether another host's word that `p` has a newer incarnation is taken (issue 13, defect 4): only
+        while we trust no incarnation of `p` — never heard from, suspected, or excluded. A peer we hear from
+        is never superseded by hearsay: anyone with the cluster token could otherwise name (h1, 2^64 - 1) in
+        a participant list and lock the live h1 out for good. A host that really restarted loses nothing:
+        its old incarnation falls silent and is suspected, and the new one's own handshake or first message
+        (`on_peer_info`, `on_message`, checked by the transport) is believed at once."""
+        if p.inc == 0 or p.suspected or (p.name, p.inc) in self.dead:
+            return True
+        self.counters["hearsay_incarnation_ignored"] += 1
+        return False
 
     def mark_dead(self, now: float, name: str, inc: int, reason: str) -> None:
         """Permanently suspect `name` incarnation `inc` (for example: the group removed it, Alg. 3 l. 118) and
@@ -366,7 +379,7 @@ class HostCore:
         from it), so track it — and if we cannot hear it, suspect and eventually exclude it."""
         for q, qi in parts:
             p = self.peers.get(q)
-            if p is not None and qi > p.inc:
+            if p is not None and qi > p.inc and self._believe_hearsay(p):
                 self._new_incarnation(self._now, p, qi)
 
     def _mark_dead(self, p: _Peer, inc: int, reason: str) -> None:

@@ -1119,11 +1119,12 @@ class MembershipNode:
             # may have reached it before it was running; docs/membership.md, "lost introductions")
             self._connect(a[0], msg.addr)
             self.conn_to.add(a[0])
-            self.core.add_peer(self._now, a[0], a[1])
+            # a relayed introduction (a != q) is hearsay about a's incarnation (HostCore._believe_hearsay)
+            self.core.add_peer(self._now, a[0], a[1], hearsay=a != q)
             self._send(a, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
         elif msg.addr:
             self.addrs.setdefault(a[0], msg.addr)
-            self.core.add_peer(self._now, a[0], a[1])
+            self.core.add_peer(self._now, a[0], a[1], hearsay=a != q)
         self._report_connections()  # ll. 69-70
 
     def _report_connections(self) -> None:
