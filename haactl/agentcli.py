@@ -484,7 +484,7 @@ def agent_request(
 # ---------------------------------------------------------------------------------------------- timeline
 
 #: events every member reports for the same committed table change (shown once)
-TABLE_EVENTS = frozenset({"created", "removed"})
+TABLE_EVENTS = frozenset({"created", "removed", "failed"})
 #: events that mean "the agent runs on the event's host from now on"
 RUNS_ON = frozenset({"active", "thawed", "recovered"})
 
@@ -712,6 +712,10 @@ class EventFeed:
             text = f"{who} recovered by {e.host}" + (f" ({d})" if d else "")
         elif kind == "removed":
             text = f"{who} removed"
+        elif kind == "backoff":
+            text = f"{who} could not start: {d}"
+        elif kind == "failed":
+            text = f"{who} failed, not recovered any more: {d}"
         else:
             text = f"{who} {kind} on {e.host}" + (f" ({d})" if d else "")
         if kind in RUNS_ON:
@@ -722,7 +726,7 @@ class EventFeed:
 
 EVENT_STYLE = {"freezing": "yellow", "frozen": "yellow", "thawing": "cyan", "thawed": "green", "active": "green",
                "spawning": "cyan", "crashed": "bold red", "recovering": "magenta", "recovered": "green",
-               "removed": "dim", "created": "white"}
+               "removed": "dim", "created": "white", "backoff": "red", "failed": "bold red"}
 
 
 def event_line(e: TimelineEvent, t0: float, absolute: bool = False) -> str:
