@@ -317,3 +317,32 @@ def test_an_agent_over_its_memory_limit_is_killed_and_recovered_while_writes_com
     assert any(ev == "crashed" and "over its memory limit of 96 MiB" in d for _t, ev, _h, d in tl), tl
     assert any(ev == "recovered" for _t, ev, _h, _d in tl), tl
     assert c.agent_remove(r.id).ok
+
+
+def test_a_ddb_write_from_a_stale_instance_is_fenced() -> None:
+    """Issue 13 (defect 5, "two instances' outputs"): a DDB write an agent instance asks for is taken only while
+    the table gives this host the agent at that instance's epoch; an instance displaced by a newer one (another
+    host recovered the agent) gets an error instead."""
+    from types import SimpleNamespace
+
+    from haa.hostd import agenttable as at
+    from haa.hostd.agentdriver import AgentDriver
+    from haa.pb import agenttx_pb2 as apb
+
+    table = at.AgentTable()
+    c = apb.AgentCreate(id="a", type="counter", cost=0.1, transfer_penalty=0.1, recovery="backup", host="h1")
+    for kind, body in (("create", c), ("move", apb.AgentMove(id="a", host="h1")),
+                       ("recovered", apb.AgentRecovered(id="a", host="h1"))):
+        tx = apb.AgentTx()
+        getattr(tx, kind).CopyFrom(body)
+        assert table.apply(tx.SerializeToString(), ("h1", "h2")).ok
+    drv = AgentDriver.__new__(AgentDriver)
+    drv.rt = SimpleNamespace(name="h1", node=SimpleNamespace(table=table))  # type: ignore[assignment]
+    drv.epochs = {"a": 1}
+    assert drv._fenced("a") == ""
+    drv.epochs = {"a": 0}  # an older instance of a, still running here
+    assert "stale instance" in drv._fenced("a")
+    drv.rt = SimpleNamespace(name="h2", node=SimpleNamespace(table=table))  # type: ignore[assignment]
+    drv.epochs = {"a": 1}  # h2 runs an instance the table does not give it
+    assert "stale instance" in drv._fenced("a")
+    assert "stale instance" in drv._fenced("unknown")

@@ -261,6 +261,22 @@ def test_malformed_and_oversized_frames_fail_the_agent_not_the_host():
     run(main())
 
 
+def test_a_message_over_the_agent_limit_fails_the_agent_that_bypassed_its_check():
+    """Issue 13: AgentContext.send refuses a payload over MAX_AGENT_MESSAGE; an agent that writes such a frame
+    on its channel itself (within the frame limit) is stopped by its host as a protocol error, not routed."""
+    async def main():
+        async with hosts() as H:
+            bad = await H.create("probe", {}, "h1")
+            t = asyncio.create_task(H.request(bad, {"op": "bigmsg"}))
+            e = await H.wait_end(bad)
+            t.cancel()
+            assert isinstance(e, Failed) and "MAX_AGENT_MESSAGE" in e.reason, e
+            ok = await H.create("probe", {}, "h1")
+            assert json.loads(await H.request(ok, {"op": "echo", "data": 1})) == 1
+
+    run(main())
+
+
 def test_unknown_type_is_a_clear_spawn_error():
     async def main():
         events = []

@@ -35,7 +35,7 @@ measurement); request b"hang" blocks its event loop forever (to exercise hang de
 
 probe — a scriptable agent for tests and operators: every request is a JSON command {"op": ...} (echo,
 send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, watch, unwatch, spawn_child, set,
-backup, state, timer, log, stop, raise, exit, hang, garbage, oversize); see `ProbeAgent.on_request`. It
+backup, state, timer, log, stop, raise, exit, hang, garbage, oversize, bigmsg); see `ProbeAgent.on_request`. It
 counts the plain messages it receives and keeps them (state "messages") unless its config says
 {"record": false}.
 
@@ -57,7 +57,9 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from haa.agents.base import AgentBase, AgentContext, RemoteError
+from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.agents.registry import register
+from haa.pb import agent_pb2 as apb
 
 #: counter message: magic, sender life (gen), sequence number (from 1), then `payload` padding bytes
 PING = struct.Struct(">4sQQ")
@@ -516,12 +518,16 @@ class ProbeAgent(AgentBase):
         elif op == "hang":
             while True:
                 time.sleep(3600)
-        elif op in ("garbage", "oversize"):
+        elif op in ("garbage", "oversize", "bigmsg"):
             raw = self._ctx.send_raw
             if raw is None:
                 raise RuntimeError("no raw channel access")
             if op == "garbage":  # a frame whose body is not an AgentToHost
                 body = bytes(cmd.get("body", "\x00\xff\xfe garbage").encode("latin-1"))
+                raw(struct.pack(">I", len(body)) + body)
+            elif op == "bigmsg":  # a well-formed frame whose message is over MAX_AGENT_MESSAGE (send() refuses it)
+                msg = apb.AgentMsg(src=self.id, dst=self.id, payload=bytes(MAX_AGENT_MESSAGE + 1))
+                body = apb.AgentToHost(sent=msg).SerializeToString()
                 raw(struct.pack(">I", len(body)) + body)
             else:  # a header announcing 2 GiB
                 raw(struct.pack(">I", 0x7FFFFFFF))

@@ -222,8 +222,25 @@ class AgentDriver:
         else:
             self.sup.answer(ev.agent_id, ev.req_id, True, obj.data())
 
+    def _fenced(self, agent: str) -> str:
+        """'' if this host's instance of `agent` holds the agent's current epoch in the table (its outputs are
+        accepted), else the reason: an instance displaced by a newer one elsewhere writes nothing (issue 13)."""
+        node = self.rt.node
+        table = getattr(node, "table", None)
+        r = table.get(agent) if table is not None else None
+        epoch = self.epochs.get(agent)
+        if r is None or r.owner != self.rt.name or epoch is None or r.epoch != epoch:
+            where = f"epoch {r.epoch} on {r.owner or 'nobody'}" if r is not None else "nothing"
+            return f"stale instance (epoch {epoch}): the table gives {agent[:8]} {where}"
+        return ""
+
     def _ddb_put(self, ev: ap.DdbPut) -> None:
         async def run() -> None:
+            why = self._fenced(ev.agent_id)
+            if why:
+                self.rt.counters["agent_ddb_put_fenced"] += 1
+                self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
+                return
             try:
                 op = ddbmod.put(ev.key, ev.type_name, _decode_value(ev.type_name, ev.value))
                 res = await self.rt.ddb_write([op])

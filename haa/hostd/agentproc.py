@@ -75,7 +75,7 @@ from pathlib import Path
 
 import psutil
 
-from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError
+from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError, message_too_large
 from haa.agents.forkserver import ForkServer, SpawnError
 from haa.hostd.logs import log_event
 from haa.pb import agent_pb2 as pb
@@ -783,6 +783,9 @@ class AgentSupervisor:
             inst.handled = msg.heartbeat.handled
         elif kind == "sent":
             m = msg.sent
+            why = message_too_large(len(m.payload))
+            if why:  # AgentContext.send refuses it in the agent: only an agent that bypasses it gets here
+                raise _ProtocolError(why)
             env = Envelope(src=a, dst=m.dst, payload=bytes(m.payload), conv=m.conv, reply=m.reply, error=m.error)
             inst.msgs_out[env.dst] += 1
             inst.bytes_out[env.dst] += len(env.payload)
