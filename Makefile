@@ -33,7 +33,7 @@ lint: setup
 # channel, control and sim APIs, agent transactions, DDB) and every YAML file (tests/test_files.py), about
 # 20,000 fresh random inputs per target (CI runs a fixed few thousand). A crash found becomes a named test.
 fuzz: setup
-	HAA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py tests/test_files.py
+	HAA_FUZZ_EXAMPLES=20000 $(BIN)/python -m pytest -q tests/test_fuzz.py tests/test_files.py tests/test_apply_total.py
 
 # Regenerate the committed protobuf/gRPC modules (tests/test_proto_fresh.py fails when they are stale).
 proto: setup
