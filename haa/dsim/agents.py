@@ -480,7 +480,7 @@ class AgentSim(GroupSim):
             for loc in node.local.values():
                 if loc.phase != "active":
                     return False
-            if node.orphans or node._pushes:
+            if node.orphans or node._pushes or node._backoff:  # a recovery waiting out a start-failure backoff
                 return False
         return True
 

@@ -893,15 +893,21 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 self._cmd(KillAgent(agent, loc.epoch, "agent no longer exists"))
         for r in list(self.table):
             self._reconcile_one(r.id)
+        for agent in [a for a in self._backoff if self.table.get(a) is None]:  # removed while backing off
+            del self._backoff[agent]
         if self.draining:
             self._drain_check()
 
     def _reconcile_one(self, agent: str) -> None:
         r = self.table.get(agent)
+        me = self.name
+        if agent in self._backoff and (r is None or r.status != at.CRASHED or r.alloc != me):
+            # a backoff this host started for an agent it no longer has to recover (allocated elsewhere since,
+            # recovered, removed): forget it, or a stale entry outlives the agent's troubles
+            del self._backoff[agent]
         if r is None or not self.m.is_member() or self._left_group:
             return
         loc = self.local.get(agent)
-        me = self.name
         if loc is None:
             if r.owner == me and r.status in (at.ACTIVE, at.FREEZING):
                 # the table says we run it but we do not (a restarted host, a lost instance): it failed
