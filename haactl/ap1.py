@@ -19,6 +19,7 @@ is compared at the end of each step: the survivors of a failure-free run must ag
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import os
 import statistics
@@ -73,12 +74,34 @@ def _quiesce(cluster: LocalCluster, names: Sequence[str], timeout: float = 10.0)
         time.sleep(0.02)
 
 
+def step_deliveries(cluster: LocalCluster, name: str, start: int, count: int) -> tuple[int, str]:
+    """(how many, hash) of the `count` transactions `name` delivered from its delivered index `start` on: the
+    hash covers each one's id and payload in delivery order, so two hosts that delivered the same transactions
+    in the same order during a step have the same hash whatever they delivered before it (a host's cumulative
+    `delivered_hash` also covers the steps it was no participant of)."""
+    h = hashlib.sha256()
+    n = 0
+    if count:
+        it = cluster[name].client.deliveries(start, timeout=30)
+        try:
+            for d in it:
+                h.update(f"{d.id.host}.{d.id.incarnation}.{d.id.seq}|{len(d.payload)}|".encode())
+                h.update(d.payload)
+                n += 1
+                if n == count:
+                    break
+        finally:
+            it.cancel()
+    return n, h.hexdigest()
+
+
 def run_step(
     cluster: LocalCluster, names: list[str], transactions: int, mode: str, concurrency: int, gap: float = 0.02
 ) -> dict[str, Any]:
     for n in names:
         cluster[n].client.latencies(reset=True)
     _quiesce(cluster, names)
+    start = {n: cluster[n].status().delivered for n in names}
     msgs0 = oac_messages_sent(cluster, list(cluster.hosts))
     p2d: list[float] = []
     aborted = 0
@@ -115,7 +138,10 @@ def run_step(
     d2d: list[float] = []
     for n in names:
         d2d.extend(cluster[n].client.latencies(reset=True).decide_to_deliver)
-    hashes = {cluster[n].status().delivered_hash for n in names}
+    # every participant delivered exactly the step's committed transactions, in one and the same order
+    committed = len(p2d)
+    seen = {n: step_deliveries(cluster, n, start[n], cluster[n].status().delivered - start[n]) for n in names}
+    same = len({h for _, h in seen.values()}) == 1 and all(k == committed for k, _ in seen.values())
     return {
         "participants": len(names),
         "mode": mode,
@@ -126,7 +152,8 @@ def run_step(
         "decide_to_deliver_ms": summarize_ms(d2d),
         "messages_per_tx": msgs / done if done else math.nan,
         "formula_n2_4n_minus_6": len(names) ** 2 + 4 * len(names) - 6,
-        "same_delivered_hash": len(hashes) == 1,
+        "same_delivered_hash": same,
+        "delivered_per_participant": sorted({k for k, _ in seen.values()}),
     }
 
 
