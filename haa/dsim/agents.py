@@ -20,6 +20,8 @@ processes would. `check_agents` then checks (`haactl verify transfer|recovery`; 
 * AG-Refuse-Invalid: transactions with out-of-bounds values that members propose without the edge checks
   (`haa.dsim.hostile.refusable_agent_tx`, a few per schedule, issue 13) are refused by every replica, and no
   table ever holds a value outside the allocator's bounds (`AgentTable.invalid_values`).
+* AG-No-Error: the agent layer's safety net (`AgentNode.drain` turns an exception in its reaction to one
+  committed transaction into an `agent_layer_error` log, so a live host goes on) caught nothing.
 * AG-Liveness: after healing the run goes quiet with every message delivered and no agent left frozen,
   freezing, crashed or waiting.
 
@@ -488,7 +490,8 @@ class AgentSim(GroupSim):
 # ------------------------------------------------------------------------------------------------ checks
 
 AGENT_PROPS = frozenset(
-    {"AA-Allocation", "AG-Single-Active", "AT-Consistency", "AR-Recovery", "AG-Liveness", "AG-Refuse-Invalid"}
+    {"AA-Allocation", "AG-Single-Active", "AT-Consistency", "AR-Recovery", "AG-Liveness", "AG-Refuse-Invalid",
+     "AG-No-Error"}
 )
 
 
@@ -575,6 +578,10 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
         if state != want:
             bad("AR-Recovery", f"{agent} epoch {epoch} recovered from "
                 f"{'no backup' if state is None else 'an older backup'} instead of the latest committed one")
+    # AG-No-Error: the agent layer's safety net (AgentNode.drain) caught nothing — it keeps a live host going,
+    # but in the simulator a caught exception is a bug like any crash
+    for t, proc, event, detail in cl.history.core_errors:
+        bad("AG-No-Error", f"{event} at {proc[0]}#{proc[1]} t={t:.3f}: {detail[:300]}", proc[0])
     # AG-Refuse-Invalid: out-of-bounds values proposed without the edge checks never enter a table (issue 13)
     for d in ah.hostile_accepted:
         bad("AG-Refuse-Invalid", f"a hostile transaction was applied: {d}")

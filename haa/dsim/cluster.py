@@ -49,6 +49,9 @@ PAUSED = 1
 CRASHED = 2
 
 
+#: core Log events that report a bug caught by a safety net (haa.hostd.agentnode): violations in every sweep
+ERROR_EVENTS = frozenset({"agent_layer_error"})
+
 @dataclass
 class Proposal:
     proposer: Proc
@@ -75,6 +78,9 @@ class History:
     pauses: list[tuple[str, float, float]] = field(default_factory=list)  # (host, start, end)
     # (time, observer, target, reason): the observer marked the target incarnation permanently suspected
     dead_marks: list[tuple[float, Proc, Proc, str]] = field(default_factory=list)
+    #: Log events of the safety nets that catch a bug instead of crashing the host (`agent_layer_error`): a
+    #: checker reports each as a violation, so the nets do not hide bugs from the verifiers
+    core_errors: list[tuple[float, Proc, str, str]] = field(default_factory=list)
     # (observer, crashed target) -> the observer's estimate of E(D) after the last heartbeat it received
     # from the target (the detection-time bound of eq. 4.4-2 is T_D^U + that estimate)
     ed_hat: dict[tuple[Proc, Proc], float] = field(default_factory=dict)
@@ -418,6 +424,8 @@ class SimCluster:
             elif t is Reincarnate:
                 self.at(now, lambda name=h.name, inc=h.inc: self._reincarnate(name, inc))
             elif t is Log:
+                if e.event in ERROR_EVENTS:
+                    hist.core_errors.append((now, proc, e.event, str(e.fields)))
                 if self.trace is not None:
                     self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
             elif self.on_effect is not None:

@@ -52,6 +52,8 @@ Agent transactions with out-of-bounds values (issue 13), checked by `haactl veri
 
 * `unbounded-values` the table's number checks as before issue 13 (`x >= lo` only): a create with cost=+inf
                      from a member that skips the edge checks is applied everywhere. Breaks AG-Refuse-Invalid.
+* `raising-reaction` the agent layer raises while reacting to a committed agent-list change; the host's safety
+                     net catches it. Breaks AG-No-Error (the net must not hide bugs from the verifiers).
 """
 
 from __future__ import annotations
@@ -327,6 +329,22 @@ def unbounded_values() -> Undo:
     return _patch(table_mod, "_bad_number", lambda x, lo, hi: not x >= lo)
 
 
+def raising_reaction() -> Undo:
+    """The agent layer raises while it reacts to a committed agent-list change (as the allocator did on a
+    cost=+inf agent before issue 13): the host's safety net catches it and goes on. Breaks AG-No-Error (the
+    verifiers must not let the net hide a bug)."""
+    from haa.hostd import agentnode as node_mod
+
+    original = node_mod.AgentNode._maybe_session
+
+    def maybe_session(self: node_mod.AgentNode, now: float, why: str, force: bool = False) -> None:
+        if why == "agent list changed":
+            raise ValueError("AgentSpec(x).cost: must be a finite number, got inf")
+        original(self, now, why, force)
+
+    return _patch(node_mod.AgentNode, "_maybe_session", maybe_session)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -349,6 +367,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "oldest-backup": (oldest_backup, "recovery", "AR-Recovery"),
     "unchecked-claim": (unchecked_claim, "transfer", "AG-Single-Active"),
     "unbounded-values": (unbounded_values, "recovery", "AG-Refuse-Invalid"),
+    "raising-reaction": (raising_reaction, "transfer", "AG-No-Error"),
 }
 
 
