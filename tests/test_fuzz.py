@@ -64,7 +64,7 @@ from haa.hostd import ddb as ddbmod
 from haa.hostd.control import MD_TOKEN
 from haa.hostd.logs import LOGGER_NAME
 from haa.hostd.messages import Excluded
-from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, _RxState, encode_frame
+from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, _RxState, _varint, encode_frame
 from haa.hostd.transport import envelope_chunk as chunk
 from haa.pb import agent_pb2 as apb
 from haa.pb import agenttx_pb2 as txpb
@@ -186,15 +186,6 @@ def random_message(desc: Descriptor, rng: random.Random, depth: int = 0) -> Mess
             else:
                 setattr(m, f.name, v)
     return m
-
-
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while n > 0x7F:
-        out.append((n & 0x7F) | 0x80)
-        n >>= 7
-    out.append(n)
-    return bytes(out)
 
 
 #: byte strings that break parsers: huge, overlong and unterminated varints, lengths claiming more than follows

@@ -50,11 +50,7 @@ class AgentControl:
 
     rt: HostRuntime
 
-    async def _auth(self, context: aio.ServicerContext) -> None:  # provided by HostControlService
-        raise NotImplementedError
-
     async def _agent_node(self, context: aio.ServicerContext) -> AgentNode:
-        await self._auth(context)
         node = self.rt.node
         if not isinstance(node, AgentNode) or self.rt.agents is None:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION,

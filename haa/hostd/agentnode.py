@@ -131,6 +131,11 @@ class Local:
     started: float = -1.0  # when StartAgent was issued (the start grace counts from it); -1: not yet
 
 
+def _agent_write(e: Any) -> bool:
+    """A `WriteDone` of a transaction the agent layer proposed itself (`AgentNode._propose`)."""
+    return type(e) is WriteDone and isinstance(e.req, tuple) and bool(e.req) and e.req[0] == "agent"
+
+
 class AgentNode(TransferMixin, RecoveryMixin):
     """See the module docstring."""
 
@@ -598,8 +603,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
             if not effs and not self.out and not self.m.out:
                 break
             for e in effs:
-                t = type(e)
-                if t is not WriteDone or not (isinstance(e.req, tuple) and e.req and e.req[0] == "agent"):
+                if not _agent_write(e):  # the agent layer's own writes stay here
                     res.append(e)
                 try:
                     self._on_membership_effect(e)
@@ -619,7 +623,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
 
     def _on_membership_effect(self, e: Any) -> None:
         t = type(e)
-        if t is WriteDone and isinstance(e.req, tuple) and e.req and e.req[0] == "agent":
+        if _agent_write(e):
             self._on_write_done(e)
         elif t is AppliedTx:
             self._on_applied(e)

@@ -153,14 +153,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         if self._limiter.allow(event):
             log_event(log, level, event, method=method, detail=detail[:300])
 
-    async def _auth(self, context: aio.ServicerContext) -> None:
-        if not self.rt.transport.check_token(context.invocation_metadata()):
-            self.rt.counters["rejected_unauthenticated"] += 1
-            self.rt.counters["control_rejected"] += 1
-            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
-
     async def Status(self, request: cpb.StatusRequest, context: aio.ServicerContext) -> cpb.StatusReply:
-        await self._auth(context)
         st = self.rt.status()
         peers = [
             cpb.PeerStatus(
@@ -208,7 +201,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         return cpb.ProposeReply(id=_txid(res.txid), decided=True, committed=True)
 
     async def DdbWrite(self, request: cpb.DdbWriteRequest, context: aio.ServicerContext) -> cpb.DdbWriteReply:
-        await self._auth(context)
         rt = self.rt
         if not rt.membership:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "static mode (--peers): this host has no DDB")
@@ -236,7 +228,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         )
 
     async def DdbGet(self, request: cpb.DdbGetRequest, context: aio.ServicerContext) -> cpb.DdbGetReply:
-        await self._auth(context)
         try:
             node = self.rt._member_node()
         except NotMembershipMode as e:
@@ -267,7 +258,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         )
 
     async def Mirror(self, request: cpb.MirrorRequest, context: aio.ServicerContext) -> AsyncIterator[cpb.MirrorEvent]:
-        await self._auth(context)
         rt = self.rt
         try:
             node = rt._member_node()
@@ -333,7 +323,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                 rt.stream_tasks.discard(task)
 
     async def Leave(self, request: cpb.LeaveRequest, context: aio.ServicerContext) -> cpb.LeaveReply:
-        await self._auth(context)
         rt = self.rt
         try:
             await rt.leave(timeout=self._deadline(context))
@@ -347,7 +336,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         return cpb.LeaveReply(left=True)
 
     async def Propose(self, request: cpb.ProposeRequest, context: aio.ServicerContext) -> cpb.ProposeReply:
-        await self._auth(context)
         if self.rt.membership:
             return await self._membership_propose(request, context)
         parts = list(request.participants) or None
@@ -388,7 +376,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
     async def Deliveries(
         self, request: cpb.DeliveriesRequest, context: aio.ServicerContext
     ) -> AsyncIterator[cpb.Delivery]:
-        await self._auth(context)
         rt = self.rt
         i = request.from_index
         task = asyncio.current_task()
@@ -417,7 +404,6 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                 rt.stream_tasks.discard(task)
 
     async def Latencies(self, request: cpb.LatencyRequest, context: aio.ServicerContext) -> cpb.LatencyReply:
-        await self._auth(context)
         d2d, p2d = self.rt.take_latencies(request.reset)
         return cpb.LatencyReply(decide_to_deliver=d2d, propose_to_decide=p2d)
 
