@@ -161,12 +161,18 @@ def run_step(
     }
 
 
+#: the loads of one step, in the order they run
+MODES = ("paced", "back-to-back", "all-proposing", "concurrent")
+
+
 def run_ap1(
     max_hosts: int = 10,
     transactions: int = 300,
     concurrency: int = 2,
     root: Path | None = None,
     log: Callable[[str], None] = print,
+    min_hosts: int = 2,
+    modes: Sequence[str] = MODES,
 ) -> list[dict[str, Any]]:
     names = [f"h{i + 1}" for i in range(max_hosts)]
     with contextlib.ExitStack() as stack:
@@ -179,9 +185,9 @@ def run_ap1(
         log("cluster formed; warming up")
         run_step(cluster, names, 50, "back-to-back", concurrency=1)
         rows = []
-        for n in range(2, max_hosts + 1):
+        for n in range(max(2, min_hosts), max_hosts + 1):
             parts = names[:n]
-            for mode in ("paced", "back-to-back", "all-proposing", "concurrent"):
+            for mode in modes:
                 row = run_step(cluster, parts, transactions, mode, concurrency)
                 rows.append(row)
                 pd, dd = row["propose_to_decide_ms"], row["decide_to_deliver_ms"]

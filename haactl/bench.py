@@ -124,16 +124,25 @@ def bench_ap1(
     hosts: int = typer.Option(10, "--hosts", min=2, max=16, help="largest participant count"),
     transactions: int = typer.Option(300, "--transactions", "-n", min=10, help="transactions per step"),
     concurrency: int = typer.Option(2, "--concurrency", min=1, help="in-flight proposals per proposer"),
+    min_hosts: int = typer.Option(2, "--min-hosts", min=2, max=16, help="smallest participant count"),
+    mode: list[str] = typer.Option([], "--mode", help="only these loads (repeat): paced, back-to-back, "
+                                   "all-proposing, concurrent"),
 ) -> None:
     """Experiment AP-1 (thesis §7.2.1): OAC latency and messages vs. participants, real haa-hostd processes."""
-    from haactl.ap1 import machine, markdown_table, run_ap1
+    from haactl.ap1 import MODES, machine, markdown_table, run_ap1
 
+    bad = [m for m in mode if m not in MODES]
+    if bad:
+        raise typer.BadParameter(f"unknown load {bad[0]!r}: one of {', '.join(MODES)}", param_hint="--mode")
     t0 = time.perf_counter()
-    rows = run_ap1(max_hosts=hosts, transactions=transactions, concurrency=concurrency)
+    rows = run_ap1(max_hosts=hosts, transactions=transactions, concurrency=concurrency,
+                   min_hosts=min(min_hosts, hosts), modes=tuple(mode) or MODES)
     print()
     print(markdown_table(rows))
+    # a partial run (some sizes or loads only) does not overwrite the full table
+    partial = min_hosts > 2 or bool(mode)
     path = write_json(
-        "ap1",
+        "ap1-partial" if partial else "ap1",
         {"machine": machine(), "transactions_per_step": transactions, "concurrency": concurrency, "rows": rows},
     )
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
