@@ -47,7 +47,9 @@ class Detection:
 class LandmarkDetector:
     """ArUco detection with one arena's dictionary and marker size (reuse it for every frame)."""
 
-    def __init__(self, dictionary: str = "DICT_4X4_250", marker_size: float = 0.2, known_ids: set[int] | None = None):
+    def __init__(
+        self, dictionary: str = "DICT_4X4_250", marker_size: float = 0.2, known_ids: set[int] | None = None
+    ) -> None:
         if not hasattr(cv2.aruco, dictionary):
             raise ValueError(f"dictionary: {dictionary!r} is not an OpenCV ArUco dictionary")
         if not marker_size > 0:
