@@ -49,7 +49,9 @@ def recording(key: str, duration: float, seed: int = 0, log: Callable[[str], Non
     """The cached recording of a scenario (made with the simulator the first time)."""
     from haa.slam.explorer import record
 
-    path = CACHE / f"{key}-{duration:g}s-seed{seed}.mcap"
+    # "-v2": haa-sim's default odometry drift became the thesis' random walk and the avatars state its σ's
+    # (issue 16); recordings cached before that have other predictions and must not be reused
+    path = CACHE / f"{key}-{duration:g}s-seed{seed}-v2.mcap"
     if path.exists():
         return load(path), path
     t0 = time.perf_counter()

@@ -126,25 +126,51 @@ def test_speed_and_turn_limits_of_table_6_2_3(kind: str) -> None:
     assert math.remainder(t0 - t1, 2 * math.pi) / 0.5 == pytest.approx(spec.max_turn, rel=0.01)
 
 
+@pytest.mark.parametrize("model", ["thesis", "systematic"])
 @pytest.mark.parametrize("kind", KINDS)
-def test_odometry_drift_matches_table_6_2_3(kind: str) -> None:
-    """RMS position error after 10 m straight and heading error after 10 rotations, over 400 avatars each.
+def test_odometry_drift_matches_table_6_2_3(kind: str, model: str) -> None:
+    """RMS position error after 10 m straight and heading error after 10 rotations, over 400 avatars each,
+    for both drift models.
 
     With 400 samples the RMS of a 2-D error is within ~2.5 % (1 sigma) of its expectation; the tolerance
     is 10 %."""
     spec = AVATAR_TYPES[kind]
+    params = spec.drift_params_for(model)
     lin, ang = [], []
     for i in range(400):
-        o = Odometry(spec.drift_params, (0.0, 0.0, 0.0), np.random.default_rng([11, i]))
+        o = Odometry(params, (0.0, 0.0, 0.0), np.random.default_rng([11, i]))
         for _ in range(100):
             o.update(0.1, 0.0)
         lin.append(math.hypot(o.x - 10.0, o.y))
-        r = Odometry(spec.drift_params, (0.0, 0.0, 0.0), np.random.default_rng([12, i]))
+        r = Odometry(params, (0.0, 0.0, 0.0), np.random.default_rng([12, i]))
         for _ in range(100):
             r.update(0.0, DRIFT_ROTATION / 100)
         ang.append(math.remainder(r.theta - DRIFT_ROTATION, 2 * math.pi))
     assert math.sqrt(np.mean(np.square(lin))) == pytest.approx(spec.linear_drift, rel=0.10)
     assert math.sqrt(np.mean(np.square(ang))) == pytest.approx(spec.angular_drift, rel=0.10)
+
+
+def test_drift_models_differ_beyond_10_m() -> None:
+    """The default ("thesis") model is a pure random walk: no per-avatar scale or bias, so after 40 m its
+    RMS error grows less than the systematic model's (whose bias term grows like D^2); both agree at 10 m."""
+    spec = AVATAR_TYPES["sweeper"]
+    assert spec.drift_params_for("thesis").scale == 0 and spec.drift_params_for("thesis").bias == 0
+    assert spec.drift_params == spec.drift_params_for("thesis")
+    rms = {}
+    for model in ("thesis", "systematic"):
+        errs = []
+        for i in range(300):
+            o = Odometry(spec.drift_params_for(model), (0.0, 0.0, 0.0), np.random.default_rng([13, i]))
+            for _ in range(400):
+                o.update(0.1, 0.0)
+            errs.append(math.hypot(o.x - 40.0, o.y))
+        rms[model] = math.sqrt(np.mean(np.square(errs)))
+    # expected RMS after 40 m: thesis L·sqrt(2 + 32) = 0.70 m; systematic L·sqrt(4 + 1 + 64 + 16) = 1.11 m
+    assert rms["thesis"] < 0.8 * rms["systematic"]
+    with pytest.raises(ValueError, match="drift"):
+        World.from_arena("small", seed=0, drift="bogus")
+    w = World.from_arena("small", seed=0, drift="systematic")
+    assert w.drift == "systematic"
 
 
 def test_odometry_drift_through_the_physics() -> None:

@@ -191,3 +191,28 @@ def test_map_metrics():
         map_accuracy(half, np.zeros((2, 2)))
     assert pose_error(np.array([1.0, 1.0, math.pi - 0.1]), (1.0, 2.0, -math.pi + 0.1))[0] == 1.0
     assert math.isclose(pose_error(np.array([1.0, 1.0, math.pi - 0.1]), (1.0, 2.0, -math.pi + 0.1))[1], 0.2)
+
+
+def test_landmark_map_keeps_the_shared_pose_error():
+    """Issue 16: one avatar's sightings share its pose error, so 200 of them must not make the landmark
+    estimate 14x surer than one (the plain Kalman fusion, window=None, does exactly that); a second avatar
+    with its own (independent) pose error does sharpen it, and so does the same avatar in another window."""
+    cov = np.diag([0.01, 0.01])  # sensor part + pose part of each sighting
+    honest, kalman = LandmarkMap(window=60.0), LandmarkMap(window=None)
+    for k in range(200):
+        z = np.array([3.0, 2.0]) + 0.01 * np.array([math.sin(k), math.cos(k)])
+        honest.fuse(7, z, cov, pose_std=0.08, avatar="a", t=k * 0.1)
+        kalman.fuse(7, z, cov, pose_std=0.08, avatar="a", t=k * 0.1)
+    sd_h = math.sqrt(np.trace(honest.get(7).cov) / 2)
+    sd_k = math.sqrt(np.trace(kalman.get(7).cov) / 2)
+    assert sd_h >= 0.08 and sd_k < 0.01
+    np.testing.assert_allclose(honest.get(7).mean, kalman.get(7).mean, atol=1e-3)
+    for k in range(200):
+        honest.fuse(7, np.array([3.0, 2.0]), cov, pose_std=0.08, avatar="b", t=k * 0.1)
+    assert math.sqrt(np.trace(honest.get(7).cov) / 2) < 0.75 * sd_h  # two sources: about 1/sqrt(2)
+    one = LandmarkMap(window=60.0)
+    for t in (0.0, 59.0, 61.0):  # two windows of avatar a
+        one.fuse(3, np.array([1.0, 1.0]), cov, pose_std=0.08, avatar="a", t=t)
+    assert len(one.get(3).sources) == 2
+    with pytest.raises(ValueError, match="window"):
+        LandmarkMap(window=0.0)

@@ -192,7 +192,7 @@ def test_lazy_propagation_exact_in_a_constrained_lifo_replay(rec):
     JC-SLAM loses to Discard in the 4-sweeper runs."""
     cap = calibrate(rec, 0.5, workers=2, cost_ms=COST)
     stats, checks, worst = _logged_replay(rec, "jcslam", cap)
-    assert stats.out_of_order > 0 and stats.resamples > 10 and checks > 50
+    assert stats.out_of_order > 0 and stats.resamples >= 8 and checks > 50
     assert worst < 1e-9
 
 

@@ -22,11 +22,20 @@ Per increment (ds, dtheta) of the true motion:
     ds'     = ds (1 + e_s) + sa sqrt(|ds|) n1
     dtheta' = dtheta (1 + e_r) + sr sqrt(|dtheta|) n2 + b ds + sh sqrt(|ds|) n3
 
-Calibration: the table's drifts are read as RMS errors. After a straight drive of D = 10 m the squared
-position error has expectation e_s^2 D^2 + sa^2 D (along track) + b^2 D^4/4 + sh^2 D^3/3 (across); each of
-the four terms gets a quarter of L^2 (L = the table's linear drift). After R = 10 rotations in place the
-squared heading error is e_r^2 R^2 + sr^2 R, half of A^2 each. tests/test_sim_world.py checks the RMS
-errors against the table statistically.
+Two drift models share this code (`DRIFT_MODELS`, docs/sim.md "Odometry drift"):
+
+* "thesis" (the default): noise added to every odometry increment and nothing else — "an appropriate noise
+  signal was added to most inputs, including the avatar odometry model" (thesis L1354) — i.e. a random walk,
+  e_s = b = e_r = 0. After D = 10 m straight the squared position error is sa^2 D (along track) +
+  sh^2 D^3/3 (across), half of L^2 each (L = the table's linear drift); after R = 10 rotations in place
+  sr^2 R = A^2.
+* "systematic" (harsher; real robots): the systematic terms as well. The squared position error after
+  10 m is e_s^2 D^2 + sa^2 D + b^2 D^4/4 + sh^2 D^3/3, a quarter of L^2 each; after R = 10 rotations
+  e_r^2 R^2 + sr^2 R, half of A^2 each.
+
+Both read the table's drifts as RMS errors after 10 m / 10 rotations; tests/test_sim_world.py checks them
+statistically for both models. Beyond 10 m the systematic model grows faster (its terms grow like D and D^2
+where the random walk's grow like sqrt(D) and D^1.5).
 """
 
 from __future__ import annotations
@@ -35,6 +44,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+#: drift models: "thesis" (random walk only, the default) and "systematic" (+ per-avatar scale and bias errors)
+DRIFT_MODELS = ("thesis", "systematic")
 
 #: reference distance and rotation of Table 6.2-3
 DRIFT_DISTANCE = 10.0
@@ -58,6 +70,9 @@ class AvatarSpec:
     @property
     def drift_params(self) -> DriftParams:
         return DriftParams.calibrated(self.linear_drift, self.angular_drift)
+
+    def drift_params_for(self, model: str) -> DriftParams:
+        return DriftParams.calibrated(self.linear_drift, self.angular_drift, model)
 
 
 AVATAR_TYPES: dict[str, AvatarSpec] = {
@@ -87,8 +102,19 @@ class DriftParams:
     rot: float  # sr, rad per sqrt(rad)
 
     @staticmethod
-    def calibrated(linear: float, angular: float) -> DriftParams:
+    def calibrated(linear: float, angular: float, model: str = "thesis") -> DriftParams:
         D, R = DRIFT_DISTANCE, DRIFT_ROTATION
+        if model == "thesis":  # random walk only: half of L^2 along track, half across; all of A^2
+            return DriftParams(
+                scale=0.0,
+                along=linear / math.sqrt(2 * D),
+                bias=0.0,
+                heading=math.sqrt(1.5) * linear / D**1.5,
+                rot_scale=0.0,
+                rot=angular / math.sqrt(R),
+            )
+        if model != "systematic":
+            raise ValueError(f"drift model {model!r} is not one of {', '.join(DRIFT_MODELS)}")
         return DriftParams(
             scale=linear / (2 * D),
             along=linear / (2 * math.sqrt(D)),

@@ -2,7 +2,7 @@
 
 ```
 haa-sim --arena small|large|FILE --listen HOST:PORT --seed S [--speed X | --step] [--schedule FILE]
-        [--token-file FILE] [--tick 0.05]
+        [--token-file FILE] [--tick 0.05] [--drift thesis|systematic]
 ```
 
 * Clock. Real time by default; `--speed X` runs X simulated seconds per wall second (as fast as it can when
@@ -60,7 +60,7 @@ from haa.pb import sim_pb2 as pb
 from haa.pb import sim_pb2_grpc as pbg
 from haa.sim import actions as act
 from haa.sim.arena import ArenaError, load_arena, parse_arena
-from haa.sim.avatars import AVATAR_TYPES
+from haa.sim.avatars import AVATAR_TYPES, DRIFT_MODELS
 from haa.sim.camera import CameraFrame, floor_homography, intrinsics
 from haa.sim.groundtruth import explorable_area, explorable_grid
 from haa.sim.render import AvatarView, TruthView
@@ -792,6 +792,7 @@ class Settings:
     tick: float
     schedule: Path | None
     token_file: Path | None
+    drift: str = "thesis"
 
 
 def parse_args(argv: list[str] | None = None) -> Settings:
@@ -804,6 +805,12 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     p.add_argument("--tick", type=float, default=DEFAULT_TICK, help=f"simulated seconds per tick ({DEFAULT_TICK})")
     p.add_argument("--schedule", type=Path, help="mission file whose `schedule` makes avatars join/retire/crash")
     p.add_argument("--token-file", type=Path, help="require this token in metadata x-haa-token")
+    p.add_argument(
+        "--drift",
+        choices=DRIFT_MODELS,
+        default="thesis",
+        help="odometry drift model: thesis (random walk, default) or systematic (+ scale and heading bias)",
+    )
     a = p.parse_args(argv)
 
     def fail(msg: str) -> None:
@@ -818,7 +825,7 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     host, sep, port = a.listen.rpartition(":")
     if not sep or not host or not port.isdigit() or int(port) > 65535:
         fail(f"--listen: {a.listen!r} is not HOST:PORT")
-    return Settings(a.arena, a.listen, a.seed, a.speed, a.step, a.tick, a.schedule, a.token_file)
+    return Settings(a.arena, a.listen, a.seed, a.speed, a.step, a.tick, a.schedule, a.token_file, a.drift)
 
 
 def build(s: Settings) -> tuple[SimCore, str | None]:
@@ -827,7 +834,7 @@ def build(s: Settings) -> tuple[SimCore, str | None]:
     schedule = None
     if s.schedule is not None:
         schedule = list(arena.spec.schedule) + load_schedule(s.schedule, len(arena.start_poses))
-    world = World(arena, seed=s.seed, schedule=schedule)
+    world = World(arena, seed=s.seed, schedule=schedule, drift=s.drift)
     token = None
     if s.token_file is not None:
         try:

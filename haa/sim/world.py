@@ -41,7 +41,7 @@ import pymunk
 
 from haa.sim.actions import CANCELLED, FAILED, REACH, Action
 from haa.sim.arena import COLLECTABLE_HEIGHT, COLLECTABLE_RADIUS, Arena, load_arena
-from haa.sim.avatars import AvatarSpec, NormalStream, Odometry, avatar_spec
+from haa.sim.avatars import DRIFT_MODELS, AvatarSpec, NormalStream, Odometry, avatar_spec
 from haa.sim.camera import LABEL_AVATAR, LABEL_COLLECTABLE, CameraFrame, Renderer, intrinsics
 from haa.sim.geometry import cast_circles, cast_segments, point_in_polygon, wrap_angle
 from haa.sim.groundtruth import IdealGrid, explorable_grid, ideal_grid
@@ -114,7 +114,8 @@ class AvatarState:
         self.carrying: list[str] = []
         self.start_pose = pose
         seed = world.seed
-        self.odo = Odometry(self.spec.drift_params, pose, np.random.default_rng([seed, serial, _DRIFT]))
+        params = self.spec.drift_params_for(world.drift)
+        self.odo = Odometry(params, pose, np.random.default_rng([seed, serial, _DRIFT]))
         self.sonar_noise = NormalStream(np.random.default_rng([seed, serial, _SONAR]), 512)
         self.camera_noise = NormalStream(np.random.default_rng([seed, serial, _CAMERA]), 512)
         self.image_rng = np.random.default_rng([seed, serial, _IMAGE])
@@ -157,9 +158,13 @@ class World:
         physics_dt: float = 0.02,
         schedule: list[ScheduleEntry] | None = None,
         max_events: int = 100_000,
+        drift: str = "thesis",
     ) -> None:
         if not (0 < physics_dt <= 0.1):
             raise ValueError(f"physics_dt: {physics_dt} s is outside (0, 0.1]")
+        if drift not in DRIFT_MODELS:
+            raise ValueError(f"drift: {drift!r} is not one of {', '.join(DRIFT_MODELS)}")
+        self.drift = drift  # odometry drift model of every avatar (haa.sim.avatars, docs/sim.md)
         self.arena = arena
         self.seed = int(seed)
         self.physics_dt = physics_dt

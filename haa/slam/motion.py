@@ -10,12 +10,10 @@ heading at mid-interval, so a noise-free particle follows exactly the path the a
 seen from the particle's own pose.
 
 Where the σ come from (the thesis leaves it to "the physical hardware"): `DriftSpec` holds the drift of
-Table 6.2-3 (position drift after 10 m, heading drift after 10 rotations). Treating drift as a random walk
-in distance travelled and angle turned, a step of length s and turn a gets position noise
-δ_L·sqrt(s / 10 m) and heading noise δ_A·sqrt(a / 20π) (plus a share of δ_A for straight travel, which
-turns the heading as well), each divided by Δt to become a velocity noise as eq. 5.1-3 wants. `inflate`
-(default 1.5) widens it: a filter that is too sure of its motion loses the truth (§5.2.1's own caution
-about underestimated errors).
+Table 6.2-3 (position drift after 10 m, heading drift after 10 rotations) and turns a step of length s and
+turn a into the random walk haa-sim's default drift model draws (see `DriftSpec`), each σ divided by Δt to
+become a velocity noise as eq. 5.1-3 wants. `inflate` widens it (1.0 by default; a filter that is too sure
+of its motion loses the truth, §5.2.1's own caution about underestimated errors).
 
 `odometry_prediction(t0, pose0, t1, pose1, spec)` turns two dead-reckoning poses into a `Prediction`;
 `propagate(states, p, dt, rng)` applies eq. 5.1-3 to all particles at once (no Python loop).
@@ -38,18 +36,28 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
 
 @dataclass(frozen=True)
 class DriftSpec:
-    """Odometry drift of an avatar type (Table 6.2-3): std after 10 m travelled and after 10 rotations."""
+    """Odometry drift of an avatar type (Table 6.2-3): std after 10 m travelled and after 10 rotations.
+
+    `sigmas` is the random walk haa-sim's default ("thesis") drift model draws (haa.sim.avatars; noise added
+    to every odometry increment, thesis L1354): along-track variance L²/(2·10 m) per metre, heading
+    variance 1.5·L²/(10 m)³ per metre driven and A²/(20π) per radian turned — half of L² along track and
+    half across after 10 m, A² after 10 rotations. The position noise is put on both world axes (eq. 5.1-3
+    has no along/across split), which over-covers the along-track part by a factor of 2 in variance.
+    `inflate` widens both: 1.0 for the thesis' random-walk drift; the harsher "systematic" drift (scale
+    error and heading bias, not a random walk) needs more (docs/slam.md "Motion model").
+    """
 
     linear_m_per_10m: float
     angular_rad_per_10rot: float
-    inflate: float = 1.5
+    inflate: float = 1.0
 
     def sigmas(self, dist: float, turn: float, dt: float) -> tuple[float, float]:
         """(sigma_xy [m/s], sigma_theta [rad/s]) of eq. 5.1-3 for a step of `dist` m and `turn` rad in `dt` s."""
         if dt <= 0:
             raise ValueError(f"dt: must be > 0, got {dt}")
-        pos = self.linear_m_per_10m * math.sqrt(abs(dist) / 10.0)
-        ang = self.angular_rad_per_10rot * math.sqrt(abs(turn) / (10 * TWO_PI) + abs(dist) / 10.0)
+        L, A, s = self.linear_m_per_10m, self.angular_rad_per_10rot, abs(dist)
+        pos = L * math.sqrt(s / 20.0)
+        ang = math.sqrt(1.5 * L * L * s / 1000.0 + A * A * abs(turn) / (10 * TWO_PI))
         return self.inflate * pos / dt, self.inflate * ang / dt
 
 

@@ -373,17 +373,80 @@ class FloorModel:
 
 
 @dataclass
+class Contribution:
+    """One source's sightings of one landmark, in information form (see `LandmarkMap`).
+
+    info = Σ W_i, vec = Σ W_i z_i with W_i = (sighting i's covariance)⁻¹; pose_w = Σ tr W_i and pose_sum =
+    Σ tr W_i · s_i, where s_i is the std of the pose part of sighting i (the particle scatter of the implied
+    landmark positions). The source's estimate is m = info⁻¹ vec with covariance info⁻¹ + s̄² I, s̄ =
+    pose_sum / pose_w: its pose errors are treated as fully correlated, so they do not average out.
+    """
+
+    info_xx: float = 0.0
+    info_xy: float = 0.0
+    info_yy: float = 0.0
+    vec_x: float = 0.0
+    vec_y: float = 0.0
+    pose_w: float = 0.0
+    pose_sum: float = 0.0
+
+    def add(self, z: tuple[float, float], cov: tuple[float, float, float], pose_std: float) -> None:
+        cxx, cyy, cxy = cov
+        det = cxx * cyy - cxy * cxy
+        wxx, wyy, wxy = cyy / det, cxx / det, -cxy / det
+        self.info_xx += wxx
+        self.info_yy += wyy
+        self.info_xy += wxy
+        self.vec_x += wxx * z[0] + wxy * z[1]
+        self.vec_y += wxy * z[0] + wyy * z[1]
+        tr = wxx + wyy
+        self.pose_w += tr
+        self.pose_sum += tr * pose_std
+
+    def estimate(self) -> tuple[float, float, float, float, float]:
+        """(mx, my, cxx, cyy, cxy) of this source's estimate."""
+        det = self.info_xx * self.info_yy - self.info_xy * self.info_xy
+        cxx, cyy, cxy = self.info_yy / det, self.info_xx / det, -self.info_xy / det
+        mx = cxx * self.vec_x + cxy * self.vec_y
+        my = cxy * self.vec_x + cyy * self.vec_y
+        p = self.pose_sum / self.pose_w
+        return mx, my, cxx + p * p, cyy + p * p, cxy
+
+
+@dataclass
 class Landmark:
     mean: np.ndarray  # (2,)
     cov: np.ndarray  # (2, 2)
     sightings: int = 1
+    sources: dict[tuple[str, int], Contribution] = field(default_factory=dict)
 
 
 class LandmarkMap:
-    """Landmark position estimates (mean, covariance) by id, shared by all avatars."""
+    """Landmark position estimates (mean, covariance) by id, shared by all avatars.
 
-    def __init__(self) -> None:
+    **Honest uncertainty** (issue 16; docs/slam.md "Landmark map"). A sighting's implied position has two
+    error parts: the sensor's (range and bearing noise: independent from sighting to sighting) and the
+    observer's pose error (the particle scatter), which one avatar's sightings *share* — fusing them as
+    independent measurements (a plain Kalman update) made the map ten to a hundred times too sure of itself.
+    So the map keeps one `Contribution` per *source* — an avatar within a time window of `window` seconds
+    (by the sighting's time, so the result does not depend on the processing order) — in which sightings
+    are accumulated in information form but the pose part is treated as fully correlated (a floor that
+    does not shrink with more sightings), and the landmark estimate is the information-weighted fusion of
+    its sources' estimates, which are taken as independent (different avatars, or one avatar minutes
+    apart, have largely independent pose errors). With `window=None` every sighting is its own source:
+    the plain Kalman fusion the library used before.
+
+    The map is still one shared map of the team (thesis §5.2.3, kept in the DDB by the control system):
+    a source's contribution is a small record (seven numbers) written by one avatar's SLAM agent, and the
+    estimate is their fusion, recomputed by whoever reads a landmark.
+    """
+
+    def __init__(self, window: float | None = 60.0) -> None:
+        if window is not None and not window > 0:
+            raise ValueError(f"window: must be > 0 s or None, got {window}")
+        self.window = window
         self.landmarks: dict[int, Landmark] = {}
+        self._n = 0
 
     def __len__(self) -> int:
         return len(self.landmarks)
@@ -391,16 +454,50 @@ class LandmarkMap:
     def get(self, lid: int) -> Landmark | None:
         return self.landmarks.get(lid)
 
-    def fuse(self, lid: int, mean: np.ndarray, cov: np.ndarray) -> None:
-        """Kalman update of landmark `lid` with an independent position measurement (mean, cov)."""
+    def fuse(
+        self,
+        lid: int,
+        mean: np.ndarray,
+        cov: np.ndarray,
+        pose_std: float = 0.0,
+        avatar: str = "",
+        t: float = 0.0,
+    ) -> None:
+        """Add one sighting's implied position (mean, cov; `pose_std` of it is the observer's pose part)."""
+        if self.window is None:
+            self._n += 1
+            key = ("", self._n)
+        else:
+            key = (avatar, math.floor(t / self.window))
+        z = (float(mean[0]), float(mean[1]))
+        c = (float(cov[0, 0]), float(cov[1, 1]), float(cov[0, 1]))
         lm = self.landmarks.get(lid)
         if lm is None:
-            self.landmarks[lid] = Landmark(mean.copy(), cov.copy())
+            src = Contribution()
+            src.add(z, c, pose_std)
+            mx, my, cxx, cyy, cxy = src.estimate()
+            self.landmarks[lid] = Landmark(
+                np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]), 1, {key: src}
+            )
             return
-        gain = lm.cov @ np.linalg.inv(lm.cov + cov)
-        lm.mean = lm.mean + gain @ (mean - lm.mean)
-        c = (np.eye(2) - gain) @ lm.cov
-        lm.cov = 0.5 * (c + c.T)
+        src = lm.sources.get(key)
+        if src is None:
+            src = lm.sources[key] = Contribution()
+        src.add(z, c, pose_std)
+        ixx = ixy = iyy = vx = vy = 0.0
+        for sc in lm.sources.values():
+            mx, my, cxx, cyy, cxy = sc.estimate()
+            det = cxx * cyy - cxy * cxy
+            wxx, wyy, wxy = cyy / det, cxx / det, -cxy / det
+            ixx += wxx
+            iyy += wyy
+            ixy += wxy
+            vx += wxx * mx + wxy * my
+            vy += wxy * mx + wyy * my
+        det = ixx * iyy - ixy * ixy
+        cxx, cyy, cxy = iyy / det, ixx / det, -ixy / det
+        lm.mean = np.array([cxx * vx + cxy * vy, cxy * vx + cyy * vy])
+        lm.cov = np.array([[cxx, cxy], [cxy, cyy]])
         lm.sightings += 1
 
     def errors(self, truth: dict[int, tuple[float, float]]) -> dict[str, float]:
@@ -429,7 +526,13 @@ class LandmarkModel:
         return sr * c * c + st * s * s, sr * s * s + st * c * c, (sr - st) * c * s
 
     def apply_sighting(
-        self, g: Sighting, states: np.ndarray, weights: np.ndarray, landmarks: LandmarkMap
+        self,
+        g: Sighting,
+        states: np.ndarray,
+        weights: np.ndarray,
+        landmarks: LandmarkMap,
+        avatar: str = "",
+        t: float = 0.0,
     ) -> np.ndarray | None:
         """log g of one sighting (None for a first sighting), then the landmark estimate's update."""
         phi = states[:, 2] + g.bearing
@@ -447,10 +550,12 @@ class LandmarkModel:
         # map update: the weighted mixture of the positions the particles imply
         mx, my = float(weights @ px), float(weights @ py)
         dx, dy = px - mx, py - my
-        cxx = float(weights @ (dx * dx + rxx))
-        cyy = float(weights @ (dy * dy + ryy))
+        pxx, pyy = float(weights @ (dx * dx)), float(weights @ (dy * dy))  # pose part: the particle scatter
+        cxx = pxx + float(weights @ rxx)
+        cyy = pyy + float(weights @ ryy)
         cxy = float(weights @ (dx * dy + rxy))
-        landmarks.fuse(g.landmark_id, np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]))
+        pose_std = math.sqrt(0.5 * (pxx + pyy))
+        landmarks.fuse(g.landmark_id, np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]), pose_std, avatar, t)
         return log_g
 
     def apply(
@@ -459,7 +564,7 @@ class LandmarkModel:
         """The image's sightings in turn; log g is their sum (None if none had an estimate to compare with)."""
         total: np.ndarray | None = None
         for g in r.sightings:
-            lg = self.apply_sighting(g, states, weights, landmarks)
+            lg = self.apply_sighting(g, states, weights, landmarks, r.avatar, r.t)
             if lg is not None:
                 total = lg if total is None else total + lg
         return total

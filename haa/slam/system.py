@@ -50,6 +50,9 @@ class SlamConfig:
     landmark: LandmarkModel = field(default_factory=LandmarkModel)
     cooccupancy: CooccupancyModel = field(default_factory=CooccupancyModel)
     floor: FloorModel = field(default_factory=FloorModel)
+    #: seconds within which one avatar's landmark sightings share their pose error (LandmarkMap; None: the
+    #: plain Kalman fusion of every sighting as independent, the library's model before issue 16)
+    landmark_window: float | None = 60.0
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:
@@ -77,7 +80,7 @@ class SlamSystem:
         self.grid = OccupancyGrid(grid)
         for m in (self.config.sonar, self.config.cooccupancy, self.config.floor):
             m.resolution = grid.resolution
-        self.landmarks = LandmarkMap()
+        self.landmarks = LandmarkMap(self.config.landmark_window)
         self.filters: dict[str, ParticleFilter] = {}
         self.seed = seed
         self.processed: dict[str, int] = {}
