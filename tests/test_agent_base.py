@@ -459,3 +459,82 @@ def test_a_long_backlog_of_sync_handlers_lets_other_tasks_run():
         assert await worker == 0
 
     run(main())
+
+
+# ------------------------------------------------------------------ the agent's clock and random source
+from haa.agents.base import Clock, ScaledClock, agent_random  # noqa: E402
+
+
+class Clocked(AgentBase):
+    TYPE = "t-clocked"
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.ticks: list[float] = []
+        self.once_at: float | None = None
+
+    async def on_start(self):
+        self.every(0.4, lambda: self.ticks.append(self.now()))
+        self.call_later(1.0, self._once)
+
+    def _once(self):
+        self.once_at = self.now()
+
+
+def test_default_clock_is_the_wall_clock():
+    import time as _time
+
+    frames: list = []
+    ctx = make(Clocked, frames)
+    assert ctx.clock.wall_delay(2.5) == 2.5
+    assert abs(ctx.agent.now() - _time.time()) < 1.0
+
+
+def test_timers_and_now_follow_a_scaled_clock():
+    async def main():
+        frames: list = []
+        ctx = make(Clocked, frames)
+        ctx.set_clock(ScaledClock(speed=10.0, start=100.0), seed=7)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        worker = asyncio.create_task(ctx.run())
+        start(ctx)
+        # 1 simulated second at speed 10 is 0.1 s of wall time; a wall-clock timer would take 1 s
+        await until(lambda: ctx.agent.once_at is not None, timeout=0.8)
+        wall = loop.time() - t0
+        assert wall < 0.6
+        assert 100.9 <= ctx.agent.once_at <= 100.0 + 10 * wall + 0.2
+        await until(lambda: len(ctx.agent.ticks) >= 3, timeout=1.0)
+        gaps = [b - a for a, b in zip(ctx.agent.ticks, ctx.agent.ticks[1:], strict=False)]
+        assert all(0.25 <= g <= 1.0 for g in gaps), gaps  # 0.4 simulated seconds apart (loaded CI: slack)
+        ctx.feed(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        assert await worker == 0
+
+    run(main())
+
+
+def test_seeded_random_source():
+    frames: list = []
+    a, b = make(Clocked, frames, name="A3"), make(Clocked, frames, name="A3")
+    # different UUIDs: by default two instances draw differently
+    assert [a.agent.random.random() for _ in range(3)] != [b.agent.random.random() for _ in range(3)]
+    a.set_clock(Clock(), seed=42)
+    b.set_clock(Clock(), seed=42)
+    assert [a.agent.random.random() for _ in range(5)] == [b.agent.random.random() for _ in range(5)]
+    c = make(Clocked, frames, name="A4")
+    c.set_clock(Clock(), seed=42)
+    d = make(Clocked, frames, name="A3", epoch=2)
+    d.set_clock(Clock(), seed=42)
+    first = agent_random(42, "A3", 1).random()
+    assert c.agent.random.random() != first and d.agent.random.random() != first
+
+
+def test_scaled_clock():
+    clk = ScaledClock(4.0, start=10.0, wall_start=0.0)
+    assert clk.wall_delay(8.0) == 2.0
+    import time as _time
+
+    assert abs(clk.now() - (10.0 + 4.0 * _time.monotonic())) < 0.5
+    for bad in (0, -1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="speed"):
+            ScaledClock(bad)

@@ -50,7 +50,9 @@ from __future__ import annotations
 import asyncio
 import inspect
 import json
+import random
 import sys
+import time
 import traceback
 import uuid
 from collections.abc import Awaitable, Callable
@@ -110,6 +112,47 @@ def child_name(parent_name: str, n: int) -> str:
     return f"{parent_name}.{n}"
 
 
+class Clock:
+    """The time an agent sees (issue 15: at `--speed X` an agent's `now()`, timers and random numbers follow
+    the simulator's clock). `now()` is the agent's time in seconds; `wall_delay(d)` is how many wall seconds
+    `d` of the agent's seconds last (timers are armed on the event loop with it). The default is the wall
+    clock; a mission sets a `ScaledClock` (or, later, a virtual clock) with `AgentContext.set_clock`."""
+
+    def now(self) -> float:
+        return time.time()
+
+    def wall_delay(self, delay: float) -> float:
+        return delay
+
+
+#: the default clock of every agent
+WALL_CLOCK = Clock()
+
+
+class ScaledClock(Clock):
+    """Simulated time running `speed` times faster than the wall clock: `start` simulated seconds at the
+    wall-clock instant `wall_start` (time.monotonic(); default: now)."""
+
+    def __init__(self, speed: float, start: float = 0.0, wall_start: float | None = None) -> None:
+        if not (speed > 0 and speed < float("inf")):
+            raise ValueError(f"speed: must be a positive finite number, got {speed}")
+        self.speed = float(speed)
+        self.start = float(start)
+        self.wall_start = time.monotonic() if wall_start is None else float(wall_start)
+
+    def now(self) -> float:
+        return self.start + (time.monotonic() - self.wall_start) * self.speed
+
+    def wall_delay(self, delay: float) -> float:
+        return delay / self.speed
+
+
+def agent_random(seed: int | str, name: str, epoch: int) -> random.Random:
+    """The seeded random source of one agent instance: the mission seed, the agent's name (stable across
+    runs, unlike its UUID) and its epoch (a recovered instance draws new numbers)."""
+    return random.Random(f"{seed}/{name}/{epoch}")
+
+
 class Timer:
     """A handle of `call_later` / `every`; `cancel()` it to stop it. Callbacks run in the agent's mailbox."""
 
@@ -122,7 +165,9 @@ class Timer:
         self._queued = False
         self._handle: asyncio.TimerHandle | None = None
         loop = asyncio.get_running_loop()
-        self._due = loop.time() + delay
+        # delays are in the agent's clock; the loop runs on wall time
+        self._wall_period = None if period is None else ctx.clock.wall_delay(period)
+        self._due = loop.time() + ctx.clock.wall_delay(delay)
         self._handle = loop.call_at(self._due, self._fire)
 
     def cancel(self) -> None:
@@ -143,10 +188,11 @@ class Timer:
         if self.period is not None:
             loop = asyncio.get_running_loop()
             # fixed rate; ticks missed while the loop was busy are skipped, not bunched
-            self._due += self.period
+            assert self._wall_period is not None
+            self._due += self._wall_period
             now = loop.time()
             if self._due <= now:
-                self._due = now + self.period
+                self._due = now + self._wall_period
             self._handle = loop.call_at(self._due, self._fire)
         if not self._queued:  # a periodic timer whose last tick still waits in the mailbox is not queued twice
             self._queued = True
@@ -283,12 +329,21 @@ class AgentBase:
         """Send a request and wait for its response; TimeoutError, RemoteError. Late replies are dropped."""
         return await self._ctx.request(to, payload, timeout)
 
+    def now(self) -> float:
+        """The agent's time in seconds: the wall clock, or the simulated clock a mission set."""
+        return self._ctx.clock.now()
+
+    @property
+    def random(self) -> random.Random:
+        """The agent's random source (seeded by the mission when it sets the clock)."""
+        return self._ctx.random
+
     def call_later(self, delay: float, fn: TimerCallback) -> Timer:
-        """Run `fn()` (sync or async) once after `delay` seconds, in the mailbox."""
+        """Run `fn()` (sync or async) once after `delay` seconds of the agent's clock, in the mailbox."""
         return self._ctx.timer(fn, delay, None)
 
     def every(self, period: float, fn: TimerCallback, *, first: float | None = None) -> Timer:
-        """Run `fn()` every `period` seconds (first after `first`, default `period`), in the mailbox."""
+        """Run `fn()` every `period` seconds of the agent's clock (first after `first`, default `period`)."""
         if period <= 0:
             raise ValueError(f"period: must be > 0, got {period}")
         return self._ctx.timer(fn, period if first is None else first, period)
@@ -412,7 +467,17 @@ class AgentContext:
         self.late_replies = 0
         self.handler_errors = 0
         self._stop_requested = False
+        #: the agent's clock (default the wall clock) and seeded random source; a mission sets both
+        self.clock: Clock = WALL_CLOCK
+        self.random: random.Random = agent_random(self.agent_id, self.name, self.epoch)
         self.agent: AgentBase = cls(self)
+
+    def set_clock(self, clock: Clock, seed: int | str | None = None) -> None:
+        """Use `clock` from now on (timers armed later follow it) and, with `seed`, a random source seeded by
+        the mission seed, the agent's name and epoch (reproducible across runs)."""
+        self.clock = clock
+        if seed is not None:
+            self.random = agent_random(seed, self.name, self.epoch)
 
     # ------------------------------------------------------------------ host -> agent
 
