@@ -211,16 +211,30 @@ def bench_ap2(
 def bench_ddb(
     hosts: int = typer.Option(5, "--hosts", min=1, max=16, help="group size"),
     seconds: float = typer.Option(5.0, "--seconds", min=0.5, help="duration of each step"),
+    writers: list[int] = typer.Option([1, 8, 32], "--writers", min=1, max=1000,
+                                      help="all-writing loads: concurrent writers inside every host (repeat)"),
+    all_writing: bool = typer.Option(False, "--all-writing", help="only the all-writing loads (no client loads)"),
+    sequencer: str = typer.Option("both", "--sequencer", help="on, off or both (a comparison)"),
 ) -> None:
-    """DDB writes through OAC: ops/s and latency vs. ops per transaction (does batching pay?)."""
+    """DDB writes through OAC: client loads (does batching pay?) and every host writing at once, with and
+    without the sequencer."""
     from haactl.ap2 import machine
-    from haactl.ddbbench import markdown_table, run_ddb_bench
+    from haactl.ddbbench import all_writing_table, markdown_table, run_ddb_bench
 
+    modes = {"on": (True,), "off": (False,), "both": (True, False)}
+    if sequencer not in modes:
+        raise typer.BadParameter("on, off or both", param_hint="--sequencer")
     t0 = time.perf_counter()
-    rows = run_ddb_bench(hosts=hosts, seconds=seconds)
+    rows = run_ddb_bench(hosts=hosts, seconds=seconds, writers=tuple(writers), sequencer=modes[sequencer],
+                         client_loads=not all_writing)
     print()
-    print(markdown_table(rows))
-    path = write_json("ddb", {"machine": machine(), "seconds": seconds, "rows": rows})
+    if not all_writing:
+        print(markdown_table(rows))
+        print()
+    print(all_writing_table(rows))
+    partial = all_writing or sequencer != "both"
+    path = write_json("ddb-partial" if partial else "ddb",
+                      {"machine": machine(), "seconds": seconds, "rows": rows})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 

@@ -1,11 +1,19 @@
-"""`haactl bench ddb`: does batching DDB operations into one OAC transaction pay? Real processes.
+"""`haactl bench ddb`: DDB write throughput and latency through OAC, real processes.
 
-A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core). For each batch size
-(ops per `DdbWrite`, i.e. per OAC transaction) and number of concurrent clients, every client writes
-batches of `put(key, blob, 64 bytes)` through its own host (client i uses host i mod hosts) for
-`seconds`, each waiting for its previous write's reply. Reported: committed ops/s and batches/s, and the
-write latency (request -> committed and applied on the client's host) p50 / p99. At the end every
-replica's content hash must be equal (the run fails otherwise).
+A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core).
+
+* Client loads (`DdbWrite` RPCs from this process): for each batch size (ops per request) and number of
+  concurrent clients, every client writes batches of `put(key, blob, 64 bytes)` through its own host (client
+  i uses host i mod hosts) for `seconds`, each waiting for its previous write's reply.
+* All writing (issue 14, a mission's load: every host writes at once): every host runs `writers` concurrent
+  writers inside itself (`DdbLoad`), each awaiting single-put writes, all starting at the same instant. A
+  Python client issuing thousands of RPCs a second would measure itself, and a mission's agents write
+  through their host, not through the control API. Reported: committed writes/s across the group, global
+  transactions (OACs) per second, write latency p50 / p99.
+
+Every load runs with the sequencer (docs/oac.md, "The sequencer": writes forwarded to the leader and batched)
+and, for the comparison, without it (every host proposes its own group-committed batches: Alg. 3 as printed).
+At the end every replica's content hash must be equal (the run fails otherwise).
 """
 
 from __future__ import annotations
@@ -37,16 +45,40 @@ def run_ddb_bench(
     seconds: float = 5.0,
     root: Path | None = None,
     log: Any = print,
+    writers: tuple[int, ...] = (1, 8, 32),
+    sequencer: tuple[bool, ...] = (True, False),
+    client_loads: bool = True,
+) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for seq in sequencer:
+        log(f"--- {'with' if seq else 'without'} the sequencer")
+        rows += _run_group(hosts, batch_sizes if client_loads else (), clients, crowd, seconds, root, log,
+                           writers, seq)
+    return rows
+
+
+def _run_group(
+    hosts: int,
+    batch_sizes: tuple[int, ...],
+    clients: tuple[int, ...],
+    crowd: int,
+    seconds: float,
+    root: Path | None,
+    log: Any,
+    writers: tuple[int, ...],
+    sequencer: bool,
 ) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="haa-ddb-") as tmp:
-        base = root or Path(tmp)
+        base = (root / ("seq" if sequencer else "noseq")) if root else Path(tmp)
         base.mkdir(parents=True, exist_ok=True)
         token = "ddb-bench-" + str(time.time_ns())
         (base / "token").write_text(token + "\n")
-        names = [f"h{i}" for i in range(1, hosts + 1)]
+        conf = base / "hostd.yaml"
+        conf.write_text(f"membership:\n  sequencer: {'true' if sequencer else 'false'}\n")
+        names = [f"h{i + 1}" for i in range(hosts)]
         ports = {n: free_port() for n in names}
         core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
-        group = [MemberHost(n, ports[n], core, base, token, ["--no-agents"]) for n in names]
+        group = [MemberHost(n, ports[n], core, base, token, ["--no-agents", "--config", str(conf)]) for n in names]
         rows: list[dict[str, Any]] = []
         try:
             for h in group:
@@ -59,7 +91,7 @@ def run_ddb_bench(
             value = bytes(64)
             # (clients, ops per request, spread over the hosts?) — the last: many clients of one host, the
             # case group commit is for (agents writing through their host)
-            cases = [(c, b, True) for c in clients for b in batch_sizes] + [(crowd, 1, False)]
+            cases = [(c, b, True) for c in clients for b in batch_sizes] + ([(crowd, 1, False)] if batch_sizes else [])
             for run_id, (n_clients, size, spread) in enumerate(cases):
                 lat: list[list[float]] = [[] for _ in range(n_clients)]
                 failed = [0] * n_clients
@@ -96,6 +128,8 @@ def run_ddb_bench(
                 all_lat = [x for xs in lat for x in xs]
                 row = {
                     "hosts": hosts,
+                    "sequencer": sequencer,
+                    "load": "clients",
                     "clients": n_clients,
                     "batch": size,
                     "through": "every host" if spread else "one host",
@@ -112,6 +146,8 @@ def run_ddb_bench(
                     f"clients={n_clients} ({row['through']}) batch={size}: {row['ops_per_s']:.0f} ops/s, "
                     f"{row['requests_per_s']:.0f} tx/s, p50 {row['p50_ms']:.1f} ms, p99 {row['p99_ms']:.1f} ms"
                 )
+            for w in writers:
+                rows.append(_all_writing(group, w, seconds, sequencer, log))
             wait_for(lambda: len({h.client.status().ddb_hash for h in group}) == 1, 30, "equal replicas at the end")
         finally:
             for h in group:
@@ -120,14 +156,77 @@ def run_ddb_bench(
         return rows
 
 
-def markdown_table(rows: list[dict[str, Any]]) -> str:
+def _all_writing(group: list[MemberHost], writers: int, seconds: float, sequencer: bool, log: Any) -> dict[str, Any]:
+    """Every host writes at once from inside itself (`DdbLoad`), `writers` concurrent writers each."""
+    start_at = time.time() + 1.0
+    replies: dict[str, Any] = {}
+    errors: list[str] = []
+
+    def one(h: MemberHost) -> None:
+        try:
+            replies[h.name] = h.client.ddb_load(writers, seconds, 64, f"all/{writers}/{h.name}", start_at)
+        except Exception as e:  # reported below: a host that could not run the load fails the row
+            errors.append(f"{h.name}: {e}")
+
+    threads = [threading.Thread(target=one, args=(h,)) for h in group]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise RuntimeError("DdbLoad failed: " + "; ".join(errors))
+    lat = [x for r in replies.values() for x in r.latencies]
+    elapsed = max(r.elapsed for r in replies.values())
+    committed = sum(r.committed for r in replies.values())
+    oacs = statistics.median(r.global_applied for r in replies.values())
+    row = {
+        "hosts": len(group),
+        "sequencer": sequencer,
+        "load": "all writing",
+        "writers_per_host": writers,
+        "requests": committed,
+        "failed": sum(r.failed for r in replies.values()),
+        "writes_per_s": committed / elapsed,
+        "oacs_per_s": oacs / elapsed,
+        "writes_per_oac": committed / oacs if oacs else 0.0,
+        "p50_ms": _pct(lat, 0.5) * 1e3,
+        "p99_ms": _pct(lat, 0.99) * 1e3,
+        "mean_ms": statistics.fmean(lat) * 1e3 if lat else 0.0,
+    }
+    log(
+        f"all writing, {writers} writers per host: {row['writes_per_s']:.0f} writes/s, {row['oacs_per_s']:.0f} "
+        f"OACs/s ({row['writes_per_oac']:.1f} writes each), p50 {row['p50_ms']:.1f} ms, p99 {row['p99_ms']:.1f} ms"
+    )
+    return row
+
+
+def all_writing_table(rows: list[dict[str, Any]]) -> str:
     out = [
-        "| hosts | clients | writing through | ops per request | ops/s | requests/s | latency p50 | p99 |",
-        "|---|---|---|---|---|---|---|---|",
+        "| hosts | sequencer | writers per host | writes/s | OACs/s | writes per OAC | latency p50 | p99 | failed |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        if r.get("load") != "all writing":
+            continue
         out.append(
-            f"| {r['hosts']} | {r['clients']} | {r['through']} | {r['batch']} | {r['ops_per_s']:.0f} | "
+            f"| {r['hosts']} | {'yes' if r['sequencer'] else 'no'} | {r['writers_per_host']} | "
+            f"{r['writes_per_s']:.0f} | {r['oacs_per_s']:.0f} | {r['writes_per_oac']:.1f} | "
+            f"{r['p50_ms']:.1f} ms | {r['p99_ms']:.1f} ms | {r['failed']} |"
+        )
+    return "\n".join(out)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    out = [
+        "| hosts | sequencer | clients | writing through | ops per request | ops/s | requests/s | latency p50 | p99 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r.get("load") == "all writing":
+            continue
+        out.append(
+            f"| {r['hosts']} | {'yes' if r['sequencer'] else 'no'} | {r['clients']} | {r['through']} | "
+            f"{r['batch']} | {r['ops_per_s']:.0f} | "
             f"{r['requests_per_s']:.0f} | "
             f"{r['p50_ms']:.1f} ms | {r['p99_ms']:.1f} ms |"
         )

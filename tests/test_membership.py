@@ -124,9 +124,16 @@ def test_a_leaving_applicant_withdraws_its_application():
     def applicants(label):
         seen[label] = {h.name for h in sim.cl.by_idx if h.core is not None and ("h4", 1) in h.core.join_list}
 
-    sim.cl.at(2.0035, lambda: applicants("before"))
-    sim.cl.at(2.0036, lambda: sim._leave("h4"))
-    sim.cl.at(2.03, lambda: applicants("after"))
+    def leave_once_h1_sponsors(t: float) -> None:
+        # h4 leaves as soon as h1 holds its application (the moment depends on the schedule's message timing)
+        applicants("before")
+        if "h1" in seen["before"] or t > 3.0:
+            sim._leave("h4")
+            sim.cl.at(t + 0.0264, lambda: applicants("after"))
+        else:
+            sim.cl.at(t + 0.0001, lambda: leave_once_h1_sponsors(t + 0.0001))
+
+    sim.cl.at(2.0, lambda: leave_once_h1_sponsors(2.0))
     sim.run()
     assert check_group(sim) == []
     assert "h1" in seen["before"]  # h1 sponsors it

@@ -197,6 +197,8 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
         m.StateSnapshot(5, b"state", m.TxId("h1", 1, 2), 4),
         m.StateForward(3, m.TxId("h1", 1, 2), b"payload"),
         m.StateRequest(m.TxId("h1", 1, 2)),
+        m.SeqWrite(3, ((3, b"a"), (5, b""), (6, b"c"))),
+        m.SeqWrite(0, ((1, b"x"),)),
     ]
     for msg in msgs:
         env = wire.encode("h9", 7, 0, msg)
@@ -212,3 +214,18 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
     empty.apply.addr = ""
     with pytest.raises(wire.WireError):
         wire.decode(empty)
+    # sequencer forwards: writes in the origin's order, numbered from 1, none below the floor
+    for floor, writes, why in [
+        (0, (), "no writes"),
+        (0, ((0, b"x"),), "increasing"),
+        (0, ((2, b"x"), (2, b"y")), "increasing"),
+        (0, ((3, b"x"), (2, b"y")), "increasing"),
+        (4, ((3, b"x"),), "floor above"),
+    ]:
+        env = wire.encode("h9", 7, 0, m.SeqWrite(1, ((1, b""),)))
+        env.seq_write.floor = floor
+        del env.seq_write.writes[:]
+        for c, p in writes:
+            env.seq_write.writes.add(cseq=c, payload=p)
+        with pytest.raises(wire.WireError, match=why):
+            wire.decode(pb.Envelope.FromString(env.SerializeToString()))

@@ -30,6 +30,12 @@ DDB (`haactl verify ddb`, `DDB_PROPS`, plus HM-Agreement which they rest on):
 * DDB-Atomicity: a write whose proposer crashed (in particular in the middle of its broadcast) is in every
   final replica or in none.
 * DDB-Joiner-Consistency: a joiner's replica, when it becomes a member, equals the others' at that point.
+* DDB-Exactly-Once: no write a sequencer batched is applied twice (retried and re-forwarded writes are
+  deduplicated by origin and client sequence; docs/oac.md, "The sequencer").
+
+Schedules run with the sequencer (writes forwarded to the leader, batched) except SEQUENCER_OFF_SHARE of them
+(every member proposes its own writes, Alg. 3 as printed); BURST_SHARE of the DDB schedules have bursts in
+which every host writes several times at one instant (many concurrent proposers).
 
 Faults are drawn so that the thesis' assumptions hold (see `GroupSim._safe`): at most c_f core processes
 fail, no false suspicion before FORMATION_TIMEOUT (§4.6.1: no erroneous exclusion during formation), and a
@@ -49,7 +55,7 @@ from haa.dsim.network import DelayModel
 from haa.dsim.schedule import EXCLUDE_AFTER, SIM_UFD, Fault, _delay_model
 from haa.hostd import ddb as ddbmod
 from haa.hostd.core import CoreConfig
-from haa.hostd.globalstate import TxDdb, TxMembership, TxRemove, decode_tx
+from haa.hostd.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.hostd.messages import TxId
 
@@ -66,6 +72,7 @@ SIM_NODE = dict(
     reapply=0.5,
     catchup_timeout=0.4,
     hash_every_apply=True,
+    seq_retry=0.5,
 )
 #: a fault that would break the assumptions is tried again this much later (until the fault window ends)
 GATE_RETRY = 0.1
@@ -98,6 +105,9 @@ class GroupScenario:
     deadline: float = 40.0
     workload: str = "membership"  # or "ddb": many more writes, in batches
     batch_max: int = 1  # DDB ops per write (1 .. batch_max)
+    #: writes go through the sequencer (NodeConfig.sequencer); off in SEQUENCER_OFF_SHARE of the schedules, so
+    #: that Alg. 3's own path (every member proposes its writes) stays verified
+    sequencer: bool = True
 
     def describe(self) -> list[str]:
         out = [
@@ -109,7 +119,10 @@ class GroupScenario:
         out += [f"t={t:.3f} leave {h}" for t, h in self.leaves]
         if self.dissolve:
             out.append("once the group is quiet, every running host leaves (dissolution)")
-        out.append(f"{len(self.writes)} writes ({self.workload} workload, up to {self.batch_max} ops per batch)")
+        out.append(
+            f"{len(self.writes)} writes ({self.workload} workload, up to {self.batch_max} ops per batch, "
+            f"{'through the sequencer' if self.sequencer else 'each proposed by its member'})"
+        )
         return out
 
 
@@ -118,6 +131,11 @@ WORKLOADS = ("membership", "ddb")
 
 #: share of the membership and DDB schedules that end with the whole group leaving (`GroupScenario.dissolve`)
 DISSOLVE_SHARE = 0.1
+#: share of the schedules whose members propose their own writes (no sequencer, `GroupScenario.sequencer`)
+SEQUENCER_OFF_SHARE = 0.3
+#: share of the DDB schedules with bursts: every member writes several times at one instant (many concurrent
+#: proposers without the sequencer; a sequencer fed by every member at once with it)
+BURST_SHARE = 0.5
 
 
 def draw_group(seed: int, hosts: int = 7, workload: str = "membership", dissolve: bool = True) -> GroupScenario:
@@ -200,6 +218,16 @@ def draw_group(seed: int, hosts: int = 7, workload: str = "membership", dissolve
     # one schedule in DISSOLVE_SHARE ends with every host leaving at once. Drawn from a generator of its own
     # so that the rest of every seed's schedule stays what it was before this was added.
     sc.dissolve = dissolve and random.Random(seed * 7907 + 23).random() < DISSOLVE_SHARE
+    # (each from a generator of its own, like `dissolve`)
+    rs = random.Random(seed * 104729 + 11)
+    sc.sequencer = rs.random() >= SEQUENCER_OFF_SHARE
+    if workload == "ddb" and rs.random() < BURST_SHARE:
+        for _ in range(rs.randint(1, 3)):
+            t = rs.uniform(0.5, sc.fault_end)
+            for _ in range(rs.randint(1, 4)):
+                for nm in names:
+                    sc.writes.append((t, nm))
+        sc.writes.sort()
     return sc
 
 
@@ -217,6 +245,8 @@ class GroupHistory:
     votes: list[tuple[float, Proc, TxId, bool, Any, dict[Proc, bool]]] = field(default_factory=list)
     acked: dict[Any, tuple[Proc, TxId, int]] = field(default_factory=dict)
     write_proposer: dict[TxId, Proc] = field(default_factory=dict)  # every DDB write transaction seen
+    #: (group, global seq) -> the (origin, cseq) writes a sequencer batch applied there (DDB-Exactly-Once)
+    seq_applied: dict[tuple[str, int], tuple[tuple[Proc, int], ...]] = field(default_factory=dict)
     # per process: (group, seq, txid, decoded remove/membership transaction)
     group_txs: dict[Proc, list[tuple[str, int, TxId, Any]]] = field(default_factory=lambda: defaultdict(list))
     joins: dict[Proc, tuple[str, int, str]] = field(default_factory=dict)  # (group, seq, state hash) at join
@@ -240,7 +270,7 @@ class GroupSim:
         self.rng = random.Random(sc.seed * 7919 + 1)
         self.mutations = DEFAULT_MUTATIONS if mutations is None else mutations
         cfg = CoreConfig(ufd=GROUP_UFD, exclude_after=EXCLUDE_AFTER)
-        self.node_cfg = NodeConfig(core=cfg, c_f=sc.c_f, **SIM_NODE)
+        self.node_cfg = NodeConfig(core=cfg, c_f=sc.c_f, sequencer=sc.sequencer, **SIM_NODE)
         self.cl = SimCluster(sc.names, self.rng, sc.delay, cfg, sc.offsets, sc.drifts, trace=trace)
         self.cl.make_core = self._make_node
         self.cl.on_effect = self._on_effect
@@ -271,7 +301,7 @@ class GroupSim:
                 tx = decode_tx(payload)
             except ValueError:
                 tx = None
-            if type(tx) is TxDdb:
+            if type(tx) in (TxDdb, TxSeq):
                 self.gh.write_proposer.setdefault(txid, (txid.host, txid.inc))
             elif type(tx) is TxRemove:
                 # the voter's failure-detector output about each member to remove, sampled at the vote
@@ -294,6 +324,10 @@ class GroupSim:
             gh.applied[proc].append((e.seq, e.txid, e.state_hash, st.genesis, e.front, e.view))
             if e.kind in ("remove", "membership"):
                 gh.group_txs[proc].append((st.genesis, e.seq, e.txid, decode_tx(e.payload)))
+            elif e.kind == "seq":
+                gh.seq_applied.setdefault(
+                    (st.genesis, e.seq), tuple((r.origin, r.cseq) for r in e.result if r.applied)  # type: ignore[attr-defined]
+                )
         elif t is ViewChange:
             gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))
             if e.correct:
@@ -540,7 +574,8 @@ MEMBERSHIP_PROPS = frozenset(
     }
 )
 DDB_PROPS = frozenset(
-    {"HM-Agreement", "DDB-Prefix", "DDB-Convergence", "DDB-Durability", "DDB-Atomicity", "DDB-Joiner-Consistency"}
+    {"HM-Agreement", "DDB-Prefix", "DDB-Convergence", "DDB-Durability", "DDB-Atomicity", "DDB-Joiner-Consistency",
+     "DDB-Exactly-Once"}
 )
 #: which properties each verifier reports (`haactl verify membership|ddb`)
 VERIFIER_PROPS = {"membership": MEMBERSHIP_PROPS, "ddb": DDB_PROPS}
@@ -749,6 +784,13 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 proc,
                 *missing,
             )
+    # DDB-Exactly-Once: a write the sequencer batched twice (a retry, a new sequencer) is applied once
+    once: dict[tuple[str, Proc, int], int] = {}
+    for (g, s), writes in sorted(gh.seq_applied.items()):
+        for origin, cseq in writes:
+            first = once.setdefault((g, origin, cseq), s)
+            if first != s:
+                bad("DDB-Exactly-Once", f"write {cseq} of {_p(origin)} applied at seq {first} and again at {s}", origin)
     for txid, proc in gh.write_proposer.items():
         if proc not in hist.crash_time:
             continue

@@ -359,6 +359,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
     "no-dissolution": (no_dissolution, "membership", "HM-Termination"),
+    "seq-no-dedup": (_node_flag("seq-no-dedup"), "ddb", "DDB-Exactly-Once"),
     "thesis-accept": (thesis_accept, "allocation", "AA-Validity"),
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),

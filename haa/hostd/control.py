@@ -27,6 +27,8 @@ suspicions, DDB size/hash/seq, global sequence and state hash) and serves the DD
   and applied here, with each op's result (`committed=False` and a `reason` if it was not: not a member yet,
   leaving, gave up, timeout). In membership mode `Propose` is a test payload submitted the same way.
 * `DdbGet`: local reads (keys, or a prefix).
+* `DdbLoad`: a benchmark write load generated inside the host (`haactl bench ddb`): concurrent writers
+  awaiting single-put writes, with their latencies (a client's own RPC cost is not what is measured).
 * `Mirror`: the thesis' AgentMirror — a snapshot of the replica, then every applied batch and (optionally)
   every view change; a fresh snapshot whenever the replica was replaced or the subscriber fell behind.
 * `Leave`: graceful leave (Alg. 3 ll. 14-21); with `exit` the process stops once the group removed it.
@@ -41,6 +43,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -74,6 +77,10 @@ log = logging.getLogger(LOGGER_NAME + ".control")
 
 MD_TOKEN = "x-haa-token"
 DEFAULT_WAIT = 30.0
+#: bounds of a DdbLoad request (a benchmark load generated inside the host)
+MAX_LOAD_WRITERS = 1000
+MAX_LOAD_SECONDS = 300.0
+MAX_LOAD_VALUE = 64 * 1024
 #: the service as protobuf describes it (methods, request and reply types): what `add_to_server` registers
 SERVICE = cpb.DESCRIPTOR.services_by_name["HostControl"]
 #: exceptions of the runtime that escape a handler, and the status each gets (before rpcguard's defaults)
@@ -225,6 +232,56 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             results=[
                 cpb.DdbOpResult(op=o.op, key=o.key, ok=o.ok, reason=o.reason, version=o.version) for o in res.results
             ],
+        )
+
+    async def DdbLoad(self, request: cpb.DdbLoadRequest, context: aio.ServicerContext) -> cpb.DdbLoadReply:
+        """A DDB write load from inside this host (a benchmark: a mission's agents write through their host,
+        not through this API, so a client's RPC cost must not be what is measured)."""
+        rt = self.rt
+        if not rt.membership:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "static mode (--peers): this host has no DDB")
+        r = request
+        if not (1 <= r.writers <= MAX_LOAD_WRITERS and 0 < r.seconds <= MAX_LOAD_SECONDS
+                and r.value_bytes <= MAX_LOAD_VALUE and len(r.prefix) <= 64):
+            await context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"writers 1..{MAX_LOAD_WRITERS}, seconds in (0, {MAX_LOAD_SECONDS}], value_bytes <= "
+                f"{MAX_LOAD_VALUE}, prefix <= 64 characters",
+            )
+        wait = r.start_at - time.time() if r.start_at else 0.0
+        if wait > 30.0:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "start_at more than 30 s ahead")
+        if wait > 0:
+            await asyncio.sleep(wait)
+        value = bytes(r.value_bytes)
+        prefix = r.prefix or f"load/{rt.name}"
+        lat: list[float] = []
+        failed = 0
+        applied0 = rt.counters["global_applied"]
+        t0 = time.perf_counter()
+        stop = t0 + r.seconds
+
+        async def writer(i: int) -> None:
+            nonlocal failed
+            k = 0
+            while time.perf_counter() < stop:
+                t = time.perf_counter()
+                try:
+                    await rt.ddb_write([ddbmod.put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
+                except WriteFailed:
+                    failed += 1
+                else:
+                    if len(lat) < 200_000:
+                        lat.append(time.perf_counter() - t)
+                k += 1
+
+        await asyncio.gather(*(writer(i) for i in range(r.writers)))
+        return cpb.DdbLoadReply(
+            committed=len(lat),
+            failed=failed,
+            latencies=lat,
+            elapsed=time.perf_counter() - t0,
+            global_applied=rt.counters["global_applied"] - applied0,
         )
 
     async def DdbGet(self, request: cpb.DdbGetRequest, context: aio.ServicerContext) -> cpb.DdbGetReply:
@@ -444,6 +501,15 @@ class ControlClient(AgentClientMixin):
         once the batch is committed and applied here (`committed`), or given up (`reason`)."""
         req = cpb.DdbWriteRequest(ops=list(ops), atomic=atomic)  # type: ignore[arg-type]
         return self._stub.DdbWrite(req, metadata=self._md, timeout=timeout)
+
+    def ddb_load(
+        self, writers: int, seconds: float, value_bytes: int = 64, prefix: str = "", start_at: float = 0.0
+    ) -> cpb.DdbLoadReply:
+        req = cpb.DdbLoadRequest(
+            writers=writers, seconds=seconds, value_bytes=value_bytes, prefix=prefix, start_at=start_at
+        )
+        wait = max(0.0, start_at - time.time()) if start_at else 0.0
+        return self._stub.DdbLoad(req, metadata=self._md, timeout=wait + seconds + 60.0)
 
     def ddb_get(
         self, keys: Sequence[str] = (), prefix: str = "", keys_only: bool = False, limit: int = 0

@@ -131,6 +131,9 @@ class MembershipSettings(BaseModel):
     catchup_timeout: float = Field(default=NodeConfig().catchup_timeout, gt=0, allow_inf_nan=False)
     retry_backoff: float = Field(default=NodeConfig().retry_backoff, gt=0, allow_inf_nan=False)
     max_write_attempts: int = Field(default=NodeConfig().max_write_attempts, ge=1)
+    #: DDB writes through the sequencer (docs/oac.md); false: every member proposes its own (Alg. 3 as printed)
+    sequencer: bool = NodeConfig().sequencer
+    seq_inflight: int = Field(default=NodeConfig().seq_inflight, ge=1, le=64)
 
 
 class HostSettings(BaseModel):
@@ -151,6 +154,8 @@ class HostSettings(BaseModel):
     exclude_after: float = Field(default=CoreConfig().exclude_after, gt=0, allow_inf_nan=False)
     leave_timeout: float = Field(default=3.0, gt=0, allow_inf_nan=False)
     forget_group: bool = False
+    #: heartbeats as UDP datagrams on the listen port (docs/transport.md); off: on the host-link streams
+    datagram_heartbeats: bool = True
     #: the agent layer (membership mode): off with --no-agents
     agents: bool = True
     # the allocator's bounds (docs/limits.md, "Agent and host numbers"): a capacity outside them is refused here
@@ -260,6 +265,7 @@ class HostSettings(BaseModel):
             advertise=self.advertise or "",
             node=NodeConfig(core=core, **self.membership.model_dump()),
             forget_group=self.forget_group,
+            datagram_heartbeats=self.datagram_heartbeats,
             leave_timeout=self.leave_timeout,
             agents=self.agents,
             agent=AgentConfig(
@@ -303,6 +309,7 @@ _OPTIONS = (
     "exclude_after",
     "leave_timeout",
     "forget_group",
+    "datagram_heartbeats",
     "log_level",
     "log_stderr",
     "agents",
@@ -343,6 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
         const=True,
         help="ignore the hosts a previous life knew (needed when every host of a group was lost)",
     )
+    p.add_argument("--stream-heartbeats", dest="datagram_heartbeats", action="store_const", const=False,
+                   help="send failure-detector heartbeats on the host-link streams, not as UDP datagrams")
     p.add_argument("--no-agents", dest="agents", action="store_const", const=False,
                    help="membership mode without the agent layer (no agent processes)")
     p.add_argument("--capacity", type=float, help="processing capacity K_h for the allocation (1.0 = one core)")
@@ -420,7 +429,7 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
     for opt in _OPTIONS:
         env = os.environ.get("HAA_" + opt.upper())
         if env is not None and env != "":
-            if opt in ("forget_group", "log_stderr", "agents"):
+            if opt in ("forget_group", "log_stderr", "agents", "datagram_heartbeats"):
                 try:
                     merged[opt] = _bool(env)
                 except ValueError as e:

@@ -97,7 +97,25 @@ class TxAgent:
     data: bytes
 
 
-GroupTx = TxRemove | TxMembership | TxFormation | TxDdb | TxTest | TxAgent
+@dataclass(frozen=True, slots=True)
+class SeqEntry:
+    """One member's write in a sequencer batch (docs/oac.md, "The sequencer"): the `cseq`-th write of
+    `origin`, whose writes below `floor` are all settled; `tx` is the encoded TxDdb or TxTest."""
+
+    origin: Proc
+    cseq: int
+    floor: int
+    tx: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class TxSeq:
+    """Writes of many members, batched into one transaction by the sequencer."""
+
+    entries: tuple[SeqEntry, ...]
+
+
+GroupTx = TxRemove | TxMembership | TxFormation | TxDdb | TxTest | TxAgent | TxSeq
 
 
 def _proc(m: gpb.GroupProc, p: Proc) -> None:
@@ -131,6 +149,12 @@ def encode_tx(tx: GroupTx) -> bytes:
         m.test = tx.data  # type: ignore[union-attr]
     elif t is TxAgent:
         m.agent = tx.data  # type: ignore[union-attr]
+    elif t is TxSeq:
+        add = m.seq.entries.add
+        for e in tx.entries:  # type: ignore[union-attr]
+            add(origin=e.origin[0], origin_incarnation=e.origin[1], cseq=e.cseq, floor=e.floor, tx=e.tx)
+        if not tx.entries:  # type: ignore[union-attr]
+            m.seq.SetInParent()
     else:
         raise TypeError(f"not a group transaction: {t.__name__}")
     return m.SerializeToString()
@@ -179,6 +203,13 @@ def decode_tx(payload: bytes) -> GroupTx:
         return TxTest(m.test)
     if kind == "agent":
         return TxAgent(m.agent)
+    if kind == "seq":
+        entries = []
+        for e in m.seq.entries:
+            if not e.origin or e.origin_incarnation == 0 or e.cseq == 0:
+                raise GroupTxError("seq: an entry without origin, incarnation or cseq")
+            entries.append(SeqEntry((e.origin, e.origin_incarnation), e.cseq, e.floor, e.tx))
+        return TxSeq(tuple(entries))
     raise GroupTxError("group transaction: body not set")
 
 
@@ -190,6 +221,7 @@ def tx_kind(tx: GroupTx) -> str:
         TxDdb: "ddb",
         TxTest: "test",
         TxAgent: "agent",
+        TxSeq: "seq",
     }[type(tx)]
 
 
@@ -212,6 +244,40 @@ class Applied:
     stale: bool = False
 
 
+@dataclass(frozen=True, slots=True)
+class SeqApplied:
+    """What became of one entry of a sequencer batch: `applied` False for a duplicate or a write of a host
+    that is no longer a member (then `error` says which); `kind` "ddb" or "test"; `result` the DDB's
+    ApplyResult of a ddb write."""
+
+    origin: Proc
+    cseq: int
+    applied: bool
+    kind: str
+    result: object | None
+    error: str
+
+
+class _Dedup:
+    """One origin's applied writes: every cseq below `floor` is settled, `done` holds those applied at or
+    above it (exactly-once application of writes a sequencer may batch twice)."""
+
+    __slots__ = ("done", "floor")
+
+    def __init__(self, floor: int = 0, done: set[int] | None = None) -> None:
+        self.floor = floor
+        self.done: set[int] = done or set()
+
+    def raise_floor(self, floor: int) -> None:
+        if floor > self.floor:
+            self.floor = floor
+            self.done = {c for c in self.done if c >= floor}
+
+
+#: the inner transactions a sequencer batch may carry
+SEQ_INNER = ("ddb", "test")
+
+
 class GlobalState:
     """See the module docstring."""
 
@@ -228,6 +294,10 @@ class GlobalState:
         self.agents = AgentTable()
         self.chain = GENESIS
         self.recent: OrderedDict[TxId, int] = OrderedDict()
+        #: per origin member: which of its sequenced writes were applied (`_Dedup`)
+        self.seq_origins: dict[Proc, _Dedup] = {}
+        #: False only in the simulator's mutation "seq-no-dedup" (applies duplicates: DDB-Exactly-Once fails)
+        self.dedup = True
 
     # ------------------------------------------------------------------ queries
 
@@ -254,6 +324,8 @@ class GlobalState:
         h.update(self.ddb.content_hash().encode())
         if len(self.agents) or self.agents.hosts or self.agents.ses_id:
             h.update(b"|agents:" + self.agents.content_hash().encode())
+        for (name, inc), d in sorted(self.seq_origins.items()):
+            h.update(f"|seq:{name}.{inc}:{d.floor}:{','.join(map(str, sorted(d.done)))}".encode())
         return h.hexdigest()
 
     # ------------------------------------------------------------------ apply
@@ -320,6 +392,8 @@ class GlobalState:
         elif t is TxAgent:
             # total: AgentTable.apply turns anything it cannot apply into a refusal (AgentApplied.ok False)
             ddb_result = self.agents.apply(tx.data, tuple(m.name for m in self.members))  # type: ignore[union-attr]
+        elif t is TxSeq:
+            ddb_result = tuple(self._apply_entry(e) for e in tx.entries)  # type: ignore[union-attr]
         changed = self.members != before
         if changed:
             self.view += 1
@@ -332,7 +406,36 @@ class GlobalState:
                 # the agents the removed hosts ran have crashed (Alg. 8); the result of a membership change
                 # carries the agents whose owner changed
                 ddb_result = self.agents.on_removed(m.name for m in removed)
+                for m in removed:  # a removed incarnation never writes again: forget its writes
+                    self.seq_origins.pop(m.proc, None)
         return Applied(self.seq, kind, changed, removed, added, ddb_result, err, stale)
+
+    def _apply_entry(self, e: SeqEntry) -> SeqApplied:
+        """One write of a sequencer batch: applied once per (origin, cseq), while the origin is a member."""
+        if not self.is_member(e.origin):
+            return SeqApplied(e.origin, e.cseq, False, "", None, "the origin is not a member")
+        d = self.seq_origins.get(e.origin)
+        if d is None:
+            d = self.seq_origins[e.origin] = _Dedup()
+        d.raise_floor(e.floor)
+        if self.dedup and (e.cseq < d.floor or e.cseq in d.done):
+            return SeqApplied(e.origin, e.cseq, False, "", None, "duplicate")
+        d.done.add(e.cseq)
+        try:
+            inner = decode_tx(e.tx)
+        except GroupTxError as ex:
+            return SeqApplied(e.origin, e.cseq, True, "invalid", None, str(ex))
+        t = type(inner)
+        if t is TxDdb:
+            try:
+                return SeqApplied(e.origin, e.cseq, True, "ddb", self.ddb.apply(inner.data), "")  # type: ignore[union-attr]
+            except DdbError as ex:
+                return SeqApplied(e.origin, e.cseq, True, "ddb", None, str(ex))
+            except Exception as ex:  # a bug: the same bytes fail the same way on every replica (apply is total)
+                return SeqApplied(e.origin, e.cseq, True, "ddb", None, f"ddb apply failed: {type(ex).__name__}: {ex}")
+        if t is TxTest:
+            return SeqApplied(e.origin, e.cseq, True, "test", None, "")
+        return SeqApplied(e.origin, e.cseq, True, "invalid", None, f"a sequencer batch cannot carry {tx_kind(inner)}")
 
     # ------------------------------------------------------------------ snapshots
 
@@ -350,6 +453,8 @@ class GlobalState:
         _members(s.members, tuple(self.members))
         for t, q in self.recent.items():
             s.recent.add(host=t.host, incarnation=t.inc, seq=t.seq, applied_seq=q)
+        for (name, inc), d in sorted(self.seq_origins.items()):
+            s.seq_origins.add(name=name, incarnation=inc, floor=d.floor, done=sorted(d.done))
         return s.SerializeToString()
 
     @staticmethod
@@ -380,3 +485,4 @@ class GlobalState:
         self.chain = s.chain
         self.genesis = s.genesis
         self.recent = OrderedDict((TxId(r.host, r.incarnation, r.seq), r.applied_seq) for r in s.recent)
+        self.seq_origins = {(o.name, o.incarnation): _Dedup(o.floor, set(o.done)) for o in s.seq_origins}

@@ -47,6 +47,7 @@ The class does no I/O, reads no clock and uses no randomness.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,11 +58,14 @@ from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
     GroupTxError,
+    SeqApplied,
+    SeqEntry,
     TxAgent,
     TxDdb,
     TxFormation,
     TxMembership,
     TxRemove,
+    TxSeq,
     TxTest,
     decode_tx,
     encode_tx,
@@ -74,6 +78,7 @@ from haa.hostd.messages import (
     Locked,
     Member,
     Message,
+    SeqWrite,
     Sponsor,
     StateForward,
     StateRequest,
@@ -83,6 +88,9 @@ from haa.hostd.messages import (
 from haa.hostd.oac import UNDECIDED
 
 Proc = tuple[str, int]
+
+#: writes a sequencer queues at most (beyond it, forwarded writes are dropped: their origins forward them again)
+SEQ_MAX_QUEUE = 200_000
 
 
 # ------------------------------------------------------------------------------------------------ effects
@@ -170,9 +178,25 @@ class NodeConfig:
     max_write_attempts: int = 50
     #: compute the content hash after every applied transaction (the simulator's checks)
     hash_every_apply: bool = False
+    #: DDB and test writes go through the sequencer: forwarded to the leader, batched into one OAC with the
+    #: other members' writes, applied once per (origin, cseq) (docs/oac.md, "The sequencer"); False: every
+    #: member proposes its own writes (Alg. 3 as printed: concurrent proposers, order conflicts)
+    sequencer: bool = True
+    #: sequencer batches of one host in OAC at a time (writes forwarded meanwhile wait and go out together)
+    seq_inflight: int = 2
+    #: at most this many writes / payload bytes in one sequencer batch
+    seq_max_entries: int = 1024
+    seq_max_bytes: int = 4 << 20
+    #: a forwarded write not applied within this long is forwarded again (to the sequencer of the moment)
+    seq_retry: float = 2.0
+    #: ... and given up after this long (reported "may still commit": a copy may be in a batch somewhere)
+    seq_abandon: float = 60.0
 
     def __post_init__(self) -> None:
-        for n in ("formation_timeout", "formation_retry", "discovery", "reapply", "catchup_timeout", "retry_backoff"):
+        if self.seq_inflight < 1 or self.seq_max_entries < 1 or self.seq_max_bytes < 1:
+            raise ValueError("seq_inflight, seq_max_entries and seq_max_bytes must be at least 1")
+        for n in ("formation_timeout", "formation_retry", "discovery", "reapply", "catchup_timeout", "retry_backoff",
+                  "seq_retry", "seq_abandon"):
             if getattr(self, n) <= 0:
                 raise ValueError(f"{n} must be positive")
 
@@ -195,6 +219,17 @@ class _Write:
     req: Hashable
     payload: bytes
     attempts: int = 0
+    seq: bool = False  # through the sequencer
+
+
+@dataclass(slots=True)
+class _SeqOut:
+    """A write this host forwarded to the sequencer and has not yet seen applied."""
+
+    req: Hashable
+    payload: bytes
+    first: float  # first forwarded
+    sent: float = 0.0  # last forwarded
 
 
 # ------------------------------------------------------------------------------------------------ node
@@ -273,6 +308,17 @@ class MembershipNode:
         self.direct_q: list[tuple[TxId, bytes]] = []
         self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
         self.state_requests: dict[TxId, list[Proc]] = {}
+        # the sequencer (docs/oac.md): as an origin ...
+        self.seq_next = 1  # cseq of the next write
+        self.seq_pending: dict[int, _SeqOut] = {}  # forwarded, not yet applied here (in cseq order)
+        self.seq_target: Proc | None = None  # where they were forwarded last
+        self.seq_timer = False
+        # ... and as the sequencer: forwarded writes waiting for a batch, and batches in OAC
+        self.seq_queue: deque[SeqEntry] = deque()
+        self.seq_known: set[tuple[Proc, int]] = set()  # (origin, cseq) queued or in a batch of ours
+        self.seq_inflight: dict[TxId, tuple[SeqEntry, ...]] = {}
+        if "seq-no-dedup" in mutations:
+            self.state.dedup = False
         self.started = False
         self._now = 0.0
 
@@ -440,13 +486,16 @@ class MembershipNode:
             if self.attempt is None:
                 self.updating = False
                 self._update()
+        elif k == "seqretry":
+            self.seq_timer = False
+            self._seq_retry()
 
     def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
         """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
         `WriteDone` effect; a committed change has been applied here before `WriteDone`."""
         self._now = now
         tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxAgent(payload) if kind == "agent" else TxTest(payload)
-        w = _Write(req, encode_tx(tx))
+        w = _Write(req, encode_tx(tx), seq=self.config.sequencer and kind in ("ddb", "test"))
         if self.direct_q:  # a new member catching up: hold until its state has caught up
             self.held.append(w)
             return
@@ -456,7 +505,7 @@ class MembershipNode:
         if not self.state.group_correct:
             self.out.append(WriteDone(req, False, None, 0, "the group is not formed yet"))
             return
-        if self.locked is not None:  # l. 129: hold while locked
+        if self.locked is not None and not w.seq:  # l. 129: hold while locked (the sequencer holds its batches)
             self.held.append(w)
             return
         self._propose_write(w)
@@ -578,6 +627,8 @@ class MembershipNode:
         w = self.writes.pop(txid, None)
         if w is not None:
             self._retry_write(w, "aborted")
+        if txid in self.seq_inflight:
+            self._seq_done(txid, False)
         a = self.attempt
         if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
             self.attempt = None
@@ -661,6 +712,12 @@ class MembershipNode:
         w = self.writes.pop(txid, None)
         if w is not None:
             self.out.append(WriteDone(w.req, True, txid, res.seq, res.error, res.ddb_result))
+        if type(tx) is TxSeq:
+            self._seq_applied(txid, res.seq, res.ddb_result)  # type: ignore[arg-type]
+        elif txid in self.seq_inflight:  # (our batch, but it did not decode as one: cannot happen)
+            self._seq_done(txid, True)
+        if res.view_changed:
+            self._seq_retarget()
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
         t = type(tx)
@@ -896,6 +953,12 @@ class MembershipNode:
     # ------------------------------------------------------------------ global-state changes
 
     def _propose_write(self, w: _Write) -> None:
+        if w.seq:
+            cseq = self.seq_next
+            self.seq_next += 1
+            self.seq_pending[cseq] = _SeqOut(w.req, w.payload, self._now)
+            self._seq_forward([cseq])
+            return
         w.attempts += 1
         txid = self.core.propose_to(self._now, w.payload, self.state.procs())
         self.writes[txid] = w
@@ -923,6 +986,141 @@ class MembershipNode:
     def _unlock(self) -> None:
         self.locked = None
         self._propose_held()
+        self._seq_flush()
+
+    # ------------------------------------------------------------------ the sequencer (docs/oac.md)
+
+    def _seq_target_now(self) -> Proc | None:
+        """The sequencer this host forwards to: the highest-ranked member it does not suspect (the leader of
+        Alg. 3 l. 79 as this host sees it; every member agrees on it while nobody is suspected)."""
+        for m in self.state.members:
+            if not self._suspected(m.proc) and not self._known_dead(m.proc):
+                return m.proc
+        return None
+
+    def _seq_forward(self, cseqs: Sequence[int]) -> None:
+        """Forward these pending writes (in cseq order) to the sequencer of the moment."""
+        target = self._seq_target_now()
+        if target is None or not self.is_member():
+            self._seq_arm()  # nobody to forward to: the retry timer tries again
+            return
+        self.seq_target = target
+        pending = self.seq_pending
+        floor = next(iter(pending)) if pending else self.seq_next
+        most, most_bytes = self.config.seq_max_entries, self.config.seq_max_bytes
+        batch: list[tuple[int, bytes]] = []
+        size = 0
+        for c in cseqs:
+            w = pending.get(c)
+            if w is None:
+                continue
+            w.sent = self._now
+            if batch and (len(batch) >= most or size + len(w.payload) > most_bytes):
+                self._seq_send(target, floor, batch)
+                batch, size = [], 0
+            batch.append((c, w.payload))
+            size += len(w.payload)
+        if batch:
+            self._seq_send(target, floor, batch)
+        self._seq_arm()
+
+    def _seq_send(self, target: Proc, floor: int, batch: list[tuple[int, bytes]]) -> None:
+        self.core.counters["seq_forwarded"] += len(batch)
+        if target == self.me:
+            self._seq_accept(self.me, floor, tuple(batch))
+        else:
+            self._send(target, SeqWrite(floor, tuple(batch)))
+
+    def _seq_arm(self) -> None:
+        if self.seq_pending and not self.seq_timer:
+            self.seq_timer = True
+            self._timer("seqretry", self._now + self.config.seq_retry)
+
+    def _seq_retry(self) -> None:
+        """Forward again what has waited `seq_retry` (a forward lost with a sequencer that crashed, or one that
+        never got to propose it); give up what has waited `seq_abandon`."""
+        now = self._now
+        for c, w in list(self.seq_pending.items()):
+            if now - w.first >= self.config.seq_abandon:
+                del self.seq_pending[c]
+                self.out.append(WriteDone(w.req, False, None, 0,
+                                          f"not committed within {self.config.seq_abandon:g} s (it may still commit)"))
+        due = [c for c, w in self.seq_pending.items() if now - w.sent >= self.config.seq_retry]
+        if due:
+            self.core.counters["seq_reforwarded"] += len(due)
+            self._seq_forward(due)
+        self._seq_arm()
+
+    def _seq_retarget(self) -> None:
+        """The sequencer changed (a view change, a suspicion): forward every pending write to the new one."""
+        if self.seq_pending and self._seq_target_now() != self.seq_target:
+            self.core.counters["seq_retargeted"] += 1
+            self._seq_forward(list(self.seq_pending))
+
+    def _seq_accept(self, origin: Proc, floor: int, writes: tuple[tuple[int, bytes], ...]) -> None:
+        """Writes forwarded to us (we are, or were, or are about to be the sequencer): queue each one that is
+        neither queued here nor applied, and propose."""
+        # (an origin that is not a member yet here may be one we have not applied the addition of: its writes
+        # are queued all the same; applying a batch skips the writes of non-members, deterministically)
+        if self.left or len(self.seq_queue) + len(writes) > SEQ_MAX_QUEUE:
+            self.core.counters["seq_dropped"] += len(writes)
+            return
+        d = self.state.seq_origins.get(origin)
+        for cseq, payload in writes:
+            key = (origin, cseq)
+            if key in self.seq_known or (d is not None and (cseq < d.floor or cseq in d.done)):
+                continue
+            self.seq_known.add(key)
+            self.seq_queue.append(SeqEntry(origin, cseq, floor, payload))
+        self._seq_flush()
+
+    def _seq_flush(self) -> None:
+        """Propose the queued writes as batches, at most `seq_inflight` at a time; held while the global state
+        is locked (l. 129), like any global-state change."""
+        q = self.seq_queue
+        if self.locked is not None or self.direct_q or self.left or not self.is_member():
+            return
+        cfg = self.config
+        while q and len(self.seq_inflight) < cfg.seq_inflight:
+            entries: list[SeqEntry] = []
+            size = 0
+            while q and len(entries) < cfg.seq_max_entries and (
+                not entries or size + len(q[0].tx) <= cfg.seq_max_bytes
+            ):
+                e = q.popleft()
+                entries.append(e)
+                size += len(e.tx)
+            batch = tuple(entries)
+            txid = self.core.propose_to(self._now, encode_tx(TxSeq(batch)), self.state.procs())
+            self.seq_inflight[txid] = batch
+            self.core.counters["seq_batches"] += 1
+
+    def _seq_done(self, txid: TxId, commit: bool) -> None:
+        """One of our batches was applied (commit) or aborted: an aborted batch goes back to the queue's front."""
+        batch = self.seq_inflight.pop(txid, None)
+        if batch is None:
+            return
+        if commit:
+            for e in batch:
+                self.seq_known.discard((e.origin, e.cseq))
+        else:
+            self.core.counters["seq_batches_aborted"] += 1
+            self.seq_queue.extendleft(reversed(batch))
+        self._seq_flush()
+
+    def _seq_applied(self, txid: TxId, seq: int, results: tuple[SeqApplied, ...]) -> None:
+        """A sequencer batch was applied here: answer our own writes in it."""
+        for r in results:
+            if r.origin != self.me:
+                continue
+            w = self.seq_pending.pop(r.cseq, None)
+            if w is None:
+                continue
+            if r.applied:
+                self.out.append(WriteDone(w.req, True, txid, seq, r.error, r.result))
+            else:  # (a duplicate of an applied write was answered then; this is "origin is not a member")
+                self.out.append(WriteDone(w.req, False, None, 0, r.error))
+        self._seq_done(txid, True)
 
     # ------------------------------------------------------------------ sponsoring and state transfer
 
@@ -1063,6 +1261,8 @@ class MembershipNode:
             self._on_snapshot(q, msg)  # type: ignore[arg-type]
         elif t is StateRequest:
             self._on_state_request(q, msg.txid)  # type: ignore[union-attr]
+        elif t is SeqWrite:
+            self._seq_accept(q, msg.floor, msg.writes)  # type: ignore[union-attr]
 
     def _on_apply(self, a: Proc, addr: str) -> None:
         """ll. 50-61."""
@@ -1159,6 +1359,8 @@ class MembershipNode:
         """ll. 22-31 (removeList_p itself is computed on demand)."""
         if self.state.is_member(p) or p in self.join_list:
             self._update()
+        if self.state.is_member(p):
+            self._seq_retarget()
 
     def _on_peer_dead(self, p: Proc) -> None:
         """ll. 32-34."""
@@ -1169,6 +1371,7 @@ class MembershipNode:
         if self.sponsor == p:
             self.sponsor = None
         self._update()
+        self._seq_retarget()
 
     # ------------------------------------------------------------------ introspection
 

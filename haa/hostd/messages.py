@@ -210,6 +210,15 @@ class StateRequest:
     txid: TxId
 
 
+@dataclass(slots=True)
+class SeqWrite:
+    """Global-state changes a member forwards to the sequencer (docs/oac.md, "The sequencer"): `writes` are
+    (cseq, GroupTx payload) in the origin's order; every cseq below `floor` is settled at the origin."""
+
+    floor: int
+    writes: tuple[tuple[int, bytes], ...]
+
+
 # --- the agent layer (Alg. 4-8) ----------------------------------------------------------------------
 
 AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc", "alloc_run", "op_reply")
@@ -230,7 +239,16 @@ class AgentHostMsg:
 
 
 GroupMessage = (
-    Apply | Introduce | Sponsor | Connections | Leave | Locked | StateSnapshot | StateForward | StateRequest
+    Apply
+    | Introduce
+    | Sponsor
+    | Connections
+    | Leave
+    | Locked
+    | StateSnapshot
+    | StateForward
+    | StateRequest
+    | SeqWrite
 )
 GROUP_TYPES: tuple[type, ...] = (
     Apply,
@@ -242,6 +260,7 @@ GROUP_TYPES: tuple[type, ...] = (
     StateSnapshot,
     StateForward,
     StateRequest,
+    SeqWrite,
 )
 
 OacMessage = OacTransaction | OacOrder | OacEstimate | OacProposal | OacAck | OacDecide

@@ -71,7 +71,7 @@ from haa.hostd.logs import LOGGER_NAME, HostIdentity, log_event, setup_logging, 
 from haa.hostd.membership import AppliedTx, Connect, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.hostd.messages import Message, TxId
 from haa.hostd.resources import LoopWatch, tune_malloc
-from haa.hostd.transport import Transport
+from haa.hostd.transport import Transport, split_address
 
 log = logging.getLogger(LOGGER_NAME + ".runtime")
 
@@ -210,6 +210,9 @@ class RuntimeConfig:
     node: NodeConfig | None = None
     #: ignore the hosts a previous incarnation knew (`<data-dir>/known_hosts.json`)
     forget_group: bool = False
+    #: failure-detector heartbeats as UDP datagrams on the listen port (docs/transport.md, "Heartbeats as
+    #: datagrams"); False: on the host-link streams like every other message
+    datagram_heartbeats: bool = True
     #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s (with agents: after
     #: handing them over, which takes at most `agent.drain_timeout`)
     leave_timeout: float = 3.0
@@ -253,6 +256,7 @@ class HostRuntime:
             counters=self.counters,
             accept_unknown=config.membership,
             on_superseded=self._on_superseded,
+            datagram_heartbeats=config.datagram_heartbeats,
         )
         self.advertise = config.advertise
         self.server: aio.Server | None = None
@@ -395,6 +399,8 @@ class HostRuntime:
         self.transport.add_to_server(server)
         HostControlService(self).add_to_server(server)
         self.port = server.add_insecure_port(cfg.listen)
+        hp = split_address(cfg.listen)
+        await self.transport.open_heartbeats(hp[0] if hp else "", self.port)
         if not self.advertise:
             self.advertise = advertised_address(cfg.listen, self.port)
         self._make_node(inc)
@@ -732,12 +738,20 @@ class HostRuntime:
 
     def _on_applied(self, e: AppliedTx) -> None:
         self.counters["global_applied"] += 1
-        if e.kind != "ddb" or e.result is None or not self.mirrors:
+        if e.result is None or not self.mirrors:
             return
-        data = decode_tx(e.payload).data  # type: ignore[union-attr]  # the DdbBatch inside the TxDdb
-        ddb_seq = e.result.seq  # type: ignore[attr-defined]
-        for sub in list(self.mirrors):
-            sub.push(("batch", ddb_seq, data, e.seq))
+        if e.kind == "ddb":
+            data = decode_tx(e.payload).data  # type: ignore[union-attr]  # the DdbBatch inside the TxDdb
+            ddb_seq = e.result.seq  # type: ignore[attr-defined]
+            for sub in list(self.mirrors):
+                sub.push(("batch", ddb_seq, data, e.seq))
+        elif e.kind == "seq":  # a sequencer batch: every DDB batch in it that was applied, in order
+            entries = decode_tx(e.payload).entries  # type: ignore[union-attr]
+            for entry, r in zip(entries, e.result, strict=True):  # type: ignore[call-overload]
+                if r.applied and r.kind == "ddb" and r.result is not None:
+                    data = decode_tx(entry.tx).data  # type: ignore[union-attr]
+                    for sub in list(self.mirrors):
+                        sub.push(("batch", r.result.seq, data, e.seq))
 
     def _on_view(self, e: ViewChange) -> None:
         self.counters["view_changes"] += 1

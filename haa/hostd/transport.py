@@ -51,9 +51,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import hmac
 import logging
 import re
+import socket
 import time
 from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable
@@ -115,6 +117,28 @@ MAX_MESSAGE = 64 << 20
 #: concurrent streams (RPCs) per client connection: a host link is one stream on a connection of its own, a
 #: control client needs a few (a watch, an event stream, a request); more are queued by the client's gRPC
 MAX_CONCURRENT_STREAMS = 64
+
+#: heartbeat datagrams (docs/transport.md, "Heartbeats as datagrams"): magic + serialized Envelope + MAC, the
+#: MAC being the first HB_MAC_BYTES of HMAC-SHA256 over magic + envelope, keyed by a key derived from the
+#: cluster token; anything larger than HB_MAX_DATAGRAM bytes is not a heartbeat and is dropped unread
+HB_MAGIC = b"HAAhb1"
+HB_MAC_BYTES = 16
+HB_MAX_DATAGRAM = 512
+
+
+def heartbeat_key(token: str) -> bytes:
+    """The MAC key of heartbeat datagrams (a hash of the token: the token itself never keys two things)."""
+    return hashlib.sha256(b"haa-heartbeat\0" + token.encode()).digest()
+
+
+def split_address(address: str) -> tuple[str, int] | None:
+    """("host", port) of "host:port" or "[v6]:port"; None if it has no numeric port."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    return host, int(port)
 
 
 def _varint(n: int) -> bytes:
@@ -189,6 +213,9 @@ class OutLink:
         self._channel: aio.Channel | None = None
         self._open: Any = None
         self._kicked = 0.0
+        #: where heartbeats go as datagrams (resolved at each handshake that announced a heartbeat port);
+        #: None: heartbeats travel on the stream
+        self.hb_addr: tuple[Any, ...] | None = None
 
     # ------------------------------------------------------------------ queueing (synchronous)
 
@@ -247,6 +274,7 @@ class OutLink:
         """The peer is now reached at `address`: drop the channel and reconnect there. The queues and the
         numbering stay (the receiver process, if it is the same, resends nothing twice)."""
         self.address = address
+        self.hb_addr = None
         old = self._channel
         self._channel = None
         if old is not None:
@@ -371,6 +399,9 @@ class OutLink:
                 raise LinkDown(f"{self.address} is {reply.receiver!r}, not {self.peer!r}")
             if reply.receiver_incarnation == 0:
                 raise LinkDown("handshake without receiver incarnation")
+            await self._resolve_heartbeats(reply.heartbeat_port)
+            if not self._current():
+                raise asyncio.CancelledError
             self._handshake(reply.receiver_incarnation, reply.acked_seq)
             self._next_write = self.base + len(self.unacked)
             self._gen += 1
@@ -393,6 +424,27 @@ class OutLink:
                 reader.cancel()
         finally:
             call.cancel()
+
+    async def _resolve_heartbeats(self, port: int) -> None:
+        """Send heartbeats as datagrams to the receiver's announced `port` at the address of this link
+        (looked up again at every handshake: a restarted container may have a new address), if both sides
+        have a heartbeat socket; on the stream otherwise."""
+        t = self.t
+        hp = split_address(self.address)
+        if not port or t._udp is None or hp is None:
+            self.hb_addr = None
+            return
+        try:
+            infos = await asyncio.get_running_loop().getaddrinfo(hp[0], port, family=t._udp_family,
+                                                                 type=socket.SOCK_DGRAM)
+        except OSError as e:
+            t.counters["hb_resolve_failed"] += 1
+            if t.limiter.allow("hbres." + self.peer):
+                log_event(log, logging.WARNING, "heartbeat_resolve_failed", peer=self.peer, address=self.address,
+                          reason=str(e))
+            self.hb_addr = None
+            return
+        self.hb_addr = infos[0][4] if infos else None
 
     def _handshake(self, inc: int, acked: int) -> None:
         t = self.t
@@ -565,6 +617,7 @@ class Transport:
         max_ahead: float = MAX_INCARNATION_AHEAD,
         live_window: float = LIVE_WINDOW,
         wall_ns: Callable[[], int] = time.time_ns,
+        datagram_heartbeats: bool = True,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
@@ -594,8 +647,91 @@ class Transport:
         self._rx: dict[str, _RxState] = {}
         self._inbound: dict[str, int] = Counter()  # open inbound streams per sender
         self._handlers: set[asyncio.Task[Any]] = set()  # tasks serving inbound streams
+        self._rx_tasks: dict[str, dict[asyncio.Task[Any], int]] = {}  # sender -> its stream tasks -> incarnation
+        self._ended: set[asyncio.Task[Any]] = set()  # stream tasks ended because the sender was superseded
         self._started = False
         self._closing = False
+        #: heartbeats as datagrams (`open_heartbeats`); the port is announced in every handshake
+        self.datagram_heartbeats = datagram_heartbeats
+        self.heartbeat_port = 0
+        self._hb_key = heartbeat_key(token)
+        self._udp: asyncio.DatagramTransport | None = None
+        self._udp_family = socket.AF_INET
+
+    # ------------------------------------------------------------------ heartbeat datagrams
+
+    async def open_heartbeats(self, host: str, port: int) -> int:
+        """Take heartbeat datagrams on UDP `host:port` (the gRPC server's port number; "" or "0.0.0.0" = every
+        address). Returns the port, or 0 when datagrams are off or the socket cannot be had (heartbeats then
+        travel on the streams, as a peer that never announced a port also gets them)."""
+        if not self.datagram_heartbeats:
+            return 0
+        if host in ("", "[::]", "::"):
+            host = "0.0.0.0"
+        host = host.strip("[]")
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        try:
+            transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+                lambda: _HeartbeatProtocol(self), local_addr=(host, port), family=family
+            )
+        except OSError as e:
+            self.counters["hb_socket_failed"] += 1
+            log_event(log, logging.WARNING, "heartbeat_socket_failed", address=f"{host}:{port}", reason=str(e))
+            return 0
+        self._udp = transport  # type: ignore[assignment]
+        self._udp_family = family
+        self.heartbeat_port = port
+        return port
+
+    def _send_datagram(self, link: OutLink, data: bytes) -> bool:
+        udp, addr = self._udp, link.hb_addr
+        if udp is None or addr is None:
+            return False
+        body = HB_MAGIC + data
+        try:
+            udp.sendto(body + hmac.new(self._hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES], addr)
+        except OSError:  # (asyncio reports send errors to the protocol; this is a closed transport)
+            self.counters["hb_send_failed"] += 1
+            return False
+        self.counters["tx_datagrams"] += 1
+        return True
+
+    def on_datagram(self, data: bytes, now: float | None = None) -> None:
+        """One UDP datagram. It is a heartbeat only if it carries the magic, the MAC under the cluster token,
+        a valid Envelope of a Heartbeat, and comes from the sender incarnation this host accepted a stream
+        from (the incarnation claims of the stream handshake cover heartbeats too); anything else is counted
+        and dropped. Stale and replayed heartbeats are the failure detector's to ignore (Alg. 1 l. 20)."""
+        c = self.counters
+        n = len(data)
+        if n > HB_MAX_DATAGRAM or n <= len(HB_MAGIC) + HB_MAC_BYTES or not data.startswith(HB_MAGIC):
+            c["hb_rejected_malformed"] += 1
+            return
+        body, mac = data[:-HB_MAC_BYTES], data[-HB_MAC_BYTES:]
+        if not hmac.compare_digest(mac, hmac.new(self._hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES]):
+            c["hb_rejected_unauthenticated"] += 1
+            return
+        try:
+            env = pb.Envelope.FromString(body[len(HB_MAGIC):])
+            src, src_inc, dst_inc, msg = wire.decode(env)
+        except (DecodeError, wire.WireError):
+            c["hb_rejected_malformed"] += 1
+            return
+        if type(msg) is not Heartbeat:
+            c["hb_rejected_malformed"] += 1
+            return
+        st = self._rx.get(src)
+        if st is None or st.inc != src_inc:
+            # no stream of this incarnation was accepted (yet), or a newer one was (a superseded process: its
+            # streams were ended when the newer one connected, so it learns of it when it reconnects)
+            c["hb_rejected_stale" if st is not None and src_inc < st.inc else "hb_rejected_unknown"] += 1
+            return
+        c["rx_msgs.heartbeat"] += 1
+        c["rx_bytes.heartbeat"] += n
+        c["rx_datagrams"] += 1
+        st.confirmed = True
+        st.heard = asyncio.get_running_loop().time() if now is None else now
+        st.period = min(msg.period, 10.0)  # type: ignore[attr-defined]
+        self.on_envelopes(src, src_inc, [(dst_inc, msg)])
 
     # ------------------------------------------------------------------ sending
 
@@ -616,6 +752,9 @@ class Transport:
         reconnect later), so that stopping the gRPC server afterwards has nothing left to cancel."""
         self._started = False
         self._closing = True
+        if self._udp is not None:
+            self._udp.close()
+            self._udp = None
         for task in list(self._handlers):
             task.cancel()
         for link in self.links.values():
@@ -663,6 +802,8 @@ class Transport:
         c = self.counters
         c["tx_msgs." + kind] += 1
         c["tx_bytes." + kind] += len(data)
+        if link.hb_addr is not None and type(msg) is Heartbeat and self._send_datagram(link, data):
+            return
         link.enqueue(dst_inc, envelope_chunk(data))
 
     def connected(self, peer: str) -> bool:
@@ -778,6 +919,15 @@ class Transport:
         if st is None or st.inc != inc:
             st = _RxState(inc)
             self._rx[sender] = st
+            # the streams of an older incarnation of the sender end now: the process behind them (if it still
+            # runs) reconnects, is refused as stale and learns it was superseded. (A frame on such a stream
+            # ended it too; but a silent process that only sends heartbeats, which are datagrams, would
+            # otherwise never hear of it.)
+            for other, other_inc in list(self._rx_tasks.get(sender, {}).items()):
+                if other_inc < inc:
+                    self.counters["link_superseded_streams"] += 1
+                    self._ended.add(other)
+                    other.cancel()
         st.streams += 1
         self._inbound[sender] += 1
         self.counters["link_accepts"] += 1
@@ -788,18 +938,23 @@ class Transport:
         task = asyncio.current_task()
         if task is not None:
             self._handlers.add(task)
+            self._rx_tasks.setdefault(sender, {})[task] = inc
         try:
             await context.write(
                 pb.LinkReply(
-                    receiver=self.name, receiver_incarnation=self.incarnation, acked_seq=st.last
+                    receiver=self.name,
+                    receiver_incarnation=self.incarnation,
+                    acked_seq=st.last,
+                    heartbeat_port=self.heartbeat_port,
                 ).SerializeToString()
             )
             acker = _Acker(self, context, st)
             await self._receive(request_iterator, sender, inc, st, acker)
         except asyncio.CancelledError:
-            if not self._closing:
+            if not self._closing and task not in self._ended:
                 raise
-            # shutting down: end the RPC normally rather than leave grpc a cancelled task to report
+            # shutting down, or a newer incarnation of the sender connected: end the RPC normally rather than
+            # leave grpc a cancelled task to report
         except Exception as e:  # a broken stream must never take the host down
             self.counters["link_receive_errors"] += 1
             log_event(log, logging.DEBUG, "link_receive_ended", sender=sender, reason=f"{type(e).__name__}: {e}")
@@ -808,6 +963,12 @@ class Transport:
                 acker.stop()
             if task is not None:
                 self._handlers.discard(task)
+                self._ended.discard(task)
+                tasks = self._rx_tasks.get(sender)
+                if tasks is not None:
+                    tasks.pop(task, None)
+                    if not tasks:
+                        del self._rx_tasks[sender]
             self._inbound[sender] -= 1
             st.streams -= 1
 
@@ -916,3 +1077,21 @@ class _Acker:
                     self.sent = last
                     t.counters["acks_sent"] += 1
                 await asyncio.sleep(t.ack_interval)
+
+
+class _HeartbeatProtocol(asyncio.DatagramProtocol):
+    """The heartbeat socket: every datagram goes to `Transport.on_datagram`; a failure there is counted and
+    never closes the socket."""
+
+    def __init__(self, t: Transport) -> None:
+        self.t = t
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        try:
+            self.t.on_datagram(data)
+        except Exception:  # the core's own errors are caught by the runtime; this is a safety net
+            self.t.counters["hb_receive_errors"] += 1
+            log.exception("heartbeat datagram failed", extra={"event": "heartbeat_error", "fields": {}})
+
+    def error_received(self, exc: Exception) -> None:  # e.g. ICMP port unreachable: the peer is down
+        self.t.counters["hb_send_errors"] += 1

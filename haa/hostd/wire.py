@@ -38,6 +38,7 @@ from haa.hostd.messages import (
     OacOrder,
     OacProposal,
     OacTransaction,
+    SeqWrite,
     SetPeriod,
     Sponsor,
     StateForward,
@@ -91,6 +92,7 @@ KIND: dict[type, str] = {
     StateSnapshot: "state_snapshot",
     StateForward: "state_forward",
     StateRequest: "state_request",
+    SeqWrite: "seq_write",
     AgentHostMsg: "agent_host",
 }
 #: longest address, lock key or group id accepted on the wire
@@ -228,6 +230,14 @@ def _enc_forward(env: pb.Envelope, m: StateForward) -> None:
     t.payload = m.payload
 
 
+def _enc_seq_write(env: pb.Envelope, m: SeqWrite) -> None:
+    t = env.seq_write
+    t.floor = m.floor
+    add = t.writes.add
+    for cseq, payload in m.writes:
+        add(cseq=cseq, payload=payload)
+
+
 def _enc_state_request(env: pb.Envelope, m: StateRequest) -> None:
     _set_txid(env.state_request.txid, m.txid)
 
@@ -259,6 +269,7 @@ _ENCODERS: dict[type, Callable[[pb.Envelope, object], None]] = {
     StateSnapshot: _enc_snapshot,  # type: ignore[dict-item]
     StateForward: _enc_forward,  # type: ignore[dict-item]
     StateRequest: _enc_state_request,  # type: ignore[dict-item]
+    SeqWrite: _enc_seq_write,  # type: ignore[dict-item]
     AgentHostMsg: _enc_agent_host,  # type: ignore[dict-item]
 }
 
@@ -463,6 +474,21 @@ def _dec_forward(env: pb.Envelope) -> StateForward:
     return StateForward(m.seq, _dec_txid(m, "state_forward", "txid"), m.payload)
 
 
+def _dec_seq_write(env: pb.Envelope) -> SeqWrite:
+    m = env.seq_write
+    writes = tuple((w.cseq, w.payload) for w in m.writes)
+    if not writes:
+        raise WireError("seq_write: no writes")
+    last = 0
+    for cseq, _ in writes:
+        if cseq <= last:  # numbered from 1, increasing: the origin's order
+            raise WireError("seq_write: cseqs must be positive and increasing")
+        last = cseq
+    if m.floor > writes[0][0]:
+        raise WireError("seq_write: floor above a write it carries")
+    return SeqWrite(m.floor, writes)
+
+
 def _dec_state_request(env: pb.Envelope) -> StateRequest:
     return StateRequest(_dec_txid(env.state_request, "state_request", "txid"))
 
@@ -495,6 +521,7 @@ _DECODERS: dict[str, Callable[[pb.Envelope], Message]] = {
     "state_snapshot": _dec_snapshot,
     "state_forward": _dec_forward,
     "state_request": _dec_state_request,
+    "seq_write": _dec_seq_write,
     "agent_host": _dec_agent_host,
 }
 

@@ -454,3 +454,31 @@ class AgentRequestReply(_message.Message):
     payload: bytes
     error: str
     def __init__(self, ok: _Optional[bool] = ..., payload: _Optional[bytes] = ..., error: _Optional[str] = ...) -> None: ...
+
+class DdbLoadRequest(_message.Message):
+    __slots__ = ("writers", "seconds", "value_bytes", "prefix", "start_at")
+    WRITERS_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_FIELD_NUMBER: _ClassVar[int]
+    VALUE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    PREFIX_FIELD_NUMBER: _ClassVar[int]
+    START_AT_FIELD_NUMBER: _ClassVar[int]
+    writers: int
+    seconds: float
+    value_bytes: int
+    prefix: str
+    start_at: float
+    def __init__(self, writers: _Optional[int] = ..., seconds: _Optional[float] = ..., value_bytes: _Optional[int] = ..., prefix: _Optional[str] = ..., start_at: _Optional[float] = ...) -> None: ...
+
+class DdbLoadReply(_message.Message):
+    __slots__ = ("committed", "failed", "latencies", "elapsed", "global_applied")
+    COMMITTED_FIELD_NUMBER: _ClassVar[int]
+    FAILED_FIELD_NUMBER: _ClassVar[int]
+    LATENCIES_FIELD_NUMBER: _ClassVar[int]
+    ELAPSED_FIELD_NUMBER: _ClassVar[int]
+    GLOBAL_APPLIED_FIELD_NUMBER: _ClassVar[int]
+    committed: int
+    failed: int
+    latencies: _containers.RepeatedScalarFieldContainer[float]
+    elapsed: float
+    global_applied: int
+    def __init__(self, committed: _Optional[int] = ..., failed: _Optional[int] = ..., latencies: _Optional[_Iterable[float]] = ..., elapsed: _Optional[float] = ..., global_applied: _Optional[int] = ...) -> None: ...

@@ -64,6 +64,11 @@ class HostControlStub:
                 request_serializer=haa_dot_pb_dot_control__pb2.DdbGetRequest.SerializeToString,
                 response_deserializer=haa_dot_pb_dot_control__pb2.DdbGetReply.FromString,
                 _registered_method=True)
+        self.DdbLoad = channel.unary_unary(
+                '/haa.v1.HostControl/DdbLoad',
+                request_serializer=haa_dot_pb_dot_control__pb2.DdbLoadRequest.SerializeToString,
+                response_deserializer=haa_dot_pb_dot_control__pb2.DdbLoadReply.FromString,
+                _registered_method=True)
         self.Mirror = channel.unary_stream(
                 '/haa.v1.HostControl/Mirror',
                 request_serializer=haa_dot_pb_dot_control__pb2.MirrorRequest.SerializeToString,
@@ -155,6 +160,12 @@ class HostControlServicer:
         raise NotImplementedError('Method not implemented!')
 
     def DdbGet(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def DdbLoad(self, request, context):
         """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -258,6 +269,11 @@ def add_HostControlServicer_to_server(servicer, server):
                     servicer.DdbGet,
                     request_deserializer=haa_dot_pb_dot_control__pb2.DdbGetRequest.FromString,
                     response_serializer=haa_dot_pb_dot_control__pb2.DdbGetReply.SerializeToString,
+            ),
+            'DdbLoad': grpc.unary_unary_rpc_method_handler(
+                    servicer.DdbLoad,
+                    request_deserializer=haa_dot_pb_dot_control__pb2.DdbLoadRequest.FromString,
+                    response_serializer=haa_dot_pb_dot_control__pb2.DdbLoadReply.SerializeToString,
             ),
             'Mirror': grpc.unary_stream_rpc_method_handler(
                     servicer.Mirror,
@@ -477,6 +493,33 @@ class HostControl:
             '/haa.v1.HostControl/DdbGet',
             haa_dot_pb_dot_control__pb2.DdbGetRequest.SerializeToString,
             haa_dot_pb_dot_control__pb2.DdbGetReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DdbLoad(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/haa.v1.HostControl/DdbLoad',
+            haa_dot_pb_dot_control__pb2.DdbLoadRequest.SerializeToString,
+            haa_dot_pb_dot_control__pb2.DdbLoadReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -53,20 +53,54 @@ class GroupFormation(_message.Message):
     def __init__(self, proposer: _Optional[_Union[GroupProc, _Mapping]] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ...) -> None: ...
 
 class GroupTx(_message.Message):
-    __slots__ = ("remove", "membership", "formation", "ddb", "test", "agent")
+    __slots__ = ("remove", "membership", "formation", "ddb", "test", "agent", "seq")
     REMOVE_FIELD_NUMBER: _ClassVar[int]
     MEMBERSHIP_FIELD_NUMBER: _ClassVar[int]
     FORMATION_FIELD_NUMBER: _ClassVar[int]
     DDB_FIELD_NUMBER: _ClassVar[int]
     TEST_FIELD_NUMBER: _ClassVar[int]
     AGENT_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
     remove: GroupRemove
     membership: GroupMembership
     formation: GroupFormation
     ddb: bytes
     test: bytes
     agent: bytes
-    def __init__(self, remove: _Optional[_Union[GroupRemove, _Mapping]] = ..., membership: _Optional[_Union[GroupMembership, _Mapping]] = ..., formation: _Optional[_Union[GroupFormation, _Mapping]] = ..., ddb: _Optional[bytes] = ..., test: _Optional[bytes] = ..., agent: _Optional[bytes] = ...) -> None: ...
+    seq: SeqBatch
+    def __init__(self, remove: _Optional[_Union[GroupRemove, _Mapping]] = ..., membership: _Optional[_Union[GroupMembership, _Mapping]] = ..., formation: _Optional[_Union[GroupFormation, _Mapping]] = ..., ddb: _Optional[bytes] = ..., test: _Optional[bytes] = ..., agent: _Optional[bytes] = ..., seq: _Optional[_Union[SeqBatch, _Mapping]] = ...) -> None: ...
+
+class SeqEntry(_message.Message):
+    __slots__ = ("origin", "origin_incarnation", "cseq", "floor", "tx")
+    ORIGIN_FIELD_NUMBER: _ClassVar[int]
+    ORIGIN_INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    CSEQ_FIELD_NUMBER: _ClassVar[int]
+    FLOOR_FIELD_NUMBER: _ClassVar[int]
+    TX_FIELD_NUMBER: _ClassVar[int]
+    origin: str
+    origin_incarnation: int
+    cseq: int
+    floor: int
+    tx: bytes
+    def __init__(self, origin: _Optional[str] = ..., origin_incarnation: _Optional[int] = ..., cseq: _Optional[int] = ..., floor: _Optional[int] = ..., tx: _Optional[bytes] = ...) -> None: ...
+
+class SeqBatch(_message.Message):
+    __slots__ = ("entries",)
+    ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    entries: _containers.RepeatedCompositeFieldContainer[SeqEntry]
+    def __init__(self, entries: _Optional[_Iterable[_Union[SeqEntry, _Mapping]]] = ...) -> None: ...
+
+class SeqOrigin(_message.Message):
+    __slots__ = ("name", "incarnation", "floor", "done")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    FLOOR_FIELD_NUMBER: _ClassVar[int]
+    DONE_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    incarnation: int
+    floor: int
+    done: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, name: _Optional[str] = ..., incarnation: _Optional[int] = ..., floor: _Optional[int] = ..., done: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class AppliedTx(_message.Message):
     __slots__ = ("host", "incarnation", "seq", "applied_seq")
@@ -81,7 +115,7 @@ class AppliedTx(_message.Message):
     def __init__(self, host: _Optional[str] = ..., incarnation: _Optional[int] = ..., seq: _Optional[int] = ..., applied_seq: _Optional[int] = ...) -> None: ...
 
 class GlobalSnapshot(_message.Message):
-    __slots__ = ("seq", "view", "members", "group_correct", "core_members", "ddb", "recent", "chain", "genesis", "agents")
+    __slots__ = ("seq", "view", "members", "group_correct", "core_members", "ddb", "recent", "chain", "genesis", "agents", "seq_origins")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     VIEW_FIELD_NUMBER: _ClassVar[int]
     MEMBERS_FIELD_NUMBER: _ClassVar[int]
@@ -92,6 +126,7 @@ class GlobalSnapshot(_message.Message):
     CHAIN_FIELD_NUMBER: _ClassVar[int]
     GENESIS_FIELD_NUMBER: _ClassVar[int]
     AGENTS_FIELD_NUMBER: _ClassVar[int]
+    SEQ_ORIGINS_FIELD_NUMBER: _ClassVar[int]
     seq: int
     view: int
     members: _containers.RepeatedCompositeFieldContainer[GroupMember]
@@ -102,4 +137,5 @@ class GlobalSnapshot(_message.Message):
     chain: str
     genesis: str
     agents: bytes
-    def __init__(self, seq: _Optional[int] = ..., view: _Optional[int] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ..., group_correct: _Optional[bool] = ..., core_members: _Optional[_Iterable[str]] = ..., ddb: _Optional[bytes] = ..., recent: _Optional[_Iterable[_Union[AppliedTx, _Mapping]]] = ..., chain: _Optional[str] = ..., genesis: _Optional[str] = ..., agents: _Optional[bytes] = ...) -> None: ...
+    seq_origins: _containers.RepeatedCompositeFieldContainer[SeqOrigin]
+    def __init__(self, seq: _Optional[int] = ..., view: _Optional[int] = ..., members: _Optional[_Iterable[_Union[GroupMember, _Mapping]]] = ..., group_correct: _Optional[bool] = ..., core_members: _Optional[_Iterable[str]] = ..., ddb: _Optional[bytes] = ..., recent: _Optional[_Iterable[_Union[AppliedTx, _Mapping]]] = ..., chain: _Optional[str] = ..., genesis: _Optional[str] = ..., agents: _Optional[bytes] = ..., seq_origins: _Optional[_Iterable[_Union[SeqOrigin, _Mapping]]] = ...) -> None: ...

@@ -198,8 +198,24 @@ class AgentHost(_message.Message):
     data: bytes
     def __init__(self, kind: _Optional[str] = ..., agent: _Optional[str] = ..., epoch: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
 
+class SeqWrite(_message.Message):
+    __slots__ = ("floor", "writes")
+    FLOOR_FIELD_NUMBER: _ClassVar[int]
+    WRITES_FIELD_NUMBER: _ClassVar[int]
+    floor: int
+    writes: _containers.RepeatedCompositeFieldContainer[SeqWriteEntry]
+    def __init__(self, floor: _Optional[int] = ..., writes: _Optional[_Iterable[_Union[SeqWriteEntry, _Mapping]]] = ...) -> None: ...
+
+class SeqWriteEntry(_message.Message):
+    __slots__ = ("cseq", "payload")
+    CSEQ_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    cseq: int
+    payload: bytes
+    def __init__(self, cseq: _Optional[int] = ..., payload: _Optional[bytes] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request", "agent_host")
+    __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request", "agent_host", "seq_write")
     SENDER_FIELD_NUMBER: _ClassVar[int]
     SENDER_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     DEST_INCARNATION_FIELD_NUMBER: _ClassVar[int]
@@ -222,6 +238,7 @@ class Envelope(_message.Message):
     STATE_FORWARD_FIELD_NUMBER: _ClassVar[int]
     STATE_REQUEST_FIELD_NUMBER: _ClassVar[int]
     AGENT_HOST_FIELD_NUMBER: _ClassVar[int]
+    SEQ_WRITE_FIELD_NUMBER: _ClassVar[int]
     sender: str
     sender_incarnation: int
     dest_incarnation: int
@@ -244,7 +261,8 @@ class Envelope(_message.Message):
     state_forward: StateForward
     state_request: StateRequest
     agent_host: AgentHost
-    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ..., agent_host: _Optional[_Union[AgentHost, _Mapping]] = ...) -> None: ...
+    seq_write: SeqWrite
+    def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ..., agent_host: _Optional[_Union[AgentHost, _Mapping]] = ..., seq_write: _Optional[_Union[SeqWrite, _Mapping]] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("first_seq", "envelopes")
@@ -255,11 +273,13 @@ class Frame(_message.Message):
     def __init__(self, first_seq: _Optional[int] = ..., envelopes: _Optional[_Iterable[_Union[Envelope, _Mapping]]] = ...) -> None: ...
 
 class LinkReply(_message.Message):
-    __slots__ = ("receiver", "receiver_incarnation", "acked_seq")
+    __slots__ = ("receiver", "receiver_incarnation", "acked_seq", "heartbeat_port")
     RECEIVER_FIELD_NUMBER: _ClassVar[int]
     RECEIVER_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     ACKED_SEQ_FIELD_NUMBER: _ClassVar[int]
+    HEARTBEAT_PORT_FIELD_NUMBER: _ClassVar[int]
     receiver: str
     receiver_incarnation: int
     acked_seq: int
-    def __init__(self, receiver: _Optional[str] = ..., receiver_incarnation: _Optional[int] = ..., acked_seq: _Optional[int] = ...) -> None: ...
+    heartbeat_port: int
+    def __init__(self, receiver: _Optional[str] = ..., receiver_incarnation: _Optional[int] = ..., acked_seq: _Optional[int] = ..., heartbeat_port: _Optional[int] = ...) -> None: ...
