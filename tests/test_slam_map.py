@@ -216,3 +216,13 @@ def test_landmark_map_keeps_the_shared_pose_error():
     assert len(one.get(3).sources) == 2
     with pytest.raises(ValueError, match="window"):
         LandmarkMap(window=0.0)
+
+
+def test_landmark_gate_skips_outlying_sightings():
+    """A sighting 1 m off a landmark known to ±5 cm is not fused when the gate is on, and is without it."""
+    cov = np.diag([0.0025, 0.0025])
+    for gate, moved in ((13.82, False), (None, True)):
+        m = LandmarkMap(gate=gate)
+        m.fuse(1, np.array([0.0, 0.0]), cov, 0.0, "a", 0.0)
+        m.fuse(1, np.array([1.0, 0.0]), cov, 0.0, "b", 0.0)
+        assert (m.get(1).mean[0] > 0.1) == moved and m.gated == (0 if moved else 1)

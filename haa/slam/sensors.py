@@ -428,23 +428,30 @@ class LandmarkMap:
     error parts: the sensor's (range and bearing noise: independent from sighting to sighting) and the
     observer's pose error (the particle scatter), which one avatar's sightings *share* — fusing them as
     independent measurements (a plain Kalman update) made the map ten to a hundred times too sure of itself.
-    So the map keeps one `Contribution` per *source* — an avatar within a time window of `window` seconds
-    (by the sighting's time, so the result does not depend on the processing order) — in which sightings
+    So the map keeps one `Contribution` per *source* — an avatar (default `window=inf`), or an avatar within
+    a time window of `window` seconds (by the sighting's time, so the result does not depend on the
+    processing order) — in which sightings
     are accumulated in information form but the pose part is treated as fully correlated (a floor that
     does not shrink with more sightings), and the landmark estimate is the information-weighted fusion of
     its sources' estimates, which are taken as independent (different avatars, or one avatar minutes
     apart, have largely independent pose errors). With `window=None` every sighting is its own source:
-    the plain Kalman fusion the library used before.
+    the plain Kalman fusion the library used before. `gate`: a chi-square threshold on the innovation
+    (z − mean under the sighting's + the estimate's covariance); a sighting beyond it is not fused
+    (counted in `gated`).
 
     The map is still one shared map of the team (thesis §5.2.3, kept in the DDB by the control system):
     a source's contribution is a small record (seven numbers) written by one avatar's SLAM agent, and the
     estimate is their fusion, recomputed by whoever reads a landmark.
     """
 
-    def __init__(self, window: float | None = 60.0) -> None:
+    def __init__(self, window: float | None = math.inf, gate: float | None = None) -> None:
         if window is not None and not window > 0:
             raise ValueError(f"window: must be > 0 s or None, got {window}")
+        if gate is not None and not gate > 0:
+            raise ValueError(f"gate: must be > 0 or None, got {gate}")
         self.window = window
+        self.gate = gate
+        self.gated = 0  # sightings not fused: innovation beyond the gate
         self.landmarks: dict[int, Landmark] = {}
         self._n = 0
 
@@ -467,6 +474,8 @@ class LandmarkMap:
         if self.window is None:
             self._n += 1
             key = ("", self._n)
+        elif math.isinf(self.window):
+            key = (avatar, 0)
         else:
             key = (avatar, math.floor(t / self.window))
         z = (float(mean[0]), float(mean[1]))
@@ -480,6 +489,12 @@ class LandmarkMap:
                 np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]), 1, {key: src}
             )
             return
+        if self.gate is not None:  # chi-square gate on the innovation (2 dof)
+            ex, ey = z[0] - float(lm.mean[0]), z[1] - float(lm.mean[1])
+            sxx, syy, sxy = c[0] + float(lm.cov[0, 0]), c[1] + float(lm.cov[1, 1]), c[2] + float(lm.cov[0, 1])
+            if (syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / (sxx * syy - sxy * sxy) > self.gate:
+                self.gated += 1
+                return
         src = lm.sources.get(key)
         if src is None:
             src = lm.sources[key] = Contribution()

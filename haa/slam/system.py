@@ -50,9 +50,15 @@ class SlamConfig:
     landmark: LandmarkModel = field(default_factory=LandmarkModel)
     cooccupancy: CooccupancyModel = field(default_factory=CooccupancyModel)
     floor: FloorModel = field(default_factory=FloorModel)
-    #: seconds within which one avatar's landmark sightings share their pose error (LandmarkMap; None: the
-    #: plain Kalman fusion of every sighting as independent, the library's model before issue 16)
-    landmark_window: float | None = 60.0
+    #: seconds within which one avatar's landmark sightings share their pose error (LandmarkMap; inf: one
+    #: source per avatar; None: the plain Kalman fusion of every sighting as independent, the library's
+    #: model before issue 16). 60 s windows let a 27-min mission pile up ~100 sources per landmark and made
+    #: the map overconfident again (docs/slam.md), so the default is one source per avatar.
+    landmark_window: float | None = math.inf
+    #: chi-square (2 dof) gate on a sighting's innovation before it is fused into the landmark map (None:
+    #: off); 13.82 = the 99.9 % quantile. With honest covariances a sighting beyond it comes from a lost
+    #: avatar (its density is still applied: it is what re-localizes the avatar)
+    landmark_gate: float | None = 13.82
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:
@@ -80,7 +86,7 @@ class SlamSystem:
         self.grid = OccupancyGrid(grid)
         for m in (self.config.sonar, self.config.cooccupancy, self.config.floor):
             m.resolution = grid.resolution
-        self.landmarks = LandmarkMap(self.config.landmark_window)
+        self.landmarks = LandmarkMap(self.config.landmark_window, self.config.landmark_gate)
         self.filters: dict[str, ParticleFilter] = {}
         self.seed = seed
         self.processed: dict[str, int] = {}
