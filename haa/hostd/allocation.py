@@ -41,6 +41,8 @@ In short:
   unchanged since (l. 94 accepts unconditionally). Both depend only on the total order.
 * hardware: a host bids only for agents whose hardware it has; agents no host of the group can run are
   reported as `unallocatable` and left out of the consensus check (otherwise the session never ends).
+* per-host limits (issue 15, not in the thesis): a host bids for at most `max_per_host` agents of a limited
+  kind; the agents of a kind beyond its places in the group are unallocatable like a hardware mismatch.
 
 The class does no I/O, reads no clock and uses no randomness; iteration orders are those of its inputs.
 """
@@ -69,6 +71,10 @@ MIN_CAPACITY = 1e-3
 MAX_AFFINITY = 1000.0
 #: longest agent id, host name and hardware name
 MAX_NAME = 64
+#: largest per-host limit an agent type may declare (`AgentSpec.max_per_host`; 0 = unlimited). Issue 15:
+#: SupervisorSLAM runs "at most one sensor agent of each type per host" (thesis App. III); the bound only keeps
+#: the number a count
+MAX_PER_HOST = 1000
 
 # --------------------------------------------------------------------------------------------- problem data
 
@@ -96,7 +102,12 @@ def _name(x: object, what: str) -> str:
 class AgentSpec:
     """One agent a_i of §4.7: id, processing cost c_i (>= 0, in units of host capacity), required hardware
     Q_i, affinities A_i (other agent id -> alpha_ij >= 0), transfer penalty t_i in [0, 1] and the host that runs
-    it now (L_h membership; None: not running yet)."""
+    it now (L_h membership; None: not running yet).
+
+    `kind` and `max_per_host` (not in the thesis; issue 15): at most `max_per_host` agents of the same `kind`
+    (its agent type) on one host, 0 = no limit. Every agent of a limited kind in a session must declare the same
+    limit and hardware (`SessionStart` refuses others; the agent table refuses such a create), so which agents
+    of a kind can be placed is a count (docs/allocation.md, "per-host limits")."""
 
     id: str
     cost: float
@@ -104,9 +115,18 @@ class AgentSpec:
     affinity: Mapping[str, float] = field(default_factory=dict)
     transfer_penalty: float = 0.0
     current_host: str | None = None
+    kind: str = ""
+    max_per_host: int = 0
 
     def __post_init__(self) -> None:
         _name(self.id, "AgentSpec.id")
+        m = self.max_per_host
+        if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= MAX_PER_HOST:
+            raise ValueError(f"AgentSpec({self.id}).max_per_host: must be an integer in [0, {MAX_PER_HOST}], got {m!r}")
+        if not isinstance(self.kind, str) or len(self.kind) > MAX_NAME:
+            raise ValueError(f"AgentSpec({self.id}).kind: must be a string of at most {MAX_NAME} characters")
+        if m and not self.kind:
+            raise ValueError(f"AgentSpec({self.id}).kind: an agent with a per-host limit must name its kind")
         object.__setattr__(self, "cost", _finite(self.cost, f"AgentSpec({self.id}).cost", 0.0, MAX_COST))
         pen = _finite(self.transfer_penalty, f"AgentSpec({self.id}).transfer_penalty", 0.0, 1.0)
         object.__setattr__(self, "transfer_penalty", pen)
@@ -126,7 +146,16 @@ class AgentSpec:
 
     def __hash__(self) -> int:
         return hash(
-            (self.id, self.cost, self.hardware, tuple(self.affinity.items()), self.transfer_penalty, self.current_host)
+            (
+                self.id,
+                self.cost,
+                self.hardware,
+                tuple(self.affinity.items()),
+                self.transfer_penalty,
+                self.current_host,
+                self.kind,
+                self.max_per_host,
+            )
         )
 
     def __repr__(self) -> str:
@@ -139,6 +168,8 @@ def _repr_sorted_hardware(spec: AgentSpec | HostSpec) -> str:
     parts = []
     for f in dataclasses.fields(spec):
         v = getattr(spec, f.name)
+        if f.name in ("kind", "max_per_host") and not v:
+            continue  # left out when unset, so that the traces of schedules without limits keep their hashes
         parts.append(f"{f.name}={sorted(v) if f.name == 'hardware' else repr(v)}")
     return f"{type(spec).__name__}({', '.join(parts)})"
 
@@ -205,6 +236,9 @@ class SessionStart:
         missing = [g for g in self.group if g not in names]
         if missing:
             raise ValueError(f"SessionStart.hosts: no HostSpec for group member(s) {missing}")
+        why = limit_conflict(self.agents)
+        if why:
+            raise ValueError(f"SessionStart.agents: {why}")
 
     @property
     def agent_ids(self) -> tuple[str, ...]:
@@ -217,9 +251,62 @@ class SessionStart:
         raise KeyError(name)
 
     def unallocatable(self) -> tuple[str, ...]:
-        """Agents no host of the group can run (hardware, draining): left out of the allocation."""
+        """Agents no host of the group can run (hardware, draining), and agents of a limited kind beyond the
+        kind's places in the group (`max_per_host` x capable members): left out of the allocation. Depends only
+        on the start, so every host computes the same list."""
         hs = [self.host(g) for g in self.group]
-        return tuple(a.id for a in self.agents if not any(h.can_run(a) for h in hs))
+        out = {a.id for a in self.agents if not any(h.can_run(a) for h in hs)}
+        out.update(over_limit(self.agents, hs, out))
+        return tuple(a.id for a in self.agents if a.id in out)
+
+
+def limit_conflict(agents: Iterable[AgentSpec]) -> str:
+    """'' when the agents of every limited kind agree on the limit and the hardware, else the reason. With the
+    same hardware every agent of a kind has the same capable hosts, so `max_per_host` x their number places
+    are all there is to count, and any greedy auction fills them (issue 15, docs/allocation.md)."""
+    first: dict[str, AgentSpec] = {}
+    for a in agents:
+        if not a.kind:
+            continue
+        f = first.setdefault(a.kind, a)
+        if f.max_per_host != a.max_per_host or (a.max_per_host and f.hardware != a.hardware):
+            return (
+                f"agents {f.id} and {a.id} of kind {a.kind!r} declare different per-host limits or hardware "
+                f"({f.max_per_host}, {sorted(f.hardware)} / {a.max_per_host}, {sorted(a.hardware)})"
+            )
+    return ""
+
+
+def over_limit(agents: Iterable[AgentSpec], hosts: Iterable[HostSpec], skip: Iterable[str] = ()) -> list[str]:
+    """The agents of limited kinds that find no place: a kind has `max_per_host` places on every host that can
+    run it (hardware, not draining). Agents already running on a capable host keep their place first (at most
+    `max_per_host` per host, so a rebalance never evicts a running agent for a new one), then the others in the
+    session's agent order. `skip`: agents already unallocatable."""
+    hs = list(hosts)
+    gone = set(skip)
+    kinds: dict[str, list[AgentSpec]] = {}
+    for a in agents:
+        if a.max_per_host and a.id not in gone:
+            kinds.setdefault(a.kind, []).append(a)
+    out: list[str] = []
+    for members in kinds.values():
+        limit = members[0].max_per_host
+        capable = {h.name for h in hs if h.can_run(members[0])}
+        places = limit * len(capable)
+        if len(members) <= places:
+            continue
+        seated: dict[str, int] = {}
+        first: list[AgentSpec] = []
+        rest: list[AgentSpec] = []
+        for a in members:
+            h = a.current_host
+            if h is not None and h in capable and seated.get(h, 0) < limit:
+                seated[h] = seated.get(h, 0) + 1
+                first.append(a)
+            else:
+                rest.append(a)
+        out += [a.id for a in (first + rest)[places:]]
+    return out
 
 
 class Bid(NamedTuple):
@@ -529,6 +616,7 @@ class _Session:
         self.spec: HostSpec | None = None
         self.eligible: tuple[str, ...] = ()
         self.exclusive: frozenset[str] = frozenset()
+        self.limits: dict[str, tuple[str, int]] = {}  # agent -> (kind, max_per_host), limited eligible agents
         self.rev: dict[str, list[tuple[str, float]]] = {}  # j -> [(i, alpha_ij)]: who gains from j
         self.nbrs: dict[str, tuple[str, ...]] = {}  # affinity (either way) among eligible agents
         self.clusters: list[_Cluster] | None = None  # enumerated at the first build
@@ -584,7 +672,12 @@ class _Session:
         self.unallocatable = start.unallocatable()
         self.allocatable = frozenset(self.agents) - frozenset(self.unallocatable)
         spec = self.spec
-        self.eligible = tuple(a.id for a in start.agents if spec is not None and spec.can_run(a))
+        unalloc = frozenset(self.unallocatable)  # an agent left out for its kind's limit gets no bid either
+        self.eligible = tuple(
+            a.id for a in start.agents if spec is not None and spec.can_run(a) and a.id not in unalloc
+        )
+        # per-host limits (issue 15): eligible agent -> (kind, max_per_host)
+        self.limits = {a.id: (a.kind, a.max_per_host) for a in start.agents if a.max_per_host and a.id in self.eligible}
         hosts = [start.host(g) for g in start.group]
         self.exclusive = frozenset(  # agents only this host of the group can run
             a.id for a in start.agents if a.id in self.eligible and sum(h.can_run(a) for h in hosts) == 1
@@ -616,6 +709,18 @@ class _Session:
         self.mismatch = sum(
             1 for q in self.others for j in self.agents if not same_bid(self.row_bid(q, j), self.bid(j))
         )
+
+
+def _within_limits(cluster: tuple[str, ...], limits: Mapping[str, tuple[str, int]], held: Mapping[str, int]) -> bool:
+    """A cluster bid keeps every limited kind within its per-host limit on top of the bundle's `held`."""
+    add: dict[str, int] = {}
+    for i in cluster:
+        kl = limits.get(i)
+        if kl is not None:
+            n = add[kl[0]] = add.get(kl[0], 0) + 1
+            if held.get(kl[0], 0) + n > kl[1]:
+                return False
+    return True
 
 
 # --------------------------------------------------------------------------------------------- allocator
@@ -949,12 +1054,24 @@ class Allocator:
         clusters = self._clusters(s, in_bundle)  # once per build; those that lose a member are skipped
         excl = s.exclusive if self.RESERVE else frozenset()
         warp = self.WARP
+        # per-host limits (issue 15): agents of each limited kind in the bundle; a kind at its limit gets no
+        # further bid from this host (a constraint on the bundle alone, like CBBA's bundle length L_t: it only
+        # removes candidates, so marginal gains still diminish)
+        limits = s.limits if self.PER_HOST_LIMIT else {}
+        held: dict[str, int] = {}
+        for a in in_bundle:
+            kl = limits.get(a)
+            if kl is not None:
+                held[kl[0]] = held.get(kl[0], 0) + 1
         while True:
             prev = s.bundle[-1] if s.bundle and warp else None
             pkey = _vals_key(prev.reward, prev.support) if prev is not None else None
             best: tuple[tuple[int, float, float], tuple[str, ...], float, float] | None = None
             for i in s.eligible:
                 if i in in_bundle:
+                    continue
+                kl = limits.get(i)
+                if kl is not None and held.get(kl[0], 0) >= kl[1]:
                     continue
                 a = agents[i]
                 reward = (a.cost + bonus[i]) * factor[i] + back[i]
@@ -974,6 +1091,8 @@ class Allocator:
                 support = (k - used - c.cost) / k
                 if support <= 0.0:  # the whole cluster must fit
                     continue
+                if limits and not _within_limits(cl, limits, held):
+                    continue
                 reward = 0.0
                 for i, inner in zip(cl, c.inner, strict=True):
                     reward += (agents[i].cost + bonus[i] + inner) * factor[i] + back[i]
@@ -992,12 +1111,19 @@ class Allocator:
             s.bundle.append(_Entry(chosen, reward, support))
             for i in chosen:  # step 3c i-iii
                 in_bundle.add(i)
+                kl = limits.get(i)
+                if kl is not None:
+                    held[kl[0]] = held.get(kl[0], 0) + 1
                 if i not in excl:
                     used += agents[i].cost
                 self._add_bonus(s, i, bonus, back, factor)
                 b = Bid(i, me, reward, support, s.r)
                 s.set_own(i, b)
                 s.outbox[i] = b
+
+    #: a host bids for no more agents of a limited kind than its `max_per_host` (issue 15; off only in the
+    #: verifier's deliberately broken variant `ignore-per-host-limit`)
+    PER_HOST_LIMIT = True
 
     #: a winning bid must also beat every bid another member last claimed for itself (docs/allocation.md)
     BEAT_CLAIMS = True

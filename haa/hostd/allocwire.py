@@ -102,6 +102,8 @@ def encode_start(st: SessionStart) -> bytes:
             hardware=sorted(a.hardware),
             transfer_penalty=a.transfer_penalty,
             current_host=a.current_host or "",
+            kind=a.kind,
+            max_per_host=a.max_per_host,
         )
         for k, v in a.affinity.items():
             pa.affinity.add(agent=k, alpha=v)
@@ -123,7 +125,16 @@ def decode_start(data: bytes) -> SessionStart:
             aff[x.agent] = x.alpha
         try:
             agents.append(
-                AgentSpec(a.id, a.cost, frozenset(a.hardware), aff, a.transfer_penalty, a.current_host or None)
+                AgentSpec(
+                    a.id,
+                    a.cost,
+                    frozenset(a.hardware),
+                    aff,
+                    a.transfer_penalty,
+                    a.current_host or None,
+                    a.kind,
+                    a.max_per_host,
+                )
             )
         except ValueError as e:
             raise AllocWireError(f"{w}: {e}") from None

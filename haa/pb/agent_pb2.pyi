@@ -255,7 +255,7 @@ class ForkServerRequest(_message.Message):
     def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., agent_id: _Optional[str] = ..., log_path: _Optional[str] = ..., exec: _Optional[bool] = ..., validate: _Optional[bool] = ..., config_size: _Optional[int] = ...) -> None: ...
 
 class AgentTypeInfo(_message.Message):
-    __slots__ = ("type_name", "cost", "hardware", "transfer_penalty", "recovery", "module", "has_config", "memory_limit_mb", "cpu_limit")
+    __slots__ = ("type_name", "cost", "hardware", "transfer_penalty", "recovery", "module", "has_config", "memory_limit_mb", "cpu_limit", "max_per_host")
     TYPE_NAME_FIELD_NUMBER: _ClassVar[int]
     COST_FIELD_NUMBER: _ClassVar[int]
     HARDWARE_FIELD_NUMBER: _ClassVar[int]
@@ -265,6 +265,7 @@ class AgentTypeInfo(_message.Message):
     HAS_CONFIG_FIELD_NUMBER: _ClassVar[int]
     MEMORY_LIMIT_MB_FIELD_NUMBER: _ClassVar[int]
     CPU_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    MAX_PER_HOST_FIELD_NUMBER: _ClassVar[int]
     type_name: str
     cost: float
     hardware: _containers.RepeatedScalarFieldContainer[str]
@@ -274,7 +275,8 @@ class AgentTypeInfo(_message.Message):
     has_config: bool
     memory_limit_mb: int
     cpu_limit: float
-    def __init__(self, type_name: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., module: _Optional[str] = ..., has_config: _Optional[bool] = ..., memory_limit_mb: _Optional[int] = ..., cpu_limit: _Optional[float] = ...) -> None: ...
+    max_per_host: int
+    def __init__(self, type_name: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., module: _Optional[str] = ..., has_config: _Optional[bool] = ..., memory_limit_mb: _Optional[int] = ..., cpu_limit: _Optional[float] = ..., max_per_host: _Optional[int] = ...) -> None: ...
 
 class ForkServerEvent(_message.Message):
     __slots__ = ("ready", "reply", "exit")

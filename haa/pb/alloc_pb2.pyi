@@ -39,20 +39,24 @@ class AllocAffinity(_message.Message):
     def __init__(self, agent: _Optional[str] = ..., alpha: _Optional[float] = ...) -> None: ...
 
 class AllocAgent(_message.Message):
-    __slots__ = ("id", "cost", "hardware", "affinity", "transfer_penalty", "current_host")
+    __slots__ = ("id", "cost", "hardware", "affinity", "transfer_penalty", "current_host", "kind", "max_per_host")
     ID_FIELD_NUMBER: _ClassVar[int]
     COST_FIELD_NUMBER: _ClassVar[int]
     HARDWARE_FIELD_NUMBER: _ClassVar[int]
     AFFINITY_FIELD_NUMBER: _ClassVar[int]
     TRANSFER_PENALTY_FIELD_NUMBER: _ClassVar[int]
     CURRENT_HOST_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    MAX_PER_HOST_FIELD_NUMBER: _ClassVar[int]
     id: str
     cost: float
     hardware: _containers.RepeatedScalarFieldContainer[str]
     affinity: _containers.RepeatedCompositeFieldContainer[AllocAffinity]
     transfer_penalty: float
     current_host: str
-    def __init__(self, id: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., affinity: _Optional[_Iterable[_Union[AllocAffinity, _Mapping]]] = ..., transfer_penalty: _Optional[float] = ..., current_host: _Optional[str] = ...) -> None: ...
+    kind: str
+    max_per_host: int
+    def __init__(self, id: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., affinity: _Optional[_Iterable[_Union[AllocAffinity, _Mapping]]] = ..., transfer_penalty: _Optional[float] = ..., current_host: _Optional[str] = ..., kind: _Optional[str] = ..., max_per_host: _Optional[int] = ...) -> None: ...
 
 class AllocHost(_message.Message):
     __slots__ = ("name", "capacity", "hardware", "draining")
