@@ -157,3 +157,70 @@ def test_the_wire_carries_kind_and_limit_and_refuses_bad_ones():
     m.agents[1].max_per_host = 5000
     with pytest.raises(allocwire.AllocWireError, match="max_per_host"):
         allocwire.decode_start(m.SerializeToString())
+
+
+# ------------------------------------------------------------------------------------------ the agent table
+
+
+def _create(aid, type_="sonar", limit=1, hw=()):
+    from haa.pb import agenttx_pb2 as apb
+
+    tx = apb.AgentTx()
+    c = tx.create
+    c.id, c.type, c.recovery, c.cost, c.max_per_host = aid, type_, "backup", 0.1, limit
+    c.hardware.extend(hw)
+    return tx.SerializeToString()
+
+
+def test_the_table_refuses_bad_limits_and_disagreeing_creates_on_every_replica():
+    from haa.hostd import agenttable as at
+
+    t1, t2 = at.AgentTable(), at.AgentTable()
+    for t in (t1, t2):
+        assert t.apply(_create("s1"), ("h1",)).ok
+        bad = t.apply(_create("s2", limit=2), ("h1",))
+        assert not bad.ok and "same max_per_host and hardware" in bad.reason
+        bad = t.apply(_create("s3", hw=("camera",)), ("h1",))
+        assert not bad.ok and "same max_per_host and hardware" in bad.reason
+        bad = t.apply(_create("s4", type_="other", limit=5000), ("h1",))
+        assert not bad.ok and "max_per_host must be an integer in [0, 1000]" in bad.reason
+        assert t.apply(_create("s5"), ("h1",)).ok
+        assert t.apply(_create("x1", type_="other", limit=0), ("h1",)).ok
+    assert t1.content_hash() == t2.content_hash() and not t1.invalid_values()
+
+
+def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_limit():
+    from haa.hostd import agenttable as at
+    from haa.pb import agenttx_pb2 as apb
+
+    t = at.AgentTable()
+    for a in ("s1", "s2"):
+        assert t.apply(_create(a), ("h1",)).ok
+    assert t.apply(_create("x", type_="other", limit=0), ("h1",)).ok
+
+    def tx(fill):
+        m = apb.AgentTx()
+        fill(m)
+        return m.SerializeToString()
+
+    def start(m, ses):
+        m.start.ses_id, m.start.leader = ses, "h1"
+        m.start.group.extend(["h1", "h2"])
+        m.start.agents.extend(t.agent_ids())
+
+    def finish(m, ses, alloc):
+        m.finish.ses_id, m.finish.leader = ses, "h1"
+        m.finish.allocation.update(alloc)
+
+    assert t.apply(tx(lambda m: start(m, 1)), ("h1", "h2")).ok
+    assert t.apply(tx(lambda m: finish(m, 1, {"s1": "h1", "s2": "h2", "x": "h1"})), ("h1", "h2")).ok
+    # an operator move onto a host that has its type's one agent is refused; onto a free one it is not
+    mv = t.apply(tx(lambda m: (setattr(m.move, "id", "s2"), setattr(m.move, "host", "h1"))), ("h1", "h2"))
+    assert not mv.ok and "at most 1 per host" in mv.reason
+    assert t.apply(tx(lambda m: (setattr(m.move, "id", "x"), setattr(m.move, "host", "h2"))), ("h1", "h2")).ok
+    # h2 left: the next allocation places s1 only; s2 is allocated nowhere, x keeps its allocation rule
+    assert t.apply(tx(lambda m: start(m, 2)), ("h1",)).ok is False  # group changed: expired
+    t.on_removed(["h2"])
+    assert t.apply(tx(lambda m: (start(m, 3), m.start.ClearField("group"), m.start.group.append("h1"))), ("h1",)).ok
+    res = t.apply(tx(lambda m: finish(m, 3, {"s2": "h1", "x": "h1"})), ("h1",))
+    assert res.ok and t.get("s1").alloc == "" and t.get("s2").alloc == "h1" and "s1" in res.touched

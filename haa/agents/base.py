@@ -211,6 +211,10 @@ class AgentBase:
     HARDWARE: ClassVar[frozenset[str]] = frozenset()
     #: 0..1: how much the allocation should avoid moving it (0 = free to move, 1 = never move while alive)
     TRANSFER_PENALTY: ClassVar[float] = 0.0
+    #: at most this many agents of this type on one host (0 = no limit): the allocation never places more, and
+    #: those beyond the type's places in the group are unallocatable (issue 15: SupervisorSLAM's "at most one
+    #: sensor agent of each type per host", thesis App. III; docs/allocation.md, "per-host limits")
+    MAX_PER_HOST: ClassVar[int] = 0
     #: "backup": recover from the latest backup; "restart": start it afresh (on_start, same id and config);
     #: "none": do not recover it (docs/agents.md)
     RECOVERY: ClassVar[str] = "backup"

@@ -39,6 +39,10 @@ import pydantic
 
 from haa.agents.base import RECOVERY_STRATEGIES, AgentBase
 
+#: largest AgentBase.MAX_PER_HOST (= haa.hostd.allocation.MAX_PER_HOST; not imported: agent processes load
+#: this module and need nothing of the host daemon)
+MAX_PER_HOST = 1000
+
 ENTRY_POINT_GROUP = "haa.agents"
 ENV_MODULES = "HAA_AGENT_MODULES"
 #: modules of haa.agents that are the runtime, not agent types
@@ -86,6 +90,9 @@ def validate(cls: Any, name: str | None = None) -> None:
     p = cls.TRANSFER_PENALTY
     if isinstance(p, bool) or not isinstance(p, int | float) or not 0 <= p <= 1:
         raise ValueError(f"{where}: TRANSFER_PENALTY must be in [0, 1], got {p!r}")
+    mph = cls.MAX_PER_HOST
+    if isinstance(mph, bool) or not isinstance(mph, int) or not 0 <= mph <= MAX_PER_HOST:
+        raise ValueError(f"{where}: MAX_PER_HOST must be an int in [0, {MAX_PER_HOST}] (0 = no limit), got {mph!r}")
     if cls.RECOVERY not in RECOVERY_STRATEGIES:
         raise ValueError(f"{where}: RECOVERY must be one of {sorted(RECOVERY_STRATEGIES)}, got {cls.RECOVERY!r}")
     if cls.CONFIG is not None and not (isinstance(cls.CONFIG, type) and issubclass(cls.CONFIG, pydantic.BaseModel)):
@@ -139,6 +146,7 @@ def type_info(cls: type[AgentBase]) -> dict[str, Any]:
         "has_config": cls.CONFIG is not None,
         "memory_limit_mb": int(cls.MEMORY_LIMIT_MB),
         "cpu_limit": float(cls.CPU_LIMIT),
+        "max_per_host": int(cls.MAX_PER_HOST),
     }
 
 

@@ -116,6 +116,7 @@ class AgentControl:
             hardware=list(request.hardware) or list(info.hardware),
             transfer_penalty=request.transfer_penalty if request.transfer_penalty >= 0 else info.transfer_penalty,
             recovery=request.recovery or info.recovery or "backup",
+            max_per_host=info.max_per_host,  # declared by the type (AgentBase.MAX_PER_HOST; issue 15)
         )
         return self._reply(done)
 

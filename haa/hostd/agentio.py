@@ -183,6 +183,8 @@ class SpawnChild:
     type: str
     config: bytes
     child_id: str
+    #: the child type's per-host limit (AgentTypeInfo.max_per_host; issue 15)
+    max_per_host: int = 0
 
 
 AgentEvent = ShellReady | Sent | BackupMade | Frozen | Failed | Stopped | SpawnChild

@@ -55,6 +55,7 @@ from haa.hostd.agentio import (
 from haa.hostd.allocation import (
     MAX_CAPACITY,
     MAX_COST,
+    MAX_PER_HOST,
     MIN_CAPACITY,
     AgentSpec,
     Allocated,
@@ -324,12 +325,14 @@ class AgentNode(TransferMixin, RecoveryMixin):
         hardware: Iterable[str] = (),
         transfer_penalty: float = 0.1,
         recovery: str = "backup",
+        max_per_host: int = 0,
         req: Hashable = None,
     ) -> None:
         self._now = now
         tx = apb.AgentTx()
         c = tx.create
         c.id, c.type, c.config, c.parent = agent_id, type_name, config, parent
+        c.max_per_host = max(0, min(int(max_per_host), 2**32 - 1))  # check_create refuses > MAX_PER_HOST
         c.cost, c.transfer_penalty, c.recovery, c.host = cost, transfer_penalty, recovery, self.name
         c.hardware.extend(sorted(set(hardware)))
         why = at.check_create(c)
@@ -457,7 +460,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
             self._propose(tx, ("stopped", loc.id, loc.epoch))
         elif t is SpawnChild:
             self.create_agent(now, ev.child_id, ev.type, ev.config, parent=loc.id,
-                              req=("child", loc.id, loc.epoch, ev.req))
+                              max_per_host=ev.max_per_host, req=("child", loc.id, loc.epoch, ev.req))
 
     def undeliverable(self, now: float, agent: str, epoch: int, m: apb.RoutedMsg) -> None:
         """The driver could not hand `m` to the instance (its process is ending): hold the message until the
@@ -771,8 +774,10 @@ class AgentNode(TransferMixin, RecoveryMixin):
             alphas = {k: min(1.0, v / AFFINITY_SCALE) for k, v in aff.get(agent, {}).items()}
             cost = r.cost()  # the table refuses costs outside [0, MAX_COST]; clamped anyway (NaN -> 0)
             cost = min(max(cost, 0.0), MAX_COST) if cost == cost else 0.0
+            limit = r.spec.max_per_host
             if r.status == at.FAILED:
                 cost = 0.0  # runs nowhere until an operator retries it
+                limit = 0  # and takes none of its type's places on a host (issue 15)
             out.append(
                 AgentSpec(
                     id=agent,
@@ -781,6 +786,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
                     affinity=alphas,
                     transfer_penalty=r.spec.transfer_penalty,
                     current_host=(r.owner or None) if r.status == at.ACTIVE else None,
+                    kind=r.spec.type if limit else "",
+                    max_per_host=min(limit, MAX_PER_HOST),
                 )
             )
         return tuple(out)
@@ -928,3 +935,7 @@ class AgentNode(TransferMixin, RecoveryMixin):
             h = self.table.hosts.get(target)
             if self.draining or (target and target != me and target in self._member_names() and not (h and h.draining)):
                 self._freeze(loc)  # Alg. 5: we lost the bid for a (or we are leaving, thesis AF-1)
+            elif not target and r.spec.max_per_host:
+                # issue 15: an agent of a type with a per-host limit that the allocation found no place for
+                # (agenttable._tx_finish cleared its allocation): frozen, its state kept until a place frees up
+                self._freeze(loc)

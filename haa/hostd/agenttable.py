@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd.allocation import MAX_CAPACITY, MAX_COST, MAX_NAME, MIN_CAPACITY
+from haa.hostd.allocation import MAX_CAPACITY, MAX_COST, MAX_NAME, MAX_PER_HOST, MIN_CAPACITY
 from haa.pb import agenttx_pb2 as apb
 
 NEW = "new"
@@ -251,6 +251,8 @@ def check_create(c: apb.AgentCreate) -> str:
         return f"create: {why}"
     if c.recovery not in RECOVERY_MODES:
         return f"create: recovery must be one of {', '.join(RECOVERY_MODES)}"
+    if c.max_per_host > MAX_PER_HOST:  # uint32 on the wire: never negative
+        return f"create: max_per_host must be an integer in [0, {MAX_PER_HOST}], got {c.max_per_host}"
     if len(c.config) > MAX_CONFIG:
         return f"create: config of {len(c.config)} bytes exceeds the limit of {MAX_CONFIG} bytes (MAX_CONFIG)"
     return ""
@@ -378,6 +380,8 @@ class AgentTable:
         parent = self.records.get(c.parent) if c.parent else None
         if not why and c.parent and parent is None:
             why = "create: unknown parent"
+        if not why:
+            why = self._limit_conflict(c)
         if why:
             return AgentApplied("create", c.id, False, why, c.host, c.req)
         if parent is not None:
@@ -388,6 +392,23 @@ class AgentTable:
             name = f"A{self.top}"
         self.records[c.id] = AgentRecord(spec=c, name=name)
         return AgentApplied("create", c.id, True, "", c.host, c.req)
+
+    def _limit_conflict(self, c: apb.AgentCreate) -> str:
+        """Agents of a type with a per-host limit must all declare the same limit and hardware (issue 15), so that
+        the allocator counts the places of a type instead of matching agents to hosts
+        (`haa.hostd.allocation.limit_conflict`, docs/allocation.md "per-host limits"). An agent type declares
+        both, so only a hand-made spawn with other hardware or a different version of the type meets this."""
+        for r in self.records.values():
+            if r.spec.type != c.type or not (r.spec.max_per_host or c.max_per_host):
+                continue
+            if r.spec.max_per_host != c.max_per_host or set(r.spec.hardware) != set(c.hardware):
+                return (
+                    f"create: agents of type {c.type!r} must declare the same max_per_host and hardware "
+                    f"({r.name} has {r.spec.max_per_host}, {sorted(set(r.spec.hardware))}; this one "
+                    f"{c.max_per_host}, {sorted(set(c.hardware))[:8]})"
+                )
+            return ""
+        return ""
 
     def _tx_remove(self, m: apb.AgentRemove) -> AgentApplied:
         r = self.records.get(m.id)
@@ -442,6 +463,15 @@ class AgentTable:
             if r is not None and r.alloc != host and len(host) <= MAX_NAME:
                 r.alloc = host
                 touched.append(agent)
+        for agent in sorted(self.records):
+            # an agent of a type with a per-host limit that the allocation leaves out found no place (issue 15):
+            # it is allocated nowhere, so that it is not recovered or kept on a host that now has another
+            # agent of its type (its owner freezes it: haa.hostd.agentnode). Other unallocatable agents keep
+            # their allocation, as before
+            r = self.records[agent]
+            if r.spec.max_per_host and r.alloc and agent not in f.allocation:
+                r.alloc = ""
+                touched.append(agent)
         return AgentApplied("finish", "", True, "", f.leader, touched=tuple(touched))
 
     def _tx_move(self, m: apb.AgentMove) -> AgentApplied:
@@ -450,6 +480,12 @@ class AgentTable:
             return AgentApplied("move", m.id, False, "unknown agent")
         if len(m.host) > MAX_NAME:
             return AgentApplied("move", m.id, False, f"host name must be at most {MAX_NAME} characters")
+        limit = r.spec.max_per_host
+        if limit and m.host:
+            there = sum(1 for x in self.records.values() if x is not r and x.spec.type == r.type and x.alloc == m.host)
+            if there >= limit:  # issue 15: an operator move does not break a type's per-host limit either
+                why = f"{m.host} already has {there} agent(s) of type {r.type!r} (at most {limit} per host)"
+                return AgentApplied("move", m.id, False, why)
         r.alloc = m.host
         if r.status == FAILED:  # an operator retries a failed agent: recovered again, from a clean count
             r.status = CRASHED
