@@ -422,3 +422,96 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
         await b.close()
 
     run(main)
+
+
+def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted() -> None:
+    """Heartbeats go as UDP datagrams to the port the receiver announced in the handshake (docs/transport.md,
+    "Heartbeats as datagrams"); forged, malformed, unknown-incarnation and non-heartbeat datagrams are counted
+    and dropped; a receiver without a heartbeat socket gets them on the stream."""
+
+    async def main() -> None:
+        pa, pb_, pc = free_port(), free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_, "c": pc})
+        b = Node("b", 22, pb_, {"a": pa})
+        c = Node("c", 33, pc, {"a": pa}, datagram_heartbeats=False)
+        for n in (a, b, c):
+            await n.serve()
+            await n.t.open_heartbeats("127.0.0.1", n.port)
+        assert (a.t.heartbeat_port, b.t.heartbeat_port, c.t.heartbeat_port) == (pa, pb_, 0)
+        a.t.start()
+        await until(lambda: a.t.connected("b") and a.t.connected("c"), what="links up")
+        await until(lambda: a.t.links["b"].hb_addr is not None, what="datagram address resolved")
+        assert a.t.links["c"].hb_addr is None  # c announced no port
+        for i in range(1, 21):
+            a.t.send("b", 22, hb(i))
+            a.t.send("c", 33, hb(i))
+        await until(lambda: len(b.seqs()) == 20 and len(c.seqs()) == 20, what="heartbeats")
+        assert a.t.counters["tx_datagrams"] == 20 and b.t.counters["rx_datagrams"] == 20
+        assert b.t.counters["rx_frames"] == 0  # none came on b's stream
+        assert c.t.counters["rx_frames"] >= 1 and c.t.counters["rx_datagrams"] == 0
+        # hostile datagrams
+        env = wire.encode("a", 11, 22, hb(99)).SerializeToString()
+        body = b"HAAhb1" + env
+        import hashlib
+        import hmac as hm
+
+        from haa.hostd.transport import heartbeat_key
+
+        def mac(key: bytes, data: bytes) -> bytes:
+            return hm.new(key, data, hashlib.sha256).digest()[:16]
+
+        good = body + mac(heartbeat_key(TOKEN), body)
+        b.t.on_datagram(body + mac(heartbeat_key("wrong token"), body))
+        b.t.on_datagram(good[:-1] + bytes([good[-1] ^ 1]))
+        assert b.t.counters["hb_rejected_unauthenticated"] == 2
+        b.t.on_datagram(b"garbage" * 10)
+        b.t.on_datagram(b"HAAhb1" + b"\xff" * 40)  # the MAC is checked before anything is decoded
+        b.t.on_datagram(good + b"x" * 600)  # too large
+        assert b.t.counters["hb_rejected_malformed"] == 2 and b.t.counters["hb_rejected_unauthenticated"] == 3
+        junk = b"HAAhb1" + b"\xff" * 40
+        b.t.on_datagram(junk + mac(heartbeat_key(TOKEN), junk))  # authentic, but no envelope
+        assert b.t.counters["hb_rejected_malformed"] == 3
+        other = wire.encode("a", 10, 22, hb(100)).SerializeToString()  # an older incarnation of a
+        b.t.on_datagram(b"HAAhb1" + other + mac(heartbeat_key(TOKEN), b"HAAhb1" + other))
+        stranger = wire.encode("z", 5, 22, hb(1)).SerializeToString()  # never opened a stream
+        b.t.on_datagram(b"HAAhb1" + stranger + mac(heartbeat_key(TOKEN), b"HAAhb1" + stranger))
+        assert b.t.counters["hb_rejected_stale"] == 1 and b.t.counters["hb_rejected_unknown"] == 1
+        notbeat = wire.encode("a", 11, 22, Excluded(22)).SerializeToString()
+        b.t.on_datagram(b"HAAhb1" + notbeat + mac(heartbeat_key(TOKEN), b"HAAhb1" + notbeat))
+        assert b.t.counters["hb_rejected_malformed"] == 4
+        n = len(b.seqs())
+        b.t.on_datagram(good)  # a valid one is delivered (the failure detector ignores replays, Alg. 1 l. 20)
+        assert len(b.seqs()) == n + 1
+        for x in (a, b, c):
+            await x.close()
+
+    run(main)
+
+
+def test_a_newer_incarnation_ends_the_streams_of_the_older_one() -> None:
+    """A superseded process that only sends heartbeats (datagrams) still learns of it: when the newer
+    incarnation's stream is accepted, the older one's stream ends, and its reconnection is refused as stale."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        old = Node("a", 11, pa, {"b": pb_})
+        superseded: list[tuple[str, int]] = []
+        old.t.on_superseded = lambda p, i: superseded.append((p, i))
+        old.t.start()
+        await until(lambda: old.t.connected("b"), what="old a connected")
+        old.t.send("b", 22, hb(1))
+        await until(lambda: len(b.seqs()) == 1, what="a message of the old incarnation")
+        new = Node("a", 12, pa, {"b": pb_})
+        new.t.start()
+        await until(lambda: new.t.connected("b"), timeout=10, what="new a accepted")
+        new.t.send("b", 22, hb(1))  # more than a claim: it speaks (docs/transport.md, incarnation claims)
+        await until(lambda: len(b.seqs()) == 2, what="a message of the new incarnation")
+        await until(lambda: b.t.counters["link_superseded_streams"] >= 1, what="old stream ended")
+        await until(lambda: len(superseded) >= 1, timeout=10, what="old a told")
+        assert superseded[0] == ("b", 12)
+        for x in (old, new, b):
+            await x.close()
+
+    run(main)
