@@ -226,3 +226,22 @@ def test_landmark_gate_skips_outlying_sightings():
         m.fuse(1, np.array([0.0, 0.0]), cov, 0.0, "a", 0.0)
         m.fuse(1, np.array([1.0, 0.0]), cov, 0.0, "b", 0.0)
         assert (m.get(1).mean[0] > 0.1) == moved and m.gated == (0 if moved else 1)
+
+
+def test_landmark_map_without_window_is_the_plain_kalman_fusion():
+    """window=None: every sighting an independent measurement, as the library fused them before issue 16."""
+    rng = np.random.default_rng(3)
+    m = LandmarkMap(window=None)
+    mean, cov = None, None
+    for k in range(5):
+        z = rng.normal(size=2)
+        a = rng.normal(size=(2, 2))
+        c = a @ a.T + 0.1 * np.eye(2)
+        m.fuse(4, z, c, pose_std=0.3, avatar="a", t=float(k))
+        if mean is None:
+            mean, cov = z, c
+        else:
+            gain = cov @ np.linalg.inv(cov + c)
+            mean, cov = mean + gain @ (z - mean), (np.eye(2) - gain) @ cov
+    np.testing.assert_allclose(m.get(4).mean, mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(m.get(4).cov, cov, rtol=1e-9, atol=1e-12)

@@ -471,9 +471,10 @@ class LandmarkMap:
         t: float = 0.0,
     ) -> None:
         """Add one sighting's implied position (mean, cov; `pose_std` of it is the observer's pose part)."""
-        if self.window is None:
+        if self.window is None:  # every sighting independent, its pose part already in cov: plain Kalman
             self._n += 1
             key = ("", self._n)
+            pose_std = 0.0
         elif math.isinf(self.window):
             key = (avatar, 0)
         else:
