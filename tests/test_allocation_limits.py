@@ -224,3 +224,33 @@ def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_
     assert t.apply(tx(lambda m: (start(m, 3), m.start.ClearField("group"), m.start.group.append("h1"))), ("h1",)).ok
     res = t.apply(tx(lambda m: finish(m, 3, {"s2": "h1", "x": "h1"})), ("h1",))
     assert res.ok and t.get("s1").alloc == "" and t.get("s2").alloc == "h1" and "s1" in res.touched
+
+
+# ------------------------------------------------------------------------------------------ the verifier
+
+
+def test_the_verifier_checks_the_limit_in_schedules_with_faults():
+    from haa.dsim.allocation import PROPS, draw_alloc
+    from haa.dsim.sweep import run_seed
+
+    assert "AA-Per-Host-Limit" in PROPS
+    limited = [s for s in range(40) if any(a.max_per_host for a in draw_alloc(s, 5).agents)]
+    assert len(limited) >= 10
+    for s in limited[:12]:
+        assert not run_seed("allocation", s, 5).violations, s
+
+
+def test_an_unallocatable_limited_agent_gets_a_place_when_a_host_joins():
+    from haa.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc
+
+    names = ["h1", "h2"]
+    agents = tuple(sensor(i) for i in range(3))
+    sc = AllocScenario(seed=1, names=names, hosts={n: HostSpec(n, 1.0) for n in names}, agents=agents,
+                       faults=[AFault(0.3, "join", "h3", HostSpec("h3", 1.0))])
+    sim = AllocSim(sc)
+    sim.run()
+    assert check_alloc(sim) == []
+    firsts = [n.accepted[0][3] for n in sim.nodes.values() if n.accepted and n.name != "h3"]
+    lasts = [n.accepted[-1][3] for n in sim.nodes.values() if n.accepted]
+    assert all(len(f) == 2 for f in firsts)  # two places for three sonar agents
+    assert all(len(x) == 3 and len(set(x.values())) == 3 for x in lasts)  # h3 joined: one on each host

@@ -40,10 +40,11 @@ def test_ci_sweep_2000_schedules_at_7_hosts():
 @pytest.mark.parametrize(
     ("name", "seeds"),
     [
-        ("thesis-accept", (6, 12)),
+        ("thesis-accept", (11, 12)),
         ("cbba-reset", (2, 6)),
-        ("no-unallocatable", (3, 5)),
+        ("no-unallocatable", (3, 36)),
         ("ignore-hardware", (9, 27)),
+        ("ignore-per-host-limit", (4, 5)),
     ],
 )
 def test_the_verifier_catches_each_broken_variant(name, seeds):

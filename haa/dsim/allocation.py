@@ -31,6 +31,10 @@
   leader checks consensus on the last bids each member sent, and a bid still in flight can change the
   outcome after that (`premature`, counted in the statistics; docs/allocation.md, "consensus");
 * AA-Messages: the bid-update messages of each session stay below `message_bound(agents, hosts)`.
+* AA-Per-Host-Limit (issue 15): no accepted allocation puts more agents of a limited kind on one host than
+  the kind's `max_per_host`, and the agents it leaves out for lack of places are exactly those the rule of
+  docs/allocation.md ("per-host limits") names (checked as part of AA-Validity's exact unallocatable list).
+  Half of the schedules give some agents a limited kind (`_limited_kinds`).
 
 Every schedule is drawn from its seed (`draw_alloc`) and reproducible; `haactl verify allocation` runs them.
 
@@ -41,12 +45,14 @@ eq. 4.7-1 on small instances).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import heapq
 import itertools
 import math
 import random
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -75,6 +81,7 @@ PROPS = (
     "AA-Liveness",
     "AA-Quiescent-Agreement",
     "AA-Messages",
+    "AA-Per-Host-Limit",
 )
 #: seconds after the last fault or change within which every live member must accept an allocation
 LIVENESS_BOUND = 4.0
@@ -249,7 +256,35 @@ def draw_alloc(seed: int, hosts: int = 7) -> AllocScenario:
             sc.faults.append(AFault(at, "cost", rng.choice(live_agents), round(rng.uniform(0.02, 0.7), 3)))
         else:
             sc.faults.append(AFault(at, kind))
+    _limited_kinds(sc)
     return sc
+
+
+#: kinds with a per-host limit the scenarios give agents (issue 15): name -> hardware every agent of it needs
+LIMITED_KINDS = {"sonar": frozenset(), "landmark": frozenset(), "floor": frozenset({"camera"})}
+
+
+def _limited_kinds(sc: AllocScenario) -> None:
+    """In half of the schedules, give some agents (initial and added) a kind with a per-host limit (1 mostly,
+    sometimes 2); its agents take the kind's hardware, as agents of one type do. Drawn from a random source of
+    its own, so that the other half of the schedules are those drawn before limits existed."""
+    rng = random.Random(f"alloc-limits-{sc.seed}")
+    if rng.random() < 0.5:
+        return
+    kinds = rng.sample(sorted(LIMITED_KINDS), rng.randint(1, 2))
+    limit = {k: rng.choice([1, 1, 1, 2]) for k in kinds}
+    share = rng.uniform(0.3, 0.8)
+
+    def limited(a: AgentSpec) -> AgentSpec:
+        if rng.random() >= share:
+            return a
+        k = rng.choice(kinds)
+        return dataclasses.replace(a, hardware=LIMITED_KINDS[k], kind=k, max_per_host=limit[k])
+
+    sc.agents = tuple(limited(a) for a in sc.agents)
+    sc.faults = [
+        dataclasses.replace(f, arg=limited(f.arg)) if f.kind == "agent_add" else f for f in sc.faults
+    ]
 
 
 # --------------------------------------------------------------------------------------------- simulation
@@ -515,7 +550,10 @@ class AllocSim:
                 alloc = e.finish.allocation
                 self.world = World(
                     world.group,
-                    tuple(_moved(a, alloc.get(a.id, a.current_host)) for a in world.agents),
+                    # an agent of a limited kind left out for lack of places stops (agenttable._tx_finish)
+                    tuple(
+                        _moved(a, alloc.get(a.id, None if a.max_per_host else a.current_host)) for a in world.agents
+                    ),
                     world.hosts,
                     world.paused,
                 )
@@ -707,11 +745,11 @@ class AllocSim:
 def _moved(a: AgentSpec, host: str | None) -> AgentSpec:
     if a.current_host == host:
         return a
-    return AgentSpec(a.id, a.cost, a.hardware, a.affinity, a.transfer_penalty, host)
+    return dataclasses.replace(a, current_host=host)
 
 
 def _with_cost(a: AgentSpec, cost: float) -> AgentSpec:
-    return AgentSpec(a.id, cost, a.hardware, a.affinity, a.transfer_penalty, a.current_host)
+    return dataclasses.replace(a, cost=cost)
 
 
 # --------------------------------------------------------------------------------------------- checks
@@ -727,14 +765,58 @@ class AViolation:
         return f"{self.prop}: {self.detail}"
 
 
-def _validity(e: Entry) -> str:
-    """Why an accepted allocation is invalid in the world of its entry ("" = valid)."""
+def _no_place(start: SessionStart | None, capable: dict[str, list[str]]) -> set[str]:
+    """The agents of limited kinds an allocation of `start` must leave out (a reference implementation of
+    docs/allocation.md "per-host limits", independent of `haa.hostd.allocation.over_limit`): a kind has
+    max_per_host places on each capable member; agents running on a capable member keep theirs first (at most
+    max_per_host per member), then the others in the start's order."""
+    if start is None:
+        return set()
+    out: set[str] = set()
+    for kind in sorted({a.kind for a in start.agents if a.max_per_host}):
+        members = [a for a in start.agents if a.kind == kind and a.max_per_host and capable.get(a.id)]
+        if not members:
+            continue
+        hosts = capable[members[0].id]
+        places = members[0].max_per_host * len(hosts)
+        seated: Counter[str] = Counter()
+        order = []
+        for a in members:
+            if a.current_host in hosts and seated[a.current_host] < a.max_per_host:
+                seated[a.current_host] += 1
+                order.append(a.id)
+        order += [a.id for a in members if a.id not in order]
+        out.update(order[places:])
+    return out
+
+
+def _per_host_limit(e: Entry) -> str:
+    """AA-Per-Host-Limit: why an accepted allocation puts too many agents of a limited kind on a host."""
+    assert e.finish is not None
+    spec = {a.id: a for a in e.world.agents}
+    count: Counter[tuple[str, str]] = Counter()
+    for a, h in e.finish.allocation.items():
+        s = spec.get(a)
+        if s is not None and s.max_per_host:
+            count[(h, s.kind)] += 1
+            if count[(h, s.kind)] > s.max_per_host:
+                return (
+                    f"session {e.finish.ses_id} puts {count[(h, s.kind)]} agents of kind {s.kind!r} on {h} "
+                    f"(at most {s.max_per_host}): {sorted(x for x, y in e.finish.allocation.items() if y == h)}"
+                )
+    return ""
+
+
+def _validity(e: Entry, start: SessionStart | None = None) -> str:
+    """Why an accepted allocation is invalid in the world of its entry ("" = valid). `start`: the session's
+    committed start (the current hosts the per-host limits' places depend on)."""
     assert e.finish is not None
     w = e.world
     alloc = e.finish.allocation
     hosts = [w.hosts[g] for g in w.group]
     capable = {a.id: [h.name for h in hosts if h.can_run(a)] for a in w.agents}
-    allocatable = [a for a, hs in capable.items() if hs]
+    no_place = _no_place(start, capable)
+    allocatable = [a for a, hs in capable.items() if hs and a not in no_place]
     missing = [a for a in allocatable if a not in alloc]
     if missing:
         return f"session {e.finish.ses_id} leaves allocatable agent(s) {missing} unallocated"
@@ -746,7 +828,7 @@ def _validity(e: Entry) -> str:
             return f"session {e.finish.ses_id} puts {a} on {h}, not in the group {list(w.group)}"
         if h not in capable[a]:
             return f"session {e.finish.ses_id} puts {a} on {h}, which lacks its hardware or is draining"
-    unalloc = sorted(a for a, hs in capable.items() if not hs)
+    unalloc = sorted(a for a, hs in capable.items() if not hs or a in no_place)
     if sorted(e.finish.unallocatable) != unalloc:
         return f"session {e.finish.ses_id} reports unallocatable {sorted(e.finish.unallocatable)}, expected {unalloc}"
     return ""
@@ -777,9 +859,12 @@ def check_alloc(sim: AllocSim) -> list[AViolation]:
                 )
             )
         if any(deciders.values()) or (e.accepted and not deciders):
-            why = _validity(e)
+            why = _validity(e, starts.get(e.finish.ses_id))
             if why:
                 out.append(AViolation("AA-Validity", why, (e.proposer,)))
+            why = _per_host_limit(e)
+            if why:
+                out.append(AViolation("AA-Per-Host-Limit", why, (e.proposer,)))
     by_ses: dict[int, tuple[str, dict[str, str]]] = {}
     for n in sim.nodes.values():
         prev = 0

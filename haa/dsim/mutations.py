@@ -47,6 +47,8 @@ Agent allocation (Alg. 4), checked by `haactl verify allocation` (`haa.dsim.allo
 * `no-unallocatable` consensus waits for every agent, also those no host of the group can run: the session
                      never ends. Breaks AA-Liveness.
 * `ignore-hardware`  hosts bid for agents whose hardware they lack. Breaks AA-Validity.
+* `ignore-per-host-limit` hosts bid for agents of a limited kind past its per-host limit (issue 15). Breaks
+                     AA-Per-Host-Limit.
 
 Agent transactions with out-of-bounds values (issue 13), checked by `haactl verify recovery`:
 
@@ -275,6 +277,10 @@ def ignore_hardware() -> Undo:
     return _patch(cls, "make_ready", make_ready)
 
 
+def ignore_per_host_limit() -> Undo:
+    return _patch(alloc_mod.Allocator, "PER_HOST_LIMIT", False)
+
+
 def no_stream_order() -> Undo:
     """The receiver's host passes agent messages on as they arrive, without the sender-stream numbers
     (haa.hostd.routing): a message that overtook an earlier one on another path is processed first, and one
@@ -364,6 +370,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),
     "ignore-hardware": (ignore_hardware, "allocation", "AA-Validity"),
+    "ignore-per-host-limit": (ignore_per_host_limit, "allocation", "AA-Per-Host-Limit"),
     "no-stream-order": (no_stream_order, "transfer", "AT-Consistency"),
     "oldest-backup": (oldest_backup, "recovery", "AR-Recovery"),
     "unchecked-claim": (unchecked_claim, "transfer", "AG-Single-Active"),
