@@ -77,6 +77,16 @@ def cluster_up(
         Path | None, typer.Option("--config", help="YAML config file given to every haa-hostd (local)")
     ] = None,
     hostd_args: Annotated[str, typer.Option("--hostd-args", help="extra haa-hostd arguments (local)")] = "",
+    capacity: Annotated[
+        float | None,
+        typer.Option(
+            "--capacity",
+            min=0.001,
+            max=1000.0,
+            help="capacity K_h of every host, in cores (default: this machine's cores / N, unless --hostd-args, "
+            "--config or HAA_CAPACITY set one; compose: the docker host's cores / N)",
+        ),
+    ] = None,
     timeout: TimeoutOpt = 90.0,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the group has formed")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="print the formed group as JSON")] = False,
@@ -95,14 +105,14 @@ def cluster_up(
         if config is not None or hostd_args:
             raise ClusterError("--config and --hostd-args are for local clusters (edit compose/compose.yaml)")
         with err.status(f"docker compose up of {hosts} hosts ..."):
-            names = backend.up(hosts, core, log=err.print)
+            names = backend.up(hosts, core, log=err.print, capacity=capacity)
         before = None
     else:
         from haactl.local_backend import LocalBackend
 
         assert isinstance(backend, LocalBackend)
         k = core if core is not None else min(3, hosts)
-        names = backend.up(hosts, k, shlex.split(hostd_args), config)
+        names = backend.up(hosts, k, shlex.split(hostd_args), config, capacity)
         before = backend.check_started
     started = time.monotonic() - t0
     err.print(f"started {len(names)} hosts ({backend.describe()}) in {started:.1f} s")

@@ -219,10 +219,11 @@ class ComposeBackend(Backend):
         return c
 
     # ------------------------------------------------------------------ compose
-    def compose(self, *args: str, timeout: float = 300) -> str:
+    def compose(self, *args: str, timeout: float = 300, env: dict[str, str] | None = None) -> str:
         cmd = [*compose_command(), "-f", str(self.file), "-p", self.project, *args]
+        full_env = {**os.environ, **env} if env else None
         try:
-            r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=self.file.parent)
+            r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=self.file.parent, env=full_env)
         except subprocess.TimeoutExpired:
             raise ClusterError(f"`{shlex.join(cmd)}` did not finish within {timeout:.0f} s") from None
         if r.returncode != 0:
@@ -255,7 +256,15 @@ class ComposeBackend(Backend):
                 os.umask(old)
         self.token = self.token_file.read_text().strip()
 
-    def up(self, hosts: int, core: int | None = None, log: Any = print) -> list[str]:
+    def docker_cores(self) -> int:
+        """The docker host's cores (`docker info` NCPU; this machine's when docker does not say)."""
+        try:
+            n = int(self.docker.info().get("NCPU") or 0)
+        except Exception:
+            n = 0
+        return n if n > 0 else max(1, os.cpu_count() or 1)
+
+    def up(self, hosts: int, core: int | None = None, log: Any = print, capacity: float | None = None) -> list[str]:
         names = sorted(self.services, key=natural_key)
         if hosts > len(names):
             raise ClusterError(f"the compose file defines {len(names)} hosts ({names[0]}..{names[-1]}), not {hosts}")
@@ -273,7 +282,17 @@ class ComposeBackend(Backend):
         names = names[:hosts]
         if self.containers():  # stopped containers of an earlier run: their data dirs would make them re-apply
             self.compose("down", "--timeout", "1", "--remove-orphans")
-        self.compose("up", "-d", "--force-recreate", *names)
+        # capacity K_h (issue 15): the hosts share the docker host's cores, unless HAA_CAPACITY is set or a
+        # service's command gives --capacity (which wins over the environment); compose.yaml passes
+        # HAA_CAPACITY on to every host (docs/allocation.md, "host capacities")
+        env: dict[str, str] = {}
+        if capacity is not None:
+            env["HAA_CAPACITY"] = repr(float(capacity))
+        elif not os.environ.get("HAA_CAPACITY"):
+            from haactl.local_backend import share_of_cores
+
+            env["HAA_CAPACITY"] = repr(share_of_cores(hosts, self.docker_cores()))
+        self.compose("up", "-d", "--force-recreate", *names, env=env)
         return names
 
     def down(self, grace: float = 5.0) -> str:

@@ -59,9 +59,9 @@ def default_root() -> Path:
     return Path(env) if env else Path.cwd() / ".haa" / "cluster"
 
 
-def check_yaml(path: Path) -> None:
+def check_yaml(path: Path) -> dict[str, Any]:
     """Parse a hostd config file here, so that a broken file gives one error instead of N dead hosts (with
-    haa-hostd's limits: haa.files)."""
+    haa-hostd's limits: haa.files); returns its settings."""
     from haa.hostd.daemon import CONFIG_MAX_BYTES, CONFIG_MAX_NODES
 
     try:
@@ -71,6 +71,35 @@ def check_yaml(path: Path) -> None:
     if data is not None and not isinstance(data, dict):
         kind = type(data).__name__
         raise ClusterError(f"config file {path}: the top level must be a mapping (key: value), not {kind}")
+    return data or {}
+
+
+def machine_cores() -> int:
+    """The cores this process may run on (its CPU affinity, e.g. a container's cpuset), else os.cpu_count()."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def share_of_cores(hosts: int, cores: int | None = None) -> float:
+    """Each host's capacity K_h when `hosts` hosts share this machine: its cores divided among them (issue 15:
+    a local cluster of N hosts on a 2-core machine must not believe it has N cores), within the allocator's
+    bounds (docs/allocation.md, "host capacities")."""
+    from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY
+
+    c = machine_cores() if cores is None else cores
+    return min(MAX_CAPACITY, max(MIN_CAPACITY, round(c / max(1, hosts), 3)))
+
+
+def _sets_capacity(args: Sequence[str], settings: dict[str, Any]) -> bool:
+    """Whether the operator configured a capacity: `--capacity` in the hostd arguments, the config file's
+    `capacity`, or HAA_CAPACITY in the environment the hosts inherit."""
+    return (
+        any(a == "--capacity" or a.startswith("--capacity=") for a in args)
+        or settings.get("capacity") is not None
+        or bool(os.environ.get("HAA_CAPACITY"))
+    )
 
 
 def _proc_state(pid: int | None, create_time: float | None) -> str | None:
@@ -226,10 +255,21 @@ class LocalBackend(Backend):
             last = lines[-1] if lines else "(no output)"
             raise StartError(f"host {name} exited at start with code {code}: {last} (stderr: {rec['stderr']})")
 
-    def up(self, hosts: int, core: int, hostd_args: Sequence[str] = (), config: Path | None = None) -> list[str]:
-        """Create the state file and start h1..hN (the first `core` are core); returns the names."""
-        if config is not None:
-            check_yaml(config)
+    def up(
+        self,
+        hosts: int,
+        core: int,
+        hostd_args: Sequence[str] = (),
+        config: Path | None = None,
+        capacity: float | None = None,
+    ) -> list[str]:
+        """Create the state file and start h1..hN (the first `core` are core); returns the names.
+
+        Capacity K_h of every host: `capacity` when given; else what `hostd_args`, the config file or
+        HAA_CAPACITY say; else this machine's cores divided among the N hosts (`share_of_cores`)."""
+        settings = check_yaml(config) if config is not None else {}
+        if capacity is None and not _sets_capacity(hostd_args, settings):
+            capacity = share_of_cores(hosts)
         with self.locked():
             running = [h.name for h in self.hosts() if h.up]
             if running:
@@ -251,6 +291,8 @@ class LocalBackend(Backend):
             args = list(hostd_args)
             if config is not None:
                 args += ["--config", str(config.absolute())]
+            if capacity is not None:  # last: wins over a --capacity in hostd_args
+                args += ["--capacity", repr(float(capacity))]
             self.state = {
                 "version": STATE_VERSION,
                 "kind": "local",

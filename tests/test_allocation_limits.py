@@ -254,3 +254,41 @@ def test_an_unallocatable_limited_agent_gets_a_place_when_a_host_joins():
     lasts = [n.accepted[-1][3] for n in sim.nodes.values() if n.accepted]
     assert all(len(f) == 2 for f in firsts)  # two places for three sonar agents
     assert all(len(x) == 3 and len(set(x.values())) == 3 for x in lasts)  # h3 joined: one on each host
+
+
+# ------------------------------------------------------------------------------------------ host capacities
+
+
+def test_local_hosts_share_the_machines_cores(monkeypatch):
+    from haactl import local_backend as lb
+
+    assert lb.share_of_cores(4, 2) == 0.5
+    assert lb.share_of_cores(3, 2) == 0.667
+    assert lb.share_of_cores(1, 8) == 8.0
+    assert lb.share_of_cores(10**6, 1) == 0.001  # the allocator's MIN_CAPACITY
+    assert 1 <= lb.machine_cores() <= (__import__("os").cpu_count() or 1)
+    monkeypatch.delenv("HAA_CAPACITY", raising=False)
+    assert not lb._sets_capacity(["--rebalance-period", "5"], {})
+    assert lb._sets_capacity(["--capacity", "2"], {})
+    assert lb._sets_capacity(["--capacity=2"], {})
+    assert lb._sets_capacity([], {"capacity": 0.5})
+    monkeypatch.setenv("HAA_CAPACITY", "3")
+    assert lb._sets_capacity([], {})
+
+
+def test_cluster_up_passes_the_share_or_the_explicit_capacity(tmp_path, monkeypatch):
+    from haactl import local_backend as lb
+
+    monkeypatch.delenv("HAA_CAPACITY", raising=False)
+    spawned = []
+    monkeypatch.setattr(lb.LocalBackend, "_spawn", lambda self, name: spawned.append(list(self.state["args"])))
+    monkeypatch.setattr(lb, "machine_cores", lambda: 2)
+    b = lb.LocalBackend(tmp_path / "c1")
+    b.up(4, 3)
+    assert spawned[0][-2:] == ["--capacity", "0.5"] and len(spawned) == 4
+    spawned.clear()
+    lb.LocalBackend(tmp_path / "c2").up(2, 2, capacity=3.0)
+    assert spawned[0][-2:] == ["--capacity", "3.0"]
+    spawned.clear()
+    lb.LocalBackend(tmp_path / "c3").up(2, 2, ["--capacity", "0.25"])
+    assert spawned[0] == ["--capacity", "0.25"]  # the operator's own setting is left alone
