@@ -8,10 +8,10 @@ import random
 from collections import Counter
 
 import pytest
+from test_allocation import Net
 
 from haa.hostd import allocwire
 from haa.hostd.allocation import AgentSpec, Allocator, HostSpec, SessionStart, over_limit
-from test_allocation import Net
 
 
 def sensor(i, kind="sonar", limit=1, cost=0.1, host=None, hw=frozenset()):
@@ -71,12 +71,12 @@ def test_hardware_and_draining_hosts_reduce_the_places():
 def test_a_rebalance_keeps_the_limit():
     hosts = (HostSpec("h1", 2.0), HostSpec("h2", 2.0), HostSpec("h3", 2.0))
     ags = [sensor(i, cost=0.3) for i in range(3)] + [AgentSpec(f"x{i}", 0.4) for i in range(4)]
-    net, res = run(hosts, ags)
+    _net, res = run(hosts, ags)
     assert max(per_host(res.allocation, ags).values()) == 1
     # the agents now run where they were placed; a host leaves, and costs change: a new session
     moved = tuple(AgentSpec(a.id, a.cost * 1.5, a.hardware, {}, 0.3, res.allocation.get(a.id), a.kind, a.max_per_host)
                   for a in ags)
-    net2, res2 = run(hosts[:2], moved)
+    _net2, res2 = run(hosts[:2], moved)
     assert max(per_host(res2.allocation, moved).values()) == 1
     assert len(res2.unallocatable) == 1 and res2.unallocatable[0].startswith("sonar")
     # the two that ran on the remaining hosts kept their places
@@ -94,9 +94,13 @@ def test_limits_hold_on_random_instances():
             limit = rng.randint(1, 2)
             for i in range(rng.randint(0, 5)):
                 ags.append(sensor(i, kind, limit, round(rng.uniform(0.05, 0.6), 2),
-                                  rng.choice(names + [None]) if k else None))
-        ags += [AgentSpec(f"x{i}", round(rng.uniform(0.05, 0.6), 2),
-                          affinity={o.id: 0.2 for o in ags[:2] if rng.random() < 0.5}) for i in range(rng.randint(0, 4))]
+                                  rng.choice([*names, None]) if k else None))
+        ags += [
+            AgentSpec(
+                f"x{i}", round(rng.uniform(0.05, 0.6), 2), affinity={o.id: 0.2 for o in ags[:2] if rng.random() < 0.5}
+            )
+            for i in range(rng.randint(0, 4))
+        ]
         _net, res = run(hosts, ags)
         lim = {a.kind: a.max_per_host for a in ags if a.max_per_host}
         for (_h, k), n in per_host(res.allocation, ags).items():
