@@ -121,6 +121,10 @@ def _participants(rng: random.Random, names: list[str], proposer: str, faulty: s
     return list(names)
 
 
+#: share of the OAC schedules with instants at which every host proposes (see `draw`)
+ALL_PROPOSING_SHARE = 0.3
+
+
 def draw(seed: int, hosts: int, algorithm: str) -> Scenario:
     """Draw a whole scenario from `seed` (see the module docstring)."""
     if hosts < 2:
@@ -227,6 +231,20 @@ def draw(seed: int, hosts: int, algorithm: str) -> Scenario:
         sc.proposals.append((t, proposer, parts, payload))
         if feats["no_votes"] and rng.random() < 0.3:
             sc.no_votes.add((payload, rng.choice(parts)))
+    if algorithm == "oac":
+        # many concurrent proposers (issue 14): in ALL_PROPOSING_SHARE of the schedules, 1-2 instants at which
+        # every host proposes, each to a participant set of its own (a mission's writes from every host at
+        # once, without the sequencer). From a generator of its own: the rest of each seed stays as it was.
+        ra = random.Random(seed * 15485863 + 3)
+        if ra.random() < ALL_PROPOSING_SHARE:
+            k = len(sc.proposals)
+            for _ in range(ra.randint(1, 2)):
+                t = ra.uniform(0.0, fault_end)
+                for proposer in names:
+                    parts = _participants(ra, names, proposer, set(faulty))
+                    sc.proposals.append((t, proposer, parts, f"tx{k}".encode()))
+                    k += 1
+            sc.proposals.sort(key=lambda p: p[0])
     return sc
 
 
