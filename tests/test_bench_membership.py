@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from haactl.ap2 import markdown_table, run_ap2
+from haactl.ddbbench import all_writing_table
 from haactl.ddbbench import markdown_table as ddb_table
 from haactl.ddbbench import run_ddb_bench
 
@@ -24,12 +25,19 @@ def test_ap2_measures_join_leave_and_removal(tmp_path: Path) -> None:
 
 def test_ddb_bench_writes_and_replicas_agree(tmp_path: Path) -> None:
     rows = run_ddb_bench(
-        hosts=2, batch_sizes=(1, 20), clients=(1,), crowd=3, seconds=0.5, root=tmp_path, log=lambda _s: None
+        hosts=2, batch_sizes=(1, 20), clients=(1,), crowd=3, seconds=0.5, root=tmp_path, log=lambda _s: None,
+        writers=(4,), sequencer=(True, False),
     )
-    assert [(r["clients"], r["batch"], r["through"]) for r in rows] == [
-        (1, 1, "every host"),
-        (1, 20, "every host"),
-        (3, 1, "one host"),
+    clients = [(r["sequencer"], r["clients"], r["batch"], r["through"]) for r in rows if r["load"] == "clients"]
+    assert clients == [
+        (seq, c, b, t)
+        for seq in (True, False)
+        for c, b, t in [(1, 1, "every host"), (1, 20, "every host"), (3, 1, "one host")]
     ]
-    assert all(r["requests"] > 0 and r["failed"] == 0 and r["ops_per_s"] > 0 for r in rows)
+    every = [r for r in rows if r["load"] == "all writing"]
+    assert [(r["sequencer"], r["writers_per_host"]) for r in every] == [(True, 4), (False, 4)]
+    assert all(r["requests"] > 0 and r["failed"] == 0 for r in rows)
+    assert all(r["ops_per_s"] > 0 for r in rows if r["load"] == "clients")
+    assert all(r["writes_per_s"] > 0 and r["oacs_per_s"] > 0 and r["p50_ms"] > 0 for r in every)
     assert "ops per request" in ddb_table(rows)
+    assert "| 2 | yes | 4 |" in all_writing_table(rows) and "| 2 | no | 4 |" in all_writing_table(rows)
