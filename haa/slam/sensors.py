@@ -486,9 +486,7 @@ class LandmarkMap:
             src = Contribution()
             src.add(z, c, pose_std)
             mx, my, cxx, cyy, cxy = src.estimate()
-            self.landmarks[lid] = Landmark(
-                np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]), 1, {key: src}
-            )
+            self.landmarks[lid] = Landmark(np.array([mx, my]), np.array([[cxx, cxy], [cxy, cyy]]), 1, {key: src})
             return
         if self.gate is not None:  # chi-square gate on the innovation (2 dof)
             ex, ey = z[0] - float(lm.mean[0]), z[1] - float(lm.mean[1])
