@@ -6,9 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from haactl.ap2 import markdown_table, run_ap2
-from haactl.ddbbench import all_writing_table
+from haactl.ddbbench import all_writing_table, run_ddb_bench
 from haactl.ddbbench import markdown_table as ddb_table
-from haactl.ddbbench import run_ddb_bench
 
 
 def test_ap2_measures_join_leave_and_removal(tmp_path: Path) -> None:
