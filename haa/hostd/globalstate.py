@@ -274,10 +274,6 @@ class _Dedup:
             self.done = {c for c in self.done if c >= floor}
 
 
-#: the inner transactions a sequencer batch may carry
-SEQ_INNER = ("ddb", "test")
-
-
 class GlobalState:
     """See the module docstring."""
 
