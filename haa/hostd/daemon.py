@@ -163,6 +163,8 @@ class HostSettings(BaseModel):
     hardware: list[str] = Field(default_factory=list, max_length=MAX_HARDWARE)
     rebalance_period: float = Field(default=30.0, ge=0, allow_inf_nan=False)
     drain_timeout: float = Field(default=10.0, gt=0, allow_inf_nan=False)
+    #: an agent instance that dies within this long of its start is a start failure (backed off; docs/limits.md)
+    agent_start_grace: float = Field(default=AgentConfig().start_grace, ge=0, le=3600, allow_inf_nan=False)
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
@@ -273,6 +275,7 @@ class HostSettings(BaseModel):
                 hardware=tuple(self.hardware),
                 rebalance_period=self.rebalance_period,
                 drain_timeout=self.drain_timeout,
+                start_grace=self.agent_start_grace,
             ),
             agent_hang_timeout=self.agent_hang_timeout,
         )
@@ -317,6 +320,7 @@ _OPTIONS = (
     "hardware",
     "rebalance_period",
     "drain_timeout",
+    "agent_start_grace",
     "agent_hang_timeout",
 )
 
@@ -358,6 +362,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hardware", help="comma-separated hardware this host offers agents (e.g. camera,sonar)")
     p.add_argument("--rebalance-period", type=float, help="periodic allocation sessions, s (30; 0 = none)")
     p.add_argument("--drain-timeout", type=float, help="graceful leave: hand agents over for at most this long, s (10)")
+    p.add_argument("--agent-start-grace", type=float,
+                   help="an agent instance dying within this long of its start is a start failure (backed off), s (10)")
     p.add_argument("--agent-hang-timeout", type=float, help="an agent silent this long is hung, s (3)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
