@@ -236,7 +236,8 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
 
     async def DdbLoad(self, request: cpb.DdbLoadRequest, context: aio.ServicerContext) -> cpb.DdbLoadReply:
         """A DDB write load from inside this host (a benchmark: a mission's agents write through their host,
-        not through this API, so a client's RPC cost must not be what is measured)."""
+        not through this API, so a client's RPC cost must not be what is measured). The keys it writes stay in
+        the DDB (under `prefix`, default load/<host>)."""
         rt = self.rt
         if not rt.membership:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "static mode (--peers): this host has no DDB")
@@ -256,13 +257,13 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         value = bytes(r.value_bytes)
         prefix = r.prefix or f"load/{rt.name}"
         lat: list[float] = []
-        failed = 0
+        failed = committed = 0
         applied0 = rt.counters["global_applied"]
         t0 = time.perf_counter()
         stop = t0 + r.seconds
 
         async def writer(i: int) -> None:
-            nonlocal failed
+            nonlocal failed, committed
             k = 0
             while time.perf_counter() < stop:
                 t = time.perf_counter()
@@ -271,13 +272,14 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                 except WriteFailed:
                     failed += 1
                 else:
+                    committed += 1
                     if len(lat) < 200_000:
                         lat.append(time.perf_counter() - t)
                 k += 1
 
         await asyncio.gather(*(writer(i) for i in range(r.writers)))
         return cpb.DdbLoadReply(
-            committed=len(lat),
+            committed=committed,
             failed=failed,
             latencies=lat,
             elapsed=time.perf_counter() - t0,
