@@ -74,6 +74,17 @@ def one_line(text: str, limit: int = _MAX_REASON) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def field_path(loc: tuple[Any, ...]) -> str:
+    """A pydantic error location as a field path: ("avatars", 0, "pose") -> "avatars[0].pose" ("" for the root)."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
 def _size(n: int) -> str:
     if n >= 1 << 20 and n % (1 << 20) == 0:
         return f"{n >> 20} MiB"

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment  # scipy comes with scikit-image
 
-from haa.control.pathplanner import CostMap, PlannerConfig
+from haa.control.pathplanner import CostMap, PlannerConfig, as_probabilities
 from haa.slam.grid import GridSpec, OccupancyGrid
 from haa.slam.metrics import EXPLORED_HIGH, EXPLORED_LOW
 
@@ -129,11 +129,7 @@ def split_unexplored(
 ) -> Split:
     """Divide the unexplored reachable cells between `avatars` (name → (x, y)) and pick one target each."""
     cfg = config or ExploreConfig()
-    if isinstance(prob, OccupancyGrid):
-        spec = prob.spec if spec is None else spec
-        p = prob.prob()
-    else:
-        p = np.asarray(prob, dtype=float)
+    p, spec = as_probabilities(prob, spec)
     cm = costmap or CostMap(p, spec, cfg.planner)
     names = list(avatars)
     pos = [(float(avatars[a][0]), float(avatars[a][1])) for a in names]

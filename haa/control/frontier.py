@@ -30,7 +30,7 @@ import numpy as np
 from skimage.graph import MCP_Geometric
 
 from haa.control.explore import reachable_mask
-from haa.control.pathplanner import CostMap, PlannerConfig
+from haa.control.pathplanner import CostMap, PlannerConfig, as_probabilities
 from haa.slam.grid import GridSpec, OccupancyGrid
 from haa.slam.metrics import EXPLORED_HIGH, EXPLORED_LOW
 
@@ -81,11 +81,7 @@ def assign_frontiers(
 ) -> FrontierAssignment:
     """One target per avatar by coordinated frontier exploration (see the module docstring)."""
     cfg = config or FrontierConfig()
-    if isinstance(prob, OccupancyGrid):
-        spec = prob.spec if spec is None else spec
-        p = prob.prob()
-    else:
-        p = np.asarray(prob, dtype=float)
+    p, spec = as_probabilities(prob, spec)
     cm = CostMap(p, spec, cfg.planner)
     names = list(avatars)
     pos = [(float(avatars[a][0]), float(avatars[a][1])) for a in names]

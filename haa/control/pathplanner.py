@@ -83,6 +83,13 @@ class Plan:
     seconds: float = 0.0  # planning time
 
 
+def as_probabilities(prob: np.ndarray | OccupancyGrid, spec: GridSpec | None) -> tuple[np.ndarray, GridSpec | None]:
+    """(cell occupancy probabilities, grid spec) of a grid or a probability array (`spec` wins if given)."""
+    if isinstance(prob, OccupancyGrid):
+        return prob.prob(), prob.spec if spec is None else spec
+    return np.asarray(prob, dtype=float), spec
+
+
 class CostMap:
     """The planner's cost grid for one map state (reuse it for several plans on the same map)."""
 

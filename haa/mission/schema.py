@@ -47,7 +47,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, NoReturn
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    FiniteFloat,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from haa import files
 
@@ -62,6 +71,12 @@ MAX_SPEED = 1000.0
 
 HOST_NAME = re.compile(r"^h[1-9][0-9]{0,3}$")
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+def _check_name(v: str) -> str:
+    if not NAME.match(v):
+        raise ValueError(f"letters, digits, '_', '.', '-' and a letter or digit first (got {v!r})")
+    return v
 
 AvatarType = Literal["seeker", "enhanced_seeker", "sweeper", "carrier"]
 HOST_ACTIONS = ("leave", "join", "kill", "restart")
@@ -81,7 +96,7 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=False)
 
 
-Name = Annotated[str, Field(min_length=1, max_length=MAX_NAME_CHARS)]
+Name = Annotated[str, Field(min_length=1, max_length=MAX_NAME_CHARS), AfterValidator(_check_name)]
 Seconds = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 
@@ -147,13 +162,6 @@ class Avatar(_Model):
     join_at_s: Seconds | None = Field(None, description="joins this long after mission start (default: at start)")
     leave_at_s: Seconds | None = Field(None, description="retires gracefully this long after mission start")
 
-    @field_validator("name")
-    @classmethod
-    def _name(cls, v: str) -> str:
-        if not NAME.match(v):
-            raise ValueError(f"letters, digits, '_', '.', '-' and a letter or digit first (got {v!r})")
-        return v
-
     @model_validator(mode="after")
     def _times(self) -> Avatar:
         if self.leave_at_s is not None and self.leave_at_s <= (self.join_at_s or 0.0):
@@ -186,13 +194,6 @@ class MissionSpec(_Model):
     chaos: str | None = Field(None, min_length=1, max_length=4096)
     map_resolution: float = Field(0.1, ge=0.02, le=1.0, allow_inf_nan=False)
     congregation: Congregation = Congregation()
-
-    @field_validator("name")
-    @classmethod
-    def _name(cls, v: str) -> str:
-        if not NAME.match(v):
-            raise ValueError(f"letters, digits, '_', '.', '-' and a letter or digit first (got {v!r})")
-        return v
 
 
 @dataclass(frozen=True)
@@ -229,16 +230,6 @@ class Mission:
                 live.discard(e.host)
             out.append((e.at_s, frozenset(live)))
         return out
-
-
-def _fmt_loc(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out
 
 
 def _reason(err: dict[str, Any], model: type[BaseModel] | None) -> str:
@@ -283,8 +274,9 @@ def parse_mission(data: Any, label: str, base: Path | None = None) -> Mission:
         loc = tuple(err["loc"])
         if err["type"] == "missing" and loc and isinstance(loc[-1], int):
             # a short tuple (a pose of two numbers): name the tuple, not its absent element
-            raise MissionError(label, _fmt_loc(loc[:-1]), f"too few items (item {loc[-1]} is missing)") from None
-        raise MissionError(label, _fmt_loc(loc) or "(file)", _reason(dict(err), _model_at(loc))) from None
+            missing = f"too few items (item {loc[-1]} is missing)"
+            raise MissionError(label, files.field_path(loc[:-1]), missing) from None
+        raise MissionError(label, files.field_path(loc) or "(file)", _reason(dict(err), _model_at(loc))) from None
     arena = check_mission(spec, label, base)
     return Mission(spec, None, arena)
 

@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import yaml
@@ -290,16 +290,6 @@ def dump_spec(spec: ArenaSpec) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
 
 
-def _fmt_loc(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(file)"
-
-
 def builtin_path(name: str) -> Path:
     return Path(str(resources.files("haa.sim") / "arenas" / f"{name}.yaml"))
 
@@ -333,7 +323,8 @@ def parse_arena(text: str, label: str = "arena") -> Arena:
     except ValidationError as e:
         err = e.errors()[0]
         msg = str(err["msg"]).removeprefix("Value error, ")
-        raise ArenaError(files.one_line(f"{label}: {_fmt_loc(tuple(err['loc']))}: {msg}", 500)) from None
+        where = files.field_path(tuple(err["loc"])) or "(file)"
+        raise ArenaError(files.one_line(f"{label}: {where}: {msg}", 500)) from None
     arena = compile_arena(spec, label)
     arena.source = text
     return arena
