@@ -154,6 +154,23 @@ def test_ground_truth(sim: SimProcess) -> None:
         assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "resolution" in e.value.details()
 
 
+def test_ground_truth_calls_are_counted_per_caller(sim: SimProcess) -> None:
+    """Issue 15: haa-sim counts ground-truth and Detect calls per caller (x-haa-caller), so a mission test can
+    assert that the agents made none; the avatar API itself is not counted."""
+    with SimClient(sim.address, caller="A7") as c, SimClient(sim.address, caller="runner") as r:
+        before = dict(r.info().truth_calls)
+        c.poses()
+        c.poses()
+        c.landmarks()
+        aid = c.register("seeker").avatar.avatar_id
+        c.odometry(aid, timeout=0.01).cancel()
+        c.detect(aid)
+        after = dict(r.info().truth_calls)
+        c.release(aid)
+    delta = {k: after.get(k, 0) - before.get(k, 0) for k in after if after.get(k, 0) != before.get(k, 0)}
+    assert delta == {"A7/Poses": 2, "A7/Landmarks": 1, "A7/Detect": 1, "runner/Info": 1}, delta
+
+
 def test_step_mode_is_deterministic_and_equals_the_library(sim: SimProcess) -> None:
     """The server in step mode gives exactly what the library World gives when stepped in the same ticks."""
     with sim.client() as c:

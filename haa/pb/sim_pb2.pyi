@@ -422,7 +422,14 @@ class InfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class SimInfo(_message.Message):
-    __slots__ = ("arena", "arena_yaml", "seed", "time", "mode", "speed", "achieved_speed", "tick", "avatar_types")
+    __slots__ = ("arena", "arena_yaml", "seed", "time", "mode", "speed", "achieved_speed", "tick", "avatar_types", "truth_calls")
+    class TruthCallsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
     ARENA_FIELD_NUMBER: _ClassVar[int]
     ARENA_YAML_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -432,6 +439,7 @@ class SimInfo(_message.Message):
     ACHIEVED_SPEED_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     AVATAR_TYPES_FIELD_NUMBER: _ClassVar[int]
+    TRUTH_CALLS_FIELD_NUMBER: _ClassVar[int]
     arena: str
     arena_yaml: str
     seed: int
@@ -441,7 +449,8 @@ class SimInfo(_message.Message):
     achieved_speed: float
     tick: float
     avatar_types: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, arena: _Optional[str] = ..., arena_yaml: _Optional[str] = ..., seed: _Optional[int] = ..., time: _Optional[float] = ..., mode: _Optional[str] = ..., speed: _Optional[float] = ..., achieved_speed: _Optional[float] = ..., tick: _Optional[float] = ..., avatar_types: _Optional[_Iterable[str]] = ...) -> None: ...
+    truth_calls: _containers.ScalarMap[str, int]
+    def __init__(self, arena: _Optional[str] = ..., arena_yaml: _Optional[str] = ..., seed: _Optional[int] = ..., time: _Optional[float] = ..., mode: _Optional[str] = ..., speed: _Optional[float] = ..., achieved_speed: _Optional[float] = ..., tick: _Optional[float] = ..., avatar_types: _Optional[_Iterable[str]] = ..., truth_calls: _Optional[_Mapping[str, int]] = ...) -> None: ...
 
 class PosesRequest(_message.Message):
     __slots__ = ()

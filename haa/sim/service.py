@@ -69,6 +69,8 @@ from haa.sim.sensors import CAMERA_HEIGHT, SONAR_BEARINGS, SONAR_FOV, SONAR_PERI
 from haa.sim.world import ACTIVE, AvatarState, CollectableState, SimEvent, World
 
 MD_TOKEN = "x-haa-token"
+#: metadata naming the caller (an agent name, "runner", ...): ground-truth calls are counted per caller
+MD_CALLER = "x-haa-caller"
 DEFAULT_TICK = 0.05
 DEFAULT_PERIOD = 0.1
 QUEUE_MAX = 10_000
@@ -439,6 +441,15 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
         self.rejected = 0
         self.malformed = 0
         self.errors = 0
+        #: ground-truth / Detect calls per "<caller>/<method>" (SimInfo.truth_calls)
+        self.truth_calls: dict[str, int] = {}
+
+    def count_truth(self, method: str, context: aio.ServicerContext) -> None:
+        """Count a ground-truth or geometric-shortcut call by its caller (metadata x-haa-caller): the agents
+        of a mission must make none (issue 15: "haa-sim counts such calls per caller")."""
+        caller = str(dict(context.invocation_metadata() or ()).get(MD_CALLER, ""))[:64]
+        key = f"{caller}/{method}"
+        self.truth_calls[key] = self.truth_calls.get(key, 0) + 1
 
     def add_to_server(self, server: aio.Server) -> None:
         """Register the three services with raw requests (haa.rpcguard): the token is checked before a request
@@ -649,6 +660,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def Detect(self, request: pb.AvatarRef, context: aio.ServicerContext) -> pb.Detections:
+        self.count_truth("Detect", context)
         av = await self.active(request.avatar_id, context)
         d = pb.Detections(avatar_id=av.id, time=self.world.time)
         for o in self.world.landmark_observations(av.id):
@@ -682,10 +694,12 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
     # ---------------------------------------------------------- GroundTruth
     @authed
     async def Info(self, request: pb.InfoRequest, context: aio.ServicerContext) -> pb.SimInfo:
+        self.count_truth("Info", context)
         c = self.core
         return pb.SimInfo(
             arena=c.arena_name,
             arena_yaml=self.world.arena.to_yaml(),
+            truth_calls=self.truth_calls,
             seed=self.world.seed,
             time=self.world.time,
             mode=c.mode,
@@ -697,6 +711,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def Poses(self, request: pb.PosesRequest, context: aio.ServicerContext) -> pb.PosesReply:
+        self.count_truth("Poses", context)
         r = pb.PosesReply(time=self.world.time)
         for av in self.world.avatars.values():
             r.avatars.add(
@@ -714,6 +729,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def OccupancyGrid(self, request: pb.GridRequest, context: aio.ServicerContext) -> pb.GridReply:
+        self.count_truth("OccupancyGrid", context)
         if not (0.01 <= request.resolution <= 2.0):
             await context.abort(
                 grpc.StatusCode.INVALID_ARGUMENT, f"resolution: {request.resolution} m is outside 0.01..2 m"
@@ -722,6 +738,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def Landmarks(self, request: pb.InfoRequest, context: aio.ServicerContext) -> pb.LandmarksReply:
+        self.count_truth("Landmarks", context)
         a = self.world.arena
         r = pb.LandmarksReply(marker_size=a.marker_size, marker_height=a.marker_height, dictionary=a.marker_dictionary)
         normals = {m.id: m.normal for m in a.markers if m.id != a.congregation_id}
@@ -737,6 +754,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
 
     @authed
     async def Collectables(self, request: pb.InfoRequest, context: aio.ServicerContext) -> pb.CollectablesReply:
+        self.count_truth("Collectables", context)
         r = pb.CollectablesReply(time=self.world.time)
         for c in self.world.collectable_states():
             r.collectables.add(
@@ -905,11 +923,14 @@ def main(argv: list[str] | None = None) -> None:
 class SimClient:
     """Blocking client of the three services (tests, tools, `haactl sim show --server`)."""
 
-    def __init__(self, address: str, token: str | None = None, timeout: float = 10.0) -> None:
+    def __init__(self, address: str, token: str | None = None, timeout: float = 10.0, caller: str = "") -> None:
         self.address = address
         self.timeout = timeout
         self.channel = grpc.insecure_channel(address, options=[("grpc.max_receive_message_length", 32 << 20)])
-        self.md = ((MD_TOKEN, token),) if token else ()
+        md = [(MD_TOKEN, token)] if token else []
+        if caller:
+            md.append((MD_CALLER, caller))
+        self.md = tuple(md)
         self.avatars = pbg.AvatarSimStub(self.channel)
         self.truth = pbg.GroundTruthStub(self.channel)
         self.control = pbg.SimControlStub(self.channel)
