@@ -185,3 +185,51 @@ class SlamGrid(_message.Message):
     p: _containers.RepeatedScalarFieldContainer[float]
     region: _containers.RepeatedScalarFieldContainer[bool]
     def __init__(self, rows: _Optional[int] = ..., cols: _Optional[int] = ..., resolution: _Optional[float] = ..., x0: _Optional[float] = ..., y0: _Optional[float] = ..., p: _Optional[_Iterable[float]] = ..., region: _Optional[_Iterable[bool]] = ...) -> None: ...
+
+class SlamAddAvatar(_message.Message):
+    __slots__ = ("avatar", "t0")
+    AVATAR_FIELD_NUMBER: _ClassVar[int]
+    T0_FIELD_NUMBER: _ClassVar[int]
+    avatar: SlamAvatarInfo
+    t0: float
+    def __init__(self, avatar: _Optional[_Union[SlamAvatarInfo, _Mapping]] = ..., t0: _Optional[float] = ...) -> None: ...
+
+class SlamObserve(_message.Message):
+    __slots__ = ("sonar", "landmark", "cooccupancy", "floor", "processor")
+    SONAR_FIELD_NUMBER: _ClassVar[int]
+    LANDMARK_FIELD_NUMBER: _ClassVar[int]
+    COOCCUPANCY_FIELD_NUMBER: _ClassVar[int]
+    FLOOR_FIELD_NUMBER: _ClassVar[int]
+    PROCESSOR_FIELD_NUMBER: _ClassVar[int]
+    sonar: SlamSonar
+    landmark: SlamLandmark
+    cooccupancy: SlamCooccupancy
+    floor: SlamFloor
+    processor: str
+    def __init__(self, sonar: _Optional[_Union[SlamSonar, _Mapping]] = ..., landmark: _Optional[_Union[SlamLandmark, _Mapping]] = ..., cooccupancy: _Optional[_Union[SlamCooccupancy, _Mapping]] = ..., floor: _Optional[_Union[SlamFloor, _Mapping]] = ..., processor: _Optional[str] = ...) -> None: ...
+
+class SlamRequest(_message.Message):
+    __slots__ = ("avatar",)
+    AVATAR_FIELD_NUMBER: _ClassVar[int]
+    avatar: str
+    def __init__(self, avatar: _Optional[str] = ...) -> None: ...
+
+class SlamRemoveAvatar(_message.Message):
+    __slots__ = ("name",)
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    def __init__(self, name: _Optional[str] = ...) -> None: ...
+
+class SlamEvent(_message.Message):
+    __slots__ = ("add_avatar", "predict", "observe", "request", "remove_avatar")
+    ADD_AVATAR_FIELD_NUMBER: _ClassVar[int]
+    PREDICT_FIELD_NUMBER: _ClassVar[int]
+    OBSERVE_FIELD_NUMBER: _ClassVar[int]
+    REQUEST_FIELD_NUMBER: _ClassVar[int]
+    REMOVE_AVATAR_FIELD_NUMBER: _ClassVar[int]
+    add_avatar: SlamAddAvatar
+    predict: SlamPrediction
+    observe: SlamObserve
+    request: SlamRequest
+    remove_avatar: SlamRemoveAvatar
+    def __init__(self, add_avatar: _Optional[_Union[SlamAddAvatar, _Mapping]] = ..., predict: _Optional[_Union[SlamPrediction, _Mapping]] = ..., observe: _Optional[_Union[SlamObserve, _Mapping]] = ..., request: _Optional[_Union[SlamRequest, _Mapping]] = ..., remove_avatar: _Optional[_Union[SlamRemoveAvatar, _Mapping]] = ...) -> None: ...

@@ -155,6 +155,14 @@ class Estimate:
     weights: np.ndarray = field(repr=False)
 
 
+def _weighted_estimate(t: float, states: np.ndarray, w: np.ndarray, block: int) -> Estimate:
+    """The weighted mean pose (circular mean for θ), positional std and n_eff of states (N, 3) at time t."""
+    x, y = float(w @ states[:, 0]), float(w @ states[:, 1])
+    th = math.atan2(float(w @ np.sin(states[:, 2])), float(w @ np.cos(states[:, 2])))
+    var = float(w @ ((states[:, 0] - x) ** 2 + (states[:, 1] - y) ** 2))
+    return Estimate(t, np.array([x, y, th]), math.sqrt(max(var, 0.0)), n_eff(w), block, w.copy())
+
+
 def _through_parents(log_fwd: np.ndarray, parents: np.ndarray) -> np.ndarray:
     """Eq. 5.2-4: the density of child i is the density of its parent p_i."""
     return log_fwd[parents]
@@ -325,12 +333,33 @@ class ParticleFilter:
                 self.weight_updates += 1
                 self.obs_per_update.append(self.pending_obs)
                 self.pending_obs = 0
-        states = b.states_at(tq)
-        w = b.weights
-        x, y = float(w @ states[:, 0]), float(w @ states[:, 1])
-        th = math.atan2(float(w @ np.sin(states[:, 2])), float(w @ np.cos(states[:, 2])))
-        var = float(w @ ((states[:, 0] - x) ** 2 + (states[:, 1] - y) ** 2))
-        return Estimate(tq, np.array([x, y, th]), math.sqrt(max(var, 0.0)), n_eff(w), b.index, w.copy())
+        return _weighted_estimate(tq, b.states_at(tq), b.weights, b.index)
+
+    def peek(self) -> Estimate:
+        """Event (d) at the newest time *without changing anything*: the estimate `estimate()` would return now.
+
+        The densities `estimate()` would propagate forward and fold are combined into a temporary (the same
+        additions in the same order, so the weights are bit-identical), and no counter moves: the replica
+        (haa.slam.replica) publishes estimates between log events with it, and its state must depend on the
+        log alone.
+        """
+        last = self.last
+        carry: np.ndarray | None = None
+        if self.marker is not None:
+            for k in range(self.marker, last.index):
+                src, dst = self.block(k), self.block(k + 1)
+                if not src.has_fwd and carry is None:
+                    continue
+                fwd = src.log_fwd if carry is None else src.log_fwd + carry
+                assert dst.parents is not None
+                carry = self.through_parents(fwd, dst.parents)
+        acc = last.log_acc if carry is None else last.log_acc + carry
+        w = last.weights
+        if np.any(acc):
+            with np.errstate(divide="ignore"):
+                lw = np.log(w)
+            w = normalize_log(lw + acc)
+        return _weighted_estimate(self.time, last.states_at(self.time), w, last.index)
 
     def weights_at(self, t: float) -> np.ndarray:
         """The weights last computed for the block containing t (no densities folded; a read-only view)."""

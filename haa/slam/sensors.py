@@ -159,6 +159,9 @@ class Template:
 
     points: np.ndarray  # (K, 2)
     p: np.ndarray  # (K,)
+    #: for a cached template, the arguments it was built from (a cache key is rounded, the template is not):
+    #: the replica's checkpoint rebuilds the caches from these (haa.slam.replica)
+    origin: tuple[float, ...] | None = field(default=None, repr=False)
 
 
 def place(states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,7 +264,7 @@ class SonarModel:
         ang = e.bearing + a
         mx, my = self.mount_radius * math.cos(e.bearing), self.mount_radius * math.sin(e.bearing)
         pts = np.stack([mx + d * np.cos(ang), my + d * np.sin(ang)], axis=1)
-        tpl = Template(pts, p)
+        tpl = Template(pts, p, (math.nan if e.range is None else e.range, e.bearing, fov, max_range))
         self._cache[key] = tpl
         if len(self._cache) > 4096:
             self._cache.popitem(last=False)
@@ -328,7 +331,7 @@ class CooccupancyModel:
             xx, yy = np.meshgrid(g, g)
             inside = xx**2 + yy**2 <= radius**2
             pts = np.stack([xx[inside], yy[inside]], axis=1)
-            tpl = Template(pts, np.full(len(pts), self.p_free))
+            tpl = Template(pts, np.full(len(pts), self.p_free), (radius,))
             self._cache[key] = tpl
         return tpl
 

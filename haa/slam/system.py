@@ -91,7 +91,12 @@ class SlamSystem:
         self.seed = seed
         self.processed: dict[str, int] = {}
 
-    def add_avatar(self, name: str, pose: tuple[float, float, float], t0: float = 0.0) -> ParticleFilter:
+    def add_avatar(
+        self, name: str, pose: tuple[float, float, float], t0: float = 0.0, *, seed: int | None = None
+    ) -> ParticleFilter:
+        """Event (a) for `name`. The filter's noise seed is `seed`, by default seed · 1009 + the number of
+        filters (the replica passes its own count of avatars ever added, so that a removal does not make two
+        filters share a seed)."""
         if name in self.filters:
             raise ValueError(f"avatar: {name!r} already has a filter")
         c = self.config
@@ -100,7 +105,7 @@ class SlamSystem:
             pose,
             t0,
             spread=c.initial_spread,
-            seed=self.seed * 1009 + len(self.filters),
+            seed=self.seed * 1009 + len(self.filters) if seed is None else seed,
             horizon=c.horizon,
             forward_propagation=c.forward_propagation,
             name=name,
