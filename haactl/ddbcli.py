@@ -49,7 +49,28 @@ def plain_value(type_name: str, data: bytes) -> Any:
         return show_bytes(value)
     if isinstance(value, tuple):
         return [show_bytes(i) for i in value]
+    if type_name == "log":
+        return {"first": value["first"], "items": [show_bytes(i) for i in value["items"]]}
     return value
+
+
+#: `ddb get` shows at most this many items of a log (the newest), each cut to LOG_ITEM_CHARS characters
+LOG_SHOW_ITEMS = 10
+LOG_ITEM_CHARS = 60
+
+
+def show_log(value: dict[str, Any]) -> str:
+    """A log's plain value -> readable lines: its index range and its newest items, cut."""
+    first, items = value["first"], value["items"]
+    lines = [f"log: first {first}, {len(items)} items, next {first + len(items)}"]
+    if len(items) > LOG_SHOW_ITEMS:
+        lines.append(f"... {len(items) - LOG_SHOW_ITEMS} older items")
+    start = max(0, len(items) - LOG_SHOW_ITEMS)
+    for k, item in enumerate(items[start:], start):
+        text = item.replace("\n", "\\n")
+        text = text if len(text) <= LOG_ITEM_CHARS else text[: LOG_ITEM_CHARS - 1] + "…"
+        lines.append(f"[{first + k}] {text}")
+    return "\n".join(lines)
 
 
 def record_dict(r: ddb_pb2.DdbObjectRecord, keys_only: bool = False) -> dict[str, Any]:
@@ -193,6 +214,8 @@ def ddb_get(
             if k in found:
                 r = found[k]
                 v = record_dict(r)["value"]
+                if r.type == "log" and isinstance(v, dict):
+                    v = show_log(v)
                 t.add_row(escape(k), r.type, str(r.version), escape(v if isinstance(v, str) else json.dumps(v)))
         out.print(t)
     if missing:
@@ -263,6 +286,10 @@ def op_event(op: ddb_pb2.DdbOp) -> dict[str, Any]:
         ev["item"] = show_bytes(body.item)
     elif kind == "add":
         ev["delta"] = body.delta
+    elif kind == "log_append":
+        ev["items"] = [show_bytes(i) for i in body.items]
+    elif kind == "log_trim":
+        ev["upto"] = body.upto
     return ev
 
 
@@ -321,6 +348,10 @@ def show_event(e: dict[str, Any]) -> str:
         tail = f" += {escape(e['item'])}"
     elif "delta" in e:
         tail = f" {e['delta']:+d}"
+    elif "items" in e:
+        tail = f" += {len(e['items'])} item(s)"
+    elif "upto" in e:
+        tail = f" below {e['upto']}"
     origin = f" [dim]from {escape(e['origin'])}[/]" if e.get("origin") else ""
     return f"#{e['ddb_seq']} [bold]{e['op']}[/] {escape(e['key'])}{tail}{origin}"
 

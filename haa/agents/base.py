@@ -11,7 +11,11 @@ host, over one channel (`haa.agents.channel`). What an agent gets:
 * messages: `send(to, payload)` — routed by the hosts, the sender never knows where the receiver lives;
   `await request(to, payload, timeout=...)` — a conversation: the receiver's `on_request` answers it;
 * timers: `call_later(delay, fn)`, `every(period, fn)` (cancelled when the agent freezes);
-* DDB: `await ddb_get(key)`, `await ddb_put(key, value, type_name)`, `watch(prefix, callback)`, `unwatch(id)`;
+* DDB: `await ddb_get(key)`, `await ddb_put(key, value, type_name)`, `await ddb_put_json(key, obj)`;
+  `await ddb_write(ops, atomic=False) -> [reason or "" per op]` (ops built with `haa.hostd.ddb`: put, delete,
+  append, cas, add, log_append, log_trim), `await ddb_log_append(key, items)`; `watch(prefix, callback)`,
+  `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.hostd.ddb.decode_log(ddb_get bytes)` reads a
+  log as (first, items);
 * `backup()` (Alg. 7 ll. 1-3), `await spawn_child(type_name, config)`, `stop()`, `log(event, **fields)`.
 
 Hooks an agent implements (all optional): `on_start()` (a new agent), `on_message(src, payload)`,
@@ -55,12 +59,13 @@ import sys
 import time
 import traceback
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from typing import Any, ClassVar
 
 import pydantic
 
 from haa.agents.channel import message_too_large
+from haa.hostd import ddb as ddbmod
 from haa.pb import agent_pb2 as pb
 
 #: recovery strategies an agent type declares (docs/agents.md, "Recovery strategies")
@@ -77,6 +82,7 @@ HOST_TIMEOUT = 30.0
 
 TimerCallback = Callable[[], Any]
 WatchCallback = Callable[[str, str, bytes | None], Any]
+LogCallback = Callable[[int, bytes], Any]
 
 
 class RemoteError(Exception):
@@ -364,9 +370,36 @@ class AgentBase:
         """`ddb_put` of a JSON object (DDB type "json")."""
         await self._ctx.ddb_put(key, json.dumps(value, separators=(",", ":")).encode(), "json", timeout)
 
+    async def ddb_write(self, ops: Iterable[Any], atomic: bool = False, timeout: float = HOST_TIMEOUT) -> list[str]:
+        """Write several DDB ops (`haa.hostd.ddb.put`, `delete`, `append`, `cas`, `add`, `log_append`,
+        `log_trim`) in one batch, committed through the group (this waits for the commit). Returns one entry
+        per op, in order: "" if it succeeded, else its reason. With `atomic`, one failing op fails them all
+        ("atomic batch aborted: op i failed: ...") and nothing is written. HostError if the host refused the
+        batch before proposing it (an invalid key, an unknown type, a value, item or batch too large: nothing
+        is written) or it was not committed."""
+        return await self._ctx.ddb_write(ops, atomic, timeout)
+
+    async def ddb_log_append(self, key: str, items: Iterable[bytes], timeout: float = HOST_TIMEOUT) -> None:
+        """Append `items` to the DDB log `key` (created if absent); HostError if it failed (e.g. the log is
+        full: trim it with `ddb_write([log_trim(key, upto)])`, docs/ddb.md "Logs")."""
+        try:
+            op = ddbmod.log_append(key, items)
+        except ddbmod.DdbError as e:
+            raise ValueError(f"ddb_log_append {key!r}: {e}") from None
+        (why,) = await self._ctx.ddb_write([op], False, timeout)
+        if why:
+            raise HostError(f"ddb_log_append {key!r}: {why}")
+
     def watch(self, prefix: str, callback: WatchCallback) -> int:
         """Call `callback(event, key, value)` for DDB events under `prefix`, in the mailbox; returns the id."""
         return self._ctx.watch(prefix, callback)
+
+    def watch_log(self, key: str, callback: LogCallback) -> int:
+        """Call `callback(index, item)` for every item appended to the DDB log `key` from now on, in index
+        order, in the mailbox (trims are not reported); returns the id for `unwatch`. To read what the log
+        held before: watch first, then `decode_log(await ddb_get(key))`, and skip in the callback the
+        indexes already read."""
+        return self._ctx.watch_log(key, callback)
 
     def unwatch(self, watch_id: int) -> None:
         self._ctx.unwatch(watch_id)
@@ -461,6 +494,7 @@ class AgentContext:
         self._convs: dict[int, asyncio.Future[pb.AgentMsg]] = {}
         self._calls: dict[int, asyncio.Future[pb.HostToAgent.Answer]] = {}
         self._watches: dict[int, WatchCallback] = {}
+        self._log_watches: dict[int, tuple[str, LogCallback]] = {}  # watch id -> (log key, callback)
         # conversation ids are unique across the instances of one agent: the epoch in the high 32 bits
         self._next_conv = ((self.epoch & 0xFFFFFFFF) << 32) + 1
         self._next_call = 1
@@ -504,8 +538,11 @@ class AgentContext:
                 fut_a.set_result(msg.answer)
         elif kind == "watch_event":
             w = msg.watch_event
-            cb = self._watches.get(w.watch_id)
-            if cb is not None:
+            if w.watch_id in self._log_watches:
+                log_key = self._log_watches[w.watch_id][0]
+                if w.event == "append" and w.key == log_key and w.has_value:
+                    self._put(("log_item", (w.watch_id, w.index, bytes(w.value))))
+            elif w.watch_id in self._watches:
                 self._put(("watch", (w.watch_id, w.event, w.key, bytes(w.value) if w.has_value else None)))
         elif kind == "start":
             self._put(("begin", ("start", None)))
@@ -575,6 +612,12 @@ class AgentContext:
             cb = self._watches.get(wid)
             if cb is not None:
                 await self._guarded("watch", lambda: cb(event, key, value))
+        elif kind == "log_item":
+            wid, index, item = data
+            entry = self._log_watches.get(wid)
+            if entry is not None:
+                log_cb = entry[1]
+                await self._guarded("watch_log", lambda: log_cb(index, item))
         elif kind == "begin":
             how, blob = data
             if how == "start":
@@ -735,6 +778,21 @@ class AgentContext:
                                                              type_name=type_name))
         await self._call(frame, rid, timeout, f"ddb_put {key!r}")
 
+    async def ddb_write(self, ops: Iterable[Any], atomic: bool, timeout: float) -> list[str]:
+        batch = list(ops)
+        if not batch:
+            raise ValueError("ddb_write: no ops")
+        rid = self._new_call()
+        try:
+            body = pb.AgentToHost.DdbWrite(req_id=rid, ops=batch, atomic=bool(atomic))
+        except TypeError:
+            raise TypeError("ddb_write: ops must be DdbOp messages (haa.hostd.ddb.put, log_append, ...)") from None
+        ans = await self._call(pb.AgentToHost(ddb_write=body), rid, timeout, f"ddb_write of {len(batch)} op(s)")
+        errors = list(ans.op_errors)
+        if len(errors) != len(batch):  # pragma: no cover - a host bug
+            raise HostError(f"ddb_write: the host answered {len(errors)} results for {len(batch)} ops")
+        return errors
+
     async def spawn_child(self, type_name: str, config: bytes, timeout: float) -> str:
         if not type_name:
             raise ValueError("type_name: must not be empty")
@@ -754,8 +812,19 @@ class AgentContext:
         self._emit(pb.AgentToHost(ddb_watch=pb.AgentToHost.DdbWatch(watch_id=wid, prefix=prefix)))
         return wid
 
+    def watch_log(self, key: str, callback: LogCallback) -> int:
+        _check_key(key)
+        if not callable(callback):
+            raise TypeError("callback: must be callable")
+        wid = self._next_watch
+        self._next_watch += 1
+        self._log_watches[wid] = (key, callback)
+        # the host watches by prefix: events of other keys under it are dropped in `feed`
+        self._emit(pb.AgentToHost(ddb_watch=pb.AgentToHost.DdbWatch(watch_id=wid, prefix=key)))
+        return wid
+
     def unwatch(self, watch_id: int) -> None:
-        if self._watches.pop(watch_id, None) is not None:
+        if self._log_watches.pop(watch_id, None) is not None or self._watches.pop(watch_id, None) is not None:
             self._emit(pb.AgentToHost(ddb_unwatch=pb.AgentToHost.DdbUnwatch(watch_id=watch_id)))
 
     def backup(self, data: bytes) -> None:

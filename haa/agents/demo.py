@@ -34,8 +34,9 @@ measurement); request b"hang" blocks its event loop forever (to exercise hang de
 {"cpu": x} changes the share; b"stats" -> JSON.
 
 probe — a scriptable agent for tests and operators: every request is a JSON command {"op": ...} (echo,
-send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, watch, unwatch, spawn_child, set,
-backup, state, timer, log, stop, raise, exit, hang, garbage, oversize, bigmsg); see `ProbeAgent.on_request`. It
+send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, ddb_write, ddb_log, watch,
+watch_log, unwatch, spawn_child, set, backup, state, timer, log, stop, raise, exit, hang, garbage, oversize,
+bigmsg); see `ProbeAgent.on_request`. It
 counts the plain messages it receives and keeps them (state "messages") unless its config says
 {"record": false}.
 
@@ -59,6 +60,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from haa.agents.base import AgentBase, AgentContext, RemoteError
 from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.agents.registry import register
+from haa.hostd import ddb as ddbmod
 from haa.pb import agent_pb2 as apb
 
 #: counter message: magic, sender life (gen), sequence number (from 1), then `payload` padding bytes
@@ -488,6 +490,19 @@ class ProbeAgent(AgentBase):
             out = None if v is None else v.decode("utf-8", "replace")
         elif op == "ddb_put":
             await self.ddb_put(cmd["key"], str(cmd.get("value", "")).encode(), cmd.get("type", "blob"))
+        elif op == "ddb_write":  # "ops": [["put", key, type, value] | ["log_append", key, [text, ...]] | ...]
+            ops = [_probe_op(o) for o in cmd["ops"]]
+            out = await self.ddb_write(ops, atomic=bool(cmd.get("atomic", False)))
+        elif op == "ddb_log":  # a log read back: {"first": n, "items": [text, ...]}, or None if absent
+            v = await self.ddb_get(cmd["key"], timeout=float(cmd.get("timeout", 5)))
+            if v is not None:
+                first, items = ddbmod.decode_log(v)
+                out = {"first": first, "items": [i.decode("utf-8", "replace") for i in items]}
+            else:
+                out = None
+        elif op == "watch_log":
+            out = self.watch_log(cmd["key"], lambda index, item, key=cmd["key"]: self._record(
+                self.events, ["log", key, index, item.decode("utf-8", "replace")]))
         elif op == "watch":
             prefix = cmd["prefix"]
             out = self.watch(prefix, lambda ev, key, val: self._record(
@@ -536,3 +551,26 @@ class ProbeAgent(AgentBase):
         else:
             raise ValueError(f"unknown probe op {op!r}")
         return json.dumps(out).encode()
+
+
+def _probe_op(o: list[Any]) -> Any:
+    """A probe's JSON op -> a DdbOp: ["put", key, type, value] (value: JSON for json, text for blob, an int for
+    counter), ["delete", key], ["append", key, text], ["add", key, n], ["log_append", key, [text, ...]],
+    ["log_trim", key, upto]."""
+    kind, key, *args = o
+    if kind == "put":
+        type_name, value = args
+        if type_name == "blob":
+            value = str(value).encode()
+        return ddbmod.put(key, type_name, value)
+    if kind == "delete":
+        return ddbmod.delete(key)
+    if kind == "append":
+        return ddbmod.append(key, str(args[0]).encode())
+    if kind == "add":
+        return ddbmod.add(key, int(args[0]))
+    if kind == "log_append":
+        return ddbmod.log_append(key, [str(i).encode() for i in args[0]])
+    if kind == "log_trim":
+        return ddbmod.log_trim(key, int(args[0]))
+    raise ValueError(f"unknown ddb op {kind!r}")

@@ -2,8 +2,8 @@
 
 `draw_group(seed, hosts, workload)` turns one seed into a scenario (swarm style, like `haa.dsim.schedule`):
 how many hosts and core processes, when each host starts (late starts are joins), a workload of DDB writes
-from random members (`workload="ddb"`: many more, in batches of put/delete/append/cas/add, some of them cut
-short by a crash in the middle of their broadcast), voluntary leaves, crashes (some in the middle of a
+from random members (`workload="ddb"`: many more, in batches of put/delete/append/cas/add/log_append/log_trim,
+some of them cut short by a crash in the middle of their broadcast), voluntary leaves, crashes (some in the middle of a
 broadcast, including the first core process before it forms the group), restarts as new incarnations,
 pauses and delay spikes that make the failure detector suspect correct hosts. `run_group` runs it on a
 `SimCluster` whose hosts are `MembershipNode`s, heals, runs to quiescence and checks (`check_group`):
@@ -279,6 +279,9 @@ class GroupSim:
         self.req = 0
         self.known: dict[str, dict[str, str]] = {}
         self.rreq = random.Random(sc.seed * 31 + 7)
+        # which list appends become log ops, and their details: a stream of its own, so that the draws of
+        # `rreq` (and with them every schedule the verifiers' pinned seeds rely on) stay as they were
+        self.rlog = random.Random(sc.seed * 613 + 3)
         self.trouble: dict[Proc, float] = {}  # process -> until when it counts as failed for `_safe`
         self.quiescent = False
         self.restart_due = 0.0  # the latest restart scheduled so far
@@ -354,7 +357,8 @@ class GroupSim:
         if kind < 0.4:
             return ddbmod.put(key, "json", {"v": r.randint(0, 1000), "by": name})
         if kind < 0.6:
-            return ddbmod.append(f"l{r.randint(0, 2)}", r.randbytes(4), 8)
+            n, item = r.randint(0, 2), r.randbytes(4)
+            return self._append_op(node, key, n, item)
         if kind < 0.8:
             return ddbmod.add(f"c{r.randint(0, 2)}", r.randint(-5, 5))
         if kind < 0.9:
@@ -364,6 +368,23 @@ class GroupSim:
                 return ddbmod.cas(key, ver if r.random() < 0.8 else ver + 1, "blob", r.randbytes(3))
             return ddbmod.cas(key, r.randint(0, 30), "blob", r.randbytes(3))
         return ddbmod.delete(key)
+
+    def _append_op(self, node: MembershipNode, key: str, n: int, item: bytes) -> Any:
+        """A list append, or (drawn from `rlog`) a log append or trim: on log `g<n>`, or now and then on `key`
+        (type mismatches with the puts there; a delete there recreates the log at index 0). A trim reads the
+        local replica, as the cas does, and aims around the log's range: a no-op below it, a failure above."""
+        g = self.rlog
+        pick = g.random()
+        if pick < 0.4:
+            return ddbmod.append(f"l{n}", item, 8)
+        log_key = key if g.random() < 0.1 else f"g{n}"
+        if pick < 0.75:
+            return ddbmod.log_append(log_key, [item + bytes([j]) for j in range(g.randint(1, 3))])
+        obj = node.state.ddb.get(log_key)
+        if obj is not None and obj.type_name == "log":
+            first, items = obj.raw
+            return ddbmod.log_trim(log_key, g.randint(max(0, first - 1), first + len(items) + 1))
+        return ddbmod.log_trim(log_key, g.randint(0, 3))
 
     def _write(self, name: str) -> None:
         h = self.cl.hosts[name]

@@ -12,7 +12,9 @@ by the daemon's `HostRuntime`, joins the two:
   instance per agent id here); an agent's `spawn_child` of an unknown type, or with a config the child
   type's model refuses (`AgentSupervisor.validate_config`, asked of the fork server), is answered with the
   error at once instead of being committed as an agent that can never start; and the agents' DDB requests,
-  served from the local replica (reads, watches) or through the group (writes, `HostRuntime.ddb_write`);
+  served from the local replica (reads, watches) or through the group (writes — DdbPut, and DdbWrite, a batch
+  of ops checked with `ddb.check_op` before anything is proposed — through `HostRuntime.ddb_write`, fenced by
+  the instance's epoch);
 * every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
   `AgentNode.report_costs`, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
 """
@@ -201,6 +203,8 @@ class AgentDriver:
             self._ddb_get(ev)  # type: ignore[arg-type]
         elif t is ap.DdbPut:
             self._ddb_put(ev)  # type: ignore[arg-type]
+        elif t is ap.DdbWrite:
+            self._ddb_write(ev)  # type: ignore[arg-type]
         elif t is ap.DdbWatch:
             self._watches[(a, ev.watch_id)] = ev.prefix  # type: ignore[union-attr]
             self._ensure_ddb_watch()
@@ -220,7 +224,7 @@ class AgentDriver:
         if obj is None:
             self.sup.answer(ev.agent_id, ev.req_id, True, b"", missing=True)
         else:
-            self.sup.answer(ev.agent_id, ev.req_id, True, obj.data())
+            self.sup.answer(ev.agent_id, ev.req_id, True, obj.data)
 
     def _fenced(self, agent: str) -> str:
         """'' if this host's instance of `agent` holds the agent's current epoch in the table (its outputs are
@@ -253,6 +257,38 @@ class AgentDriver:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
+    def _ddb_write(self, ev: ap.DdbWrite) -> None:
+        """Like `_ddb_put` (fencing, group commit), for a batch of ops; every op is checked first (bad key,
+        unknown or unwritable type, an oversized value, item or log append: an error answer, nothing proposed).
+        The answer of a committed batch carries one reason per op ("" = it succeeded)."""
+        why = "" if ev.ops else "empty batch"
+        for i, op in enumerate(ev.ops):
+            bad = ddbmod.check_op(op)  # type: ignore[arg-type]
+            if bad:
+                why = f"op {i}: {bad}"
+                break
+        if why:
+            self.rt.counters["agent_ddb_write_refused"] += 1
+            self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
+            return
+
+        async def run() -> None:
+            why = self._fenced(ev.agent_id)
+            if why:
+                self.rt.counters["agent_ddb_write_fenced"] += 1
+                self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
+                return
+            try:
+                res = await self.rt.ddb_write(list(ev.ops), ev.atomic)
+                errors = ["" if r.ok else (r.reason or "failed") for r in res.results]
+                self.sup.answer(ev.agent_id, ev.req_id, True, b"", op_errors=errors)
+            except Exception as e:
+                self.sup.answer(ev.agent_id, ev.req_id, False, b"", f"{type(e).__name__}: {e}")
+
+        task = asyncio.create_task(run(), name="agent-ddb-write")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
     def _ensure_ddb_watch(self) -> None:
         ddb = self._replica()
         if ddb is None or ddb is self._ddb_ref:
@@ -266,13 +302,18 @@ class AgentDriver:
             self._ensure_ddb_watch()
 
     def _on_ddb_event(self, ev: Any) -> None:
+        value: bytes | None = None
+        encoded = False
         for (agent, wid), prefix in list(self._watches.items()):
             if ev.key.startswith(prefix):
-                value = None
-                if ev.kind in ("add", "write") and ev.value is not None:
-                    with contextlib.suppress(Exception):
-                        value = ddbmod.encode_value(ev.type_name, ev.value)
-                self.sup.notify_watch(agent, wid, ev.kind, ev.key, value)
+                if not encoded:  # once per event, for every watch it matches
+                    encoded = True
+                    if ev.kind in ("add", "write") and ev.value is not None:
+                        with contextlib.suppress(Exception):
+                            value = ddbmod.encode_value(ev.type_name, ev.value)
+                    elif ev.kind == "append" and ev.type_name == "log":
+                        value = ev.value  # the item; its index goes with it
+                self.sup.notify_watch(agent, wid, ev.kind, ev.key, value, ev.index)
 
     # ------------------------------------------------------------------ measurements
 

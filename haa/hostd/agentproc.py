@@ -20,7 +20,7 @@ whole picture; the thesis steps it serves:
 
 Events, exactly once and in order per agent instance (all from one task per instance, which reads the
 agent's frames in the order it wrote them): Ready, Sent, Backup, Frozen, SpawnChild, DdbGet, DdbPut,
-DdbWatch, DdbUnwatch, Stopped, Failed. Every instance that `spawn()` returned for ends with exactly one of
+DdbWrite, DdbWatch, DdbUnwatch, Stopped, Failed. Every instance that `spawn()` returned for ends with exactly one of
 Frozen, Stopped or Failed (none after `close()`). `spawn()` that raises `SpawnError` reports nothing: no
 agent came up. Failed reasons start with one of
 
@@ -89,6 +89,7 @@ __all__ = [
     "DdbPut",
     "DdbUnwatch",
     "DdbWatch",
+    "DdbWrite",
     "Envelope",
     "Failed",
     "Frozen",
@@ -239,6 +240,17 @@ class DdbPut:
 
 
 @dataclass(frozen=True)
+class DdbWrite:
+    """Several DDB ops (`haa.pb.ddb_pb2.DdbOp`) in one batch; answer with `answer(agent_id, req_id, committed,
+    b"", error, op_errors=[...])` once the batch is committed (or refused)."""
+
+    agent_id: str
+    req_id: int
+    ops: tuple[object, ...]
+    atomic: bool = False
+
+
+@dataclass(frozen=True)
 class DdbWatch:
     """Notify DDB events on keys starting with `prefix` with `notify_watch(agent_id, watch_id, ...)`."""
 
@@ -268,7 +280,9 @@ class Failed:
     reason: str
 
 
-AgentEvent = Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbPut | DdbWatch | DdbUnwatch | Stopped | Failed
+AgentEvent = (
+    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbPut | DdbWrite | DdbWatch | DdbUnwatch | Stopped | Failed
+)
 
 
 @dataclass
@@ -746,21 +760,25 @@ class AgentSupervisor:
         return self._signal(inst, signal.SIGKILL)
 
     def answer(self, agent_id: str, req_id: int, ok: bool, value: bytes, error: str = "", *,
-               missing: bool = False) -> bool:
-        """Answer a DdbGet / DdbPut / SpawnChild request (`missing`: DdbGet of a key that does not exist)."""
+               missing: bool = False, op_errors: Sequence[str] = ()) -> bool:
+        """Answer a DdbGet / DdbPut / DdbWrite / SpawnChild request (`missing`: DdbGet of a key that does not
+        exist; `op_errors`: DdbWrite, one reason per op, "" for an op that succeeded)."""
         inst = self._agents.get(agent_id)
         if inst is None or inst.chan is None or inst.state not in LIVE_STATES:
             return False
-        ans = pb.HostToAgent.Answer(req_id=req_id, ok=ok, value=value, error=error, missing=missing)
+        ans = pb.HostToAgent.Answer(req_id=req_id, ok=ok, value=value, error=error, missing=missing,
+                                    op_errors=op_errors)
         return self._send(inst, pb.HostToAgent(answer=ans))
 
-    def notify_watch(self, agent_id: str, watch_id: int, event: str, key: str, value: bytes | None) -> bool:
-        """A DDB event for a watch the agent registered (DdbWatch)."""
+    def notify_watch(self, agent_id: str, watch_id: int, event: str, key: str, value: bytes | None,
+                     index: int = 0) -> bool:
+        """A DDB event for a watch the agent registered (DdbWatch); `index`: a log item's (append) or the
+        log's new first index (trim)."""
         inst = self._agents.get(agent_id)
         if inst is None or inst.chan is None or inst.state not in LIVE_STATES:
             return False
         w = pb.HostToAgent.WatchEvent(watch_id=watch_id, event=event, key=key, has_value=value is not None,
-                                      value=value or b"")
+                                      value=value or b"", index=index)
         return self._send(inst, pb.HostToAgent(watch_event=w))
 
     # ------------------------------------------------------------------ the agent's frames
@@ -814,6 +832,9 @@ class AgentSupervisor:
         elif kind == "ddb_put":
             p = msg.ddb_put
             self._emit(DdbPut(a, p.req_id, p.key, bytes(p.value), p.type_name or "blob"))
+        elif kind == "ddb_write":
+            w = msg.ddb_write
+            self._emit(DdbWrite(a, w.req_id, tuple(w.ops), w.atomic))
         elif kind == "ddb_watch":
             self._emit(DdbWatch(a, msg.ddb_watch.watch_id, msg.ddb_watch.prefix))
         elif kind == "ddb_unwatch":

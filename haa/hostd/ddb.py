@@ -16,8 +16,13 @@ Where the thesis is silent, the choices are (docs/ddb.md):
   its batch, so two writes in one batch give the same version. A malformed payload changes nothing and
   takes no seq (every replica rejects the same bytes the same way).
 * Objects have a fixed type: put/cas of another type on an existing key fails ("type mismatch"); delete
-  it first. `append` creates a missing list, `add` a missing counter (at 0).
+  it first. `append` creates a missing list, `add` a missing counter (at 0), `log_append` a missing log
+  (at index 0).
 * Size limits apply to the stored value (a list's items in total), not just to one op.
+* A `log` is an append-only sequence of items with global indexes that never repeat in the object's life:
+  `log_append` gives each item the next index, `log_trim(upto)` drops the items below `upto`. It is written
+  only by those two ops (a put/cas of type log fails), and it is bounded (MAX_LOG_BYTES, MAX_LOG_ITEMS): an
+  append that would exceed the bounds fails, so the writer must trim (docs/ddb.md, "Logs").
 
 This module is sans-I/O: no clock, no randomness, no I/O; it imports only the standard library and the
 generated protobuf message classes.
@@ -67,6 +72,15 @@ MIRROR_CAPACITY = 10_000
 #: default bound on the payload bytes kept for `mirror_since` (every host keeps this ring: it is part of the
 #: host's memory bound, docs/limits.md "Sizes and memory"; a subscriber further behind gets a snapshot)
 MIRROR_MAX_BYTES = 16 * 1024 * 1024
+#: largest item of a log (one `log_append` item), in bytes
+MAX_LOG_ITEM_BYTES = 256 * 1024
+#: largest log: its stored items in total, in bytes. Every host keeps every log in memory, in every snapshot a
+#: joiner receives and in the per-object hash it recomputes after a write (docs/ddb.md, "Logs"; docs/limits.md)
+MAX_LOG_BYTES = 4 * 1024 * 1024
+#: most items a log holds (bounds the per-item memory and copying when items are tiny or empty)
+MAX_LOG_ITEMS = 65_536
+#: largest index + 1 of a log (indexes and `log_trim`'s `upto` are uint64 on the wire)
+MAX_LOG_INDEX = 2**64 - 1
 #: snapshot format written by `snapshot()`
 SNAPSHOT_FORMAT = 1
 
@@ -79,7 +93,8 @@ REMOVE = "remove"
 WRITE = "write"
 APPEND = "append"
 INCREMENT = "increment"
-EVENT_KINDS = frozenset({ADD, REMOVE, WRITE, APPEND, INCREMENT})
+TRIM = "trim"
+EVENT_KINDS = frozenset({ADD, REMOVE, WRITE, APPEND, INCREMENT, TRIM})
 
 _HASH_MAGIC = b"haa.ddb.v1\0"
 _OBJ_MAGIC = b"haa.ddb.obj\0"
@@ -104,6 +119,10 @@ class ObjectType:
     """
 
     name = ""
+    #: largest stored size (what `decode` returns as the size) a value may have
+    max_bytes = MAX_VALUE_BYTES
+    #: False: put/cas of this type fail (the type has ops of its own that keep an invariant)
+    writable = True
 
     def decode(self, data: bytes) -> tuple[Any, int]:
         """Wire bytes -> (internal value, size in bytes); raises `_OpFailed` with the reason."""
@@ -267,8 +286,70 @@ class CounterType(ObjectType):
         return _I64.pack(value)
 
 
+#: the internal value of a log: (first index, items); item k has index first + k
+LogValue = tuple[int, tuple[bytes, ...]]
+
+
+def _log_error(first: int, items: tuple[bytes, ...], size: int) -> str:
+    """'' if a log (first, items) of `size` item bytes is within the bounds, else the reason."""
+    big = next((i for i, item in enumerate(items) if len(item) > MAX_LOG_ITEM_BYTES), None)
+    if big is not None:
+        return f"log item {big} too large: {len(items[big])} bytes > {MAX_LOG_ITEM_BYTES} (MAX_LOG_ITEM_BYTES)"
+    if len(items) > MAX_LOG_ITEMS:
+        return f"log too long: {len(items)} items > {MAX_LOG_ITEMS} (MAX_LOG_ITEMS)"
+    if size > MAX_LOG_BYTES:
+        return f"log too large: {size} bytes > {MAX_LOG_BYTES} (MAX_LOG_BYTES)"
+    if first + len(items) > MAX_LOG_INDEX:
+        return f"log index overflow: {first} + {len(items)} items > {MAX_LOG_INDEX}"
+    return ""
+
+
+class LogType(ObjectType):
+    """`log`: an append-only sequence of byte items with global indexes, trimmed from the front.
+
+    Internal value `(first, items)`: the item at position k has index first + k; readers see
+    `{"first": first, "items": items}` (items a tuple of bytes, as a list's). Written only by `log_append`
+    and `log_trim` (`writable` is False), so that an index is never given to two items in the object's life.
+    """
+
+    name = "log"
+    max_bytes = MAX_LOG_BYTES
+    writable = False
+
+    def decode(self, data: bytes) -> tuple[LogValue, int]:
+        try:
+            v = pb.DdbLogValue.FromString(bytes(data))
+        except DecodeError:
+            raise _OpFailed("invalid log value: not a DdbLogValue") from None
+        items = tuple(v.items)
+        size = sum(map(len, items))
+        why = _log_error(v.first, items, size)
+        if why:
+            raise _OpFailed(f"invalid log value: {why}")
+        return (v.first, items), size
+
+    def encode(self, raw: LogValue) -> bytes:
+        return pb.DdbLogValue(first=raw[0], items=raw[1]).SerializeToString()
+
+    def public(self, raw: LogValue) -> dict[str, Any]:
+        return {"first": raw[0], "items": raw[1]}
+
+    def client_encode(self, value: Any) -> bytes:
+        if isinstance(value, dict):
+            first, items = value.get("first", 0), value.get("items", ())
+        elif isinstance(value, tuple) and len(value) == 2:
+            first, items = value
+        else:
+            raise DdbError('a log value is (first, items) or {"first": n, "items": [...]}')
+        if not isinstance(first, int) or isinstance(first, bool) or not 0 <= first <= MAX_LOG_INDEX:
+            raise DdbError(f"a log's first index must be an int in [0, {MAX_LOG_INDEX}], not {first!r}")
+        if isinstance(items, bytes | str) or not all(isinstance(i, bytes) for i in items):
+            raise DdbError("log items must be bytes")
+        return pb.DdbLogValue(first=first, items=list(items)).SerializeToString()
+
+
 #: every object type, by name
-TYPES: dict[str, ObjectType] = {t.name: t for t in (BlobType(), JsonType(), ListType(), CounterType())}
+TYPES: dict[str, ObjectType] = {t.name: t for t in (BlobType(), JsonType(), ListType(), CounterType(), LogType())}
 
 
 # ---------------------------------------------------------------------------------------------- objects
@@ -279,8 +360,9 @@ class DdbObject:
     """One object of a replica. Immutable: a write replaces it.
 
     `raw` is the type's internal representation; read `value` (blob: bytes, json: a fresh parse, list:
-    tuple of bytes, counter: int). `version` is the seq of the batch that last wrote it, `created` the seq
-    of the batch that created it, `size` its value's size in bytes.
+    tuple of bytes, counter: int, log: {"first": n, "items": tuple of bytes}). `version` is the seq of the
+    batch that last wrote it, `created` the seq of the batch that created it, `size` its value's size in
+    bytes (a log's: its items').
     """
 
     key: str
@@ -305,11 +387,13 @@ class DdbEvent:
     """A watcher notification.
 
     `value`: add/write — the new value; remove — the removed value; append — the appended item;
-    increment — the counter's new value. A list created by `append` is reported as an `add` of the empty
-    list followed by the `append`, a counter created by `add` as an `add` of 0 followed by the `increment`,
-    so that applying the events in order to a copy reproduces the replica. `delta` is an increment's
-    delta, `trimmed` the number of items an append dropped from the front. `version` is the seq of the
-    batch that caused the event.
+    increment — the counter's new value; trim (logs) — the log's new first index. A list created by
+    `append` is reported as an `add` of the empty list followed by the `append`, a counter created by `add`
+    as an `add` of 0 followed by the `increment`, a log created by `log_append` as an `add` of the empty log
+    (`{"first": 0, "items": ()}`) followed by one `append` per item, so that applying the events in order to
+    a copy reproduces the replica. `delta` is an increment's delta, `trimmed` the number of items an append
+    (list) or a trim (log) dropped from the front, `index` a log item's index (append) or the log's new
+    first index (trim). `version` is the seq of the batch that caused the event.
     """
 
     kind: str
@@ -319,6 +403,7 @@ class DdbEvent:
     value: Any
     delta: int = 0
     trimmed: int = 0
+    index: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -378,8 +463,9 @@ class _Watch:
         )
 
 
-# (kind, key, type_name, object for add/write/remove | item | new counter value, delta, trimmed)
-_Pending = tuple[str, str, str, Any, int, int]
+# (kind, key, type_name, object for add/write/remove | item | new counter value | new first, delta, trimmed,
+#  index)
+_Pending = tuple[str, str, str, Any, int, int, int]
 
 
 def key_error(key: str) -> str:
@@ -399,9 +485,9 @@ def _check_key(key: str) -> None:
         raise _OpFailed(reason)
 
 
-def _check_size(size: int) -> None:
-    if size > MAX_VALUE_BYTES:
-        raise _OpFailed(f"value too large: {size} bytes > {MAX_VALUE_BYTES}")
+def _check_size(size: int, limit: int = MAX_VALUE_BYTES) -> None:
+    if size > limit:
+        raise _OpFailed(f"value too large: {size} bytes > {limit}")
 
 
 def _type(name: str) -> ObjectType:
@@ -555,7 +641,7 @@ class Ddb:
             try:
                 t = _type(rec.type)
                 raw, size = t.decode(rec.value)
-                _check_size(size)
+                _check_size(size, t.max_bytes)
             except _OpFailed as e:
                 raise DdbError(f"{where}: {e.args[0]}") from None
             ddb._objects[rec.key] = DdbObject(rec.key, rec.type, raw, rec.version, rec.created, size)
@@ -593,14 +679,14 @@ class Ddb:
         return self._watches.pop(watch_id, None) is not None
 
     def _notify(self, seq: int, pending: list[_Pending]) -> None:
-        for kind, key, type_name, what, delta, trimmed in pending:
+        for kind, key, type_name, what, delta, trimmed, index in pending:
             event: DdbEvent | None = None
             for wid, w in list(self._watches.items()):
                 if wid not in self._watches or not w.matches(kind, key, type_name):
                     continue
                 if event is None:
                     value = what.value if isinstance(what, DdbObject) else what
-                    event = DdbEvent(kind, key, type_name, seq, value, delta, trimmed)
+                    event = DdbEvent(kind, key, type_name, seq, value, delta, trimmed, index)
                 try:
                     w.callback(event)
                 except Exception as e:
@@ -665,7 +751,7 @@ class Ddb:
         for i, (op, kind) in enumerate(zip(batch.ops, kinds, strict=True)):
             body = getattr(op, kind)
             try:
-                _APPLY[kind](self, body, seq, overlay, pending)
+                unchanged = _APPLY[kind](self, body, seq, overlay, pending)
             except _OpFailed as e:
                 if batch.atomic:
                     reason = f"atomic batch aborted: op {i} failed: {e.args[0]}"
@@ -677,8 +763,8 @@ class Ddb:
                     pending.clear()
                     break
                 results.append(OpResult(i, kind, body.key, False, e.args[0]))
-            else:
-                results.append(OpResult(i, kind, body.key, True, "", seq))
+            else:  # (an op that succeeds without a write, a no-op trim, returns the version it left)
+                results.append(OpResult(i, kind, body.key, True, "", seq if unchanged is None else unchanged))
 
         for key, obj in overlay.items():
             self._digests.pop(key, None)
@@ -717,6 +803,8 @@ class Ddb:
         """put (expected None) and cas (expected = version, 0 = absent)."""
         _check_key(key)
         t = _type(type_name)
+        if not t.writable:
+            raise _OpFailed(f"a {type_name} is written only by its own ops, not by put or cas")
         if len(data) > MAX_VALUE_BYTES:
             raise _OpFailed(f"value too large: {len(data)} bytes > {MAX_VALUE_BYTES}")
         raw, size = t.decode(data)
@@ -731,7 +819,7 @@ class Ddb:
                 raise _OpFailed(f"version mismatch: expected {exp}, found {found if found else 'absent'}")
         obj = DdbObject(key, type_name, raw, seq, old.created if old else seq, size)
         overlay[key] = obj
-        pending.append((WRITE if old else ADD, key, type_name, obj, 0, 0))
+        pending.append((WRITE if old else ADD, key, type_name, obj, 0, 0, 0))
 
     def _op_put(self, op: Any, seq: int, overlay: dict[str, DdbObject | None], pending: list[_Pending]) -> None:
         self._write(op.key, op.type, op.value, seq, overlay, pending, None)
@@ -745,7 +833,7 @@ class Ddb:
         if old is None:
             raise _OpFailed(f"not found: {op.key!r}")
         overlay[op.key] = None
-        pending.append((REMOVE, op.key, old.type_name, old, 0, 0))
+        pending.append((REMOVE, op.key, old.type_name, old, 0, 0, 0))
 
     def _op_append(self, op: Any, seq: int, overlay: dict[str, DdbObject | None], pending: list[_Pending]) -> None:
         key, item = op.key, op.item
@@ -767,8 +855,8 @@ class Ddb:
         obj = DdbObject(key, ListType.name, items, seq, old.created if old else seq, size)
         overlay[key] = obj
         if old is None:  # reported as: an empty list is added, then the item appended
-            pending.append((ADD, key, ListType.name, (), 0, 0))
-        pending.append((APPEND, key, ListType.name, item, 0, trimmed))
+            pending.append((ADD, key, ListType.name, (), 0, 0, 0))
+        pending.append((APPEND, key, ListType.name, item, 0, trimmed, 0))
 
     def _op_add(self, op: Any, seq: int, overlay: dict[str, DdbObject | None], pending: list[_Pending]) -> None:
         key, delta = op.key, op.delta
@@ -782,16 +870,74 @@ class Ddb:
             raise _OpFailed(f"counter overflow: {base} + {delta} is outside int64")
         overlay[key] = DdbObject(key, CounterType.name, new, seq, old.created if old else seq, _I64.size)
         if old is None:  # reported as: a counter at 0 is added, then incremented
-            pending.append((ADD, key, CounterType.name, 0, 0, 0))
-        pending.append((INCREMENT, key, CounterType.name, new, delta, 0))
+            pending.append((ADD, key, CounterType.name, 0, 0, 0, 0))
+        pending.append((INCREMENT, key, CounterType.name, new, delta, 0, 0))
+
+    def _op_log_append(self, op: Any, seq: int, overlay: dict[str, DdbObject | None], pending: list[_Pending]) -> None:
+        key, new = op.key, tuple(op.items)
+        _check_key(key)
+        if not new:
+            raise _OpFailed("log_append with no items")
+        added = 0
+        for i, item in enumerate(new):
+            if len(item) > MAX_LOG_ITEM_BYTES:
+                limit = f"{MAX_LOG_ITEM_BYTES} (MAX_LOG_ITEM_BYTES)"
+                raise _OpFailed(f"log item {i} too large: {len(item)} bytes > {limit}")
+            added += len(item)
+        old = self._current(key, overlay)
+        if old is not None and old.type_name != LogType.name:
+            raise _mismatch(old, LogType.name)
+        first, items = old.raw if old else (0, ())
+        count = len(items) + len(new)
+        size = (old.size if old else 0) + added
+        if count > MAX_LOG_ITEMS:
+            why = f"{count} items > {MAX_LOG_ITEMS} (MAX_LOG_ITEMS)"
+            raise _OpFailed(f"log full: {key!r} would hold {why}; trim it first")
+        if size > MAX_LOG_BYTES:
+            why = f"{size} bytes > {MAX_LOG_BYTES} (MAX_LOG_BYTES)"
+            raise _OpFailed(f"log full: {key!r} would hold {why}; trim it first")
+        if first + count > MAX_LOG_INDEX:
+            raise _OpFailed(f"log index overflow: {key!r} would reach index {first + count}")
+        overlay[key] = DdbObject(key, LogType.name, (first, items + new), seq, old.created if old else seq, size)
+        if old is None:  # reported as: an empty log is added, then the items appended
+            pending.append((ADD, key, LogType.name, {"first": 0, "items": ()}, 0, 0, 0))
+        nxt = first + len(items)
+        for k, item in enumerate(new):
+            pending.append((APPEND, key, LogType.name, item, 0, 0, nxt + k))
+
+    def _op_log_trim(
+        self, op: Any, seq: int, overlay: dict[str, DdbObject | None], pending: list[_Pending]
+    ) -> int | None:
+        key, upto = op.key, op.upto
+        _check_key(key)
+        old = self._current(key, overlay)
+        if old is None:
+            raise _OpFailed(f"not found: {key!r}")
+        if old.type_name != LogType.name:
+            raise _mismatch(old, LogType.name)
+        first, items = old.raw
+        end = first + len(items)
+        if upto > end:
+            raise _OpFailed(f"trim beyond the end: upto {upto} > next index {end} of {key!r}")
+        if upto <= first:
+            return old.version  # nothing to drop: a no-op, the object is not written
+        drop = upto - first
+        size = old.size - sum(map(len, items[:drop]))
+        overlay[key] = DdbObject(key, LogType.name, (upto, items[drop:]), seq, old.created, size)
+        pending.append((TRIM, key, LogType.name, upto, 0, drop, upto))
+        return None
 
 
-_APPLY: dict[str, Callable[[Ddb, Any, int, dict[str, DdbObject | None], list[_Pending]], None]] = {
+# an op's handler returns None when it wrote (or failed, raising _OpFailed), or the object's version when it
+# succeeded without writing
+_APPLY: dict[str, Callable[[Ddb, Any, int, dict[str, DdbObject | None], list[_Pending]], int | None]] = {
     "put": Ddb._op_put,
     "cas": Ddb._op_cas,
     "delete": Ddb._op_delete,
     "append": Ddb._op_append,
     "add": Ddb._op_add,
+    "log_append": Ddb._op_log_append,
+    "log_trim": Ddb._op_log_trim,
 }
 
 
@@ -806,7 +952,7 @@ def encode_value(type_name: str, value: Any) -> bytes:
             return value
         raise DdbError(f"unknown type {type_name!r}: give the value as bytes")
     data = t.client_encode(value)
-    if len(data) > MAX_VALUE_BYTES:
+    if t.writable and len(data) > MAX_VALUE_BYTES:
         raise DdbError(f"value too large: {len(data)} bytes > {MAX_VALUE_BYTES}")
     if type_name == JsonType.name and len(data) > MAX_JSON_VALUE_BYTES:
         raise DdbError(f"json value too large: {len(data)} bytes > {MAX_JSON_VALUE_BYTES} (MAX_JSON_VALUE_BYTES)")
@@ -820,8 +966,15 @@ def _op(**kw: Any) -> pb.DdbOp:
         raise DdbError(f"invalid op: {e}") from None
 
 
+def _writable(type_name: str) -> None:
+    t = TYPES.get(type_name)
+    if t is not None and not t.writable:
+        raise DdbError(f"a {type_name} is written only by its own ops, not by put or cas")
+
+
 def put(key: str, type_name: str, value: Any) -> pb.DdbOp:
     """Put op: create `key` or replace its value (same type). `value` is a Python value of the type."""
+    _writable(type_name)
     return _op(put=pb.DdbPut(key=key, type=type_name, value=encode_value(type_name, value)))
 
 
@@ -845,6 +998,7 @@ def append(key: str, item: bytes, max_len: int = 0) -> pb.DdbOp:
 
 def cas(key: str, expected_version: int, type_name: str, value: Any) -> pb.DdbOp:
     """Compare-and-set op: put only if the object's version is `expected_version` (0 = must not exist)."""
+    _writable(type_name)
     data = encode_value(type_name, value)
     try:
         body = pb.DdbCas(key=key, expected_version=expected_version, type=type_name, value=data)
@@ -860,6 +1014,82 @@ def add(key: str, delta: int) -> pb.DdbOp:
     except (TypeError, ValueError) as e:
         raise DdbError(f"invalid add: {e}") from None
     return _op(add=body)
+
+
+def log_append(key: str, items: Iterable[bytes]) -> pb.DdbOp:
+    """Log append op: append `items` (bytes, at least one) to the log `key`, created at index 0 if absent;
+    they get the log's next indexes, in order. Raises `DdbError` for what would fail anyway (an item over
+    MAX_LOG_ITEM_BYTES, more than MAX_LOG_BYTES / MAX_LOG_ITEMS in one op)."""
+    if isinstance(items, bytes | bytearray | memoryview | str) or not isinstance(items, Iterable):
+        raise DdbError("log_append takes an iterable of bytes items (a single item: [item])")
+    batch = list(items)
+    if not batch:
+        raise DdbError("log_append with no items")
+    for i, item in enumerate(batch):
+        if not isinstance(item, bytes | bytearray | memoryview):
+            raise DdbError(f"log item {i} must be bytes, not {type(item).__name__}")
+    batch = [bytes(i) for i in batch]
+    why = _log_error(0, tuple(batch), sum(map(len, batch)))
+    if why:
+        raise DdbError(why)
+    try:
+        body = pb.DdbLogAppend(key=key, items=batch)
+    except (TypeError, ValueError) as e:
+        raise DdbError(f"invalid log_append: {e}") from None
+    return _op(log_append=body)
+
+
+def log_trim(key: str, upto: int) -> pb.DdbOp:
+    """Log trim op: drop the items of log `key` whose index is < `upto` (a no-op if `upto` <= its first index;
+    fails if `upto` is beyond its next index)."""
+    if not isinstance(upto, int) or isinstance(upto, bool) or not 0 <= upto <= MAX_LOG_INDEX:
+        raise DdbError(f"log_trim upto must be an int in [0, {MAX_LOG_INDEX}], not {upto!r}")
+    try:
+        body = pb.DdbLogTrim(key=key, upto=upto)
+    except (TypeError, ValueError) as e:
+        raise DdbError(f"invalid log_trim: {e}") from None
+    return _op(log_trim=body)
+
+
+def decode_log(data: bytes) -> LogValue:
+    """A log's stored bytes (its canonical value: what `DdbGet` and an agent's `ddb_get` return, a snapshot
+    record's value) -> `(first, items)`: item k has index first + k. Raises `DdbError` if malformed."""
+    try:
+        return LogType().decode(data)[0]
+    except _OpFailed as e:
+        raise DdbError(e.args[0]) from None
+
+
+def check_op(op: pb.DdbOp) -> str:
+    """'' if `op` passes the checks that need no replica (an operation set, a valid key, a known and
+    writable type, the size bounds of one value, item or op), else the reason. Cheap; a host runs it on
+    ops it receives before proposing them (an op that passes may still fail on apply: type mismatch, a
+    full log, a version mismatch...)."""
+    kind = op.WhichOneof("op")
+    if kind is None:
+        return "op has no operation set (unknown op kind?)"
+    body = getattr(op, kind)
+    why = key_error(body.key)
+    if why:
+        return why
+    if kind in ("put", "cas"):
+        t = TYPES.get(body.type)
+        if t is None:
+            return f"unknown type {body.type[:40]!r}"
+        if not t.writable:
+            return f"a {body.type} is written only by its own ops, not by put or cas"
+        limit = MAX_JSON_VALUE_BYTES if body.type == JsonType.name else MAX_VALUE_BYTES
+        if len(body.value) > limit:
+            return f"value too large: {len(body.value)} bytes > {limit}"
+    elif kind == "append":
+        if len(body.item) > MAX_VALUE_BYTES:
+            return f"value too large: item of {len(body.item)} bytes > {MAX_VALUE_BYTES}"
+    elif kind == "log_append":
+        if not body.items:
+            return "log_append with no items"
+        items = tuple(body.items)
+        return _log_error(0, items, sum(map(len, items)))
+    return ""
 
 
 def json_bytes(op: pb.DdbOp) -> int:

@@ -1,3 +1,4 @@
+from haa.pb import ddb_pb2 as _ddb_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -72,31 +73,35 @@ class HostToAgent(_message.Message):
         __slots__ = ()
         def __init__(self) -> None: ...
     class Answer(_message.Message):
-        __slots__ = ("req_id", "ok", "value", "error", "missing")
+        __slots__ = ("req_id", "ok", "value", "error", "missing", "op_errors")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
         OK_FIELD_NUMBER: _ClassVar[int]
         VALUE_FIELD_NUMBER: _ClassVar[int]
         ERROR_FIELD_NUMBER: _ClassVar[int]
         MISSING_FIELD_NUMBER: _ClassVar[int]
+        OP_ERRORS_FIELD_NUMBER: _ClassVar[int]
         req_id: int
         ok: bool
         value: bytes
         error: str
         missing: bool
-        def __init__(self, req_id: _Optional[int] = ..., ok: _Optional[bool] = ..., value: _Optional[bytes] = ..., error: _Optional[str] = ..., missing: _Optional[bool] = ...) -> None: ...
+        op_errors: _containers.RepeatedScalarFieldContainer[str]
+        def __init__(self, req_id: _Optional[int] = ..., ok: _Optional[bool] = ..., value: _Optional[bytes] = ..., error: _Optional[str] = ..., missing: _Optional[bool] = ..., op_errors: _Optional[_Iterable[str]] = ...) -> None: ...
     class WatchEvent(_message.Message):
-        __slots__ = ("watch_id", "event", "key", "has_value", "value")
+        __slots__ = ("watch_id", "event", "key", "has_value", "value", "index")
         WATCH_ID_FIELD_NUMBER: _ClassVar[int]
         EVENT_FIELD_NUMBER: _ClassVar[int]
         KEY_FIELD_NUMBER: _ClassVar[int]
         HAS_VALUE_FIELD_NUMBER: _ClassVar[int]
         VALUE_FIELD_NUMBER: _ClassVar[int]
+        INDEX_FIELD_NUMBER: _ClassVar[int]
         watch_id: int
         event: str
         key: str
         has_value: bool
         value: bytes
-        def __init__(self, watch_id: _Optional[int] = ..., event: _Optional[str] = ..., key: _Optional[str] = ..., has_value: _Optional[bool] = ..., value: _Optional[bytes] = ...) -> None: ...
+        index: int
+        def __init__(self, watch_id: _Optional[int] = ..., event: _Optional[str] = ..., key: _Optional[str] = ..., has_value: _Optional[bool] = ..., value: _Optional[bytes] = ..., index: _Optional[int] = ...) -> None: ...
     INIT_FIELD_NUMBER: _ClassVar[int]
     START_FIELD_NUMBER: _ClassVar[int]
     THAW_FIELD_NUMBER: _ClassVar[int]
@@ -120,7 +125,7 @@ class HostToAgent(_message.Message):
     def __init__(self, init: _Optional[_Union[HostToAgent.Init, _Mapping]] = ..., start: _Optional[_Union[HostToAgent.Start, _Mapping]] = ..., thaw: _Optional[_Union[HostToAgent.Thaw, _Mapping]] = ..., recover: _Optional[_Union[HostToAgent.Recover, _Mapping]] = ..., resume: _Optional[_Union[HostToAgent.Resume, _Mapping]] = ..., deliver: _Optional[_Union[AgentMsg, _Mapping]] = ..., freeze: _Optional[_Union[HostToAgent.Freeze, _Mapping]] = ..., stop: _Optional[_Union[HostToAgent.Stop, _Mapping]] = ..., answer: _Optional[_Union[HostToAgent.Answer, _Mapping]] = ..., watch_event: _Optional[_Union[HostToAgent.WatchEvent, _Mapping]] = ...) -> None: ...
 
 class AgentToHost(_message.Message):
-    __slots__ = ("hello", "ready", "heartbeat", "sent", "backup", "frozen", "spawn_child", "ddb_get", "ddb_put", "ddb_watch", "ddb_unwatch", "log", "stopped", "error")
+    __slots__ = ("hello", "ready", "heartbeat", "sent", "backup", "frozen", "spawn_child", "ddb_get", "ddb_put", "ddb_watch", "ddb_unwatch", "log", "stopped", "error", "ddb_write")
     class Hello(_message.Message):
         __slots__ = ("pid", "type_name")
         PID_FIELD_NUMBER: _ClassVar[int]
@@ -177,6 +182,15 @@ class AgentToHost(_message.Message):
         value: bytes
         type_name: str
         def __init__(self, req_id: _Optional[int] = ..., key: _Optional[str] = ..., value: _Optional[bytes] = ..., type_name: _Optional[str] = ...) -> None: ...
+    class DdbWrite(_message.Message):
+        __slots__ = ("req_id", "ops", "atomic")
+        REQ_ID_FIELD_NUMBER: _ClassVar[int]
+        OPS_FIELD_NUMBER: _ClassVar[int]
+        ATOMIC_FIELD_NUMBER: _ClassVar[int]
+        req_id: int
+        ops: _containers.RepeatedCompositeFieldContainer[_ddb_pb2.DdbOp]
+        atomic: bool
+        def __init__(self, req_id: _Optional[int] = ..., ops: _Optional[_Iterable[_Union[_ddb_pb2.DdbOp, _Mapping]]] = ..., atomic: _Optional[bool] = ...) -> None: ...
     class DdbWatch(_message.Message):
         __slots__ = ("watch_id", "prefix")
         WATCH_ID_FIELD_NUMBER: _ClassVar[int]
@@ -220,6 +234,7 @@ class AgentToHost(_message.Message):
     LOG_FIELD_NUMBER: _ClassVar[int]
     STOPPED_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    DDB_WRITE_FIELD_NUMBER: _ClassVar[int]
     hello: AgentToHost.Hello
     ready: AgentToHost.Ready
     heartbeat: AgentToHost.Heartbeat
@@ -234,7 +249,8 @@ class AgentToHost(_message.Message):
     log: AgentToHost.Log
     stopped: AgentToHost.Stopped
     error: AgentToHost.Error
-    def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ...) -> None: ...
+    ddb_write: AgentToHost.DdbWrite
+    def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ..., ddb_write: _Optional[_Union[AgentToHost.DdbWrite, _Mapping]] = ...) -> None: ...
 
 class ForkServerRequest(_message.Message):
     __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec", "validate", "config_size")

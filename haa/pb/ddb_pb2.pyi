@@ -52,19 +52,39 @@ class DdbAdd(_message.Message):
     delta: int
     def __init__(self, key: _Optional[str] = ..., delta: _Optional[int] = ...) -> None: ...
 
+class DdbLogAppend(_message.Message):
+    __slots__ = ("key", "items")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    ITEMS_FIELD_NUMBER: _ClassVar[int]
+    key: str
+    items: _containers.RepeatedScalarFieldContainer[bytes]
+    def __init__(self, key: _Optional[str] = ..., items: _Optional[_Iterable[bytes]] = ...) -> None: ...
+
+class DdbLogTrim(_message.Message):
+    __slots__ = ("key", "upto")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    UPTO_FIELD_NUMBER: _ClassVar[int]
+    key: str
+    upto: int
+    def __init__(self, key: _Optional[str] = ..., upto: _Optional[int] = ...) -> None: ...
+
 class DdbOp(_message.Message):
-    __slots__ = ("put", "delete", "append", "cas", "add")
+    __slots__ = ("put", "delete", "append", "cas", "add", "log_append", "log_trim")
     PUT_FIELD_NUMBER: _ClassVar[int]
     DELETE_FIELD_NUMBER: _ClassVar[int]
     APPEND_FIELD_NUMBER: _ClassVar[int]
     CAS_FIELD_NUMBER: _ClassVar[int]
     ADD_FIELD_NUMBER: _ClassVar[int]
+    LOG_APPEND_FIELD_NUMBER: _ClassVar[int]
+    LOG_TRIM_FIELD_NUMBER: _ClassVar[int]
     put: DdbPut
     delete: DdbDelete
     append: DdbAppend
     cas: DdbCas
     add: DdbAdd
-    def __init__(self, put: _Optional[_Union[DdbPut, _Mapping]] = ..., delete: _Optional[_Union[DdbDelete, _Mapping]] = ..., append: _Optional[_Union[DdbAppend, _Mapping]] = ..., cas: _Optional[_Union[DdbCas, _Mapping]] = ..., add: _Optional[_Union[DdbAdd, _Mapping]] = ...) -> None: ...
+    log_append: DdbLogAppend
+    log_trim: DdbLogTrim
+    def __init__(self, put: _Optional[_Union[DdbPut, _Mapping]] = ..., delete: _Optional[_Union[DdbDelete, _Mapping]] = ..., append: _Optional[_Union[DdbAppend, _Mapping]] = ..., cas: _Optional[_Union[DdbCas, _Mapping]] = ..., add: _Optional[_Union[DdbAdd, _Mapping]] = ..., log_append: _Optional[_Union[DdbLogAppend, _Mapping]] = ..., log_trim: _Optional[_Union[DdbLogTrim, _Mapping]] = ...) -> None: ...
 
 class DdbBatch(_message.Message):
     __slots__ = ("ops", "origin", "client_seq", "atomic")
@@ -83,6 +103,14 @@ class DdbListValue(_message.Message):
     ITEMS_FIELD_NUMBER: _ClassVar[int]
     items: _containers.RepeatedScalarFieldContainer[bytes]
     def __init__(self, items: _Optional[_Iterable[bytes]] = ...) -> None: ...
+
+class DdbLogValue(_message.Message):
+    __slots__ = ("first", "items")
+    FIRST_FIELD_NUMBER: _ClassVar[int]
+    ITEMS_FIELD_NUMBER: _ClassVar[int]
+    first: int
+    items: _containers.RepeatedScalarFieldContainer[bytes]
+    def __init__(self, first: _Optional[int] = ..., items: _Optional[_Iterable[bytes]] = ...) -> None: ...
 
 class DdbObjectRecord(_message.Message):
     __slots__ = ("key", "type", "value", "version", "created")
