@@ -11,7 +11,8 @@ host, over one channel (`haa.agents.channel`). What an agent gets:
 * messages: `send(to, payload)` — routed by the hosts, the sender never knows where the receiver lives;
   `await request(to, payload, timeout=...)` — a conversation: the receiver's `on_request` answers it;
 * timers: `call_later(delay, fn)`, `every(period, fn)` (cancelled when the agent freezes);
-* DDB: `await ddb_get(key)`, `await ddb_put(key, value, type_name)`, `await ddb_put_json(key, obj)`;
+* DDB: `await ddb_get(key)`, `await ddb_scan(prefix) -> {key: bytes}`, `await ddb_put(key, value, type_name)`,
+  `await ddb_put_json(key, obj)`;
   `await ddb_write(ops, atomic=False) -> [reason or "" per op]` (ops built with `haa.hostd.ddb`: put, delete,
   append, cas, add, log_append, log_trim), `await ddb_log_append(key, items)`; `watch(prefix, callback)`,
   `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.hostd.ddb.decode_log(ddb_get bytes)` reads a
@@ -362,6 +363,12 @@ class AgentBase:
         """Read `key` from the host's DDB replica: its value's wire bytes, or None if it does not exist."""
         return await self._ctx.ddb_get(key, timeout)
 
+    async def ddb_scan(self, prefix: str, limit: int = 0, timeout: float = HOST_TIMEOUT) -> dict[str, bytes]:
+        """The objects under `prefix` in the host's replica (a local read), key → value wire bytes, in key
+        order: at most `limit` keys (0: the host's bound, 10,000) and 8 MiB of values; `self._ctx.scan_truncated`
+        tells whether the last scan was cut."""
+        return await self._ctx.ddb_scan(prefix, limit, timeout)
+
     async def ddb_put(self, key: str, value: bytes, type_name: str = "blob", timeout: float = HOST_TIMEOUT) -> None:
         """Write `key` (through OAC, so this waits for the commit); HostError if the host refuses it."""
         await self._ctx.ddb_put(key, value, type_name, timeout)
@@ -507,6 +514,7 @@ class AgentContext:
         self._stop_requested = False
         #: the agent's clock (default the wall clock) and seeded random source; a mission sets both
         self.clock: Clock = WALL_CLOCK
+        self.scan_truncated = False
         self.random: random.Random = agent_random(self.agent_id, self.name, self.epoch)
         self.agent: AgentBase = cls(self)
 
@@ -768,6 +776,17 @@ class AgentContext:
             pb.AgentToHost(ddb_get=pb.AgentToHost.DdbGet(req_id=rid, key=key)), rid, timeout, f"ddb_get {key!r}"
         )
         return None if ans.missing else bytes(ans.value)
+
+    async def ddb_scan(self, prefix: str, limit: int, timeout: float) -> dict[str, bytes]:
+        if len(prefix) > 512 or "\0" in prefix:
+            raise ValueError("prefix: at most 512 characters, no NUL")
+        if not 0 <= limit < 2**32:
+            raise ValueError(f"limit: must be in 0..2**32-1, got {limit}")
+        rid = self._new_call()
+        ans = await self._call(pb.AgentToHost(ddb_scan=pb.AgentToHost.DdbScan(req_id=rid, prefix=prefix, limit=limit)),
+                               rid, timeout, f"ddb_scan {prefix!r}")
+        self.scan_truncated = bool(ans.truncated)
+        return dict(zip(ans.keys, (bytes(v) for v in ans.values), strict=True))
 
     async def ddb_put(self, key: str, value: bytes, type_name: str, timeout: float) -> None:
         _check_key(key)

@@ -490,6 +490,10 @@ class ProbeAgent(AgentBase):
             out = None if v is None else v.decode("utf-8", "replace")
         elif op == "ddb_put":
             await self.ddb_put(cmd["key"], str(cmd.get("value", "")).encode(), cmd.get("type", "blob"))
+        elif op == "ddb_scan":  # {key: text} of the objects under "prefix" (at most "limit")
+            got = await self.ddb_scan(cmd.get("prefix", ""), int(cmd.get("limit", 0)))
+            out = {"objects": {k: v.decode("utf-8", "replace") for k, v in got.items()},
+                   "truncated": self._ctx.scan_truncated}
         elif op == "ddb_write":  # "ops": [["put", key, type, value] | ["log_append", key, [text, ...]] | ...]
             ops = [_probe_op(o) for o in cmd["ops"]]
             out = await self.ddb_write(ops, atomic=bool(cmd.get("atomic", False)))

@@ -39,6 +39,10 @@ from haa.hostd.agenttable import MAX_CONFIG
 from haa.hostd.logs import log_event
 from haa.pb import agenttx_pb2 as apb
 
+#: most keys one DdbScan answers, and most value bytes (the answer must fit one channel frame, 16 MiB)
+SCAN_LIMIT = 10_000
+SCAN_MAX_BYTES = 8 * 1024 * 1024
+
 if TYPE_CHECKING:
     from haa.hostd.runtime import HostRuntime
 
@@ -203,6 +207,8 @@ class AgentDriver:
             self._ddb_get(ev)  # type: ignore[arg-type]
         elif t is ap.DdbPut:
             self._ddb_put(ev)  # type: ignore[arg-type]
+        elif t is ap.DdbScan:
+            self._ddb_scan(ev)  # type: ignore[arg-type]
         elif t is ap.DdbWrite:
             self._ddb_write(ev)  # type: ignore[arg-type]
         elif t is ap.DdbWatch:
@@ -225,6 +231,25 @@ class AgentDriver:
             self.sup.answer(ev.agent_id, ev.req_id, True, b"", missing=True)
         else:
             self.sup.answer(ev.agent_id, ev.req_id, True, obj.data)
+
+    def _ddb_scan(self, ev: ap.DdbScan) -> None:
+        """The objects under a prefix from the local replica, in key order: at most `limit` keys (default and
+        bound SCAN_LIMIT) and SCAN_MAX_BYTES of values (the answer must fit one channel frame)."""
+        ddb = self._replica()
+        limit = min(ev.limit or SCAN_LIMIT, SCAN_LIMIT)
+        keys: list[str] = []
+        values: list[bytes] = []
+        size, truncated = 0, False
+        if ddb is not None and len(ev.prefix) <= ddbmod.MAX_KEY:
+            for obj in ddb.items(ev.prefix):
+                data = obj.data
+                if len(keys) >= limit or size + len(data) + len(obj.key) > SCAN_MAX_BYTES:
+                    truncated = True
+                    break
+                keys.append(obj.key)
+                values.append(data)
+                size += len(data) + len(obj.key)
+        self.sup.answer(ev.agent_id, ev.req_id, True, b"", keys=keys, values=values, truncated=truncated)
 
     def _fenced(self, agent: str) -> str:
         """'' if this host's instance of `agent` holds the agent's current epoch in the table (its outputs are

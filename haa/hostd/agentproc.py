@@ -19,7 +19,7 @@ whole picture; the thesis steps it serves:
 * `kill(id)` — SIGKILL (operator kill, fencing).
 
 Events, exactly once and in order per agent instance (all from one task per instance, which reads the
-agent's frames in the order it wrote them): Ready, Sent, Backup, Frozen, SpawnChild, DdbGet, DdbPut,
+agent's frames in the order it wrote them): Ready, Sent, Backup, Frozen, SpawnChild, DdbGet, DdbScan, DdbPut,
 DdbWrite, DdbWatch, DdbUnwatch, Stopped, Failed. Every instance that `spawn()` returned for ends with exactly one of
 Frozen, Stopped or Failed (none after `close()`). `spawn()` that raises `SpawnError` reports nothing: no
 agent came up. Failed reasons start with one of
@@ -90,6 +90,7 @@ __all__ = [
     "DdbUnwatch",
     "DdbWatch",
     "DdbWrite",
+    "DdbScan",
     "Envelope",
     "Failed",
     "Frozen",
@@ -229,6 +230,16 @@ class DdbGet:
 
 
 @dataclass(frozen=True)
+class DdbScan:
+    """Answer with `answer(agent_id, req_id, True, b"", keys=[...], values=[...], truncated=...)`."""
+
+    agent_id: str
+    req_id: int
+    prefix: str
+    limit: int
+
+
+@dataclass(frozen=True)
 class DdbPut:
     """Answer with `answer(agent_id, req_id, ok, b"", error)` once the write is committed (or refused)."""
 
@@ -281,7 +292,7 @@ class Failed:
 
 
 AgentEvent = (
-    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbPut | DdbWrite | DdbWatch | DdbUnwatch | Stopped | Failed
+    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbScan | DdbPut | DdbWrite | DdbWatch | DdbUnwatch | Stopped | Failed
 )
 
 
@@ -760,14 +771,15 @@ class AgentSupervisor:
         return self._signal(inst, signal.SIGKILL)
 
     def answer(self, agent_id: str, req_id: int, ok: bool, value: bytes, error: str = "", *,
-               missing: bool = False, op_errors: Sequence[str] = ()) -> bool:
+               missing: bool = False, op_errors: Sequence[str] = (), keys: Sequence[str] = (),
+               values: Sequence[bytes] = (), truncated: bool = False) -> bool:
         """Answer a DdbGet / DdbPut / DdbWrite / SpawnChild request (`missing`: DdbGet of a key that does not
         exist; `op_errors`: DdbWrite, one reason per op, "" for an op that succeeded)."""
         inst = self._agents.get(agent_id)
         if inst is None or inst.chan is None or inst.state not in LIVE_STATES:
             return False
         ans = pb.HostToAgent.Answer(req_id=req_id, ok=ok, value=value, error=error, missing=missing,
-                                    op_errors=op_errors)
+                                    op_errors=op_errors, keys=keys, values=values, truncated=truncated)
         return self._send(inst, pb.HostToAgent(answer=ans))
 
     def notify_watch(self, agent_id: str, watch_id: int, event: str, key: str, value: bytes | None,
@@ -829,6 +841,9 @@ class AgentSupervisor:
             self._emit(SpawnChild(a, s.req_id, s.type_name, bytes(s.config)))
         elif kind == "ddb_get":
             self._emit(DdbGet(a, msg.ddb_get.req_id, msg.ddb_get.key))
+        elif kind == "ddb_scan":
+            sc = msg.ddb_scan
+            self._emit(DdbScan(a, sc.req_id, sc.prefix, sc.limit))
         elif kind == "ddb_put":
             p = msg.ddb_put
             self._emit(DdbPut(a, p.req_id, p.key, bytes(p.value), p.type_name or "blob"))

@@ -73,20 +73,26 @@ class HostToAgent(_message.Message):
         __slots__ = ()
         def __init__(self) -> None: ...
     class Answer(_message.Message):
-        __slots__ = ("req_id", "ok", "value", "error", "missing", "op_errors")
+        __slots__ = ("req_id", "ok", "value", "error", "missing", "op_errors", "keys", "values", "truncated")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
         OK_FIELD_NUMBER: _ClassVar[int]
         VALUE_FIELD_NUMBER: _ClassVar[int]
         ERROR_FIELD_NUMBER: _ClassVar[int]
         MISSING_FIELD_NUMBER: _ClassVar[int]
         OP_ERRORS_FIELD_NUMBER: _ClassVar[int]
+        KEYS_FIELD_NUMBER: _ClassVar[int]
+        VALUES_FIELD_NUMBER: _ClassVar[int]
+        TRUNCATED_FIELD_NUMBER: _ClassVar[int]
         req_id: int
         ok: bool
         value: bytes
         error: str
         missing: bool
         op_errors: _containers.RepeatedScalarFieldContainer[str]
-        def __init__(self, req_id: _Optional[int] = ..., ok: _Optional[bool] = ..., value: _Optional[bytes] = ..., error: _Optional[str] = ..., missing: _Optional[bool] = ..., op_errors: _Optional[_Iterable[str]] = ...) -> None: ...
+        keys: _containers.RepeatedScalarFieldContainer[str]
+        values: _containers.RepeatedScalarFieldContainer[bytes]
+        truncated: bool
+        def __init__(self, req_id: _Optional[int] = ..., ok: _Optional[bool] = ..., value: _Optional[bytes] = ..., error: _Optional[str] = ..., missing: _Optional[bool] = ..., op_errors: _Optional[_Iterable[str]] = ..., keys: _Optional[_Iterable[str]] = ..., values: _Optional[_Iterable[bytes]] = ..., truncated: _Optional[bool] = ...) -> None: ...
     class WatchEvent(_message.Message):
         __slots__ = ("watch_id", "event", "key", "has_value", "value", "index")
         WATCH_ID_FIELD_NUMBER: _ClassVar[int]
@@ -125,7 +131,7 @@ class HostToAgent(_message.Message):
     def __init__(self, init: _Optional[_Union[HostToAgent.Init, _Mapping]] = ..., start: _Optional[_Union[HostToAgent.Start, _Mapping]] = ..., thaw: _Optional[_Union[HostToAgent.Thaw, _Mapping]] = ..., recover: _Optional[_Union[HostToAgent.Recover, _Mapping]] = ..., resume: _Optional[_Union[HostToAgent.Resume, _Mapping]] = ..., deliver: _Optional[_Union[AgentMsg, _Mapping]] = ..., freeze: _Optional[_Union[HostToAgent.Freeze, _Mapping]] = ..., stop: _Optional[_Union[HostToAgent.Stop, _Mapping]] = ..., answer: _Optional[_Union[HostToAgent.Answer, _Mapping]] = ..., watch_event: _Optional[_Union[HostToAgent.WatchEvent, _Mapping]] = ...) -> None: ...
 
 class AgentToHost(_message.Message):
-    __slots__ = ("hello", "ready", "heartbeat", "sent", "backup", "frozen", "spawn_child", "ddb_get", "ddb_put", "ddb_watch", "ddb_unwatch", "log", "stopped", "error", "ddb_write")
+    __slots__ = ("hello", "ready", "heartbeat", "sent", "backup", "frozen", "spawn_child", "ddb_get", "ddb_put", "ddb_watch", "ddb_unwatch", "log", "stopped", "error", "ddb_write", "ddb_scan")
     class Hello(_message.Message):
         __slots__ = ("pid", "type_name")
         PID_FIELD_NUMBER: _ClassVar[int]
@@ -171,6 +177,15 @@ class AgentToHost(_message.Message):
         req_id: int
         key: str
         def __init__(self, req_id: _Optional[int] = ..., key: _Optional[str] = ...) -> None: ...
+    class DdbScan(_message.Message):
+        __slots__ = ("req_id", "prefix", "limit")
+        REQ_ID_FIELD_NUMBER: _ClassVar[int]
+        PREFIX_FIELD_NUMBER: _ClassVar[int]
+        LIMIT_FIELD_NUMBER: _ClassVar[int]
+        req_id: int
+        prefix: str
+        limit: int
+        def __init__(self, req_id: _Optional[int] = ..., prefix: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
     class DdbPut(_message.Message):
         __slots__ = ("req_id", "key", "value", "type_name")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
@@ -235,6 +250,7 @@ class AgentToHost(_message.Message):
     STOPPED_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     DDB_WRITE_FIELD_NUMBER: _ClassVar[int]
+    DDB_SCAN_FIELD_NUMBER: _ClassVar[int]
     hello: AgentToHost.Hello
     ready: AgentToHost.Ready
     heartbeat: AgentToHost.Heartbeat
@@ -250,7 +266,8 @@ class AgentToHost(_message.Message):
     stopped: AgentToHost.Stopped
     error: AgentToHost.Error
     ddb_write: AgentToHost.DdbWrite
-    def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ..., ddb_write: _Optional[_Union[AgentToHost.DdbWrite, _Mapping]] = ...) -> None: ...
+    ddb_scan: AgentToHost.DdbScan
+    def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ..., ddb_write: _Optional[_Union[AgentToHost.DdbWrite, _Mapping]] = ..., ddb_scan: _Optional[_Union[AgentToHost.DdbScan, _Mapping]] = ...) -> None: ...
 
 class ForkServerRequest(_message.Message):
     __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec", "validate", "config_size")
