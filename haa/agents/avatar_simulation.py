@@ -1,0 +1,461 @@
+"""AvatarSimulation (thesis App. III L3017-3039; Table 4.2-1 item 4): the avatar agent of a simulated robot.
+
+The gateway between haa-sim's avatar API (the robot's hardware: actions, odometry, sonar, camera) and the
+team, used only as a robot driver would use it — never the ground-truth service or the sim's Detect call.
+One per avatar, spawned by the mission runner when the avatar joins (docs/team.md).
+
+What it does:
+
+* **Registration** (`ExecutiveAvatar ← Register avatar`): DDB key `avatars/<name>` with its agent id, type
+  and status; the AddAvatar event of its particle filter (known start pose, thesis L1186) in `slam/log`.
+* **Predictions** (thesis §5.1.3 L943-946, eq. 5.1-3): every `predict_period` simulated seconds the
+  odometry since the last prediction becomes one prediction update (haa.slam.motion.odometry_prediction with
+  the type's drift, Table 6.2-3), appended to `slam/log` together with `slam/anchor/<name>` (time and
+  odometry pose of the last committed prediction) in one atomic batch, so that a recovered instance
+  continues the prediction chain exactly where the committed one ended (no gap, no overlap).
+* **Readings**: a camera image every `capture_period` (the thesis' camera is "Manual", Table 6.2-4: we
+  capture on a period), a co-occupancy reading every `cooc_period`, each sonar scan (sweepers, 1 s). Each
+  is a DDB entry `slam/raw/<name>/<n>` (JSON) that SupervisorSLAM watches, written in the same batch as the
+  predictions that cover its time (a reading is never newer than the filter's newest prediction). Frames
+  stay here (no camera frames in the DDB): sensor agents fetch one with the request {"op": "frame", "n": k}.
+* **Driving** (`AgentPathPlanner ↔ Avatar*`): a target from a supervisor ({"op": "target", ...}) goes to
+  the avatar's AgentPathPlanner (its child, spawned at start); the planner answers with a path in the map
+  frame; each waypoint is converted to the odometry frame with the current map→odometry transform (from the
+  SLAM estimate `slam/est/<name>` and the odometry at the estimate's time) and driven with a MoveTo action.
+  When the target is reached (or cannot be) the supervisor is told ({"op": "reached"|"unreachable"}).
+
+Recovery (App. III: "Restore configuration and retrieve AgentPathPlanner status. Reassign target for
+AgentPathPlanner if appropriate"): from its backup (config, planner id, current target, counters) and the
+committed anchor in the DDB; it re-sends the target to its planner. A retired avatar (its streams end with
+UNAVAILABLE, as hardware that stopped answering) marks itself retired, stops its planner and stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections import OrderedDict, deque
+from typing import Any
+
+import grpc
+import pydantic
+
+from haa.agents import team
+from haa.agents.base import AgentBase
+from haa.agents.registry import register
+from haa.hostd import ddb as ddbops
+from haa.pb import sim_pb2 as spb
+from haa.slam import events as sev
+from haa.slam.motion import DRIFT, odometry_prediction, wrap_angle
+from haa.slam.sensors import CooccupancyReading
+
+Pose = tuple[float, float, float]
+
+
+class AvatarConfig(team.TeamConfig):
+    avatar: str = pydantic.Field(min_length=1, max_length=64)
+    type: str = "seeker"
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    predict_period: float = pydantic.Field(0.25, gt=0, le=5)
+    capture_period: float = pydantic.Field(1.0, gt=0, le=60)
+    cooc_period: float = pydantic.Field(1.0, gt=0, le=60)
+    odometry_period: float = pydantic.Field(0.05, gt=0, le=1)
+    frames_kept: int = pydantic.Field(12, ge=1, le=100)
+    #: share of the type's top speed used when driving (Table 6.2-3 speeds are maxima)
+    cruise: float = pydantic.Field(0.5, gt=0, le=1)
+    #: how near a waypoint counts as reached, m
+    tolerance: float = pydantic.Field(0.12, gt=0, le=1)
+    #: SLAM mode of the mission; "delay" makes the avatar halt until its readings are processed
+    slam: str = "jc-slam"
+
+
+def to_map(t_est: Pose, t_odo: Pose, p: Pose) -> Pose:
+    """Odometry-frame pose -> map frame, with the estimate `t_est` and the odometry `t_odo` at one instant."""
+    d = t_est[2] - t_odo[2]
+    c, s = math.cos(d), math.sin(d)
+    dx, dy = p[0] - t_odo[0], p[1] - t_odo[1]
+    return (t_est[0] + c * dx - s * dy, t_est[1] + s * dx + c * dy, float(wrap_angle(p[2] + d)))
+
+
+def to_odom(t_est: Pose, t_odo: Pose, x: float, y: float) -> tuple[float, float]:
+    """Map-frame point -> odometry frame (inverse of `to_map`)."""
+    d = t_est[2] - t_odo[2]
+    c, s = math.cos(-d), math.sin(-d)
+    dx, dy = x - t_est[0], y - t_est[1]
+    return (t_odo[0] + c * dx - s * dy, t_odo[1] + s * dx + c * dy)
+
+
+@register
+class AvatarSimulation(AgentBase):
+    TYPE = "avatar_simulation"
+    CONFIG = AvatarConfig
+    COST = 0.05
+    RECOVERY = "backup"
+    CPU_LIMIT = 1.0
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.cfg: AvatarConfig
+        self.name_ = self.cfg.avatar
+        self.planner: str = ""
+        self.target: dict[str, Any] | None = None  # {"x","y","tid","sup"}
+        self.n_readings = 0
+        self.anchor: tuple[float, Pose] | None = None  # (t, odometry pose) of the last committed prediction
+        self.info: spb.AvatarInfo | None = None
+        self.odo: deque[tuple[float, Pose]] = deque(maxlen=4000)  # odometry history (t, pose)
+        self.frames: OrderedDict[int, spb.CameraFrame] = OrderedDict()
+        self.sonar_pending: list[Any] = []
+        self.est: tuple[float, Pose] | None = None  # (t, estimated pose) last published by SupervisorSLAM
+        self.link: team.SimLink | None = None
+        self.tasks: list[asyncio.Task[Any]] = []
+        self.drive_task: asyncio.Task[Any] | None = None
+        self.path: list[list[float]] = []
+        self.retired = False
+        self.flushing = False
+
+    # ------------------------------------------------------------------ life cycle
+
+    async def on_start(self) -> None:
+        await self._begin(fresh=True)
+
+    def pack_state(self) -> bytes:
+        return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings})
+
+    def unpack_state(self, data: bytes) -> None:
+        st = json.loads(data)
+        self.planner = st.get("planner", "")
+        self.target = st.get("target")
+        self.n_readings = int(st.get("n", 0))
+
+    def recover(self, backup: bytes | None) -> None:
+        if backup:
+            self.unpack_state(backup)
+
+    async def on_resume(self, how: str) -> None:
+        await self._begin(fresh=False)
+
+    def on_stop(self) -> None:
+        for t in self.tasks:
+            t.cancel()
+        if self.drive_task:
+            self.drive_task.cancel()
+
+    async def _begin(self, fresh: bool) -> None:
+        team.use_mission_clock(self, self.cfg)
+        self.link = team.SimLink(self.cfg.sim, self.cfg.sim_token_file, self.name)
+        try:
+            reply = await self.link.avatar.Register(
+                spb.RegisterRequest(type=self.cfg.type, avatar_id=self.name_), metadata=self.link.metadata
+            )
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE or "retired" in (e.details() or ""):
+                await self._retired(f"cannot register: {e.details()}")
+                return
+            raise
+        self.info = reply.avatar
+        if self.info.status != "active":
+            await self._retired(f"avatar is {self.info.status}")
+            return
+        anchor = await team.get_json(self, f"slam/anchor/{self.name_}")
+        if anchor:
+            self.anchor = (float(anchor["t"]), tuple(anchor["pose"]))  # type: ignore[assignment]
+        if fresh or anchor is None:
+            d = DRIFT[self.cfg.type]
+            sp = self.info.start_pose
+            ev = sev.AddAvatar(self.name_, self.cfg.type, (sp.x, sp.y, sp.theta), float(self.info.joined),
+                                d, float(self.info.radius))
+            reg = {"agent": self.id, "type": self.cfg.type, "status": "active", "t": self.now()}
+            await self.ddb_write([ddbops.log_append(team.K_SLAM_LOG, [sev.encode(ev)]),
+                                  team.op_put_json(team.K_AVATARS + self.name_, reg)], atomic=True)
+            if self.anchor is None:
+                self.anchor = (float(self.info.joined), (sp.x, sp.y, sp.theta))
+        else:
+            reg = {"agent": self.id, "type": self.cfg.type, "status": "active", "t": self.now()}
+            await team.put_json(self, team.K_AVATARS + self.name_, reg)
+        if fresh:
+            await team.transcript(self, f"avatar {self.name_} ({self.cfg.type}) registered")
+        self.watch(team.K_SLAM_EST + self.name_, self._on_est)
+        est = await team.get_json(self, team.K_SLAM_EST + self.name_)
+        if est:
+            self.est = (float(est["t"]), (est["x"], est["y"], est["theta"]))
+        self.tasks = [asyncio.ensure_future(self._odometry_loop())]
+        if self.info.sonars > 0:
+            self.tasks.append(asyncio.ensure_future(self._sonar_loop()))
+        self.every(self.cfg.predict_period, self._flush)
+        self.every(self.cfg.capture_period, self._capture, first=self.random.uniform(0.1, self.cfg.capture_period))
+        self.every(self.cfg.cooc_period, self._cooccupancy, first=self.random.uniform(0.1, self.cfg.cooc_period))
+        if not self.planner:
+            self.planner = await self.spawn_child(
+                "path_planner",
+                team.team_config(self, avatar=self.name_, avatar_agent=self.id, radius=float(self.info.radius)),
+            )
+            self.backup()
+        elif self.target:
+            self._send_planner({"op": "goto", **self.target})
+
+    # ------------------------------------------------------------------ odometry and predictions
+
+    async def _odometry_loop(self) -> None:
+        assert self.link is not None
+        req = spb.StreamRequest(avatar_id=self.name_, period=self.cfg.odometry_period)
+        try:
+            async for r in self.link.avatar.Odometry(req, metadata=self.link.metadata):
+                self.odo.append((r.time, (r.pose.x, r.pose.y, r.pose.theta)))
+        except asyncio.CancelledError:
+            raise
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE:
+                self.call_later(0, lambda: self._retired("odometry stream ended (UNAVAILABLE)"))
+            else:
+                self.log("odometry_error", level="warning", error=str(e))
+
+    def odom_at(self, t: float) -> Pose | None:
+        """Odometry pose at time t, interpolated (None before the history starts or after its end)."""
+        h = self.odo
+        if not h or t < h[0][0] - 1e-9 or t > h[-1][0] + 1e-9:
+            return None
+        lo, hi = 0, len(h) - 1
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if h[mid][0] <= t:
+                lo = mid
+            else:
+                hi = mid - 1
+        t0, p0 = h[lo]
+        if lo + 1 >= len(h) or t0 >= t:
+            return p0
+        t1, p1 = h[lo + 1]
+        a = (t - t0) / (t1 - t0)
+        return (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]),
+                float(wrap_angle(p0[2] + a * wrap_angle(p1[2] - p0[2]))))
+
+    def _prediction_ops(self, upto: float | None = None) -> list[Any]:
+        """DDB ops appending the predictions from the anchor to the newest odometry (or `upto`)."""
+        if self.anchor is None or not self.odo:
+            return []
+        t_end, p_end = self.odo[-1]
+        if upto is not None and upto < t_end:
+            p = self.odom_at(upto)
+            if p is not None:
+                t_end, p_end = upto, p
+        t0, p0 = self.anchor
+        if t_end <= t0 + 1e-6:
+            return []
+        pred = odometry_prediction(t0, p0, t_end, p_end, DRIFT[self.cfg.type])
+        self.anchor = (t_end, p_end)
+        return [ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.Predict(self.name_, pred))]),
+                team.op_put_json(f"slam/anchor/{self.name_}", {"t": t_end, "pose": list(p_end)})]
+
+    async def _write(self, ops: list[Any]) -> None:
+        if not ops:
+            return
+        errs = await self.ddb_write(ops, atomic=True)
+        if any(errs):
+            self.log("ddb_write_failed", level="warning", errors=[e for e in errs if e])
+
+    async def _flush(self) -> None:
+        if self.retired:
+            return
+        ops = self._prediction_ops()
+        # sonar scans whose time the committed predictions now cover
+        t_anchor = self.anchor[0] if self.anchor else -1.0
+        ready = [s for s in self.sonar_pending if s.time <= t_anchor]
+        self.sonar_pending = [s for s in self.sonar_pending if s.time > t_anchor]
+        for scan in ready:
+            ops += self._raw_ops("sonar", scan.time, {
+                "echoes": [[r.bearing, r.range if r.echo else None] for r in scan.readings],
+                "fov": scan.readings[0].fov if scan.readings else 0.349,
+                "max_range": scan.readings[0].max_range if scan.readings else 2.0})
+        await self._write(ops)
+
+    def _raw_ops(self, kind: str, t: float, body: dict[str, Any]) -> list[Any]:
+        self.n_readings += 1
+        n = self.n_readings
+        rec = {"avatar": self.name_, "agent": self.id, "kind": kind, "t": t, "n": n, **body}
+        return [team.op_put_json(f"{team.K_SLAM_RAW}{self.name_}/{n:08d}", rec),
+                ddbops.add(team.K_STATS + "readings_generated", 1)]
+
+    # ------------------------------------------------------------------ readings
+
+    async def _capture(self) -> None:
+        if self.retired or self.link is None or self.anchor is None:
+            return
+        try:
+            f = await self.link.avatar.Capture(spb.CaptureRequest(avatar_id=self.name_),
+                                               metadata=self.link.metadata)
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE:
+                await self._retired("camera unavailable")
+            return
+        # the frame's own odometry stamps the history, so the predictions can cover its time exactly
+        if not self.odo or f.time > self.odo[-1][0]:
+            self.odo.append((f.time, (f.odometry.x, f.odometry.y, f.odometry.theta)))
+        ops = self._prediction_ops(upto=f.time)
+        if self.anchor is None or self.anchor[0] < f.time - 1e-6:
+            return  # cannot cover its time (odometry not there yet): skip this image
+        ops += self._raw_ops("camera", f.time, {"frame": self.n_readings + 1, "camera": f.camera})
+        # `_raw_ops` numbered the reading: keep the frame under that number
+        self.frames[self.n_readings] = f
+        while len(self.frames) > self.cfg.frames_kept:
+            self.frames.popitem(last=False)
+        await self._write(ops)
+
+    async def _cooccupancy(self) -> None:
+        if self.retired or not self.odo or self.info is None:
+            return
+        ops = self._prediction_ops()
+        if self.anchor is None:
+            return
+        ops += self._raw_ops("cooccupancy", self.anchor[0], {"radius": float(self.info.radius)})
+        await self._write(ops)
+
+    async def _sonar_loop(self) -> None:
+        assert self.link is not None
+        try:
+            async for scan in self.link.avatar.Sonar(spb.StreamRequest(avatar_id=self.name_),
+                                                     metadata=self.link.metadata):
+                self.sonar_pending.append(scan)
+        except asyncio.CancelledError:
+            raise
+        except grpc.aio.AioRpcError as e:
+            if e.code() != grpc.StatusCode.UNAVAILABLE:
+                self.log("sonar_error", level="warning", error=str(e))
+
+    # ------------------------------------------------------------------ messages
+
+    def _on_est(self, kind: str, key: str, value: bytes | None) -> None:
+        if value:
+            try:
+                e = json.loads(value)
+                self.est = (float(e["t"]), (float(e["x"]), float(e["y"]), float(e["theta"])))
+            except (ValueError, KeyError, TypeError):
+                pass
+
+    def _send_planner(self, msg: dict[str, Any]) -> None:
+        if self.planner:
+            self.send(self.planner, team.dumps(msg))
+
+    async def on_message(self, src: str, payload: bytes) -> None:
+        msg = json.loads(payload)
+        op = msg.get("op")
+        if op == "target":
+            self.target = {"x": float(msg["x"]), "y": float(msg["y"]), "tid": msg.get("tid", 0),
+                           "sup": msg.get("sup", src)}
+            self.backup()
+            self._stop_driving()
+            self._send_planner({"op": "goto", **self.target})
+        elif op == "halt":
+            self.target = None
+            self._stop_driving()
+        elif op == "hello" and src == self.planner and self.target:
+            self._send_planner({"op": "goto", **self.target})
+        elif op == "path" and self.target and msg.get("tid") == self.target.get("tid"):
+            self._stop_driving()
+            self.path = [list(w) for w in msg.get("waypoints", [])]
+            self.drive_task = asyncio.ensure_future(self._drive(self.target["tid"], msg.get("final", True)))
+        elif op == "unreachable" and self.target and msg.get("tid") == self.target.get("tid"):
+            self._tell_supervisor("unreachable")
+
+    async def on_request(self, src: str, payload: bytes) -> bytes:
+        msg = json.loads(payload)
+        if msg.get("op") == "frame":
+            f = self.frames.get(int(msg.get("n", -1)))
+            if f is None:
+                raise LookupError(f"frame {msg.get('n')} is no longer kept")
+            return f.SerializeToString()
+        if msg.get("op") == "pose":
+            return team.dumps(self._pose_map())
+        raise ValueError(f"unknown request {msg.get('op')!r}")
+
+    def _pose_map(self) -> dict[str, Any]:
+        if not self.odo:
+            return {}
+        t, p = self.odo[-1]
+        m = self._map_pose(p)
+        return {"t": t, "x": m[0], "y": m[1], "theta": m[2]}
+
+    def _transform(self) -> tuple[Pose, Pose]:
+        """(estimate, odometry) at the estimate's time; identity (start pose) before any estimate."""
+        if self.est is not None:
+            o = self.odom_at(self.est[0])
+            if o is not None:
+                return self.est[1], o
+        if self.info is not None and not self.est:
+            sp = self.info.start_pose
+            return (sp.x, sp.y, sp.theta), (sp.x, sp.y, sp.theta)
+        if self.odo and self.est is not None:  # estimate older than the odometry history: use its start
+            return self.est[1], self.odo[0][1]
+        return (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+
+    def _map_pose(self, p: Pose) -> Pose:
+        e, o = self._transform()
+        return to_map(e, o, p)
+
+    def _tell_supervisor(self, what: str) -> None:
+        if self.target and self.target.get("sup"):
+            self.send(self.target["sup"], team.dumps({"op": what, "avatar": self.name_,
+                                                      "tid": self.target.get("tid")}))
+
+    # ------------------------------------------------------------------ driving
+
+    def _stop_driving(self) -> None:
+        if self.drive_task is not None:
+            self.drive_task.cancel()
+            self.drive_task = None
+
+    async def _drive(self, tid: Any, final: bool) -> None:
+        assert self.link is not None and self.info is not None
+        speed = self.cfg.cruise * float(self.info.max_speed)
+        try:
+            while self.path:
+                wx, wy = self.path[0]
+                e, o = self._transform()
+                ox, oy = to_odom(e, o, wx, wy)
+                req = spb.ActionRequest(avatar_id=self.name_, move_to=spb.MoveTo(
+                    x=ox, y=oy, speed=speed, tolerance=self.cfg.tolerance), progress_period=0.5)
+                last = None
+                async for u in self.link.avatar.Act(req, metadata=self.link.metadata):
+                    last = u
+                if last is None or last.status != spb.ACTION_STATUS_SUCCEEDED:
+                    why = last.reason if last is not None else "no outcome"
+                    self.send(self.planner, team.dumps({"op": "failed", "tid": tid, "reason": why,
+                                                        "pose": self._pose_map()}))
+                    return
+                self.path.pop(0)
+            self.send(self.planner, team.dumps({"op": "arrived", "tid": tid, "final": final,
+                                                "pose": self._pose_map()}))
+            if final and self.target and self.target.get("tid") == tid:
+                self._tell_supervisor("reached")
+        except asyncio.CancelledError:
+            with_suppress = self.link
+            try:
+                await with_suppress.avatar.Cancel(spb.AvatarRef(avatar_id=self.name_), metadata=self.link.metadata)
+            except Exception:
+                pass
+            raise
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE:
+                self.call_later(0, lambda: self._retired("actions unavailable"))
+            else:
+                self.log("drive_error", level="warning", error=str(e))
+
+    # ------------------------------------------------------------------ retirement
+
+    async def _retired(self, why: str) -> None:
+        if self.retired:
+            return
+        self.retired = True
+        self._stop_driving()
+        for t in self.tasks:
+            t.cancel()
+        reg = {"agent": self.id, "type": self.cfg.type, "status": "retired", "t": self.now(), "why": why}
+        ops = [team.op_put_json(team.K_AVATARS + self.name_, reg),
+               ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.RemoveAvatar(self.name_))])]
+        try:
+            await self._write(ops)
+        except Exception as e:
+            self.log("retire_write_failed", level="warning", error=str(e))
+        await team.transcript(self, f"avatar {self.name_} retired ({why})")
+        self._send_planner({"op": "stop"})
+        self.stop()

@@ -1,0 +1,209 @@
+"""ExecutiveMission (thesis App. III L3047-3051; Table 4.2-1 item 1; §6.2.2 L1264): the mission's top agent.
+
+"Defines mission parameters and controls when tasks are started. When a new task begins the ExecutiveMission
+spawns the appropriate task supervisor and supporting agents." Spawned by the mission runner (the operator,
+docs/team.md) with the mission spec; it
+
+* writes `mission/params` and `mission/status` (docs/team.md), and the transcript's "Mission started" /
+  "Mission finished" lines;
+* spawns its children at start, as in the AF-1 transcript (L1417-1462): ExecutiveAvatar (a separate agent
+  here; rolled in in the thesis, L1264), SupervisorSLAM and SupervisorExplore; for `scenario: congregate`,
+  SupervisorCongregate once the congregation point's landmark is in the map (L1190: exploration goes on
+  until it is found);
+* detects completion every `check_s`: **explore** — the explored share (thesis L1186: reachable cells with
+  p > 0.73 or p < 0.27) ≥ `complete.explored`. The team does not know which cells are reachable (that is
+  ground truth); what it knows is the arena's explorable area (thesis §6.2.1 gives it: 24.2 m² for the small
+  arena), passed as `expected_cells` (cells at the map resolution). Reachable cells are free, so explored
+  reachable cells are the map's cells with p < 0.27: the share is their count / `expected_cells`, capped at
+  1 (docs/team.md, "Completion"); **congregate** — SupervisorCongregate reports every avatar on its slot
+  (`congregate/status`). The time limit (`complete.time_limit_s`, simulated) ends the mission as stopped.
+
+Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
+dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
+
+Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": the backup holds
+the children's ids and the mission state; children are recovered by their own hosts (Alg. 7/8), and a child
+that was never spawned (a crash between start and spawn) is spawned on recovery.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pydantic
+
+from haa.agents import team
+from haa.agents.base import AgentBase
+from haa.agents.registry import register
+from haa.hostd import ddb as ddbops
+from haa.slam.replica import decode_map
+
+
+class MissionAgentConfig(team.TeamConfig):
+    mission: dict[str, Any]
+    expected_cells: int = pydantic.Field(gt=0)
+    check_s: float = pydantic.Field(1.0, gt=0, le=60)
+
+
+def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
+    """What the team may know of the mission's arena (see the module docstring)."""
+    from haa.sim.arena import BUILTIN, load_arena
+    from haa.sim.avatars import avatar_spec
+    from haa.sim.sensors import CAMERAS
+
+    name = mission["arena"]
+    arena = load_arena(name if name in BUILTIN else Path(name))
+    kinds = {a["type"] for a in mission["avatars"]}
+    specs = [avatar_spec(k) for k in kinds]
+    return {
+        "width": arena.width, "height": arena.height,
+        "marker_dictionary": arena.marker_dictionary, "marker_size": arena.marker_size,
+        "landmark_ids": sorted(arena.landmarks), "congregation_id": arena.congregation_id,
+        "radius": max(s.radius for s in specs),
+        "camera_range": max(CAMERAS[s.camera].max_range for s in specs),
+    }
+
+
+def explored_share(prob: np.ndarray, expected_cells: int) -> float:
+    """Share of the arena's explorable cells explored (see the module docstring)."""
+    return min(1.0, float((prob < 0.27).sum()) / expected_cells)
+
+
+@register
+class ExecutiveMission(AgentBase):
+    TYPE = "executive_mission"
+    CONFIG = MissionAgentConfig
+    COST = 0.02
+    RECOVERY = "backup"
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.cfg: MissionAgentConfig
+        self.m = self.cfg.mission
+        self.children: dict[str, str] = {}
+        self.state = "running"
+        self.started_t: float | None = None
+        self.finished_t: float | None = None
+        self.explored = 0.0
+        self.facts: dict[str, Any] = {}
+
+    def pack_state(self) -> bytes:
+        return team.dumps({"children": self.children, "state": self.state, "started_t": self.started_t,
+                           "finished_t": self.finished_t, "explored": self.explored})
+
+    def unpack_state(self, data: bytes) -> None:
+        st = json.loads(data)
+        self.children = st.get("children", {})
+        self.state = st.get("state", "running")
+        self.started_t, self.finished_t = st.get("started_t"), st.get("finished_t")
+        self.explored = float(st.get("explored", 0.0))
+
+    def recover(self, backup: bytes | None) -> None:
+        if backup:
+            self.unpack_state(backup)
+
+    async def on_start(self) -> None:
+        team.use_mission_clock(self, self.cfg)
+        self.started_t = self.now()
+        await self.ddb_write([team.op_put_json(team.K_PARAMS, {"mission": self.m, "speed": self.cfg.speed,
+                                                                "sim": self.cfg.sim, "seed": self.cfg.seed,
+                                                                "expected_cells": self.cfg.expected_cells})])
+        await self._status("")
+        await team.transcript(self, f"Mission started: {self.m.get('name')} ({self.m.get('scenario')})")
+        await self._begin()
+
+    async def on_resume(self, how: str) -> None:
+        team.use_mission_clock(self, self.cfg)
+        await self._begin()
+
+    async def _begin(self) -> None:
+        self.facts = arena_facts(self.m)
+        await self._spawn_children()
+        if self.m.get("scenario") == "congregate":
+            self.watch(team.K_SLAM_LANDMARKS, self._on_landmarks)
+            self.watch("congregate/status", self._on_congregate)
+        self.every(self.cfg.check_s, self._check)
+
+    async def _spawn_children(self) -> None:
+        f = self.facts
+        res = float(self.m.get("map_resolution", 0.1))
+        wanted = {
+            "executive_avatar": team.team_config(self),
+            "supervisor_slam": team.team_config(
+                self, mode=self.m.get("slam", "jc-slam"), particles=int(self.m.get("particles", 100)),
+                grid=(0.0, 0.0, f["width"], f["height"], res), landmark_ids=f["landmark_ids"],
+                marker_dictionary=f["marker_dictionary"], marker_size=f["marker_size"],
+                discard_agents=int(self.m.get("hosts", {}).get("start", 1))),
+            "supervisor_explore": team.team_config(
+                self, exploration=self.m.get("exploration", "em"), radius=f["radius"],
+                camera_range=f["camera_range"]),
+        }
+        for type_name, config in wanted.items():
+            if type_name not in self.children:
+                self.children[type_name] = await self.spawn_child(type_name, config)
+                self.backup()
+
+    async def _status(self, reason: str) -> None:
+        await self.ddb_write([team.op_put_json(team.K_STATUS, {
+            "state": self.state, "t": round(self.now(), 3), "explored": round(self.explored, 4),
+            "reason": reason, "started_t": self.started_t, "finished_t": self.finished_t,
+            "children": self.children})])
+
+    async def _check(self) -> None:
+        if self.state != "running":
+            return
+        data = await self.ddb_get(team.K_SLAM_MAP)
+        if data is not None:
+            _, prob = decode_map(data)
+            self.explored = explored_share(prob, self.cfg.expected_cells)
+        complete = self.m.get("complete", {})
+        reason = ""
+        if self.m.get("scenario", "explore") == "explore" and self.explored >= float(complete.get("explored", 0.95)):
+            self.state, reason = "complete", f"explored {self.explored:.1%}"
+        elif self.started_t is not None and self.now() - self.started_t >= float(complete.get("time_limit_s", 900)):
+            self.state, reason = "stopped", "time limit"
+        if self.state != "running":
+            self.finished_t = self.now()
+            self.backup()
+            await team.transcript(self, f"Mission finished: {reason}")
+        await self._status(reason)
+        await self._trim_events()
+
+    async def _trim_events(self) -> None:
+        data = await self.ddb_get(team.K_EVENTS)
+        if data is None:
+            return
+        first, items = ddbops.decode_log(data)
+        if len(items) > team.EVENTS_KEEP:
+            await self.ddb_write([ddbops.log_trim(team.K_EVENTS, first + len(items) - team.EVENTS_KEEP)])
+
+    async def _on_landmarks(self, kind: str, key: str, value: bytes | None) -> None:
+        cid = self.facts.get("congregation_id")
+        if value is None or cid is None or "supervisor_congregate" in self.children:
+            return
+        lms = json.loads(value)
+        if str(cid) in lms:
+            x, y = lms[str(cid)][:2]
+            await team.transcript(self, f"congregation point found at ({x:.2f}, {y:.2f})")
+            self.children["supervisor_congregate"] = await self.spawn_child(
+                "supervisor_congregate", team.team_config(self, landmark=int(cid),
+                                                          radius_m=float(self.m.get("congregation", {}).get("radius_m", 0.6)),
+                                                          tolerance_m=float(self.m.get("congregation", {}).get("tolerance_m", 0.15))))
+            self.backup()
+            explore = self.children.get("supervisor_explore")
+            if explore:  # exploration is abandoned once the point is found (L1512)
+                self.send(explore, team.dumps({"op": "abandon"}))
+
+    async def _on_congregate(self, kind: str, key: str, value: bytes | None) -> None:
+        if value is None or self.state != "running":
+            return
+        st = json.loads(value)
+        if st.get("done"):
+            self.state = "complete"
+            self.finished_t = self.now()
+            self.backup()
+            await team.transcript(self, "Mission finished: every avatar on its slot")
+            await self._status("every avatar on its slot")

@@ -1,0 +1,115 @@
+"""SupervisorCongregate (thesis App. III L3059-3075; Table 6.2-1 L1190): gathers the team around the
+congregation point.
+
+"When the congregation point is identified SupervisorCongregate requests control of all avatars and assigns
+them targets at equally spaced intervals around the congregation point." ExecutiveMission spawns it when the
+congregation point's landmark is in the map (`slam/landmarks`); it bids `team.BID_CONGREGATE` (10, above
+SupervisorExplore's 1: docs/team.md) on every active avatar, so it gains control of all of them.
+
+Slots (thesis gap 8, ours): `n` points on a circle of `radius_m` around the landmark's estimate, the first
+towards the team's centroid, equally spaced; avatars are matched to slots by least total distance
+(Hungarian). An avatar is on its slot when its estimate is within `tolerance_m`; when all are, it writes
+`congregate/status` {"done": true} and ExecutiveMission ends the mission. Slots are recomputed when the
+landmark estimate moves by more than `tolerance_m` or the team changes.
+
+Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate" (backup:
+the targets; after recovery every controlled avatar gets its slot again).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pydantic
+from scipy.optimize import linear_sum_assignment
+
+from haa.agents import team
+from haa.agents.registry import register
+
+
+class CongregateConfig(team.TeamConfig):
+    landmark: int
+    radius_m: float = pydantic.Field(0.6, gt=0, le=10)
+    tolerance_m: float = pydantic.Field(0.15, gt=0, le=2)
+    check_s: float = pydantic.Field(1.0, gt=0, le=60)
+
+
+def slots(centre: tuple[float, float], n: int, radius: float, towards: tuple[float, float]) -> list[tuple[float, float]]:
+    """`n` equally spaced points on the circle around `centre`, the first in the direction of `towards`."""
+    a0 = math.atan2(towards[1] - centre[1], towards[0] - centre[0])
+    return [(centre[0] + radius * math.cos(a0 + 2 * math.pi * k / n),
+             centre[1] + radius * math.sin(a0 + 2 * math.pi * k / n)) for k in range(n)]
+
+
+@register
+class SupervisorCongregate(team.SupervisorBase):
+    TYPE = "supervisor_congregate"
+    TASK = "congregate"
+    CONFIG = CongregateConfig
+    COST = 0.02
+    RECOVERY = "backup"
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.cfg: CongregateConfig
+        self.centre: tuple[float, float] | None = None
+        self.done = False
+
+    def priority(self, avatar: str) -> float:
+        return team.BID_CONGREGATE
+
+    async def on_start(self) -> None:
+        await self._begin()
+
+    async def on_resume(self, how: str) -> None:
+        self.targets = {}
+        await self._begin()
+
+    async def _begin(self) -> None:
+        team.use_mission_clock(self, self.cfg)
+        await team.transcript(self, "requesting control of all avatars")
+        await self.start_bidding()
+        self.every(self.cfg.check_s, self._check)
+
+    async def on_avatars_changed(self) -> None:
+        self.centre = None  # recompute the slots for the new team
+        await self._check()
+
+    async def on_message(self, src: str, payload: bytes) -> None:
+        msg = json.loads(payload)
+        if msg.get("op") == "unreachable" and msg.get("avatar") in self.targets:
+            self.targets.pop(msg["avatar"], None)  # try again at the next check
+            self.centre = None
+
+    async def _check(self) -> None:
+        if self.done or not self.controlled:
+            return
+        lms = await team.get_json(self, team.K_SLAM_LANDMARKS, {})
+        lm = lms.get(str(self.cfg.landmark))
+        ests = await team.get_json(self, team.K_SLAM_ESTIMATES, {})
+        pos = {a: (ests[a]["x"], ests[a]["y"]) for a in self.controlled if a in ests}
+        if lm is None or not pos:
+            return
+        c = (float(lm[0]), float(lm[1]))
+        if self.centre is None or math.dist(c, self.centre) > self.cfg.tolerance_m or set(pos) != set(self.targets):
+            self.centre = c
+            names = sorted(pos)
+            mean = tuple(np.mean([pos[a] for a in names], axis=0))
+            pts = slots(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])))
+            cost = np.array([[math.dist(pos[a], p) for p in pts] for a in names])
+            rows, cols = linear_sum_assignment(cost)
+            for r, k in zip(rows, cols):
+                self.send_target(names[r], *pts[k])
+            await self.ddb_write([team.op_put_json(team.K_TARGETS + a, {**self.targets[a], "supervisor": self.id,
+                                                                        "task": self.TASK}) for a in names])
+            self.backup()
+        on_slot = [a for a, t in self.targets.items() if a in pos
+                   and math.dist(pos[a], (t["x"], t["y"])) <= self.cfg.tolerance_m]
+        if self.targets and len(on_slot) == len(self.controlled):
+            self.done = True
+            await team.transcript(self, f"every avatar on its slot ({len(on_slot)})")
+            await team.put_json(self, "congregate/status", {"done": True, "t": round(self.now(), 3),
+                                                            "avatars": sorted(on_slot)})

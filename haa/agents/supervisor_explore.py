@@ -1,0 +1,151 @@
+"""SupervisorExplore (thesis App. III L3077-3083): directs the avatars it controls to unexplored regions.
+
+"Carries out the exploration task by directing avatars to unexplored regions. Unexplored cells are divided
+between avatars using an Expectation-Maximization (EM) algorithm. Once the cells are divided each avatar is
+assign[ed] a target within their area." The split is haa.control.explore (hard EM over the unexplored
+reachable cells, one region and one target per avatar; docs/control.md); `exploration: frontier` in the
+mission file selects coordinated frontier exploration instead (haa.control.frontier, Burgard et al. 2005).
+
+* Bidding: "SupervisorExplore by default places a low priority bid and gains control of each avatar"
+  (L1510): priority `team.BID_EXPLORE` on every active avatar (haa.agents.team.SupervisorBase).
+* Cadence (thesis gap 7, ours): targets are computed again every `replan_s` simulated seconds for the
+  avatars that are idle (no target, reached, unreachable) or whose target has been explored meanwhile, and
+  for every avatar every `refresh_s`; at once when the controlled set changes. A target reported
+  unreachable is kept out of the split for `blocked_s` (cells within `blocked_radius` of it are treated as
+  explored for this supervisor's purposes).
+* Status: `targets/<avatar>` in the DDB.
+
+Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": the backup
+holds the targets sent; after recovery the controlled set is read again from `assign/` and every avatar gets
+a target afresh (status monitoring: "If failure occurs reassign target" — an avatar agent that was recovered
+re-sends its own target to its planner, and a new assignment reaches it anyway).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Literal
+
+import numpy as np
+import pydantic
+
+from haa.agents import team
+from haa.agents.registry import register
+from haa.control.explore import ExploreConfig, split_unexplored
+from haa.control.frontier import FrontierConfig, assign_frontiers
+from haa.control.pathplanner import PlannerConfig
+from haa.slam.replica import decode_map
+
+
+class ExploreAgentConfig(team.TeamConfig):
+    exploration: Literal["em", "frontier"] = "em"
+    radius: float = pydantic.Field(0.12, gt=0, le=2)
+    replan_s: float = pydantic.Field(2.0, gt=0, le=600)
+    refresh_s: float = pydantic.Field(10.0, gt=0, le=3600)
+    blocked_s: float = pydantic.Field(30.0, ge=0, le=3600)
+    blocked_radius: float = pydantic.Field(0.3, ge=0, le=5)
+    camera_range: float = pydantic.Field(3.0, gt=0, le=50)
+
+
+@register
+class SupervisorExplore(team.SupervisorBase):
+    TYPE = "supervisor_explore"
+    TASK = "explore"
+    CONFIG = ExploreAgentConfig
+    COST = 0.05
+    RECOVERY = "backup"
+    CPU_LIMIT = 1.0
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.cfg: ExploreAgentConfig
+        self.blocked: list[tuple[float, float, float]] = []  # (x, y, until)
+        self.splits = 0
+
+    def priority(self, avatar: str) -> float:
+        return team.BID_EXPLORE
+
+    async def on_start(self) -> None:
+        await self._begin()
+
+    async def on_resume(self, how: str) -> None:
+        await self._begin()
+
+    async def _begin(self) -> None:
+        team.use_mission_clock(self, self.cfg)
+        await self.start_bidding()
+        self.every(self.cfg.replan_s, self._tick)
+
+    async def on_avatars_changed(self) -> None:
+        await self._replan(everyone=True)
+
+    async def on_message(self, src: str, payload: bytes) -> None:
+        msg = json.loads(payload)
+        op, a = msg.get("op"), msg.get("avatar")
+        if op == "abandon":  # ExecutiveMission: the congregation point is found (L1512)
+            await self.withdraw_bids()
+            await team.transcript(self, "exploration abandoned")
+            return
+        t = self.targets.get(a)
+        if t is None or t.get("tid") != msg.get("tid"):
+            return
+        if op == "reached":
+            t["state"] = "reached"
+        elif op == "unreachable":
+            t["state"] = "unreachable"
+            self.blocked.append((t["x"], t["y"], self.now() + self.cfg.blocked_s))
+        self.call_later(0.05, self._tick)
+
+    async def _tick(self) -> None:
+        await self._replan(everyone=False)
+
+    async def _replan(self, everyone: bool) -> None:
+        if not self.controlled:
+            return
+        data = await self.ddb_get(team.K_SLAM_MAP)
+        if data is None:
+            return
+        spec, prob = decode_map(data)
+        ests = await team.get_json(self, team.K_SLAM_ESTIMATES, {})
+        pos = {a: (float(ests[a]["x"]), float(ests[a]["y"])) for a in self.controlled if a in ests}
+        if not pos:
+            return
+        now = self.now()
+        self.blocked = [b for b in self.blocked if b[2] > now]
+        p = np.array(prob, dtype=float)
+        for bx, by, _ in self.blocked:  # a target found unreachable: not a target again for a while
+            r0, c0 = (by - spec.y0) / spec.resolution, (bx - spec.x0) / spec.resolution
+            rr, cc = np.ogrid[0:p.shape[0], 0:p.shape[1]]
+            k = self.cfg.blocked_radius / spec.resolution
+            p[((rr - r0) ** 2 + (cc - c0) ** 2) <= k * k] = 0.0
+        planner = PlannerConfig(radius=self.cfg.radius)
+        if self.cfg.exploration == "em":
+            targets = split_unexplored(p, pos, spec=spec, config=ExploreConfig(planner=planner)).targets()
+        else:
+            targets = assign_frontiers(p, pos, spec=spec,
+                                       config=FrontierConfig(planner=planner, range=self.cfg.camera_range)).targets
+        self.splits += 1
+        sent = []
+        for a, tgt in targets.items():
+            cur = self.targets.get(a)
+            if tgt is None:
+                continue
+            stale = cur is None or cur.get("state") != "driving" or everyone
+            if cur is not None and cur.get("state") == "driving":
+                # still unexplored where it is going? (else a new target)
+                r = int((cur["y"] - spec.y0) / spec.resolution)
+                c = int((cur["x"] - spec.x0) / spec.resolution)
+                inside = 0 <= r < p.shape[0] and 0 <= c < p.shape[1]
+                explored = (not inside) or not (0.27 <= p[r, c] <= 0.73)
+                old = now - float(cur.get("since", now)) > self.cfg.refresh_s
+                stale = stale or explored or old
+                if not stale or math.dist((cur["x"], cur["y"]), tgt) < 0.2:
+                    continue
+            self.send_target(a, tgt[0], tgt[1])
+            sent.append(a)
+        if sent:
+            ops = [team.op_put_json(team.K_TARGETS + a, {**self.targets[a], "supervisor": self.id,
+                                                         "task": self.TASK}) for a in sent]
+            await self.ddb_write(ops)
+            self.backup()

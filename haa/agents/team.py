@@ -1,0 +1,375 @@
+"""What the robot-team agents of Appendix III share (issue 15; docs/team.md): config models, the mission clock,
+the channel to haa-sim, DDB helpers and the mission transcript.
+
+Not an agent type itself (the registry imports it and finds no `@register`): each agent lives in the module
+named after it (executive_mission.py, avatar_simulation.py, ...).
+
+* `TeamConfig` — the part of every team agent's config the mission sets: haa-sim's address and token file,
+  the speed (simulated seconds per wall second), the mission seed and the mission clock's anchor.
+* `MissionClock` — the simulated time every team agent sees (issue 15: "at `--speed 4` an agent's timers,
+  `now()` and random numbers follow the simulator's clock"): `sim0` simulated seconds at wall time `wall0`
+  (time.time(), so that every process on every machine with a synchronised clock agrees), running `speed`
+  times faster. `use_mission_clock(agent, cfg)` installs it with the mission seed.
+* `SimLink` — an asyncio gRPC channel to haa-sim's AvatarSim service carrying the token and the caller's
+  name (metadata `x-haa-caller`, which haa-sim uses to count calls per caller: the agents must make no
+  ground-truth or Detect calls, a mission test checks it).
+* `transcript(agent, text)` — one line of the mission transcript (Fig. 7.1-3) in the DDB log `mission/events`.
+* `get_json`, `put_json`, `counter_add` — small DDB helpers.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, ClassVar
+
+import numpy as np
+import pydantic
+
+from haa.agents.base import AgentBase, Clock
+from haa.hostd import ddb as ddbops
+
+#: DDB keys (docs/team.md "DDB layout")
+K_PARAMS = "mission/params"
+K_STATUS = "mission/status"
+K_EVENTS = "mission/events"
+K_AVATARS = "avatars/"
+K_BIDS = "bids/"
+K_ASSIGN = "assign/"
+K_SLAM_LOG = "slam/log"
+K_SLAM_CKPT = "slam/ckpt/"
+K_SLAM_MAP = "slam/map"
+K_SLAM_EST = "slam/est/"
+K_SLAM_ESTIMATES = "slam/estimates"
+K_SLAM_RAW = "slam/raw/"
+K_SLAM_LANDMARKS = "slam/landmarks"
+K_TARGETS = "targets/"
+K_STATS = "stats/"
+
+#: bid priorities (docs/team.md "Bid scale")
+BID_EXPLORE = 1.0
+BID_CONGREGATE = 10.0
+
+#: transcript lines kept in `mission/events` (older ones are trimmed by ExecutiveMission)
+EVENTS_KEEP = 2000
+
+
+class TeamConfig(pydantic.BaseModel):
+    """Config fields every team agent takes from the mission (docs/team.md "Starting a mission")."""
+
+    model_config = pydantic.ConfigDict(extra="forbid")
+
+    sim: str = pydantic.Field("", description="haa-sim address HOST:PORT")
+    sim_token_file: str = ""
+    speed: float = pydantic.Field(1.0, gt=0, le=1000)
+    seed: int = 0
+    #: the mission clock's anchor: `sim0` simulated seconds at wall time `wall0` (time.time()); 0/0 = the
+    #: simulated clock starts at 0 when the agent starts (tests)
+    sim0: float = 0.0
+    wall0: float = 0.0
+
+
+class MissionClock(Clock):
+    """Simulated mission time: `sim0` at wall time `wall0`, `speed` simulated seconds per wall second."""
+
+    def __init__(self, speed: float, sim0: float, wall0: float) -> None:
+        self.speed = float(speed)
+        self.sim0 = float(sim0)
+        self.wall0 = float(wall0) if wall0 > 0 else time.time()
+
+    def now(self) -> float:
+        return self.sim0 + (time.time() - self.wall0) * self.speed
+
+    def wall_delay(self, delay: float) -> float:
+        return max(0.0, delay) / self.speed
+
+
+def use_mission_clock(agent: AgentBase, cfg: TeamConfig) -> None:
+    """Give `agent` the mission clock and the mission's seeded random source."""
+    agent._ctx.set_clock(MissionClock(cfg.speed, cfg.sim0, cfg.wall0), seed=cfg.seed)
+
+
+def team_config(agent: AgentBase, **extra: Any) -> dict[str, Any]:
+    """The TeamConfig part of `agent.cfg` as a dict (to pass on to a child), updated with `extra`."""
+    base = {k: getattr(agent.cfg, k) for k in TeamConfig.model_fields}
+    base.update(extra)
+    return base
+
+
+# ---------------------------------------------------------------------------------------------- haa-sim
+
+
+class SimLink:
+    """An asyncio gRPC channel to haa-sim (AvatarSim only: the hardware a robot driver talks to)."""
+
+    def __init__(self, address: str, token_file: str, caller: str) -> None:
+        from grpc import aio
+
+        from haa.pb import sim_pb2_grpc as pbg
+
+        if not address:
+            raise ValueError("config.sim: the haa-sim address is required")
+        md = [("x-haa-caller", caller)]
+        if token_file:
+            md.append(("x-haa-token", Path(token_file).read_text().strip()))
+        self.metadata = tuple(md)
+        self.channel = aio.insecure_channel(
+            address, options=[("grpc.max_receive_message_length", 32 * 1024 * 1024)]
+        )
+        self.avatar = pbg.AvatarSimStub(self.channel)
+
+    async def close(self) -> None:
+        await self.channel.close(grace=None)
+
+
+def frame_from_pb(m: Any, avatar: str) -> SimpleNamespace:
+    """A haa-sim CameraFrame message as the object haa.control's detectors read (image, K, mount, max_range,
+    time, avatar); the true pose is not in the message and is not made up."""
+    from haa.sim.service import decode_frame
+
+    return SimpleNamespace(
+        image=decode_frame(m),
+        K=np.asarray(m.K, dtype=float).reshape(3, 3),
+        mount=(m.mount.x, m.mount.y, m.mount.z, m.mount.pitch),
+        max_range=float(m.max_range),
+        fov=float(m.fov),
+        time=float(m.time),
+        avatar=avatar,
+        camera=m.camera,
+    )
+
+
+# ---------------------------------------------------------------------------------------------- DDB
+
+
+async def get_json(agent: AgentBase, key: str, default: Any = None) -> Any:
+    """The JSON value at `key`, or `default` when it is missing or not JSON."""
+    data = await agent.ddb_get(key)
+    if data is None:
+        return default
+    try:
+        return json.loads(data)
+    except ValueError:
+        return default
+
+
+async def put_json(agent: AgentBase, key: str, value: Any) -> None:
+    await agent.ddb_put_json(key, value)
+
+
+def op_put_json(key: str, value: Any) -> Any:
+    return ddbops.put(key, "json", value)
+
+
+def dumps(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":")).encode()
+
+
+async def counter_add(agent: AgentBase, name: str, delta: int = 1) -> None:
+    await agent.ddb_write([ddbops.add(K_STATS + name, delta)])
+
+
+async def transcript(agent: AgentBase, text: str) -> None:
+    """Append one line to the mission transcript (Fig. 7.1-3): time, agent name and type, text."""
+    line = {"t": round(agent.now(), 3), "agent": agent.name, "type": agent.TYPE, "text": text}
+    try:
+        await agent.ddb_log_append(K_EVENTS, [dumps(line)])
+    except Exception as e:  # the transcript must never take an agent down
+        agent.log("transcript_failed", level="warning", error=str(e))
+
+
+# ---------------------------------------------------------------------------------------------- supervisors
+
+
+class SupervisorBase(AgentBase):
+    """What the task supervisors share (the thesis' SupervisorTask parent class, Fig. 6.2-3): bidding for
+    avatars with ExecutiveAvatar (App. III L3043: bids and assignments in the DDB), knowing which avatars it
+    controls, and sending them targets.
+
+    A subclass sets `TASK` and `priority()`, and implements `on_avatars_changed()` (called, in the mailbox,
+    when the set of controlled avatars changes). State kept here: `controlled` (avatar → agent id), `bid_on`
+    (avatars bid on), `targets` (avatar → the last target sent), `next_tid`.
+    """
+
+    TASK: str = ""
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.controlled: dict[str, str] = {}
+        self.registry: dict[str, dict[str, Any]] = {}
+        self.targets: dict[str, dict[str, Any]] = {}
+        self.next_tid = 1
+        self.bidding = True
+
+    def priority(self, avatar: str) -> float:
+        raise NotImplementedError
+
+    async def on_avatars_changed(self) -> None:
+        """The controlled set changed."""
+
+    async def start_bidding(self) -> None:
+        """Watch the avatar registry and the assignments; bid on every active avatar."""
+        self.watch(K_AVATARS, self._on_registry)
+        self.watch(K_ASSIGN, self._on_assign)
+        for key, data in (await self.ddb_scan(K_AVATARS)).items():
+            self.registry[key[len(K_AVATARS):]] = json.loads(data)
+        await self._bid_all()
+        await self._load_assignments()
+
+    async def _bid_all(self) -> None:
+        ops = []
+        for a, reg in self.registry.items():
+            if reg.get("status") == "active" and self.bidding:
+                ops.append(op_put_json(f"{K_BIDS}{a}/{self.id}",
+                                       {"priority": self.priority(a), "task": self.TASK, "t": round(self.now(), 3)}))
+        if ops:
+            await self.ddb_write(ops)
+
+    async def withdraw_bids(self) -> None:
+        self.bidding = False
+        ops = [ddbops.delete(f"{K_BIDS}{a}/{self.id}") for a in self.registry]
+        if ops:
+            await self.ddb_write(ops)
+
+    async def _load_assignments(self) -> None:
+        mine: dict[str, str] = {}
+        for key, data in (await self.ddb_scan(K_ASSIGN)).items():
+            a = key[len(K_ASSIGN):]
+            v = json.loads(data)
+            if v.get("supervisor") == self.id and self.registry.get(a, {}).get("status") == "active":
+                mine[a] = self.registry[a]["agent"]
+        await self._set_controlled(mine)
+
+    async def _set_controlled(self, mine: dict[str, str]) -> None:
+        if mine != self.controlled:
+            gained = sorted(set(mine) - set(self.controlled))
+            lost = sorted(set(self.controlled) - set(mine))
+            self.controlled = mine
+            for a in lost:
+                self.targets.pop(a, None)
+            if gained or lost:
+                await transcript(self, f"controls {', '.join(sorted(mine)) or 'no avatar'}"
+                                 + (f" (gained {', '.join(gained)})" if gained else "")
+                                 + (f" (lost {', '.join(lost)})" if lost else ""))
+            await self.on_avatars_changed()
+
+    async def _on_registry(self, kind: str, key: str, value: bytes | None) -> None:
+        a = key[len(K_AVATARS):]
+        if kind == "remove" or value is None:
+            self.registry.pop(a, None)
+        else:
+            self.registry[a] = json.loads(value)
+        reg = self.registry.get(a)
+        if reg and reg.get("status") == "active" and self.bidding:
+            await self.ddb_write([op_put_json(f"{K_BIDS}{a}/{self.id}",
+                                              {"priority": self.priority(a), "task": self.TASK,
+                                               "t": round(self.now(), 3)})])
+        elif reg is not None or kind == "remove":
+            await self.ddb_write([ddbops.delete(f"{K_BIDS}{a}/{self.id}")])
+        await self._load_assignments()
+
+    async def _on_assign(self, kind: str, key: str, value: bytes | None) -> None:
+        await self._load_assignments()
+
+    def send_target(self, avatar: str, x: float, y: float) -> None:
+        agent = self.controlled.get(avatar)
+        if not agent:
+            return
+        tid = self.next_tid
+        self.next_tid += 1
+        t = {"x": round(x, 3), "y": round(y, 3), "tid": tid, "sup": self.id}
+        self.targets[avatar] = {**t, "state": "driving", "since": self.now()}
+        self.send(agent, dumps({"op": "target", **t}))
+
+    def pack_state(self) -> bytes:
+        return dumps({"targets": self.targets, "tid": self.next_tid, "bidding": self.bidding})
+
+    def unpack_state(self, data: bytes) -> None:
+        st = json.loads(data)
+        self.targets = st.get("targets", {})
+        self.next_tid = int(st.get("tid", 1))
+        self.bidding = bool(st.get("bidding", True))
+
+    def recover(self, backup: bytes | None) -> None:
+        if backup:
+            self.unpack_state(backup)
+
+
+# ---------------------------------------------------------------------------------------------- sensor agents
+
+
+class SensorConfig(TeamConfig):
+    supervisor: str = pydantic.Field(min_length=1)
+
+
+class SensorBase(AgentBase):
+    """What the sensor processing agents share (the thesis' AgentSensorProcessing parent class, Fig. 6.2-3).
+
+    Protocol with SupervisorSLAM ("Assign processing requests" / "Report success or failure of processing",
+    App. III L2971-3015): {"op": "process", "key", "proc", "reading"} in; the agent turns the raw reading
+    into haa.slam readings (`process`, implemented by each type), appends their Observe events to
+    `slam/log` with `stats/processings` in one atomic batch, and answers {"op": "done", "key", "proc", "ok",
+    "ms"}. A (re)started agent says {"op": "hello", "proc"} to its supervisor. Recovery: "Restore
+    configuration and wait for instructions" (RECOVERY = "restart": the supervisor hands out again what
+    was in flight). At most one agent of each sensor type per host (MAX_PER_HOST = 1, App. III L3103)."""
+
+    CONFIG: ClassVar[type[pydantic.BaseModel] | None] = SensorConfig
+    RECOVERY = "restart"
+    MAX_PER_HOST = 1
+    COST = 0.2
+    CPU_LIMIT = 1.5
+
+    def __init__(self, ctx: Any) -> None:
+        super().__init__(ctx)
+        self.done = 0
+        self.failed = 0
+
+    async def process(self, reading: dict[str, Any]) -> list[Any]:
+        """The haa.slam readings (SonarReading, LandmarkReading, ...) of one raw reading; [] if it gives none."""
+        raise NotImplementedError
+
+    async def on_start(self) -> None:
+        use_mission_clock(self, self.cfg)
+        self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.TYPE}))
+
+    async def on_resume(self, how: str) -> None:
+        use_mission_clock(self, self.cfg)
+        self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.TYPE}))
+
+    async def on_message(self, src: str, payload: bytes) -> None:
+        from haa.slam import events as sev
+
+        msg = json.loads(payload)
+        if msg.get("op") != "process":
+            return
+        t0 = time.perf_counter()
+        ok, why = True, ""
+        try:
+            readings = await self.process(msg["reading"])
+            evs = [sev.encode(sev.Observe(r, self.name)) for r in readings]
+            ops = [ddbops.add(K_STATS + "processings", 1)]
+            if evs:
+                ops.insert(0, ddbops.log_append(K_SLAM_LOG, evs))
+            errs = await self.ddb_write(ops, atomic=True)
+            if any(errs):
+                ok, why = False, "; ".join(e for e in errs if e)
+        except Exception as e:  # a reading that cannot be processed is reported, not fatal
+            ok, why = False, f"{type(e).__name__}: {e}"
+        if ok:
+            self.done += 1
+        else:
+            self.failed += 1
+            self.log("processing_failed", level="warning", key=msg.get("key"), reason=why)
+        self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.TYPE, "ok": ok, "why": why,
+                              "ms": round(1000 * (time.perf_counter() - t0), 2)}))
+
+    async def fetch_frame(self, reading: dict[str, Any]) -> SimpleNamespace:
+        """The camera frame of a reading, from the avatar agent that keeps it (no frames in the DDB)."""
+        from haa.pb import sim_pb2 as spb
+
+        data = await self.request(reading["agent"], dumps({"op": "frame", "n": reading["frame"]}), timeout=10.0)
+        m = spb.CameraFrame()
+        m.ParseFromString(data)
+        return frame_from_pb(m, reading["avatar"])
