@@ -35,9 +35,9 @@ from rich.table import Table
 from rich.tree import Tree
 
 from haa.agents.base import RECOVERY_STRATEGIES
+from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, err, open_backend, out
 
 agent_app = typer.Typer(

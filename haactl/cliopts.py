@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from haactl.backend import Backend, ClusterError
+from haa.cluster.backend import Backend, ClusterError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -61,7 +61,7 @@ def open_backend(
         return ComposeBackend(compose_file)
     if compose_file is not None:
         raise ClusterError("--compose-file needs --compose")
-    from haactl.local_backend import LocalBackend
+    from haa.cluster.local_backend import LocalBackend
 
     return LocalBackend(root, last=last)
 

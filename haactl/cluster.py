@@ -1,6 +1,6 @@
 """`haactl cluster up|status|down` and `haactl host add|leave|kill|pause|resume|restart` (issue 3 §5).
 
-Each command is written once against `haactl.backend.Backend`; `--compose` selects the docker compose
+Each command is written once against `haa.cluster.backend.Backend`; `--compose` selects the docker compose
 cluster instead of the local one (docs/cluster.md).
 """
 
@@ -18,8 +18,8 @@ import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, agreed_group, wait_until
 from haa.pb import control_pb2 as cpb
-from haactl.backend import ALIVE, Backend, ClusterError, Formation, StartError, agreed_group, wait_until
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, err, open_backend, out
 
 cluster_app = typer.Typer(help="Bring a cluster of haa-hostd hosts up, inspect it, take it down.", no_args_is_help=True)
@@ -108,7 +108,7 @@ def cluster_up(
             names = backend.up(hosts, core, log=err.print, capacity=capacity)
         before = None
     else:
-        from haactl.local_backend import LocalBackend
+        from haa.cluster.local_backend import LocalBackend
 
         assert isinstance(backend, LocalBackend)
         k = core if core is not None else min(3, hosts)
@@ -171,7 +171,7 @@ def cluster_down(
             backend.down(grace)
         out.print(f"{backend.describe()}: down")
         return
-    from haactl.local_backend import LocalBackend
+    from haa.cluster.local_backend import LocalBackend
 
     assert isinstance(backend, LocalBackend)
     backend.require_hosts()

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from haa import files
-from haactl.backend import (
+from haa.cluster.backend import (
     ALIVE,
     DEAD,
     KILLED,
@@ -289,7 +289,7 @@ class ComposeBackend(Backend):
         if capacity is not None:
             env["HAA_CAPACITY"] = repr(float(capacity))
         elif not os.environ.get("HAA_CAPACITY"):
-            from haactl.local_backend import share_of_cores
+            from haa.cluster.local_backend import share_of_cores
 
             env["HAA_CAPACITY"] = repr(share_of_cores(hosts, self.docker_cores()))
         self.compose("up", "-d", "--force-recreate", *names, env=env)

@@ -16,10 +16,10 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.hostd import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
-from haactl.backend import ClusterError, rpc_error_text
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, open_backend, out
 
 ddb_app = typer.Typer(help="Read, write and watch the replicated database (DDB).", no_args_is_help=True)

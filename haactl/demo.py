@@ -1,6 +1,6 @@
 """`haactl demo` (`make demo`): agents live on a local cluster while hosts join, retire and crash.
 
-A local cluster of real `haa-hostd` processes (haactl.local_backend: three core hosts, a fourth joins
+A local cluster of real `haa-hostd` processes (haa.cluster.local_backend: three core hosts, a fourth joins
 later) runs three pairs of `counter` agents (haa.agents.demo: each agent pings its peer with numbered
 messages every 50 ms and checks what it receives: lost, out of order, duplicate). Then a scripted scenario,
 each step waiting for its effect:
@@ -52,12 +52,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from haa.cluster.backend import ALIVE, ClusterError, Formation, agreed_group
+from haa.cluster.local_backend import LocalBackend
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 from haactl.agentcli import AgentRow, EventFeed, TimelineEvent, event_line, host_event, merge_agents, operator_event
-from haactl.backend import ALIVE, ClusterError, Formation, agreed_group
 from haactl.ddbcli import plain_value
-from haactl.local_backend import LocalBackend
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 120)
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import psutil
 
-from haactl.backend import Backend, wait_until
+from haa.cluster.backend import Backend, wait_until
 
 ENGINE_PROCS = ("dockerd", "containerd", "containerd-shim", "containerd-shim-runc-v2", "docker-proxy")
 
@@ -138,7 +138,7 @@ def _formed(backend: Backend, names: list[str], timeout: float) -> float:
 
 
 def measure_local(hosts: int, duration: float, settle: float, log: Callable[[str], None] = print) -> dict[str, Any]:
-    from haactl.local_backend import LocalBackend
+    from haa.cluster.local_backend import LocalBackend
 
     with tempfile.TemporaryDirectory(prefix="haa-idle-") as tmp:
         backend = LocalBackend(Path(tmp))

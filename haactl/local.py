@@ -3,7 +3,9 @@
 Used by `haactl demo`, `haactl bench ap1` and the tests. Each host gets its own folder under the cluster
 root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
 file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
-`LocalCluster` starts them all and waits until every host trusts every other.
+`LocalCluster` starts them all and waits until every host trusts every other. `free_port`, `hostd_command`
+and `member_command` live in haa.cluster.procs (the local cluster backend and the mission runner use them too)
+and are importable from here as before.
 """
 
 from __future__ import annotations
@@ -12,9 +14,7 @@ import json
 import os
 import secrets
 import signal
-import socket
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,21 +22,11 @@ from typing import Any, TypeVar
 
 import grpc
 
+from haa.cluster.procs import free_port, hostd_command, member_command
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 
 T = TypeVar("T")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def hostd_command() -> list[str]:
-    script = Path(sys.executable).parent / "haa-hostd"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "haa.hostd.daemon"]
 
 
 def wait_for(fn: Callable[[], T], timeout: float, what: str, interval: float = 0.05) -> T:
@@ -175,31 +165,6 @@ class LocalCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def member_command(
-    name: str,
-    address: str,
-    core: dict[str, str],
-    token_file: Path,
-    data_dir: Path,
-    args: list[str] | None = None,
-) -> list[str]:
-    """The command line of a membership-mode host (Alg. 3): it finds the group through the core list."""
-    return [
-        *hostd_command(),
-        "--name",
-        name,
-        "--listen",
-        address,
-        "--core",
-        ",".join(f"{n}={a}" for n, a in core.items()),
-        "--token-file",
-        str(token_file),
-        "--data-dir",
-        str(data_dir),
-        *(args or []),
-    ]
 
 
 class MemberHost:

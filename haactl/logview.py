@@ -20,7 +20,7 @@ from typing import Annotated, Any
 import typer
 from rich.markup import escape
 
-from haactl.backend import ClusterError
+from haa.cluster.backend import ClusterError
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, open_backend, out
 
 PALETTE = (

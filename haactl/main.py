@@ -3,7 +3,8 @@
 Subcommands live in their own modules: `verify` (deterministic simulation of the algorithms), `bench`
 (the thesis' experiments and our own measurements), `demo` (the main job on a local cluster), and the
 operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
-processes or, with --compose, the docker compose cluster: docs/cluster.md).
+processes or, with --compose, the docker compose cluster: docs/cluster.md), and the robot team's `mission` and
+`experiment` (haactl.mission: docs/missions.md).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from haactl.cluster import cluster_app, host_app
 from haactl.ddbcli import ddb_app
 from haactl.demo import demo
 from haactl.logview import logs
+from haactl.mission import experiment, mission_app
 from haactl.sim import sim_app
 from haactl.verify import verify
 
@@ -43,6 +45,8 @@ app.command("logs")(logs)
 app.add_typer(sim_app, name="sim")
 app.add_typer(agent_app, name="agent")
 app.add_typer(alloc_app, name="alloc")
+app.add_typer(mission_app, name="mission")
+app.command("experiment")(experiment)
 
 if __name__ == "__main__":
     app()

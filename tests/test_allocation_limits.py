@@ -264,7 +264,7 @@ def test_an_unallocatable_limited_agent_gets_a_place_when_a_host_joins():
 
 
 def test_local_hosts_share_the_machines_cores(monkeypatch):
-    from haactl import local_backend as lb
+    from haa.cluster import local_backend as lb
 
     assert lb.share_of_cores(4, 2) == 0.5
     assert lb.share_of_cores(3, 2) == 0.667
@@ -281,7 +281,7 @@ def test_local_hosts_share_the_machines_cores(monkeypatch):
 
 
 def test_cluster_up_passes_the_share_or_the_explicit_capacity(tmp_path, monkeypatch):
-    from haactl import local_backend as lb
+    from haa.cluster import local_backend as lb
 
     monkeypatch.delenv("HAA_CAPACITY", raising=False)
     spawned = []

@@ -23,7 +23,7 @@ import psutil
 import pytest
 from typer.testing import CliRunner
 
-from haactl.local_backend import _proc_state, _reap
+from haa.cluster.local_backend import _proc_state, _reap
 from haactl.main import app
 
 HAACTL = Path(sys.executable).parent / "haactl"

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 import yaml
 
-from haactl.backend import ClusterError
+from haa.cluster.backend import ClusterError
 from haactl.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend, host_service
 
 REPO = Path(__file__).resolve().parents[1]

@@ -445,8 +445,8 @@ def test_a_corrupt_known_hosts_file_is_ignored_with_a_warning(tmp_path: Path) ->
 
 
 def test_a_broken_cluster_state_file_is_one_clear_error(tmp_path: Path) -> None:
-    from haactl.backend import ClusterError
-    from haactl.local_backend import STATE_FILE, LocalBackend
+    from haa.cluster.backend import ClusterError
+    from haa.cluster.local_backend import STATE_FILE, LocalBackend
 
     b = LocalBackend(tmp_path)
     for text in ("[" * 100_000, "[1, 2]", '{"a": 1, "a": 2}'):

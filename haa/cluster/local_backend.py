@@ -34,7 +34,7 @@ from typing import Any
 import psutil
 
 from haa import files
-from haactl.backend import (
+from haa.cluster.backend import (
     ALIVE,
     DEAD,
     KILLED,
@@ -47,7 +47,7 @@ from haactl.backend import (
     natural_key,
     state_phrase,
 )
-from haactl.local import free_port, member_command
+from haa.cluster.procs import free_port, member_command
 
 STATE_FILE = "cluster.json"
 LAST_STATE_FILE = "cluster.last.json"  # the state of the cluster `down` stopped, so that `logs` still finds it

@@ -67,10 +67,10 @@ import pytest
 import yaml
 from chaoslib import docker_problem
 
+from haa.cluster.backend import ClusterError, natural_key, wait_until
 from haa.hostd import ddb
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.backend import ClusterError, natural_key, wait_until
 from haactl.compose_backend import ComposeBackend, host_service
 from haactl.local import free_port
 

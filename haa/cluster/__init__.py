@@ -1,0 +1,10 @@
+"""Clusters of haa-hostd hosts as an operator sees them (moved here from haactl so that libraries such as the
+mission runner can use them; haa must not import haactl).
+
+* `haa.cluster.backend` — `Backend`: what every cluster offers (hosts, status fan-out, formation, graceful
+  leave) and `ClusterError`, the one-line operator error.
+* `haa.cluster.local_backend` — `LocalBackend`: haa-hostd processes on loopback recorded in a state file.
+* `haa.cluster.procs` — free ports and the haa-hostd command line.
+
+The docker compose backend stays in haactl (haactl.compose_backend).
+"""

@@ -1,0 +1,297 @@
+"""`haactl mission run|start|status|logs|stop` and `haactl experiment af1|af2` (issue 15 §3-4).
+
+Thin: arguments are parsed here, the work is haa.mission (runner, metrics, transcript, experiment), and the
+results are printed with rich. docs/missions.md, "Running a mission".
+
+* `mission run FILE [--speed X] [--json OUT] [-o DIR]`: its own local cluster and haa-sim, a progress bar,
+  the results table (Table 7.1-1's shape), where the PNGs and the transcript are; exit 0 iff the mission
+  completed. A bad mission file: one error line, exit 2, nothing started.
+* `mission start FILE` against the running local cluster (`--root`), starting haa-sim unless one runs (and
+  refusing one with another arena or seed); `status`, `logs [-f]`, `stop`.
+* `experiment af1|af2 [--runs N] [--speed X]`: N runs on seeds seed..seed+N-1, the table beside the thesis'
+  values, bench-results/<name>.json.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from haa.mission.schema import MissionError, load_mission
+from haactl.cliopts import ComposeOpt, RootOpt, err, out
+
+mission_app = typer.Typer(help="Run robot-team missions: run one end to end, or start/status/logs/stop one on a "
+                          "running cluster.", no_args_is_help=True)
+
+FileArg = Annotated[Path, typer.Argument(metavar="FILE", help="mission file (YAML, docs/missions.md)")]
+SpeedOpt = Annotated[float | None, typer.Option("--speed", min=0.01, max=1000.0,
+                                                help="simulated seconds per wall second (default: the file's)")]
+
+
+def _load(path: Path) -> Any:
+    try:
+        return load_mission(path)
+    except MissionError as e:
+        err.print(f"[bold red]error:[/bold red] {escape(str(e))}")
+        raise typer.Exit(2) from None
+
+
+def _fail(message: str, code: int = 1) -> None:
+    err.print(f"[bold red]error:[/bold red] {escape(message)}")
+    raise typer.Exit(code)
+
+
+def _no_compose(compose: bool) -> None:
+    if compose:
+        _fail("missions on the compose cluster are not supported yet: use a local cluster "
+              "(haactl cluster up; haactl mission start FILE) or haactl mission run FILE")
+
+
+def results_table(results: dict[str, Any], title: str) -> Table:
+    from haa.mission.metrics import results_rows
+
+    t = Table(title=title, title_justify="left")
+    t.add_column("Title")
+    t.add_column("Value", justify="right")
+    for name, value in results_rows(results):
+        t.add_row(escape(name), value)
+    return t
+
+
+def print_results(results: dict[str, Any]) -> None:
+    ok = results.get("completed")
+    style = "bold green" if ok else "bold red"
+    out.print(results_table(results, f"mission {results.get('mission')} (seed {results.get('seed')}, "
+                                     f"speed {results.get('speed')})"))
+    out.print(f"[{style}]{'completed' if ok else 'not completed'}[/]: {escape(str(results.get('reason')))} "
+              f"after {float(results.get('duration_s') or 0):.1f} s simulated "
+              f"({float(results.get('wall_s') or 0):.1f} s wall)")
+    for e in results.get("errors") or []:
+        out.print(f"[yellow]note:[/] {escape(str(e))}")
+    files = results.get("files") or {}
+    for key, label in (("map_png", "map (estimated | ideal)"), ("timeline_png", "allocation timeline"),
+                       ("transcript", "transcript"), ("results", "results JSON")):
+        if files.get(key):
+            out.print(f"{label}: {files[key]}")
+
+
+@mission_app.command("run")
+def mission_run(
+    file: FileArg,
+    speed: SpeedOpt = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="also write the results JSON here")] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="folder for the PNGs, transcript, results "
+                                                 "and the cluster's logs (default mission-runs/NAME-TIME)")] = None,
+    transcript: Annotated[bool, typer.Option("--transcript", help="print the transcript at the end")] = False,
+) -> None:
+    """Run a mission end to end on its own local cluster and haa-sim; exit 0 iff it completed."""
+    from haa.mission.runner import MissionRunError, ProgressInfo, run_mission
+
+    mission = _load(file)
+    spec = mission.spec
+    out_dir = out_dir or Path("mission-runs") / f"{spec.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    progress = Progress(
+        TextColumn("{task.description}"), BarColumn(bar_width=30), TextColumn("{task.fields[clock]}"),
+        TextColumn("[dim]{task.fields[note]}"), TimeElapsedColumn(), console=err, transient=False,
+    )
+    limit = spec.complete.time_limit_s
+    task = progress.add_task(f"mission {spec.name}", total=limit, clock="", note="starting")
+
+    def show(p: ProgressInfo) -> None:
+        explored = f"explored {100 * p.explored:.1f}/{100 * p.target:.0f} %" if p.explored is not None else ""
+        progress.update(task, completed=min(p.t, limit), clock=f"{p.t:.0f}/{limit:.0f} s",
+                        note=f"{p.state} {explored} {p.hosts} hosts {p.agents} agents")
+
+    try:
+        with progress:
+            results = run_mission(mission, speed, out_dir, json_out, show, log=lambda s: progress.console.print(
+                f"[dim]{escape(s)}[/]"))
+    except MissionRunError as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        err.print("interrupted: everything the mission started is down")
+        raise typer.Exit(130) from None
+    if transcript:
+        out.print((Path(results["files"]["transcript"])).read_text(), end="")
+    print_results(results)
+    raise typer.Exit(0 if results.get("completed") else 1)
+
+
+@mission_app.command("start")
+def mission_start(
+    file: FileArg,
+    speed: SpeedOpt = None,
+    local: Annotated[bool, typer.Option("--local", help="the local cluster (the default)")] = False,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    sim: Annotated[str | None, typer.Option("--sim", help="a running haa-sim HOST:PORT to use")] = None,
+    sim_token_file: Annotated[Path | None, typer.Option("--sim-token-file", help="its token file")] = None,
+) -> None:
+    """Start a mission on the running cluster (haa-sim is started unless one runs); it goes on in the
+    background: `haactl mission status|logs|stop`."""
+    from haa.cluster.local_backend import default_root
+    from haa.mission.runner import MissionRunError, start_attached
+
+    if local and compose:
+        _fail("--local and --compose exclude each other")
+    _no_compose(compose)
+    mission = _load(file)
+    try:
+        st = start_attached(root or default_root(), mission, speed, sim, str(sim_token_file or ""))
+    except MissionRunError as e:
+        _fail(str(e))
+    out.print(f"mission {mission.spec.name} started (conductor pid {st.get('pid')}, haa-sim {st.get('sim', '?')}): "
+              "haactl mission status | logs -f | stop")
+
+
+@mission_app.command("status")
+def mission_status(
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+    json_out: Annotated[bool, typer.Option("--json", help="JSON output")] = False,
+) -> None:
+    """Explored share, coverage, accuracy, each avatar's supervisor and target, agents per host."""
+    from haa.cluster.local_backend import default_root
+    from haa.mission.runner import STATE_FILE, conductor_alive, mission_dir, read_json
+
+    _no_compose(compose)
+    st = read_json(mission_dir(root or default_root()) / STATE_FILE)
+    if not st:
+        _fail("no mission on this cluster (haactl mission start FILE)")
+    assert st is not None
+    if json_out:
+        print(json.dumps(st))
+        return
+    alive = conductor_alive(st)
+    state = st.get("state", "?") + ("" if alive or st.get("state") in ("finished", "failed") else " (conductor gone)")
+    out.print(f"mission [bold]{st.get('mission')}[/]: {escape(state)}")
+    if st.get("error"):
+        out.print(f"[red]{escape(str(st['error']))}[/]")
+    if "t" in st:
+        def pct(v: Any) -> str:
+            return f"{100 * v:.1f} %" if isinstance(v, int | float) else "—"
+
+        out.print(f"t = {st['t']:.0f} s of {st.get('limit', 0):.0f} s simulated; explored {pct(st.get('explored'))} "
+                  f"(target {pct(st.get('target_explored'))}); coverage {pct(st.get('coverage'))}, accuracy "
+                  f"{pct(st.get('accuracy'))}")
+        t = Table(title="avatars", title_justify="left")
+        for col in ("avatar", "type", "in arena", "agent", "supervisor", "task", "target"):
+            t.add_column(col)
+        for a in st.get("avatars", []):
+            t.add_row(*(escape(str(a.get(k, ""))) for k in ("avatar", "type", "in_arena", "agent", "supervisor",
+                                                             "task", "target")))
+        out.print(t)
+        for h in st.get("hosts", []):
+            agents = st.get("agents_per_host", {}).get(h, [])
+            out.print(f"{h}: {len(agents)} agents {' '.join(agents)}")
+    if st.get("results"):
+        print_results(st["results"])
+
+
+@mission_app.command("logs")
+def mission_logs(
+    follow: Annotated[bool, typer.Option("--follow", "-f", help="keep printing new lines until it finishes")] = False,
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+) -> None:
+    """The mission transcript (Fig. 7.1-3 style): mission, agent, host and avatar events in simulated mm:ss."""
+    from haa.cluster.local_backend import default_root
+    from haa.mission.runner import STATE_FILE, conductor_alive, live_transcript, mission_dir, read_json
+
+    _no_compose(compose)
+    r = root or default_root()
+    if read_json(mission_dir(r) / STATE_FILE) is None:
+        _fail("no mission on this cluster (haactl mission start FILE)")
+    shown: set[tuple[str, str]] = set()
+    try:
+        while True:
+            for ln in live_transcript(r):
+                key = (str(ln.get("clock")), str(ln.get("text")))
+                if key not in shown:
+                    shown.add(key)
+                    out.print(f"[dim]{ln.get('clock')}[/] {escape(str(ln.get('text')))}")
+            if not follow or not conductor_alive(read_json(mission_dir(r) / STATE_FILE)):
+                if follow:  # the conductor wrote the final transcript as it ended
+                    for ln in live_transcript(r):
+                        key = (str(ln.get("clock")), str(ln.get("text")))
+                        if key not in shown:
+                            shown.add(key)
+                            out.print(f"[dim]{ln.get('clock')}[/] {escape(str(ln.get('text')))}")
+                return
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        return
+
+
+@mission_app.command("stop")
+def mission_stop(
+    compose: ComposeOpt = False,
+    root: RootOpt = None,
+) -> None:
+    """Stop the mission: its agents are removed, the haa-sim `start` started is stopped; prints its results."""
+    from haa.cluster.local_backend import default_root
+    from haa.mission.runner import stop_attached
+
+    _no_compose(compose)
+    res = stop_attached(root or default_root())
+    if not res["was_running"] and not res["sim"] and not res["removed"]:
+        out.print("no mission running" + (" (the last one's results follow)" if res["results"] else ""))
+    if res["removed"]:
+        out.print(f"removed {len(res['removed'])} agents: {' '.join(res['removed'])}")
+    if res["sim"]:
+        out.print(f"haa-sim {res['sim']}")
+    if res["results"]:
+        print_results(res["results"])
+
+
+def experiment(
+    name: Annotated[str, typer.Argument(metavar="NAME", help="af1 | af2")],
+    runs: Annotated[int, typer.Option("--runs", "-n", min=1, max=100, help="runs (seeds seed..seed+N-1)")] = 10,
+    speed: SpeedOpt = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="default bench-results/NAME.json")] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="per-run folders (default mission-runs/NAME)")]
+    = None,
+    mission_file: Annotated[Path | None, typer.Option("--mission", help="default missions/NAME.yaml")] = None,
+) -> None:
+    """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
+    the thesis' Table 7.1-1 / 7.1-2."""
+    from haa.mission.experiment import EXPERIMENTS, mission_for, run_experiment, table_rows
+    from haa.mission.runner import MissionRunError
+
+    if name not in EXPERIMENTS:
+        _fail(f"unknown experiment {name!r} (known: {', '.join(EXPERIMENTS)})", 2)
+    try:
+        mission = mission_for(name, mission_file)
+    except MissionError as e:
+        _fail(str(e), 2)
+
+    def on_run(k: int, r: dict[str, Any]) -> None:
+        reason = escape(str(r.get("reason")))
+        state = "[green]completed[/]" if r.get("completed") else f"[red]not completed[/] ({reason})"
+        out.print(f"run {k + 1}/{runs} (seed {r.get('seed')}): {state}, {float(r.get('duration_s') or 0):.1f} s "
+                  f"simulated, {float(r.get('wall_s') or 0):.1f} s wall")
+
+    try:
+        doc = run_experiment(name, runs, speed, out_dir, json_out, mission, on_run=on_run,
+                             log=lambda s: err.print(f"[dim]{escape(s)}[/]"))
+    except MissionRunError as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        raise typer.Exit(130) from None
+    t = Table(title=f"{name.upper()}: {doc['runs']} runs, {doc['completed']} completed "
+                    f"(representative: seed {doc['representative_seed']})", title_justify="left")
+    for col in ("Title", "Rep. run", "Mean", "RMS", "STD", "thesis rep.", "thesis mean", "thesis RMS", "thesis STD"):
+        t.add_column(col, justify="left" if col == "Title" else "right")
+    for row in table_rows(doc):
+        t.add_row(escape(row[0]), *row[1:])
+    out.print(t)
+    out.print(f"results: {doc['json']}")
+    raise typer.Exit(0 if doc["completed"] == doc["runs"] else 1)
