@@ -61,7 +61,9 @@ class AvatarConfig(team.TeamConfig):
     capture_period: float = pydantic.Field(1.0, gt=0, le=60)
     cooc_period: float = pydantic.Field(1.0, gt=0, le=60)
     odometry_period: float = pydantic.Field(0.05, gt=0, le=1)
-    frames_kept: int = pydantic.Field(12, ge=1, le=100)
+    #: frames kept for the sensor agents (JC-SLAM processes the newest first, so an old one may be asked for
+    #: much later): 60 s of images at one a second, 14 MB of 320 x 240 frames, 55 MB of 640 x 480
+    frames_kept: int = pydantic.Field(60, ge=1, le=600)
     #: share of the type's top speed used when driving (Table 6.2-3 speeds are maxima)
     cruise: float = pydantic.Field(0.5, gt=0, le=1)
     #: how near a waypoint counts as reached, m
@@ -92,6 +94,8 @@ class AvatarSimulation(AgentBase):
     CONFIG = AvatarConfig
     COST = 0.05
     RECOVERY = "backup"
+    #: its streams to haa-sim (or its replica) are rebuilt on every move: the allocation should rather not
+    TRANSFER_PENALTY = 0.5
     CPU_LIMIT = 1.0
 
     def __init__(self, ctx: Any) -> None:

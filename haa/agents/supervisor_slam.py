@@ -85,6 +85,8 @@ class SupervisorSLAM(AgentBase):
     CONFIG = SlamAgentConfig
     COST = 0.15
     RECOVERY = "backup"
+    #: its streams to haa-sim (or its replica) are rebuilt on every move: the allocation should rather not
+    TRANSFER_PENALTY = 0.5
     CPU_LIMIT = 1.5
     MEMORY_LIMIT_MB = 1024
 
