@@ -345,3 +345,20 @@ def test_start_status_stop_on_a_running_cluster(tmp_path, monkeypatch):
         rn.stop_attached(root)
         b.down(grace=1.0)
     assert not our_processes(str(tmp_path))
+
+
+@pytest.mark.slow
+def test_the_quick_mission_of_the_robot_team(tmp_path):
+    """The real team (haa/agents/) on missions/quick.yaml: it completes, the results have every key, the
+    agents made no ground-truth or Detect call, nothing is left running. (Further checks of a shared short
+    mission — an agent kill, a host leave — can go here; issue 15 §5.)"""
+    r = run(REPO / "missions" / "quick.yaml", tmp_path, speed=2.0)
+    assert set(rn.REQUIRED_KEYS) <= set(r)
+    assert r["completed"] is True, (r["reason"], r["errors"])
+    assert r["sim_truth_calls"] == {}, r["sim_truth_calls"]
+    assert r["readings_generated"] > 0 and r["readings_processed"] > 0
+    assert 0 < r["coverage"] <= 1 and 0 < r["accuracy"] <= 1 and r["position_error_m"] is not None
+    assert r["agents_avg"] > 5 and 1.5 <= r["hosts_avg"] <= 2.0
+    assert "Mission finished" in (tmp_path / "out" / "transcript.txt").read_text()
+    time.sleep(0.5)
+    assert not our_processes(str(tmp_path)), "processes left behind"

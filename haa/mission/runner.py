@@ -968,6 +968,7 @@ class MissionRun:
         agents_avg = mm.time_average(self.samples.agents, start_t, end_t)
         cpu = mm.time_average(self.samples.cpu, start_t, end_t)
         size = ddb_bytes(self.backend)
+        truth_calls = self.truth_calls()
         sc = self.map_scores
         stats = mm.stats_counters(self.stats)
         results: dict[str, Any] = {
@@ -993,6 +994,7 @@ class MissionRun:
             **stats,
             **counts,
             "ddb_mb": _r(size / 1e6 if size is not None else None),
+            "sim_truth_calls": truth_calls,
             "expected_cells": self.expected,
             "region_cells": sc.region_cells if sc else None,
             "estimates": sum(len(v) for v in self.loc.errors.values()),
@@ -1003,6 +1005,18 @@ class MissionRun:
         }
         self.write_outputs(results, lines)
         return results
+
+    def truth_calls(self) -> dict[str, int] | None:
+        """haa-sim's ground-truth and Detect calls per "<caller>/<method>", the runner's own left out: the
+        agents must have made none (issue 15). None if haa-sim does not say."""
+        if self.sim is None:
+            return None
+        try:
+            with self.sim.client() as c:
+                calls = dict(getattr(c.info(), "truth_calls", {}) or {})
+        except grpc.RpcError:
+            return None
+        return {k: int(v) for k, v in sorted(calls.items()) if not k.startswith(RUNNER_CALLER + "/")}
 
     def write_outputs(self, results: dict[str, Any], lines: list[tr.Line]) -> None:
         out = self.out_dir
