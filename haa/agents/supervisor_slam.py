@@ -18,8 +18,10 @@ counts it (`stats/processings` is counted by the sensor agents, `stats/readings_
   first, and the next when it reports. When processings pile up (more than `grow_backlog` waiting for
   `grow_wait_s`) another agent of that type is requested, "limited by the available processing power of
   the hosts and up to a maximum of one sensor processing agent of each type ... per host": the sensor types
-  declare MAX_PER_HOST = 1, so the allocation never places two on one host, and a spawn the allocation
-  cannot place (every host has one) stops the growth of that type (`max_per_type` bounds it as well).
+  declare MAX_PER_HOST = 1, so the allocation never places two on one host; a new agent is requested only
+  when every agent of the type has started (said hello), so one the allocation cannot place (every host has
+  one) stops the growth of that type (`max_per_type` bounds it as well). Processings go to started agents
+  only.
 * `discard` — a processing goes to an idle agent of its type at once, or is discarded; `discard_agents`
   agents of each type are spawned at start (the thesis: one of each type on every host).
 * `delay` — each avatar's readings are handled by agents of each type dedicated to it and the avatar waits
@@ -119,7 +121,8 @@ class SupervisorSLAM(AgentBase):
         st = json.loads(data)
         for p, ids in st.get("sensors", {}).items():
             if p in self.sensors:
-                self.sensors[p] = {i: {"job": None, "since": 0.0} for i in ids}
+                # they said hello to the instance that backed them up: ready
+                self.sensors[p] = {i: {"job": None, "since": 0.0, "ready": True} for i in ids}
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
@@ -257,14 +260,14 @@ class SupervisorSLAM(AgentBase):
     def _dispatch(self) -> None:
         now = self.now()
         for p, stack in self.stacks.items():
-            idle = [a for a, s in self.sensors[p].items() if s["job"] is None]
+            idle = [a for a, s in self.sensors[p].items() if s["job"] is None and s.get("ready")]
             while stack and idle:
                 key = stack.pop()  # LIFO (Table 7.2-4): the newest reading first
                 r = self.readings.get(key)
                 if r is None or p not in r["todo"]:
                     continue
                 a = idle.pop()
-                self.sensors[p][a] = {"job": key, "since": now}
+                self.sensors[p][a].update(job=key, since=now)
                 self.send(a, team.dumps({"op": "process", "key": key, "proc": p, "reading": r["rec"]}))
             if self.cfg.mode == "discard":
                 while stack:
@@ -284,6 +287,8 @@ class SupervisorSLAM(AgentBase):
         if n == 0:
             self._spawn(p)
             return
+        if not all(s.get("ready") for s in self.sensors[p].values()):
+            return  # one is still starting, or the allocation cannot place it (one per host): not yet
         cap = min(self.cfg.max_per_type, self.capped.get(p, self.cfg.max_per_type))
         if (backlog > self.cfg.grow_backlog and n < cap and p not in self.spawning
                 and now - self.backlog_since.get(p, now) >= self.cfg.grow_wait_s
@@ -314,7 +319,7 @@ class SupervisorSLAM(AgentBase):
             self.capped[p] = len(self.sensors[p])
             self.log("sensor_spawn_failed", level="warning", type=p, reason=why)
             return
-        self.sensors[p][aid] = {"job": None, "since": self.now()}
+        self.sensors[p].setdefault(aid, {"job": None, "since": self.now(), "ready": False})
         self.backup()
         await team.transcript(self, f"{p} agent {len(self.sensors[p])} requested")
         self._dispatch()
@@ -342,8 +347,13 @@ class SupervisorSLAM(AgentBase):
         if msg.get("op") == "hello":  # a (re)started sensor agent: known, and idle
             p = msg.get("proc", "")
             if p in self.sensors:
-                self.sensors[p].setdefault(src, {"job": None, "since": self.now()})
-                self.sensors[p][src]["job"] = None
+                s = self.sensors[p].setdefault(src, {"job": None, "since": self.now()})
+                if s["job"] is not None:  # restarted while it had one: hand it out again
+                    r = self.readings.get(s["job"])
+                    if r is not None and p in r["todo"]:
+                        self.stacks[p].append(s["job"])
+                s["job"] = None
+                s["ready"] = True
                 self._dispatch()
             return
         if msg.get("op") != "done":

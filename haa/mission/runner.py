@@ -610,6 +610,9 @@ class MissionRun:
         self.host_steps = host_plan(mission)
         self.hosts_done = 0
         self.avatar_steps = avatar_plan(mission)
+        #: operator kills of agents (mission file `agent_faults`), in time order
+        self.fault_steps = sorted(((f.at_s, f.kill) for f in mission.spec.agent_faults), key=lambda x: x[0])
+        self.faults_done = 0
         self.avatars_done = 0
         self.sim_schedule = self.fresh_sim  # haa-sim applies the avatar schedule (started with --schedule)
         self.occ: np.ndarray | None = None
@@ -751,6 +754,10 @@ class MissionRun:
 
     def apply_schedules(self) -> None:
         t = self.mission_time()
+        k = due([s[0] for s in self.fault_steps], self.faults_done, t)
+        for at, target in self.fault_steps[self.faults_done:k]:
+            self.pending.append(self.host_pool.submit(self.kill_agent, at, target))
+        self.faults_done = k
         if self.owns_cluster:  # a cluster the operator runs is theirs to change (haactl host ...)
             k = due([s[0] for s in self.host_steps], self.hosts_done, t)
             for at, action, host in self.host_steps[self.hosts_done:k]:
@@ -789,6 +796,30 @@ class MissionRun:
             msg = f"host schedule at {at:g} s ({action} {host}) failed: {e}"
             self.errors.append(msg)
             self.line(msg, "error", host)
+
+    def kill_agent(self, at: float, target: str) -> None:
+        """SIGKILL an agent (mission file `agent_faults`): the first live agent of type `target`, or the agent
+        with display name `target`, on the host running it (as `haactl agent kill`)."""
+        try:
+            _, per_host, _ = cluster_view(self.backend)
+            live = sorted(((a, h) for h, agents in per_host.items() for a in agents), key=lambda x: x[0].name)
+            hit = next(((a, h) for a, h in live if a.name == target), None) or next(
+                ((a, h) for a, h in live if a.type == target), None)
+            if hit is None:
+                raise MissionRunError(f"no live agent {target!r}")
+            a, host = hit
+            c = _client(self.backend, host)
+            try:
+                reply = c.agent_kill(a.id)
+            finally:
+                c.close()
+            if not reply.ok:
+                raise MissionRunError(reply.reason)
+            self.line(f"{a.name} ({a.type}) killed on {host} (SIGKILL, agent_faults)", "fault", host)
+        except Exception as e:
+            msg = f"agent fault at {at:g} s (kill {target}) failed: {e}"
+            self.errors.append(msg)
+            self.line(msg, "error")
 
     def avatar_action(self, action: str, avatar: str) -> None:
         assert self.sim is not None

@@ -176,6 +176,16 @@ class Congregation(_Model):
     tolerance_m: float = Field(0.15, gt=0, le=2, allow_inf_nan=False)
 
 
+class AgentFault(_Model):
+    """An operator action on an agent during the mission (ours; the chaos plans of the chaos issue generalise
+    it): at `at_s` simulated seconds from mission start, `kill` (SIGKILL, as `haactl agent kill`: recovered by
+    its host, Alg. 7/8) the agent named — an agent type (the first live agent of it, e.g. supervisor_explore,
+    path_planner) or a display name (A2.3)."""
+
+    at_s: float = Field(ge=0, allow_inf_nan=False)
+    kill: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z][A-Za-z0-9_.\-]*$")
+
+
 class MissionSpec(_Model):
     """The mission file as validated by pydantic; `check_mission` adds the cross-checks against the arena."""
 
@@ -194,6 +204,7 @@ class MissionSpec(_Model):
     chaos: str | None = Field(None, min_length=1, max_length=4096)
     map_resolution: float = Field(0.1, ge=0.02, le=1.0, allow_inf_nan=False)
     congregation: Congregation = Congregation()
+    agent_faults: list[AgentFault] = Field(default_factory=list, max_length=1000)
 
 
 @dataclass(frozen=True)
@@ -382,6 +393,9 @@ def check_mission(spec: MissionSpec, label: str, base: Path | None = None) -> An
         if len(ever) > MAX_HOSTS:
             fail(where, f"more than {MAX_HOSTS} distinct hosts")
 
+    for k, f in enumerate(spec.agent_faults):
+        if f.at_s >= limit:
+            fail(f"agent_faults[{k}].at_s", f"{f.at_s} s is not before complete.time_limit_s ({limit} s)")
     if spec.chaos is not None:
         p = resolve(base, spec.chaos)
         if not p.is_file():

@@ -242,7 +242,9 @@ def describe_agent_event(e: dict[str, Any], types: dict[str, str], runs_on: dict
     if kind == "backoff":
         return f"{who} could not start: {d}"
     if kind == "failed":
-        return f"{who} failed, not recovered any more: {d}"
+        # with a reason: the table gave up on it (start failures in a row; recovery.py); without: the agent
+        # failure itself was applied (its process died), and the crash report follows
+        return f"{who} failed, not recovered any more: {d}" if d else f"{who} failed on {host}"
     return f"{who} {kind} on {host}" + (f" ({d})" if d else "")
 
 
