@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: setup
-	$(BIN)/haactl demo
+	$(BIN)/haactl mission run missions/demo.yaml --transcript -o mission-runs/demo
 
 test: setup
 	$(BIN)/ruff check .

@@ -9,6 +9,8 @@ A library with no network or agent code; the SLAM agents of the control system a
 * `grid.py`       probabilistic occupancy grid, Bayes update of eq. 5.1-2
 * `sensors.py`    sonar / landmark / co-occupancy / camera-floor models: map updates and densities g(y|x)
 * `system.py`     one team's filters, grid and landmark map
+* `events.py`     the SLAM event log `slam/log` of a running team (predictions, readings, requests)
+* `replica.py`    the SLAM state as a replica of that log, with exact checkpoints (docs/slam.md)
 * `metrics.py`    map coverage (eq. 7.1-1), accuracy (eq. 7.1-2), exploration threshold
 * `strategies.py` reading schedulers (Table 7.2-2, 7.2-4) on a simulated processing clock
 * `recording.py`  MCAP + protobuf recordings of predictions and readings
