@@ -321,8 +321,9 @@ def test_a_probe_agent_writes_an_atomic_batch_and_sees_log_events_with_indexes(h
 
     assert ask(host, a, {"op": "ddb_log", "key": "mission/events"}) == {"first": 2, "items": ["e2", "lost", "e4"]}
     # a prefix scan from the local replica: key order, values as stored, the limit honoured
-    ask(host, a, {"op": "ddb_write", "ops": [["put", "avatars/s2", "json", {"n": 2}], ["put", "avatars/s1", "json", {"n": 1}],
-                                             ["put", "avatarsX", "blob", "no"]]})
+    puts = [["put", "avatars/s2", "json", {"n": 2}], ["put", "avatars/s1", "json", {"n": 1}],
+            ["put", "avatarsX", "blob", "no"]]
+    ask(host, a, {"op": "ddb_write", "ops": puts})
     got = ask(host, a, {"op": "ddb_scan", "prefix": "avatars/"})
     assert got == {"objects": {"avatars/s1": '{"n":1}', "avatars/s2": '{"n":2}'}, "truncated": False}
     assert ask(host, a, {"op": "ddb_scan", "prefix": "avatars/", "limit": 1}) == {

@@ -33,6 +33,7 @@ UNAVAILABLE, as hardware that stopped answering) marks itself retired, stops its
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 from collections import OrderedDict, deque
@@ -48,7 +49,6 @@ from haa.hostd import ddb as ddbops
 from haa.pb import sim_pb2 as spb
 from haa.slam import events as sev
 from haa.slam.motion import DRIFT, odometry_prediction, wrap_angle
-from haa.slam.sensors import CooccupancyReading
 
 Pose = tuple[float, float, float]
 
@@ -432,11 +432,8 @@ class AvatarSimulation(AgentBase):
             if final and self.target and self.target.get("tid") == tid:
                 self._tell_supervisor("reached")
         except asyncio.CancelledError:
-            with_suppress = self.link
-            try:
-                await with_suppress.avatar.Cancel(spb.AvatarRef(avatar_id=self.name_), metadata=self.link.metadata)
-            except Exception:
-                pass
+            with contextlib.suppress(Exception):  # stop the avatar where it is; the new path follows
+                await self.link.avatar.Cancel(spb.AvatarRef(avatar_id=self.name_), metadata=self.link.metadata)
             raise
         except grpc.aio.AioRpcError as e:
             if e.code() == grpc.StatusCode.UNAVAILABLE:

@@ -34,7 +34,8 @@ class ExecutiveAvatarConfig(team.TeamConfig):
     period_s: float = pydantic.Field(2.0, gt=0, le=600)
 
 
-def decide(registry: dict[str, dict[str, Any]], bids: dict[str, dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+def decide(registry: dict[str, dict[str, Any]],
+           bids: dict[str, dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
     """avatar → winning bid {"supervisor", "priority", "task"} for every active avatar with bids."""
     out: dict[str, dict[str, Any]] = {}
     for a, reg in registry.items():

@@ -188,10 +188,11 @@ class ExecutiveMission(AgentBase):
         if str(cid) in lms:
             x, y = lms[str(cid)][:2]
             await team.transcript(self, f"congregation point found at ({x:.2f}, {y:.2f})")
+            cong = self.m.get("congregation", {})
             self.children["supervisor_congregate"] = await self.spawn_child(
-                "supervisor_congregate", team.team_config(self, landmark=int(cid),
-                                                          radius_m=float(self.m.get("congregation", {}).get("radius_m", 0.6)),
-                                                          tolerance_m=float(self.m.get("congregation", {}).get("tolerance_m", 0.15))))
+                "supervisor_congregate",
+                team.team_config(self, landmark=int(cid), radius_m=float(cong.get("radius_m", 0.6)),
+                                 tolerance_m=float(cong.get("tolerance_m", 0.15))))
             self.backup()
             explore = self.children.get("supervisor_explore")
             if explore:  # exploration is abandoned once the point is found (L1512)

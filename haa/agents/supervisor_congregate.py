@@ -37,7 +37,8 @@ class CongregateConfig(team.TeamConfig):
     check_s: float = pydantic.Field(1.0, gt=0, le=60)
 
 
-def slots(centre: tuple[float, float], n: int, radius: float, towards: tuple[float, float]) -> list[tuple[float, float]]:
+def slots(centre: tuple[float, float], n: int, radius: float,
+          towards: tuple[float, float]) -> list[tuple[float, float]]:
     """`n` equally spaced points on the circle around `centre`, the first in the direction of `towards`."""
     a0 = math.atan2(towards[1] - centre[1], towards[0] - centre[0])
     return [(centre[0] + radius * math.cos(a0 + 2 * math.pi * k / n),
@@ -101,7 +102,7 @@ class SupervisorCongregate(team.SupervisorBase):
             pts = slots(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])))
             cost = np.array([[math.dist(pos[a], p) for p in pts] for a in names])
             rows, cols = linear_sum_assignment(cost)
-            for r, k in zip(rows, cols):
+            for r, k in zip(rows, cols, strict=True):
                 self.send_target(names[r], *pts[k])
             await self.ddb_write([team.op_put_json(team.K_TARGETS + a, {**self.targets[a], "supervisor": self.id,
                                                                         "task": self.TASK}) for a in names])

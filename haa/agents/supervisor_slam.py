@@ -111,6 +111,7 @@ class SupervisorSLAM(AgentBase):
         self.capped: dict[str, int] = {}
         self.last_grow: dict[str, float] = {}
         self.backlog_since: dict[str, float] = {}
+        self.tasks: set[asyncio.Task[Any]] = set()
 
     # ------------------------------------------------------------------ life cycle
 
@@ -304,14 +305,22 @@ class SupervisorSLAM(AgentBase):
                        marker_size=self.cfg.marker_size)
 
         async def go() -> None:
+            # in the background: the mailbox goes on while the allocation places it (or cannot)
+            aid: str | None = None
+            why = ""
             try:
                 aid = await self.spawn_child(p, cfg, timeout=20.0)
             except Exception as e:
-                self.call_later(0, lambda: self._spawned(p, None, str(e)))
-            else:
-                self.call_later(0, lambda: self._spawned(p, aid, ""))
+                why = f"{type(e).__name__}: {e}"
+            self.call_later(0, lambda: self._spawned(p, aid, why))
 
-        asyncio.ensure_future(go())
+        self._background(go())
+
+    def _background(self, coro: Any) -> None:
+        """Run `coro` beside the mailbox, keeping a reference until it ends (asyncio keeps only weak ones)."""
+        task = asyncio.ensure_future(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
 
     async def _spawned(self, p: str, aid: str | None, why: str) -> None:
         self.spawning.discard(p)
@@ -331,7 +340,7 @@ class SupervisorSLAM(AgentBase):
         r["todo"].discard(p)
         r["discarded"] += 1
         if not r["todo"]:
-            asyncio.ensure_future(self._finish(key, r))
+            self._background(self._finish(key, r))
 
     async def _finish(self, key: str, r: dict[str, Any]) -> None:
         self.readings.pop(key, None)

@@ -87,10 +87,10 @@ __all__ = [
     "Backup",
     "DdbGet",
     "DdbPut",
+    "DdbScan",
     "DdbUnwatch",
     "DdbWatch",
     "DdbWrite",
-    "DdbScan",
     "Envelope",
     "Failed",
     "Frozen",
@@ -292,7 +292,8 @@ class Failed:
 
 
 AgentEvent = (
-    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbScan | DdbPut | DdbWrite | DdbWatch | DdbUnwatch | Stopped | Failed
+    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbScan | DdbPut | DdbWrite | DdbWatch | DdbUnwatch
+    | Stopped | Failed
 )
 
 
