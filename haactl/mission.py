@@ -259,6 +259,9 @@ def experiment(
     out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="per-run folders (default mission-runs/NAME)")]
     = None,
     mission_file: Annotated[Path | None, typer.Option("--mission", help="default missions/NAME.yaml")] = None,
+    exploration: Annotated[str | None, typer.Option(
+        "--exploration", help="em | frontier: SupervisorExplore's strategy (default: the file's); compare them on "
+        "the same seeds")] = None,
 ) -> None:
     """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
     the thesis' Table 7.1-1 / 7.1-2."""
@@ -280,8 +283,8 @@ def experiment(
 
     try:
         doc = run_experiment(name, runs, speed, out_dir, json_out, mission, on_run=on_run,
-                             log=lambda s: err.print(f"[dim]{escape(s)}[/]"))
-    except MissionRunError as e:
+                             log=lambda s: err.print(f"[dim]{escape(s)}[/]"), exploration=exploration)
+    except (MissionRunError, ValueError) as e:
         _fail(str(e))
     except KeyboardInterrupt:
         err.print("interrupted")

@@ -247,6 +247,20 @@ def test_an_experiment_runs_each_seed_and_writes_its_json(tmp_path):
     assert saved["provenance"]["mission_sha256"] and doc["json"] == str(tmp_path / "af2.json")
 
 
+def test_an_experiment_can_compare_the_exploration_strategies_on_the_same_seeds(tmp_path):
+    seen = []
+
+    def fake_run(mission, speed=None, out_dir=None, log=None):
+        seen.append((mission.spec.seed, mission.spec.exploration))
+        return {"seed": mission.spec.seed, "completed": True, "duration_s": 100.0}
+
+    doc = ex.run_experiment("af1", runs=2, out_dir=tmp_path / "runs", json_out=tmp_path / "f.json", run_fn=fake_run,
+                            exploration="frontier")
+    assert seen == [(1, "frontier"), (2, "frontier")] and doc["exploration"] == "frontier"
+    with pytest.raises(ValueError, match="exploration"):
+        ex.run_experiment("af1", runs=1, run_fn=fake_run, exploration="random")
+
+
 # ---------------------------------------------------------------------------------------------- the command line
 
 

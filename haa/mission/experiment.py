@@ -150,6 +150,15 @@ def with_seed(mission: Mission, seed: int) -> Mission:
     return dataclasses.replace(mission, spec=mission.spec.model_copy(update={"seed": seed}))
 
 
+def with_exploration(mission: Mission, exploration: str | None) -> Mission:
+    """The mission with SupervisorExplore's strategy set (`em` | `frontier`), to compare them on the same seeds."""
+    if exploration is None:
+        return mission
+    if exploration not in ("em", "frontier"):
+        raise ValueError(f"exploration: 'em' or 'frontier', got {exploration!r}")
+    return dataclasses.replace(mission, spec=mission.spec.model_copy(update={"exploration": exploration}))
+
+
 def run_experiment(
     name: str,
     runs: int = 10,
@@ -160,6 +169,7 @@ def run_experiment(
     run_fn: Callable[..., dict[str, Any]] | None = None,
     on_run: Callable[[int, dict[str, Any]], None] | None = None,
     log: Callable[[str], None] | None = None,
+    exploration: str | None = None,
 ) -> dict[str, Any]:
     """Run the experiment's mission `runs` times on seeds seed..seed+runs-1 (each in its own local cluster
     and haa-sim, one after the other), write the summary JSON (default bench-results/<name>.json) and
@@ -168,7 +178,7 @@ def run_experiment(
         from haa.mission.runner import run_mission
 
         run_fn = run_mission
-    m = mission or mission_for(name)
+    m = with_exploration(mission or mission_for(name), exploration)
     out_dir = (out_dir or Path("mission-runs") / name).absolute()
     t0 = time.time()
     results: list[dict[str, Any]] = []
@@ -186,6 +196,7 @@ def run_experiment(
     doc = {
         **summary,
         "mission": m.spec.name,
+        "exploration": m.spec.exploration,
         "seeds": [m.spec.seed + k for k in range(runs)],
         "speed": speed if speed is not None else m.spec.speed,
         "wall_s": round(time.time() - t0, 1),
