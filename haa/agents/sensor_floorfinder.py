@@ -10,11 +10,15 @@ agent learns it again from its next images). Protocol, recovery, per-host limit:
 
 from __future__ import annotations
 
+import math
 from typing import Any
+
+import numpy as np
 
 from haa.agents import team
 from haa.agents.registry import register
 from haa.control.floorfinder import FloorFinder
+from haa.slam.sensors import FloorReading
 
 
 @register
@@ -28,5 +32,38 @@ class AgentSensorFloorFinder(team.SensorBase):
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         frame = await self.fetch_frame(reading)
-        r = self.finder.reading(frame, reading["avatar"])
+        r = floor_reading(self.finder, frame, reading["avatar"])
         return [] if r is None else [r]
+
+
+def floor_reading(finder: FloorFinder, frame: Any, avatar: str) -> FloorReading | None:
+    """The FloorReading of one frame with its obstacle feet flagged (FloorReading.occupied).
+
+    haa.control.floorfinder gives the free floor polygon [bottom-left, the floor's boundary every `step`
+    columns, bottom-right] and, per column, the first floor row from the bottom (`boundary`). Where the floor
+    run ends below the rows the camera's range allows (`v_far`, the same cut as the finder's) and above the
+    image bottom, the pixel above it is something standing on the floor — a wall, an obstacle, another
+    avatar: that vertex is an obstacle's foot. A run cut at the range limit, or a column with no floor at its
+    bottom (something nearer than the nearest visible floor: where, the image does not say), is not flagged.
+    Without the flags the team's map only ever learnt free space from the camera: seekers have no sonar, so
+    walls and obstacles were never marked (docs/slam.md "In the running team")."""
+    res = finder.find(frame)
+    if res is None or float(np.max(res.ranges)) <= 0:
+        return None
+    H = frame.image.shape[0]
+    if bool((res.boundary >= H).all()):
+        return None
+    f, cy = float(frame.K[1, 1]), float(frame.K[1, 2])
+    mount = frame.mount
+    v_far = max(0, min(H - 1, math.ceil(cy + f * mount[2] / frame.max_range))) if mount[3] == 0 else 0
+    b = res.boundary[res.columns]
+    flags = [False, *((b > v_far) & (b < H)).tolist(), False]
+    poly = list(res.polygon)
+    if len(poly) != len(flags):
+        return FloorReading(avatar, float(frame.time), tuple(poly))
+    # find_floor makes the polygon counter-clockwise: it runs from image column 0 (the avatar's left, y > 0)
+    # to the last one, or the other way round
+    if poly[1][1] < poly[-2][1]:
+        flags.reverse()
+    return FloorReading(avatar, float(frame.time), tuple(poly), tuple(bool(x) for x in flags))
+

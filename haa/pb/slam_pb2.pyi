@@ -157,16 +157,18 @@ class SlamCooccupancy(_message.Message):
     def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., radius: _Optional[float] = ...) -> None: ...
 
 class SlamFloor(_message.Message):
-    __slots__ = ("avatar", "t", "xs", "ys")
+    __slots__ = ("avatar", "t", "xs", "ys", "occupied")
     AVATAR_FIELD_NUMBER: _ClassVar[int]
     T_FIELD_NUMBER: _ClassVar[int]
     XS_FIELD_NUMBER: _ClassVar[int]
     YS_FIELD_NUMBER: _ClassVar[int]
+    OCCUPIED_FIELD_NUMBER: _ClassVar[int]
     avatar: str
     t: float
     xs: _containers.RepeatedScalarFieldContainer[float]
     ys: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., xs: _Optional[_Iterable[float]] = ..., ys: _Optional[_Iterable[float]] = ...) -> None: ...
+    occupied: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., xs: _Optional[_Iterable[float]] = ..., ys: _Optional[_Iterable[float]] = ..., occupied: _Optional[_Iterable[bool]] = ...) -> None: ...
 
 class SlamGrid(_message.Message):
     __slots__ = ("rows", "cols", "resolution", "x0", "y0", "p", "region")

@@ -221,6 +221,7 @@ def _reading_to_pb(r: Reading, m: pb.SlamObserve) -> None:
         m.floor.avatar, m.floor.t = r.avatar, r.t
         m.floor.xs.extend(v[0] for v in r.polygon)
         m.floor.ys.extend(v[1] for v in r.polygon)
+        m.floor.occupied.extend(r.occupied)
 
 
 def to_pb(ev: SlamEvent) -> pb.SlamEvent:
@@ -291,7 +292,9 @@ def _from_pb(m: pb.SlamEvent) -> SlamEvent:
                 raise EventError(f"observe.floor: {len(f.xs)} xs but {len(f.ys)} ys")
             if len(f.xs) > MAX_POLYGON:
                 raise EventError(f"observe.floor.polygon: more than {MAX_POLYGON} vertices ({len(f.xs)})")
-            r = FloorReading(f.avatar, f.t, tuple(zip(f.xs, f.ys, strict=True)))
+            if f.occupied and len(f.occupied) != len(f.xs):
+                raise EventError(f"observe.floor.occupied: {len(f.occupied)} flags for {len(f.xs)} vertices")
+            r = FloorReading(f.avatar, f.t, tuple(zip(f.xs, f.ys, strict=True)), tuple(f.occupied))
         else:
             raise EventError("observe: no reading set")
         return Observe(r, o.processor)
