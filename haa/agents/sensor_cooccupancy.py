@@ -23,3 +23,7 @@ class AgentSensorCooccupancy(team.SensorBase):
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         return [CooccupancyReading(reading["avatar"], float(reading["t"]), float(reading["radius"]))]
+
+
+#: one avatar's own sensor_cooccupancy agent (SupervisorSLAM's delay mode; haa.agents.team.dedicated_type)
+AgentSensorCooccupancyDedicated = register(team.dedicated_type(AgentSensorCooccupancy))

@@ -67,3 +67,6 @@ def floor_reading(finder: FloorFinder, frame: Any, avatar: str) -> FloorReading 
         flags.reverse()
     return FloorReading(avatar, float(frame.time), tuple(poly), tuple(bool(x) for x in flags))
 
+
+#: one avatar's own sensor_floorfinder agent (SupervisorSLAM's delay mode; haa.agents.team.dedicated_type)
+AgentSensorFloorFinderDedicated = register(team.dedicated_type(AgentSensorFloorFinder))

@@ -41,3 +41,7 @@ class AgentSensorLandmark(team.SensorBase):
         frame = await self.fetch_frame(reading)
         r = self.detector.reading(frame, reading["avatar"])
         return [r] if r.sightings else []
+
+
+#: one avatar's own sensor_landmark agent (SupervisorSLAM's delay mode; haa.agents.team.dedicated_type)
+AgentSensorLandmarkDedicated = register(team.dedicated_type(AgentSensorLandmark))

@@ -34,3 +34,7 @@ class AgentSensorSonar(team.SensorBase):
             return []
         return [SonarReading(reading["avatar"], float(reading["t"]), tuple(echoes),
                              fov=float(reading.get("fov", 0.349)), max_range=max_range)]
+
+
+#: one avatar's own sensor_sonar agent (SupervisorSLAM's delay mode; haa.agents.team.dedicated_type)
+AgentSensorSonarDedicated = register(team.dedicated_type(AgentSensorSonar))

@@ -14,18 +14,24 @@ counts it (`stats/processings` is counted by the sensor agents, `stats/readings_
 
 **Modes** (Table 7.2-4, the mission's `slam`):
 
-* `jc-slam` — one LIFO stack per processing type; a sensor agent gets one processing at a time, the newest
-  first, and the next when it reports. When processings pile up (more than `grow_backlog` waiting for
-  `grow_wait_s`) another agent of that type is requested, "limited by the available processing power of
-  the hosts and up to a maximum of one sensor processing agent of each type ... per host": the sensor types
-  declare MAX_PER_HOST = 1, so the allocation never places two on one host; a new agent is requested only
-  when every agent of the type has started (said hello), so one the allocation cannot place (every host has
-  one) stops the growth of that type (`max_per_type` bounds it as well). Processings go to started agents
-  only.
-* `discard` — a processing goes to an idle agent of its type at once, or is discarded; `discard_agents`
-  agents of each type are spawned at start (the thesis: one of each type on every host).
-* `delay` — each avatar's readings are handled by agents of each type dedicated to it and the avatar waits
-  for them: not built yet; the mission runs as `jc-slam` and the transcript says so.
+* `jc-slam` — one LIFO stack per processing type; a sensor agent gets up to `jobs_per_agent` processings at
+  once (it runs them side by side: a processing is 2-3 ms of CPU and 0.2-0.6 s of waiting for the frame and
+  the DDB commit at --speed 4), the newest first, and the next when it reports. When processings pile up
+  (more than `grow_backlog` waiting for `grow_wait_s`) another agent of that type is requested, "limited by
+  the available processing power of the hosts and up to a maximum of one sensor processing agent of each
+  type ... per host": the sensor types declare MAX_PER_HOST = 1, so the allocation never places two on one
+  host; a new agent is requested only when every agent of the type has started (said hello), so one the
+  allocation cannot place (every host has one) stops the growth of that type (`max_per_type` bounds it as
+  well). Processings go to started agents only.
+* `discard` — a processing goes to an agent of its type with room at once, or is discarded;
+  `discard_agents` agents of each type are spawned at start (the thesis: one of each type on every host).
+* `delay` — "each Avatar agent handles its own readings with a dedicated agent of each type": when an
+  avatar's first reading of a type arrives, an agent of the type `<type>_dedicated` (haa.agents.team.
+  dedicated_type: config `avatar`, no per-host limit — the limit is the type's, and one per avatar and type
+  must be placeable whatever the number of hosts) is spawned for it, and that avatar's readings go to it
+  only, oldest first. When the avatar's RemoveAvatar is applied, its agents are told to stop. The avatar
+  halts until its readings are processed: it can wait for its own `slam/raw/<avatar>/` entries, which this
+  agent deletes when every processing of a reading is done (the avatar agent's part, docs/slam.md).
 
 **SLAM state.** The particle filters, the occupancy grid and the landmark map are the replica
 (haa.slam.replica) of the event log `slam/log` plus the checkpoint `slam/ckpt/*`: this agent applies every
@@ -36,12 +42,22 @@ log in one atomic batch. A crash of this agent or its host loses nothing committ
 the checkpoint and replays the log (recovery: "Restore configuration and retrieve AgentSensor* statuses,
 reassign readings if appropriate. Confirm that reading list is up to date" — the reading list is
 `slam/raw/`, read again; processings in flight are handed out again after `job_timeout_s`).
+
+Periodic DDB writes (requests, publication, checkpoints) and the bookkeeping of finished readings run beside
+the mailbox (`_upkeep`, `_background`): awaiting their commits in it held up the log events and the sensor
+agents' reports. Every 10 s a `slam_status` log line says what the replica applied and skipped
+(SlamReplica.counts: too_old, not_yet_predicted, unknown_avatar, ...), how far each filter's newest
+prediction lags the mission clock, the stacks, the agents per type and what they made of their processings
+(readings, sightings / vertices, wall ms, delay). HAA_SLAM_RECORD=DIR in the hosts' environment records every
+applied log item to DIR (offline replays against the simulator's true poses, docs/slam.md).
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
+import struct
 import time
 from typing import Any, Literal
 
@@ -55,6 +71,9 @@ from haa.slam import events as sev
 from haa.slam.grid import GridSpec
 from haa.slam.replica import LogGap, SlamReplica
 from haa.slam.system import SlamConfig
+
+#: the type name of a sensor agent dedicated to one avatar (delay mode) is its processing type's + this
+DEDICATED = "_dedicated"
 
 #: reading kind → the processing types it needs (sensor agent type names)
 PROCESSINGS: dict[str, tuple[str, ...]] = {
@@ -79,6 +98,9 @@ class SlamAgentConfig(team.TeamConfig):
     max_per_type: int = pydantic.Field(8, ge=1, le=64)
     discard_agents: int = pydantic.Field(1, ge=1, le=64)
     job_timeout_s: float = pydantic.Field(15.0, gt=0, le=600)
+    #: processings a sensor agent has at once (it runs them side by side: most of a processing's time is
+    #: waiting for the frame and the DDB commit)
+    jobs_per_agent: int = pydantic.Field(4, ge=1, le=64)
 
 
 @register
@@ -105,25 +127,44 @@ class SupervisorSLAM(AgentBase):
         # readings: raw key → {"rec": record, "todo": set of processing types left, "discarded": int}
         self.readings: dict[str, dict[str, Any]] = {}
         self.stacks: dict[str, list[str]] = {p: [] for ps in PROCESSINGS.values() for p in ps}
-        # sensor agents: type → {agent id: {"job": raw key or None, "since": t}}
+        # sensor agents: processing type → {agent id: {"jobs": {raw key: since}, "ready": bool, "avatar": str}}
+        # ("avatar": the avatar a dedicated agent of the delay mode serves, "" for a shared one)
         self.sensors: dict[str, dict[str, dict[str, Any]]] = {p: {} for p in self.stacks}
         self.spawning: set[str] = set()
+        #: delay mode: (processing type, avatar) pairs whose dedicated agent is being spawned or exists
+        self.dedicated: set[tuple[str, str]] = set()
+        #: background DDB writes of the periodic upkeep still in flight (one of each at a time)
+        self.inflight: set[str] = set()
+        #: avatars whose RemoveAvatar the replica applied (their dedicated sensor agents can stop)
+        self.removed: set[str] = set()
         self.capped: dict[str, int] = {}
         self.last_grow: dict[str, float] = {}
         self.backlog_since: dict[str, float] = {}
         self.tasks: set[asyncio.Task[Any]] = set()
+        #: what the sensor agents reported per processing type: processings, readings made, sightings, ms
+        self.proc_stats: dict[str, dict[str, float]] = {}
+        #: HAA_SLAM_RECORD=DIR: every log item applied is appended to DIR/slam-log-<agent id>.bin (u32 index,
+        #: u32 length, bytes), for offline replays against the simulator's true poses (diagnosis only)
+        self.record = None
+        rec_dir = os.environ.get("HAA_SLAM_RECORD", "")
+        if rec_dir:
+            os.makedirs(rec_dir, exist_ok=True)
+            self.record = open(os.path.join(rec_dir, f"slam-log-{self.id}.bin"), "ab")  # noqa: SIM115
 
     # ------------------------------------------------------------------ life cycle
 
     def pack_state(self) -> bytes:
-        return team.dumps({"sensors": {p: sorted(a) for p, a in self.sensors.items()}})
+        return team.dumps({"sensors": {p: {a: s.get("avatar", "") for a, s in sorted(ag.items())}
+                                       for p, ag in self.sensors.items()}})
 
     def unpack_state(self, data: bytes) -> None:
         st = json.loads(data)
         for p, ids in st.get("sensors", {}).items():
             if p in self.sensors:
                 # they said hello to the instance that backed them up: ready
-                self.sensors[p] = {i: {"job": None, "since": 0.0, "ready": True} for i in ids}
+                av = ids if isinstance(ids, dict) else dict.fromkeys(ids, "")
+                self.sensors[p] = {i: {"jobs": {}, "ready": True, "avatar": a} for i, a in av.items()}
+                self.dedicated |= {(p, a) for a in av.values() if a}
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
@@ -137,8 +178,6 @@ class SupervisorSLAM(AgentBase):
 
     async def _begin(self, fresh: bool) -> None:
         team.use_mission_clock(self, self.cfg)
-        if self.cfg.mode == "delay" and fresh:
-            await team.transcript(self, "SLAM mode 'delay' is not built yet: running 'jc-slam'")
         self.watch_log(team.K_SLAM_LOG, self._on_event)
         await self._load()
         self.watch(team.K_SLAM_RAW, self._on_raw)
@@ -151,6 +190,7 @@ class SupervisorSLAM(AgentBase):
         self.every(self.cfg.request_s, self._requests)
         self.every(self.cfg.publish_s, self._publish, first=0.1)
         self.every(1.0, self._watchdog)
+        self.every(10.0, self._status_log, first=10.0)
         self._dispatch()
 
     async def _load(self) -> None:
@@ -181,7 +221,11 @@ class SupervisorSLAM(AgentBase):
         if index < self.replica.next_index:
             return
         try:
-            self.replica.apply(index, item)
+            res = self.replica.apply(index, item)
+            if res.kind == "remove_avatar" and res.outcome == "applied":
+                self.removed.add(res.avatar)
+            if self.record is not None:
+                self.record.write(struct.pack("<II", index, len(item)) + item)
         except LogGap:  # items we never saw were trimmed away: start again from the checkpoint
             self.log("slam_log_gap", level="warning", index=index, expected=self.replica.next_index)
             self.loading = True
@@ -192,33 +236,65 @@ class SupervisorSLAM(AgentBase):
 
     # ------------------------------------------------------------------ SLAM state upkeep
 
+    def _upkeep(self, what: str, coro: Any) -> None:
+        """Run a periodic DDB write beside the mailbox (one of each kind at a time): awaiting its commit in
+        the mailbox held up the log events, the sensors' reports and the dispatch behind it."""
+        if what in self.inflight:
+            coro.close()
+            return
+        self.inflight.add(what)
+
+        async def go() -> None:
+            try:
+                await coro
+            except Exception as e:
+                self.log("upkeep_failed", level="warning", what=what, error=f"{type(e).__name__}: {e}")
+            finally:
+                self.inflight.discard(what)
+
+        self._background(go())
+
     async def _requests(self) -> None:
         if self.replica is None:
             return
         evs = [sev.encode(sev.Request(a)) for a in self.replica.names]
         if evs:
-            await self.ddb_write([ddbops.log_append(team.K_SLAM_LOG, evs)])
-        if self.since_ckpt >= self.cfg.checkpoint_events:
-            await self._checkpoint()
+            self._upkeep("requests", self.ddb_write([ddbops.log_append(team.K_SLAM_LOG, evs)]))
+        if self.since_ckpt >= self.cfg.checkpoint_events and "checkpoint" not in self.inflight:
+            self._upkeep("checkpoint", self._checkpoint(self.replica.checkpoint(), time.perf_counter()))
 
-    async def _checkpoint(self) -> None:
+    async def _checkpoint(self, blobs: dict[str, bytes], t0: float) -> None:
         assert self.replica is not None
-        t0 = time.perf_counter()
-        blobs = self.replica.checkpoint()
         old = set((await self.ddb_scan(team.K_SLAM_CKPT)).keys())
         ops = [ddbops.put(team.K_SLAM_CKPT + name, "blob", data) for name, data in blobs.items()]
         ops += [ddbops.delete(k) for k in old - {team.K_SLAM_CKPT + n for n in blobs}]
-        ops.append(ddbops.log_trim(team.K_SLAM_LOG, self.replica.next_index))
+        upto = json.loads(blobs["meta"])["next_index"]  # the state the blobs hold (items applied since follow)
+        ops.append(ddbops.log_trim(team.K_SLAM_LOG, upto))
         errs = await self.ddb_write(ops, atomic=True)
         if any(errs):
             self.log("checkpoint_failed", level="warning", errors=[e for e in errs if e])
             return
-        self.since_ckpt = 0
-        self.log("checkpoint", index=self.replica.next_index, bytes=sum(map(len, blobs.values())),
+        self.since_ckpt = self.replica.next_index - upto
+        self.log("checkpoint", index=upto, bytes=sum(map(len, blobs.values())),
                  ms=round(1000 * (time.perf_counter() - t0), 1))
 
+    async def _status_log(self) -> None:
+        """What the replica applied and skipped (SlamReplica.counts), what the sensor agents made of their
+        processings, the stacks' depths and how far each filter's newest prediction lags the mission clock."""
+        if self.replica is None:
+            return
+        now = self.now()
+        lag = {a: round(now - pf.time, 2) for a, pf in self.replica.system.filters.items()}
+        self.log("slam_status", counts=dict(sorted(self.replica.counts.items())), lag_s=lag,
+                 stacks={p: len(s) for p, s in self.stacks.items()},
+                 sensors={p: len(a) for p, a in self.sensors.items()},
+                 procs={p: {k: round(v, 2) for k, v in st.items()} for p, st in self.proc_stats.items()},
+                 gated=self.replica.system.landmarks.gated, landmarks=len(self.replica.system.landmarks))
+        if self.record is not None:
+            self.record.flush()
+
     async def _publish(self) -> None:
-        if self.replica is None or not self.dirty:
+        if self.replica is None or not self.dirty or "publish" in self.inflight:
             return
         self.dirty = False
         ests = {}
@@ -234,7 +310,7 @@ class SupervisorSLAM(AgentBase):
                for i, lm in self.replica.system.landmarks.landmarks.items()}
         if lms:
             ops.append(team.op_put_json(team.K_SLAM_LANDMARKS, lms))
-        await self.ddb_write(ops)
+        self._upkeep("publish", self.ddb_write(ops))
 
     # ------------------------------------------------------------------ readings
 
@@ -254,22 +330,30 @@ class SupervisorSLAM(AgentBase):
         except (ValueError, KeyError, TypeError):
             self.log("bad_reading", level="warning", key=key)
             return
-        self.readings[key] = {"rec": rec, "todo": set(procs), "discarded": 0, "n": len(procs)}
+        self.readings[key] = {"rec": rec, "todo": set(procs), "discarded": 0, "n": len(procs),
+                              "avatar": str(rec.get("avatar", ""))}
         for p in procs:
             self.stacks[p].append(key)
 
+    def _free(self, s: dict[str, Any]) -> int:
+        return self.cfg.jobs_per_agent - len(s["jobs"]) if s.get("ready") else 0
+
     def _dispatch(self) -> None:
         now = self.now()
+        delay = self.cfg.mode == "delay"
         for p, stack in self.stacks.items():
-            idle = [a for a, s in self.sensors[p].items() if s["job"] is None and s.get("ready")]
-            while stack and idle:
+            # drop what is no longer waiting (processed, discarded or gone)
+            stack[:] = [k for k in stack if k in self.readings and p in self.readings[k]["todo"]]
+            if delay:
+                self._dispatch_dedicated(p, stack, now)
+                continue
+            free = [(a, s) for a, s in self.sensors[p].items() if self._free(s) > 0]
+            while stack and free:
+                a, s = free[-1]
                 key = stack.pop()  # LIFO (Table 7.2-4): the newest reading first
-                r = self.readings.get(key)
-                if r is None or p not in r["todo"]:
-                    continue
-                a = idle.pop()
-                self.sensors[p][a].update(job=key, since=now)
-                self.send(a, team.dumps({"op": "process", "key": key, "proc": p, "reading": r["rec"]}))
+                self._hand_out(p, a, s, key, now)
+                if self._free(s) <= 0:
+                    free.pop()
             if self.cfg.mode == "discard":
                 while stack:
                     self._discard(stack.pop(), p)
@@ -278,10 +362,31 @@ class SupervisorSLAM(AgentBase):
                 self._maybe_grow(p, len(stack), now)
             else:
                 self.backlog_since.pop(p, None)
-            if not self.sensors[p] and not stack:
-                continue
-            if not self.sensors[p] and p not in self.spawning and self.cfg.mode != "discard":
+            if not self.sensors[p] and stack and p not in self.spawning and self.cfg.mode != "discard":
                 self._spawn(p)
+
+    def _dispatch_dedicated(self, p: str, stack: list[str], now: float) -> None:
+        """Delay mode (Table 7.2-4): each avatar's readings go to the agents dedicated to that avatar, oldest
+        first (the avatar waits for them, so they are processed in order); an avatar without its agent of
+        this type gets one."""
+        mine: dict[str, list[tuple[str, dict[str, Any]]]] = {}
+        for a, s in self.sensors[p].items():
+            mine.setdefault(s.get("avatar", ""), []).append((a, s))
+        waiting: dict[str, list[str]] = {}
+        for key in stack:
+            waiting.setdefault(self.readings[key]["avatar"], []).append(key)
+        for avatar, keys in waiting.items():
+            if (p, avatar) not in self.dedicated:
+                self._spawn(p, avatar)
+            for a, s in mine.get(avatar, []):
+                while keys and self._free(s) > 0:
+                    key = keys.pop(0)
+                    stack.remove(key)
+                    self._hand_out(p, a, s, key, now)
+
+    def _hand_out(self, p: str, a: str, s: dict[str, Any], key: str, now: float) -> None:
+        s["jobs"][key] = now
+        self.send(a, team.dumps({"op": "process", "key": key, "proc": p, "reading": self.readings[key]["rec"]}))
 
     def _maybe_grow(self, p: str, backlog: int, now: float) -> None:
         n = len(self.sensors[p]) + (p in self.spawning)
@@ -296,23 +401,32 @@ class SupervisorSLAM(AgentBase):
                 and now - self.last_grow.get(p, -1e9) >= self.cfg.grow_wait_s):
             self._spawn(p)
 
-    def _spawn(self, p: str) -> None:
-        self.spawning.add(p)
-        self.last_grow[p] = self.now()
+    def _spawn(self, p: str, avatar: str = "") -> None:
+        """Request a sensor agent of processing type `p`: a shared one (growth, discard), or in delay mode one
+        dedicated to `avatar` — a type of its own (`<p>_dedicated`, no per-host limit: one per avatar and
+        type must be placeable whatever the number of hosts)."""
+        if avatar:
+            self.dedicated.add((p, avatar))
+        else:
+            self.spawning.add(p)
+            self.last_grow[p] = self.now()
         cfg = team.team_config(self, supervisor=self.id)
+        if avatar:
+            cfg["avatar"] = avatar
         if p == "sensor_landmark":
             cfg.update(landmark_ids=self.cfg.landmark_ids, marker_dictionary=self.cfg.marker_dictionary,
                        marker_size=self.cfg.marker_size)
+        type_name = p + DEDICATED if avatar else p
 
         async def go() -> None:
             # in the background: the mailbox goes on while the allocation places it (or cannot)
             aid: str | None = None
             why = ""
             try:
-                aid = await self.spawn_child(p, cfg, timeout=20.0)
+                aid = await self.spawn_child(type_name, cfg, timeout=20.0)
             except Exception as e:
                 why = f"{type(e).__name__}: {e}"
-            self.call_later(0, lambda: self._spawned(p, aid, why))
+            self.call_later(0, lambda: self._spawned(p, aid, why, avatar))
 
         self._background(go())
 
@@ -322,15 +436,20 @@ class SupervisorSLAM(AgentBase):
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
 
-    async def _spawned(self, p: str, aid: str | None, why: str) -> None:
-        self.spawning.discard(p)
+    async def _spawned(self, p: str, aid: str | None, why: str, avatar: str = "") -> None:
+        if not avatar:
+            self.spawning.discard(p)
         if aid is None:
-            self.capped[p] = len(self.sensors[p])
-            self.log("sensor_spawn_failed", level="warning", type=p, reason=why)
+            if avatar:
+                self.dedicated.discard((p, avatar))  # asked again when its next reading comes
+            else:
+                self.capped[p] = len(self.sensors[p])
+            self.log("sensor_spawn_failed", level="warning", type=p, avatar=avatar, reason=why)
             return
-        self.sensors[p].setdefault(aid, {"job": None, "since": self.now(), "ready": False})
+        self.sensors[p].setdefault(aid, {"jobs": {}, "ready": False, "avatar": avatar})
         self.backup()
-        await team.transcript(self, f"{p} agent {len(self.sensors[p])} requested")
+        await team.transcript(self, f"{p} agent {len(self.sensors[p])} requested"
+                              + (f" for avatar {avatar}" if avatar else ""))
         self._dispatch()
 
     def _discard(self, key: str, p: str) -> None:
@@ -351,17 +470,25 @@ class SupervisorSLAM(AgentBase):
             ops.append(ddbops.add(team.K_STATS + "readings_processed", 1))
         await self.ddb_write(ops)
 
+    def _requeue(self, p: str, s: dict[str, Any]) -> None:
+        """Processings out with a sensor agent that restarted or went silent go back on their stack."""
+        for key in list(s["jobs"]):
+            r = self.readings.get(key)
+            if r is not None and p in r["todo"] and key not in self.stacks[p]:
+                self.stacks[p].append(key)
+        s["jobs"].clear()
+        self.stacks[p].sort(key=lambda k: self.readings[k]["rec"].get("t", 0.0) if k in self.readings else 0.0)
+
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
         if msg.get("op") == "hello":  # a (re)started sensor agent: known, and idle
             p = msg.get("proc", "")
             if p in self.sensors:
-                s = self.sensors[p].setdefault(src, {"job": None, "since": self.now()})
-                if s["job"] is not None:  # restarted while it had one: hand it out again
-                    r = self.readings.get(s["job"])
-                    if r is not None and p in r["todo"]:
-                        self.stacks[p].append(s["job"])
-                s["job"] = None
+                s = self.sensors[p].setdefault(src, {"jobs": {}, "avatar": str(msg.get("avatar", ""))})
+                if msg.get("avatar"):
+                    s["avatar"] = str(msg["avatar"])
+                    self.dedicated.add((p, s["avatar"]))
+                self._requeue(p, s)  # restarted while it had some: hand them out again
                 s["ready"] = True
                 self._dispatch()
             return
@@ -369,28 +496,48 @@ class SupervisorSLAM(AgentBase):
             return
         p, key = msg.get("proc", ""), msg.get("key", "")
         s = self.sensors.get(p, {}).get(src)
-        if s is not None and s["job"] == key:
-            s["job"] = None
+        if s is not None:
+            s["jobs"].pop(key, None)
         r = self.readings.get(key)
+        st = self.proc_stats.setdefault(p, {"done": 0, "failed": 0, "readings": 0, "items": 0, "ms": 0.0,
+                                            "delay_s": 0.0})
+        st["done" if msg.get("ok") else "failed"] += 1
+        st["readings"] += int(msg.get("n", 0))
+        st["items"] += int(msg.get("items", 0))
+        st["ms"] += float(msg.get("ms", 0.0))
+        if r is not None:
+            st["delay_s"] += self.now() - float(r["rec"].get("t", self.now()))
         if r is not None and p in r["todo"]:
             r["todo"].discard(p)
             if not msg.get("ok"):
                 r["discarded"] += 1
             if not r["todo"]:
-                await self._finish(key, r)
+                self._background(self._finish(key, r))
         self._dispatch()
 
     async def _watchdog(self) -> None:
         """Status monitoring (App. III, by analogy with the other supervisors: "if failure occurs reassign
-        reading"): a processing out for longer than `job_timeout_s` goes back on its stack."""
+        reading"): a processing out for longer than `job_timeout_s` goes back on its stack; in delay mode the
+        dedicated agents of avatars that left are stopped."""
         now = self.now()
         for p, agents in self.sensors.items():
             for a, s in agents.items():
-                if s["job"] is not None and now - s["since"] > self.cfg.job_timeout_s:
-                    key = s["job"]
-                    s["job"] = None
+                late = [k for k, since in s["jobs"].items() if now - since > self.cfg.job_timeout_s]
+                for key in late:
+                    del s["jobs"][key]
                     r = self.readings.get(key)
                     if r is not None and p in r["todo"]:
                         self.stacks[p].append(key)
                     self.log("processing_timeout", level="warning", agent=a, key=key)
+        if self.cfg.mode == "delay" and self.replica is not None and not self.loading:
+            gone = {a for _, a in self.dedicated} & self.removed
+            gone -= {r["avatar"] for r in self.readings.values()} | set(self.replica.names)
+            for avatar in gone:
+                for p, agents in self.sensors.items():
+                    for a in [a for a, s in agents.items() if s.get("avatar") == avatar]:
+                        self.send(a, team.dumps({"op": "stop"}))
+                        del agents[a]
+                    self.dedicated.discard((p, avatar))
+                await team.transcript(self, f"avatar {avatar} left: its dedicated sensor agents stop")
+                self.backup()
         self._dispatch()

@@ -19,6 +19,7 @@ named after it (executive_mission.py, avatar_simulation.py, ...).
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from pathlib import Path
@@ -302,6 +303,9 @@ class SupervisorBase(AgentBase):
 
 class SensorConfig(TeamConfig):
     supervisor: str = pydantic.Field(min_length=1)
+    #: the avatar this agent is dedicated to (SupervisorSLAM's delay mode, Table 7.2-4: "each Avatar agent
+    #: handles its own readings with a dedicated agent of each type"); "" = shared by the team
+    avatar: str = pydantic.Field("", max_length=64)
 
 
 class SensorBase(AgentBase):
@@ -311,11 +315,17 @@ class SensorBase(AgentBase):
     App. III L2971-3015): {"op": "process", "key", "proc", "reading"} in; the agent turns the raw reading
     into haa.slam readings (`process`, implemented by each type), appends their Observe events to
     `slam/log` with `stats/processings` in one atomic batch, and answers {"op": "done", "key", "proc", "ok",
-    "ms"}. A (re)started agent says {"op": "hello", "proc"} to its supervisor. Recovery: "Restore
+    "ms", "n", "items"}; several processings run side by side (each in a task beside the mailbox: most of
+    their time is waiting for the frame and the commit). A (re)started agent says {"op": "hello", "proc",
+    "avatar"} to its supervisor; {"op": "stop"} from it ends the agent (a dedicated agent whose avatar left,
+    `dedicated_type`). Recovery: "Restore
     configuration and wait for instructions" (RECOVERY = "restart": the supervisor hands out again what
     was in flight). At most one agent of each sensor type per host (MAX_PER_HOST = 1, App. III L3103)."""
 
     CONFIG: ClassVar[type[pydantic.BaseModel] | None] = SensorConfig
+    #: the processing type it serves (the supervisor's name for it); "" = its TYPE. A dedicated agent
+    #: (`dedicated_type`) is a type of its own that serves its base type's processings
+    PROC: ClassVar[str] = ""
     RECOVERY = "restart"
     MAX_PER_HOST = 1
     COST = 0.2
@@ -325,27 +335,47 @@ class SensorBase(AgentBase):
         super().__init__(ctx)
         self.done = 0
         self.failed = 0
+        self.jobs: set[asyncio.Task[Any]] = set()  # processings in flight (kept referenced: asyncio holds weak ones)
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         """The haa.slam readings (SonarReading, LandmarkReading, ...) of one raw reading; [] if it gives none."""
         raise NotImplementedError
 
+    @property
+    def proc(self) -> str:
+        return self.PROC or self.TYPE
+
+    def _hello(self) -> None:
+        self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.proc, "avatar": self.cfg.avatar}))
+
     async def on_start(self) -> None:
         use_mission_clock(self, self.cfg)
-        self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.TYPE}))
+        self._hello()
 
     async def on_resume(self, how: str) -> None:
         use_mission_clock(self, self.cfg)
-        self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.TYPE}))
+        self._hello()
 
     async def on_message(self, src: str, payload: bytes) -> None:
-        from haa.slam import events as sev
-
         msg = json.loads(payload)
+        if msg.get("op") == "stop" and src == self.cfg.supervisor:  # its avatar left (delay mode)
+            self.stop()
+            return
         if msg.get("op") != "process":
             return
+        # each processing runs beside the mailbox: most of its time is waiting (the frame from the avatar agent,
+        # the DDB commit), so several in flight share one process instead of needing one agent each (the
+        # supervisor bounds how many it hands out at once: SlamAgentConfig.jobs_per_agent)
+        task = asyncio.ensure_future(self._process_one(src, msg))
+        self.jobs.add(task)
+        task.add_done_callback(self.jobs.discard)
+
+    async def _process_one(self, src: str, msg: dict[str, Any]) -> None:
+        from haa.slam import events as sev
+
         t0 = time.perf_counter()
         ok, why = True, ""
+        readings: list[Any] = []
         try:
             readings = await self.process(msg["reading"])
             evs = [sev.encode(sev.Observe(r, self.name)) for r in readings]
@@ -355,6 +385,8 @@ class SensorBase(AgentBase):
             errs = await self.ddb_write(ops, atomic=True)
             if any(errs):
                 ok, why = False, "; ".join(e for e in errs if e)
+        except asyncio.CancelledError:
+            raise
         except Exception as e:  # a reading that cannot be processed is reported, not fatal
             ok, why = False, f"{type(e).__name__}: {e}"
         if ok:
@@ -362,8 +394,16 @@ class SensorBase(AgentBase):
         else:
             self.failed += 1
             self.log("processing_failed", level="warning", key=msg.get("key"), reason=why)
-        self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.TYPE, "ok": ok, "why": why,
-                              "ms": round(1000 * (time.perf_counter() - t0), 2)}))
+        # n: haa.slam readings made (Observe events), items: their parts (landmark sightings, floor vertices,
+        # sonar echoes) — what SupervisorSLAM reports per processing type (its `slam_status` log)
+        items = sum(len(getattr(r, "sightings", getattr(r, "polygon", getattr(r, "echoes", ())))) for r in readings)
+        self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.proc, "ok": ok, "why": why,
+                              "ms": round(1000 * (time.perf_counter() - t0), 2), "n": len(readings) if ok else 0,
+                              "items": items if ok else 0}))
+
+    def on_stop(self) -> None:
+        for t in list(self.jobs):
+            t.cancel()
 
     async def fetch_frame(self, reading: dict[str, Any]) -> SimpleNamespace:
         """The camera frame of a reading, from the avatar agent that keeps it (no frames in the DDB)."""
@@ -373,3 +413,14 @@ class SensorBase(AgentBase):
         m = spb.CameraFrame()
         m.ParseFromString(data)
         return frame_from_pb(m, reading["avatar"])
+
+
+def dedicated_type(cls: type[SensorBase]) -> type[SensorBase]:
+    """The type of `cls`'s agents dedicated to one avatar (SupervisorSLAM's delay mode): TYPE `<type>_dedicated`,
+    serving `<type>` processings, with no per-host limit. The per-host limit is a property of the agent type
+    (the allocation reads MAX_PER_HOST from the type, not from a config): with one agent of each type per
+    avatar, five avatars on three hosts could not all be placed under `<type>`'s limit of one; and the
+    dedicated agents should not take the shared type's places. Register the result in the sensor's module."""
+    return type(f"{cls.__name__}Dedicated", (cls,), {
+        "TYPE": cls.TYPE + "_dedicated", "PROC": cls.TYPE, "MAX_PER_HOST": 0, "__module__": cls.__module__,
+        "__doc__": f"{cls.__name__} dedicated to one avatar (delay mode; haa.agents.team.dedicated_type)."})
