@@ -11,8 +11,12 @@ mission file selects coordinated frontier exploration instead (haa.control.front
 * Cadence (thesis gap 7, ours): targets are computed again every `replan_s` simulated seconds for the
   avatars that are idle (no target, reached, unreachable) or whose target has been explored meanwhile, and
   for every avatar every `refresh_s`; at once when the controlled set changes. A target reported
-  unreachable is kept out of the split for `blocked_s` (cells within `blocked_radius` of it are treated as
-  explored for this supervisor's purposes).
+  unreachable, or reached while its cells are still unexplored, is kept out of the split for `blocked_s`
+  (cells within `blocked_radius` of it are treated as explored for this supervisor's purposes); so is a
+  target the split puts within `blocked_radius` of its avatar (the split is made again without it). Without
+  the last two an avatar standing at its region's centre got that very spot again and again — reached at
+  once, the camera looking ahead, the cells around it never seen — several targets a second, the avatar
+  never moving (seen in the quick mission from ~20 s on, and after an avatar agent's recovery).
 * Status: `targets/<avatar>` in the DDB.
 
 Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": the backup
@@ -94,8 +98,24 @@ class SupervisorExplore(team.SupervisorBase):
             t["state"] = "reached"
         elif op == "unreachable":
             t["state"] = "unreachable"
-            self.blocked.append((t["x"], t["y"], self.now() + self.cfg.blocked_s))
+        # going there again gives nothing new: keep it out of the split for a while (module docstring)
+        self.blocked.append((t["x"], t["y"], self.now() + self.cfg.blocked_s))
         self.call_later(0.05, self._tick)
+
+    def _block(self, p: np.ndarray, spec: Any, x: float, y: float) -> None:
+        """Mark the cells within `blocked_radius` of (x, y) explored in the supervisor's copy `p` of the map."""
+        r0, c0 = (y - spec.y0) / spec.resolution, (x - spec.x0) / spec.resolution
+        rr, cc = np.ogrid[0:p.shape[0], 0:p.shape[1]]
+        k = self.cfg.blocked_radius / spec.resolution
+        p[((rr - r0) ** 2 + (cc - c0) ** 2) <= k * k] = 0.0
+
+    def _split(self, p: np.ndarray, spec: Any, pos: dict[str, tuple[float, float]]) -> dict[str, Any]:
+        planner = PlannerConfig(radius=self.cfg.radius)
+        self.splits += 1
+        if self.cfg.exploration == "em":
+            return split_unexplored(p, pos, spec=spec, config=ExploreConfig(planner=planner)).targets()
+        return assign_frontiers(p, pos, spec=spec,
+                                config=FrontierConfig(planner=planner, range=self.cfg.camera_range)).targets
 
     async def _tick(self) -> None:
         await self._replan(everyone=False)
@@ -114,18 +134,20 @@ class SupervisorExplore(team.SupervisorBase):
         now = self.now()
         self.blocked = [b for b in self.blocked if b[2] > now]
         p = np.array(prob, dtype=float)
-        for bx, by, _ in self.blocked:  # a target found unreachable: not a target again for a while
-            r0, c0 = (by - spec.y0) / spec.resolution, (bx - spec.x0) / spec.resolution
-            rr, cc = np.ogrid[0:p.shape[0], 0:p.shape[1]]
-            k = self.cfg.blocked_radius / spec.resolution
-            p[((rr - r0) ** 2 + (cc - c0) ** 2) <= k * k] = 0.0
-        planner = PlannerConfig(radius=self.cfg.radius)
-        if self.cfg.exploration == "em":
-            targets = split_unexplored(p, pos, spec=spec, config=ExploreConfig(planner=planner)).targets()
-        else:
-            targets = assign_frontiers(p, pos, spec=spec,
-                                       config=FrontierConfig(planner=planner, range=self.cfg.camera_range)).targets
-        self.splits += 1
+        for bx, by, _ in self.blocked:  # a target reached or found unreachable: not a target again for a while
+            self._block(p, spec, bx, by)
+        targets = self._split(p, spec, pos)
+        # a target on the avatar's own spot is reached at once and shows nothing new: block it, split again
+        for _ in range(2):
+            near = [a for a, tgt in targets.items() if tgt is not None and a in pos
+                    and math.dist(tgt, pos[a]) < self.cfg.blocked_radius]
+            if not near:
+                break
+            for a in near:
+                tx, ty = targets[a]  # type: ignore[misc]
+                self.blocked.append((tx, ty, now + self.cfg.blocked_s))
+                self._block(p, spec, tx, ty)
+            targets = self._split(p, spec, pos)
         sent = []
         for a, tgt in targets.items():
             cur = self.targets.get(a)
@@ -142,6 +164,8 @@ class SupervisorExplore(team.SupervisorBase):
                 stale = stale or explored or old
                 if not stale or math.dist((cur["x"], cur["y"]), tgt) < 0.2:
                     continue
+            if a in pos and math.dist(tgt, pos[a]) < self.cfg.blocked_radius:
+                continue  # still on its spot after two more splits: nothing better now (next tick)
             self.send_target(a, tgt[0], tgt[1])
             sent.append(a)
         if sent:
