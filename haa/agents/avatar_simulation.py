@@ -11,8 +11,11 @@ What it does:
 * **Predictions** (thesis §5.1.3 L943-946, eq. 5.1-3): every `predict_period` simulated seconds the
   odometry since the last prediction becomes one prediction update (haa.slam.motion.odometry_prediction with
   the type's drift, Table 6.2-3), appended to `slam/log` together with `slam/anchor/<name>` (time and
-  odometry pose of the last committed prediction) in one atomic batch, so that a recovered instance
-  continues the prediction chain exactly where the committed one ended (no gap, no overlap).
+  odometry pose of the last committed prediction, and the number of the last reading) in one atomic batch,
+  so that a recovered instance continues the prediction chain exactly where the committed one ended (no
+  gap, no overlap) and numbers its readings after the last committed one. Every batch this agent writes
+  carries the anchor; a batch that fails puts the anchor and the reading number back (a write whose outcome
+  is unknown — the host's timeout — makes it read the committed anchor again before the next prediction).
 * **Readings**: a camera image every `capture_period` (the thesis' camera is "Manual", Table 6.2-4: we
   capture on a period), a co-occupancy reading every `cooc_period`, each sonar scan (sweepers, 1 s). Each
   is a DDB entry `slam/raw/<name>/<n>` (JSON) that SupervisorSLAM watches, written in the same batch as the
@@ -25,9 +28,17 @@ What it does:
   When the target is reached (or cannot be) the supervisor is told ({"op": "reached"|"unreachable"}).
 
 Recovery (App. III: "Restore configuration and retrieve AgentPathPlanner status. Reassign target for
-AgentPathPlanner if appropriate"): from its backup (config, planner id, current target, counters) and the
-committed anchor in the DDB; it re-sends the target to its planner. A retired avatar (its streams end with
-UNAVAILABLE, as hardware that stopped answering) marks itself retired, stops its planner and stops.
+AgentPathPlanner if appropriate"): RECOVERY = "backup" — from its backup (config, planner id, current
+target) and the committed anchor in the DDB (`slam/anchor/<name>`: the prediction chain goes on from the
+anchor's time and odometry pose, readings from the anchor's number + 1); it re-attaches to its avatar in
+haa-sim, re-sends the target to its planner and says so in the transcript ("resumed after a crash: ...").
+What the crashed instance had not committed is lost: odometry since the anchor is covered by the first
+prediction of the new one (the avatar's odometry is continuous in haa-sim), readings it had not written are
+not taken again, and its camera frames are gone (a sensor agent asking for one gets "no longer kept" and the
+processing counts as failed). A retired avatar (its streams end with UNAVAILABLE, as hardware that stopped
+answering; or haa-sim refuses to re-attach a recovered instance to it) marks itself retired in the registry,
+appends RemoveAvatar to `slam/log`, stops its planner and stops; the supervisors drop it (their bids are
+withdrawn, ExecutiveAvatar releases the assignment).
 """
 
 from __future__ import annotations
@@ -117,6 +128,8 @@ class AvatarSimulation(AgentBase):
         self.path: list[list[float]] = []
         self.retired = False
         self.flushing = False
+        #: a write whose outcome is unknown: read the committed anchor again before the next prediction
+        self.resync = False
 
     # ------------------------------------------------------------------ life cycle
 
@@ -137,7 +150,7 @@ class AvatarSimulation(AgentBase):
             self.unpack_state(backup)
 
     async def on_resume(self, how: str) -> None:
-        await self._begin(fresh=False)
+        await self._begin(fresh=False, how=how)
 
     def on_stop(self) -> None:
         for t in self.tasks:
@@ -145,7 +158,7 @@ class AvatarSimulation(AgentBase):
         if self.drive_task:
             self.drive_task.cancel()
 
-    async def _begin(self, fresh: bool) -> None:
+    async def _begin(self, fresh: bool, how: str = "start") -> None:
         team.use_mission_clock(self, self.cfg)
         self.link = team.SimLink(self.cfg.sim, self.cfg.sim_token_file, self.name)
         try:
@@ -161,9 +174,7 @@ class AvatarSimulation(AgentBase):
         if self.info.status != "active":
             await self._retired(f"avatar is {self.info.status}")
             return
-        anchor = await team.get_json(self, f"slam/anchor/{self.name_}")
-        if anchor:
-            self.anchor = (float(anchor["t"]), tuple(anchor["pose"]))  # type: ignore[assignment]
+        anchor = await self._read_anchor()
         if fresh or anchor is None:
             d = DRIFT[self.cfg.type]
             sp = self.info.start_pose
@@ -179,6 +190,10 @@ class AvatarSimulation(AgentBase):
             await team.put_json(self, team.K_AVATARS + self.name_, reg)
         if fresh:
             await team.transcript(self, f"avatar {self.name_} ({self.cfg.type}) registered")
+        if self.anchor is not None and not self.odo:
+            # the history starts at the committed anchor: the map->odometry transform at an estimate of that time
+            # is exact before the new odometry stream has said anything
+            self.odo.append((self.anchor[0], tuple(self.anchor[1])))  # type: ignore[arg-type]
         self.watch(team.K_SLAM_EST + self.name_, self._on_est)
         est = await team.get_json(self, team.K_SLAM_EST + self.name_)
         if est:
@@ -197,6 +212,19 @@ class AvatarSimulation(AgentBase):
             self.backup()
         elif self.target:
             self._send_planner({"op": "goto", **self.target})
+        if how == "recover":
+            t = self.anchor[0] if self.anchor else float("nan")
+            tgt = f"target {self.target['tid']} re-sent to its planner" if self.target else "no target"
+            await team.transcript(self, f"resumed after a crash: predictions from t={t:.2f} (the committed anchor), "
+                                        f"readings from #{self.n_readings + 1}, {tgt}")
+
+    async def _read_anchor(self) -> dict[str, Any] | None:
+        """The committed anchor (time, odometry pose, last reading number) into `anchor` / `n_readings`."""
+        anchor = await team.get_json(self, f"slam/anchor/{self.name_}")
+        if anchor:
+            self.anchor = (float(anchor["t"]), tuple(anchor["pose"]))  # type: ignore[assignment]
+            self.n_readings = max(self.n_readings, int(anchor.get("n", 0)))
+        return anchor
 
     # ------------------------------------------------------------------ odometry and predictions
 
@@ -248,19 +276,35 @@ class AvatarSimulation(AgentBase):
             return []
         pred = odometry_prediction(t0, p0, t_end, p_end, DRIFT[self.cfg.type])
         self.anchor = (t_end, p_end)
-        return [ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.Predict(self.name_, pred))]),
-                team.op_put_json(f"slam/anchor/{self.name_}", {"t": t_end, "pose": list(p_end)})]
+        return [ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.Predict(self.name_, pred))])]
 
-    async def _write(self, ops: list[Any]) -> None:
+    def _committed(self) -> tuple[Any, int]:
+        """What a failed write puts back: the anchor and the reading number before it."""
+        return self.anchor, self.n_readings
+
+    async def _write(self, ops: list[Any], before: tuple[Any, int]) -> None:
+        """Write `ops` and the anchor (time, odometry pose, last reading number) in one atomic batch."""
         if not ops:
             return
-        errs = await self.ddb_write(ops, atomic=True)
-        if any(errs):
+        assert self.anchor is not None
+        ops = [*ops, team.op_put_json(f"slam/anchor/{self.name_}", {
+            "t": self.anchor[0], "pose": list(self.anchor[1]), "n": self.n_readings})]
+        try:
+            errs = await self.ddb_write(ops, atomic=True)
+        except Exception:
+            self.resync = True  # not known whether it committed: the committed anchor decides
+            raise
+        if any(errs):  # nothing was written: the chain goes on from the committed anchor
+            self.anchor, self.n_readings = before
             self.log("ddb_write_failed", level="warning", errors=[e for e in errs if e])
 
     async def _flush(self) -> None:
         if self.retired:
             return
+        if self.resync:
+            self.resync = False
+            await self._read_anchor()
+        before = self._committed()
         ops = self._prediction_ops()
         # sonar scans whose time the committed predictions now cover
         t_anchor = self.anchor[0] if self.anchor else -1.0
@@ -271,7 +315,7 @@ class AvatarSimulation(AgentBase):
                 "echoes": [[r.bearing, r.range if r.echo else None] for r in scan.readings],
                 "fov": scan.readings[0].fov if scan.readings else 0.349,
                 "max_range": scan.readings[0].max_range if scan.readings else 2.0})
-        await self._write(ops)
+        await self._write(ops, before)
 
     def _raw_ops(self, kind: str, t: float, body: dict[str, Any]) -> list[Any]:
         self.n_readings += 1
@@ -283,7 +327,7 @@ class AvatarSimulation(AgentBase):
     # ------------------------------------------------------------------ readings
 
     async def _capture(self) -> None:
-        if self.retired or self.link is None or self.anchor is None:
+        if self.retired or self.link is None or self.anchor is None or self.resync:
             return
         try:
             f = await self.link.avatar.Capture(spb.CaptureRequest(avatar_id=self.name_),
@@ -295,24 +339,27 @@ class AvatarSimulation(AgentBase):
         # the frame's own odometry stamps the history, so the predictions can cover its time exactly
         if not self.odo or f.time > self.odo[-1][0]:
             self.odo.append((f.time, (f.odometry.x, f.odometry.y, f.odometry.theta)))
+        before = self._committed()
         ops = self._prediction_ops(upto=f.time)
         if self.anchor is None or self.anchor[0] < f.time - 1e-6:
-            return  # cannot cover its time (odometry not there yet): skip this image
+            await self._write(ops, before)  # cannot cover its time (odometry not there yet): skip this image
+            return
         ops += self._raw_ops("camera", f.time, {"frame": self.n_readings + 1, "camera": f.camera})
         # `_raw_ops` numbered the reading: keep the frame under that number
         self.frames[self.n_readings] = f
         while len(self.frames) > self.cfg.frames_kept:
             self.frames.popitem(last=False)
-        await self._write(ops)
+        await self._write(ops, before)
 
     async def _cooccupancy(self) -> None:
-        if self.retired or not self.odo or self.info is None:
+        if self.retired or not self.odo or self.info is None or self.resync:
             return
+        before = self._committed()
         ops = self._prediction_ops()
         if self.anchor is None:
             return
         ops += self._raw_ops("cooccupancy", self.anchor[0], {"radius": float(self.info.radius)})
-        await self._write(ops)
+        await self._write(ops, before)
 
     async def _sonar_loop(self) -> None:
         assert self.link is not None
@@ -454,7 +501,9 @@ class AvatarSimulation(AgentBase):
         ops = [team.op_put_json(team.K_AVATARS + self.name_, reg),
                ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.RemoveAvatar(self.name_))])]
         try:
-            await self._write(ops)
+            errs = await self.ddb_write(ops, atomic=True)
+            if any(errs):
+                self.log("retire_write_failed", level="warning", errors=[e for e in errs if e])
         except Exception as e:
             self.log("retire_write_failed", level="warning", error=str(e))
         await team.transcript(self, f"avatar {self.name_} retired ({why})")
