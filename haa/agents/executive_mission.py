@@ -21,9 +21,13 @@ docs/team.md) with the mission spec; it
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
 dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
 
-Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": the backup holds
-the children's ids and the mission state; children are recovered by their own hosts (Alg. 7/8), and a child
-that was never spawned (a crash between start and spawn) is spawned on recovery.
+Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": RECOVERY =
+"backup" — the backup holds the children's ids and the mission state (running | complete | stopped, its
+times and reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned
+(a crash between start and spawn) is spawned on recovery. The recovered instance writes `mission/status`
+again at once (a crash between deciding the end and writing it must not leave the runner waiting) and says
+in the transcript what it resumed with. Not covered: a crash after a child's spawn committed and before the
+backup that records it (a few milliseconds at mission start) spawns that child twice.
 """
 
 from __future__ import annotations
@@ -88,11 +92,12 @@ class ExecutiveMission(AgentBase):
         self.started_t: float | None = None
         self.finished_t: float | None = None
         self.explored = 0.0
+        self.reason = ""
         self.facts: dict[str, Any] = {}
 
     def pack_state(self) -> bytes:
         return team.dumps({"children": self.children, "state": self.state, "started_t": self.started_t,
-                           "finished_t": self.finished_t, "explored": self.explored})
+                           "finished_t": self.finished_t, "explored": self.explored, "reason": self.reason})
 
     def unpack_state(self, data: bytes) -> None:
         st = json.loads(data)
@@ -100,6 +105,7 @@ class ExecutiveMission(AgentBase):
         self.state = st.get("state", "running")
         self.started_t, self.finished_t = st.get("started_t"), st.get("finished_t")
         self.explored = float(st.get("explored", 0.0))
+        self.reason = str(st.get("reason", ""))
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
@@ -117,6 +123,12 @@ class ExecutiveMission(AgentBase):
 
     async def on_resume(self, how: str) -> None:
         team.use_mission_clock(self, self.cfg)
+        if how == "recover":
+            if self.state == "running":  # the backup's share is old: the map says what it is now
+                await self._read_explored()
+            await self._status(self.reason)
+            await team.transcript(self, f"resumed after a crash: mission {self.state}, explored {self.explored:.1%}, "
+                                        f"children {', '.join(sorted(self.children)) or 'none yet'}")
         await self._begin()
 
     async def _begin(self) -> None:
@@ -155,10 +167,7 @@ class ExecutiveMission(AgentBase):
     async def _check(self) -> None:
         if self.state != "running":
             return
-        data = await self.ddb_get(team.K_SLAM_MAP)
-        if data is not None:
-            _, prob = decode_map(data)
-            self.explored = explored_share(prob, self.cfg.expected_cells)
+        await self._read_explored()
         complete = self.m.get("complete", {})
         reason = ""
         if self.m.get("scenario", "explore") == "explore" and self.explored >= float(complete.get("explored", 0.95)):
@@ -167,10 +176,17 @@ class ExecutiveMission(AgentBase):
             self.state, reason = "stopped", "time limit"
         if self.state != "running":
             self.finished_t = self.now()
+            self.reason = reason
             self.backup()
             await team.transcript(self, f"Mission finished: {reason}")
         await self._status(reason)
         await self._trim_events()
+
+    async def _read_explored(self) -> None:
+        data = await self.ddb_get(team.K_SLAM_MAP)
+        if data is not None:
+            _, prob = decode_map(data)
+            self.explored = explored_share(prob, self.cfg.expected_cells)
 
     async def _trim_events(self) -> None:
         data = await self.ddb_get(team.K_EVENTS)
@@ -205,6 +221,7 @@ class ExecutiveMission(AgentBase):
         if st.get("done"):
             self.state = "complete"
             self.finished_t = self.now()
+            self.reason = "every avatar on its slot"
             self.backup()
             await team.transcript(self, "Mission finished: every avatar on its slot")
             await self._status("every avatar on its slot")
