@@ -12,8 +12,10 @@ towards the team's centroid, equally spaced; avatars are matched to slots by lea
 `congregate/status` {"done": true} and ExecutiveMission ends the mission. Slots are recomputed when the
 landmark estimate moves by more than `tolerance_m` or the team changes.
 
-Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate" (backup:
-the targets; after recovery every controlled avatar gets its slot again).
+Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": RECOVERY =
+"backup" (the targets sent, the next target id; haa.agents.team.SupervisorBase) — after recovery the
+controlled set is read again from `assign/` and every controlled avatar gets its slot again; a thawed one
+(a transfer) keeps its controlled set and its targets.
 """
 
 from __future__ import annotations
@@ -66,12 +68,14 @@ class SupervisorCongregate(team.SupervisorBase):
         await self._begin()
 
     async def on_resume(self, how: str) -> None:
-        self.targets = {}
-        await self._begin()
+        if how == "recover":  # every controlled avatar gets its slot again (a thaw keeps what it had sent)
+            self.targets = {}
+        await self._begin(announce=how != "thaw")
 
-    async def _begin(self) -> None:
+    async def _begin(self, announce: bool = True) -> None:
         team.use_mission_clock(self, self.cfg)
-        await team.transcript(self, "requesting control of all avatars")
+        if announce:
+            await team.transcript(self, "requesting control of all avatars")
         await self.start_bidding()
         self.every(self.cfg.check_s, self._check)
 

@@ -19,10 +19,13 @@ mission file selects coordinated frontier exploration instead (haa.control.front
   never moving (seen in the quick mission from ~20 s on, and after an avatar agent's recovery).
 * Status: `targets/<avatar>` in the DDB.
 
-Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": the backup
-holds the targets sent; after recovery the controlled set is read again from `assign/` and every avatar gets
-a target afresh (status monitoring: "If failure occurs reassign target" — an avatar agent that was recovered
-re-sends its own target to its planner, and a new assignment reaches it anyway).
+Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": RECOVERY =
+"backup" — the backup holds the targets sent and the next target id (haa.agents.team.SupervisorBase); after
+recovery the controlled set is read again from `assign/` and every avatar gets a target afresh (status
+monitoring: "If failure occurs reassign target" — an avatar agent that was recovered re-sends its own target
+to its planner, and a new assignment reaches it anyway). A thawed instance (a transfer) keeps its controlled
+set, targets and blocked areas: it does not send every avatar a new target after each move. The blocked
+areas are not in the backup (a hint: at worst an avatar is sent to such a spot once more).
 """
 
 from __future__ import annotations
@@ -69,6 +72,15 @@ class SupervisorExplore(team.SupervisorBase):
 
     def priority(self, avatar: str) -> float:
         return team.BID_EXPLORE
+
+    def pack_state(self) -> bytes:
+        st = json.loads(super().pack_state())
+        st["blocked"] = self.blocked
+        return team.dumps(st)
+
+    def unpack_state(self, data: bytes) -> None:
+        super().unpack_state(data)
+        self.blocked = [(float(x), float(y), float(u)) for x, y, u in json.loads(data).get("blocked", [])]
 
     async def on_start(self) -> None:
         await self._begin()

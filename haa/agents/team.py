@@ -285,6 +285,14 @@ class SupervisorBase(AgentBase):
         self.send(agent, dumps({"op": "target", **t}))
 
     def pack_state(self) -> bytes:
+        """The whole state (a transfer): targets, next target id, bidding, and the controlled set — a thawed
+        supervisor that took its avatars for new ones would send them all new targets after every move."""
+        return dumps({"targets": self.targets, "tid": self.next_tid, "bidding": self.bidding,
+                      "controlled": self.controlled})
+
+    def pack_backup(self) -> bytes:
+        """The backup without the controlled set: a recovered supervisor reads it again from `assign/` and gives
+        every avatar a target afresh (App. III: "retrieve Avatar* statuses, reassign targets if appropriate")."""
         return dumps({"targets": self.targets, "tid": self.next_tid, "bidding": self.bidding})
 
     def unpack_state(self, data: bytes) -> None:
@@ -292,6 +300,7 @@ class SupervisorBase(AgentBase):
         self.targets = st.get("targets", {})
         self.next_tid = int(st.get("tid", 1))
         self.bidding = bool(st.get("bidding", True))
+        self.controlled = dict(st.get("controlled", {}))
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
