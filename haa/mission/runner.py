@@ -65,6 +65,8 @@ K_ASSIGN = "assign/"
 K_TARGETS = "targets/"
 #: how the runner names itself to haa-sim (its ground-truth calls are counted apart from the agents')
 RUNNER_CALLER = "mission-runner"
+#: how long an agent fault keeps trying to find its agent live (wall seconds; `MissionRun.kill_agent`)
+FAULT_RETRY_S = 5.0
 #: poll periods, wall seconds
 POSE_PERIOD = 0.1
 POLL_PERIOD = 1.0
@@ -97,6 +99,35 @@ def due(times: Sequence[float], done: int, now: float) -> int:
 def host_plan(mission: Mission) -> list[tuple[float, str, str]]:
     """The host schedule as (at_s, action, host), time ordered (equal times keep file order)."""
     return [(e.at_s, e.action, e.host) for e in mission.spec.hosts.events()]
+
+
+#: hosts a group needs for one of them to crash and the rest to go on (more than half must stay: below)
+MIN_GROUP_FOR_KILL = 3
+
+
+def host_kill_problems(mission: Mission) -> list[str]:
+    """The `kill` entries of the host schedule that the host group cannot survive, one line each.
+
+    A host crash is survived only while more than half of the group stays alive: OAC (Alg. 2) decides a
+    transaction only while fewer than half of its participants have failed, and during a mission there is
+    always one in flight (the team writes the DDB all the time). A group of two that loses a member blocks
+    for good — no removal, no recovery of the dead host's agents, no commit, and a restarted host cannot join
+    (docs/membership.md, "Faults within the assumptions" and "Open problems"). So a kill needs at least
+    MIN_GROUP_FOR_KILL hosts in the group at its time (the group as the schedule leaves it: earlier kills
+    removed, joins and restarts in). Leaves are graceful and always fine."""
+    live = set(mission.spec.hosts.initial)
+    out = []
+    for e in mission.spec.hosts.events():
+        if e.action == "kill" and len(live) < MIN_GROUP_FOR_KILL:
+            out.append(f"hosts.schedule: kill {e.host} at {e.at_s:g} s leaves {len(live) - 1} of {len(live)} hosts "
+                       "running: the group needs more than half of its members alive to remove a crashed host "
+                       "(with two hosts it blocks for good: docs/membership.md, Open problems); start at least "
+                       f"{MIN_GROUP_FOR_KILL} hosts or let it leave")
+        if e.action in ("join", "restart"):
+            live.add(e.host)
+        else:
+            live.discard(e.host)
+    return out
 
 
 def avatar_plan(mission: Mission) -> list[tuple[float, str, str]]:
@@ -648,6 +679,10 @@ class MissionRun:
         from haa.cluster.backend import StartError, wait_until
         from haa.cluster.local_backend import LocalBackend
 
+        if self.owns_cluster:  # the host schedule is replayed on our own cluster only
+            problems = host_kill_problems(self.mission)
+            if problems:
+                raise MissionRunError(problems[0])
         self.wall_start = time.time()
         if (self.exec_type, self.avatar_type) == (EXECUTIVE, AVATAR):
             team_modules_present()
@@ -799,27 +834,36 @@ class MissionRun:
 
     def kill_agent(self, at: float, target: str) -> None:
         """SIGKILL an agent (mission file `agent_faults`): the first live agent of type `target`, or the agent
-        with display name `target`, on the host running it (as `haactl agent kill`)."""
-        try:
-            _, per_host, _ = cluster_view(self.backend)
-            live = sorted(((a, h) for h, agents in per_host.items() for a in agents), key=lambda x: x[0].name)
-            hit = next(((a, h) for a, h in live if a.name == target), None) or next(
-                ((a, h) for a, h in live if a.type == target), None)
-            if hit is None:
-                raise MissionRunError(f"no live agent {target!r}")
-            a, host = hit
-            c = _client(self.backend, host)
+        with display name `target`, on the host running it (as `haactl agent kill`). An agent being moved or
+        recovered is live on no host for a moment, and one may move between the look-up and the kill ("not
+        running here"): tried again every 0.2 s for up to FAULT_RETRY_S wall seconds."""
+        deadline = time.monotonic() + FAULT_RETRY_S
+        while True:
             try:
-                reply = c.agent_kill(a.id)
-            finally:
-                c.close()
-            if not reply.ok:
-                raise MissionRunError(reply.reason)
-            self.line(f"{a.name} ({a.type}) killed on {host} (SIGKILL, agent_faults)", "fault", host)
-        except Exception as e:
-            msg = f"agent fault at {at:g} s (kill {target}) failed: {e}"
-            self.errors.append(msg)
-            self.line(msg, "error")
+                _, per_host, _ = cluster_view(self.backend)
+                live = sorted(((a, h) for h, agents in per_host.items() for a in agents), key=lambda x: x[0].name)
+                hit = next(((a, h) for a, h in live if a.name == target), None) or next(
+                    ((a, h) for a, h in live if a.type == target), None)
+                if hit is None:
+                    raise MissionRunError(f"no live agent {target!r}")
+                a, host = hit
+                c = _client(self.backend, host)
+                try:
+                    reply = c.agent_kill(a.id)
+                finally:
+                    c.close()
+                if not reply.ok:
+                    raise MissionRunError(reply.reason)
+                self.line(f"{a.name} ({a.type}) killed on {host} (SIGKILL, agent_faults)", "fault", host)
+                return
+            except Exception as e:
+                if time.monotonic() < deadline and not self.stop_flag.is_set():
+                    time.sleep(0.2)
+                    continue
+                msg = f"agent fault at {at:g} s (kill {target}) failed: {e}"
+                self.errors.append(msg)
+                self.line(msg, "error")
+                return
 
     def avatar_action(self, action: str, avatar: str) -> None:
         assert self.sim is not None
