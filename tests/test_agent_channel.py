@@ -100,3 +100,38 @@ def test_max_frame_is_validated():
         b.close()
 
     run(main())
+
+
+def test_the_frozen_frame_survives_host_writes_after_the_freeze():
+    """An agent that has sent Frozen waits for the host to close the channel (haa.agents.runner._linger): a
+    busy host may still write to it (watch events, answers) before it reads Frozen, and a write to a closed
+    socket (EPIPE) made the host's transport drop the unread Frozen frame: 'channel error: read failed: [Errno
+    32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group, issue 15 §5)."""
+    from haa.agents import registry, runner
+
+    async def main():
+        registry.load_all()
+        a, b = socket.socketpair()
+        host = await Channel.open(a, pb.AgentToHost)
+        agent = asyncio.ensure_future(runner.serve(b))
+        host.send(pb.HostToAgent(init=pb.HostToAgent.Init(agent_id="x1", name="A1", type_name="counter", epoch=1)))
+        assert (await host.recv()).WhichOneof("msg") == "hello"
+        host.send(pb.HostToAgent(start=pb.HostToAgent.Start()))
+        host.send(pb.HostToAgent(resume=pb.HostToAgent.Resume(how="start")))
+        while (await host.recv()).WhichOneof("msg") != "ready":
+            pass
+        host.send(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
+        await asyncio.sleep(0.5)  # the agent packs its state and sends Frozen; the host has not read it yet
+        for _ in range(50):
+            host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
+            await asyncio.sleep(0.005)
+        kinds = []
+        while (m := await host.recv()) is not None:
+            kinds.append(m.WhichOneof("msg"))
+            if kinds[-1] == "frozen":
+                break
+        host.close()
+        return kinds, await asyncio.wait_for(agent, 5)
+
+    kinds, code = run(main())
+    assert kinds[-1] == "frozen" and code == 0, kinds

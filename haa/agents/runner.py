@@ -36,6 +36,8 @@ from haa.pb import agent_pb2 as pb
 
 #: how long a new process waits for its Init frame
 INIT_TIMEOUT = 30.0
+#: after Frozen / Stopped, how long the process waits for the host to close the channel (`_linger`)
+LINGER_S = 3.0
 
 T = TypeVar("T")
 
@@ -67,14 +69,34 @@ def run_child(fd: int) -> int:
 async def serve(sock: socket.socket) -> int:
     """The agent process's main coroutine (module docstring); returns the exit code."""
     chan = await Channel.open(sock, pb.HostToAgent, max_frame=DEFAULT_MAX_FRAME)
+    code = EXIT_FATAL
     try:
-        return await _serve(chan)
+        code = await _serve(chan)
+        return code
     finally:
         with contextlib.suppress(Exception):
             await asyncio.wait_for(chan.drain(), 5.0)
+        if code == EXIT_OK:
+            await _linger(chan)
         chan.close()
         with contextlib.suppress(Exception):
             await asyncio.wait_for(chan.wait_closed(), 1.0)
+
+
+async def _linger(chan: Channel[pb.HostToAgent]) -> None:
+    """Frozen / Stopped is sent: close only once the host has. Until it has read that frame the host may still
+    write to us (a watch event, the answer to a call made beside the mailbox); had we closed, its write would
+    fail (EPIPE) and its transport, failing, would drop what it had not read yet — the Frozen frame, turning a
+    transfer into a crash (seen: SupervisorSLAM as its host left the group). So: half-close (the host reads
+    our frames, then the end of the stream) and read, discarding, until the host closes or LINGER_S."""
+    with contextlib.suppress(Exception):
+        chan.writer.write_eof()
+    loop = asyncio.get_running_loop()
+    end = loop.time() + LINGER_S
+    with contextlib.suppress(Exception):
+        while (left := end - loop.time()) > 0:
+            if await asyncio.wait_for(chan.recv(), left) is None:
+                return
 
 
 def _error(chan: Channel[pb.HostToAgent], message: str) -> None:
