@@ -406,7 +406,8 @@ def test_every_agent_type_killed_the_avatar_agent_twice(tmp_path: Path) -> None:
     assert re.search(r"\(ExecutiveMission\) resumed after a crash: mission running", r.text), r.text
     registered = {x.split()[1]: x.split()[4] for x in r.lines if "(AvatarSimulation) avatar" in x and "registered" in x}
     resumed = [x for x in r.lines if f"{a1} (AvatarSimulation) resumed after a crash" in x]
-    assert len(resumed) == 2, resumed
+    # the second kill may come while the first successor is still in on_resume (its line never written)
+    assert 1 <= len(resumed) <= 2 and r.mm_ss(resumed[-1]) >= k2, resumed
     assert_nothing_lost(r, spanning={registered[a1]: k1 + 1.0})
     checks = chain_checks(r.tap)[registered[a1]]  # the second crash is spanned too
     assert any(t0 < k2 + 1.0 < t1 for t0, t1, _ in checks), (k2, [(a, b) for a, b, _ in checks])
@@ -414,7 +415,7 @@ def test_every_agent_type_killed_the_avatar_agent_twice(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_a_host_crash_and_restart(tmp_path: Path) -> None:
-    """tests/missions/hosts.yaml: h2 killed at 16 s, restarted at 28 s. The agents it ran are recovered on the
+    """tests/missions/hosts.yaml: h2 killed at 16 s, restarted at 22 s. The agents it ran are recovered on the
     others within 10 s simulated (host failure detection + Alg. 8), h2 rejoins, the mission completes."""
     r = run_mission_file(MISSIONS / "hosts.yaml", tmp_path / "out")
     assert_completed(r)
@@ -435,8 +436,8 @@ def test_a_host_crash_and_restart(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_graceful_leaves_of_the_hosts_of_supervisor_slam_and_executive_mission(tmp_path: Path) -> None:
-    """tests/missions/leave.yaml + run-time choices: the host running SupervisorSLAM leaves (from 14 s), h4
-    joins (24 s), the host running ExecutiveMission leaves (from 30 s). Their agents are frozen and thawed
+    """tests/missions/leave.yaml + run-time choices: h4 joins (8 s), the host running SupervisorSLAM leaves
+    (from 14 s), the host running ExecutiveMission leaves (from 30 s). Their agents are frozen and thawed
     elsewhere — no crash, no recovery — and the mission completes."""
     act = leave_host_of((14.0, "supervisor_slam"), (30.0, "executive_mission"))
     r = run_mission_file(MISSIONS / "leave.yaml", tmp_path / "out", act=act)
