@@ -12,7 +12,7 @@ from haa.agents.avatar_simulation import to_map, to_odom
 from haa.agents.executive_avatar import decide
 from haa.agents.executive_mission import explored_share
 from haa.agents.path_planner import cut_legs
-from haa.agents.supervisor_congregate import slots
+from haa.agents.supervisor_congregate import placeable_ring, slots
 
 
 def test_map_and_odometry_frames_are_inverse() -> None:
@@ -58,3 +58,15 @@ def test_explored_share_counts_known_free_cells_against_the_explorable_area() ->
     p[5] = 0.9  # explored but occupied: not reachable, not counted
     assert explored_share(p, 100) == pytest.approx(0.5)
     assert explored_share(p, 40) == 1.0
+
+
+def test_the_ring_of_slots_turns_and_widens_to_fit_the_map() -> None:
+    centre, towards = (2.4, 6.0), (2.4, 3.0)  # the team south of the point, a wall at x = 2.9
+    below_wall = lambda p: p[0] < 2.9  # noqa: E731
+    plain = slots(centre, 3, 0.6, towards)
+    assert not all(below_wall(p) for p in plain)  # the plain ring puts a slot into the wall
+    ring = placeable_ring(centre, 3, 0.6, towards, below_wall)
+    assert all(below_wall(p) for p in ring) and len(ring) == 3
+    assert all(math.dist(p, centre) == pytest.approx(math.dist(ring[0], centre)) for p in ring)
+    # nothing fits: the plain ring (the avatars report unreachable slots, the supervisor tries again)
+    assert placeable_ring(centre, 3, 0.6, towards, lambda p: False) == plain

@@ -208,7 +208,8 @@ class ExecutiveMission(AgentBase):
             self.children["supervisor_congregate"] = await self.spawn_child(
                 "supervisor_congregate",
                 team.team_config(self, landmark=int(cid), radius_m=float(cong.get("radius_m", 0.6)),
-                                 tolerance_m=float(cong.get("tolerance_m", 0.15))))
+                                 tolerance_m=float(cong.get("tolerance_m", 0.15)),
+                                 avatar_radius=float(self.facts.get("radius", 0.12))))
             self.backup()
             explore = self.children.get("supervisor_explore")
             if explore:  # exploration is abandoned once the point is found (L1512)

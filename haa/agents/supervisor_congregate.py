@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,8 @@ from scipy.optimize import linear_sum_assignment
 
 from haa.agents import team
 from haa.agents.registry import register
+from haa.control.pathplanner import CostMap, PlannerConfig
+from haa.slam.replica import decode_map
 
 
 class CongregateConfig(team.TeamConfig):
@@ -37,14 +40,36 @@ class CongregateConfig(team.TeamConfig):
     radius_m: float = pydantic.Field(0.6, gt=0, le=10)
     tolerance_m: float = pydantic.Field(0.15, gt=0, le=2)
     check_s: float = pydantic.Field(1.0, gt=0, le=60)
+    #: the avatars' radius (the largest of the team): a slot must be a passable cell for it
+    avatar_radius: float = pydantic.Field(0.12, gt=0, le=2)
+    #: the slots are placed again when the congregation point's estimate moves farther than this
+    replace_m: float = pydantic.Field(0.3, gt=0, le=10)
 
 
 def slots(centre: tuple[float, float], n: int, radius: float,
-          towards: tuple[float, float]) -> list[tuple[float, float]]:
-    """`n` equally spaced points on the circle around `centre`, the first in the direction of `towards`."""
-    a0 = math.atan2(towards[1] - centre[1], towards[0] - centre[0])
+          towards: tuple[float, float], turn: float = 0.0) -> list[tuple[float, float]]:
+    """`n` equally spaced points on the circle around `centre`, the first in the direction of `towards`
+    turned by `turn` rad."""
+    a0 = math.atan2(towards[1] - centre[1], towards[0] - centre[0]) + turn
     return [(centre[0] + radius * math.cos(a0 + 2 * math.pi * k / n),
              centre[1] + radius * math.sin(a0 + 2 * math.pi * k / n)) for k in range(n)]
+
+
+def placeable_ring(centre: tuple[float, float], n: int, radius: float, towards: tuple[float, float],
+                   ok: Callable[[tuple[float, float]], bool], steps: int = 12,
+                   grow: tuple[float, ...] = (0.0, 0.15, 0.3)) -> list[tuple[float, float]]:
+    """The ring of `slots` whose every slot `ok` accepts (a passable cell of the map, not where an avatar
+    found its slot unreachable): the ring is turned by fractions of the slot spacing, then widened, in that
+    order (the first fit is the one nearest the plain ring); the plain ring if none fits."""
+    for extra in grow:
+        for k in range(steps):
+            # 0, +1/steps, -1/steps, +2/steps, ... of the spacing: the least turn first
+            j = (k + 1) // 2 * (1 if k % 2 else -1)
+            turn = 2 * math.pi / n * j / steps
+            ring = slots(centre, n, radius + extra, towards, turn)
+            if all(ok(p) for p in ring):
+                return ring
+    return slots(centre, n, radius, towards)
 
 
 @register
@@ -60,6 +85,8 @@ class SupervisorCongregate(team.SupervisorBase):
         self.cfg: CongregateConfig
         self.centre: tuple[float, float] | None = None
         self.done = False
+        self.bad: list[tuple[float, float]] = []  # slots an avatar found unreachable
+        self.arrived: dict[str, Any] = {}  # avatar -> tid of the slot it reported reached
 
     def priority(self, avatar: str) -> float:
         return team.BID_CONGREGATE
@@ -85,9 +112,37 @@ class SupervisorCongregate(team.SupervisorBase):
 
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
-        if msg.get("op") == "unreachable" and msg.get("avatar") in self.targets:
-            self.targets.pop(msg["avatar"], None)  # try again at the next check
+        a = msg.get("avatar")
+        t = self.targets.get(a)
+        if t is None or msg.get("tid") != t.get("tid"):
+            return
+        if msg.get("op") == "reached":
+            self.arrived[a] = t["tid"]
+            await team.transcript(self, f"{a} reached its slot")
+        elif msg.get("op") == "unreachable":
+            await team.transcript(self, f"{a} cannot reach its slot ({t['x']:.2f}, {t['y']:.2f})")
+            self.bad.append((t["x"], t["y"]))  # place the ring where this slot is not
+            self.targets.pop(a, None)
             self.centre = None
+
+    async def _slot_test(self) -> Callable[[tuple[float, float]], bool]:
+        """Whether a point can be a slot: a passable cell of the published map for the avatars' radius (inside
+        the arena, clear of known obstacles) and not near a slot found unreachable."""
+        data = await self.ddb_get(team.K_SLAM_MAP)
+        cm = None
+        if data is not None:
+            spec, prob = decode_map(data)
+            cm = CostMap(prob, spec, PlannerConfig(radius=self.cfg.avatar_radius))
+
+        def ok(p: tuple[float, float]) -> bool:
+            if any(math.dist(p, b) < 0.2 for b in self.bad):
+                return False
+            if cm is None:
+                return True
+            cell = cm.cell(*p)
+            return cell is not None and bool(cm.passable[cell])
+
+        return ok
 
     async def _check(self) -> None:
         if self.done or not self.controlled:
@@ -99,20 +154,24 @@ class SupervisorCongregate(team.SupervisorBase):
         if lm is None or not pos:
             return
         c = (float(lm[0]), float(lm[1]))
-        if self.centre is None or math.dist(c, self.centre) > self.cfg.tolerance_m or set(pos) != set(self.targets):
+        if self.centre is None or math.dist(c, self.centre) > self.cfg.replace_m or set(pos) != set(self.targets):
             self.centre = c
             names = sorted(pos)
             mean = tuple(np.mean([pos[a] for a in names], axis=0))
-            pts = slots(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])))
+            ok = await self._slot_test()
+            pts = placeable_ring(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])), ok)
             cost = np.array([[math.dist(pos[a], p) for p in pts] for a in names])
             rows, cols = linear_sum_assignment(cost)
             for r, k in zip(rows, cols, strict=True):
                 self.send_target(names[r], *pts[k])
+            await team.transcript(self, "slots around ({:.2f}, {:.2f}): ".format(*c) + ", ".join(
+                f"{a} to ({self.targets[a]['x']:.2f}, {self.targets[a]['y']:.2f})" for a in names))
             await self.ddb_write([team.op_put_json(team.K_TARGETS + a, {**self.targets[a], "supervisor": self.id,
                                                                         "task": self.TASK}) for a in names])
             self.backup()
+        # on its slot: the avatar drove there (it reported the slot reached) or its estimate is within tolerance
         on_slot = [a for a, t in self.targets.items() if a in pos
-                   and math.dist(pos[a], (t["x"], t["y"])) <= self.cfg.tolerance_m]
+                   and (self.arrived.get(a) == t["tid"] or math.dist(pos[a], (t["x"], t["y"])) <= self.cfg.tolerance_m)]
         if self.targets and len(on_slot) == len(self.controlled):
             self.done = True
             await team.transcript(self, f"every avatar on its slot ({len(on_slot)})")
