@@ -31,6 +31,8 @@ def test_the_mission_completes_with_every_result_key(ci_run: tuple[dict, Path]) 
     assert r["completed"] is True, (r["reason"], r.get("errors"))
     assert not r.get("errors"), r["errors"]
     assert 0 < r["coverage"] <= 1 and 0 < r["accuracy"] <= 1 and r["position_error_m"] is not None
+    # the team's landmark map against the true landmarks (Table 7.1-1's landmark rows)
+    assert 0 <= r["landmark_error_m"] < 3 and r["landmark_covariance_m"] > 0, r["landmark_error_m"]
     assert r["duration_s"] > 24  # the host left before the end
     for f in ("map.png", "allocation.png", "transcript.txt", "results.json"):
         assert (tmp / "out" / f).stat().st_size > 0, f

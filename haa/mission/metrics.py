@@ -290,7 +290,7 @@ def stats_counters(stats: dict[str, Any]) -> dict[str, int | None]:
 
 #: the rows of Tables 7.1-1 / 7.1-2 (thesis L1390-1403, L1514-1527): (title, results key, scale). "Average #
 #: Hosts" counts the simulation computer as the thesis does (hosts_avg_thesis = control hosts + 1); the
-#: landmark rows stay empty until the team publishes its landmark map.
+#: landmark rows: the team's `slam/landmarks` against the true landmarks (runner.landmark_scores).
 THESIS_ROWS: tuple[tuple[str, str, float], ...] = (
     ("Mission Duration [min]", "duration_s", 1 / 60),
     ("Map Coverage [%]*", "coverage", 100.0),

@@ -63,6 +63,7 @@ K_EST = "slam/est/"
 K_STATS = "stats/"
 K_ASSIGN = "assign/"
 K_TARGETS = "targets/"
+K_LANDMARKS = "slam/landmarks"
 #: how the runner names itself to haa-sim (its ground-truth calls are counted apart from the agents')
 RUNNER_CALLER = "mission-runner"
 #: how long an agent fault keeps trying to find its agent live (wall seconds; `MissionRun.kill_agent`)
@@ -1046,6 +1047,7 @@ class MissionRun:
         cpu = mm.time_average(self.samples.cpu, start_t, end_t)
         size = ddb_bytes(self.backend)
         truth_calls = self.truth_calls()
+        lm_err, lm_std = self.landmark_scores()
         sc = self.map_scores
         stats = mm.stats_counters(self.stats)
         results: dict[str, Any] = {
@@ -1063,7 +1065,8 @@ class MissionRun:
             "explored_reported": st.get("explored"),
             "position_error_m": _r(self.loc.position_error()),
             "rotation_error_rad": _r(self.loc.rotation_error()),
-            "landmark_error_m": None,
+            "landmark_error_m": _r(lm_err),
+            "landmark_covariance_m": _r(lm_std),
             "hosts_avg": _r(hosts_avg),
             "hosts_avg_thesis": _r(hosts_avg + 1 if hosts_avg is not None else None),
             "agents_avg": _r(agents_avg),
@@ -1082,6 +1085,32 @@ class MissionRun:
         }
         self.write_outputs(results, lines)
         return results
+
+    def landmark_scores(self) -> tuple[float | None, float | None]:
+        """(mean distance of the team's landmark estimates `slam/landmarks` from the true landmarks, mean of
+        their published standard deviations): the thesis' "Landmark Err" and "Landmark Covariance" rows of
+        Table 7.1-1, over the landmarks the team has estimated. (None, None) when there are none."""
+        got = ddb_read(self.backend, keys=[K_LANDMARKS], prefer=self.reader, timeout=10.0)
+        est = got[1].get(K_LANDMARKS) if got is not None else None
+        if not isinstance(est, dict) or not est or self.sim is None:
+            return None, None
+        try:
+            with self.sim.client() as c:
+                truth = {lm.id: (lm.position.x, lm.position.y) for lm in c.landmarks().landmarks}
+        except grpc.RpcError:
+            return None, None
+        errs, stds = [], []
+        for lid, v in est.items():
+            try:
+                x, y, sd = (float(a) for a in v[:3])
+                true = truth[int(lid)]
+            except (ValueError, TypeError, KeyError, IndexError):
+                continue
+            errs.append(math.dist((x, y), true))
+            stds.append(sd)
+        if not errs:
+            return None, None
+        return sum(errs) / len(errs), sum(stds) / len(stds)
 
     def truth_calls(self) -> dict[str, int] | None:
         """haa-sim's ground-truth and Detect calls per "<caller>/<method>", the runner's own left out: the
