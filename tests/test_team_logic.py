@@ -68,5 +68,51 @@ def test_the_ring_of_slots_turns_and_widens_to_fit_the_map() -> None:
     ring = placeable_ring(centre, 3, 0.6, towards, below_wall)
     assert all(below_wall(p) for p in ring) and len(ring) == 3
     assert all(math.dist(p, centre) == pytest.approx(math.dist(ring[0], centre)) for p in ring)
-    # nothing fits: the plain ring (the avatars report unreachable slots, the supervisor tries again)
+    # nothing fits: the ring with the most good slots, its bad slots moved out along their rays to a good point
+    far = lambda p: math.dist(p, centre) > 0.75  # noqa: E731  (e.g. the point's post is larger than thought)
+    ring = placeable_ring(centre, 3, 0.6, towards, far, grow=(0.0,))
+    assert [round(math.dist(p, centre), 6) for p in ring] == [0.8, 0.8, 0.8]
+    # nothing good anywhere: the ring as it was (the avatars report unreachable slots, the supervisor tries again)
     assert placeable_ring(centre, 3, 0.6, towards, lambda p: False) == plain
+
+
+def test_frames_travel_with_a_transfer_jpeg_compressed_within_their_budget() -> None:
+    """A moved avatar agent keeps the frames its readings still wait for (sensor agents ask for them after the
+    move); a backup carries none."""
+    import json
+    from collections import OrderedDict
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from haa.agents import avatar_simulation as av
+    from haa.agents.team import frame_from_pb
+    from haa.pb import sim_pb2 as spb
+
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    img[60:180, 100:220] = 0  # something with edges
+    frames = OrderedDict()
+    for n in (3, 7, 9):
+        frames[n] = spb.CameraFrame(avatar_id="s1", time=float(n), width=320, height=240, data=img.tobytes(),
+                                    encoding=spb.IMAGE_ENCODING_RAW_RGB, K=[200, 0, 160, 0, 200, 120, 0, 0, 1])
+    obj = SimpleNamespace(planner="p", target={"x": 1.0}, n_readings=9, frames=frames)
+    obj.pack_backup = lambda: av.AvatarSimulation.pack_backup(obj)
+    state = av.AvatarSimulation.pack_state(obj)
+    assert "frames" not in json.loads(obj.pack_backup())
+    assert len(state) < av.FRAMES_STATE_BYTES + 10_000
+    new = SimpleNamespace(frames=OrderedDict())
+    av.AvatarSimulation.unpack_state(new, state)
+    assert list(new.frames) == [3, 7, 9] and new.planner == "p" and new.n_readings == 9
+    got = frame_from_pb(new.frames[7], "s1")
+    assert got.image.shape == (240, 320, 3) and got.time == 7.0
+    assert np.abs(got.image[60:180, 100:220].astype(int)).mean() < 10  # the JPEG kept the picture
+    # the budget: only the newest frames that fit
+    old = av.FRAMES_STATE_BYTES
+    try:
+        av.FRAMES_STATE_BYTES = len(av.jpeg_frame(frames[9]).SerializeToString()) + 10
+        new = SimpleNamespace(frames=OrderedDict())
+        av.AvatarSimulation.unpack_state(new, av.AvatarSimulation.pack_state(obj))
+        assert list(new.frames) == [9]
+    finally:
+        av.FRAMES_STATE_BYTES = old

@@ -44,13 +44,16 @@ withdrawn, ExecutiveAvatar releases the assignment).
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import json
 import math
 from collections import OrderedDict, deque
 from typing import Any, Literal
 
+import cv2
 import grpc
+import numpy as np
 import pydantic
 
 from haa.agents import team
@@ -89,6 +92,26 @@ class AvatarConfig(team.TeamConfig):
     #: it made is processed (its `slam/raw/<avatar>/` entries are gone), at most `delay_max_s`
     slam: Literal["jc-slam", "discard", "delay"] = "jc-slam"
     delay_max_s: float = pydantic.Field(30.0, gt=0, le=3600)
+
+
+#: bytes of frames carried in the transfer state, and their JPEG quality (95: ArUco corners survive it)
+FRAMES_STATE_BYTES = 1_200_000
+FRAME_JPEG_QUALITY = 95
+
+
+def jpeg_frame(f: spb.CameraFrame) -> spb.CameraFrame:
+    """A copy of a camera frame with its image JPEG-compressed (unchanged if it is not raw RGB)."""
+    if f.encoding != spb.IMAGE_ENCODING_RAW_RGB:
+        return f
+    img = np.frombuffer(f.data, dtype=np.uint8).reshape(f.height, f.width, 3)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, FRAME_JPEG_QUALITY])
+    if not ok:
+        return f
+    out = spb.CameraFrame()
+    out.CopyFrom(f)
+    out.data = buf.tobytes()
+    out.encoding = spb.IMAGE_ENCODING_JPEG
+    return out
 
 
 def to_map(t_est: Pose, t_odo: Pose, p: Pose) -> Pose:
@@ -146,14 +169,35 @@ class AvatarSimulation(AgentBase):
     async def on_start(self) -> None:
         await self._begin(fresh=True)
 
-    def pack_state(self) -> bytes:
+    def pack_backup(self) -> bytes:
+        """The backup: planner, target and reading number (frames are not backed up: a crash loses them)."""
         return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings})
+
+    def pack_state(self) -> bytes:
+        """The transfer state: the backup's fields and the frames still waiting for their processings, newest
+        first, JPEG-compressed (quality `FRAME_JPEG_QUALITY`), at most `FRAMES_STATE_BYTES` of them — so a
+        transfer of the avatar agent does not fail the sensor agents' pending requests for them (the state
+        goes to every host by OAC: agenttable.MAX_STATE is 2 MiB)."""
+        st = json.loads(self.pack_backup())
+        frames, budget = [], FRAMES_STATE_BYTES
+        for n in sorted(self.frames, reverse=True):
+            data = jpeg_frame(self.frames[n]).SerializeToString()
+            if len(data) > budget:
+                break
+            budget -= len(data)
+            frames.append([n, base64.b64encode(data).decode()])
+        st["frames"] = frames
+        return team.dumps(st)
 
     def unpack_state(self, data: bytes) -> None:
         st = json.loads(data)
         self.planner = st.get("planner", "")
         self.target = st.get("target")
         self.n_readings = int(st.get("n", 0))
+        for n, b64 in reversed(st.get("frames", [])):
+            f = spb.CameraFrame()
+            f.ParseFromString(base64.b64decode(b64))
+            self.frames[int(n)] = f
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
@@ -205,6 +249,8 @@ class AvatarSimulation(AgentBase):
             # is exact before the new odometry stream has said anything
             self.odo.append((self.anchor[0], tuple(self.anchor[1])))  # type: ignore[arg-type]
         self.watch(team.K_SLAM_EST + self.name_, self._on_est)
+        # a reading whose processings are all done is deleted from slam/raw/: its frame is not needed any more
+        self.watch(f"{team.K_SLAM_RAW}{self.name_}/", self._on_raw_removed)
         est = await team.get_json(self, team.K_SLAM_EST + self.name_)
         if est:
             self.est = (float(est["t"]), (est["x"], est["y"], est["theta"]))
@@ -384,6 +430,11 @@ class AvatarSimulation(AgentBase):
                 self.log("sonar_error", level="warning", error=str(e))
 
     # ------------------------------------------------------------------ messages
+
+    def _on_raw_removed(self, kind: str, key: str, value: bytes | None) -> None:
+        if kind == "remove":
+            with contextlib.suppress(ValueError):
+                self.frames.pop(int(key.rsplit("/", 1)[1]), None)
 
     def _on_est(self, kind: str, key: str, value: bytes | None) -> None:
         if value:

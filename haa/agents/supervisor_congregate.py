@@ -61,15 +61,34 @@ def placeable_ring(centre: tuple[float, float], n: int, radius: float, towards: 
     """The ring of `slots` whose every slot `ok` accepts (a passable cell of the map, not where an avatar
     found its slot unreachable): the ring is turned by fractions of the slot spacing, then widened, in that
     order (the first fit is the one nearest the plain ring); the plain ring if none fits."""
+    best: tuple[int, list[tuple[float, float]]] | None = None
     for extra in grow:
         for k in range(steps):
             # 0, +1/steps, -1/steps, +2/steps, ... of the spacing: the least turn first
             j = (k + 1) // 2 * (1 if k % 2 else -1)
             turn = 2 * math.pi / n * j / steps
             ring = slots(centre, n, radius + extra, towards, turn)
-            if all(ok(p) for p in ring):
+            good = sum(1 for p in ring if ok(p))
+            if good == n:
                 return ring
-    return slots(centre, n, radius, towards)
+            if best is None or good > best[0]:
+                best = (good, ring)
+    # no ring fits: the one with the most good slots, each bad slot moved out along its ray (up to 0.6 m
+    # farther) to the first point that is good
+    assert best is not None
+    out = []
+    for p in best[1]:
+        q = p
+        if not ok(p):
+            d = math.dist(p, centre) or 1.0
+            ux, uy = (p[0] - centre[0]) / d, (p[1] - centre[1]) / d
+            for step in (0.1, 0.2, 0.3, 0.4, 0.5, 0.6):
+                cand = (p[0] + ux * step, p[1] + uy * step)
+                if ok(cand):
+                    q = cand
+                    break
+        out.append(q)
+    return out
 
 
 @register
@@ -86,6 +105,7 @@ class SupervisorCongregate(team.SupervisorBase):
         self.centre: tuple[float, float] | None = None
         self.done = False
         self.bad: list[tuple[float, float]] = []  # slots an avatar found unreachable
+        self.extent: tuple[float, float, float, float] | None = None  # the map's x0, y0, width, height
         self.arrived: dict[str, Any] = {}  # avatar -> tid of the slot it reported reached
 
     def priority(self, avatar: str) -> float:
@@ -125,6 +145,13 @@ class SupervisorCongregate(team.SupervisorBase):
             self.targets.pop(a, None)
             self.centre = None
 
+    def _inside(self, x: float, y: float) -> tuple[float, float]:
+        if self.extent is None:
+            return (x, y)
+        x0, y0, w, h = self.extent
+        m = min(self.cfg.radius_m, w / 2, h / 2)
+        return (min(max(x, x0 + m), x0 + w - m), min(max(y, y0 + m), y0 + h - m))
+
     async def _slot_test(self) -> Callable[[tuple[float, float]], bool]:
         """Whether a point can be a slot: a passable cell of the published map for the avatars' radius (inside
         the arena, clear of known obstacles) and not near a slot found unreachable."""
@@ -132,6 +159,7 @@ class SupervisorCongregate(team.SupervisorBase):
         cm = None
         if data is not None:
             spec, prob = decode_map(data)
+            self.extent = (spec.x0, spec.y0, spec.width, spec.height)
             cm = CostMap(prob, spec, PlannerConfig(radius=self.cfg.avatar_radius))
 
         def ok(p: tuple[float, float]) -> bool:
@@ -153,12 +181,14 @@ class SupervisorCongregate(team.SupervisorBase):
         pos = {a: (ests[a]["x"], ests[a]["y"]) for a in self.controlled if a in ests}
         if lm is None or not pos:
             return
-        c = (float(lm[0]), float(lm[1]))
+        # an estimate outside the arena is wrong: the point is inside, at least a slot radius from the walls
+        # when the arena allows (the map's extent is the arena's)
+        ok = await self._slot_test()  # reads the map (and the arena's extent from it)
+        c = self._inside(float(lm[0]), float(lm[1]))
         if self.centre is None or math.dist(c, self.centre) > self.cfg.replace_m or set(pos) != set(self.targets):
             self.centre = c
             names = sorted(pos)
             mean = tuple(np.mean([pos[a] for a in names], axis=0))
-            ok = await self._slot_test()
             pts = placeable_ring(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])), ok)
             cost = np.array([[math.dist(pos[a], p) for p in pts] for a in names])
             rows, cols = linear_sum_assignment(cost)
