@@ -190,21 +190,35 @@ def run_experiment(
         results.append(r)
         if on_run:
             on_run(k, r)
-    summary = summarize(name, results)
+        if k + 1 < runs:  # after every run, so that an interrupted experiment keeps what it measured
+            _write(name, m, runs, speed, t0, results, json_out, partial=True)
+    return _write(name, m, runs, speed, t0, results, json_out, partial=False)
+
+
+def _write(name: str, m: Mission, runs: int, speed: float | None, t0: float, results: list[dict[str, Any]],
+           json_out: Path | None, partial: bool) -> dict[str, Any]:
+    """The summary of the runs so far as JSON (`partial`: fewer than `runs` done; the file name gets
+    `-partial`)."""
     from haa.mission.runner import provenance
 
     doc = {
-        **summary,
+        **summarize(name, results),
         "mission": m.spec.name,
         "exploration": m.spec.exploration,
-        "seeds": [m.spec.seed + k for k in range(runs)],
+        "seeds": [m.spec.seed + k for k in range(len(results))],
+        "runs_planned": runs,
+        "partial": partial,
         "speed": speed if speed is not None else m.spec.speed,
         "wall_s": round(time.time() - t0, 1),
         "provenance": provenance(m),
         "results": results,
     }
     path = json_out or RESULTS_DIR / f"{name}.json"
+    if partial:
+        path = path.with_name(path.stem + "-partial" + path.suffix)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2, default=str) + "\n")
+    if not partial:
+        path.with_name(path.stem + "-partial" + path.suffix).unlink(missing_ok=True)
     doc["json"] = str(path)
     return doc
