@@ -60,6 +60,12 @@ class FakeCtx:
         self.spawned.append((type_name, json.loads(config)))
         return f"{type_name}-{len(self.spawned)}"
 
+    async def ddb_get(self, key: str, timeout: float) -> bytes | None:
+        return None  # no processing marker (tests/test_slam_exactly_once.py runs on a DDB replica)
+
+    async def ddb_scan(self, prefix: str, limit: int, timeout: float) -> dict[str, bytes]:
+        return {}
+
 
 def supervisor(mode: str = "jc-slam", **cfg: Any) -> tuple[SupervisorSLAM, FakeCtx]:
     ctx = FakeCtx({"mode": mode, **cfg})
@@ -105,15 +111,21 @@ def test_one_at_a_time_when_jobs_per_agent_is_1() -> None:
     assert processes(ctx, "c1") == [keys[-1]]
 
 
-def test_a_restarted_agent_gets_all_its_processings_again() -> None:
+def test_a_restarted_agent_gets_again_what_it_no_longer_has() -> None:
+    """A restarted agent is asked what it has in flight (a sync); what it had and no longer has is handed out
+    again, what it still has (sent while it was down, kept by its host) is not (tests/test_slam_exactly_once.py)."""
     sup, ctx = supervisor(jobs_per_agent=4)
     hello(sup, "c1", "sensor_cooccupancy")
     keys = [reading(sup, "s1", n) for n in range(1, 4)]
     sup._dispatch()
     assert sorted(sup.sensors["sensor_cooccupancy"]["c1"]["jobs"]) == sorted(keys)
     ctx.sent.clear()
-    hello(sup, "c1", "sensor_cooccupancy")  # restarted: what it had is handed out again
-    assert sorted(processes(ctx, "c1")) == sorted(keys)
+    hello(sup, "c1", "sensor_cooccupancy")  # restarted: asked first, nothing handed out yet
+    (sync,) = [m for to, m in ctx.sent if to == "c1" and m.get("op") == "sync"]
+    assert processes(ctx, "c1") == []
+    asyncio.run(sup.on_message("c1", team.dumps({"op": "synced", "proc": "sensor_cooccupancy",
+                                                  "sync": sync["sync"], "busy": [keys[0]]})))
+    assert sorted(processes(ctx, "c1")) == sorted(keys[1:])
 
 
 def test_the_supervisor_does_not_wait_for_the_commit_of_a_finished_reading() -> None:

@@ -12,6 +12,19 @@ the sensor agent appends the resulting Observe event to `slam/log` and answers {
 "ok"}. When every processing of a reading is done the raw entry is deleted and `stats/readings_processed`
 counts it (`stats/processings` is counted by the sensor agents, `stats/readings_discarded` here).
 
+**Exactly once** (docs/team.md "Failures"). The sensor agent commits a marker `slam/done/<avatar>/<n>/<proc>`
+(haa.agents.team.done_key) in the atomic batch of its Observe events, with a cas that aborts the batch if the
+marker exists: a processing handed out twice is applied once. This agent reads the markers with the reading
+list when it starts, recovers or is moved (a marked processing is not handed out again; a reading whose
+processings are all marked is finished at once; a marker whose reading is gone is deleted) and deletes a
+reading's markers with its raw entry. A sensor agent that says hello while it had processings, and every
+sensor agent after this agent's recovery or move, is asked {"op": "sync"} before it gets more: its answer
+lists the processings it has in flight (kept as its jobs), and what it had and neither reported nor has in
+flight was lost with its previous life (handed out again). A sync unanswered after `sync_timeout_s`: what
+it had is handed out again, and it gets nothing until it answers or says hello (after a move, an agent that
+never started — one the allocation could not place — was taken for a started one and fed processings that
+all timed out, again and again).
+
 **Modes** (Table 7.2-4, the mission's `slam`):
 
 * `jc-slam` — one LIFO stack per processing type; a sensor agent gets up to `jobs_per_agent` processings at
@@ -41,7 +54,8 @@ publishes the map (`slam/map`), the estimates (`slam/estimates`, `slam/est/<avat
 log in one atomic batch. A crash of this agent or its host loses nothing committed: its successor restores
 the checkpoint and replays the log (recovery: "Restore configuration and retrieve AgentSensor* statuses,
 reassign readings if appropriate. Confirm that reading list is up to date" — the reading list is
-`slam/raw/`, read again; processings in flight are handed out again after `job_timeout_s`).
+`slam/raw/` less the marked processings, read again; the sensor agents' statuses are their answers to a
+sync: what they have in flight stays with them, the rest is handed out again).
 
 Periodic DDB writes (requests, publication, checkpoints) and the bookkeeping of finished readings run beside
 the mailbox (`_upkeep`, `_background`): awaiting their commits in it held up the log events and the sensor
@@ -101,6 +115,8 @@ class SlamAgentConfig(team.TeamConfig):
     #: processings a sensor agent has at once (it runs them side by side: most of a processing's time is
     #: waiting for the frame and the DDB commit)
     jobs_per_agent: int = pydantic.Field(4, ge=1, le=64)
+    #: a sensor agent asked {"op": "sync"} that has not answered by then gets its processings handed out again
+    sync_timeout_s: float = pydantic.Field(10.0, gt=0, le=600)
 
 
 @register
@@ -123,12 +139,19 @@ class SupervisorSLAM(AgentBase):
         self.since_ckpt = 0
         self.buffer: list[tuple[int, bytes]] = []
         self.loading = True
+        #: the reading list (`slam/raw/` and the markers) is loaded: before that, a "done" for a reading this
+        #: agent does not know says nothing (a recovered agent handles the messages queued for it first)
+        self.listed = False
+        self.syncs = 0
+        #: readings whose finish (the delete of the raw entry and the markers) is being committed
+        self.finishing: set[str] = set()
         self.dirty = True
         # readings: raw key → {"rec": record, "todo": set of processing types left, "discarded": int}
         self.readings: dict[str, dict[str, Any]] = {}
         self.stacks: dict[str, list[str]] = {p: [] for ps in PROCESSINGS.values() for p in ps}
         # sensor agents: processing type → {agent id: {"jobs": {raw key: since}, "ready": bool, "avatar": str}}
-        # ("avatar": the avatar a dedicated agent of the delay mode serves, "" for a shared one)
+        # ("avatar": the avatar a dedicated agent of the delay mode serves, "" for a shared one; while a sync
+        # is out: "sync": its id, "sync_t": when, None once it timed out)
         self.sensors: dict[str, dict[str, dict[str, Any]]] = {p: {} for p in self.stacks}
         self.spawning: set[str] = set()
         #: delay mode: (processing type, avatar) pairs whose dedicated agent is being spawned or exists
@@ -181,8 +204,11 @@ class SupervisorSLAM(AgentBase):
         self.watch_log(team.K_SLAM_LOG, self._on_event)
         await self._load()
         self.watch(team.K_SLAM_RAW, self._on_raw)
-        for key, data in (await self.ddb_scan(team.K_SLAM_RAW)).items():
-            self._add_reading(key, data)
+        await self._list_readings()
+        if not fresh:  # recovered or moved: what each sensor agent still has in flight is asked, not handed out again
+            for p, agents in self.sensors.items():
+                for a, s in agents.items():
+                    self._sync(p, a, s)
         if self.cfg.mode == "discard" and fresh:
             for p in self.stacks:
                 for _ in range(self.cfg.discard_agents):
@@ -192,6 +218,28 @@ class SupervisorSLAM(AgentBase):
         self.every(1.0, self._watchdog)
         self.every(10.0, self._status_log, first=10.0)
         self._dispatch()
+
+    async def _list_readings(self) -> None:
+        """The reading list: `slam/raw/`, less the processings whose marker exists (applied by a sensor agent
+        whose report this agent never got); a marker whose reading is gone (a processing committed after its
+        reading was finished, or a finish whose delete of it failed) is deleted."""
+        raw = await self.ddb_scan(team.K_SLAM_RAW)
+        cut = bool(getattr(self._ctx, "scan_truncated", False))  # (then a marker's reading may just be unlisted)
+        marks = await self.ddb_scan(team.K_SLAM_DONE)
+        marked: dict[str, set[str]] = {}
+        for m in marks:
+            key, p = team.done_parts(m)
+            marked.setdefault(key, set()).add(p)
+        for key, data in raw.items():
+            self._add_reading(key, data, marked.get(key, set()))
+        orphans = [] if cut else [m for m in marks if team.done_parts(m)[0] not in raw]
+        if orphans:
+            self.log("orphan_markers", level="warning", n=len(orphans))
+            self._background(self.ddb_write([ddbops.delete(m) for m in orphans]))
+        skipped = sum(len(marked.get(k, ())) for k in raw)
+        if skipped:
+            self.log("marked_processings", n=skipped)
+        self.listed = True
 
     async def _load(self) -> None:
         """The replica from the checkpoint and the log (recovery: nothing committed is lost)."""
@@ -321,7 +369,8 @@ class SupervisorSLAM(AgentBase):
         elif kind == "remove":
             self.readings.pop(key, None)
 
-    def _add_reading(self, key: str, data: bytes) -> None:
+    def _add_reading(self, key: str, data: bytes, marked: set[str] | None = None) -> None:
+        """A reading to process; `marked`: its processings already applied (their markers exist)."""
         if key in self.readings:
             return
         try:
@@ -330,10 +379,14 @@ class SupervisorSLAM(AgentBase):
         except (ValueError, KeyError, TypeError):
             self.log("bad_reading", level="warning", key=key)
             return
-        self.readings[key] = {"rec": rec, "todo": set(procs), "discarded": 0, "n": len(procs),
-                              "avatar": str(rec.get("avatar", ""))}
+        r = {"rec": rec, "todo": set(procs) - (marked or set()), "discarded": 0, "n": len(procs), "procs": procs,
+             "avatar": str(rec.get("avatar", ""))}
+        self.readings[key] = r
         for p in procs:
-            self.stacks[p].append(key)
+            if p in r["todo"]:
+                self.stacks[p].append(key)
+        if not r["todo"]:  # every processing applied: only the finish was missing
+            self._background(self._finish(key, r))
 
     def _free(self, s: dict[str, Any]) -> int:
         return self.cfg.jobs_per_agent - len(s["jobs"]) if s.get("ready") else 0
@@ -355,7 +408,8 @@ class SupervisorSLAM(AgentBase):
                 if self._free(s) <= 0:
                     free.pop()
             if self.cfg.mode == "discard":
-                while stack:
+                # (not while an agent of the type is syncing: it may have some of them in flight)
+                while stack and not any(s.get("sync_t") is not None for s in self.sensors[p].values()):
                     self._discard(stack.pop(), p)
             elif stack:
                 self.backlog_since.setdefault(p, now)
@@ -462,22 +516,72 @@ class SupervisorSLAM(AgentBase):
             self._background(self._finish(key, r))
 
     async def _finish(self, key: str, r: dict[str, Any]) -> None:
+        """Delete the raw entry with its processings' markers (those of discarded processings too: a write
+        reported failed may have committed; deleting an absent one fails alone, the batch is not atomic) and
+        count the reading."""
         self.readings.pop(key, None)
-        ops = [ddbops.delete(key)]
+        ops = [ddbops.delete(key)] + [ddbops.delete(team.done_key(key, p)) for p in r.get("procs", ())]
         if r["discarded"] >= r["n"]:
             ops.append(ddbops.add(team.K_STATS + "readings_discarded", 1))
         else:
             ops.append(ddbops.add(team.K_STATS + "readings_processed", 1))
-        await self.ddb_write(ops)
+        self.finishing.add(key)
+        try:
+            await self.ddb_write(ops)
+        finally:
+            self.finishing.discard(key)
 
-    def _requeue(self, p: str, s: dict[str, Any]) -> None:
-        """Processings out with a sensor agent that restarted or went silent go back on their stack."""
-        for key in list(s["jobs"]):
+    async def _stray(self, key: str, p: str, sensor: str) -> None:
+        """A report of a commit for a reading already finished: if its marker exists now (the finish's delete
+        has committed), the commit came after the finish — the processing was out twice and applied twice —
+        and the marker would stay for good. (A report of a commit the finish accounted for finds none: e.g. a
+        moved or recovered agent that found every marker of the reading and finished it at once.)"""
+        marker = team.done_key(key, p)
+        if await self.ddb_get(marker) is None:
+            return
+        self.log("late_processing", level="warning", key=key, proc=p, sensor=sensor)
+        await self.ddb_write([ddbops.delete(marker)])
+
+    def _requeue(self, p: str, s: dict[str, Any], keep: set[str] | frozenset[str] = frozenset()) -> int:
+        """Processings out with a sensor agent that restarted or went silent go back on their stack, but those
+        in `keep` (it has them in flight); returns how many went back."""
+        back = 0
+        for key in [k for k in s["jobs"] if k not in keep]:
+            del s["jobs"][key]
             r = self.readings.get(key)
             if r is not None and p in r["todo"] and key not in self.stacks[p]:
                 self.stacks[p].append(key)
-        s["jobs"].clear()
+                back += 1
         self.stacks[p].sort(key=lambda k: self.readings[k]["rec"].get("t", 0.0) if k in self.readings else 0.0)
+        return back
+
+    def _sync(self, p: str, a: str, s: dict[str, Any]) -> None:
+        """Ask sensor agent `a` what it has in flight ({"op": "sync"}); it gets nothing more until it answers.
+        Messages are FIFO per sender: by the time it reads this, it has seen every processing sent before."""
+        self.syncs += 1
+        s["sync"] = f"{self.epoch}.{self.syncs}"
+        s["sync_t"] = self.now()
+        s["ready"] = False
+        self.send(a, team.dumps({"op": "sync", "sync": s["sync"]}))
+
+    def _synced(self, p: str, s: dict[str, Any], busy: set[str]) -> None:
+        """The agent has `busy` in flight: they are its jobs (not on a stack); anything else it had was lost
+        (its "done" would have come before the answer) and goes back on its stack."""
+        now = self.now()
+        kept = 0
+        for key in busy:
+            r = self.readings.get(key)
+            if r is not None and p in r["todo"]:
+                s["jobs"].setdefault(key, now)
+                if key in self.stacks[p]:
+                    self.stacks[p].remove(key)
+                kept += 1
+        back = self._requeue(p, s, keep=busy)
+        s.pop("sync", None)
+        s.pop("sync_t", None)
+        s["ready"] = True
+        if kept or back:
+            self.log("sensor_synced", proc=p, in_flight=kept, requeued=back)
 
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
@@ -488,8 +592,21 @@ class SupervisorSLAM(AgentBase):
                 if msg.get("avatar"):
                     s["avatar"] = str(msg["avatar"])
                     self.dedicated.add((p, s["avatar"]))
-                self._requeue(p, s)  # restarted while it had some: hand them out again
-                s["ready"] = True
+                if s["jobs"]:
+                    # restarted while it had some: those sent while it was down are still to come (its host
+                    # kept them), those it had received are lost — its answer to the sync tells which
+                    self._sync(p, src, s)
+                else:
+                    s.pop("sync", None)
+                    s.pop("sync_t", None)
+                    s["ready"] = True
+                self._dispatch()
+            return
+        if msg.get("op") == "synced":
+            p = msg.get("proc", "")
+            s = self.sensors.get(p, {}).get(src)
+            if s is not None and s.get("sync") is not None and msg.get("sync") == s["sync"]:
+                self._synced(p, s, {str(k) for k in msg.get("busy", [])})
                 self._dispatch()
             return
         if msg.get("op") != "done":
@@ -499,9 +616,13 @@ class SupervisorSLAM(AgentBase):
         if s is not None:
             s["jobs"].pop(key, None)
         r = self.readings.get(key)
-        st = self.proc_stats.setdefault(p, {"done": 0, "failed": 0, "readings": 0, "items": 0, "ms": 0.0,
-                                            "delay_s": 0.0})
-        st["done" if msg.get("ok") else "failed"] += 1
+        if r is None and msg.get("wrote") and self.listed and p in self.stacks and key not in self.finishing:
+            # (not before the list is read: a recovered agent handles the messages queued for it first, and
+            # then the marker tells that the processing was applied)
+            self._background(self._stray(key, p, src))
+        st = self.proc_stats.setdefault(p, {"done": 0, "failed": 0, "skipped": 0, "readings": 0, "items": 0,
+                                            "ms": 0.0, "delay_s": 0.0})
+        st["skipped" if msg.get("skipped") else "done" if msg.get("ok") else "failed"] += 1
         st["readings"] += int(msg.get("n", 0))
         st["items"] += int(msg.get("items", 0))
         st["ms"] += float(msg.get("ms", 0.0))
@@ -522,13 +643,17 @@ class SupervisorSLAM(AgentBase):
         now = self.now()
         for p, agents in self.sensors.items():
             for a, s in agents.items():
+                if s.get("sync_t") is not None and now - s["sync_t"] > self.cfg.sync_timeout_s:
+                    # what it had goes to others; it stays asked (a late answer or a hello makes it ready)
+                    self.log("sync_timeout", level="warning", sensor=a, jobs=self._requeue(p, s))
+                    s["sync_t"] = None
                 late = [k for k, since in s["jobs"].items() if now - since > self.cfg.job_timeout_s]
                 for key in late:
                     del s["jobs"][key]
                     r = self.readings.get(key)
                     if r is not None and p in r["todo"]:
                         self.stacks[p].append(key)
-                    self.log("processing_timeout", level="warning", agent=a, key=key)
+                    self.log("processing_timeout", level="warning", sensor=a, key=key)
         if self.cfg.mode == "delay" and self.replica is not None and not self.loading:
             gone = {a for _, a in self.dedicated} & self.removed
             gone -= {r["avatar"] for r in self.readings.values()} | set(self.replica.names)

@@ -309,6 +309,24 @@ class SupervisorBase(AgentBase):
 
 # ---------------------------------------------------------------------------------------------- sensor agents
 
+#: processing markers (docs/team.md "DDB layout"): `slam/done/<avatar>/<n>/<proc>` exists once processing
+#: `<proc>` of the reading `slam/raw/<avatar>/<n>` is applied — written by the sensor agent in the atomic batch
+#: of its Observe events (a cas "must not exist": a second application of the same processing aborts),
+#: deleted by SupervisorSLAM with the raw entry
+K_SLAM_DONE = "slam/done/"
+
+
+def done_key(raw_key: str, proc: str) -> str:
+    """The marker key of processing `proc` of the reading at `raw_key`."""
+    tail = raw_key[len(K_SLAM_RAW):] if raw_key.startswith(K_SLAM_RAW) else raw_key
+    return f"{K_SLAM_DONE}{tail}/{proc}"
+
+
+def done_parts(marker: str) -> tuple[str, str]:
+    """(raw key, processing type) of a marker key (`done_key`'s inverse for raw keys under `slam/raw/`)."""
+    tail, _, proc = marker[len(K_SLAM_DONE):].rpartition("/")
+    return K_SLAM_RAW + tail, proc
+
 
 class SensorConfig(TeamConfig):
     supervisor: str = pydantic.Field(min_length=1)
@@ -323,13 +341,24 @@ class SensorBase(AgentBase):
     Protocol with SupervisorSLAM ("Assign processing requests" / "Report success or failure of processing",
     App. III L2971-3015): {"op": "process", "key", "proc", "reading"} in; the agent turns the raw reading
     into haa.slam readings (`process`, implemented by each type), appends their Observe events to
-    `slam/log` with `stats/processings` in one atomic batch, and answers {"op": "done", "key", "proc", "ok",
-    "ms", "n", "items"}; several processings run side by side (each in a task beside the mailbox: most of
-    their time is waiting for the frame and the commit). A (re)started agent says {"op": "hello", "proc",
-    "avatar"} to its supervisor; {"op": "stop"} from it ends the agent (a dedicated agent whose avatar left,
-    `dedicated_type`). Recovery: "Restore
+    `slam/log` with `stats/processings` and the processing's marker (`done_key`) in one atomic batch, and
+    answers {"op": "done", "key", "proc", "ok", "wrote", "skipped", "ms", "n", "items"}; several processings
+    run side by side (each in a task beside the mailbox: most of their time is waiting for the frame and the
+    commit). A (re)started agent says {"op": "hello", "proc", "avatar"} to its supervisor; {"op": "stop"} from
+    it ends the agent (a dedicated agent whose avatar left, `dedicated_type`). Recovery: "Restore
     configuration and wait for instructions" (RECOVERY = "restart": the supervisor hands out again what
-    was in flight). At most one agent of each sensor type per host (MAX_PER_HOST = 1, App. III L3103)."""
+    was in flight). At most one agent of each sensor type per host (MAX_PER_HOST = 1, App. III L3103).
+
+    **Exactly once.** A processing may be handed out twice (SupervisorSLAM recovered, or its job timed out, or
+    the agent restarted): the marker makes the second one a no-op. The agent looks for the marker first (a
+    local read: present → answers done with `skipped` "marked", writes nothing), and the batch's first op is
+    a cas of the marker with expected version 0 ("must not exist"): if another agent or copy committed it
+    meanwhile the whole batch aborts ("op 0 failed: version mismatch") and the answer is the same. A copy of
+    a processing this agent has in flight waits for it and then takes the same path (no second frame fetch
+    or detection). {"op": "sync", "sync"} from the supervisor (after a hello from an agent it had given
+    processings to, and after its own recovery or move) is answered {"op": "synced", "proc", "sync", "busy":
+    keys in flight}: the messages are FIFO per sender, so every processing the supervisor sent before it
+    has been seen by then, and those neither done nor busy were lost with the agent's previous life."""
 
     CONFIG: ClassVar[type[pydantic.BaseModel] | None] = SensorConfig
     #: the processing type it serves (the supervisor's name for it); "" = its TYPE. A dedicated agent
@@ -344,7 +373,10 @@ class SensorBase(AgentBase):
         super().__init__(ctx)
         self.done = 0
         self.failed = 0
+        self.skipped = 0
         self.jobs: set[asyncio.Task[Any]] = set()  # processings in flight (kept referenced: asyncio holds weak ones)
+        #: raw key → the task of the first copy of that processing in flight here
+        self.inflight: dict[str, asyncio.Task[Any]] = {}
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         """The haa.slam readings (SonarReading, LandmarkReading, ...) of one raw reading; [] if it gives none."""
@@ -367,38 +399,66 @@ class SensorBase(AgentBase):
 
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
-        if msg.get("op") == "stop" and src == self.cfg.supervisor:  # its avatar left (delay mode)
+        op = msg.get("op")
+        if op == "stop" and src == self.cfg.supervisor:  # its avatar left (delay mode)
             self.stop()
             return
-        if msg.get("op") != "process":
+        if op == "sync":
+            self.send(src, dumps({"op": "synced", "proc": self.proc, "sync": msg.get("sync"),
+                                  "busy": sorted(self.inflight)}))
+            return
+        if op != "process":
             return
         # each processing runs beside the mailbox: most of its time is waiting (the frame from the avatar agent,
         # the DDB commit), so several in flight share one process instead of needing one agent each (the
         # supervisor bounds how many it hands out at once: SlamAgentConfig.jobs_per_agent)
-        task = asyncio.ensure_future(self._process_one(src, msg))
+        key = str(msg.get("key", ""))
+        first = self.inflight.get(key)
+        if first is None:
+            task = asyncio.ensure_future(self._process_one(src, msg))
+            self.inflight[key] = task
+            task.add_done_callback(lambda t, k=key: self.inflight.pop(k) if self.inflight.get(k) is t else None)
+        else:  # handed out again while this agent has it: after the first copy, the marker answers
+            task = asyncio.ensure_future(self._after(first, src, msg))
         self.jobs.add(task)
         task.add_done_callback(self.jobs.discard)
+
+    async def _after(self, first: asyncio.Task[Any], src: str, msg: dict[str, Any]) -> None:
+        await asyncio.wait([first])
+        await self._process_one(src, msg)
 
     async def _process_one(self, src: str, msg: dict[str, Any]) -> None:
         from haa.slam import events as sev
 
         t0 = time.perf_counter()
-        ok, why = True, ""
+        ok, why, wrote, skipped = True, "", False, ""
         readings: list[Any] = []
+        marker = done_key(str(msg.get("key", "")), self.proc)
         try:
-            readings = await self.process(msg["reading"])
-            evs = [sev.encode(sev.Observe(r, self.name)) for r in readings]
-            ops = [ddbops.add(K_STATS + "processings", 1)]
-            if evs:
-                ops.insert(0, ddbops.log_append(K_SLAM_LOG, evs))
-            errs = await self.ddb_write(ops, atomic=True)
-            if any(errs):
-                ok, why = False, "; ".join(e for e in errs if e)
+            if await self.ddb_get(marker) is not None:
+                skipped = "marked"  # applied already (by this agent's previous life, another agent, a copy)
+            else:
+                readings = await self.process(msg["reading"])
+                evs = [sev.encode(sev.Observe(r, self.name)) for r in readings]
+                ops = [ddbops.cas(marker, 0, "json", {"agent": self.name, "n": len(evs), "t": round(self.now(), 3)}),
+                       ddbops.add(K_STATS + "processings", 1)]
+                if evs:
+                    ops.append(ddbops.log_append(K_SLAM_LOG, evs))
+                errs = await self.ddb_write(ops, atomic=True)
+                if not any(errs):
+                    wrote = True
+                elif "op 0 failed: version mismatch" in errs[0]:
+                    skipped = "marked"  # committed meanwhile: the batch aborted, nothing written twice
+                else:
+                    ok, why = False, "; ".join(e for e in errs if e)
         except asyncio.CancelledError:
             raise
         except Exception as e:  # a reading that cannot be processed is reported, not fatal
             ok, why = False, f"{type(e).__name__}: {e}"
-        if ok:
+        if skipped:
+            self.skipped += 1
+            readings = []
+        elif ok:
             self.done += 1
         else:
             self.failed += 1
@@ -406,9 +466,14 @@ class SensorBase(AgentBase):
         # n: haa.slam readings made (Observe events), items: their parts (landmark sightings, floor vertices,
         # sonar echoes) — what SupervisorSLAM reports per processing type (its `slam_status` log)
         items = sum(len(getattr(r, "sightings", getattr(r, "polygon", getattr(r, "echoes", ())))) for r in readings)
-        self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.proc, "ok": ok, "why": why,
-                              "ms": round(1000 * (time.perf_counter() - t0), 2), "n": len(readings) if ok else 0,
-                              "items": items if ok else 0}))
+        # (the agent may have ended meanwhile — moved, stopped: then it cannot send, and the marker tells)
+        try:  # noqa: SIM105 (one import fewer in the shared module)
+            self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.proc, "ok": ok, "why": why,
+                                  "wrote": wrote, "skipped": skipped,
+                                  "ms": round(1000 * (time.perf_counter() - t0), 2), "n": len(readings) if ok else 0,
+                                  "items": items if ok else 0}))
+        except RuntimeError:
+            pass
 
     def on_stop(self) -> None:
         for t in list(self.jobs):
