@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from google.protobuf.message import DecodeError
 
@@ -222,6 +222,16 @@ def _reading_to_pb(r: Reading, m: pb.SlamObserve) -> None:
         m.floor.xs.extend(v[0] for v in r.polygon)
         m.floor.ys.extend(v[1] for v in r.polygon)
         m.floor.occupied.extend(r.occupied)
+
+
+def reading_message(r: Reading) -> tuple[str, Any]:
+    """(kind, message) of a reading in its proto form — the SlamObserve field ("sonar", "landmark",
+    "cooccupancy", "floor") and its SlamSonar / SlamLandmark / ... message; the event log and the recordings
+    (haa.slam.recording, topic /slam/<kind>) share it."""
+    m = pb.SlamObserve()
+    _reading_to_pb(r, m)
+    kind = m.WhichOneof("reading")
+    return kind, getattr(m, kind)
 
 
 def to_pb(ev: SlamEvent) -> pb.SlamEvent:

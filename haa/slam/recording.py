@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from haa.pb import slam_pb2 as pb
+from haa.slam.events import reading_message
 from haa.slam.grid import GridSpec
 from haa.slam.motion import DriftSpec, Prediction
 from haa.slam.sensors import (
@@ -192,24 +193,8 @@ def save(rec: Recording, path: Path | str) -> Path:
                 k += 1
     for r in rec.readings:
         m: object
-        if isinstance(r, SonarReading):
-            m = pb.SlamSonar(avatar=r.avatar, t=r.t, fov=r.fov, max_range=r.max_range)
-            for e in r.echoes:
-                pe = m.echoes.add(bearing=e.bearing)
-                if e.range is not None:
-                    pe.range = e.range
-            topic = "/slam/sonar"
-        elif isinstance(r, LandmarkReading):
-            m = pb.SlamLandmark(avatar=r.avatar, t=r.t)
-            for g in r.sightings:
-                m.sightings.add(landmark_id=g.landmark_id, range=g.range, bearing=g.bearing)
-            topic = "/slam/landmark"
-        elif isinstance(r, CooccupancyReading):
-            m = pb.SlamCooccupancy(avatar=r.avatar, t=r.t, radius=r.radius)
-            topic = "/slam/cooccupancy"
-        else:
-            m = pb.SlamFloor(avatar=r.avatar, t=r.t, xs=[v[0] for v in r.polygon], ys=[v[1] for v in r.polygon])
-            topic = "/slam/floor"
+        kind, m = reading_message(r)
+        topic = f"/slam/{kind}"
         msgs.append((r.t, k, topic, m))
         k += 1
     msgs.sort(key=lambda e: (e[0], e[1]))
