@@ -49,9 +49,10 @@ def recording(key: str, duration: float, seed: int = 0, log: Callable[[str], Non
     """The cached recording of a scenario (made with the simulator the first time)."""
     from haa.slam.explorer import record
 
-    # "-v2": haa-sim's default odometry drift became the thesis' random walk and the avatars state its σ's
-    # (issue 16); recordings cached before that have other predictions and must not be reused
-    path = CACHE / f"{key}-{duration:g}s-seed{seed}-v2.mcap"
+    # "-v2": haa-sim's default odometry drift became the thesis' random walk and the avatars state its σ's;
+    # "-v3": the seeker drifts 0.122 m per 10 m, avatars turn without sliding sideways and the driver keeps
+    # clear of walls, thin panels and other avatars (issue 16); older recordings must not be reused
+    path = CACHE / f"{key}-{duration:g}s-seed{seed}-v3.mcap"
     if path.exists():
         return load(path), path
     t0 = time.perf_counter()

@@ -62,7 +62,7 @@ from haa.agents.registry import register
 from haa.hostd import ddb as ddbops
 from haa.pb import sim_pb2 as spb
 from haa.slam import events as sev
-from haa.slam.motion import DRIFT, odometry_prediction, wrap_angle
+from haa.slam.motion import DRIFT, DriftSpec, odometry_prediction, wrap_angle
 
 Pose = tuple[float, float, float]
 
@@ -230,7 +230,7 @@ class AvatarSimulation(AgentBase):
             return
         anchor = await self._read_anchor()
         if fresh or anchor is None:
-            d = DRIFT[self.cfg.type]
+            d = self.drift
             sp = self.info.start_pose
             ev = sev.AddAvatar(self.name_, self.cfg.type, (sp.x, sp.y, sp.theta), float(self.info.joined),
                                 d, float(self.info.radius))
@@ -298,6 +298,14 @@ class AvatarSimulation(AgentBase):
             else:
                 self.log("odometry_error", level="warning", error=str(e))
 
+    @property
+    def drift(self) -> DriftSpec:
+        """The odometry drift the avatar states to SLAM: what its simulator reports for it (AvatarInfo, so the
+        motion model follows haa-sim's --drift model), else Table 6.2-3 as motion.DRIFT reads it."""
+        if self.info is not None and self.info.linear_drift > 0 and self.info.angular_drift > 0:
+            return DriftSpec(float(self.info.linear_drift), float(self.info.angular_drift))
+        return DRIFT[self.cfg.type]
+
     def odom_at(self, t: float) -> Pose | None:
         """Odometry pose at time t, interpolated (None before the history starts or after its end)."""
         h = self.odo
@@ -330,7 +338,7 @@ class AvatarSimulation(AgentBase):
         t0, p0 = self.anchor
         if t_end <= t0 + 1e-6:
             return []
-        pred = odometry_prediction(t0, p0, t_end, p_end, DRIFT[self.cfg.type])
+        pred = odometry_prediction(t0, p0, t_end, p_end, self.drift)
         self.anchor = (t_end, p_end)
         return [ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.Predict(self.name_, pred))])]
 

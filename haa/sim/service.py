@@ -2,7 +2,7 @@
 
 ```
 haa-sim --arena small|large|FILE --listen HOST:PORT --seed S [--speed X | --step] [--schedule FILE]
-        [--token-file FILE] [--tick 0.05] [--drift thesis|systematic]
+        [--token-file FILE] [--tick 0.05] [--drift thesis|table|systematic]
 ```
 
 * Clock. Real time by default; `--speed X` runs X simulated seconds per wall second (as fast as it can when
@@ -120,8 +120,8 @@ def avatar_info(av: AvatarState) -> pb.AvatarInfo:
         radius=s.radius,
         capacity=s.capacity,
         sonars=s.sonars,
-        linear_drift=s.linear_drift,
-        angular_drift=s.angular_drift,
+        linear_drift=av.drift_figures[0],
+        angular_drift=av.drift_figures[1],
         camera=camera_info(av),
         start_pose=pose_msg(av.start_pose),
         joined=av.joined,
@@ -827,7 +827,8 @@ def parse_args(argv: list[str] | None = None) -> Settings:
         "--drift",
         choices=DRIFT_MODELS,
         default="thesis",
-        help="odometry drift model: thesis (random walk, default) or systematic (+ scale and heading bias)",
+        help="odometry drift model: thesis (random walk, default), table (the same with Table 6.2-3's seeker"
+        " drift as printed, 10x the default's) or systematic (table + scale and heading bias)",
     )
     a = p.parse_args(argv)
 

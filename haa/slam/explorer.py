@@ -30,17 +30,20 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from haa.slam.grid import GridSpec
-from haa.slam.motion import DRIFT, odometry_prediction, wrap_angle
+from haa.slam.motion import DriftSpec, odometry_prediction, wrap_angle
 from haa.slam.recording import AvatarInfo, Recording, Track
 from haa.slam.sensors import CooccupancyReading, LandmarkReading, Sighting, SonarEcho, SonarReading
 
 SEEN_RADIUS = 1.0  # m: cells this close to an avatar's path count as visited by the driver
 CRUISE = 0.5  # share of the avatar type's top speed
+STOP_GAP = 0.25  # m between two avatars' edges: closer, with the other ahead, an avatar stops
+BLOCKED_S = 1.5  # s stopped for another avatar before planning around it
+AVOID_RADIUS = 0.5  # m around an avatar in the way that the plan around it keeps clear of
 
 
 @dataclass(frozen=True)
@@ -68,7 +71,8 @@ def scenario(key: str) -> Scenario:
 
 
 def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
-    out = mask.copy()
+    """`mask` grown by k cells (4-neighbour steps); beyond the array counts as set (the arena's outer walls)."""
+    out = np.pad(mask, k, constant_values=True)
     for _ in range(k):
         m = out.copy()
         m[1:, :] |= out[:-1, :]
@@ -76,7 +80,7 @@ def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
         m[:, 1:] |= out[:, :-1]
         m[:, :-1] |= out[:, 1:]
         out = m
-    return out
+    return out[k : out.shape[0] - k, k : out.shape[1] - k]
 
 
 class Explorer:
@@ -90,6 +94,7 @@ class Explorer:
         self.goals: dict[str, tuple[int, int]] = {}
         self.paths: dict[str, list[tuple[float, float]]] = {}
         self.check: dict[str, tuple[float, float, float]] = {}  # aid -> (t, x, y) of the last progress check
+        self.blocked: dict[str, float] = {}  # aid -> since when an avatar is in its way
         r = math.ceil(SEEN_RADIUS / resolution)
         yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
         self._disc = (xx**2 + yy**2) <= r * r
@@ -106,10 +111,20 @@ class Explorer:
         y0, y1, x0, x1 = max(cy - r, 0), min(cy + r + 1, rows), max(cx - r, 0), min(cx + r + 1, cols)
         self.visited[y0:y1, x0:x1] |= self._disc[y0 - cy + r : y1 - cy + r, x0 - cx + r : x1 - cx + r]
 
-    def plan(self, aid: str, x: float, y: float) -> None:
-        """BFS from the avatar to the nearest unvisited, unclaimed free cell; store the waypoints."""
+    def plan(self, aid: str, x: float, y: float, avoid: tuple[tuple[float, float], ...] = ()) -> None:
+        """BFS from the avatar to the nearest unvisited, unclaimed free cell; store the waypoints.
+
+        `avoid`: positions of avatars in the way; the cells within AVOID_RADIUS of them are not entered."""
         start = self.cell(x, y)
         rows, cols = self.free.shape
+        free = self.free
+        if avoid:
+            free = free.copy()
+            k = math.ceil(AVOID_RADIUS / self.res)
+            for ox, oy in avoid:
+                oy_, ox_ = self.cell(ox, oy)
+                free[max(oy_ - k, 0) : oy_ + k + 1, max(ox_ - k, 0) : ox_ + k + 1] = False
+            free[start] = True
         if not self.free[start]:  # pushed into the inflated margin: search from the nearest free cell
             fy, fx = np.nonzero(self.free)
             k = int(np.argmin((fy - start[0]) ** 2 + (fx - start[1]) ** 2))
@@ -126,7 +141,7 @@ class Explorer:
                 break
             for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1)):
                 n = (c[0] + dy, c[1] + dx)
-                if 0 <= n[0] < rows and 0 <= n[1] < cols and self.free[n] and n not in parent:
+                if 0 <= n[0] < rows and 0 <= n[1] < cols and free[n] and n not in parent:
                     parent[n] = c
                     q.append(n)
         if goal is None:  # everything seen: wander to a random reachable cell
@@ -141,10 +156,25 @@ class Explorer:
         self.paths[aid] = [((c[1] + 0.5) * self.res, (c[0] + 0.5) * self.res) for c in pts]
 
     def control(
-        self, aid: str, t: float, pose: tuple[float, float, float], max_speed: float, max_turn: float
+        self,
+        aid: str,
+        t: float,
+        pose: tuple[float, float, float],
+        max_speed: float,
+        max_turn: float,
+        others: tuple[tuple[float, float], ...] = (),
+        radius: float = 0.0,
     ) -> tuple[float, float]:
+        """(v, omega) for one avatar; `others`: the other avatars' positions (it stops for one ahead of it
+        and, held up for BLOCKED_S, plans a way around: bumping into avatars slides them sideways, which
+        their wheel odometry never sees)."""
         x, y, th = pose
         self.mark(x, y)
+        ahead = [
+            (ox, oy) for ox, oy in others
+            if math.hypot(ox - x, oy - y) < 2 * radius + STOP_GAP
+            and abs(float(wrap_angle(math.atan2(oy - y, ox - x) - th))) < 1.2
+        ]
         chk = self.check.get(aid)
         if chk is None or t - chk[0] > 3.0:
             stalled = chk is not None and math.hypot(x - chk[1], y - chk[2]) < 0.1
@@ -160,10 +190,20 @@ class Explorer:
         if not path:  # goal reached (or none yet): the next frontier goal
             self.plan(aid, x, y)
             path = self.paths[aid]
+        if ahead:
+            since = self.blocked.setdefault(aid, t)
+            if t - since > BLOCKED_S:
+                self.plan(aid, x, y, tuple(others))
+                self.blocked[aid] = t
+                path = self.paths[aid]
+        else:
+            self.blocked.pop(aid, None)
         tx, ty = path[0]
         err = float(wrap_angle(math.atan2(ty - y, tx - x) - th))
         omega = max(-0.6 * max_turn, min(0.6 * max_turn, 2.5 * err))
         v = CRUISE * max_speed * max(0.0, math.cos(err)) if abs(err) < 0.9 else 0.0
+        if ahead and abs(err) < 1.2:
+            v = 0.0  # turn towards the path but wait for the avatar ahead
         return v, omega
 
 
@@ -187,6 +227,7 @@ def record(
 ) -> Recording:
     """Drive the scenario's team for `duration` simulated seconds and record what SLAM would be given."""
     from haa.sim.avatars import avatar_spec
+    from haa.sim.groundtruth import coverage
     from haa.sim.sensors import BEARING_SIGMA, CAMERAS
     from haa.sim.world import World
 
@@ -196,13 +237,17 @@ def record(
     rng = np.random.default_rng(seed)
     w = World.from_arena(sc.arena, seed=seed, drift=drift)
     spec = avatar_spec(sc.kind)
-    # the avatar states its drift (motion.DriftSpec): the random walk the default drift model draws; the
-    # harsher systematic model is not a random walk, so its σ's are widened 1.5x (docs/slam.md)
-    drift_spec = DRIFT[sc.kind] if drift == "thesis" else replace(DRIFT[sc.kind], inflate=1.5)
+    # the avatar states its drift (motion.DriftSpec): the random walk the drift model draws; the harsher
+    # systematic model is not a random walk, so its σ's are widened 1.5x (docs/slam.md)
+    lin, ang = spec.drift_figures(drift)
+    drift_spec = DriftSpec(lin, ang, 1.5 if drift == "systematic" else 1.0)
     aids = [w.add_avatar(sc.kind) for _ in range(sc.count)]
     ideal = w.ideal_grid(resolution)
     reach = w.explorable_grid(resolution).grid.astype(bool)
-    explorer = Explorer(_pool2(reach), 2 * resolution, spec.radius, rng)  # plans on 2x coarser cells
+    # plan on the cells no solid touches: the ideal grid's 50 % rule leaves out thin panels (4 cm in a 10 cm
+    # cell), which the driver would otherwise push against (a sideways slide its wheels never see)
+    clear = reach & (coverage(w.arena, resolution) == 0)
+    explorer = Explorer(_pool2(clear), 2 * resolution, spec.radius, rng)  # plans on 2x coarser cells
     cam = CAMERAS[spec.camera]
     rec = Recording(
         arena=sc.arena,
@@ -230,8 +275,10 @@ def record(
         rec.odometry[a].add(0.0, w.odometry(a))
     steps = round(duration / dt)
     for step in range(1, steps + 1):
+        poses = {a: w.true_pose(a) for a in aids}
         for a in aids:
-            v, om = explorer.control(a, w.time, w.true_pose(a), spec.max_speed, spec.max_turn)
+            others = tuple((p[0], p[1]) for b, p in poses.items() if b != a)
+            v, om = explorer.control(a, w.time, poses[a], spec.max_speed, spec.max_turn, others, spec.radius)
             w.set_velocity(a, v, om)
         w.step(dt)
         t = round(step * dt, 9)

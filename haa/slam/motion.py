@@ -61,9 +61,11 @@ class DriftSpec:
         return self.inflate * pos / dt, self.inflate * ang / dt
 
 
-# Table 6.2-3 (approx. linear drift after 10 m, approx. angular drift after 10 rotations)
+# Table 6.2-3 (approx. linear drift after 10 m, approx. angular drift after 10 rotations) as haa-sim's default
+# ("thesis") drift model reads it: the seeker's 1.22 m as 0.122 m (haa.sim.avatars, docs/sim.md). An avatar
+# agent states what its simulator reports (AvatarInfo.linear_drift / angular_drift); this table is the default.
 DRIFT: dict[str, DriftSpec] = {
-    "seeker": DriftSpec(1.22, 0.08),
+    "seeker": DriftSpec(0.122, 0.08),
     "enhanced_seeker": DriftSpec(0.25, 0.016),
     "sweeper": DriftSpec(0.12, 0.016),
     "carrier": DriftSpec(0.12, 0.016),
