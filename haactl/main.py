@@ -4,7 +4,7 @@ Subcommands live in their own modules: `verify` (deterministic simulation of the
 (the thesis' experiments and our own measurements), `demo` (the main job on a local cluster), and the
 operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
 processes or, with --compose, the docker compose cluster: docs/cluster.md), and the robot team's `mission` and
-`experiment` (haactl.mission: docs/missions.md).
+`experiment` (haactl.mission: docs/missions.md), and `chaos` (haactl.chaos: docs/chaos.md).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import typer
 
 from haactl.agentcli import agent_app, alloc_app
 from haactl.bench import bench_app
+from haactl.chaos import chaos_app
 from haactl.cluster import cluster_app, host_app
 from haactl.ddbcli import ddb_app
 from haactl.demo import demo
@@ -47,6 +48,7 @@ app.add_typer(agent_app, name="agent")
 app.add_typer(alloc_app, name="alloc")
 app.add_typer(mission_app, name="mission")
 app.command("experiment")(experiment)
+app.add_typer(chaos_app, name="chaos")
 
 if __name__ == "__main__":
     app()

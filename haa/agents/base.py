@@ -81,6 +81,13 @@ REQUEST_TIMEOUT = 5.0
 #: default timeout of the calls answered by the host (DDB, spawn_child), seconds
 HOST_TIMEOUT = 30.0
 
+#: fault injection (haactl chaos, docs/chaos.md): an *operator* request (sender "@<host>") whose payload is this
+#: prefix followed by a number of seconds makes any agent answer b"hanging", then block its own event loop for
+#: that long (no heartbeat, no handler: a stuck computation), then fail with "chaos hang" (exit code 1)
+CHAOS_HANG = b"\x00haa-chaos-hang "
+#: longest chaos hang, seconds
+CHAOS_HANG_MAX = 3600.0
+
 TimerCallback = Callable[[], Any]
 WatchCallback = Callable[[str, str, bytes | None], Any]
 LogCallback = Callable[[int, bytes], Any]
@@ -658,6 +665,9 @@ class AgentContext:
 
     async def _handle_message(self, env: pb.AgentMsg) -> None:
         a = self.agent
+        if env.conv and not env.reply and env.src.startswith("@") and env.payload.startswith(CHAOS_HANG):
+            await self._chaos_hang(env)
+            return
         if env.conv and not env.reply:
             try:
                 result = await a.on_request(env.src, bytes(env.payload))
@@ -675,6 +685,25 @@ class AgentContext:
                 self._emit(pb.AgentToHost(sent=reply))
             return
         await self._guarded("on_message", lambda: a.on_message(env.src, bytes(env.payload)))
+
+    async def _chaos_hang(self, env: pb.AgentMsg) -> None:
+        """CHAOS_HANG from the operator: answer, then block this loop for the given seconds, then fail."""
+        try:
+            seconds = float(env.payload[len(CHAOS_HANG):].decode())
+            if not 0 < seconds <= CHAOS_HANG_MAX:
+                raise ValueError(seconds)
+        except ValueError:
+            why = f"chaos hang: seconds must be in (0, {CHAOS_HANG_MAX:g}]"
+            self._emit(pb.AgentToHost(sent=pb.AgentMsg(src=self.agent_id, dst=env.src, conv=env.conv, reply=True,
+                                                       error=why)))
+            return
+        self._emit(pb.AgentToHost(sent=pb.AgentMsg(src=self.agent_id, dst=env.src, conv=env.conv, reply=True,
+                                                   payload=b"hanging")))
+        if self._drain is not None:
+            await self._drain()
+        await asyncio.sleep(0)
+        time.sleep(seconds)  # deliberately synchronous: the loop (heartbeat included) stops, as in a stuck handler
+        raise AgentFatal(f"chaos hang: blocked its event loop for {seconds:g} s")
 
     async def _guarded(self, what: str, fn: Callable[[], Any]) -> None:
         try:

@@ -1,0 +1,205 @@
+"""A whole chaos run on a local cluster of its own (`haactl chaos run PLAN --local`, docs/chaos.md).
+
+1. refuse what the local cluster cannot do (`inject.local_problems`) before anything starts;
+2. start `plan.hosts` haa-hostd processes in `<out>/cluster` (they load the workload's agent type through
+   HAA_AGENT_MODULES) and wait until they form one group;
+3. start the workload and wait until its agents are active; the chaos clock starts (t = 0);
+4. inject the plan's faults until `duration_s` (`haa.chaos.inject.Injector`), then end the pauses and stop
+   the workload (writers: the key `chaos/stop`; counters: paused, then removed once their last counts are
+   written);
+5. wait up to `settle_s` for the group to settle (`collect.settle`), read every live replica, stop the cluster
+   and copy every host's log out of its data dir;
+6. check (`haa.chaos.checks`) and build the time line (`haa.chaos.timeline`) from those files alone.
+
+Everything lands in the run directory `out`; `result.json` has `faults`, `checks` (name -> passed, detail),
+`timeline` and `passed`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from haa.agents.registry import ENV_MODULES
+from haa.chaos import collect
+from haa.chaos.checks import Check, run_checks
+from haa.chaos.inject import Injected, Injector, local_problems
+from haa.chaos.plan import Plan, PlanError
+from haa.chaos.timeline import Entry, build
+from haa.chaos.workload import STOP_KEY, WORKLOAD_MODULE, WRITER_TYPE
+from haa.cluster.backend import ClusterError, wait_until
+from haa.cluster.local_backend import LocalBackend
+from haa.hostd import ddb as ddbmod
+from haactl.agentcli import AgentRow, active_row, wait_rows
+
+Progress = Callable[[str], None]
+
+#: seconds to wait for the group to form and for the workload to start
+FORM_TIMEOUT = 120.0
+WORKLOAD_TIMEOUT = 90.0
+
+
+@dataclass
+class RunResult:
+    plan: Plan
+    out: Path
+    t0: float = 0.0
+    t_end: float = 0.0  # unix time the replicas were read
+    faults: list[Injected] = field(default_factory=list)
+    checks: dict[str, Check] = field(default_factory=dict)
+    timeline: list[Entry] = field(default_factory=list)
+    settled: bool = False
+    settle_note: str = ""
+    settle_s: float = 0.0
+    error: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return not self.error and bool(self.checks) and all(c.passed for c in self.checks.values())
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "plan": self.plan.name,
+            "seed": self.plan.seed,
+            "run_dir": str(self.out),
+            "t0": self.t0,
+            "t_end": self.t_end,
+            "passed": self.passed,
+            "error": self.error,
+            "settle": {"settled": self.settled, "seconds": round(self.settle_s, 2), "note": self.settle_note},
+            "faults": [f.to_json() for f in self.faults],
+            "checks": {k: c.to_json() for k, c in self.checks.items()},
+            "timeline": [e.to_json() for e in self.timeline],
+        }
+
+
+@contextlib.contextmanager
+def agent_modules(module: str) -> Iterator[None]:
+    """HAA_AGENT_MODULES with `module` added, for the hosts this process starts (restored afterwards)."""
+    old = os.environ.get(ENV_MODULES)
+    mods = [m for m in (old or "").split(",") if m]
+    os.environ[ENV_MODULES] = ",".join([*mods, module] if module not in mods else mods)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(ENV_MODULES, None)
+        else:
+            os.environ[ENV_MODULES] = old
+
+
+def _spawn(backend: LocalBackend, type_name: str, config: dict[str, Any]) -> str:
+    host = backend.pick_host()
+    reply = backend.call(host, lambda c: c.agent_spawn(type_name, json.dumps(config).encode(), timeout=30.0),
+                         "AgentSpawn", timeout=35.0)
+    if not reply.ok:
+        raise ClusterError(f"workload: spawn {type_name}: {reply.reason}")
+    return str(reply.id)
+
+
+def start_workload(plan: Plan, backend: LocalBackend) -> list[str]:
+    """Spawn the workload's agents and wait until every one (and every counter's peer) is active; their ids."""
+    if plan.workload is None:
+        return []
+    ids = []
+    for _ in range(plan.agents):
+        if plan.workload == "ddb-writes":
+            ids.append(_spawn(backend, WRITER_TYPE, {"period": plan.period_s}))
+        else:
+            ids.append(_spawn(backend, "counter", {"spawn_peer": True, "period": plan.period_s}))
+    want = len(ids) * (2 if plan.workload == "counters" else 1)
+
+    def all_active(rows: list[AgentRow]) -> bool:
+        mine = [r for r in rows if r.id in ids or r.parent_id in ids]
+        return len(mine) == want and all(active_row(rows, r.id) for r in mine)
+
+    wait_rows(backend, all_active, WORKLOAD_TIMEOUT, f"the {want} workload agents to become active")
+    return ids
+
+
+def stop_workload(plan: Plan, backend: LocalBackend, progress: Progress) -> None:
+    """Writers: commit `chaos/stop`. Counters: pause every counter, let them write their last counts, remove
+    them (so that their keys stop changing)."""
+    if plan.workload == "ddb-writes":
+        for attempt in range(10):
+            try:
+                host = backend.pick_host()
+                rep = backend.call(host, lambda c: c.ddb_write([ddbmod.put(STOP_KEY, "json", True)], timeout=10.0),
+                                   "DdbWrite", timeout=15.0)
+                if rep.committed:
+                    return
+                progress(f"stopping the writers: not committed ({rep.reason}); again")
+            except ClusterError as e:
+                progress(f"stopping the writers: {e}; again")
+            time.sleep(1.0 + attempt)
+        raise ClusterError("could not commit chaos/stop: the group does not commit writes")
+    if plan.workload == "counters":
+        rows = collect._agents(backend) or []
+        counters = [r for r in rows if r.type == "counter"]
+        for r in counters:
+            with contextlib.suppress(ClusterError):
+                backend.call(backend.pick_host(), lambda c, r=r: c.agent_request(r.id, b"pause", timeout=5.0),
+                             "AgentRequest", timeout=10.0)
+        time.sleep(2.5)  # > stats_period: the last counts reach the DDB
+        for r in counters:
+            with contextlib.suppress(ClusterError):
+                backend.call(backend.pick_host(), lambda c, r=r: c.agent_remove(r.id), "AgentRemove", timeout=20.0)
+
+
+def run_local(plan: Plan, out: Path, progress: Progress | None = None,
+              on_fault: Callable[[Injected], None] | None = None) -> RunResult:
+    """Run `plan` on a local cluster of its own under `out` (module docstring)."""
+    say = progress or (lambda _s: None)
+    problems = local_problems(plan)
+    if problems:
+        raise PlanError(problems[0])
+    out = out.absolute()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "plan.json").write_text(plan.model_dump_json(indent=1) + "\n")
+    res = RunResult(plan, out)
+    backend = LocalBackend(out / "cluster")
+    data_dirs: dict[str, Path] = {}
+    injector: Injector | None = None
+    with agent_modules(WORKLOAD_MODULE):
+        say(f"starting {plan.hosts} hosts in {out / 'cluster'}")
+        names = backend.up(plan.hosts, min(3, plan.hosts), hostd_args=list(plan.hostd_args))
+        data_dirs = {n: Path(backend.state["hosts"][n]["data_dir"]) for n in names}
+        try:
+            backend.check_started()
+            wait_until(lambda: backend.formation(names), FORM_TIMEOUT, what=f"{plan.hosts} hosts to form a group")
+            if plan.workload:
+                say(f"starting the workload: {plan.workload}, {plan.agents} x")
+                start_workload(plan, backend)
+            injector = Injector(plan, backend, on_fault=on_fault)
+            say(f"chaos for {plan.duration_s:g} s ({len(plan.faults)} fault lines)")
+            try:
+                injector.run()
+            finally:
+                injector.end_pauses()
+                res.t0, res.faults = injector.t0, injector.injected
+            say("faults over: stopping the workload")
+            stop_workload(plan, backend, say)
+            res.settled, res.settle_note, res.settle_s = collect.settle(backend, plan.settle_s)
+            say(f"settle: {res.settle_note} after {res.settle_s:.1f} s")
+            res.t_end = time.time()
+            collect.snapshot_replicas(backend, out)
+            collect.write_agents(backend, out)
+        except ClusterError as e:
+            res.error = str(e)
+        finally:
+            say("stopping the cluster")
+            backend.down(grace=5.0)
+            collect.copy_logs(data_dirs, out)
+            (out / "faults.json").write_text(json.dumps(
+                {"t0": res.t0, "t_end": res.t_end, "faults": [f.to_json() for f in res.faults]}, indent=1) + "\n")
+    if not res.error:
+        res.checks = run_checks(out, plan.workload)
+    res.timeline = build(out) if res.t0 else []
+    (out / "result.json").write_text(json.dumps(res.to_json(), indent=1) + "\n")
+    return res

@@ -1,0 +1,142 @@
+"""`haactl chaos run PLAN` and `haactl chaos check DIR`: chaos experiments (docs/chaos.md).
+
+Argument parsing and printing only; the work is in haa.chaos (plan, inject, collect, checks, timeline, run).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from haa.chaos.checks import Check, run_checks
+from haa.chaos.inject import Injected
+from haa.chaos.plan import PlanError, load_plan, parse_plan
+from haa.chaos.run import run_local
+from haa.chaos.timeline import Entry, build, clock
+from haactl.cliopts import cli_errors, err, out
+
+chaos_app = typer.Typer(help="Chaos experiments: faults on a schedule, then Jepsen-style checks (docs/chaos.md).",
+                        no_args_is_help=True)
+
+
+def _plan_error(e: PlanError) -> None:
+    err.print(f"[bold red]error:[/bold red] {escape(str(e))}")
+    raise typer.Exit(2)
+
+
+def fault_line(f: Injected) -> str:
+    mark = "" if f.ok else " [yellow](not done)[/yellow]"
+    return f"{clock(f.t)}  [bold]{f.action}[/bold] {escape(f.target)}: {escape(f.detail)}{mark}"
+
+
+def timeline_table(entries: list[Entry]) -> Table:
+    t = Table(title="timeline (faults and their effects, from every host's log)", title_justify="left")
+    t.add_column("t", justify="right")
+    t.add_column("host")
+    t.add_column("event")
+    for e in entries:
+        text = f"[bold]{escape(e.text)}[/bold]" if e.kind == "fault" else escape(e.text)
+        t.add_row(clock(e.t), e.host or "chaos", text)
+    return t
+
+
+def checks_table(checks: dict[str, Check]) -> Table:
+    t = Table(title="checks (from the hosts' persisted logs and their replicas)", title_justify="left")
+    t.add_column("check")
+    t.add_column("result")
+    t.add_column("detail")
+    for name, c in checks.items():
+        t.add_row(name, "[green]passed[/green]" if c.passed else "[bold red]FAILED[/bold red]", escape(c.detail))
+    return t
+
+
+def _run_dir(path: Path) -> Path:
+    """An empty directory, or a previous run's (replaced); anything else is refused."""
+    if path.exists():
+        if not path.is_dir():
+            raise PlanError(f"--out {path}: not a directory")
+        if any(path.iterdir()) and not (path / "plan.json").exists():
+            raise PlanError(f"--out {path}: not empty and not a chaos run directory; choose another")
+        shutil.rmtree(path)
+    return path
+
+
+@chaos_app.command("run")
+@cli_errors
+def chaos_run(
+    plan_file: Annotated[Path, typer.Argument(metavar="PLAN", help="the chaos plan (YAML)")],
+    local: Annotated[bool, typer.Option("--local", help="on a local cluster of its own (the default)")] = True,
+    compose: Annotated[bool, typer.Option("--compose", help="on the docker compose cluster")] = False,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the result (faults, checks, timeline) "
+                                                  "as JSON to this file ('-': stdout)")] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out", help="run directory (default .haa/chaos/<plan name>)",
+                                                 show_default=False)] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="only the checks table")] = False,
+) -> None:
+    """Run a chaos plan: start a cluster, a workload and the faults, then check the hosts' histories.
+    Exit code 0 only when every check passed (2: the plan is invalid; nothing was started)."""
+    try:
+        plan = load_plan(plan_file)
+        if compose:
+            raise PlanError("chaos run --compose is not available yet (the local cluster only: --local)")
+        run = _run_dir(out_dir or Path(".haa") / "chaos" / plan.name)
+    except PlanError as e:
+        _plan_error(e)
+        return
+    to_stdout = json_out is not None and str(json_out) == "-"
+    show = not quiet and not to_stdout
+    say = (lambda s: err.print(f"[dim]{escape(s)}[/dim]")) if show else (lambda _s: None)
+    on_fault = (lambda f: out.print(fault_line(f))) if show else None
+    try:
+        res = run_local(plan, run, progress=say, on_fault=on_fault)
+    except PlanError as e:
+        _plan_error(e)
+        return
+    if to_stdout:
+        print(json.dumps(res.to_json(), indent=1))
+    else:
+        if show:
+            out.print(timeline_table(res.timeline))
+        if res.checks:
+            out.print(checks_table(res.checks))
+        if json_out is not None:
+            json_out.write_text(json.dumps(res.to_json(), indent=1) + "\n")
+    if res.error:
+        err.print(f"[bold red]error:[/bold red] {escape(res.error)}")
+    verdict = "[green]every check passed[/green]" if res.passed else "[bold red]FAILED[/bold red]"
+    err.print(f"chaos run {escape(plan.name)}: {verdict} (run directory {escape(str(res.out))})")
+    raise typer.Exit(0 if res.passed else 1)
+
+
+@chaos_app.command("check")
+@cli_errors
+def chaos_check(
+    run_dir: Annotated[Path, typer.Argument(metavar="DIR", help="a chaos run directory")],
+    json_out: Annotated[bool, typer.Option("--json", help="print the checks as JSON")] = False,
+    timeline: Annotated[bool, typer.Option("--timeline", help="print the timeline too")] = False,
+) -> None:
+    """Check a finished run again from its directory (host logs and replicas); exit code 0 only when every
+    check passed."""
+    try:
+        plan = parse_plan(json.loads((run_dir / "plan.json").read_text()), f"{run_dir}/plan.json")
+    except (OSError, ValueError) as e:
+        _plan_error(PlanError(f"{run_dir}: not a chaos run directory ({e})"))
+        return
+    except PlanError as e:
+        _plan_error(e)
+        return
+    checks = run_checks(run_dir, plan.workload)
+    ok = all(c.passed for c in checks.values())
+    if json_out:
+        print(json.dumps({"passed": ok, "checks": {k: c.to_json() for k, c in checks.items()}}, indent=1))
+    else:
+        if timeline:
+            out.print(timeline_table(build(run_dir)))
+        out.print(checks_table(checks))
+    raise typer.Exit(0 if ok else 1)
