@@ -345,17 +345,31 @@ def bench_ap51(
     particles: str = typer.Option("", "--particles", help="comma-separated particle counts (default by mode)"),
     scenario: list[str] = typer.Option([], "--scenario", help="basic | advanced_a | advanced_b (repeatable)"),
     jobs: int = typer.Option(1, "--jobs", min=1, help="worker processes"),
+    strategy: list[str] = typer.Option([], "--strategy", help="only these strategies (repeatable; default all)"),
+    merge: bool = typer.Option(False, "--merge", help="keep the other scenarios of the existing JSON"),
 ) -> None:
     """Experiment AP-5.1 (thesis §7.2.5.1): SLAM strategies at nominal and constrained capacity (haactl.slambench)."""
-    from haactl.slambench import ap51_tables, machine, run_ap51
+    from haactl.slambench import STRATEGY_ORDER, ap51_tables, machine, merge_ap51, run_ap51
 
     t0 = time.perf_counter()
     ps = tuple(int(p) for p in particles.split(",") if p.strip()) or None
     keys = tuple(scenario) or ("basic", "advanced_a", "advanced_b")
-    data = run_ap51(quick=quick, particles=ps, seeds=seeds or None, scenarios=keys, jobs=jobs)
+    bad = [s for s in strategy if s not in STRATEGY_ORDER]
+    if bad:
+        known = ", ".join(STRATEGY_ORDER)
+        raise typer.BadParameter(f"unknown {', '.join(bad)} (known: {known})", param_hint="--strategy")
+    data = run_ap51(quick=quick, particles=ps, seeds=seeds or None, scenarios=keys, jobs=jobs,
+                    strategies=tuple(strategy))
+    name = "ap5.1-quick" if quick else "ap5.1"
+    data["notes"] = [f"{k}: `haactl bench ap5.1 --scenario {k} --particles {','.join(map(str, data['particles']))} "
+                     f"--seeds {data['seeds']}" + "".join(f" --strategy {s}" for s in strategy) + "`"
+                     for k in keys]
+    old = RESULTS / f"{name}.json"
+    if merge and old.exists():
+        data = merge_ap51(json.loads(old.read_text()), data)
     print()
     print(ap51_tables(data))
-    path = write_json("ap5.1-quick" if quick else "ap5.1", {"machine": machine(), **data})
+    path = write_json(name, {"machine": machine(), **data})
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 

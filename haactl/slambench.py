@@ -252,13 +252,16 @@ def run_ap51(
     scenarios: tuple[str, ...] = ("basic", "advanced_a", "advanced_b"),
     jobs: int = 1,
     log: Callable[[str], None] = print,
+    strategies: tuple[str, ...] = (),
 ) -> dict[str, Any]:
+    """Replays of the scenarios' recordings; `strategies` (names of STRATEGY_ORDER) limits the variants."""
     from haa.slam.explorer import SCENARIOS, explored_by_driver
     from haa.slam.replay import calibrate
 
     particles = particles or ((100, 500) if quick else (100, 250, 500, 750, 1000))
     seeds = seeds or (2 if quick else 10)
-    out: dict[str, Any] = {"quick": quick, "particles": list(particles), "seeds": seeds, "scenarios": {}, "rows": []}
+    out: dict[str, Any] = {"quick": quick, "particles": list(particles), "seeds": seeds, "scenarios": {}, "rows": [],
+                           "seeds_by_scenario": {k: seeds for k in scenarios}}
     for key in scenarios:
         sc = SCENARIOS[key]
         duration = QUICK_DURATIONS[key] if quick else sc.mission_s
@@ -275,6 +278,8 @@ def run_ap51(
         }
         tasks = []
         for strat, cond in _variants():
+            if strategies and strat not in strategies:
+                continue
             cap = None if cond == "unlimited" else {"workers": caps[cond].workers, "cost": caps[cond].cost}
             for n in particles:
                 for seed in range(seeds):
@@ -289,6 +294,18 @@ def run_ap51(
             r["scenario_key"] = key
         out["rows"] += rows
         log(f"{sc.name}: {len(tasks)} replays in {time.perf_counter() - t0:.0f} s")
+    return out
+
+
+def merge_ap51(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """`new` with the scenarios it did not run taken from `old` (an earlier bench-results/ap5.1.json)."""
+    ran = set(new["scenarios"])
+    out = dict(new)
+    out["scenarios"] = {**{k: v for k, v in old.get("scenarios", {}).items() if k not in ran}, **new["scenarios"]}
+    out["rows"] = [r for r in old.get("rows", []) if r.get("scenario_key") not in ran] + new["rows"]
+    out["seeds_by_scenario"] = {
+        **{k: v for k, v in old.get("seeds_by_scenario", {}).items() if k not in ran}, **new["seeds_by_scenario"]}
+    out["notes"] = [n for n in old.get("notes", []) if not any(n.startswith(k) for k in ran)] + new.get("notes", [])
     return out
 
 

@@ -50,6 +50,7 @@ def test_issue_example_works_as_written(tmp_path):
     m = load_mission(write(tmp_path, ISSUE_EXAMPLE))
     s = m.spec
     assert (s.name, s.scenario, s.seed, s.slam, s.particles) == ("af1", "explore", 1, "jc-slam", 100)
+    assert s.drift == "thesis"
     assert (s.complete.explored, s.complete.time_limit_s) == (0.95, 900)
     assert s.hosts.initial == ["h1", "h2", "h3", "h4"]
     assert [(e.at_s, e.action, e.host) for e in s.hosts.events()] == [(60, "leave", "h4"), (120, "join", "h5")]
@@ -159,6 +160,7 @@ BAD = [
     (_set("name", ""), "name", "at least 1"),
     (_set("name", "a b"), "name", "letters, digits"),
     (_set("slam", "fastslam"), "slam", "'jc-slam', 'discard' or 'delay'"),
+    (_set("drift", "harsh"), "drift", "'thesis', 'table' or 'systematic'"),
     (_set("particles", 0), "particles", "greater than or equal to 1"),
     (_set("particles", 10**6), "particles", "less than or equal to 10000"),
     (_set("particles", "many"), "particles", "valid integer"),

@@ -323,7 +323,8 @@ def start_sim(mission: Mission, speed: float, workdir: Path, schedule: bool = Tr
     token_file.write_text(secrets.token_hex(24) + "\n")
     token_file.chmod(0o600)
     cmd = [*sim_command(), "--arena", arena_argument(mission), "--listen", "127.0.0.1:0",
-           "--seed", str(mission.spec.seed), "--speed", repr(float(speed)), "--token-file", str(token_file)]
+           "--seed", str(mission.spec.seed), "--speed", repr(float(speed)), "--token-file", str(token_file),
+           "--drift", mission.spec.drift]
     if schedule:
         sched = workdir / "sim-schedule.yaml"
         sched.write_text(schedule_yaml(mission))

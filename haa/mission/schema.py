@@ -196,6 +196,9 @@ class MissionSpec(_Model):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     slam: Literal["jc-slam", "discard", "delay"] = "jc-slam"
     particles: int = Field(100, ge=1, le=MAX_PARTICLES)
+    #: haa-sim's odometry drift model (docs/sim.md "Odometry drift"): thesis (default; the seeker drifts 0.122 m
+    #: per 10 m), table (Table 6.2-3 as printed: 1.22 m) or systematic (table + per-avatar scale and bias)
+    drift: Literal["thesis", "table", "systematic"] = "thesis"
     complete: Complete = Complete()
     hosts: Hosts = Hosts()
     avatars: list[Avatar] = Field(min_length=1, max_length=MAX_AVATARS)
