@@ -626,6 +626,8 @@ class MissionRun:
         self.agent_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mission-agents")
         self.pending: list[Future[Any]] = []
         self.histories: dict[str, mm.PoseHistory] = {}
+        #: avatar -> distances between its odometry (dead reckoning) and its true pose at every poll
+        self.uncorrected: dict[str, list[float]] = {}
         self.loc = mm.LocalizationLog()
         self.clock = tr.ClockMap(self.speed)
         self.samples = Samples()
@@ -777,6 +779,9 @@ class MissionRun:
             if a.status == "active":
                 self.histories.setdefault(a.avatar_id, mm.PoseHistory()).add(r.time, a.pose.x, a.pose.y,
                                                                               a.pose.theta)
+                if a.HasField("odometry"):  # haa-sim's odometry starts at the start pose: the same frame
+                    self.uncorrected.setdefault(a.avatar_id, []).append(
+                        math.hypot(a.odometry.x - a.pose.x, a.odometry.y - a.pose.y))
             prev = self.avatar_status.get(a.avatar_id)
             if prev != a.status:
                 self.avatar_status[a.avatar_id] = a.status
@@ -1066,6 +1071,7 @@ class MissionRun:
             "explored_reported": st.get("explored"),
             "position_error_m": _r(self.loc.position_error()),
             "rotation_error_rad": _r(self.loc.rotation_error()),
+            "uncorrected_error_m": _r(mm.mean_of_means(self.uncorrected)),
             "landmark_error_m": _r(lm_err),
             "landmark_covariance_m": _r(lm_std),
             "hosts_avg": _r(hosts_avg),
