@@ -246,8 +246,8 @@ class Injector:
             up -= 1
         if live < MIN_LIVE or live * 2 <= up:
             self._record(f.action, name, i, False,
-                         f"skipped: would leave {live} live of {up} hosts (the group needs a live majority of at "
-                         f"least {MIN_LIVE} to remove a failed host)")
+                         f"skipped: would leave {live} live hosts of {up} in the group (it needs a live majority of "
+                         f"at least {MIN_LIVE} to remove a failed host)")
             return
         try:
             if f.action == "kill":
