@@ -305,3 +305,38 @@ def test_chaos_hang_blocks_the_agents_own_loop_then_fails():
     assert ticks <= 3  # the loop was blocked: another task could not run during the hang
     errors = [f.error.message for f in frames if f.WhichOneof("msg") == "error"]
     assert errors == ["chaos hang: blocked its event loop for 0.4 s"]
+
+
+# ------------------------------------------------------------------ the counters workload's checks
+
+def counters_run(tmp_path: Path, **changes) -> Path:
+    """A run directory with two live replicas holding the same counter statistics (`changes` applied to A1's)."""
+    import json
+
+    stats = {"A1": {"received": 50, "lost": 0, "out_of_order": 0, "duplicate": 0, "stale": 0,
+                    "lost_after_recovery": 3},
+             "A1.1": {"received": 48, "lost": 0, "out_of_order": 0, "duplicate": 0, "stale": 0,
+                      "lost_after_recovery": 0}}
+    stats["A1"].update(changes)
+    (tmp_path / "replicas").mkdir()
+    (tmp_path / "hosts").mkdir()
+    for h in ("h1", "h2"):
+        rec = {"host": h, "status": {"member": True, "members": ["h1", "h2"], "view": 3, "ddb_hash": "ab"},
+               "objects": {f"demo/{n}": {"type": "json", "value": s} for n, s in stats.items()}}
+        (tmp_path / "replicas" / f"{h}.json").write_text(json.dumps(rec))
+    return tmp_path
+
+
+@pytest.mark.parametrize("changes, failing", [
+    ({}, set()),
+    ({"stale": 2}, {"single_instance"}),
+    ({"lost": 1}, {"counter_streams"}),
+    ({"out_of_order": 1}, {"counter_streams"}),
+    ({"duplicate": 4}, {"counter_streams"}),
+])
+def test_counters_checks_fail_on_exactly_their_fault(tmp_path: Path, changes, failing):
+    from haa.chaos.checks import run_checks
+
+    checks = run_checks(counters_run(tmp_path, **changes), "counters")
+    assert set(checks) == {"replicas_agree", "single_instance", "counter_streams", "crashed_agents_recovered"}
+    assert {k for k, c in checks.items() if not c.passed} == failing, checks

@@ -80,7 +80,14 @@ def build(run: Path) -> list[Entry]:
     last_shared: dict[tuple[str, str, str], float] = {}
     records = sorted(((float(r.get("ts", 0)), host, r) for host, recs in host_logs(run).items() for r in recs),
                      key=lambda x: x[0])
+    # a removed agent is logged under its id prefix (its table entry is gone): show its display name
+    names = {f["agent"]: f["name"] for _, _, r in records
+             if isinstance(f := r.get("fields"), dict) and isinstance(f.get("agent"), str) and f.get("name")
+             and f["name"] != f["agent"][:8]}
     for ts, host, r in records:
+        fl = r.get("fields")
+        if isinstance(fl, dict) and isinstance(fl.get("agent"), str) and fl.get("name", "") in ("", fl["agent"][:8]):
+            r = {**r, "fields": {**fl, "name": names.get(fl["agent"], fl["agent"][:8])}}
         if ts < t0 - 1.0 or ts > t_end:
             continue  # before the chaos (cluster start, workload start) or after it (the cluster stopping)
         ev = r.get("event")
