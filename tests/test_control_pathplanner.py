@@ -88,7 +88,9 @@ def test_a_gap_narrower_than_the_avatar_is_closed():
     p = np.full(spec.shape, 0.01)
     p[39:41, :] = 0.99
     p[39:41, 38:42] = 0.01  # 0.2 m gap
-    assert plan_path(p, (2.0, 1.0), (2.0, 3.0), spec=spec, config=PlannerConfig(radius=0.08)).ok
+    # clearance is measured from the obstacle cells' edges: the middle cells' centres are 0.075 m from them
+    assert plan_path(p, (2.0, 1.0), (2.0, 3.0), spec=spec, config=PlannerConfig(radius=0.07)).ok
+    assert not plan_path(p, (2.0, 1.0), (2.0, 3.0), spec=spec, config=PlannerConfig(radius=0.08)).ok
     plan = plan_path(p, (2.0, 1.0), (2.0, 3.0), spec=spec, config=PlannerConfig(radius=0.15))
     assert not plan.ok and plan.reason == "unreachable" and plan.waypoints == []
 

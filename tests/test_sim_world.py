@@ -227,6 +227,16 @@ def test_walls_obstacles_and_avatars_are_solid() -> None:
     assert w.true_pose(b)[0] <= 3.4 - 0.2 + 0.01
     pc, pd = w.true_pose(c), w.true_pose(d)
     assert math.hypot(pc[0] - pd[0], pc[1] - pd[1]) >= 0.24 - 0.01
+    # each contact that begins is one "bump" event naming what was hit, and counted per avatar
+    bumps = {(e.avatar, e.detail["with"]) for e in w.drain_events() if e.kind == "bump"}
+    assert bumps == {(a, "panel-a"), (b, "outer-east"), (c, f"avatar {d}"), (d, f"avatar {c}")}
+    assert [w.avatars[x].bumps for x in (a, b)] == [1, 1]  # pressing on a wall: one contact
+    assert w.avatars[c].bumps == w.avatars[d].bumps >= 1  # two pushing avatars may part and touch again
+    w.set_velocity(a, -1.0, 0.0)  # back off, then into the panel again: a second bump
+    w.step(0.5)
+    w.set_velocity(a, 1.0, 0.0)
+    w.step(1.0)
+    assert w.avatars[a].bumps == 2
 
 
 def test_sonar_noise_matches_table_6_2_4() -> None:

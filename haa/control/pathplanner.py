@@ -120,9 +120,12 @@ class CostMap:
             cx, cy = spec.x0 + (cc + 0.5) * res, spec.y0 + (rr + 0.5) * res
             for ax, ay, ar in avoid:
                 obst |= np.hypot(cx - ax, cy - ay) <= ar + cfg.avoid_margin
-        # distance (m) from each cell centre to the nearest obstacle cell; the outside of the map is obstacle
+        # distance (m) from each cell centre to the nearest obstacle cell's near edge (centre to centre less
+        # half a cell: an obstacle may fill its cell up to the edge; a thin panel or the arena's wall does);
+        # the outside of the map is obstacle
         padded = np.pad((~obst).astype(np.uint8), 1, constant_values=0)
-        self.dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1] * res
+        self.dist = np.maximum(
+            cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1] * res - 0.5 * res, 0.0)
         slack = self.dist - cfg.radius
         pen = np.zeros_like(slack)
         if cfg.clearance > 0:

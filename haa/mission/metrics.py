@@ -309,6 +309,7 @@ EXTRA_ROWS: tuple[tuple[str, str, float], ...] = (
     ("Control hosts (avg)", "hosts_avg", 1.0),
     ("Wall time [min]", "wall_s", 1 / 60),
     ("Uncorrected (dead-reckoning) err [m]", "uncorrected_error_m", 1.0),
+    ("Bumps (avatar contacts)", "bumps", 1.0),
     ("Explored share [%]", "explored", 100.0),
     ("Readings generated", "readings_generated", 1.0),
     ("Readings processed", "readings_processed", 1.0),

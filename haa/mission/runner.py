@@ -626,8 +626,10 @@ class MissionRun:
         self.agent_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mission-agents")
         self.pending: list[Future[Any]] = []
         self.histories: dict[str, mm.PoseHistory] = {}
-        #: avatar -> distances between its odometry (dead reckoning) and its true pose at every poll
-        self.uncorrected: dict[str, list[float]] = {}
+        #: avatar -> (t, distance between its odometry (dead reckoning) and its true pose), every 0.5 s
+        self.uncorrected: dict[str, list[tuple[float, float]]] = {}
+        #: avatar -> contacts begun with walls, obstacles or avatars (haa-sim "bump"s: pushes odometry misses)
+        self.bumps: dict[str, int] = {}
         self.loc = mm.LocalizationLog()
         self.clock = tr.ClockMap(self.speed)
         self.samples = Samples()
@@ -779,9 +781,14 @@ class MissionRun:
             if a.status == "active":
                 self.histories.setdefault(a.avatar_id, mm.PoseHistory()).add(r.time, a.pose.x, a.pose.y,
                                                                               a.pose.theta)
-                if a.HasField("odometry"):  # haa-sim's odometry starts at the start pose: the same frame
-                    self.uncorrected.setdefault(a.avatar_id, []).append(
-                        math.hypot(a.odometry.x - a.pose.x, a.odometry.y - a.pose.y))
+                if a.bumps > self.bumps.get(a.avatar_id, 0):
+                    self.line(f"avatar {a.avatar_id} bumped into something ({a.bumps} so far)", "avatar")
+                    self.bumps[a.avatar_id] = a.bumps
+                unc = self.uncorrected.setdefault(a.avatar_id, [])
+                # haa-sim's odometry starts at the start pose: the same frame as the truth
+                if a.HasField("odometry") and (not unc or r.time >= unc[-1][0] + 0.5):
+                    unc.append((round(r.time, 3), round(math.hypot(a.odometry.x - a.pose.x,
+                                                                   a.odometry.y - a.pose.y), 4)))
             prev = self.avatar_status.get(a.avatar_id)
             if prev != a.status:
                 self.avatar_status[a.avatar_id] = a.status
@@ -1071,7 +1078,8 @@ class MissionRun:
             "explored_reported": st.get("explored"),
             "position_error_m": _r(self.loc.position_error()),
             "rotation_error_rad": _r(self.loc.rotation_error()),
-            "uncorrected_error_m": _r(mm.mean_of_means(self.uncorrected)),
+            "bumps": sum(self.bumps.values()),
+            "uncorrected_error_m": _r(mm.mean_of_means({a: [e[1] for e in v] for a, v in self.uncorrected.items()})),
             "landmark_error_m": _r(lm_err),
             "landmark_covariance_m": _r(lm_std),
             "hosts_avg": _r(hosts_avg),
@@ -1145,7 +1153,11 @@ class MissionRun:
             self.errors.append(f"no PNGs: {e}")
         results["files"] = dict(self.files)
         samples = dataclasses.asdict(self.samples)
-        (out / "samples.json").write_text(json.dumps({"samples": samples, "clock": self.clock.to_json()}))
+        # per avatar over mission time: the SLAM estimate's position error and the odometry's (for plots)
+        loc = {a: [[round(t, 3), round(pos, 4)] for t, pos, _rot in v] for a, v in self.loc.errors.items()}
+        unc = {a: [list(e) for e in v] for a, v in self.uncorrected.items()}
+        (out / "samples.json").write_text(json.dumps({"samples": samples, "clock": self.clock.to_json(),
+                                                      "position_error": loc, "uncorrected_error": unc}))
         (out / "results.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
         results["files"]["results"] = str(out / "results.json")
 

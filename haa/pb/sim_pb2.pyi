@@ -457,7 +457,7 @@ class PosesRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class TrueAvatar(_message.Message):
-    __slots__ = ("avatar_id", "type", "status", "pose", "odometry", "carrying", "joined", "left", "radius")
+    __slots__ = ("avatar_id", "type", "status", "pose", "odometry", "carrying", "joined", "left", "radius", "bumps")
     AVATAR_ID_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     STATUS_FIELD_NUMBER: _ClassVar[int]
@@ -467,6 +467,7 @@ class TrueAvatar(_message.Message):
     JOINED_FIELD_NUMBER: _ClassVar[int]
     LEFT_FIELD_NUMBER: _ClassVar[int]
     RADIUS_FIELD_NUMBER: _ClassVar[int]
+    BUMPS_FIELD_NUMBER: _ClassVar[int]
     avatar_id: str
     type: str
     status: str
@@ -476,7 +477,8 @@ class TrueAvatar(_message.Message):
     joined: float
     left: float
     radius: float
-    def __init__(self, avatar_id: _Optional[str] = ..., type: _Optional[str] = ..., status: _Optional[str] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., odometry: _Optional[_Union[Pose, _Mapping]] = ..., carrying: _Optional[_Iterable[str]] = ..., joined: _Optional[float] = ..., left: _Optional[float] = ..., radius: _Optional[float] = ...) -> None: ...
+    bumps: int
+    def __init__(self, avatar_id: _Optional[str] = ..., type: _Optional[str] = ..., status: _Optional[str] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., odometry: _Optional[_Union[Pose, _Mapping]] = ..., carrying: _Optional[_Iterable[str]] = ..., joined: _Optional[float] = ..., left: _Optional[float] = ..., radius: _Optional[float] = ..., bumps: _Optional[int] = ...) -> None: ...
 
 class PosesReply(_message.Message):
     __slots__ = ("time", "avatars")

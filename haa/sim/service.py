@@ -186,6 +186,8 @@ def event_msg(e: SimEvent, world: World) -> pb.SimEvent:
         m.pose.CopyFrom(pose_msg(d["pose"]))
     if "error" in d:
         m.detail = str(d["error"])
+    elif "with" in d:  # a bump: what the avatar ran into
+        m.detail = str(d["with"])
     return m
 
 
@@ -311,6 +313,10 @@ class SimCore:
                 log(e.kind, avatar=e.avatar, time=round(e.time, 3))
             elif e.kind == "schedule":
                 log("schedule_error", time=round(e.time, 3), error=e.detail.get("error"))
+            elif e.kind == "bump":
+                x, y, th = e.detail["pose"]
+                log("bump", avatar=e.avatar, time=round(e.time, 3), detail=e.detail["with"],
+                    pose=[round(x, 3), round(y, 3), round(th, 3)])
             msg = event_msg(e, w)
             for q in self.event_subs:
                 self.put(q, msg)
@@ -724,6 +730,7 @@ class SimService(pbg.AvatarSimServicer, pbg.GroundTruthServicer, pbg.SimControlS
                 joined=av.joined,
                 left=av.left or 0.0,
                 radius=av.spec.radius,
+                bumps=av.bumps,
             )
         return r
 

@@ -65,6 +65,7 @@ from haa.sim.sensors import (
 ACTIVE, RETIRED, CRASHED = "active", "retired", "crashed"
 #: random streams of an avatar
 _DRIFT, _SONAR, _CAMERA, _IMAGE = 1, 2, 3, 4
+_AVATAR_SHAPE = 1  # pymunk collision type of the avatars' shapes (bump detection)
 #: joint strengths: force per kg and torque per kg m^2 the wheels can exert
 _FORCE_PER_KG = 60.0
 _TORQUE_PER_INERTIA = 600.0
@@ -78,7 +79,8 @@ class AvatarUnavailable(RuntimeError):
 
 @dataclass
 class SimEvent:
-    """Something that happened: kind is joined, retired, crashed, picked, dropped, deposited or schedule."""
+    """Something that happened: kind is joined, retired, crashed, picked, dropped, deposited, bump or
+    schedule."""
 
     time: float
     kind: str
@@ -117,6 +119,7 @@ class AvatarState:
         params = self.spec.drift_params_for(world.drift)
         #: (linear, angular) drift figures of its type in the world's drift model (what AvatarInfo reports)
         self.drift_figures = self.spec.drift_figures(world.drift)
+        self.bumps = 0  # contacts begun with a wall, an obstacle or another avatar (a "bump" event each)
         self.odo = Odometry(params, pose, np.random.default_rng([seed, serial, _DRIFT]))
         self.sonar_noise = NormalStream(np.random.default_rng([seed, serial, _SONAR]), 512)
         self.camera_noise = NormalStream(np.random.default_rng([seed, serial, _CAMERA]), 512)
@@ -130,6 +133,7 @@ class AvatarState:
         self.shape = pymunk.Circle(self.body, s.radius)
         self.shape.friction = 0.0
         self.shape.elasticity = 0.0
+        self.shape.collision_type = _AVATAR_SHAPE
         self.control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
         self.control.position = pose[0], pose[1]
         self.control.angle = pose[2]
@@ -175,12 +179,17 @@ class World:
         self.space.gravity = (0, 0)
         self.space.iterations = 10
         self.space.collision_slop = 0.002
+        self._solid_names: dict[pymunk.Shape, str] = {}  # static shape -> what an avatar bumps into
         for s in arena.structures:
             shape = pymunk.Poly(self.space.static_body, s.polygon)
             shape.friction = 0.0
             shape.elasticity = 0.0
             self.space.add(shape)
+            self._solid_names[shape] = s.id
         self.avatars: dict[str, AvatarState] = {}
+        self._by_shape: dict[pymunk.Shape, AvatarState] = {}
+        self._begun: list[tuple[AvatarState, str]] = []  # contacts begun in the current physics step
+        self.space.on_collision(_AVATAR_SHAPE, None, begin=self._contact_begins)
         self._serial = 0
         self._per_kind: dict[str, int] = {}
         self._action_seq = 0
@@ -267,6 +276,7 @@ class World:
         av = AvatarState(self, avatar_id, kind, self._serial, p)
         self.space.add(*av.parts())
         self.avatars[avatar_id] = av
+        self._by_shape[av.shape] = av
         self.events.append(SimEvent(self.time, "joined", avatar_id, {"type": kind, "pose": p}))
         return avatar_id
 
@@ -384,6 +394,22 @@ class World:
             av.last_speed = abs(ds) / h
             if av.status == ACTIVE:
                 av.odo.update(ds, dth)
+        for av, what in self._begun:
+            if av.status == ACTIVE:
+                av.bumps += 1
+                self.events.append(SimEvent(self.time, "bump", av.id, {"with": what, "pose": av.pose}))
+        self._begun.clear()
+
+    def _contact_begins(self, arb: pymunk.Arbiter, _space: pymunk.Space, _data: Any) -> None:
+        """Chipmunk's begin callback for an avatar's shape: a "bump" for each avatar in the contact (after
+        the step, `_substep`) — a push its wheels do not see (its odometry misses the slide), so a control
+        system that bumps loses track of where it is."""
+        a, b = arb.shapes
+        for me, other in ((a, b), (b, a)):
+            av = self._by_shape.get(me)
+            if av is not None:
+                o = self._by_shape.get(other)
+                self._begun.append((av, f"avatar {o.id}" if o is not None else self._solid_names.get(other, "?")))
 
     def _apply_schedule(self) -> None:
         while self._next < len(self._schedule) and self._schedule[self._next].at <= self.time + 1e-12:
