@@ -1156,8 +1156,15 @@ class MissionRun:
         # per avatar over mission time: the SLAM estimate's position error and the odometry's (for plots)
         loc = {a: [[round(t, 3), round(pos, 4)] for t, pos, _rot in v] for a, v in self.loc.errors.items()}
         unc = {a: [list(e) for e in v] for a, v in self.uncorrected.items()}
+        truth: dict[str, list[list[float]]] = {}  # true poses, one per 0.25 s of haa-sim time
+        for a, h in self.histories.items():
+            rows = truth.setdefault(a, [])
+            for t, (x, y, th) in zip(h.t, h.poses, strict=True):
+                if not rows or t >= rows[-1][0] + 0.25:
+                    rows.append([round(t, 3), round(x, 4), round(y, 4), round(th, 4)])
         (out / "samples.json").write_text(json.dumps({"samples": samples, "clock": self.clock.to_json(),
-                                                      "position_error": loc, "uncorrected_error": unc}))
+                                                      "position_error": loc, "uncorrected_error": unc,
+                                                      "truth": truth}))
         (out / "results.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
         results["files"]["results"] = str(out / "results.json")
 
