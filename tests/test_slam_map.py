@@ -162,6 +162,29 @@ def test_floor_polygon_is_free():
     assert p[20, 16] < 0.5 and p[20, 9] == 0.5
 
 
+def test_map_readings_can_build_the_map_without_weighing_particles():
+    """density "none" (the running team's choice with the floor finder's obstacle marks on): the same map
+    update as the default, and no weight for any particle; "two-sided" also weighs the obstacle feet."""
+    states = np.array([[1.0, 2.0, 0.0], [3.1, 2.0, 0.0]])  # the second sits in the wall of wall_map()
+    w = np.array([1.0, 0.0])
+    g1, g2 = wall_map(), wall_map()
+    r = CooccupancyReading("a", 0.0, 0.15)
+    assert CooccupancyModel(density="free").apply(r, states, w, g1)[1] < -1.0
+    np.testing.assert_array_equal(CooccupancyModel(density="none").apply(r, states, w, g2), [0.0, 0.0])
+    np.testing.assert_array_equal(g1.prob(), g2.prob())
+    poly = ((0.2, -0.3), (1.0, -0.6), (1.0, 0.6), (0.2, 0.3))
+    fr = FloorReading("a", 0.0, poly, occupied=(False, True, True, False))
+    states = np.array([[1.0, 2.0, 0.0], [2.6, 2.0, 0.0]])  # the second sees free floor inside the wall
+    maps = {d: wall_map() for d in ("free", "two-sided", "none")}
+    logs = {d: FloorModel(p_occ=0.7, density=d).apply(fr, states, w, maps[d]) for d in maps}
+    np.testing.assert_array_equal(logs["none"], [0.0, 0.0])
+    assert logs["free"][0] == 0.0 and logs["free"][1] < 0.0
+    assert logs["two-sided"][0] < 0.0  # its obstacle feet land on mapped free floor
+    for d in ("two-sided", "none"):
+        np.testing.assert_array_equal(maps[d].prob(), maps["free"].prob())
+    assert maps["none"].prob()[20, 20] > 0.2  # the obstacle feet at x ~ 2.0 m are marked (was 0.2: free)
+
+
 def test_bad_readings_name_the_field():
     with pytest.raises(ValueError, match=r"SonarReading\.echoes\[1\]\.range"):
         SonarReading("a", 0.0, (SonarEcho(0.0, 1.0), SonarEcho(0.0, 3.0)), 0.349, 2.0)

@@ -52,12 +52,15 @@ def test_slots_are_equally_spaced_and_face_the_team() -> None:
     assert max(gaps) - min(gaps) < 1e-9
 
 
-def test_explored_share_counts_known_free_cells_against_the_explorable_area() -> None:
+def test_explored_share_counts_seen_free_cells_and_marks_next_to_them() -> None:
     p = np.full((10, 10), 0.5)
     p[:5] = 0.1  # 50 free cells
-    p[5] = 0.9  # explored but occupied: not reachable, not counted
-    assert explored_share(p, 100) == pytest.approx(0.5)
+    p[5] = 0.9  # obstacle marks next to seen floor: 10 explored (reachable in front of the obstacle)
+    p[7] = 0.9  # marks with no seen-free neighbour: an obstacle's inside, not counted
+    assert explored_share(p, 100) == pytest.approx(0.6)
     assert explored_share(p, 40) == 1.0
+    p[5] = 0.5
+    assert explored_share(p, 100) == pytest.approx(0.5)
 
 
 def test_the_ring_of_slots_turns_and_widens_to_fit_the_map() -> None:

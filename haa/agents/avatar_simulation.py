@@ -46,6 +46,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import dataclasses
 import json
 import math
 from collections import OrderedDict, deque
@@ -93,6 +94,12 @@ class AvatarConfig(team.TeamConfig):
     slam: Literal["jc-slam", "discard", "delay"] = "jc-slam"
     delay_max_s: float = pydantic.Field(30.0, gt=0, le=3600)
 
+
+#: the bumper's widening of the motion noise (AgentAvatarSimulation.bump_sigma): m per contact begun, share of
+#: the driving speed per second of contact, rad of turn per m of push
+BUMP_M = 0.05
+BUMP_SLIDE = 0.5
+BUMP_TURN_RAD = 0.5
 
 #: bytes of frames carried in the transfer state, and their JPEG quality (95: ArUco corners survive it)
 FRAMES_STATE_BYTES = 1_200_000
@@ -150,6 +157,8 @@ class AvatarSimulation(AgentBase):
         self.anchor: tuple[float, Pose] | None = None  # (t, odometry pose) of the last committed prediction
         self.info: spb.AvatarInfo | None = None
         self.odo: deque[tuple[float, Pose]] = deque(maxlen=4000)  # odometry history (t, pose)
+        #: the bumper beside it: (t, pressed, bumps so far) per odometry reading (`bump_sigma`)
+        self.bumper: deque[tuple[float, bool, int]] = deque(maxlen=4000)
         self.frames: OrderedDict[int, spb.CameraFrame] = OrderedDict()
         self.sonar_pending: list[Any] = []
         self.est: tuple[float, Pose] | None = None  # (t, estimated pose) last published by SupervisorSLAM
@@ -290,6 +299,7 @@ class AvatarSimulation(AgentBase):
         try:
             async for r in self.link.avatar.Odometry(req, metadata=self.link.metadata):
                 self.odo.append((r.time, (r.pose.x, r.pose.y, r.pose.theta)))
+                self.bumper.append((r.time, bool(r.bumper), int(r.bumps)))
         except asyncio.CancelledError:
             raise
         except grpc.aio.AioRpcError as e:
@@ -305,6 +315,27 @@ class AvatarSimulation(AgentBase):
         if self.info is not None and self.info.linear_drift > 0 and self.info.angular_drift > 0:
             return DriftSpec(float(self.info.linear_drift), float(self.info.angular_drift))
         return DRIFT[self.cfg.type]
+
+    def bump_sigma(self, t0: float, t1: float) -> float:
+        """Std (m) of the push the wheels did not see over (t0, t1]: BUMP_M per contact begun and
+        BUMP_SLIDE of the driving speed per second the bumper was pressed (a slide along what it touches).
+        haa-sim moves an avatar only as its wheels measure, except in contact (docs/sim.md); a real robot's
+        bumper or motor current tells it the same."""
+        speed = self.cfg.cruise * float(self.info.max_speed) if self.info is not None else 0.5
+        pressed_s, before, last = 0.0, None, None
+        prev_t = t0
+        for t, pressed, bumps in self.bumper:
+            if t <= t0:
+                before = bumps
+                prev_t = t
+                continue
+            if t > t1 + 1e-9:
+                break
+            if pressed:
+                pressed_s += t - prev_t
+            prev_t, last = t, bumps
+        new = 0 if last is None or before is None else max(0, last - before)
+        return BUMP_M * new + BUMP_SLIDE * speed * pressed_s
 
     def odom_at(self, t: float) -> Pose | None:
         """Odometry pose at time t, interpolated (None before the history starts or after its end)."""
@@ -339,6 +370,11 @@ class AvatarSimulation(AgentBase):
         if t_end <= t0 + 1e-6:
             return []
         pred = odometry_prediction(t0, p0, t_end, p_end, self.drift)
+        slide = self.bump_sigma(t0, t_end)
+        if slide > 0:  # widen the motion noise by what the bumper says the wheels may have missed
+            dt = t_end - t0
+            pred = dataclasses.replace(pred, sigma_xy=math.hypot(pred.sigma_xy, slide / dt),
+                                       sigma_theta=math.hypot(pred.sigma_theta, BUMP_TURN_RAD * slide / dt))
         self.anchor = (t_end, p_end)
         return [ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.Predict(self.name_, pred))])]
 

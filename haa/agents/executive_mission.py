@@ -13,9 +13,11 @@ docs/team.md) with the mission spec; it
 * detects completion every `check_s`: **explore** — the explored share (thesis L1186: reachable cells with
   p > 0.73 or p < 0.27) ≥ `complete.explored`. The team does not know which cells are reachable (that is
   ground truth); what it knows is the arena's explorable area (thesis §6.2.1 gives it: 24.2 m² for the small
-  arena), passed as `expected_cells` (cells at the map resolution). Reachable cells are free, so explored
-  reachable cells are the map's cells with p < 0.27: the share is their count / `expected_cells`, capped at
-  1 (docs/team.md, "Completion"); **congregate** — SupervisorCongregate reports every avatar on its slot
+  arena), passed as `expected_cells` (cells at the map resolution). Explored reachable cells are the map's
+  cells with p < 0.27 (seen free) and its obstacle marks (p > 0.73) next to seen-free cells — the floor
+  finder's marks of an obstacle's foot land in front of it by the pose error, in reachable cells, and a thin
+  panel fills reachable cells of the 50 % ideal grid —: the share is their count / `expected_cells`,
+  capped at 1 (docs/team.md, "Completion"); **congregate** — SupervisorCongregate reports every avatar on its slot
   (`congregate/status`). The time limit (`complete.time_limit_s`, simulated) ends the mission as stopped.
 
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
@@ -36,6 +38,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pydantic
 
@@ -72,8 +75,12 @@ def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
 
 
 def explored_share(prob: np.ndarray, expected_cells: int) -> float:
-    """Share of the arena's explorable cells explored (see the module docstring)."""
-    return min(1.0, float((prob < 0.27).sum()) / expected_cells)
+    """Share of the arena's explorable cells explored (see the module docstring): cells seen free, and
+    obstacle marks with a seen-free cell among their 8 neighbours, against `expected_cells`."""
+    free = prob < 0.27
+    near_free = cv2.dilate(free.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    marks = (prob > 0.73) & near_free
+    return min(1.0, float(free.sum() + marks.sum()) / expected_cells)
 
 
 @register

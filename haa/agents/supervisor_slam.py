@@ -84,6 +84,7 @@ from haa.hostd import ddb as ddbops
 from haa.slam import events as sev
 from haa.slam.grid import GridSpec
 from haa.slam.replica import LogGap, SlamReplica
+from haa.slam.sensors import CooccupancyModel, FloorModel
 from haa.slam.system import SlamConfig
 
 #: the type name of a sensor agent dedicated to one avatar (delay mode) is its processing type's + this
@@ -100,6 +101,15 @@ PROCESSINGS: dict[str, tuple[str, ...]] = {
 class SlamAgentConfig(team.TeamConfig):
     mode: Literal["jc-slam", "discard", "delay"] = "jc-slam"
     particles: int = pydantic.Field(100, ge=1, le=10000)
+    #: p(C) of the floor finder's obstacle marks (haa.slam.sensors.FloorModel.p_occ; None: free floor only).
+    #: Seekers have no other way to map an obstacle: without the marks the path planner led them into thin
+    #: panels and along walls (14-27 bumps per AF-1 run, each a push their odometry never saw; docs/team.md)
+    floor_p_occ: float | None = pydantic.Field(0.7, gt=0.5, lt=1.0)
+    #: whether floor and co-occupancy readings weigh the particles (haa.slam.sensors FloorModel.density,
+    #: CooccupancyModel.density) or only build the map: replaying an AF-1 log (docs/slam.md "In the team, the
+    #: obstacle marks"), landmarks alone localize to 0.084 m, the map-based densities on top to 0.14-0.29 m
+    floor_density: Literal["free", "two-sided", "none"] = "none"
+    cooccupancy_density: Literal["free", "none"] = "none"
     grid: tuple[float, float, float, float, float] = (0.0, 0.0, 3.4, 7.2, 0.1)  # x0, y0, width, height, res
     landmark_ids: list[int] = []
     marker_dictionary: str = ""
@@ -247,7 +257,10 @@ class SupervisorSLAM(AgentBase):
         if blobs:
             self.replica = SlamReplica.restore(blobs)
         else:
-            self.replica = SlamReplica(self.spec, SlamConfig(n_particles=self.cfg.particles), seed=self.cfg.seed)
+            config = SlamConfig(n_particles=self.cfg.particles,
+                                floor=FloorModel(p_occ=self.cfg.floor_p_occ, density=self.cfg.floor_density),
+                                cooccupancy=CooccupancyModel(density=self.cfg.cooccupancy_density))
+            self.replica = SlamReplica(self.spec, config, seed=self.cfg.seed)
         data = await self.ddb_get(team.K_SLAM_LOG)
         if data is not None:
             first, items = ddbops.decode_log(data)

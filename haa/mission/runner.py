@@ -752,8 +752,9 @@ class MissionRun:
     def spawn_avatar(self, name: str) -> None:
         a = next(x for x in self.spec.avatars if x.name == name)
         cfg = {"avatar": a.name, "type": a.type, "pose": list(a.pose), **self.team_config()}
-        if self.avatar_type == AVATAR:  # the team's avatar agent halts for its readings in SLAM mode "delay"
+        if self.avatar_type == AVATAR:  # the team's avatar agent: SLAM mode (it halts in "delay"), speed
             cfg["slam"] = self.spec.slam
+            cfg["cruise"] = self.spec.cruise
         for attempt in range(3):
             try:
                 self.avatar_agents[name] = spawn_agent(self.backend, self.avatar_type, cfg)

@@ -284,18 +284,22 @@ class StreamRequest(_message.Message):
     def __init__(self, avatar_id: _Optional[str] = ..., period: _Optional[float] = ...) -> None: ...
 
 class OdometryReading(_message.Message):
-    __slots__ = ("avatar_id", "time", "pose", "distance", "rotation")
+    __slots__ = ("avatar_id", "time", "pose", "distance", "rotation", "bumps", "bumper")
     AVATAR_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     DISTANCE_FIELD_NUMBER: _ClassVar[int]
     ROTATION_FIELD_NUMBER: _ClassVar[int]
+    BUMPS_FIELD_NUMBER: _ClassVar[int]
+    BUMPER_FIELD_NUMBER: _ClassVar[int]
     avatar_id: str
     time: float
     pose: Pose
     distance: float
     rotation: float
-    def __init__(self, avatar_id: _Optional[str] = ..., time: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., distance: _Optional[float] = ..., rotation: _Optional[float] = ...) -> None: ...
+    bumps: int
+    bumper: bool
+    def __init__(self, avatar_id: _Optional[str] = ..., time: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., distance: _Optional[float] = ..., rotation: _Optional[float] = ..., bumps: _Optional[int] = ..., bumper: _Optional[bool] = ...) -> None: ...
 
 class SonarReading(_message.Message):
     __slots__ = ("bearing", "echo", "range", "fov", "max_range")

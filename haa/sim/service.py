@@ -330,6 +330,8 @@ class SimCore:
             pose=pose_msg(av.odo.pose),
             distance=av.odo.distance,
             rotation=av.odo.rotation,
+            bumps=av.bumps,
+            bumper=av.contacts > 0,
         )
 
     def update_msg(self, wt: _Watch) -> pb.ActionUpdate:

@@ -120,6 +120,7 @@ class AvatarState:
         #: (linear, angular) drift figures of its type in the world's drift model (what AvatarInfo reports)
         self.drift_figures = self.spec.drift_figures(world.drift)
         self.bumps = 0  # contacts begun with a wall, an obstacle or another avatar (a "bump" event each)
+        self.contacts = 0  # contacts now (its bumper is pressed while > 0)
         self.odo = Odometry(params, pose, np.random.default_rng([seed, serial, _DRIFT]))
         self.sonar_noise = NormalStream(np.random.default_rng([seed, serial, _SONAR]), 512)
         self.camera_noise = NormalStream(np.random.default_rng([seed, serial, _CAMERA]), 512)
@@ -189,7 +190,7 @@ class World:
         self.avatars: dict[str, AvatarState] = {}
         self._by_shape: dict[pymunk.Shape, AvatarState] = {}
         self._begun: list[tuple[AvatarState, str]] = []  # contacts begun in the current physics step
-        self.space.on_collision(_AVATAR_SHAPE, None, begin=self._contact_begins)
+        self.space.on_collision(_AVATAR_SHAPE, None, begin=self._contact_begins, separate=self._contact_ends)
         self._serial = 0
         self._per_kind: dict[str, int] = {}
         self._action_seq = 0
@@ -408,8 +409,15 @@ class World:
         for me, other in ((a, b), (b, a)):
             av = self._by_shape.get(me)
             if av is not None:
+                av.contacts += 1
                 o = self._by_shape.get(other)
                 self._begun.append((av, f"avatar {o.id}" if o is not None else self._solid_names.get(other, "?")))
+
+    def _contact_ends(self, arb: pymunk.Arbiter, _space: pymunk.Space, _data: Any) -> None:
+        for sh in arb.shapes:
+            av = self._by_shape.get(sh)
+            if av is not None:
+                av.contacts = max(0, av.contacts - 1)
 
     def _apply_schedule(self) -> None:
         while self._next < len(self._schedule) and self._schedule[self._next].at <= self.time + 1e-12:

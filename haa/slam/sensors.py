@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -324,6 +325,10 @@ class CooccupancyModel:
     resolution: float = 0.1
     p_free: float = 0.25
     temper: float = 1.0
+    #: "free": particles that put the disc on mapped obstacles are penalized (the default); "none": map only
+    #: (docs/slam.md "In the team, the obstacle marks": with the floor finder's marks mapped, the one-sided
+    #: penalty pulled AF-1's seekers off their true poses — a disc touching a thin panel overlaps its cell)
+    density: Literal["free", "none"] = "free"
     _cache: dict = field(default_factory=dict, repr=False)
 
     def template(self, radius: float) -> Template:
@@ -341,7 +346,11 @@ class CooccupancyModel:
         return tpl
 
     def apply(self, r: CooccupancyReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
-        return apply_free_region(grid, states, weights, self.template(r.radius), self.temper)
+        tpl = self.template(r.radius)
+        if self.density == "none":
+            grid.mixture_update(template_cells(grid, states, tpl.points), tpl.p, weights)
+            return np.zeros(len(states))
+        return apply_free_region(grid, states, weights, tpl, self.temper)
 
 
 def points_in_polygon(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -372,7 +381,10 @@ class FloorModel:
     exactly the free-region ones: measured on AF-1 logs replayed with the flags (docs/slam.md "In the running
     team"), the obstacle marks lower map coverage and accuracy (0.85 / 0.92 → 0.79 / 0.87) and the density
     worsens localization (0.51 → 0.75 m) while the avatars are 0.3-0.5 m off — the marks land in front of
-    the walls, in reachable cells. Turn them on (p_occ 0.7) once localization is at the thesis' level."""
+    the walls, in reachable cells. Turn them on (p_occ 0.7) once localization is at the thesis' level.
+    `density` says what the reading does to the particles: "free" (the free region's one-sided penalty;
+    the default), "two-sided" (as described above, with obstacle feet) or "none" (the map only; the running
+    team's choice with the marks on, docs/slam.md "In the team, the obstacle marks")."""
 
     resolution: float = 0.1
     p_free: float = 0.35
@@ -380,6 +392,9 @@ class FloorModel:
     p_occ: float | None = None
     max_edge: float = 0.3  # m
     occ_offset: float = 0.05  # m
+    #: what the reading says about the particles: "free" (its free region must not lie on mapped obstacles;
+    #: the default), "two-sided" (and its obstacle feet not on mapped free floor) or "none" (map only)
+    density: Literal["free", "two-sided", "none"] = "free"
 
     def template(self, r: FloorReading) -> Template:
         poly = np.asarray(r.polygon, dtype=np.float64)
@@ -422,13 +437,20 @@ class FloorModel:
     def apply(self, r: FloorReading, states: np.ndarray, weights: np.ndarray, grid: OccupancyGrid) -> np.ndarray:
         tpl = self.template(r)
         occ = self.obstacle_points(r) if self.p_occ is not None else np.zeros((0, 2))
-        if len(occ) == 0:
+        if len(occ) == 0 and self.density != "none":
             return apply_free_region(grid, states, weights, tpl, self.temper)
         flat_free = template_cells(grid, states, tpl.points)
         flat_occ = template_cells(grid, states, occ)
-        log_g = grid.occupancy_penalty(flat_free, self.temper)
-        m = grid.prob_flat_at(flat_occ)
-        log_g = log_g + self.temper * np.minimum(0.0, np.log(2.0 * m + 1e-6)).sum(axis=1, dtype=np.float64)
+        if self.density == "none":
+            log_g = np.zeros(len(states))
+        else:
+            log_g = grid.occupancy_penalty(flat_free, self.temper)
+        if self.density == "two-sided":
+            m = grid.prob_flat_at(flat_occ)
+            log_g = log_g + self.temper * np.minimum(0.0, np.log(2.0 * m + 1e-6)).sum(axis=1, dtype=np.float64)
+        if len(occ) == 0:
+            grid.mixture_update(flat_free, tpl.p, weights)
+            return log_g
         p = np.concatenate([tpl.p, np.full(len(occ), self.p_occ)])
         grid.mixture_update(np.concatenate([flat_free, flat_occ], axis=1), p, weights)
         return log_g
