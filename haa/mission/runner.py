@@ -1152,6 +1152,10 @@ class MissionRun:
             self.files["timeline_png"] = str(plot_timeline(self, out / "allocation.png"))
         except ImportError as e:  # matplotlib missing
             self.errors.append(f"no PNGs: {e}")
+        if self.map_prob is not None:  # the final map beside the ideal one, for offline scoring and plots
+            np.savez_compressed(out / "map.npz", prob=self.map_prob, ideal=self.occ, explorable=self.explorable,
+                                resolution=self.grid_res)
+            self.files["map_npz"] = str(out / "map.npz")
         results["files"] = dict(self.files)
         samples = dataclasses.asdict(self.samples)
         # per avatar over mission time: the SLAM estimate's position error and the odometry's (for plots)
