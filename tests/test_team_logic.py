@@ -119,3 +119,23 @@ def test_frames_travel_with_a_transfer_jpeg_compressed_within_their_budget() -> 
         assert list(new.frames) == [9]
     finally:
         av.FRAMES_STATE_BYTES = old
+
+
+def test_the_bumper_widens_the_motion_noise_by_what_the_wheels_may_have_missed() -> None:
+    """AvatarSimulation.bump_sigma: BUMP_M per contact begun in (t0, t1] plus BUMP_SLIDE of the driving
+    speed per second the bumper was pressed; nothing without contact."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from haa.agents import avatar_simulation as av
+
+    me = SimpleNamespace(cfg=SimpleNamespace(cruise=0.2), info=SimpleNamespace(max_speed=2.0), bumper=deque())
+    for k in range(21):  # odometry every 0.05 s; the bumper pressed from 0.30 to 0.50 s, one contact
+        t = round(0.05 * k, 2)
+        me.bumper.append((t, 0.30 <= t <= 0.50, 0 if t < 0.30 else 1))
+    sigma = av.AvatarSimulation.bump_sigma
+    assert sigma(me, 0.0, 0.25) == 0.0
+    assert sigma(me, 0.6, 1.0) == 0.0  # pressed before, released since: nothing new
+    speed = 0.2 * 2.0
+    assert sigma(me, 0.25, 0.55) == pytest.approx(av.BUMP_M + av.BUMP_SLIDE * speed * 0.25)
+    assert sigma(me, 0.35, 0.45) == pytest.approx(av.BUMP_SLIDE * speed * 0.10)  # in contact, none begun

@@ -95,7 +95,7 @@ class AvatarConfig(team.TeamConfig):
     delay_max_s: float = pydantic.Field(30.0, gt=0, le=3600)
 
 
-#: the bumper's widening of the motion noise (AgentAvatarSimulation.bump_sigma): m per contact begun, share of
+#: the bumper's widening of the motion noise (AvatarSimulation.bump_sigma): m per contact begun, share of
 #: the driving speed per second of contact, rad of turn per m of push
 BUMP_M = 0.05
 BUMP_SLIDE = 0.5
