@@ -11,8 +11,11 @@ The three teams of Table 7.2-1:
 The driver is *not* the control system: it is a simple frontier-ish explorer that uses the simulator's
 **true map and true poses** (the issue allows it for recording): every avatar heads for the nearest cell of
 the reachable area that no avatar has passed within `SEEN_RADIUS` yet and that no other avatar is heading
-for, along a breadth-first path on the reachable cells shrunk by the avatar's radius, steering with a
-proportional heading controller at half its top speed; when it stalls it picks another goal. The SLAM
+for, along a breadth-first path on the reachable cells that no solid touches (thin panels fall out of the
+50 % ideal grid) shrunk by the avatar's radius (the grid's edge counts as wall), steering with a
+proportional heading controller at half its top speed; it waits for an avatar ahead and, held up, plans a
+way around it; when it stalls it picks another goal. It never scrapes a wall or bumps into an avatar: a
+push the wheels do not see would put an error into the odometry that no drift model states (docs/sim.md). The SLAM
 system never sees any of this — it gets only what an avatar agent would send: predictions from the wheel
 odometry (`haa.slam.motion.odometry_prediction`, the avatar type's drift spec), and sensor readings.
 
