@@ -11,10 +11,13 @@ merge (`merge_agents`): an agent's state is the local phase of the host that run
 reports it (a "recovering" of a never-started agent, life 0 or 1, is shown as "spawning", "claiming" as "thawing"), else
 its table status (new, active, freezing, frozen, crashed); its host is that host, else the table owner.
 
-`agent events` merges the allocation timelines (`AgentEvents` streams) of every host into one time-ordered
-transcript in the style of the thesis' Fig. 7.1-3 ("00:51 A1 (counter) freezing on h4", "00:53 A1
-(counter) thawed by h3"); `EventFeed` does the merging and is reused by `haactl demo`. Events that every
-member reports once for the same table change (created, removed, crashed by a host's removal) are shown once.
+`agent events` merges the allocation timelines of every host into one time-ordered transcript in the style of
+the thesis' Fig. 7.1-3 ("00:51 A1 (counter) freezing on h4", "00:53 A1 (counter) thawed by h3"): what every
+host persisted (its log: also hosts that were killed or stopped, and the lives before a restart), then with
+`-f` the live `AgentEvents` streams of the alive hosts. `EventFeed` does the merging and is reused by `haactl
+demo`; reading and attributing the records is haa.cluster.events. Events that every member reports once for
+the same table change (created, removed, crashed by a host's removal) are shown once, a crash that another
+host reported on the host that ran the agent ("A1 (counter) crashed on h10 (reported by h1)").
 """
 
 from __future__ import annotations
@@ -36,6 +39,14 @@ from rich.tree import Tree
 
 from haa.agents.base import RECOVERY_STRATEGIES
 from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
+from haa.cluster.events import (
+    Merger,
+    TimelineEvent,
+    host_event,
+    persisted_logs,
+    timeline_events,
+    view_events,
+)
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, err, open_backend, out
@@ -483,36 +494,6 @@ def agent_request(
 
 # ---------------------------------------------------------------------------------------------- timeline
 
-#: events every member reports for the same committed table change (shown once)
-TABLE_EVENTS = frozenset({"created", "removed", "failed"})
-#: events that mean "the agent runs on the event's host from now on"
-RUNS_ON = frozenset({"active", "thawed", "recovered"})
-
-
-@dataclass
-class TimelineEvent:
-    """One line of the merged timeline."""
-
-    time: float  # unix time at the reporting host
-    agent: str
-    name: str
-    event: str
-    host: str
-    detail: str = ""
-    type: str = ""
-    text: str = ""  # the transcript line without the clock ("A1 (counter) freezing on h4 (to h3)")
-
-    def clock(self, t0: float, absolute: bool = False) -> str:
-        if absolute:
-            return time.strftime("%H:%M:%S", time.localtime(self.time))
-        s = max(0, int(self.time - t0))
-        return f"{s // 60:02d}:{s % 60:02d}"
-
-
-def host_event(t: float, host: str, what: str) -> TimelineEvent:
-    return TimelineEvent(t, "", host, what, host, text=f"{host} {what}")
-
-
 def operator_event(t: float, text: str, kind: str = "operator") -> TimelineEvent:
     """A line of the operator's own, ordered with the hosts' events: a step ("operator": the demo's "▶ h4
     retires: SIGTERM") or a remark on it ("note": an indented line without a clock)."""
@@ -520,12 +501,16 @@ def operator_event(t: float, text: str, kind: str = "operator") -> TimelineEvent
 
 
 class EventFeed:
-    """The `AgentEvents` streams of every alive host (each host's kept history first), merged into one timeline.
+    """The allocation timeline of every host, merged: what the hosts persisted (`load_persisted`), then the
+    `AgentEvents` streams of every alive host (each host's kept history first, then live).
 
-    One thread per host pushes what its stream yields into a queue; `poll()` returns the events that are at
-    least `delay` seconds old in time order, each described once (module docstring). With `views`, `poll()`
-    also reports hosts joining and leaving the group (from the members' status, checked every second).
-    New hosts are picked up by `connect()` (called by `poll()` every second).
+    `load_persisted()` reads every host's log — also of hosts that were killed, left or are stopped, and the
+    lives before a restart, which no stream can replay (haa.cluster.events). One thread per alive host pushes
+    what its stream yields into a queue; an event that a persisted record already holds (the same host, agent,
+    event and detail within a second) is dropped. `poll()` returns the events that are at least `delay` seconds
+    old in time order, each kept once and attributed by `haa.cluster.events.Merger`, then described. With
+    `views`, `poll()` also reports hosts joining and leaving the group (from the members' status, checked every
+    second). New hosts are picked up by `connect()` (called by `poll()` every second).
     """
 
     def __init__(self, backend: Backend, delay: float = 0.6, views: bool = False) -> None:
@@ -538,19 +523,45 @@ class EventFeed:
         self.ended: dict[str, str] = {}  # host -> why its stream ended
         self.buffer: list[TimelineEvent] = []
         self.seen: set[tuple[str, float, str, str]] = set()
-        self.types: dict[str, str] = {}  # agent id -> type
-        self.runs_on: dict[str, str] = {}  # agent id -> the host it last became active on
-        self.shown: dict[tuple[str, str], float] = {}  # (agent, event) -> time of the last shown table event
+        self.merger = Merger()
+        #: (host, agent, event, detail) -> times of the persisted records not matched by a stream event yet
+        self.persisted: dict[tuple[str, str, str, str], list[float]] = {}
+        self.unreadable: dict[str, str] = {}  # host -> why its persisted log could not be read
         self.members: list[str] | None = None
         self.last_connect = 0.0
         self.last_view = 0.0
         self.received = 0
         self.closed = False
+        self.live = False  # streams are opened (`start`) and reopened by `poll`
         self.extra: queue.Queue[TimelineEvent] = queue.Queue()  # lines added by `add()`, from any thread
+
+    def load_persisted(self) -> int:
+        """Every host's persisted timeline records (and, with `views`, its view changes) into the buffer;
+        returns how many events. Hosts whose logs cannot be read are in `unreadable`."""
+        logs = persisted_logs(self.backend, errors=self.unreadable)
+        evs = timeline_events(logs)
+        for e in evs:
+            self.persisted.setdefault((e.host, e.agent, e.event, e.detail), []).append(e.time)
+        if self.views:
+            evs += view_events(logs)
+        self.buffer += evs
+        return len(evs)
+
+    def _persisted_already(self, host: str, ev: cpb.AgentEvent) -> bool:
+        """Whether a persisted record holds this stream event (a stream replays the host's kept history)."""
+        times = self.persisted.get((host, ev.agent, ev.event, ev.detail))
+        if not times:
+            return False
+        best = min(times, key=lambda t: abs(t - ev.time))
+        if abs(best - ev.time) > 1.0:
+            return False
+        times.remove(best)
+        return True
 
     def start(self, settle: float = 0.4, limit: float = 5.0) -> list[str]:
         """Connect to every alive host and take their kept histories (until no event came for `settle` s),
         so that the first `poll()` returns them all in time order. Returns the hosts connected."""
+        self.live = True
         hosts = self.connect()
         t = time.monotonic()
         deadline, quiet = t + limit, t
@@ -610,7 +621,8 @@ class EventFeed:
                 if key not in self.seen:  # a reconnect replays the history
                     self.seen.add(key)
                     self.received += 1
-                    self.buffer.append(TimelineEvent(ev.time, ev.agent, ev.name, ev.event, ev.host, ev.detail))
+                    if not self._persisted_already(host, ev):
+                        self.buffer.append(TimelineEvent(ev.time, ev.agent, ev.name, ev.event, ev.host, ev.detail))
             try:
                 item = self.q.get_nowait()
             except queue.Empty:
@@ -644,9 +656,9 @@ class EventFeed:
                 self.buffer.append(self.extra.get_nowait())
             except queue.Empty:
                 break
-        if time.monotonic() - self.last_connect > 1.0:
+        if self.live and time.monotonic() - self.last_connect > 1.0:
             self.connect()
-        if self.views and time.monotonic() - self.last_view > 1.0:
+        if self.views and self.live and time.monotonic() - self.last_view > 1.0:
             self.buffer += self._views()
         cut = time.time() - self.delay
         self.buffer.sort(key=lambda e: e.time)
@@ -659,28 +671,14 @@ class EventFeed:
         return shown
 
     def describe(self, e: TimelineEvent, batch: list[TimelineEvent]) -> bool:
-        """Fill `e.text`; False if the event repeats one already shown (a table event of another member)."""
+        """Fill `e.text`; False if the event repeats one already shown (a table event of another member).
+        Who did what where is `Merger`'s (haa.cluster.events): a table-level crash is shown on the host that
+        ran the agent, "reported by" the member whose log has it."""
         if not e.agent:
             return True  # a host line, already described
+        if not self.merger.take(e, (*batch, *self.buffer)):
+            return False
         kind = e.event
-        if kind == "created" and e.detail:
-            self.types[e.agent] = e.detail
-        e.type = self.types.get(e.agent, "")
-        if kind in TABLE_EVENTS or (kind == "crashed" and not e.detail):
-            last = self.shown.get((e.agent, kind))
-            if last is not None and abs(e.time - last) < 3.0:
-                return False
-            if kind == "crashed" and any(
-                x.agent == e.agent and x.event == "crashed" and x.detail and abs(x.time - e.time) < 3.0
-                for x in (*batch, *self.buffer)
-            ):
-                return False  # the host that ran it reported the cause
-            self.shown[(e.agent, kind)] = e.time
-        elif kind == "crashed":
-            last = self.shown.get((e.agent, kind))
-            if last is not None and abs(e.time - last) < 3.0:
-                return False
-            self.shown[(e.agent, kind)] = e.time
         who = f"{e.name} ({e.type})" if e.type else e.name
         d = e.detail
         if kind == "created":
@@ -704,8 +702,8 @@ class EventFeed:
             if d:
                 text = f"{who} crashed on {e.host}: {d}"
             else:
-                last_host = self.runs_on.get(e.agent)
-                text = f"{who} crashed" + (f" on {last_host}" if last_host else "")
+                text = f"{who} crashed" + (f" on {e.host}" if e.host else "")
+                text += f" (reported by {e.reporter})" if e.reporter else ""
         elif kind == "recovering":
             text = f"{who} recovering on {e.host}"
         elif kind == "recovered":
@@ -718,8 +716,6 @@ class EventFeed:
             text = f"{who} failed, not recovered any more: {d}"
         else:
             text = f"{who} {kind} on {e.host}" + (f" ({d})" if d else "")
-        if kind in RUNS_ON:
-            self.runs_on[e.agent] = e.host
         e.text = text
         return True
 
@@ -741,7 +737,7 @@ def event_line(e: TimelineEvent, t0: float, absolute: bool = False) -> str:
 
 def event_json(e: TimelineEvent, t0: float) -> dict[str, Any]:
     return {"time": e.time, "clock": e.clock(t0), "agent": e.agent, "name": e.name, "type": e.type,
-            "event": e.event, "host": e.host, "detail": e.detail, "text": e.text}
+            "event": e.event, "host": e.host, "reporter": e.reporter, "detail": e.detail, "text": e.text}
 
 
 @agent_app.command("events")
@@ -755,14 +751,20 @@ def agent_events(
     count: Annotated[int, typer.Option("--count", min=0, help="stop after this many lines (0 = no limit)")] = 0,
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object per event")] = False,
 ) -> None:
-    """The allocation timeline of the whole cluster (every host's AgentEvents, merged, Fig. 7.1-3 style).
+    """The allocation timeline of the whole cluster (every host's events, merged, Fig. 7.1-3 style).
 
-    Times are mm:ss since the first event kept by the hosts (each host keeps its last 2000). With -f, new
-    events follow as they happen, with hosts joining and leaving the group."""
-    backend = open_backend(compose, root, compose_file)
+    Read from what every host persisted — its log in its data dir (compose: the container's log) — so hosts
+    that were killed or stopped and the lives of restarted hosts are in it; every line names the host where it
+    happened (a crash that another host reported says which). Times are mm:ss since the first line. With -f,
+    new events follow as they happen (the alive hosts' AgentEvents streams), with hosts joining and leaving
+    the group. Without -f it also works on the cluster that `cluster down` stopped (its logs are kept)."""
+    backend = open_backend(compose, root, compose_file, last=not follow)
     backend.require_hosts()
-    feed = EventFeed(backend, views=follow)
-    if not feed.start():
+    feed = EventFeed(backend, views=True)
+    feed.load_persisted()
+    for h, why in sorted(feed.unreadable.items()):
+        err.print(f"[yellow]warning:[/] the log of {h} could not be read ({escape(why)}); its events are missing")
+    if follow and not feed.start():
         raise ClusterError(f"no host is alive in the {backend.describe()}")
     printed = 0
     t0 = 0.0

@@ -87,8 +87,9 @@ def test_timeline_shows_each_table_event_once() -> None:
         "A1 (counter) spawned by h2",
         "A1 (counter) crashed on h2: killed by signal 9",
         "A1 (counter) recovered by h3 (from backup)",
-        "A1 (counter) crashed on h3",
+        "A1 (counter) crashed on h3 (reported by h1)",  # where it ran, and who said so
     ]
+    assert (evs[-1].host, evs[-1].reporter) == ("h3", "h1")
 
 
 def test_no_cluster_is_a_clear_error(tmp_path: Path) -> None:

@@ -52,8 +52,9 @@ def test_demo_quick_loses_nothing(tmp_path: Path) -> None:
     assert retired and crashed and retired.group(1) != crashed.group(1), out
     for host in (retired.group(1), crashed.group(1)):
         assert re.search(rf"\d\d:\d\d {host} removed", out), out
-    # the agents of the crashed host were recovered by a survivor
-    assert any(re.match(rf"\d\d:\d\d A[\d.]+ \(counter\) crashed on {crashed.group(1)}$", ln) for ln in timeline), out
+    # the agents of the crashed host: shown crashed there, as a survivor reported it, and recovered by a survivor
+    assert any(re.match(rf"\d\d:\d\d A[\d.]+ \(counter\) crashed on {crashed.group(1)} \(reported by h\d\)$", ln)
+               for ln in timeline), out
     assert re.search(r"lost to recovery \(by design\): \d+", out)
     assert (tmp_path / "h4" / "h4.jsonl").exists()
 

@@ -4,8 +4,10 @@ Sources: `faults.json` (what the injector did, when) and every host's persisted 
 (`hosts/<name>.jsonl`), so the events of a host that was killed are there and every line names the host where
 it happened. Effects kept: suspicions (a host starts or stops suspecting a peer), view changes (removals and
 joins, once per view), a host finding itself removed, agents hung, crashed, recovering, recovered, freezing,
-thawed (transfers), failed, removed. Events that every member logs for one committed change (an agent's
-crash from the table, its removal) are shown once.
+thawed (transfers), failed, removed. The agent events are read and merged by haa.cluster.events (the same
+parser and merge as `haactl agent events`): events that every member logs for one committed change (an
+agent's crash from the table, its removal, its failure) are shown once, and a crash the table recorded is
+shown on the host that ran the agent, with the host that reported it ("A1 crashed on h4 (reported by h1)").
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from haa.chaos.collect import host_logs
+from haa.cluster.events import Merger, TimelineEvent, timeline_events
 
 #: agent timeline events shown, and how
 AGENT_WORDS = {
@@ -31,8 +34,6 @@ AGENT_WORDS = {
     "agent_backoff": "start failure",
     "agent_removed": "removed",
 }
-#: events every member logs for one committed change: shown once per (agent, event) within this many seconds
-DEDUP_S = 3.0
 
 
 @dataclass
@@ -60,10 +61,19 @@ def _effects(host: str, r: dict[str, Any]) -> str | None:
         return f"{host} starts a new incarnation"
     if ev == "agent_hung":
         return f"{f.get('name')} hung on {host} (no heartbeat for {f.get('silent')} s): killed"
-    if ev in AGENT_WORDS and "detail" in f and "pid" not in f:
-        detail = f" ({f['detail']})" if f.get("detail") else ""
-        return f"{f.get('name')} {AGENT_WORDS[ev]} on {host}{detail}"
     return None
+
+
+def _agent_text(e: TimelineEvent) -> str:
+    """An agent event (kept and attributed by `Merger`) as a timeline line."""
+    word = AGENT_WORDS["agent_" + e.event]
+    if e.event == "crashed" and not e.detail:
+        where = f" on {e.host}" if e.host else ""
+        return f"{e.name} {word}{where}" + (f" (reported by {e.reporter})" if e.reporter else "")
+    if e.event == "removed":  # a change of the group's table, not of one host: say which host logged it first
+        return f"{e.name} removed (reported by {e.host})"
+    detail = f" ({e.detail})" if e.detail else ""
+    return f"{e.name} {word} on {e.host}{detail}"
 
 
 def build(run: Path) -> list[Entry]:
@@ -76,18 +86,15 @@ def build(run: Path) -> list[Entry]:
         state = "" if f.get("ok") else " [not done]"
         detail = f": {f['detail']}" if f.get("detail") else ""
         out.append(Entry(f["ts"], f["ts"] - t0, "", "fault", f"{f['action']} {f['target']}{detail}{state}"))
+    logs = host_logs(run)
+    in_run = [e for e in timeline_events(logs) if e.event in {k[len("agent_"):] for k in AGENT_WORDS}]
+    for e in Merger().merge(in_run):  # attributed from the whole history (an agent may have moved before t0)
+        if t0 - 1.0 <= e.time <= t_end:
+            out.append(Entry(e.time, e.time - t0, e.host or e.reporter, "effect", _agent_text(e)))
     seen_views: set[tuple[Any, ...]] = set()
-    last_shared: dict[tuple[str, str, str], float] = {}
-    records = sorted(((float(r.get("ts", 0)), host, r) for host, recs in host_logs(run).items() for r in recs),
+    records = sorted(((float(r.get("ts", 0)), host, r) for host, recs in logs.items() for r in recs),
                      key=lambda x: x[0])
-    # a removed agent is logged under its id prefix (its table entry is gone): show its display name
-    names = {f["agent"]: f["name"] for _, _, r in records
-             if isinstance(f := r.get("fields"), dict) and isinstance(f.get("agent"), str) and f.get("name")
-             and f["name"] != f["agent"][:8]}
     for ts, host, r in records:
-        fl = r.get("fields")
-        if isinstance(fl, dict) and isinstance(fl.get("agent"), str) and fl.get("name", "") in ("", fl["agent"][:8]):
-            r = {**r, "fields": {**fl, "name": names.get(fl["agent"], fl["agent"][:8])}}
         if ts < t0 - 1.0 or ts > t_end:
             continue  # before the chaos (cluster start, workload start) or after it (the cluster stopping)
         ev = r.get("event")
@@ -102,16 +109,8 @@ def build(run: Path) -> list[Entry]:
             out.append(Entry(ts, ts - t0, host, "effect", f"view {f.get('view')}: {'; '.join(parts)}"))
             continue
         text = _effects(host, r)
-        if text is None:
-            continue
-        if ev in ("agent_crashed", "agent_removed"):
-            k = (str(f.get("agent")), str(ev), "")
-            seen, last_shared[k] = last_shared.get(k, -1e18), ts
-            if not f.get("detail"):
-                if ts - seen < DEDUP_S:
-                    continue
-                text = f"{f.get('name')} {AGENT_WORDS[str(ev)]} (reported by {host})"
-        out.append(Entry(ts, ts - t0, host, "effect", text))
+        if text is not None:
+            out.append(Entry(ts, ts - t0, host, "effect", text))
     out.sort(key=lambda e: e.ts)
     return out
 

@@ -5,6 +5,7 @@ mission runner can use them; haa must not import haactl).
   leave) and `ClusterError`, the one-line operator error.
 * `haa.cluster.local_backend` — `LocalBackend`: haa-hostd processes on loopback recorded in a state file.
 * `haa.cluster.procs` — free ports and the haa-hostd command line.
+* `haa.cluster.events` — the allocation timeline from every host's persisted log (parser, merge, attribution).
 
 The docker compose backend stays in haactl (haactl.compose_backend).
 """

@@ -1,0 +1,127 @@
+"""`haactl agent events --compose` after a host container was killed and restarted (issue 18 §3, the defect
+reported on the compose cluster: "A1 (counter) crashed on h1" and no line of A1 thawing on h10).
+
+A compose project of its own (`haaevents<pid>`: the first 4 host services of compose/compose.yaml, free
+published ports, a free 10.77.x.0/24 subnet; helpers of test_agents_chaos) runs one counter agent; it is moved
+to h4 (a thaw there), h4's container is killed (`haactl host kill h4 --compose --wait`; the agent is recovered
+on a survivor) and started again (`host restart`). `agent events --compose --json` must show the thaw on h4 —
+read from the container's log through the docker SDK, which keeps the log of the life before the restart —,
+the crash on h4 reported by a survivor, the recovery elsewhere, and h4 removed and joined again; then h4 is
+killed again and left stopped: the same from the stopped container's log. Marker `docker`: skipped without an
+engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈40-60 s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from chaoslib import docker_problem
+from test_agents_chaos import derive_compose, free_prefix
+from typer.testing import CliRunner
+
+from haa.cluster.backend import ClusterError, wait_until
+from haactl.compose_backend import ComposeBackend
+from haactl.main import app
+
+pytestmark = pytest.mark.docker
+runner = CliRunner()
+N = 4
+VICTIM = "h4"  # not a core host: the group keeps its three core members
+
+
+class Compose:
+    def __init__(self, file: Path, project: str) -> None:
+        self.file, self.project = file, project
+
+    def __call__(self, *args: str) -> str:
+        r = runner.invoke(app, [*args, "--compose", "--compose-file", str(self.file)],
+                          env={"HAA_COMPOSE_PROJECT": self.project})
+        assert r.exit_code == 0, f"haactl {' '.join(args)} --compose -> {r.exit_code}\n{r.output}\n{r.exception!r}"
+        return r.stdout
+
+    def a1(self) -> dict[str, Any] | None:
+        agents = json.loads(self("agent", "list", "--json"))["agents"]
+        return next((a for a in agents if a["name"] == "A1"), None)
+
+    def wait_a1(self, pred: Any, timeout: float, what: str) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while True:
+            with contextlib.suppress(AssertionError):
+                a = self.a1()
+                if a and pred(a):
+                    return a
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}")
+            time.sleep(0.3)
+
+
+@pytest.fixture(scope="module")
+def compose(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Compose]:
+    problem = docker_problem()
+    if problem:
+        if os.environ.get("HAA_REQUIRE_DOCKER") == "1":
+            pytest.fail(f"HAA_REQUIRE_DOCKER=1 but {problem}")
+        pytest.skip(problem)
+    project = f"haaevents{os.getpid()}"
+    rng = random.Random(os.getpid())
+    backend: ComposeBackend | None = None
+    for _attempt in range(3):  # a subnet taken between our look and compose's network create: another one
+        f = derive_compose(tmp_path_factory.mktemp("events"), N, free_prefix(rng))
+        backend = ComposeBackend(f, project=project)
+        try:
+            names = backend.up(N)
+            break
+        except ClusterError as e:
+            with contextlib.suppress(ClusterError):
+                backend.down(grace=1)
+            if "overlap" not in str(e) and "Pool" not in str(e):
+                pytest.fail(f"compose up of project {project} failed: {e}")
+    else:
+        pytest.fail(f"compose up of project {project}: no free subnet after 3 attempts")
+    assert backend is not None
+    try:
+        wait_until(lambda: backend.formation(names), 120, what=f"{N} hosts in one group")
+        yield Compose(f, project)
+    finally:
+        backend.down(grace=1)
+
+
+def check_story(evs: list[dict[str, Any]]) -> None:
+    texts = [e["text"] for e in evs]
+    a1 = [e for e in evs if e["name"] == "A1"]
+    thaw = [e for e in a1 if e["event"] == "thawed" and e["host"] == VICTIM]
+    assert thaw, f"no thaw of A1 on {VICTIM}:\n" + "\n".join(texts)
+    crash = [e for e in a1 if e["event"] == "crashed" and e["time"] > thaw[0]["time"]]
+    assert len(crash) == 1, "\n".join(texts)
+    c = crash[0]
+    assert c["host"] == VICTIM and c["reporter"] not in ("", VICTIM), c
+    assert c["text"] == f"A1 (counter) crashed on {VICTIM} (reported by {c['reporter']})"
+    assert any(e["event"] == "recovered" and e["host"] != VICTIM and e["time"] > c["time"] for e in a1), texts
+    assert any(e["text"] == f"{VICTIM} removed" for e in evs), texts
+    assert any(e["text"] == f"{VICTIM} joined" and e["time"] > c["time"] for e in evs), texts
+    assert [e["time"] for e in evs] == sorted(e["time"] for e in evs)
+    assert all(e["host"] for e in evs)
+
+
+def test_killed_and_restarted_container_keeps_its_events(compose: Compose) -> None:
+    t0 = time.monotonic()
+    compose("agent", "spawn", "counter", "--config", json.dumps({"period": 0.2, "backup_every": 5}))
+    compose.wait_a1(lambda a: a["state"] == "active", 60, "A1 active")
+    compose("agent", "move", "A1", VICTIM)
+    compose("host", "kill", VICTIM, "--wait", "--timeout", "60")
+    compose.wait_a1(lambda a: a["state"] == "active" and a["host"] != VICTIM, 60, "A1 recovered elsewhere")
+    compose("host", "restart", VICTIM, "--timeout", "90")  # the same container: a new incarnation
+    evs = [json.loads(ln) for ln in compose("agent", "events", "--json").splitlines()]
+    print("\n".join(f"{e['clock']} {e['text']}" for e in evs))
+    check_story(evs)
+    compose("host", "kill", VICTIM, "--wait", "--timeout", "60")  # stopped for good: its container's log remains
+    check_story([json.loads(ln) for ln in compose("agent", "events", "--json").splitlines()])
+    print(f"compose scenario: {time.monotonic() - t0:.1f} s")
