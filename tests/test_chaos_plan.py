@@ -340,3 +340,17 @@ def test_counters_checks_fail_on_exactly_their_fault(tmp_path: Path, changes, fa
     checks = run_checks(counters_run(tmp_path, **changes), "counters")
     assert set(checks) == {"replicas_agree", "single_instance", "counter_streams", "crashed_agents_recovered"}
     assert {k for k, c in checks.items() if not c.passed} == failing, checks
+
+
+def test_crashes_logged_after_the_run_ended_are_not_the_runs() -> None:
+    """`cluster down` stops the hosts after the replicas were read (t_end): an agent frozen and crashed
+    then is not a crash of the run (it flaked test_chaos_run once); one before t_end still counts."""
+    from haa.chaos.checks import check_crashed_recovered
+
+    def rec(ts: float, ev: str) -> dict:
+        return {"ts": ts, "event": ev, "fields": {"agent": "a-1", "name": "A1", "detail": "x"}}
+
+    logs = {"h1": [rec(10.0, "agent_thawed"), rec(31.7, "agent_crashed")]}
+    assert not check_crashed_recovered(logs).passed
+    assert check_crashed_recovered(logs, t_end=31.6).passed
+    assert not check_crashed_recovered({"h1": [rec(20.0, "agent_crashed")]}, t_end=31.6).passed

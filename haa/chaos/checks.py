@@ -17,6 +17,7 @@ believed while it ran is used. Each check returns `Check(passed, detail)`:
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections import Counter, defaultdict
 from dataclasses import dataclass
@@ -206,8 +207,12 @@ def agent_events(logs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
     return sorted(out, key=lambda e: e["ts"])
 
 
-def check_crashed_recovered(logs: dict[str, list[dict[str, Any]]]) -> Check:
+def check_crashed_recovered(logs: dict[str, list[dict[str, Any]]], t_end: float | None = None) -> Check:
+    """`t_end`: when the run ended (the replicas were read); what hosts log after it — agents crashing while
+    `cluster down` stops their hosts — is not part of the run."""
     evs = agent_events(logs)
+    if t_end:
+        evs = [e for e in evs if e["ts"] <= t_end]
     crashes: dict[str, list[float]] = defaultdict(list)
     names: dict[str, str] = {}
     for e in evs:
@@ -253,5 +258,8 @@ def run_checks(run: Path, workload: str | None) -> dict[str, Check]:
     elif workload == "counters":
         out["single_instance"] = check_fencing_counters(reps)
         out["counter_streams"] = check_counter_streams(reps)
-    out["crashed_agents_recovered"] = check_crashed_recovered(logs)
+    t_end = None
+    with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
+        t_end = float(json.loads((run / "faults.json").read_text()).get("t_end") or 0) or None
+    out["crashed_agents_recovered"] = check_crashed_recovered(logs, t_end)
     return out
