@@ -1,7 +1,8 @@
-"""`haactl verify ufd|oac|membership|ddb|allocation|transfer|recovery`: run seeded fault schedules in the
+"""`haactl verify ufd|oac|membership|ddb|allocation|transfer|recovery|join`: run seeded fault schedules in the
 deterministic simulator and check the thesis' properties (`haa.dsim.checks` for UFD and OAC, `haa.dsim.group`
 for host membership and the replicated DDB, `haa.dsim.allocation` for Alg. 4, `haa.dsim.agents` for the whole
-agent layer: transfer Alg. 5-6, backup and recovery Alg. 7-8).
+agent layer: transfer Alg. 5-6, backup and recovery Alg. 7-8; `haa.dsim.joins` for the allocation after hosts
+join).
 
 Output contract: one `VIOLATION seed=S <property>: <detail>` line per violation, a trace excerpt and a
 `reproduce:` command for the first few violating seeds, a summary, and as the very last line exactly
@@ -23,7 +24,7 @@ console = Console(stderr=True)
 
 
 def verify(
-    algorithm: str = typer.Argument(..., help="ufd, oac, membership, ddb, allocation, transfer or recovery"),
+    algorithm: str = typer.Argument(..., help="ufd, oac, membership, ddb, allocation, transfer, recovery or join"),
     schedules: int = typer.Option(2000, "--schedules", "-n", min=1, help="number of seeded schedules"),
     seed: int = typer.Option(0, "--seed", "-s", min=0, help="first seed; schedules use seed .. seed+N-1"),
     hosts: int = typer.Option(7, "--hosts", min=2, max=64, help="hosts per schedule"),

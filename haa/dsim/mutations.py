@@ -56,6 +56,12 @@ Agent transactions with out-of-bounds values (issue 13), checked by `haactl veri
                      from a member that skips the edge checks is applied everywhere. Breaks AG-Refuse-Invalid.
 * `raising-reaction` the agent layer raises while reacting to a committed agent-list change; the host's safety
                      net catches it. Breaks AG-No-Error (the net must not hide bugs from the verifiers).
+
+Allocation after a host joins, checked by `haactl verify join` (`haa.dsim.joins`):
+
+* `joiner-default-capacity` a member whose capacity is not in the agent table yet (it just joined) bids as if it
+                     had one core: the join's session gives it agents that the session its real capacity
+                     triggers a second later moves again. Breaks AA-Join-Stable.
 """
 
 from __future__ import annotations
@@ -351,6 +357,23 @@ def raising_reaction() -> Undo:
     return _patch(node_mod.AgentNode, "_maybe_session", maybe_session)
 
 
+def joiner_default_capacity() -> Undo:
+    """The agent layer as before the join fix: a member whose `HostInfo` is not in the agent table yet (a host
+    that just joined) is read as one core without hardware and bids in the join's session."""
+    from haa.hostd import agentnode as node_mod
+    from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
+
+    def host_specs(self: node_mod.AgentNode) -> tuple[HostSpec, ...]:
+        out = []
+        for n in self._member_names():
+            h = self.table.hosts.get(n)
+            cap = h.capacity if h is not None and MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
+            out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
+        return tuple(out)
+
+    return _patch(node_mod.AgentNode, "_host_specs", host_specs)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -376,6 +399,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "unchecked-claim": (unchecked_claim, "transfer", "AG-Single-Active"),
     "unbounded-values": (unbounded_values, "recovery", "AG-Refuse-Invalid"),
     "raising-reaction": (raising_reaction, "transfer", "AG-No-Error"),
+    "joiner-default-capacity": (joiner_default_capacity, "join", "AA-Join-Stable"),
 }
 
 

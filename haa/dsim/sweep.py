@@ -5,7 +5,8 @@ Algorithms: `ufd` and `oac` run `haa.dsim.schedule` scenarios on bare host cores
 the replicated DDB; `ddb` with a heavier write workload) and report `haa.dsim.group.VERIFIER_PROPS`;
 `allocation` runs `haa.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.dsim.allocation.PROPS`);
 `transfer` and `recovery` run `haa.dsim.agents` schedules (the whole agent layer on `AgentNode`s over a host
-group: allocation, Alg. 5-8, routing; `haa.dsim.agents.AGENT_PROPS`).
+group: allocation, Alg. 5-8, routing; `haa.dsim.agents.AGENT_PROPS`); `join` runs `haa.dsim.joins` schedules
+(the agent layer on a quiet group that hosts join: no agent transferred twice per join, plus the agent props).
 
 `run_seed` draws one scenario, runs it, checks it, and returns a small picklable result. `sweep` fans
 seeds out to a process pool (one worker per core), reports progress and schedules per minute, and for each
@@ -33,7 +34,7 @@ from haa.dsim.checks import CheckResult, Violation, check_oac, check_ufd
 GROUP_ALGORITHMS = ("membership", "ddb")
 #: the agent layer (haa.dsim.agents): transfers under pauses and false suspicions; recoveries under crashes
 AGENT_ALGORITHMS = ("transfer", "recovery")
-ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation", *AGENT_ALGORITHMS)
+ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation", *AGENT_ALGORITHMS, "join")
 #: per-seed figures of the group verifiers that the summary adds up
 GROUP_TOTALS = ("faults_injected", "faults_dropped", "writes_acked", "views")
 
@@ -77,6 +78,10 @@ def run_seed(
         from haa.dsim import agents as agent_sim
 
         return SeedResult(**agent_sim.seed_result(seed, hosts, algorithm))
+    if algorithm == "join":
+        from haa.dsim import joins as join_sim
+
+        return SeedResult(**join_sim.seed_result(seed, hosts))
     if algorithm in GROUP_ALGORITHMS:
         return run_group_seed(algorithm, seed, hosts)
     sc = sched.draw(seed, hosts, algorithm)
@@ -136,6 +141,10 @@ def full_trace(algorithm: str, seed: int, hosts: int) -> list[str]:
         from haa.dsim import agents as agent_sim
 
         return agent_sim.full_trace(seed, hosts, algorithm)
+    if algorithm == "join":
+        from haa.dsim import joins as join_sim
+
+        return join_sim.full_trace(seed, hosts)
     if algorithm in GROUP_ALGORITHMS:
         sc = group.draw_group(seed, hosts, algorithm)
         sim = group.GroupSim(sc, trace=True)
@@ -182,6 +191,10 @@ def trace_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lin
         from haa.dsim import agents as agent_sim
 
         return agent_sim.trace_excerpt(seed, hosts, algorithm, result.hosts, lines)
+    if algorithm == "join":
+        from haa.dsim import joins as join_sim
+
+        return join_sim.trace_excerpt(seed, hosts, result.hosts, lines)
     if algorithm in GROUP_ALGORITHMS:
         return _group_excerpt(algorithm, seed, hosts, result, lines)
     sc = sched.draw(seed, hosts, algorithm)
@@ -270,6 +283,8 @@ def sweep(
     totals: dict[str, float] = dict.fromkeys(GROUP_TOTALS, 0.0) if algorithm in GROUP_ALGORITHMS else {}
     if algorithm in AGENT_ALGORITHMS:
         totals = dict.fromkeys(("transfers", "recoveries", "processed", "faults_dropped"), 0.0)
+    if algorithm == "join":
+        totals = dict.fromkeys(("joins", "transfers_after_joins", "transfers_to_joiners", "agents_moved_twice"), 0.0)
     again = f" --mutate {mutate}" if mutate else ""
 
     def results() -> Iterator[SeedResult]:

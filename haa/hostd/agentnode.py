@@ -641,9 +641,14 @@ class AgentNode(TransferMixin, RecoveryMixin):
         kind, agent, epoch_or_n, n = e.req[1], e.req[2], e.req[3], e.req[4]
         if kind == "push":
             agent, msgs = self._push_reqs.pop(n, (agent, []))
-            if not e.ok:  # aborted or refused: the table may say something else now
-                for m in msgs:
+            if not e.ok and self.m.is_member() and not self._left_group:
+                for m in msgs:  # aborted or refused: the table may say something else now
                     self._route(m)
+            elif not e.ok:
+                # not a member (any more): a push is refused at once, and routing the messages again pushed
+                # them again in the same drain, for ever (`haactl verify recovery` seed 238 once a joiner
+                # publishes its HostInfo). The group fences a removed host's messages anyway.
+                self.counters["push_dropped_not_member"] += len(msgs)
             return
         if kind in ("create", "op"):
             req = self._ops.pop(epoch_or_n, None)
@@ -746,11 +751,10 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self._reconcile()
 
     def _publish_host(self, force: bool = False) -> None:
+        """Commit this host's K_h, H_h and draining flag to the agent table. Every member publishes them, the
+        defaults too: the allocation gives a member whose entry is missing no agent (`_host_specs`)."""
         want = (self.config.capacity, tuple(sorted(self.config.hardware)), self.draining)
         if not force and self._host_published == want:
-            return
-        if self._host_published is None and want == (1.0, (), False) and self.name not in self.table.hosts:
-            self._host_published = want  # the defaults need no transaction: a host without info is read so
             return
         self._host_published = want
         tx = apb.AgentTx()
@@ -793,11 +797,21 @@ class AgentNode(TransferMixin, RecoveryMixin):
         return tuple(out)
 
     def _host_specs(self) -> tuple[HostSpec, ...]:
+        """K_h and H_h of every member (thesis §4.7: the leader defines the session's properties), as the
+        members committed them to the agent table. A member whose entry is not committed yet — a host that
+        just joined: its `_publish_host` follows its join by one OAC — takes part in the session but bids for
+        nothing (`draining`), like a host leaving. Read as the default (one core, no hardware), a joiner with
+        a smaller capacity took agents in the join's session and gave them back in the session its entry
+        triggers about `min_session_gap` later (docs/allocation.md, "Joins and hysteresis"); its entry triggers
+        that session anyway, and only then does the joiner get agents, on its real K_h."""
         out = []
         for n in self._member_names():
             h = self.table.hosts.get(n)
-            cap = h.capacity if h is not None and MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
-            out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
+            if h is None:
+                out.append(HostSpec(n, 1.0, frozenset(), True))
+                continue
+            cap = h.capacity if MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
+            out.append(HostSpec(n, cap, frozenset(h.hardware), bool(h.draining)))
         return tuple(out)
 
     def _maybe_session(self, now: float, why: str, force: bool = False) -> None:
@@ -861,6 +875,16 @@ class AgentNode(TransferMixin, RecoveryMixin):
                           unallocatable=list(e.unallocatable))
             elif t is Log:
                 self.out.append(e)
+
+    def _on_host_done(self, _agent: str, _n: int, ok: bool) -> None:
+        """Our host entry was committed, or given up / refused (the first member's, proposed before the group
+        is formed, is refused): publish it again while we are a member and the table does not hold it."""
+        if ok or not self.m.is_member() or self._left_group:
+            return
+        h = self.table.hosts.get(self.name)
+        want = self._host_published
+        if h is None or want is None or (h.capacity, tuple(sorted(h.hardware)), h.draining) != want:
+            self._publish_host(force=True)
 
     def _on_start_done(self, _agent: str, ses_id: int, ok: bool) -> None:
         start = self._starts.pop(ses_id, None)

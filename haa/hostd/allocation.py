@@ -43,6 +43,10 @@ In short:
   reported as `unallocatable` and left out of the consensus check (otherwise the session never ends).
 * per-host limits (issue 15, not in the thesis): a host bids for at most `max_per_host` agents of a limited
   kind; the agents of a kind beyond its places in the group are unallocatable like a hardware mismatch.
+* hysteresis (a join moved agents twice): a bid for an agent that runs on another host counts a transfer
+  penalty of at least `MIN_TRANSFER_PENALTY` in its reward and, past the bidder's capacity, `HYSTERESIS` off
+  its support; an agent that runs nowhere has transfer factor 1 on every host (eq. 4.7-2 read for agents
+  that no allocation transfers).
 
 The class does no I/O, reads no clock and uses no randomness; iteration orders are those of its inputs.
 """
@@ -548,8 +552,13 @@ def _third_party(sb: Bid, rb: Bid, base: int) -> Rule:
 
 
 def transfer_factor(agent: AgentSpec, host: str) -> float:
-    """eq. 4.7-2: 1 on the current host (a_i in L_h), (1 - t_i) elsewhere."""
-    return 1.0 if agent.current_host == host else 1.0 - agent.transfer_penalty
+    """eq. 4.7-2: 1 on the current host (a_i in L_h), (1 - t_i) elsewhere. An agent that runs nowhere (new,
+    crashed, or frozen in a transfer) is transferred by no allocation: 1 everywhere. Read literally, eq. 4.7-2
+    gave it 1 - t_i on every host, so the session that placed it ranked it below what the next session did
+    once it ran (t_i = 1: reward 0, placed last, over capacity) and that session moved agents again
+    (docs/allocation.md, "Joins and hysteresis")."""
+    h = agent.current_host
+    return 1.0 if h is None or h == host else 1.0 - agent.transfer_penalty
 
 
 def agent_reward(agent: AgentSpec, host: str, bundle: Iterable[str]) -> float:
@@ -749,6 +758,18 @@ class Allocator:
     #: the support of our bids counts the cost of the agents only we can run as used, before they are in
     #: the bundle, so that we do not fill up with agents others could take (docs/allocation.md, "rewards")
     RESERVE = True
+    #: hysteresis, within capacity: a bid for an agent that runs on another host counts at least this transfer
+    #: penalty in its reward (eq. 4.7-2's 1 - t_i), so that the host running it wins a tie of rewards. Most agent
+    #: types declare t_i = 0, and then the support (the bundle position) decided, so every session moved agents
+    #: for nothing (docs/allocation.md, "Joins and hysteresis"). Not for agents of a limited kind: with per-host
+    #: limits, transfer penalties can keep a released bid circulating for ever (a gap of the conflict rules
+    #: left open, docs/allocation.md "Known gaps"), and those kinds keep their declared t_i. 0 turns it off.
+    MIN_TRANSFER_PENALTY = 0.05
+    #: hysteresis, over capacity: a bid past the bidder's capacity for an agent that runs on another host has its
+    #: support lowered by this share of the bidder's capacity. Over capacity support decides (eq. 4.7-3 has no
+    #: transfer penalty), so an agent moves from one overloaded host to another only if it ends up less
+    #: overloaded by more than this. Within capacity the reward decides (MIN_TRANSFER_PENALTY). 0 turns it off.
+    HYSTERESIS = 0.1
 
     def __init__(self, me: str, committed_ses: int = 0) -> None:
         self.me = _name(me, "Allocator.me")
@@ -1044,7 +1065,16 @@ class Allocator:
         used = sum(agents[a].cost for a in s.entry_of)
         if self.RESERVE:  # capacity kept for the agents no other member can run (docs/allocation.md)
             used += sum(agents[a].cost for a in s.eligible if a in s.exclusive and a not in in_bundle)
-        factor = {i: transfer_factor(agents[i], me) for i in s.eligible}
+        # hysteresis (docs/allocation.md): for an agent that runs on another host, at least MIN_TRANSFER_PENALTY
+        # in the reward and HYSTERESIS off the support; nothing for an agent that runs nowhere yet
+        away = {i for i in s.eligible if agents[i].current_host not in (None, me)}
+        # (not for agents of a limited kind: see MIN_TRANSFER_PENALTY)
+        low = {i for i in away if not agents[i].max_per_host}
+        stay = 1.0 - self.MIN_TRANSFER_PENALTY
+        factor = {i: min(transfer_factor(agents[i], me), stay) if i in low else transfer_factor(agents[i], me)
+                  for i in s.eligible}
+        hyst = self.HYSTERESIS
+        margin = {i: hyst if i in away else 0.0 for i in s.eligible}
         bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
         back: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ji x factor_j, j in the bundle
         for j in s.entry_of:
@@ -1076,20 +1106,23 @@ class Allocator:
                 a = agents[i]
                 reward = (a.cost + bonus[i]) * factor[i] + back[i]
                 support = (k - used - (0.0 if i in excl else a.cost)) / k
+                if support <= 0.0:  # over capacity: the margin (within it, the reward's decides)
+                    support -= margin[i]
                 key = _vals_key(reward, support)
-                placed = reward
+                placed, placed_s = reward, support
                 if pkey is not None and key > pkey:  # _warp, spelled out for speed
                     placed = min(reward, prev.reward)  # type: ignore[union-attr]
-                if not _beats(placed, support, me, to_beat[i]):
+                    placed_s = min(support, prev.support)  # type: ignore[union-attr]
+                if not _beats(placed, placed_s, me, to_beat[i]):
                     continue
                 if best is None or key > best[0]:
-                    best = (key, (i,), placed, support)
+                    best = (key, (i,), placed, placed_s)
             for c in clusters:
                 cl = c.agents
                 if any(i in in_bundle for i in cl):
                     continue
                 support = (k - used - c.cost) / k
-                if support <= 0.0:  # the whole cluster must fit
+                if support <= 0.0:  # the whole cluster must fit (so it carries no margin)
                     continue
                 if limits and not _within_limits(cl, limits, held):
                     continue
@@ -1097,13 +1130,14 @@ class Allocator:
                 for i, inner in zip(cl, c.inner, strict=True):
                     reward += (agents[i].cost + bonus[i] + inner) * factor[i] + back[i]
                 key = _vals_key(reward, support)
-                placed = reward
+                placed, placed_s = reward, support
                 if pkey is not None and key > pkey:
                     placed = min(reward, prev.reward)  # type: ignore[union-attr]
-                if not all(_beats(placed, support, me, to_beat[i]) for i in cl):
+                    placed_s = min(support, prev.support)  # type: ignore[union-attr]
+                if not all(_beats(placed, placed_s, me, to_beat[i]) for i in cl):
                     continue
                 if best is None or key > best[0]:
-                    best = (key, cl, placed, support)
+                    best = (key, cl, placed, placed_s)
             if best is None:
                 return
             _key, chosen, reward, support = best
