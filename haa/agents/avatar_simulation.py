@@ -97,6 +97,9 @@ class AvatarConfig(team.TeamConfig):
 
 #: the bumper's widening of the motion noise (AvatarSimulation.bump_sigma): m per contact begun, share of
 #: the driving speed per second of contact, rad of turn per m of push
+#: s of mission time without a word from the planner, while the avatar has a target and stands, after which
+#: the target is sent again (AvatarSimulation._planner_watchdog)
+PLANNER_SILENT_S = 8.0
 BUMP_M = 0.05
 BUMP_SLIDE = 0.5
 BUMP_TURN_RAD = 0.5
@@ -165,6 +168,10 @@ class AvatarSimulation(AgentBase):
         self.link: team.SimLink | None = None
         self.tasks: list[asyncio.Task[Any]] = []
         self.drive_task: asyncio.Task[Any] | None = None
+        #: mission time of the last message to or from the planner, and the target it has settled (reached or
+        #: unreachable: nothing more to ask the planner until a new target) (`_planner_watchdog`)
+        self.planner_heard = 0.0
+        self.settled_tid: Any = None
         self.path: list[list[float]] = []
         self.retired = False
         self.delay_waits = 0  # SLAM mode "delay": legs started after waiting for readings, and the time waited
@@ -267,6 +274,8 @@ class AvatarSimulation(AgentBase):
         if self.info.sonars > 0:
             self.tasks.append(asyncio.ensure_future(self._sonar_loop()))
         self.every(self.cfg.predict_period, self._flush)
+        self.planner_heard = self.now()
+        self.every(PLANNER_SILENT_S / 4, self._planner_watchdog)
         self.every(self.cfg.capture_period, self._capture, first=self.random.uniform(0.1, self.cfg.capture_period))
         self.every(self.cfg.cooc_period, self._cooccupancy, first=self.random.uniform(0.1, self.cfg.cooc_period))
         if not self.planner:
@@ -490,7 +499,20 @@ class AvatarSimulation(AgentBase):
 
     def _send_planner(self, msg: dict[str, Any]) -> None:
         if self.planner:
+            self.planner_heard = self.now()
             self.send(self.planner, team.dumps(msg))
+
+    async def _planner_watchdog(self) -> None:
+        """A target, not driving, and nothing from the planner for PLANNER_SILENT_S: send the target again.
+        A message can be lost when the planner crashes or is recovered while it is in flight (its "hello"
+        may reach this agent before it has resumed): without this the avatar would wait for ever."""
+        if not (self.target and self.planner) or (self.drive_task is not None and not self.drive_task.done()):
+            return
+        if self.settled_tid is not None and self.settled_tid == self.target.get("tid"):
+            return
+        if self.now() - self.planner_heard > PLANNER_SILENT_S:
+            self.log("planner_silent", target=self.target.get("tid"))
+            self._send_planner({"op": "goto", **self.target})
 
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
@@ -498,6 +520,7 @@ class AvatarSimulation(AgentBase):
         if op == "target":
             self.target = {"x": float(msg["x"]), "y": float(msg["y"]), "tid": msg.get("tid", 0),
                            "sup": msg.get("sup", src)}
+            self.settled_tid = None
             self.backup()
             self._stop_driving()
             self._send_planner({"op": "goto", **self.target})
@@ -507,10 +530,13 @@ class AvatarSimulation(AgentBase):
         elif op == "hello" and src == self.planner and self.target:
             self._send_planner({"op": "goto", **self.target})
         elif op == "path" and self.target and msg.get("tid") == self.target.get("tid"):
+            self.planner_heard = self.now()
             self._stop_driving()
             self.path = [list(w) for w in msg.get("waypoints", [])]
             self.drive_task = asyncio.ensure_future(self._drive(self.target["tid"], msg.get("final", True)))
         elif op == "unreachable" and self.target and msg.get("tid") == self.target.get("tid"):
+            self.planner_heard = self.now()
+            self.settled_tid = self.target.get("tid")
             self._tell_supervisor("unreachable")
 
     async def on_request(self, src: str, payload: bytes) -> bytes:
@@ -600,6 +626,7 @@ class AvatarSimulation(AgentBase):
             self.send(self.planner, team.dumps({"op": "arrived", "tid": tid, "final": final,
                                                 "pose": self._pose_map()}))
             if final and self.target and self.target.get("tid") == tid:
+                self.settled_tid = tid
                 self._tell_supervisor("reached")
         except asyncio.CancelledError:
             with contextlib.suppress(Exception):  # stop the avatar where it is; the new path follows
