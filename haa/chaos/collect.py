@@ -25,6 +25,7 @@ from typing import Any
 import grpc
 
 from haa.cluster.backend import ALIVE, Backend, ClusterError
+from haa.cluster.events import parse_lines
 from haa.hostd import ddb as ddbmod
 from haa.pb import control_pb2 as cpb
 from haactl.agentcli import AgentRow, agent_lists, merge_agents
@@ -153,22 +154,11 @@ def write_agents(backend: Backend, out: Path) -> None:
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:
     """The JSON objects of a JSON-lines file (lines that are not JSON, a traceback, are skipped)."""
-    out = []
     try:
         text = path.read_text(errors="replace")
     except OSError:
-        return out
-    for line in text.splitlines():
-        line = line.strip()
-        if not line.startswith("{"):
-            continue
-        try:
-            obj = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(obj, dict):
-            out.append(obj)
-    return out
+        return []
+    return parse_lines(text.splitlines())
 
 
 def host_logs(run: Path) -> dict[str, list[dict[str, Any]]]:
