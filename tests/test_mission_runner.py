@@ -40,7 +40,7 @@ hosts:
   start: 2
   schedule:
     - {at_s: 4, join: h3}
-    - {at_s: 10, leave: h3}
+    - {at_s: 12, leave: h2}
 avatars:
   - {name: s1, type: seeker, pose: [0.5, 0.5, 1.5708], leave_at_s: 15}
   - {name: s2, type: seeker, pose: [2.9, 0.5, 1.5708], join_at_s: 6}
@@ -302,14 +302,16 @@ def test_a_mission_with_stand_in_agents_runs_end_to_end(tmp_path, monkeypatch):
     assert 0.0 < r["coverage"] <= 1.0 and 0.0 < r["accuracy"] <= 1.0 and r["explored"] == pytest.approx(1.0)
     assert r["readings_generated"] > 0 and r["processings"] == 2 * r["readings_processed"]
     assert 2.0 <= r["hosts_avg"] <= 3.0 and r["hosts_avg_thesis"] == pytest.approx(r["hosts_avg"] + 1)
-    assert 1.0 <= r["agents_avg"] <= 3.0 and r["transfers"] >= 1  # h3's agents were handed over at its leave
+    # the first two agents go one to each starting host and stay there when h3 joins (join hysteresis), so h2
+    # runs one at its leave and hands it over; where s2's agent goes is a tie the allocation breaks by host name
+    assert 1.0 <= r["agents_avg"] <= 3.0 and r["transfers"] >= 1
     assert r["provenance"]["seed"] == 3 and r["provenance"]["machine"]["cpu_count"] == os.cpu_count()
     assert 0.0 <= r["cpu_percent"] <= 100.0
     out = tmp_path / "out"
     assert json.loads((out / "results.json").read_text())["completed"] is True
     assert (out / "map.png").stat().st_size > 1000 and (out / "allocation.png").stat().st_size > 1000
     text = (out / "transcript.txt").read_text()
-    for want in ("h3 starts and joins", "h3 retires (graceful leave)", "avatar s2 (seeker) joined the arena",
+    for want in ("h3 starts and joins", "h2 retires (graceful leave)", "avatar s2 (seeker) joined the arena",
                  "avatar s1 left the arena (retired)", "Mission started", "Mission finished",
                  "(FakeExecutiveMission) requested by the operator"):
         assert want in text, text
