@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from haa.sim.arena import ArenaError, builtin_path, load_arena, parse_arena
 from haa.sim.arenas import design
-from haa.sim.groundtruth import explorable_area, explorable_grid, ideal_grid
+from haa.sim.groundtruth import explorable_area, explorable_grid, ideal_grid, surface_grid
 from haa.sim.schedule import ScheduleError, load_schedule
 
 BASE = textwrap.dedent(
@@ -40,6 +40,23 @@ def test_small_arena_matches_the_thesis() -> None:
     assert a.congregation_id is not None and a.congregation_point is not None
     assert len(a.landmarks) - 1 == 34
     assert explorable_area(a, 0.02) == pytest.approx(24.2, abs=0.1)
+
+
+def test_the_surface_grid_marks_every_cell_a_solid_touches() -> None:
+    """The mission metrics' ideal map (docs/team.md, "Map metrics"): a superset of the half-cell grid that
+    also holds the cells of the small arena's 4 cm panels, which the half-cell rule leaves free."""
+    a = load_arena("small")
+    half, surf = ideal_grid(a, 0.1).grid, surface_grid(a, 0.1).grid
+    assert surf.shape == half.shape and np.all(surf >= half)
+    # at the missions' 0.1 m the 4 cm panels cover 40 % of their cells: the half-cell grid holds the two boxes
+    # only (12 cells), the surface grid the three 1.2 m panels too
+    assert half.sum() == 12 and surf.sum() >= half.sum() + 3 * 12
+    panels = [o for o in a.obstacles if o.id.startswith("panel")]
+    assert panels
+    for o in panels:  # a panel's cells: a surface in each, whatever the half-cell rule says
+        xs, ys = zip(*o.polygon, strict=True)
+        cx, cy = sum(xs) / len(xs), sum(ys) / len(ys)
+        assert surf[int(cy / 0.1), int(cx / 0.1)] == 1
 
 
 def test_large_arena_matches_the_thesis() -> None:

@@ -18,6 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from haa.pb import sim_pb2 as pb
+from haa.sim.groundtruth import surface_grid
 from haa.sim.service import DEFAULT_TICK, SimClient, decode_frame
 from haa.sim.world import World
 
@@ -147,6 +148,9 @@ def test_ground_truth(sim: SimProcess) -> None:
         assert np.array_equal(occ, w.ideal_grid(0.05).grid)
         assert r.origin.x == 0 and r.resolution == 0.05 and occ.shape == (144, 68)
         assert ex.sum() > 0.9 * (occ == 0).sum() and r.explorable_area == pytest.approx(24.2, abs=0.1)
+        occ10, _, r10 = c.grid(0.1)  # the metrics' ideal map: every cell a solid touches (the panels at 0.1 m)
+        surf = np.frombuffer(r10.surface, dtype=np.uint8).reshape(occ10.shape)
+        assert np.array_equal(surf, surface_grid(w.arena, 0.1).grid) and surf.sum() > occ10.sum()
         lms = c.landmarks()
         assert lms.dictionary == "DICT_4X4_250" and sum(m.congregation for m in lms.landmarks) == 1
         with pytest.raises(grpc.RpcError) as e:

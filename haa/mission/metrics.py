@@ -11,7 +11,8 @@ rows = y, cells of `map_resolution`), nearest cell, 0.5 (unknown) outside the pu
 
 (haa.slam.metrics). The *mission region* (thesis gap 15: undefined) is the reachable cells (the explorable mask:
 free cells 4-connected to a start pose) plus the occupied cells that border them (the walls and obstacle faces
-the avatars can see) — `mission_region`. The ideal map is the simulator's true occupancy there: 0 or 1 in
+the avatars can see) — `mission_region`. The ideal map is the simulator's true occupancy there, every cell a
+surface passes through marked occupied (haa-sim's surface grid; docs/team.md, "Map metrics"): 0 or 1 in
 every cell of the region, so coverage ≤ 1 and a blank map scores accuracy 0.5 (L1476). `explored_share` is
 the mission's completion measure: the share of the *reachable* cells past the thresholds (p > 0.73 or
 p < 0.27, L1186).

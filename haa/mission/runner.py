@@ -652,7 +652,9 @@ class MissionRun:
         self.faults_done = 0
         self.avatars_done = 0
         self.sim_schedule = self.fresh_sim  # haa-sim applies the avatar schedule (started with --schedule)
-        self.occ: np.ndarray | None = None
+        self.occ: np.ndarray | None = None  # the ideal map (surface rule)
+        self.occ_half: np.ndarray | None = None  # cells at least half inside a solid
+        self.map_scores_half: mm.MapScores | None = None
         self.explorable: np.ndarray | None = None
         self.grid_res = self.spec.map_resolution
         self.expected = 0
@@ -722,8 +724,12 @@ class MissionRun:
         with self.sim.client() as c:
             info = c.wait_ready(10.0)
             check_sim_matches(info, self.mission)
-            occ, ex, _ = c.grid(self.grid_res)
-            self.occ, self.explorable = occ.copy(), ex.copy()
+            occ, ex, reply = c.grid(self.grid_res)
+            # the ideal map of eq. 7.1-1/7.1-2: every cell a surface passes through (docs/team.md, "Map
+            # metrics"); the half-cell rule's map is scored too (`accuracy_half_cells`)
+            self.occ_half, self.explorable = occ.copy(), ex.copy()
+            surface = np.frombuffer(reply.surface, dtype=np.uint8)
+            self.occ = surface.reshape(occ.shape).copy() if surface.size == occ.size else occ.copy()
             self.expected = mm.expected_cells(ex)
             now = c.info().time
         if not self.fresh_sim:  # an haa-sim that was running: the mission starts now, avatars join by SimControl
@@ -960,6 +966,8 @@ class MissionRun:
             return
         self.map_prob = mm.align_to_grid(spec, prob, self.occ.shape, self.grid_res)
         self.map_scores = mm.map_scores(self.map_prob, self.occ, self.explorable)
+        if self.occ_half is not None:
+            self.map_scores_half = mm.map_scores(self.map_prob, self.occ_half, self.explorable)
 
     def finished(self) -> tuple[bool, str] | None:
         if self.stop_flag.is_set():
@@ -1075,6 +1083,7 @@ class MissionRun:
             "seed": self.spec.seed,
             "coverage": _r(sc.coverage if sc else None),
             "accuracy": _r(sc.accuracy if sc else None),
+            "accuracy_half_cells": _r(self.map_scores_half.accuracy if self.map_scores_half else None),
             "explored": _r(sc.explored if sc else st.get("explored")),
             "explored_reported": st.get("explored"),
             "position_error_m": _r(self.loc.position_error()),
@@ -1154,6 +1163,7 @@ class MissionRun:
             self.errors.append(f"no PNGs: {e}")
         if self.map_prob is not None:  # the final map beside the ideal one, for offline scoring and plots
             np.savez_compressed(out / "map.npz", prob=self.map_prob, ideal=self.occ, explorable=self.explorable,
+                                ideal_half_cells=self.occ_half if self.occ_half is not None else self.occ,
                                 resolution=self.grid_res)
             self.files["map_npz"] = str(out / "map.npz")
         results["files"] = dict(self.files)

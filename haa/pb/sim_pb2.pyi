@@ -499,7 +499,7 @@ class GridRequest(_message.Message):
     def __init__(self, resolution: _Optional[float] = ...) -> None: ...
 
 class GridReply(_message.Message):
-    __slots__ = ("width", "height", "resolution", "origin", "cells", "explorable", "explorable_area")
+    __slots__ = ("width", "height", "resolution", "origin", "cells", "explorable", "explorable_area", "surface")
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     RESOLUTION_FIELD_NUMBER: _ClassVar[int]
@@ -507,6 +507,7 @@ class GridReply(_message.Message):
     CELLS_FIELD_NUMBER: _ClassVar[int]
     EXPLORABLE_FIELD_NUMBER: _ClassVar[int]
     EXPLORABLE_AREA_FIELD_NUMBER: _ClassVar[int]
+    SURFACE_FIELD_NUMBER: _ClassVar[int]
     width: int
     height: int
     resolution: float
@@ -514,7 +515,8 @@ class GridReply(_message.Message):
     cells: bytes
     explorable: bytes
     explorable_area: float
-    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., resolution: _Optional[float] = ..., origin: _Optional[_Union[Point, _Mapping]] = ..., cells: _Optional[bytes] = ..., explorable: _Optional[bytes] = ..., explorable_area: _Optional[float] = ...) -> None: ...
+    surface: bytes
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., resolution: _Optional[float] = ..., origin: _Optional[_Union[Point, _Mapping]] = ..., cells: _Optional[bytes] = ..., explorable: _Optional[bytes] = ..., explorable_area: _Optional[float] = ..., surface: _Optional[bytes] = ...) -> None: ...
 
 class Landmark(_message.Message):
     __slots__ = ("id", "position", "normal", "congregation")

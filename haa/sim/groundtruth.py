@@ -5,7 +5,12 @@ error (eq. 7.1-1, 7.1-2). `ideal_grid(arena, resolution)` is that map: cell (iy,
 [ox + ix r, ox + (ix+1) r) x [oy + iy r, oy + (iy+1) r) with origin (ox, oy) = (0, 0), the arena's inner
 lower-left corner; it is 1 (occupied) when at least half of the cell is inside a wall, obstacle or the
 congregation post (estimated on a 4 x 4 supersampling of each cell), else 0. Rows are y, columns x
-(grid[iy, ix]), so `np.flipud(grid)` shows it north up.
+(grid[iy, ix]), so `np.flipud(grid)` shows it north up. It decides which cells an avatar can reach.
+
+`surface_grid` is 1 where any solid lies in the cell (at least one of the 4 x 4 samples): a range sensor with
+zero localization error marks every cell a surface passes through, the 4 cm panels and the edge cells of
+walls included, which the half-cell rule leaves free. The mission metrics score maps against it (docs/team.md,
+"Map metrics").
 
 `explorable_grid` marks the free cells reachable from the start poses (4-connected flood fill): the
 "reachable cells" of the exploration threshold. Its area is the arena's explorable area (thesis: 24.2 m^2
@@ -71,6 +76,12 @@ def coverage(arena: Arena, resolution: float) -> np.ndarray:
 def ideal_grid(arena: Arena, resolution: float) -> IdealGrid:
     frac = coverage(arena, resolution)
     return IdealGrid((frac >= 0.5).astype(np.uint8), (0.0, 0.0), resolution)
+
+
+def surface_grid(arena: Arena, resolution: float) -> IdealGrid:
+    """1 where any solid lies in the cell (module docstring), else 0."""
+    frac = coverage(arena, resolution)
+    return IdealGrid((frac > 0.0).astype(np.uint8), (0.0, 0.0), resolution)
 
 
 def explorable_grid(arena: Arena, resolution: float) -> IdealGrid:

@@ -62,7 +62,7 @@ from haa.sim import actions as act
 from haa.sim.arena import ArenaError, load_arena, parse_arena
 from haa.sim.avatars import AVATAR_TYPES, DRIFT_MODELS
 from haa.sim.camera import CameraFrame, floor_homography, intrinsics
-from haa.sim.groundtruth import explorable_area, explorable_grid
+from haa.sim.groundtruth import explorable_area, explorable_grid, surface_grid
 from haa.sim.render import AvatarView, TruthView
 from haa.sim.schedule import ScheduleError, load_schedule
 from haa.sim.sensors import CAMERA_HEIGHT, SONAR_BEARINGS, SONAR_FOV, SONAR_PERIOD, SONAR_RANGE
@@ -399,6 +399,7 @@ class SimCore:
                 cells=g.grid.tobytes(),
                 explorable=ex.grid.tobytes(),
                 explorable_area=explorable_area(self.world.arena, key),
+                surface=surface_grid(self.world.arena, key).grid.tobytes(),
             )
         return self._grids[key]
 
