@@ -157,3 +157,22 @@ def test_blank_map_frontiers_are_around_the_avatars():
     p = np.full(spec.shape, 0.5)
     fa = assign_frontiers(p, {"s1": (0.5, 0.5)}, spec)
     assert fa.count > 0 and math.dist(fa.targets["s1"], (0.5, 0.5)) < 0.3
+
+
+def test_a_spot_blocked_again_stays_out_of_the_split_longer_each_time() -> None:
+    """SupervisorExplore's back-off (haa/agents/supervisor_explore.py docstring): 30, 90, 270 s for the same spot,
+    30 s for another, and the memory of spots survives a backup."""
+    from test_slam_team import FakeCtx
+
+    from haa.agents.supervisor_explore import SupervisorExplore
+
+    sup = SupervisorExplore(FakeCtx({}))  # type: ignore[arg-type]
+    for dx in (0.0, 0.1, -0.1):  # within blocked_radius (0.3 m) of the first: the same spot
+        sup._add_block(1.0 + dx, 2.0, 100.0)
+    sup._add_block(2.0, 2.0, 100.0)
+    assert [round(u - 100.0) for _, _, u in sup.blocked] == [30, 90, 270, 30]
+    other = SupervisorExplore(FakeCtx({}))  # type: ignore[arg-type]
+    other.unpack_state(sup.pack_state())
+    assert other.spots == sup.spots and len(other.spots) == 2
+    other._add_block(1.0, 2.0, 0.0)
+    assert other.blocked[-1][2] == pytest.approx(30.0 * 27)
