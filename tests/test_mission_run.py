@@ -64,3 +64,16 @@ def test_killed_agents_are_recovered_and_the_host_leave_is_graceful(ci_run: tupl
         name = lines[killed].split()[1]
         assert any(f"{name} ({kind}) recovered by" in line for line in lines[killed:]), (kind, name)
     assert "Mission finished" in text
+
+
+def test_a_chaos_plan_runs_inside_the_mission(ci_run: tuple[dict, Path]) -> None:
+    """tests/missions/ci-chaos.yaml: ExecutiveAvatar's loop blocked at 20 s simulated; its host finds the hang,
+    kills it and it is recovered; the fault is on the transcript and in chaos.json."""
+    r, tmp = ci_run
+    assert r["chaos"]["plan"] == "ci-chaos" and r["chaos"]["by_action"] == {"hang": 1}, r["chaos"]
+    faults = json.loads((tmp / "out" / "chaos.json").read_text())["faults"]
+    assert [(f["action"], f["ok"]) for f in faults] == [("hang", True)] and 19.5 <= faults[0]["t"] <= 24, faults
+    lines = (tmp / "out" / "transcript.txt").read_text().splitlines()
+    hung = next(i for i, line in enumerate(lines) if " hangs by chaos" in line)
+    name = lines[hung].split()[1]
+    assert any(f"{name} (ExecutiveAvatar) recovered by" in line for line in lines[hung:]), lines[hung:]

@@ -110,7 +110,8 @@ def test_arena_path_relative_to_the_mission_file(tmp_path):
 
 
 def test_extras(tmp_path):
-    (tmp_path / "plan.yaml").write_text("kills: []\n")
+    (tmp_path / "plan.yaml").write_text("name: p\nfaults: [{life_s: [30, 90], action: hang, target: agents, "
+                                        "hang_s: 30}]\n")
     d = base()
     d.update(
         exploration="frontier",
@@ -123,6 +124,23 @@ def test_extras(tmp_path):
     s = load_mission(write(tmp_path, d)).spec
     assert (s.exploration, s.speed, s.chaos, s.map_resolution) == ("frontier", 4, "plan.yaml", 0.05)
     assert s.congregation.radius_m == 0.8
+
+
+@pytest.mark.parametrize("plan, expect", [
+    ("kills: []\n", "chaos: chaos plan"),
+    ("name: p\nworkload: counters\n", "workload: counters is for `haactl chaos run`"),
+    ("name: p\nfaults: [{at_s: 5, action: kill, target: host h4}]\n", "h4 is not a host of this mission"),
+    ("name: p\nfaults: [{at_s: 5, action: partition, target: [h1, h2], for_s: 3}]\n", "partition is not available"),
+])
+def test_a_mission_refuses_a_chaos_plan_it_cannot_run(tmp_path, plan, expect):
+    (tmp_path / "plan.yaml").write_text(plan)
+    d = base()
+    d["chaos"] = "plan.yaml"
+    d["hosts"] = {"start": 3}
+    with pytest.raises(MissionError) as e:
+        load_mission(write(tmp_path, d))
+    text = str(e.value)
+    assert "\n" not in text and ": chaos: " in text and expect in text, text
 
 
 def test_schema_lists_the_issue_keys():

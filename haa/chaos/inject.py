@@ -83,8 +83,17 @@ class Injector:
     """Runs a plan's faults against `backend` (module docstring)."""
 
     def __init__(self, plan: Plan, backend: Backend, on_fault: Callable[[Injected], None] | None = None,
-                 clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep) -> None:
+                 clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
+                 duration: float | None = None, wall_per_s: float = 1.0) -> None:
+        """`clock` gives the plan's seconds (a mission's simulated time inside a mission), `sleep` waits that
+        many of them; `duration` overrides the plan's `duration_s` (a mission's time limit); a `hang_s` is
+        sent to the agent as `hang_s * wall_per_s` wall seconds (1 / speed in a mission)."""
         self.plan = plan
+        dur = duration if duration is not None else plan.duration_s
+        if dur is None:
+            raise ValueError("duration_s: the plan has none and none was given (it runs until a mission ends)")
+        self.duration = float(dur)
+        self.wall_per_s = wall_per_s
         self.backend = backend
         self.rng = random.Random(plan.seed)
         self.on_fault = on_fault
@@ -108,7 +117,7 @@ class Injector:
         for i, f in enumerate(self.plan.faults):
             if f.every_s is not None:
                 t = f.at_s if f.at_s is not None else f.every_s
-                while t < self.plan.duration_s:
+                while t < self.duration:
                     self._push(t, "fault", i)
                     t += f.every_s
             elif f.at_s is not None:
@@ -117,20 +126,21 @@ class Injector:
     def now(self) -> float:
         return self.clock() - self.t0
 
-    def run(self, stop: Callable[[], bool] | None = None) -> list[Injected]:
-        """Inject until `duration_s` (pauses still running are ended then); returns every record."""
-        self.t0 = self.clock()
+    def run(self, stop: Callable[[], bool] | None = None, t0: float | None = None) -> list[Injected]:
+        """Inject until `duration_s` (pauses still running are ended then); returns every record. The plan's
+        0 is `t0` on `clock` (now by default; a mission's 0 inside a mission)."""
+        self.t0 = self.clock() if t0 is None else t0
         self._schedule()
         has_life = any(f.life_s is not None for f in self.plan.faults)
         while True:
             t = self.now()
-            if t >= self.plan.duration_s or (stop is not None and stop()):
+            if t >= self.duration or (stop is not None and stop()):
                 break
             if has_life and t - self._rows_at >= AGENT_POLL:
                 self._draw_lives(t)
             while self._queue and self._queue[0].t <= self.now():
                 self._fire(heapq.heappop(self._queue))
-            nxt = self._queue[0].t if self._queue else self.plan.duration_s
+            nxt = self._queue[0].t if self._queue else self.duration
             self.sleep(max(0.01, min(0.2, nxt - self.now())))
         self.end_pauses()
         return self.injected
@@ -143,8 +153,7 @@ class Injector:
     # ------------------------------------------------------------------ recording
     def _record(self, action: str, target: str, fault: int, ok: bool = True, detail: str = "",
                 agent_id: str = "", epoch: int = 0) -> Injected:
-        ts = self.clock()
-        rec = Injected(round(ts - self.t0, 3), ts, action, target, fault, ok, detail, agent_id, epoch)
+        rec = Injected(round(self.now(), 3), time.time(), action, target, fault, ok, detail, agent_id, epoch)
         self.injected.append(rec)
         if self.on_fault is not None:
             self.on_fault(rec)
@@ -183,7 +192,7 @@ class Injector:
                     continue
                 self._drawn.add(key)
                 at = t + self.rng.uniform(*f.life_s)
-                if at < self.plan.duration_s:
+                if at < self.duration:
                     self._push(at, "life", i, r.id, r.epoch)
 
     def _agent_fault(self, i: int, f: Fault, r: AgentRow) -> None:
@@ -198,7 +207,7 @@ class Injector:
                 detail = f"SIGKILL on {owner}" if ok else f"not killed on {owner}: {why}"
             else:
                 hang_s = float(f.hang_s or 0)
-                payload = CHAOS_HANG + f"{hang_s:g}".encode()
+                payload = CHAOS_HANG + f"{hang_s * self.wall_per_s:g}".encode()
                 rep = self.backend.call(owner, lambda c: c.agent_request(r.id, payload, timeout=3.0),
                                         "AgentRequest", timeout=10.0)
                 ok = rep.ok and bytes(rep.payload) == b"hanging"

@@ -2,7 +2,7 @@
 
     name: r1-extreme
     seed: 7
-    duration_s: 120
+    duration_s: 120            # omitted in a plan a mission names (`chaos: FILE`): until the mission ends
     hosts: 5                   # local cluster size (3..10)
     workload: ddb-writes       # or counters; none: faults only
     agents: 3                  # workload agents (writers, or counter pairs); period_s: 0.2 between writes
@@ -20,6 +20,11 @@ A fault has exactly one schedule: `at_s` (once), `every_s` (periodically, first 
 or `life_s: [lo, hi]` (the thesis' failure model: every targeted agent instance draws its failure time
 uniformly in the window after it starts, and draws again after each recovery). Targets: `host NAME`,
 `random-host`, `agent NAME`, `agent-type TYPE`, `random-agent`, `agents`, and for `partition` a list of hosts.
+
+Inside a mission (the mission file's `chaos: FILE`) the plan's times are the mission's simulated seconds
+(`hang_s` too), `duration_s` may be left out (the chaos lasts until the mission ends), the cluster is the
+mission's (`hosts`, `workload`, `settle_s` and `hostd_args` do not apply: `mission_problems` refuses a
+workload, a partition and hosts the mission never runs).
 
 `load_plan` raises `PlanError` whose text is one line naming the file, the field and the reason; nothing
 is started for a bad plan.
@@ -175,7 +180,8 @@ class Plan(BaseModel):
 
     name: str = Field(pattern=_NAME.pattern)
     seed: int = 0
-    duration_s: Annotated[float, Field(gt=0, le=MAX_DURATION, allow_inf_nan=False)]
+    #: None: until the mission ends (a plan named by a mission file only; `haactl chaos run` needs it)
+    duration_s: Annotated[float, Field(gt=0, le=MAX_DURATION, allow_inf_nan=False)] | None = None
     hosts: Annotated[int, Field(ge=3, le=10)] = 5
     workload: Literal["ddb-writes", "counters"] | None = None
     #: workload agents (writers, or counter pairs)
@@ -198,11 +204,30 @@ class Plan(BaseModel):
             for n in names:
                 if int(n[1:]) > self.hosts:
                     raise ValueError(f"{where}.target: {n} is not a host of this plan (hosts: h1..h{self.hosts})")
+            if self.duration_s is None:
+                continue
             if f.at_s is not None and f.at_s >= self.duration_s:
                 raise ValueError(f"{where}.at_s: {f.at_s:g} is not before duration_s {self.duration_s:g}")
             if f.life_s is not None and f.life_s[0] >= self.duration_s:
                 raise ValueError(f"{where}.life_s: the window starts after duration_s {self.duration_s:g}")
         return self
+
+
+def mission_problems(plan: Plan, hosts: set[str]) -> list[str]:
+    """What a plan asks that a mission cannot do (module docstring), one line each; `hosts` are the host names
+    the mission runs at some time."""
+    out = []
+    if plan.workload is not None:
+        out.append(f"workload: {plan.workload} is for `haactl chaos run`; a mission's agents are its workload")
+    for i, f in enumerate(plan.faults):
+        if f.action == "partition":
+            out.append(f"faults[{i}]: partition is not available on a mission's local cluster (its hosts share "
+                       "loopback and there is no link to cut without root)")
+        names = [f.target.value] if f.target.kind == "host" else list(f.target.hosts)
+        for n in names:
+            if n not in hosts:
+                out.append(f"faults[{i}].target: {n} is not a host of this mission ({', '.join(sorted(hosts))})")
+    return out
 
 
 def _loc(loc: tuple[Any, ...]) -> str:

@@ -156,6 +156,9 @@ def run_local(plan: Plan, out: Path, progress: Progress | None = None,
               on_fault: Callable[[Injected], None] | None = None) -> RunResult:
     """Run `plan` on a local cluster of its own under `out` (module docstring)."""
     say = progress or (lambda _s: None)
+    if plan.duration_s is None:
+        raise PlanError("duration_s: needed by `haactl chaos run` (only a plan a mission names may leave it out: "
+                        "it then lasts until the mission ends)")
     problems = local_problems(plan)
     if problems:
         raise PlanError(problems[0])

@@ -664,6 +664,16 @@ class MissionRun:
         self.outcome: tuple[bool, str] | None = None
         self.exec_failed = ""
         self.files: dict[str, str] = {}
+        #: the chaos plan the mission file names (`chaos: FILE`, checked by the schema), run by `run_chaos`
+        self.chaos_plan: Any = None
+        if self.spec.chaos is not None:
+            from haa.chaos.plan import load_plan
+            from haa.mission.schema import resolve
+
+            self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
+        self.chaos_thread: threading.Thread | None = None
+        self.chaos_done = threading.Event()
+        self.injector: Any = None
 
     # ------------------------------------------------------------------ lines
     def line(self, text: str, event: str = "runner", host: str = "", t: float | None = None) -> None:
@@ -812,6 +822,8 @@ class MissionRun:
 
     def apply_schedules(self) -> None:
         t = self.mission_time()
+        if t >= 0.0:
+            self.start_chaos()
         k = due([s[0] for s in self.fault_steps], self.faults_done, t)
         for at, target in self.fault_steps[self.faults_done:k]:
             self.pending.append(self.host_pool.submit(self.kill_agent, at, target))
@@ -887,6 +899,51 @@ class MissionRun:
                 self.errors.append(msg)
                 self.line(msg, "error")
                 return
+
+    def start_chaos(self) -> None:
+        """The mission's chaos plan, on a thread of its own from mission time 0 until the mission ends (or the
+        plan's `duration_s`): its times and `hang_s` are simulated seconds (docs/chaos.md, "Inside a mission")."""
+        from haa.chaos.inject import Injector
+
+        if self.chaos_plan is None or self.chaos_thread is not None:
+            return
+        backend = self.backend
+        if self.owns_cluster:
+            from haa.cluster.local_backend import LocalBackend
+
+            backend = LocalBackend(self.root)  # a backend object of its own for its thread
+        plan = self.chaos_plan
+        self.injector = Injector(plan, backend, on_fault=self.chaos_line, clock=self.mission_time,
+                                 sleep=lambda s: self.chaos_done.wait(max(0.0, s) / self.speed),
+                                 duration=plan.duration_s or self.spec.complete.time_limit_s,
+                                 wall_per_s=1.0 / self.speed)
+        self.line(f"chaos plan {plan.name}: {len(plan.faults)} fault lines (seed {plan.seed})", "fault")
+
+        def chaos() -> None:
+            try:
+                self.injector.run(stop=self.chaos_done.is_set, t0=0.0)
+            except Exception as e:  # the mission goes on without its chaos; said in the results
+                msg = f"chaos plan {plan.name} stopped: {e}"
+                self.errors.append(msg)
+                self.line(msg, "error")
+
+        self.chaos_thread = threading.Thread(target=chaos, name="mission-chaos", daemon=True)
+        self.chaos_thread.start()
+
+    def stop_chaos(self) -> None:
+        """End the chaos (pauses it holds are ended) before the results are read."""
+        self.chaos_done.set()
+        if self.chaos_thread is not None:
+            self.chaos_thread.join(30.0)
+
+    def chaos_line(self, rec: Any) -> None:
+        """One injected (or skipped) fault on the transcript."""
+        what = {"hang": "hangs", "kill": "killed", "pause": "paused", "resume": "resumed",
+                "restart": "restarted"}.get(rec.action, rec.action)
+        text = (f"{rec.target} {what} by chaos: {rec.detail}" if rec.ok
+                else f"chaos {rec.action} {rec.target} not done: {rec.detail}")
+        self.line(text, "fault", rec.target if rec.target.startswith("h") and rec.target[1:].isdigit() else "",
+                  t=rec.t)
 
     def avatar_action(self, action: str, avatar: str) -> None:
         assert self.sim is not None
@@ -1100,6 +1157,7 @@ class MissionRun:
             **counts,
             "ddb_mb": _r(size / 1e6 if size is not None else None),
             "sim_truth_calls": truth_calls,
+            "chaos": self.chaos_summary(),
             "expected_cells": self.expected,
             "region_cells": sc.region_cells if sc else None,
             "estimates": sum(len(v) for v in self.loc.errors.values()),
@@ -1110,6 +1168,18 @@ class MissionRun:
         }
         self.write_outputs(results, lines)
         return results
+
+    def chaos_summary(self) -> dict[str, Any] | None:
+        """The chaos plan's name and what it did (every record is in chaos.json of the run folder)."""
+        if self.injector is None:
+            return None
+        recs = list(self.injector.injected)
+        by: dict[str, int] = {}
+        for r in recs:
+            if r.ok:
+                by[r.action] = by.get(r.action, 0) + 1
+        return {"plan": self.chaos_plan.name, "seed": self.chaos_plan.seed, "injected": sum(by.values()),
+                "skipped": sum(1 for r in recs if not r.ok), "by_action": by}
 
     def landmark_scores(self) -> tuple[float | None, float | None]:
         """(mean distance of the team's landmark estimates `slam/landmarks` from the true landmarks, mean of
@@ -1152,6 +1222,10 @@ class MissionRun:
     def write_outputs(self, results: dict[str, Any], lines: list[tr.Line]) -> None:
         out = self.out_dir
         (out / "transcript.txt").write_text("".join(ln.format() + "\n" for ln in lines))
+        if self.injector is not None:
+            (out / "chaos.json").write_text(json.dumps(
+                {"plan": self.chaos_plan.model_dump(mode="json"),
+                 "faults": [r.to_json() for r in self.injector.injected]}, indent=1) + "\n")
         with open(out / "transcript.jsonl", "w") as f:
             for ln in lines:
                 f.write(json.dumps(ln.to_json()) + "\n")
@@ -1188,6 +1262,7 @@ class MissionRun:
         """Take down what this run started (the cluster and haa-sim if they are ours, else the mission's
         agents). Never raises."""
         self.stop_flag.set()
+        self.chaos_done.set()
         for f in self.pending:
             f.cancel()
         self.host_pool.shutdown(wait=False, cancel_futures=True)
@@ -1213,6 +1288,7 @@ class MissionRun:
         try:
             self.setup()
             completed, reason = self.loop()
+            self.stop_chaos()
             self.outcome = (completed, reason)
             self.say(f"mission {'complete' if completed else 'not complete'}: {reason}; collecting results")
             results = self.collect(completed, reason)

@@ -403,7 +403,16 @@ def check_mission(spec: MissionSpec, label: str, base: Path | None = None) -> An
         if f.at_s >= limit:
             fail(f"agent_faults[{k}].at_s", f"{f.at_s} s is not before complete.time_limit_s ({limit} s)")
     if spec.chaos is not None:
+        from haa.chaos.plan import PlanError, load_plan, mission_problems
+
         p = resolve(base, spec.chaos)
         if not p.is_file():
             fail("chaos", f"no such file {str(p)!r}")
+        try:
+            plan = load_plan(p)
+        except PlanError as e:
+            fail("chaos", str(e))
+        problems = mission_problems(plan, ever)
+        if problems:
+            fail("chaos", f"{p}: {problems[0]}")
     return arena
