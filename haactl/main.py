@@ -4,7 +4,8 @@ Subcommands live in their own modules: `verify` (deterministic simulation of the
 (the thesis' experiments and our own measurements), `demo` (the main job on a local cluster), and the
 operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
 processes or, with --compose, the docker compose cluster: docs/cluster.md), and the robot team's `mission` and
-`experiment` (haactl.mission: docs/missions.md), and `chaos` (haactl.chaos: docs/chaos.md).
+`experiment` (haactl.mission: docs/missions.md), `chaos` (haactl.chaos: docs/chaos.md), and `stats collect` and `report`
+(haactl.stats: docs/stats.md).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from haactl.demo import demo
 from haactl.logview import logs
 from haactl.mission import experiment, mission_app
 from haactl.sim import sim_app
+from haactl.stats import report, stats_app
 from haactl.verify import verify
 
 app = typer.Typer(
@@ -49,6 +51,8 @@ app.add_typer(alloc_app, name="alloc")
 app.add_typer(mission_app, name="mission")
 app.command("experiment")(experiment)
 app.add_typer(chaos_app, name="chaos")
+app.add_typer(stats_app, name="stats")
+app.command("report")(report)
 
 if __name__ == "__main__":
     app()

@@ -69,6 +69,7 @@ from haa.hostd.qos import CLUSTER_QOS, QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.transport import NAME_RE
 from haa.hostd.ufd import UfdConfig
+from haa.stats.sampler import StatsSampler
 
 PROG = "haa-hostd"
 _HOST_RE = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)$")
@@ -166,6 +167,8 @@ class HostSettings(BaseModel):
     #: an agent instance that dies within this long of its start is a start failure (backed off; docs/limits.md)
     agent_start_grace: float = Field(default=AgentConfig().start_grace, ge=0, le=3600, allow_inf_nan=False)
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
+    #: the statistics sampler's period (haa.stats.sampler: <data dir>/stats.jsonl), s; 0 = no sampling
+    stats_period: float = Field(default=1.0, ge=0, le=3600, allow_inf_nan=False)
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
@@ -322,6 +325,7 @@ _OPTIONS = (
     "drain_timeout",
     "agent_start_grace",
     "agent_hang_timeout",
+    "stats_period",
 )
 
 
@@ -365,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agent-start-grace", type=float,
                    help="an agent instance dying within this long of its start is a start failure (backed off), s (10)")
     p.add_argument("--agent-hang-timeout", type=float, help="an agent silent this long is hung, s (3)")
+    p.add_argument("--stats-period", type=float,
+                   help="sample this host's statistics into <data dir>/stats.jsonl every this many s (1; 0 = off)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
@@ -471,12 +477,21 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
         fail(f"{opt}: {msg}")
 
 
-async def serve(cfg: RuntimeConfig) -> None:
+async def serve(cfg: RuntimeConfig, stats_period: float = 0.0) -> None:
     rt = HostRuntime(cfg)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, rt.request_shutdown)
-    await rt.run()
+    # the statistics sampler (haa.stats.sampler) only reads the runtime: its first sample comes after the
+    # runtime started, its last after it stopped
+    sampler = StatsSampler(rt, stats_period) if stats_period > 0 and cfg.data_dir is not None else None
+    if sampler is not None:
+        sampler.start()
+    try:
+        await rt.run()
+    finally:
+        if sampler is not None:
+            await sampler.stop()
 
 
 def run_event_loop(coro: Coroutine[Any, Any, None]) -> None:
@@ -516,7 +531,7 @@ def main(argv: list[str] | None = None) -> None:
             fail(f"--data-dir: {settings.data_dir} is in use by another haa-hostd", code=1)
         fail(f"--data-dir: cannot lock {settings.data_dir}: {e.strerror or e}", code=1)
     try:
-        run_event_loop(serve(cfg))
+        run_event_loop(serve(cfg, settings.stats_period))
     except RuntimeError as e:
         if "bind" in str(e).lower():
             fail(f"cannot listen on {cfg.listen}: {e}", code=1)
