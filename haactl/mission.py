@@ -252,7 +252,7 @@ def mission_stop(
 
 
 def experiment(
-    name: Annotated[str, typer.Argument(metavar="NAME", help="af1 | af2")],
+    name: Annotated[str, typer.Argument(metavar="NAME", help="af1 | af2 | r1")],
     runs: Annotated[int, typer.Option("--runs", "-n", min=1, max=100, help="runs (seeds seed..seed+N-1)")] = 10,
     speed: SpeedOpt = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="default bench-results/NAME.json")] = None,
@@ -262,14 +262,19 @@ def experiment(
     exploration: Annotated[str | None, typer.Option(
         "--exploration", help="em | frontier: SupervisorExplore's strategy (default: the file's); compare them on "
         "the same seeds")] = None,
+    levels: Annotated[str | None, typer.Option(
+        "--levels", help="r1 only: failure levels to run, comma-separated (none,moderate,high,extreme: all)")] = None,
 ) -> None:
     """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
-    the thesis' Table 7.1-1 / 7.1-2."""
+    the thesis' Table 7.1-1 / 7.1-2. R-1 (§7.3.1): N missions per failure level, Table 7.3-1 and eq. 7.3-1's k."""
     from haa.mission.experiment import EXPERIMENTS, mission_for, run_experiment, table_rows
     from haa.mission.runner import MissionRunError
 
+    if name == "r1":
+        _experiment_r1(runs, speed, json_out, out_dir, mission_file, levels)
+        return
     if name not in EXPERIMENTS:
-        _fail(f"unknown experiment {name!r} (known: {', '.join(EXPERIMENTS)})", 2)
+        _fail(f"unknown experiment {name!r} (known: {', '.join(EXPERIMENTS)}, r1)", 2)
     try:
         mission = mission_for(name, mission_file)
     except MissionError as e:
@@ -298,3 +303,54 @@ def experiment(
     out.print(t)
     out.print(f"results: {doc['json']}")
     raise typer.Exit(0 if doc["completed"] == doc["runs"] else 1)
+
+
+def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_dir: Path | None,
+                   mission_file: Path | None, levels: str | None) -> None:
+    from haa.mission import r1
+    from haa.mission.runner import MissionRunError
+
+    try:
+        mission = load_mission(mission_file) if mission_file else None
+    except MissionError as e:
+        _fail(str(e), 2)
+
+    def on_run(level: str, k: int, r: dict[str, Any]) -> None:
+        reason = escape(str(r.get("reason")))
+        state = "[green]completed[/]" if r.get("completed") else f"[red]not completed[/] ({reason})"
+        out.print(f"{level} run {k + 1}/{runs} (seed {r.get('seed')}): {state}, "
+                  f"{float(r.get('duration_s') or 0):.1f} s simulated, {r.get('agent_failures')} agent failures, "
+                  f"{float(r.get('wall_s') or 0):.1f} s wall")
+
+    try:
+        doc = r1.run_r1(runs, speed, out_dir, json_out, mission,
+                        levels=[x.strip() for x in levels.split(",") if x.strip()] if levels else None,
+                        on_run=on_run, log=lambda s: err.print(f"[dim]{escape(s)}[/]"))
+    except (MissionRunError, ValueError) as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        raise typer.Exit(130) from None
+    names = [n.capitalize() for n, _ in r1.LEVELS]
+    for which in ("mean", "std"):
+        t = Table(title=f"R-1 ({which.upper()}): {doc['runs_done']} runs, beside the thesis' Table 7.3-1",
+                  title_justify="left")
+        t.add_column("Title")
+        for n in names:
+            t.add_column(n, justify="right")
+        for n in names:
+            t.add_column(f"thesis {n}", justify="right")
+        for row in r1.table(doc, which):
+            t.add_row(escape(row[0]), *row[1:])
+        out.print(t)
+    inc = doc["increase"]
+    th = doc["thesis"]["increase"]
+    parts = [f"{n} {inc[n] * 100:+.0f} % (thesis {th[n] * 100:+.0f} %)" for n in ("moderate", "high", "extreme")
+             if inc.get(n) is not None]
+    if parts:
+        out.print("duration against no failure: " + ", ".join(parts))
+    if doc["k_min"] is not None:
+        out.print(f"eq. 7.3-1 fitted k = {doc['k_min']:.3f} min (thesis {r1.THESIS_K_MIN} min)")
+    out.print(f"results: {doc['json']}")
+    completed = sum(1 for rs in doc["results"].values() for r in rs if r.get("completed"))
+    raise typer.Exit(0 if completed == doc["runs_done"] else 1)
