@@ -75,8 +75,9 @@ def chaos_run(
     compose: Annotated[bool, typer.Option("--compose", help="on the docker compose cluster")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result (faults, checks, timeline) "
                                                   "as JSON to this file ('-': stdout)")] = None,
-    out_dir: Annotated[Path | None, typer.Option("--out", help="run directory (default .haa/chaos/<plan name>)",
-                                                 show_default=False)] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="run directory (default .haa/chaos/<plan "
+                                                 "name>); given, the hosts' stats bundles are collected into it "
+                                                 "at the end (haactl report DIR)", show_default=False)] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="only the checks table")] = False,
 ) -> None:
     """Run a chaos plan: start a cluster, a workload and the faults, then check the hosts' histories.
@@ -107,11 +108,25 @@ def chaos_run(
             out.print(checks_table(res.checks))
         if json_out is not None:
             json_out.write_text(json.dumps(res.to_json(), indent=1) + "\n")
+    if out_dir is not None:
+        _bundles(res.out, show)
     if res.error:
         err.print(f"[bold red]error:[/bold red] {escape(res.error)}")
     verdict = "[green]every check passed[/green]" if res.passed else "[bold red]FAILED[/bold red]"
     err.print(f"chaos run {escape(plan.name)}: {verdict} (run directory {escape(str(res.out))})")
     raise typer.Exit(0 if res.passed else 1)
+
+
+def _bundles(run: Path, show: bool) -> None:
+    """The hosts' stats bundles into the run directory (its cluster is down; the data dirs remain)."""
+    from haa.cluster.local_backend import LocalBackend
+    from haa.stats.collect import collect_quietly
+
+    res = collect_quietly(LocalBackend(run / "cluster", last=True), run)
+    if isinstance(res, str):
+        err.print(f"[yellow]warning:[/yellow] stats bundles not collected: {escape(res)}")
+    elif show:
+        err.print(f"stats bundles of {len(res.bundles)} hosts in {escape(str(run))} (haactl report {escape(str(run))})")
 
 
 @chaos_app.command("check")

@@ -51,6 +51,7 @@ import psutil
 from haa.mission import metrics as mm
 from haa.mission import transcript as tr
 from haa.mission.schema import Mission, resolve
+from haa.stats.collect import collect_quietly
 
 #: top-level agent types the runner spawns (docs/team.md "Starting a mission")
 EXECUTIVE = "executive_mission"
@@ -1294,6 +1295,8 @@ class MissionRun:
             results = self.collect(completed, reason)
         finally:
             self.teardown()
+        if self._tmp is None and self.owns_cluster and self.backend is not None:  # -o DIR: the hosts' stats
+            collect_quietly(self.backend, self.out_dir)  # bundles beside the results (haactl report DIR)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
             json_out.write_text(json.dumps(results, indent=2, default=str) + "\n")

@@ -32,8 +32,6 @@ STATE_COLOURS = {
     "crashed": "#d62728",
     "recovering": "#ff8c00",
 }
-#: a crash is drawn at least this long (s), so that it shows
-MIN_CRASH_S = 0.5
 #: a host's records with a gap longer than this many sampler periods: it was down (or paused) in between
 GAP_PERIODS = 3
 #: CPU curves are averaged over this many seconds
@@ -95,6 +93,19 @@ def allocation_segments(run: RunData) -> dict[str, dict[str, list[tuple[float, f
         last_seen[evs[i].agent] = i
     state_of = {"spawning": "spawning", "active": "active", "freezing": "freezing", "thawing": "thawing",
                 "thawed": "active", "recovering": "recovering", "recovered": "active"}
+    spans = {h: host_spans(run, h) for h in run.by_host}
+    for h, sp in spans.items():  # a host still up when collected: its last run of records goes on
+        if sp and run.by_host[h].manifest.get("state") in ("alive", "paused"):
+            sp[-1] = (sp[-1][0], run.t1 - t0)
+    min_crash = max(0.05, (run.t1 - t0) / 400)
+
+    def until(host: str, since: float, t: float) -> float:
+        """`t`, or the end of the host's run of records that `since` is in, if that is earlier (it died)."""
+        for a, b in spans.get(host, []):
+            if a - 1.0 <= since <= b + 1.0:
+                return max(since, min(t, b))
+        return t
+
     for i, e in enumerate(evs):
         host = e.host or e.reporter
         if not host:
@@ -103,17 +114,20 @@ def allocation_segments(run: RunData) -> dict[str, dict[str, list[tuple[float, f
         labels[e.agent] = f"{e.name} ({e.type})" if e.type else e.name
         key = (host, e.agent)
         cur = open_.pop(key, None)
+        start = t
         if cur is not None:
-            segs[host][e.agent].append((cur[0], t, cur[1]))
+            start = until(host, cur[0], t)
+            segs[host][e.agent].append((cur[0], start, cur[1]))
         if e.event in state_of:
             open_[key] = (t, state_of[e.event])
-        elif e.event == "crashed":
+        elif e.event == "crashed":  # from the host's death (if it died) until the group recovered it
             for other in [k for k in open_ if k[1] == e.agent]:  # it ran nowhere else any more
                 since, st = open_.pop(other)
-                segs[other[0]][e.agent].append((since, t, st))
-            segs[host][e.agent].append((t, max(t + MIN_CRASH_S, by_agent_next[i]), "crashed"))
+                end = until(other[0], since, t)
+                segs[other[0]][e.agent].append((since, end, st))
+            segs[host][e.agent].append((start, max(t + min_crash, by_agent_next[i]), "crashed"))
     for (host, agent), (since, st) in open_.items():
-        segs[host][agent].append((since, max(since, ends.get(host, run.t1 - t0)), st))
+        segs[host][agent].append((since, until(host, since, ends.get(host, run.t1 - t0)), st))
     return {h: {labels.get(a, a[:8]): v for a, v in sorted(d.items(), key=lambda kv: kv[1][0][0])}
             for h, d in segs.items()}
 

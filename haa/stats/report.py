@@ -2,7 +2,8 @@
 
 A run directory holds the bundles of its hosts (`<host>.tar.gz`, haa.stats.collect) and, when it is a
 mission run folder (`haactl mission run -o DIR`, docs/team.md), `results.json` and `samples.json`; a chaos run
-directory (`haactl chaos run`, docs/chaos.md) adds `faults.json` and `result.json`. `build_report(DIR)` writes
+directory (`haactl chaos run`, docs/chaos.md) adds `faults.json` and `result.json`, a mission with a chaos
+plan `chaos.json`. `build_report(DIR)` writes
 `DIR/report.html` and its figures `DIR/figures/*.png` (haa.stats.figures); `build_compare(A, B)` writes
 `A/compare-<B>/report.html` with both runs side by side, each figure pair on the same scales, and a table
 of the numbers of both with their difference. Everything is recomputed from the bundles (haa.stats.summary);
@@ -93,9 +94,11 @@ class RunData:
 def load_run(d: Path) -> RunData:
     d = Path(d)
     run = RunData(d, load_bundles(d))
-    if (d / "faults.json").exists():
-        f = _load_json(d / "faults.json")
-        run.faults = [x for x in (f.get("faults") or []) if isinstance(x, dict) and "ts" in x]
+    for name in ("faults.json", "chaos.json"):  # a chaos run's, a mission's with a chaos plan
+        if (d / name).exists():
+            f = _load_json(d / name)
+            run.faults = [x for x in (f.get("faults") or []) if isinstance(x, dict) and "ts" in x]
+            break
     if (d / "result.json").exists():
         run.chaos = _load_json(d / "result.json")
     if (d / "results.json").exists():

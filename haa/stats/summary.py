@@ -34,6 +34,8 @@ DDB_KINDS = {
     "agents": ("assign", "targets", "bids", "stats", "avatars"),
 }
 KIND_ORDER = ("particle filters", "map (POG)", "sensor readings", "agents", "other")
+#: a host's last sample counts in a bin of the series for this many sampler periods (then it has stopped)
+STALE_PERIODS = 2.5
 #: timeline events kept in the summary at most (the bundles keep all)
 MAX_TIMELINE = 5000
 
@@ -257,9 +259,9 @@ def series(bundles: Sequence[Bundle], t0: float | None = None) -> Series:
     start = time_range(bundles)[0] if t0 is None else t0
     period = sampler_period(bundles)
     s = Series(start, period)
-    per_bin: dict[int, dict[str, dict[str, Any]]] = defaultdict(dict)  # bin -> host -> its last sample there
+    host_samples: dict[str, list[tuple[float, dict[str, Any]]]] = {}
     for b in bundles:
-        cpu, cnt = [], []
+        cpu, cnt, rows = [], [], []
         for r in b.samples:
             ts = _num(r.get("ts"))
             if ts is None:
@@ -269,31 +271,43 @@ def series(bundles: Sequence[Bundle], t0: float | None = None) -> Series:
             if _num(r.get("cpu")) is not None:
                 cpu.append((t, 100 * (float(r["cpu"]) + sum(float(a.get("cpu") or 0) for a in agents))))
             cnt.append((t, len(agents)))
-            per_bin[int(t // period)][b.host] = r
+            rows.append((t, r))
+        rows.sort(key=lambda x: x[0])
         s.host_cpu[b.host] = cpu
         s.host_agents[b.host] = cnt
-    if not per_bin:
+        host_samples[b.host] = rows
+    ends = [rows[-1][0] for rows in host_samples.values() if rows]
+    if not ends:
         return s
-    lo, hi = min(per_bin), max(per_bin)
-    types = sorted({str(a.get("type", "?")) for hs in per_bin.values() for r in hs.values()
+    n = int(max(ends) // period) + 1
+    types = sorted({str(a.get("type", "?")) for rows in host_samples.values() for _, r in rows
                     for a in (r.get("agents") or {}).values() if isinstance(a, dict)})
     s.type_cpu = {t: [] for t in types}
     s.ddb_kind = {k: [] for k in KIND_ORDER}
+    idx = dict.fromkeys(host_samples, 0)
     last_ddb: dict[str, float] = {}
-    for i in range(lo, hi + 1):
-        hs = per_bin.get(i, {})
-        s.t.append((i + 0.5) * period)
-        s.hosts_up.append(len(hs))
-        s.members.append(max((int(r.get("members") or 0) for r in hs.values()), default=0))
-        s.agents.append(sum(len(r.get("agents") or {}) for r in hs.values()))
+    for i in range(n):
+        end = (i + 1) * period
+        current = []  # each host's latest sample in this bin, if it is recent (a host that stopped drops out)
+        for h, rows in host_samples.items():
+            j = idx[h]
+            while j < len(rows) and rows[j][0] < end:
+                j += 1
+            idx[h] = j
+            if j and rows[j - 1][0] > end - STALE_PERIODS * period:
+                current.append(rows[j - 1][1])
+        s.t.append(end - period / 2)
+        s.hosts_up.append(len(current))
+        s.members.append(max((int(r.get("members") or 0) for r in current), default=0))
+        s.agents.append(sum(len(r.get("agents") or {}) for r in current))
         tc: Counter[str] = Counter()
-        for r in hs.values():
+        for r in current:
             for a in (r.get("agents") or {}).values():
                 if isinstance(a, dict):
                     tc[str(a.get("type", "?"))] += 100 * float(a.get("cpu") or 0)
         for t in types:
             s.type_cpu[t].append(tc[t])
-        with_ddb = [r for r in hs.values() if isinstance(r.get("ddb"), dict)]
+        with_ddb = [r for r in current if isinstance(r.get("ddb"), dict)]
         if with_ddb:  # every replica holds the same: the most advanced one
             r = max(with_ddb, key=lambda r: int(r["ddb"].get("seq") or 0))
             kc: Counter[str] = Counter()
