@@ -181,5 +181,85 @@ def test_truncated_bundle_is_refused(run, tmp_path):
     src = run["dir"] / "live" / "h1.tar.gz"
     data = src.read_bytes()
     (tmp_path / "h1.tar.gz").write_bytes(data[: len(data) // 2])
-    with pytest.raises(BundleError, match="h1.tar.gz: damaged stats bundle|not a stats bundle"):
+    with pytest.raises(BundleError, match=r"h1\.tar\.gz: (damaged stats bundle|not a stats bundle)"):
         load_bundles(tmp_path)
+
+
+# ------------------------------------------------------------------ compose: data dirs through the docker SDK
+
+
+class FakeContainer:
+    """What `get_archive` of the docker SDK returns: a tar stream of the directory (named by its last part)."""
+
+    def __init__(self, files: dict[str, bytes]) -> None:
+        self.files = files
+        self.asked: list[str] = []
+
+    def get_archive(self, path: str):
+        import io
+
+        self.asked.append(path)
+        buf = io.BytesIO()
+        base = path.rstrip("/").rsplit("/", 1)[-1]
+        with tarfile.open(fileobj=buf, mode="w") as tar:
+            for name, data in self.files.items():
+                info = tarfile.TarInfo(f"{base}/{name}")
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+        data = buf.getvalue()
+        return iter([data[:1000], data[1000:]]), {"name": base}
+
+
+class FakeCompose:
+    kind = "compose"
+
+    def __init__(self, containers: dict[str, FakeContainer]) -> None:
+        self.containers = containers
+        self.services = {n: {"command": ["--name", n, "--data-dir", f"/srv/haa/{n}"]} for n in containers}
+
+    def describe(self) -> str:
+        return "compose cluster (fake)"
+
+    def hosts(self):
+        from haa.cluster.backend import HostInfo
+
+        return [HostInfo(n, "127.0.0.1:1", "killed" if n == "h2" else "alive", container=n) for n in self.containers]
+
+    def container(self, name: str) -> FakeContainer:
+        return self.containers[name]
+
+    def log_records(self, names, follow):
+        return iter([])
+
+
+def _line(**kw) -> bytes:
+    return (json.dumps(kw) + "\n").encode()
+
+
+def test_compose_data_dirs_are_read_through_the_docker_sdk(tmp_path):
+    t = 1_700_000_000.0
+    h1_log = _line(ts=t, host="h1", inc=1, level="info", event="view",
+                   fields={"view": 2, "members": ["h1.1", "h2.2"], "removed": [], "added": ["h2"]})
+    h2_log = (_line(ts=t + 1, host="h2", inc=2, level="info", event="agent_spawning",
+                    fields={"agent": "a" * 36, "name": "A1", "detail": ""})
+              + _line(ts=t + 1.2, host="h2", inc=2, level="info", event="agent_active",
+                      fields={"agent": "a" * 36, "name": "A1", "detail": "fresh state"}))
+    h1_log += _line(ts=t + 5, host="h1", inc=1, level="info", event="agent_crashed",
+                    fields={"agent": "a" * 36, "name": "A1", "detail": ""})
+    sample = {"ts": t + 1, "host": "h2", "inc": 2, "seq": 1, "cpu": 0.01, "rss": 1, "agents": {}, "cost_s": 0.001}
+    half = b'{"ts": 1700000002, "host": "h2", "se'  # killed while writing
+    fake = FakeCompose({
+        "h1": FakeContainer({"h1.jsonl": h1_log, "stats.jsonl": _line(**{**sample, "host": "h1"})}),
+        "h2": FakeContainer({"h2.jsonl": h2_log, "stats.jsonl": _line(**sample) + half,
+                             "agents/" + "a" * 36 + ".log": b"agent says hi\n", "stderr.1.txt": b"boom\n"}),
+    })
+    res = collect_bundles(fake, tmp_path / "b")
+    assert res.errors == {}
+    assert fake.containers["h2"].asked == ["/srv/haa/h2"]
+    h2 = read_bundle(tmp_path / "b" / "h2.tar.gz")
+    assert h2.manifest["state"] == "killed" and h2.manifest["source"].startswith("container h2:/srv/haa/h2")
+    assert len(h2.samples) == 1  # the half-written last line is left out
+    crash = [e for e in h2.events if e["event"] == "crashed"]
+    assert crash and crash[0]["host"] == "h2" and crash[0]["reporter"] == "h1"  # where it ran, who saw it
+    assert h2.files["stderr.txt"] == b"boom\n" and h2.files["agents/" + "a" * 36 + ".log"] == b"agent says hi\n"
+    assert h2.latency["spawn"]["n"] == 1 and abs(h2.latency["spawn"]["values_ms"][0] - 200) < 1

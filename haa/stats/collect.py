@@ -277,6 +277,9 @@ def build_members(hf: HostFiles, events: list[TimelineEvent], backend_desc: str)
         "state": info.state, "detail": info.detail, "address": info.address, "core": info.core,
         "source": hf.source, "errors": hf.errors, "incarnations": incs,
         "first_ts": min(ts) if ts else None, "last_ts": max(ts) if ts else None,
+        # graceful leaves this host asked for (SIGTERM, `host retire`, `cluster down`): its removals that follow
+        # are not faults
+        "leaves": [r["ts"] for r in log_recs if r.get("event") == "leave_requested" and isinstance(r.get("ts"), float)],
         "counts": {"log_records": len(log_recs), "samples": len(samples), "events": len(mine), "views": len(views)},
         "files": {k: len(v) for k, v in members.items()},
     }

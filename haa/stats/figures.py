@@ -10,8 +10,9 @@ record (cluster time), except for the mission figure (mission time, as the missi
 * `cpu_hosts` / `cpu_types` — Fig. 7.1-8 / 7.1-9: CPU per host (haa-hostd and its agents) and per agent type,
   averaged over SMOOTH_S seconds.
 * `ddb` — Fig. 7.1-7: DDB bytes by kind, stacked.
-* `faults` — faults (injected ones when the run has a faults.json, else agent crashes and host removals as
-  the hosts saw them) against recoveries (agents recovered, hosts joining again), cumulative.
+* `faults` — faults (injected ones when the run has a faults.json or chaos.json, else agent crashes and host
+  removals — not graceful leaves — as the hosts saw them) against recoveries (agents recovered, hosts joining
+  again), cumulative.
 * `mission` — explored share (and coverage / accuracy when sampled) and each avatar's position error.
 """
 
@@ -20,6 +21,8 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from haa.stats.summary import removals
 
 if TYPE_CHECKING:
     from haa.stats.report import RunData
@@ -270,7 +273,7 @@ def fault_recovery_times(run: RunData) -> tuple[list[tuple[float, str]], list[fl
         return ([(float(f["ts"]) - t0, f"{f.get('action')} {f.get('target')}") for f in run.faults
                  if f.get("ok", True) and f.get("action") != "resume"], sorted(recov), "injected (faults.json)")
     seen = [(e.time - t0, f"{e.name} crashed") for e in run.events if e.agent and e.event == "crashed"]
-    seen += [(float(v.get("ts") or t0) - t0, f"{h} removed") for v in run.views for h in (v.get("removed") or [])]
+    seen += [(ts - t0, f"{h} removed") for ts, h, left in removals(run.bundles, run.views) if not left]
     return sorted(seen), sorted(recov), "as the hosts saw them (crashes, host removals)"
 
 

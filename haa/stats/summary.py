@@ -36,6 +36,8 @@ DDB_KINDS = {
 KIND_ORDER = ("particle filters", "map (POG)", "sensor readings", "agents", "other")
 #: a host's last sample counts in a bin of the series for this many sampler periods (then it has stopped)
 STALE_PERIODS = 2.5
+#: a removal within this many seconds after the host asked to leave is its graceful leave
+LEAVE_S = 60.0
 #: timeline events kept in the summary at most (the bundles keep all)
 MAX_TIMELINE = 5000
 
@@ -88,6 +90,19 @@ def view_changes(bundles: Sequence[Bundle]) -> list[dict[str, Any]]:
             continue
         seen.add(key)
         out.append(v)
+    return out
+
+
+def removals(bundles: Sequence[Bundle], views: Sequence[dict[str, Any]]) -> list[tuple[float, str, bool]]:
+    """(ts, host, left) for every host removed from a view: `left` when the host had asked to leave within
+    LEAVE_S before (a graceful leave, not a fault)."""
+    leaves = {b.host: [float(t) for t in b.manifest.get("leaves") or []] for b in bundles}
+    out = []
+    for v in views:
+        ts = float(v.get("ts") or 0.0)
+        for h in v.get("removed") or ():
+            left = any(ts - LEAVE_S <= t <= ts + 1.0 for t in leaves.get(h, []))
+            out.append((ts, str(h), left))
     return out
 
 
@@ -151,7 +166,8 @@ def summarize(bundles: Sequence[Bundle], cluster: str = "") -> dict[str, Any]:
     kinds = Counter(e.event for e in evs if e.agent)
     views = view_changes(bundles)
     joined = sum(len(v.get("added") or []) for v in views)
-    removed = sum(len(v.get("removed") or []) for v in views)
+    rem = removals(bundles, views)
+    removed = sum(1 for _, _, left in rem if not left)
     # latencies: per-host phases pooled, cross-host phases from the merged events, OAC from the histograms
     lat: dict[str, Any] = {}
     pooled: dict[str, list[float]] = defaultdict(list)
@@ -221,7 +237,7 @@ def summarize(bundles: Sequence[Bundle], cluster: str = "") -> dict[str, Any]:
             "agents": len(names), "spawns": kinds["spawning"], "transfers": kinds["thawed"],
             "crashes": kinds["crashed"], "recoveries": kinds["recovered"], "failed": kinds["failed"],
             "removed": kinds["removed"], "view_changes": len(views), "host_joins": joined,
-            "host_removals": removed,
+            "host_removals": removed, "host_leaves": len(rem) - removed,
         },
         "latency": lat,
         "pairs": [{"src": nm(s), "dst": nm(d), "src_id": s, "dst_id": d, "msgs": n, "bytes": nb}
