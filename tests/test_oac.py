@@ -273,3 +273,64 @@ def test_thesis_initial_timestamp_breaks_agreement():
     outcomes = {n: cl.history.decided[(n, 1)][txid][0] for n in cl.names}
     assert outcomes["h1"] is True and outcomes["h2"] is False
     assert "AC-Uniform-Agreement" in {v.prop for v in check_oac(scenario_for(cl), cl, True).violations}
+
+
+def _direct_group(n):
+    """n OrderedAtomicCommit objects wired through one FIFO queue of (src, dst, msg, lazy), no failure detector."""
+    from collections import deque
+
+    from haa.hostd.oac import OrderedAtomicCommit
+
+    names = [f"h{i + 1}" for i in range(n)]
+    wire = deque()
+    sent = []
+    emitted = {q: [] for q in names}
+    oacs = {}
+    for q in names:
+
+        def send(dst, dst_inc, msg, lazy, q=q):
+            wire.append((q, dst, msg))
+            sent.append((q, dst, type(msg).__name__, lazy))
+
+        oacs[q] = OrderedAtomicCommit(q, 1, send, emitted[q].append, lambda _h, _i: False, lambda _h, _i: False)
+
+    def run():
+        while wire:
+            src, dst, msg = wire.popleft()
+            oacs[dst].on_message(src, 1, msg)
+
+    return names, oacs, sent, emitted, run
+
+
+@pytest.mark.parametrize("n", [3, 5, 10])
+def test_lazy_marks_exactly_the_messages_nobody_waits_for(n):
+    """Failure-free: the rebroadcasts of a decision learned from the coordinator (l. 36) and the round-1
+    estimates sent after a positive ack are lazy; the transaction, the round-0 estimates, the proposal, the
+    acks and the coordinator's decide are not (docs/oac.md, "Lazy messages")."""
+    names, oacs, sent, _emitted, run = _direct_group(n)
+    oacs["h1"].propose(b"x", [(q, 1) for q in names])
+    run()
+    lazy = [(src, kind) for src, _dst, kind, lz in sent if lz]
+    eager = [(src, kind) for src, _dst, kind, lz in sent if not lz]
+    assert len(sent) == n * n + 4 * n - 6
+    assert sorted({k for _s, k in lazy}) == ["OacDecide", "OacEstimate"]
+    assert sum(1 for _s, k in lazy if k == "OacDecide") == (n - 1) * (n - 1)
+    assert sum(1 for _s, k in lazy if k == "OacEstimate") == n - 2
+    assert all(s != "h1" for s, _k in lazy)  # the coordinator's own messages are all on the critical path
+    assert len(eager) == 5 * (n - 1)
+
+
+def test_orders_never_go_back_after_a_transaction_closes():
+    """A proposal starts above every order its proposer has seen, closed transactions included, so that a
+    participant still holding a closed transaction open does not have to raise the new one (l. 22-24)."""
+    names, oacs, sent, emitted, run = _direct_group(3)
+    parts = [(q, 1) for q in names]
+    oacs["h1"].propose(b"a", parts)
+    run()
+    assert all(not o.txs for o in oacs.values())  # closed everywhere
+    first = next(e.order for e in emitted["h2"] if type(e).__name__ == "Deliver")
+    oacs["h2"].propose(b"b", parts)
+    run()
+    orders = [e.order for e in emitted["h3"] if type(e).__name__ == "Deliver"]
+    assert orders[1] > first
+    assert not any(kind == "OacOrder" for _s, _d, kind, _l in sent)

@@ -233,6 +233,43 @@ def test_a_down_peer_does_not_stall_the_others() -> None:
     run(main)
 
 
+def test_lazy_messages_wait_for_other_traffic_and_keep_their_order() -> None:
+    """A lazy message alone is written after `lazy_delay`; lazy messages queued before an ordinary one go in
+    the ordinary one's frame, in order (docs/transport.md, "Lazy messages")."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, lazy_delay=0.3)
+        b = Node("b", 22, pb_, {"a": pa})
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="connection")
+        frames0 = b.t.counters["rx_frames"]
+        t0 = time.monotonic()
+        a.t.send("b", 22, hb(1), lazy=True)
+        await asyncio.sleep(0.1)
+        assert b.got == []  # held
+        await until(lambda: len(b.got) == 1, timeout=2.0, what="the lazy message alone")
+        assert time.monotonic() - t0 >= 0.25
+        # lazy, lazy, ordinary: one frame, at once, in order
+        t1 = time.monotonic()
+        a.t.send("b", 22, hb(2), lazy=True)
+        a.t.send("b", 22, hb(3), lazy=True)
+        a.t.send("b", 22, hb(4))
+        await until(lambda: len(b.got) == 4, timeout=2.0, what="the ordinary message")
+        assert time.monotonic() - t1 < 0.2
+        assert b.seqs() == [1, 2, 3, 4]
+        assert b.t.counters["rx_frames"] - frames0 == 2
+        # an ordinary message after lazy ones never overtakes them, and the held timer does not fire a
+        # frame of its own afterwards
+        await asyncio.sleep(0.4)
+        assert b.t.counters["rx_frames"] - frames0 == 2
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
 def test_before_first_contact_only_recent_unaddressed_messages_are_kept() -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()

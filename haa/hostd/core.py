@@ -163,11 +163,11 @@ class HostCore:
     def _send(self, dst: str, dst_inc: int, msg: Message) -> None:
         self.out.append(Send(dst, dst_inc, msg))
 
-    def _oac_send(self, dst: str, dst_inc: int, msg: OacMessage) -> None:
+    def _oac_send(self, dst: str, dst_inc: int, msg: OacMessage, lazy: bool = False) -> None:
         if (dst, dst_inc) in self.dead:
             self.counters["oac_not_sent_to_dead"] += 1
             return
-        self.out.append(Send(dst, dst_inc, msg))
+        self.out.append(Send(dst, dst_inc, msg, lazy))
 
     def _timer(self, key: Hashable, at: float) -> None:
         self.out.append(SetTimer(key, at))

@@ -17,11 +17,14 @@ from haa.hostd.messages import Message, TxId
 
 @dataclass(slots=True)
 class Send:
-    """Send `msg` to host `dst`, addressed to its incarnation `dst_inc` (0 = not known yet)."""
+    """Send `msg` to host `dst`, addressed to its incarnation `dst_inc` (0 = not known yet). `lazy`: nobody waits
+    for this message in a failure-free run, so the transport may hold it a few milliseconds and send it with
+    the next message on the same channel (order kept; docs/oac.md, "Lazy messages")."""
 
     dst: str
     dst_inc: int
     msg: Message
+    lazy: bool = False
 
 
 @dataclass(slots=True)

@@ -147,7 +147,11 @@ class OrderedAtomicCommit:
 
     Args:
         name, inc: this host and its incarnation.
-        send: send(dst, dst_inc, msg) to another host (never called for this host itself).
+        send: send(dst, dst_inc, msg, lazy) to another host (never called for this host itself). `lazy` marks a
+            message no host waits for in a failure-free run (a Task 1 rebroadcast of a decision learned from
+            someone else, l. 36; a round estimate sent right after acknowledging the previous round, l. 47):
+            the transport may hold it for a few milliseconds to send it together with other traffic on the
+            same channel (FIFO order is kept; docs/oac.md, "Lazy messages").
         emit: receives `Decided`, `Deliver`, `Closed` and `Log` effects.
         is_suspected: (host, inc) -> bool, the failure detector's current output (◇S_p), True also for a
             permanently suspected incarnation.
@@ -161,7 +165,7 @@ class OrderedAtomicCommit:
         self,
         name: str,
         inc: int,
-        send: Callable[[str, int, OacMessage], None],
+        send: Callable[[str, int, OacMessage, bool], None],
         emit: Callable[[Any], None],
         is_suspected: Callable[[str, int], bool],
         is_dead: Callable[[str, int], bool],
@@ -180,18 +184,22 @@ class OrderedAtomicCommit:
         self._gate: list[tuple[int, TxId]] = []  # min-heap over active (order, id), lazily invalidated
         self._seq = 0
         self.delivered = 0
+        #: the highest order this host has seen on any transaction, closed ones included: a proposal starts
+        #: above it (l. 4, docs/oac.md "Orders never go back"), so that a transaction this host has already
+        #: closed but another participant still holds open does not force an order conflict (l. 22-24)
+        self.max_order = 0
 
     # ------------------------------------------------------------------ helpers
 
     def _send(self, dst: str, dst_inc: int, msg: OacMessage) -> None:
         if dst == self.name:
             return  # self-sends are applied directly by the callers
-        self._send_fn(dst, dst_inc, msg)
+        self._send_fn(dst, dst_inc, msg, False)
 
-    def _send_all(self, tx: _Tx, msg: OacMessage) -> None:
+    def _send_all(self, tx: _Tx, msg: OacMessage, lazy: bool = False) -> None:
         for q, qi in tx.parts:
             if q != self.name:
-                self._send_fn(q, qi, msg)
+                self._send_fn(q, qi, msg, lazy)
 
     def _suspected(self, q: str, qi: int) -> bool:
         return q != self.name and self._is_suspected(q, qi)
@@ -208,6 +216,8 @@ class OrderedAtomicCommit:
         return best
 
     def _push_gate(self, tx: _Tx) -> None:
+        if tx.order > self.max_order:
+            self.max_order = tx.order
         heapq.heappush(self._gate, (tx.order, tx.id))
 
     def _log(self, event: str, **fields: Any) -> None:
@@ -224,12 +234,13 @@ class OrderedAtomicCommit:
         parts_t: tuple[Participant, ...] = ((self.name, self.inc), *parts)
         self._seq += 1
         txid = TxId(self.name, self.inc, self._seq)
-        high = self._highest()
-        order = (high[0] if high else 0) + 1  # l. 4: back of the queue
+        # l. 4: back of the queue — above every open transaction, and (docs/oac.md, "Orders never go back")
+        # above every order this host has seen, closed transactions included
+        order = self.max_order + 1
         msg = OacTransaction(txid, bytes(payload), parts_t, order)
         for q, qi in parts_t:  # l. 5
             if q != self.name:
-                self._send_fn(q, qi, msg)
+                self._send_fn(q, qi, msg, False)
         self._on_transaction(self.name, self.inc, msg)  # our own copy (l. 6)
         return txid
 
@@ -373,7 +384,7 @@ class OrderedAtomicCommit:
             msg = OacTransaction(tx.id, tx.payload, tx.parts, tx.order)
             for q, qi in tx.parts:
                 if q != self.name and q != tx.id.host:
-                    self._send_fn(q, qi, msg)
+                    self._send_fn(q, qi, msg, False)
             self._log("oac_relay", tx=str(tx.id))
 
     # ------------------------------------------------------------------ ll. 72-84
@@ -382,7 +393,9 @@ class OrderedAtomicCommit:
         tx.order = order  # l. 77
         self._push_gate(tx)
         if tx.phase != IDLE:  # l. 78: Task 2 is active
-            self._send_all(tx, OacOrder(tx.id, order))  # l. 79
+            # l. 79, lazy: whoever raised the order sent it to every participant (l. 24); this copy only matters
+            # if that host crashed part-way through its broadcast
+            self._send_all(tx, OacOrder(tx.id, order), lazy=True)
             self._start_task2(tx)  # ll. 80-84
 
     # ------------------------------------------------------------------ Task 2 (ll. 43-71)
@@ -400,7 +413,7 @@ class OrderedAtomicCommit:
         self._next_round(tx)
         self._progress(tx)
 
-    def _next_round(self, tx: _Tx) -> None:
+    def _next_round(self, tx: _Tx, lazy: bool = False) -> None:
         tx.r += 1  # l. 45
         order, r = tx.order, tx.r
         # forget messages of rounds and orders this participant has left behind
@@ -412,7 +425,7 @@ class OrderedAtomicCommit:
             tx.ests.setdefault((order, r), {})[self.name] = (tx.est, tx.ts)
             tx.phase = C1
         else:
-            self._send_fn(cname, cinc, OacEstimate(tx.id, order, r, tx.est, tx.ts))  # l. 47 (P1)
+            self._send_fn(cname, cinc, OacEstimate(tx.id, order, r, tx.est, tx.ts), lazy)  # l. 47 (P1)
             tx.phase = P2
 
     def _progress(self, tx: _Tx) -> None:
@@ -454,8 +467,9 @@ class OrderedAtomicCommit:
                     tx.acks.setdefault(key, {})[self.name] = ack
                     tx.phase = C2
                 else:
-                    self._send_fn(cname, cinc, OacAck(tx.id, tx.order, tx.r, ack))
-                    self._next_round(tx)
+                    self._send_fn(cname, cinc, OacAck(tx.id, tx.order, tx.r, ack), False)
+                    # after a positive ack the next round only matters if this one fails: its estimate is lazy
+                    self._next_round(tx, lazy=ack)
             else:  # C2, ll. 64-71
                 got_acks = tx.acks.get(key)
                 if got_acks is None or len(got_acks) < tx.quorum:  # l. 65
@@ -481,12 +495,14 @@ class OrderedAtomicCommit:
         if msg.delivered:
             tx.decide_from.add(src)
         if tx.state == UNDECIDED:  # l. 34
-            self._decide(tx, commit=msg.commit, order=msg.order, rnd=msg.round)
+            self._decide(tx, commit=msg.commit, order=msg.order, rnd=msg.round, learned=True)
         else:
             self._close_check(tx)
 
-    def _decide(self, tx: _Tx, commit: bool, order: int, rnd: int) -> None:
-        """l. 35-40 for this host: record the outcome, pass the l. 37 gate if possible, rebroadcast."""
+    def _decide(self, tx: _Tx, commit: bool, order: int, rnd: int, learned: bool = False) -> None:
+        """l. 35-40 for this host: record the outcome, pass the l. 37 gate if possible, rebroadcast. `learned`:
+        the outcome came in a decide message, so this host's rebroadcast (l. 36) is lazy — every participant
+        normally has it from the same source already."""
         tx.state = DECIDED  # l. 35
         tx.commit = commit
         tx.round_decided = rnd
@@ -502,7 +518,7 @@ class OrderedAtomicCommit:
         # common case, one message says both "decided" and "delivered"
         if not tx.relayed_decide:
             tx.relayed_decide = True
-            self._send_all(tx, self._decide_msg(tx))
+            self._send_all(tx, self._decide_msg(tx), lazy=learned)
         if tx.state == DONE:
             tx.decide_from.add(self.name)
         self._close_check(tx)
@@ -535,7 +551,7 @@ class OrderedAtomicCommit:
 
     def _announce_delivered(self, tx: _Tx) -> None:
         """We rebroadcast the decision while held at the l. 37 gate: now tell everyone we passed l. 38."""
-        self._send_all(tx, self._decide_msg(tx))
+        self._send_all(tx, self._decide_msg(tx), lazy=True)
 
     def _close_check(self, tx: _Tx) -> None:
         """l. 41-42: forget the transaction once no further message about it can arrive."""

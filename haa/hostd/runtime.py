@@ -570,7 +570,7 @@ class HostRuntime:
         for e in effects:
             t = type(e)
             if t is Send:
-                send(e.dst, e.dst_inc, e.msg)  # type: ignore[union-attr]
+                send(e.dst, e.dst_inc, e.msg, e.lazy)  # type: ignore[union-attr]
             elif t is SetTimer:
                 self._set_timer(e.key, e.at)  # type: ignore[union-attr]
             elif t is CancelTimer:

@@ -124,6 +124,9 @@ MAX_CONCURRENT_STREAMS = 64
 HB_MAGIC = b"HAAhb1"
 HB_MAC_BYTES = 16
 HB_MAX_DATAGRAM = 512
+#: how long a lazy message (an OAC decision rebroadcast, a round estimate nobody waits for) may wait for other
+#: traffic on its link before it is written in a frame of its own (docs/transport.md, "Lazy messages")
+LAZY_DELAY = 0.02
 
 
 def heartbeat_key(token: str) -> bytes:
@@ -216,10 +219,15 @@ class OutLink:
         #: where heartbeats go as datagrams (resolved at each handshake that announced a heartbeat port);
         #: None: heartbeats travel on the stream
         self.hb_addr: tuple[Any, ...] | None = None
+        #: something queued must go now: an ordinary (not lazy) message, a lazy one that waited `lazy_delay`,
+        #: or a resend after a handshake. Lazy messages alone only arm `_lazy_timer` (docs/transport.md,
+        #: "Lazy messages")
+        self._due = True
+        self._lazy_timer: asyncio.TimerHandle | None = None
 
     # ------------------------------------------------------------------ queueing (synchronous)
 
-    def enqueue(self, dst_inc: int, chunk: bytes) -> None:
+    def enqueue(self, dst_inc: int, chunk: bytes, lazy: bool = False) -> None:
         pending = self.pending
         pending.append((dst_inc, chunk))
         t = self.t
@@ -231,7 +239,17 @@ class OutLink:
             t.counters["dropped_overflow"] += 1
             if t.limiter.allow("overflow." + self.peer):
                 log_event(log, logging.WARNING, "link_overflow", peer=self.peer, queued=len(pending))
-        self.wake.set()
+        if not lazy or t.lazy_delay <= 0:
+            self._due = True
+            self.wake.set()
+        elif not self._due and self._lazy_timer is None:
+            self._lazy_timer = asyncio.get_running_loop().call_later(t.lazy_delay, self._lazy_due)
+
+    def _lazy_due(self) -> None:
+        self._lazy_timer = None
+        if self.pending:
+            self._due = True
+            self.wake.set()
 
     @property
     def next_seq(self) -> int:
@@ -527,13 +545,16 @@ class OutLink:
         max_n = t.max_batch
         max_bytes = t.max_batch_bytes
         counters = t.counters
+        self._due = True  # a new stream: whatever is queued (a resend, held lazy messages) goes at once
         while True:
             if self._broken:
                 raise LinkDown("stream closed by the receiver")
             if not self._current():  # replaced (see `start`): never touch the queues again
                 raise asyncio.CancelledError
             pending = self.pending  # `_handshake` may have replaced it
-            if not pending:
+            if not pending or not self._due:
+                if not pending:
+                    self._due = False
                 self.wake.clear()
                 await self.wake.wait()
                 continue
@@ -558,6 +579,11 @@ class OutLink:
                 chunks.append(e[1])
                 size += len(e[1])
             self._next_write = first + len(chunks)
+            if not pending:
+                self._due = False
+                if self._lazy_timer is not None:  # the held lazy messages go in this frame
+                    self._lazy_timer.cancel()
+                    self._lazy_timer = None
             await call.write(encode_frame(first, chunks))
             counters["tx_frames"] += 1
 
@@ -618,6 +644,7 @@ class Transport:
         live_window: float = LIVE_WINDOW,
         wall_ns: Callable[[], int] = time.time_ns,
         datagram_heartbeats: bool = True,
+        lazy_delay: float = LAZY_DELAY,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
@@ -637,6 +664,7 @@ class Transport:
         self.max_batch_bytes = max_batch_bytes
         self.precontact_limit = precontact_limit
         self.max_queue = max_queue
+        self.lazy_delay = lazy_delay
         self.accept_unknown = accept_unknown
         self.on_superseded: OnSuperseded = on_superseded or (lambda _p, _i: None)
         self.max_ahead = max_ahead
@@ -791,8 +819,10 @@ class Transport:
             log_event(log, logging.INFO, "link_retarget", peer=name, old=link.address, new=address)
             link.retarget(address)
 
-    def send(self, dst: str, dst_inc: int, msg: Message) -> None:
-        """Queue `msg` for `dst` (its incarnation `dst_inc`, 0 = unknown). Never blocks."""
+    def send(self, dst: str, dst_inc: int, msg: Message, lazy: bool = False) -> None:
+        """Queue `msg` for `dst` (its incarnation `dst_inc`, 0 = unknown). Never blocks. A `lazy` message waits
+        up to `lazy_delay` for other traffic to the same peer and goes in its frame (FIFO order is kept: the
+        link always writes its whole queue in order)."""
         link = self.links.get(dst)
         if link is None:
             self.counters["send_unknown_peer"] += 1
@@ -804,7 +834,7 @@ class Transport:
         c["tx_bytes." + kind] += len(data)
         if link.hb_addr is not None and type(msg) is Heartbeat and self._send_datagram(link, data):
             return
-        link.enqueue(dst_inc, envelope_chunk(data))
+        link.enqueue(dst_inc, envelope_chunk(data), lazy)
 
     def connected(self, peer: str) -> bool:
         link = self.links.get(peer)
