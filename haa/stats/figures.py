@@ -35,6 +35,8 @@ STATE_COLOURS = {
     "crashed": "#d62728",
     "recovering": "#ff8c00",
 }
+#: the events that end a crash in the allocation timeline (not a start failure's backoff, not another report)
+CRASH_ENDS = frozenset({"recovering", "recovered", "active", "spawning", "thawing", "removed", "failed"})
 #: a host's records with a gap longer than this many sampler periods: it was down (or paused) in between
 GAP_PERIODS = 3
 #: CPU curves are averaged over this many seconds
@@ -89,11 +91,12 @@ def allocation_segments(run: RunData) -> dict[str, dict[str, list[tuple[float, f
     labels: dict[str, str] = {}
     by_agent_next: dict[int, float] = {}
     evs = [e for e in run.events if e.agent]
-    last_seen: dict[str, int] = {}
-    for i in range(len(evs) - 1, -1, -1):  # the time of each event's agent's next event (a crash's end)
-        nxt = last_seen.get(evs[i].agent)
-        by_agent_next[i] = evs[nxt].time - t0 if nxt is not None else run.t1 - t0
-        last_seen[evs[i].agent] = i
+    nxt: dict[str, float] = {}
+    for i in range(len(evs) - 1, -1, -1):  # when each crash ended: the agent's next step towards running again
+        e = evs[i]
+        by_agent_next[i] = nxt.get(e.agent, run.t1 - t0)
+        if e.event in CRASH_ENDS:
+            nxt[e.agent] = e.time - t0
     state_of = {"spawning": "spawning", "active": "active", "freezing": "freezing", "thawing": "thawing",
                 "thawed": "active", "recovering": "recovering", "recovered": "active"}
     spans = {h: host_spans(run, h) for h in run.by_host}
@@ -271,10 +274,10 @@ def fault_recovery_times(run: RunData) -> tuple[list[tuple[float, str]], list[fl
                 gone.discard(h)
     if run.faults:
         return ([(float(f["ts"]) - t0, f"{f.get('action')} {f.get('target')}") for f in run.faults
-                 if f.get("ok", True) and f.get("action") != "resume"], sorted(recov), "injected (faults.json)")
+                 if f.get("ok", True) and f.get("action") != "resume"], sorted(recov), "injected")
     seen = [(e.time - t0, f"{e.name} crashed") for e in run.events if e.agent and e.event == "crashed"]
     seen += [(ts - t0, f"{h} removed") for ts, h, left in removals(run.bundles, run.views) if not left]
-    return sorted(seen), sorted(recov), "as the hosts saw them (crashes, host removals)"
+    return sorted(seen), sorted(recov), "crashes and host removals the hosts saw"
 
 
 def faults(run: RunData, path: Path, xlim: tuple[float, float] | None = None,
@@ -285,7 +288,7 @@ def faults(run: RunData, path: Path, xlim: tuple[float, float] | None = None,
     if fs:
         ax.step([0.0, *[t for t, _ in fs]], list(range(len(fs) + 1)), where="post", color="#d62728",
                 label=f"faults ({where})")
-        for t, label in fs[:MAX_FAULT_LABELS] if where.startswith("injected") else []:
+        for t, label in fs[:MAX_FAULT_LABELS] if where == "injected" else []:
             ax.axvline(t, color="#d62728", alpha=0.15)
             ax.annotate(label, (t, len(fs) * 0.02), fontsize=6, rotation=90, va="bottom", ha="right", alpha=0.8)
     if rs:
