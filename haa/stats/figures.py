@@ -213,14 +213,16 @@ def cpu_hosts(run: RunData, path: Path, xlim: tuple[float, float] | None = None,
               ylim: tuple[float, float] | None = None) -> Path:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(9, 3.2))
+    drawn = False
     for h in sorted(run.series.host_cpu, key=run.host_key):
         pts = run.series.host_cpu[h]
         if pts:
             ax.plot([p[0] for p in pts], smooth([p[1] for p in pts], run.series.period), label=h, linewidth=1)
+            drawn = True
     ax.set_xlabel("time [s]")
     ax.set_ylabel("% of one core")
     ax.set_title("CPU per host (haa-hostd + its agents; Fig. 7.1-8)", fontsize=10)
-    if run.series.host_cpu:
+    if drawn:
         ax.legend(fontsize=7, ncol=5)
     _limits(ax, xlim, ylim)
     fig.tight_layout()
@@ -314,12 +316,10 @@ def mission(run: RunData, path: Path, xlim: tuple[float, float] | None = None) -
         pts = samples.get(key) or []
         if pts:
             a1.plot([p[0] for p in pts], [100 * float(p[1]) for p in pts], label=label)
-    dur = _dur(results)
     for key, style in (("coverage", ":"), ("accuracy", "--")):
         v = results.get(key)
         if isinstance(v, int | float) and not samples.get(key):
-            a1.axhline(100 * v, linestyle=style, color="grey", linewidth=1)
-            a1.annotate(f"final {key} {100 * v:.1f} %", (dur or 0, 100 * v), fontsize=7, ha="right", va="bottom")
+            a1.axhline(100 * v, linestyle=style, color="grey", linewidth=1, label=f"final {key} {100 * v:.1f} %")
     a1.set_xlabel("mission time [s]")
     a1.set_ylabel("%")
     a1.set_ylim(0, 105)
@@ -338,8 +338,3 @@ def mission(run: RunData, path: Path, xlim: tuple[float, float] | None = None) -
         _limits(ax, xlim, None)
     fig.tight_layout()
     return _save(fig, path)
-
-
-def _dur(results: dict[str, Any]) -> float | None:
-    v = results.get("duration_s")
-    return float(v) if isinstance(v, int | float) else None
