@@ -21,10 +21,11 @@ and one line on stderr naming the option and the reason, before anything starts.
 bound exits with code 1.
 
 `--advertise` is the address the other hosts connect to; by default `--listen`, with a wildcard host
-replaced by this machine's host name. `--data-dir` keeps the JSON-lines log, the last incarnation and the
-hosts of the last view (`known_hosts.json`): a restarted host applies to them as well as to the core
-processes and never founds a group of its own (`--forget-group` drops them: needed only if every host of
-the group was lost).
+replaced by this machine's host name. `--data-dir` keeps the JSON-lines log, the statistics sampler's time
+series (`stats.jsonl` and `config.json`, every `--stats-period` s, default 1, 0 = off: haa.stats.sampler,
+docs/stats.md), the last incarnation and the hosts of the last view (`known_hosts.json`): a restarted host
+applies to them as well as to the core processes and never founds a group of its own (`--forget-group` drops
+them: needed only if every host of the group was lost).
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
