@@ -125,3 +125,26 @@ def test_killed_and_restarted_container_keeps_its_events(compose: Compose) -> No
     compose("host", "kill", VICTIM, "--wait", "--timeout", "60")  # stopped for good: its container's log remains
     check_story([json.loads(ln) for ln in compose("agent", "events", "--json").splitlines()])
     print(f"compose scenario: {time.monotonic() - t0:.1f} s")
+
+
+def test_stats_bundles_of_the_compose_cluster(compose: Compose, tmp_path: Path) -> None:
+    """`haactl stats collect --compose` after the scenario above (issue 18 §3; docs/stats.md): one bundle per
+    container, read through the docker SDK — the killed, stopped VICTIM's too — with its samples, its log and
+    the events that happened on it (A1 thawed there, its crash reported by a survivor). Runs on the cluster of
+    the test above (it leaves VICTIM stopped); ≈5 s."""
+    from haa.stats.bundle import load_bundles
+
+    compose("stats", "collect", "-o", str(tmp_path / "b"), "-q")
+    bundles = {b.host: b for b in load_bundles(tmp_path / "b")}
+    assert sorted(bundles) == [f"h{i + 1}" for i in range(N)]
+    dead = bundles[VICTIM]
+    assert dead.manifest["state"] == "killed" and dead.manifest["errors"] == [], dead.manifest
+    assert dead.manifest["source"].startswith("container "), dead.manifest["source"]
+    assert dead.samples and all(s["host"] == VICTIM for s in dead.samples)
+    assert len({s["inc"] for s in dead.samples}) == 2  # before and after its restart
+    assert all(r["host"] == VICTIM for r in dead.log)
+    names = {(e["name"], e["event"]) for e in dead.events}
+    assert ("A1", "thawed") in names and ("A1", "crashed") in names, dead.events
+    assert all(e["host"] == VICTIM for e in dead.events)
+    for b in bundles.values():
+        assert b.samples and b.views and b.json("config.json")["settings"]["name"] == b.host
