@@ -36,14 +36,17 @@ def summary_tables(s: dict[str, Any]) -> list[Table]:
                       str(h.get("events")), str(h.get("cpu_host_pct", "-")), str(h.get("cpu_agents_pct", "-")),
                       str(h.get("rss_max_mb", "-")), str(h.get("sampler_cost_pct", "-")),
                       escape("; ".join(h.get("errors") or [])))
-    c = s.get("counts", {})
-    lat = Table(title="the cluster: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in c.items()),
-                title_justify="left")
+    counts = Table(title="the cluster", title_justify="left")
+    counts.add_column("what")
+    counts.add_column("count", justify="right")
+    for k, v in s.get("counts", {}).items():
+        counts.add_row(k.replace("_", " "), str(v))
+    lat = Table(title="latencies (ms)", title_justify="left")
     lat.add_column("phase")
     lat.add_column("latency")
     for k, v in s.get("latency", {}).items():
         lat.add_row(k.replace("_", " "), _ms(v))
-    return [hosts, lat]
+    return [hosts, counts, lat]
 
 
 @stats_app.command("collect")
