@@ -143,6 +143,22 @@ def test_a_mission_refuses_a_chaos_plan_it_cannot_run(tmp_path, plan, expect):
     assert "\n" not in text and ": chaos: " in text and expect in text, text
 
 
+@pytest.mark.parametrize("args, expect", [
+    (["--agent-hang-timeout", "1"], None),
+    (["--no-such-option", "1"], "hostd_args[0]: '--no-such-option' is not an haa-hostd option"),
+    (["--agent-hang-timeout", "1", "--core=h1=x:1"], "hostd_args[2]: --core is set by the mission runner itself"),
+])
+def test_hostd_args_are_checked_against_haa_hostd(tmp_path, args, expect):
+    d = base()
+    d["hostd_args"] = args
+    if expect is None:
+        assert load_mission(write(tmp_path, d)).spec.hostd_args == args
+        return
+    with pytest.raises(MissionError) as e:
+        load_mission(write(tmp_path, d))
+    assert expect in str(e.value), str(e.value)
+
+
 def test_schema_lists_the_issue_keys():
     keys = set(MissionSpec.model_fields)
     assert {"name", "scenario", "arena", "seed", "slam", "particles", "complete", "hosts", "avatars"} <= keys

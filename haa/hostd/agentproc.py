@@ -389,7 +389,7 @@ class AgentSupervisor:
         host: str,
         events: Callable[[AgentEvent], None],
         *,
-        heartbeat_period: float = 0.5,
+        heartbeat_period: float | None = None,
         hang_timeout: float = 3.0,
         workdir: Path | None = None,
         max_frame: int = DEFAULT_MAX_FRAME,
@@ -401,6 +401,8 @@ class AgentSupervisor:
         preload: Sequence[str] = (),
         logger: logging.Logger | None = None,
     ) -> None:
+        if heartbeat_period is None:  # a hang is at least four missed heartbeats (0.5 s at the 3 s default)
+            heartbeat_period = min(0.5, hang_timeout / 4) if hang_timeout > 0 else 0.5
         if not heartbeat_period > 0:
             raise ValueError(f"heartbeat_period: must be > 0, got {heartbeat_period}")
         if not hang_timeout > heartbeat_period:

@@ -711,7 +711,7 @@ class MissionRun:
             n = self.spec.hosts.start
             self.backend = LocalBackend(self.root)
             self.say(f"starting {n} hosts (local cluster in {self.root})")
-            names = self.backend.up(n, min(3, n))
+            names = self.backend.up(n, min(3, n), hostd_args=list(self.spec.hostd_args))
             self.actions_backend = LocalBackend(self.root)
 
             def formed() -> Any:

@@ -208,6 +208,9 @@ class MissionSpec(_Model):
     exploration: Literal["em", "frontier"] = "em"
     speed: float = Field(1.0, gt=0, le=MAX_SPEED, allow_inf_nan=False)
     chaos: str | None = Field(None, min_length=1, max_length=4096)
+    #: extra haa-hostd arguments for every host of the mission's own cluster, e.g. ["--agent-hang-timeout", "1"]
+    #: (missions/r1.yaml); `haa-hostd --help` lists them
+    hostd_args: list[Annotated[str, Field(max_length=256)]] = Field(default_factory=list, max_length=32)
     map_resolution: float = Field(0.1, ge=0.02, le=1.0, allow_inf_nan=False)
     congregation: Congregation = Congregation()
     agent_faults: list[AgentFault] = Field(default_factory=list, max_length=1000)
@@ -402,6 +405,17 @@ def check_mission(spec: MissionSpec, label: str, base: Path | None = None) -> An
     for k, f in enumerate(spec.agent_faults):
         if f.at_s >= limit:
             fail(f"agent_faults[{k}].at_s", f"{f.at_s} s is not before complete.time_limit_s ({limit} s)")
+    if spec.hostd_args:
+        from haa.hostd.daemon import build_parser
+
+        known = build_parser()._option_string_actions
+        own = {"--name", "--listen", "--peers", "--core", "--advertise", "--data-dir", "--token-file", "--config"}
+        for k, a in enumerate(spec.hostd_args):
+            opt = a.split("=", 1)[0]
+            if a.startswith("-") and opt not in known:
+                fail(f"hostd_args[{k}]", f"{opt!r} is not an haa-hostd option (haa-hostd --help)")
+            if opt in own:
+                fail(f"hostd_args[{k}]", f"{opt} is set by the mission runner itself")
     if spec.chaos is not None:
         from haa.chaos.plan import PlanError, load_plan, mission_problems
 
