@@ -75,6 +75,10 @@ class AgentControl:
                     pid=st.pid if st is not None else 0,
                     has_backup=r.backup is not None, queued=len(r.queue1) + len(r.queue2), dropped=r.dropped,
                     recovery=r.spec.recovery, fail_reason=r.fail_reason, failures=r.failures,
+                    msgs_in=sum(st.msgs_in.values()) if st is not None else 0,
+                    msgs_out=sum(st.msgs_out.values()) if st is not None else 0,
+                    bytes_in=sum(st.bytes_in.values()) if st is not None else 0,
+                    bytes_out=sum(st.bytes_out.values()) if st is not None else 0,
                 )
             )
         types = sorted(drv.sup.types) if drv is not None else []

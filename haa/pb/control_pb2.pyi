@@ -306,7 +306,7 @@ class AgentListRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class AgentInfo(_message.Message):
-    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery", "fail_reason", "failures")
+    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery", "fail_reason", "failures", "msgs_in", "msgs_out", "bytes_in", "bytes_out")
     ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
@@ -326,6 +326,10 @@ class AgentInfo(_message.Message):
     RECOVERY_FIELD_NUMBER: _ClassVar[int]
     FAIL_REASON_FIELD_NUMBER: _ClassVar[int]
     FAILURES_FIELD_NUMBER: _ClassVar[int]
+    MSGS_IN_FIELD_NUMBER: _ClassVar[int]
+    MSGS_OUT_FIELD_NUMBER: _ClassVar[int]
+    BYTES_IN_FIELD_NUMBER: _ClassVar[int]
+    BYTES_OUT_FIELD_NUMBER: _ClassVar[int]
     id: str
     name: str
     type: str
@@ -345,7 +349,11 @@ class AgentInfo(_message.Message):
     recovery: str
     fail_reason: str
     failures: int
-    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ..., fail_reason: _Optional[str] = ..., failures: _Optional[int] = ...) -> None: ...
+    msgs_in: int
+    msgs_out: int
+    bytes_in: int
+    bytes_out: int
+    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ..., fail_reason: _Optional[str] = ..., failures: _Optional[int] = ..., msgs_in: _Optional[int] = ..., msgs_out: _Optional[int] = ..., bytes_in: _Optional[int] = ..., bytes_out: _Optional[int] = ...) -> None: ...
 
 class AgentListReply(_message.Message):
     __slots__ = ("host", "agents", "session", "finished_session", "paused", "agent_types")
