@@ -27,8 +27,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from typing import Annotated, Any
 
 import grpc
@@ -38,6 +37,7 @@ from rich.table import Table
 from rich.tree import Tree
 
 from haa.agents.base import RECOVERY_STRATEGIES
+from haa.cluster.agents import PHASE_STATE, AgentRow, agent_lists, merge_agents, name_key  # noqa: F401
 from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
 from haa.cluster.events import (
     Merger,
@@ -62,33 +62,11 @@ alloc_app = typer.Typer(
 JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
 WaitTimeoutOpt = Annotated[float, typer.Option("--timeout", min=0.5, help="seconds to wait")]
 
-#: table statuses (haa.hostd.agenttable) and local phases (haa.hostd.agentnode.Local) -> the state shown
-PHASE_STATE = {"claiming": "thawing", "thawing": "thawing", "recovering": "recovering", "active": "active",
-               "freezing": "freezing"}
 STATE_STYLE = {"active": "green", "spawning": "cyan", "thawing": "cyan", "recovering": "magenta",
                "freezing": "yellow", "frozen": "yellow", "crashed": "red", "new": "dim", "failed": "bold red"}
 
 
 # ---------------------------------------------------------------------------------------------- reading
-
-
-def agent_lists(backend: Backend, timeout: float | None = None) -> dict[str, cpb.AgentListReply | Exception]:
-    """AgentList of every alive host, in parallel; failures as exceptions (raises if no cluster)."""
-    hosts = [h for h in backend.require_hosts() if h.state == ALIVE]
-    if not hosts:
-        raise ClusterError(f"no host is alive in the {backend.describe()}")
-
-    def one(h: Any) -> tuple[str, cpb.AgentListReply | Exception]:
-        c = ControlClient(h.address, backend.token, timeout=timeout or backend.rpc_timeout)
-        try:
-            return h.name, c.agent_list()
-        except grpc.RpcError as e:
-            return h.name, e
-        finally:
-            c.close()
-
-    with ThreadPoolExecutor(max_workers=min(16, len(hosts))) as pool:
-        return dict(pool.map(one, hosts))
 
 
 def answering(backend: Backend, replies: dict[str, cpb.AgentListReply | Exception]) -> dict[str, cpb.AgentListReply]:
@@ -100,78 +78,6 @@ def answering(backend: Backend, replies: dict[str, cpb.AgentListReply | Exceptio
     if isinstance(e, grpc.RpcError):
         raise ClusterError(rpc_error_text(name, backend.host(name).address, e, "AgentList"))
     raise ClusterError(f"no host answered AgentList in the {backend.describe()}")
-
-
-@dataclass
-class AgentRow:
-    """One agent as the whole cluster sees it (`merge_agents`)."""
-
-    name: str
-    id: str
-    type: str
-    state: str
-    host: str  # the host that runs / prepares it, else the table owner ("" if none)
-    cpu: float  # fraction of one core (the running host's latest measurement, else the table's)
-    parent: str  # parent's display name ("" for a top-level agent)
-    parent_id: str
-    epoch: int
-    backup: bool
-    status: str  # table status
-    owner: str
-    alloc: str
-    pid: int = 0
-    queued: int = 0
-    dropped: int = 0
-    recovery: str = ""
-    phases: dict[str, str] = field(default_factory=dict)  # host -> local phase, every host reporting one
-    fail_reason: str = ""  # the latest failure's reason (state "failed": why it is not recovered)
-    failures: int = 0  # consecutive start failures
-
-
-def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
-    """Merge what every host reports into one row per agent (module docstring)."""
-    rows: dict[str, cpb.AgentInfo] = {}
-    phases: dict[str, dict[str, cpb.AgentInfo]] = {}
-    for host in sorted(replies, key=natural_key):
-        for a in replies[host].agents:
-            prev = rows.get(a.id)
-            if prev is None or a.epoch > prev.epoch:
-                rows[a.id] = a  # the most advanced replica's row
-            if a.local_phase:
-                phases.setdefault(a.id, {})[host] = a
-    names = {i: a.name for i, a in rows.items()}
-    out: list[AgentRow] = []
-    for agent_id, a in rows.items():
-        loc = phases.get(agent_id, {})
-        # whose phase counts: the owner's, else the allocated host's (claiming, recovering), else a host that
-        # prepares it rather than one still freezing it on an older replica
-        order = sorted(loc, key=lambda h: (h != a.owner, h != a.alloc, loc[h].local_phase == "freezing"))
-        mine = loc[order[0]] if order else None
-        if mine is not None:
-            host = order[0]
-            state = PHASE_STATE.get(mine.local_phase, mine.local_phase)
-            if mine.local_phase == "recovering" and (a.status == "new" or (a.status == "active" and a.life == 1)):
-                # the first start of a new agent goes through recoverAgent (Alg. 8); once its OAC(recovered)
-                # committed (life 1: no recovery yet) the process may still be starting
-                state = "spawning"
-            cpu = mine.local_cpu or a.cpu
-            pid = mine.pid
-        else:
-            host, state, cpu, pid = a.owner, a.status, a.cpu, 0
-        out.append(AgentRow(
-            name=a.name, id=a.id, type=a.type, state=state, host=host, cpu=cpu,
-            parent=names.get(a.parent, a.parent[:8]) if a.parent else "", parent_id=a.parent, epoch=a.epoch,
-            backup=a.has_backup, status=a.status, owner=a.owner, alloc=a.alloc, pid=pid, queued=a.queued,
-            dropped=a.dropped, recovery=a.recovery, phases={h: x.local_phase for h, x in loc.items()},
-            fail_reason=a.fail_reason, failures=a.failures,
-        ))
-    return sorted(out, key=lambda r: name_key(r.name))
-
-
-def name_key(name: str) -> tuple[Any, ...]:
-    """A2 before A10, A1.2 before A1.10."""
-    parts = name[1:].split(".") if name[:1] == "A" else [name]
-    return tuple((0, int(p)) if p.isdigit() else (1, p) for p in parts)
 
 
 def resolve(rows: Iterable[AgentRow], ref: str) -> AgentRow:
