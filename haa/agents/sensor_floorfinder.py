@@ -32,7 +32,7 @@ class AgentSensorFloorFinder(team.SensorBase):
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         frame = await self.fetch_frame(reading)
-        r = floor_reading(self.finder, frame, reading["avatar"])
+        r = await self.compute(floor_reading, self.finder, frame, reading["avatar"])
         return [] if r is None else [r]
 
 

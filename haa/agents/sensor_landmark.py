@@ -39,7 +39,7 @@ class AgentSensorLandmark(team.SensorBase):
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         frame = await self.fetch_frame(reading)
-        r = self.detector.reading(frame, reading["avatar"])
+        r = await self.compute(self.detector.reading, frame, reading["avatar"])
         return [r] if r.sightings else []
 
 

@@ -89,6 +89,9 @@ from haa.slam.system import SlamConfig
 
 #: the type name of a sensor agent dedicated to one avatar (delay mode) is its processing type's + this
 DEDICATED = "_dedicated"
+#: replaying the log at a recovery yields to the event loop after this much work (s): a long log replayed in
+#: one go kept the loop from heartbeating its host, which killed the recovered supervisor as hung
+LOAD_SLICE_S = 0.05
 
 #: reading kind → the processing types it needs (sensor agent type names)
 PROCESSINGS: dict[str, tuple[str, ...]] = {
@@ -264,8 +267,12 @@ class SupervisorSLAM(AgentBase):
         data = await self.ddb_get(team.K_SLAM_LOG)
         if data is not None:
             first, items = ddbops.decode_log(data)
+            t = time.perf_counter()
             for k, item in enumerate(items):
                 self._apply(first + k, item)
+                if time.perf_counter() - t > LOAD_SLICE_S:  # let the loop heartbeat (events wait in `buffer`)
+                    await asyncio.sleep(0)
+                    t = time.perf_counter()
         self.loading = False
         for index, item in sorted(self.buffer):
             self._apply(index, item)

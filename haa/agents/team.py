@@ -20,17 +20,22 @@ named after it (executive_mission.py, avatar_simulation.py, ...).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import functools
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import pydantic
 
 from haa.agents.base import AgentBase, Clock
 from haa.hostd import ddb as ddbops
+
+T = TypeVar("T")
 
 #: DDB keys (docs/team.md "DDB layout")
 K_PARAMS = "mission/params"
@@ -377,6 +382,17 @@ class SensorBase(AgentBase):
         self.jobs: set[asyncio.Task[Any]] = set()  # processings in flight (kept referenced: asyncio holds weak ones)
         #: raw key → the task of the first copy of that processing in flight here
         self.inflight: dict[str, asyncio.Task[Any]] = {}
+        self._compute_pool: concurrent.futures.ThreadPoolExecutor | None = None
+
+    async def compute(self, fn: Callable[..., T], *args: Any) -> T:
+        """`fn(*args)` on this agent's one compute thread: image decoding and scanning (OpenCV and numpy
+        release the GIL) stay off the event loop, which keeps answering messages and heartbeating its host — a
+        loop blocked for the host's hang timeout (`haa-hostd --agent-hang-timeout`) is killed as hung, and under
+        load a few frames scanned in a row on the loop took over a second. One thread: the processings in
+        flight share the detector objects, which are not made for concurrent use."""
+        if self._compute_pool is None:
+            self._compute_pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compute")
+        return await asyncio.get_running_loop().run_in_executor(self._compute_pool, functools.partial(fn, *args))
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         """The haa.slam readings (SonarReading, LandmarkReading, ...) of one raw reading; [] if it gives none."""
@@ -484,9 +500,13 @@ class SensorBase(AgentBase):
         from haa.pb import sim_pb2 as spb
 
         data = await self.request(reading["agent"], dumps({"op": "frame", "n": reading["frame"]}), timeout=10.0)
-        m = spb.CameraFrame()
-        m.ParseFromString(data)
-        return frame_from_pb(m, reading["avatar"])
+
+        def decode() -> SimpleNamespace:
+            m = spb.CameraFrame()
+            m.ParseFromString(data)
+            return frame_from_pb(m, reading["avatar"])
+
+        return await self.compute(decode)
 
 
 def dedicated_type(cls: type[SensorBase]) -> type[SensorBase]:
