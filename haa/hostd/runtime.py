@@ -272,6 +272,10 @@ class HostRuntime:
         self._clock_offset = 0.0
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
         self._proposed_at: dict[TxId, float] = {}
+        #: the highest OAC transaction number of this incarnation whose proposal time is known: transactions the
+        #: cores propose themselves (membership, sequencer batches, agent table) get theirs in `_apply`, so
+        #: that propose -> decide covers every transaction this host proposes
+        self._oac_seq_seen = 0
         self._decided_at: dict[TxId, float] = {}
         self._p2d: dict[TxId, float] = {}
         self._participants_cache: dict[TxId, tuple[str, ...]] = {}
@@ -328,6 +332,7 @@ class HostRuntime:
     def _make_node(self, inc: int) -> None:
         cfg = self.config
         self.ident.inc = inc
+        self._oac_seq_seen = 0
         if not self.membership:
             self.node = self.core = HostCore(self.name, inc, list(cfg.peers), cfg.core, evaluate=self.evaluate)
             return
@@ -339,6 +344,7 @@ class HostRuntime:
         node = MembershipNode(self.name, inc, self.advertise, cfg.core_processes, ncfg, known_hosts=known)
         self.node = AgentNode(node, cfg.agent) if cfg.agents else node
         self.core = node.core
+        self._oac_seq_seen = 0
 
     def _known_hosts_file(self) -> Path | None:
         d = self.config.data_dir
@@ -562,6 +568,13 @@ class HostRuntime:
             self.counters["core_errors"] += 1
             log.exception("core drain failed", extra={"event": "core_error", "fields": {"input": "drain"}})
             return
+        core = self.core
+        if core is not None and core.oac._seq != self._oac_seq_seen:
+            t_prop = time.monotonic()
+            inc = core.oac.inc
+            for s in range(self._oac_seq_seen + 1, core.oac._seq + 1):
+                self._proposed_at.setdefault(TxId(self.name, inc, s), t_prop)
+            self._oac_seq_seen = core.oac._seq
         if not effects:
             return
         send = self.transport.send
