@@ -117,3 +117,41 @@ def test_bad_reference_patch_gives_no_reading():
     K = np.array([[342.0, 0, 159.5], [0, 342.0, 119.5], [0, 0, 1]])
     assert find_floor(img, K, config=FloorConfig()) is None
     assert FloorFinder().reference(img) is None
+
+
+def test_a_finder_that_first_saw_a_wall_recovers_with_the_team_colour():
+    """A floor finder (re)started facing a wall learns the wall's colour, then matches walls as floor and
+    refuses the floor; with the team's colour (`adopt`) it starts right, and one already wrong goes back to it
+    after RELEARN_AFTER refusals in a row."""
+    from haa.control.floorfinder import RELEARN_AFTER
+
+    w = World.from_arena("small", seed=1)
+    open_view = w.add_avatar("seeker", (1.7, 0.5, math.pi / 2))  # facing north along the arena
+    good = FloorFinder()
+    frames = []
+    for _ in range(12):
+        frames.append(w.capture(open_view))
+        assert good.reading(frames[-1]) is not None
+        w.step(0.1)
+    assert good.confident() and good.learnt() is not None
+    w.retire(open_view)
+    w.step(0.5)
+    wall = w.capture(w.add_avatar("seeker", (0.4, 3.1, math.pi)))  # 0.4 m from the west wall, facing it
+    wrong = FloorFinder()
+    wrong.reference(wall.image)  # its first image: the wall's colour is learnt
+    assert all(wrong.reading(f) is None for f in frames[:3])  # the floor is refused
+    assert not wrong.confident()
+    # a new finder that takes the team's colour first reads the open view as the good one does
+    fresh = FloorFinder()
+    assert fresh.adopt(good.learnt()) and fresh.reading(frames[0]) is not None
+    # the wrong one, told the team's colour, is not confident in its own: it takes the team's at once
+    assert wrong.adopt(good.learnt()) and wrong.reading(frames[0]) is not None
+    # a confident finder keeps its own colour but falls back to the team's after RELEARN_AFTER refusals
+    stubborn = FloorFinder()
+    stubborn.reference(wall.image)
+    stubborn.accepted = 50  # pretend it trusted the wall colour
+    assert stubborn.adopt(good.learnt()) and stubborn.reading(frames[0]) is None
+    for f in (frames * 2)[:RELEARN_AFTER]:
+        stubborn.reading(f)
+    assert stubborn.reading(frames[0]) is not None
+    assert not FloorFinder().adopt({"mean": [1, 2], "std": [1, 2, 3]}) and not FloorFinder().adopt(None)

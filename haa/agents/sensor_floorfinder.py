@@ -4,8 +4,12 @@
 following the strategy in [112]. The floor region is then transformed from image space to map space using a
 planar homography transformation and used to generate a belief template for JC-SLAM." The image is fetched
 from the avatar agent; haa.control.floorfinder finds the floor polygon (avatar frame); the replica applies
-the FloorReading (haa.slam.sensors.FloorModel). The floor colour the agent learnt is its state (a restarted
-agent learns it again from its next images). Protocol, recovery, per-host limit: haa.agents.team.SensorBase.
+the FloorReading (haa.slam.sensors.FloorModel). The floor colour is shared by the team (`slam/floor_colour`):
+an agent that starts or restarts takes it as its prior before its first image — one that learnt its colour
+from a first image of a wall matched walls as floor and refused the floor (a host crash's restarted agents
+erased the map's obstacles in tests/missions/hosts.yaml) — and an agent that learnt a colour it trusts
+(haa.control.floorfinder.FloorFinder.confident) writes it there, again when it has moved by
+`PUBLISH_DELTA` grey levels. Protocol, recovery, per-host limit: haa.agents.team.SensorBase.
 """
 
 from __future__ import annotations
@@ -20,6 +24,11 @@ from haa.agents.registry import register
 from haa.control.floorfinder import FloorFinder
 from haa.slam.sensors import FloorReading
 
+#: the team's floor colour (FloorFinder.learnt(): {"mean": [b, g, r], "std": [...]})
+K_FLOOR_COLOUR = "slam/floor_colour"
+#: grey levels the learnt colour moves (any channel) before it is written again
+PUBLISH_DELTA = 4.0
+
 
 @register
 class AgentSensorFloorFinder(team.SensorBase):
@@ -29,10 +38,36 @@ class AgentSensorFloorFinder(team.SensorBase):
     def __init__(self, ctx: Any) -> None:
         super().__init__(ctx)
         self.finder = FloorFinder()
+        self.published: list[float] | None = None  # the mean last written to K_FLOOR_COLOUR
+
+    async def on_start(self) -> None:
+        await self._team_colour()
+        await super().on_start()
+
+    async def on_resume(self, how: str) -> None:
+        await self._team_colour()
+        await super().on_resume(how)
+
+    async def _team_colour(self) -> None:
+        colour = await team.get_json(self, K_FLOOR_COLOUR, None)
+        if colour is not None and self.finder.adopt(colour):
+            self.published = list(colour["mean"])
+
+    async def _share_colour(self) -> None:
+        """Write the learnt colour for the team when it is trusted and new (module docstring)."""
+        colour = self.finder.learnt()
+        if colour is None or not self.finder.confident():
+            return
+        if self.published is not None and max(abs(a - b) for a, b in zip(colour["mean"], self.published,
+                                                                           strict=True)) < PUBLISH_DELTA:
+            return
+        self.published = colour["mean"]
+        await self.ddb_write([team.op_put_json(K_FLOOR_COLOUR, colour)])
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         frame = await self.fetch_frame(reading)
         r = await self.compute(floor_reading, self.finder, frame, reading["avatar"])
+        await self._share_colour()
         return [] if r is None else [r]
 
 

@@ -25,6 +25,12 @@ for JC-SLAM." Ours (docs/control.md):
 
 If the reference patch itself is not floor-like (its colour spread is large, e.g. an obstacle right in front),
 no reading is made (None): a free-space claim from a wrong reference would erase obstacles.
+
+A finder whose first patch was a wall (a floor-finder agent restarted beside one, after a crash or when the
+supervisor adds one) learnt the wall's colour: it matched walls as floor (free space through them) and
+refused the floor. So the team shares one floor colour (`learnt` / `adopt`; the agent keeps it in the DDB):
+a finder that has not learnt a colour it trusts starts from the team's, and one whose colour is refused
+`RELEARN_AFTER` times in a row goes back to it.
 Only the image, K, the mount and the time are used: the frame's true pose is not read.
 """
 
@@ -32,12 +38,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
 from haa.sim.camera import floor_homography
 from haa.slam.sensors import FloorReading
+
+#: accepted patches before a learnt colour is shared with the team (`FloorFinder.confident`)
+CONFIDENT_AFTER = 10
+#: refusals in a row after which a finder that knows the team's colour takes it again
+RELEARN_AFTER = 10
 
 
 @dataclass(frozen=True)
@@ -140,6 +152,37 @@ class FloorFinder:
         self.mean: np.ndarray | None = None if prior is None else np.asarray(prior[0], dtype=np.float32)
         self.std: np.ndarray | None = None if prior is None else np.asarray(prior[1], dtype=np.float32)
         self.refused = 0  # patches that did not look like the learnt floor
+        self.accepted = 0  # patches that did (the first one included)
+        self.refused_run = 0  # refusals since the last accepted patch
+        #: the team's floor colour (`adopt`): where a colour that keeps being refused falls back to
+        self.team: tuple[np.ndarray, np.ndarray] | None = None
+
+    def confident(self) -> bool:
+        """The learnt colour matched many patches and most of them: worth sharing with the team."""
+        return self.mean is not None and self.accepted >= CONFIDENT_AFTER and self.refused <= self.accepted
+
+    def learnt(self) -> dict[str, list[float]] | None:
+        """The learnt colour as JSON-able data (`adopt` takes it back)."""
+        if self.mean is None or self.std is None:
+            return None
+        return {"mean": [round(float(x), 2) for x in self.mean], "std": [round(float(x), 2) for x in self.std]}
+
+    def adopt(self, colour: dict[str, Any] | None) -> bool:
+        """Take the team's floor colour (another floor finder's `learnt()`, shared through the DDB) as the
+        prior of a finder that has not learnt one it trusts; it is also what a colour refused
+        `RELEARN_AFTER` times in a row falls back to. False when `colour` is not one."""
+        try:
+            mean = np.asarray(colour["mean"], dtype=np.float32)  # type: ignore[index]
+            std = np.asarray(colour["std"], dtype=np.float32)  # type: ignore[index]
+        except (TypeError, KeyError, ValueError):
+            return False
+        if mean.shape != (3,) or std.shape != (3,) or not (np.isfinite(mean).all() and np.isfinite(std).all()):
+            return False
+        self.team = (mean, std)
+        if not self.confident():
+            self.mean, self.std = mean.copy(), std.copy()
+            self.accepted, self.refused, self.refused_run = 0, 0, 0
+        return True
 
     def reference(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The colour to match in `image`: its patch when it looks like floor, else the learnt colour."""
@@ -150,14 +193,22 @@ class FloorFinder:
             if not one_colour:
                 return None
             self.mean, self.std = mean, std
+            self.accepted = 1
             return mean, std
         tol = cfg.k * np.maximum(self.std, cfg.min_std)
         if one_colour and bool((np.abs(mean - self.mean) <= tol).all()):
             a = cfg.learn
             self.mean = (1 - a) * self.mean + a * mean
             self.std = (1 - a) * self.std + a * std
+            self.accepted += 1
+            self.refused_run = 0
         else:
             self.refused += 1
+            self.refused_run += 1
+            if self.refused_run >= RELEARN_AFTER and self.team is not None:
+                # most likely learnt from a wall (a first patch facing one): back to the team's colour
+                self.mean, self.std = self.team[0].copy(), self.team[1].copy()
+                self.accepted, self.refused, self.refused_run = 0, 0, 0
         return self.mean, self.std
 
     def find(self, frame: object) -> FloorResult | None:
