@@ -5,7 +5,7 @@ Subcommands live in their own modules: `verify` (deterministic simulation of the
 operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
 processes or, with --compose, the docker compose cluster: docs/cluster.md), and the robot team's `mission` and
 `experiment` (haactl.mission: docs/missions.md), `chaos` (haactl.chaos: docs/chaos.md), and `stats collect` and `report`
-(haactl.stats: docs/stats.md).
+(haactl.stats: docs/stats.md), and `dashboard` (haactl.dashboard: docs/dashboard.md).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from haactl.agentcli import agent_app, alloc_app
 from haactl.bench import bench_app
 from haactl.chaos import chaos_app
 from haactl.cluster import cluster_app, host_app
+from haactl.dashboard import dashboard
 from haactl.ddbcli import ddb_app
 from haactl.demo import demo
 from haactl.logview import logs
@@ -53,6 +54,7 @@ app.command("experiment")(experiment)
 app.add_typer(chaos_app, name="chaos")
 app.add_typer(stats_app, name="stats")
 app.command("report")(report)
+app.command("dashboard")(dashboard)
 
 if __name__ == "__main__":
     app()
