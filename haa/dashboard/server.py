@@ -3,7 +3,8 @@
     GET /               the page (haa/dashboard/static/index.html; app.js and app.css beside it)
     GET /static/...     the page's files — everything the page loads comes from here, nothing from elsewhere
     GET /ws             WebSocket: the server pushes JSON messages (below); the page may ask
-                        {"op": "object", "key": K} and gets {"type": "object", ...} (the DDB browser's summary)
+                        {"op": "object", "key": K} and gets {"type": "object", "object": {...}}
+                        (the DDB browser's summary of one object)
     GET /api/state      a JSON summary (agents, hosts, DDB seq, map version, sources): for scripts and tests
     GET /api/object?key=K   the summary of one DDB object
 
@@ -66,6 +67,7 @@ class DashboardServer:
         self._wake = asyncio.Event()
         wake = self._wake
         self.hub.set_waker(lambda: loop.call_soon_threadsafe(wake.set))
+        self.hub.take()  # what changed before: a page gets everything when it connects anyway
         app = web.Application()
         app.router.add_get("/", self.index)
         app.router.add_get("/ws", self.websocket)
@@ -138,7 +140,7 @@ class DashboardServer:
                 if isinstance(req, dict) and req.get("op") == "object":
                     with self.hub.lock:
                         summary = self.hub.mirror.object_summary(str(req.get("key", "")))
-                    await ws.send_str(_dump({"type": "object", **summary}))
+                    await ws.send_str(_dump({"type": "object", "object": summary}))
         finally:
             self.clients.discard(ws)
         return ws

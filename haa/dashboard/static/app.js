@@ -95,7 +95,7 @@ function handle(m) {
       dirty.timeline = true;
       break;
     case "object":
-      showObject(m);
+      showObject(m.object);
       break;
   }
   schedule();
@@ -226,7 +226,10 @@ function drawMap() {
       const [x, y, sd] = v;
       ctx.strokeStyle = "#00838f"; ctx.lineWidth = 1.5;
       cross(ctx, X(x), Y(y), 5);
-      if (sd > 0) { ctx.beginPath(); ctx.arc(X(x), Y(y), Math.max(2, 2 * sd * s), 0, 2 * Math.PI); ctx.stroke(); }
+      if (sd > 0) { // one standard deviation
+        ctx.strokeStyle = "#00838f60"; ctx.lineWidth = 1;
+        ctx.beginPath(); ctx.arc(X(x), Y(y), Math.max(2, sd * s), 0, 2 * Math.PI); ctx.stroke();
+      }
       ctx.fillStyle = "#00838f"; ctx.font = "10px sans-serif"; ctx.fillText(id, X(x) + 6, Y(y) - 4);
     }
   }
@@ -249,8 +252,9 @@ function drawMap() {
     for (const [a, e] of Object.entries(o.estimates || {})) {
       const r = Math.max(4, radiusOf(a) * s);
       const sd = e.std ? Math.hypot(e.std[0], e.std[1]) : 0;
-      if (sd > 0) {
-        ctx.fillStyle = colourOf(a) + "30"; ctx.beginPath(); ctx.arc(X(e.x), Y(e.y), r + 2 * sd * s, 0, 2 * Math.PI); ctx.fill();
+      if (sd > 0) { // one standard deviation of the position estimate
+        ctx.strokeStyle = colourOf(a) + "a0"; ctx.lineWidth = 1; ctx.setLineDash([4, 3]);
+        ctx.beginPath(); ctx.arc(X(e.x), Y(e.y), sd * s, 0, 2 * Math.PI); ctx.stroke(); ctx.setLineDash([]);
       }
       pose(ctx, X(e.x), Y(e.y), e.theta, r, colourOf(a), true);
       ctx.fillStyle = "#000"; ctx.font = "11px sans-serif"; ctx.fillText(a, X(e.x) + r + 2, Y(e.y) + r + 8);
