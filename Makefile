@@ -7,7 +7,9 @@ STAMP := $(VENV)/.installed
 .PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image chaos compose-up compose-down \
 	compose-status idle fuzz
 
+# The venv, and Debian's chromium for the dashboard's browser test (scripts/browser-setup.sh: never fails setup).
 setup: $(STAMP)
+	@scripts/browser-setup.sh
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
