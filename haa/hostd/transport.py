@@ -124,9 +124,13 @@ MAX_CONCURRENT_STREAMS = 64
 HB_MAGIC = b"HAAhb1"
 HB_MAC_BYTES = 16
 HB_MAX_DATAGRAM = 512
-#: how long a lazy message (an OAC decision rebroadcast, a round estimate nobody waits for) may wait for other
-#: traffic on its link before it is written in a frame of its own (docs/transport.md, "Lazy messages")
+#: lazy messages (an OAC decision rebroadcast, a round estimate nobody waits for) wait for other traffic on their
+#: link while this host is busy — it received a frame within the last LAZY_QUIET seconds — but never longer than
+#: LAZY_DELAY; once the host is quiet they are written at once (docs/transport.md, "Lazy messages")
 LAZY_DELAY = 0.02
+LAZY_QUIET = 0.003
+#: a quiet check that runs this much later than it was due counts as busy
+LAZY_LATE = 0.001
 
 
 def heartbeat_key(token: str) -> bytes:
@@ -219,11 +223,10 @@ class OutLink:
         #: where heartbeats go as datagrams (resolved at each handshake that announced a heartbeat port);
         #: None: heartbeats travel on the stream
         self.hb_addr: tuple[Any, ...] | None = None
-        #: something queued must go now: an ordinary (not lazy) message, a lazy one that waited `lazy_delay`,
-        #: or a resend after a handshake. Lazy messages alone only arm `_lazy_timer` (docs/transport.md,
-        #: "Lazy messages")
+        #: something queued must go now: an ordinary (not lazy) message, lazy ones the transport released
+        #: (`Transport._lazy_check`), or a resend after a handshake. Lazy messages alone only register the link
+        #: with the transport (docs/transport.md, "Lazy messages")
         self._due = True
-        self._lazy_timer: asyncio.TimerHandle | None = None
 
     # ------------------------------------------------------------------ queueing (synchronous)
 
@@ -242,14 +245,8 @@ class OutLink:
         if not lazy or t.lazy_delay <= 0:
             self._due = True
             self.wake.set()
-        elif not self._due and self._lazy_timer is None:
-            self._lazy_timer = asyncio.get_running_loop().call_later(t.lazy_delay, self._lazy_due)
-
-    def _lazy_due(self) -> None:
-        self._lazy_timer = None
-        if self.pending:
-            self._due = True
-            self.wake.set()
+        elif not self._due:
+            t._lazy_hold(self)
 
     @property
     def next_seq(self) -> int:
@@ -581,9 +578,6 @@ class OutLink:
             self._next_write = first + len(chunks)
             if not pending:
                 self._due = False
-                if self._lazy_timer is not None:  # the held lazy messages go in this frame
-                    self._lazy_timer.cancel()
-                    self._lazy_timer = None
             await call.write(encode_frame(first, chunks))
             counters["tx_frames"] += 1
 
@@ -645,6 +639,7 @@ class Transport:
         wall_ns: Callable[[], int] = time.time_ns,
         datagram_heartbeats: bool = True,
         lazy_delay: float = LAZY_DELAY,
+        lazy_quiet: float = LAZY_QUIET,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
@@ -665,6 +660,12 @@ class Transport:
         self.precontact_limit = precontact_limit
         self.max_queue = max_queue
         self.lazy_delay = lazy_delay
+        self.lazy_quiet = lazy_quiet
+        self._lazy_links: set[OutLink] = set()  # links holding lazy messages only
+        self._lazy_since = 0.0  # when the first of them was held
+        self._lazy_timer: asyncio.TimerHandle | None = None
+        self._lazy_at = 0.0  # when `_lazy_timer` is due
+        self._last_rx = 0.0  # loop time of the last frame received on any link
         self.accept_unknown = accept_unknown
         self.on_superseded: OnSuperseded = on_superseded or (lambda _p, _i: None)
         self.max_ahead = max_ahead
@@ -783,6 +784,9 @@ class Transport:
         if self._udp is not None:
             self._udp.close()
             self._udp = None
+        if self._lazy_timer is not None:
+            self._lazy_timer.cancel()
+            self._lazy_timer = None
         for task in list(self._handlers):
             task.cancel()
         for link in self.links.values():
@@ -835,6 +839,36 @@ class Transport:
         if link.hb_addr is not None and type(msg) is Heartbeat and self._send_datagram(link, data):
             return
         link.enqueue(dst_inc, envelope_chunk(data), lazy)
+
+    def _lazy_hold(self, link: OutLink) -> None:
+        """`link` holds lazy messages only: release them once this host is quiet (one timer for all links)."""
+        links = self._lazy_links
+        if not links:
+            self._lazy_since = asyncio.get_running_loop().time()
+        links.add(link)
+        if self._lazy_timer is None:
+            loop = asyncio.get_running_loop()
+            self._lazy_at = loop.time() + self.lazy_quiet
+            self._lazy_timer = loop.call_at(self._lazy_at, self._lazy_check)
+
+    def _lazy_check(self) -> None:
+        """While frames keep arriving (other traffic is about to leave on the links) and the oldest held message
+        is younger than `lazy_delay`, hold on; otherwise write every link's held messages."""
+        self._lazy_timer = None
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        # busy: a frame arrived lately, or this check itself ran late (the process waited for a CPU, and frames
+        # may be waiting to be read)
+        busy = now - self._last_rx < self.lazy_quiet or now - self._lazy_at > LAZY_LATE
+        if busy and now - self._lazy_since < self.lazy_delay:
+            self._lazy_at = now + self.lazy_quiet
+            self._lazy_timer = loop.call_at(self._lazy_at, self._lazy_check)
+            return
+        links, self._lazy_links = self._lazy_links, set()
+        for link in links:
+            if link.pending and not link._due:
+                link._due = True
+                link.wake.set()
 
     def connected(self, peer: str) -> bool:
         link = self.links.get(peer)
@@ -1068,7 +1102,7 @@ class Transport:
                     st.period = min(msg.period, 10.0)  # (wire.decode checked it is finite and positive)
             if items:
                 st.confirmed = True
-                st.heard = asyncio.get_running_loop().time()
+                st.heard = self._last_rx = asyncio.get_running_loop().time()
                 self.on_envelopes(sender, inc, items)
             acker.frame()
 
