@@ -286,7 +286,9 @@ def assert_nothing_lost(r: Run, min_checks: int = 3, spanning: dict[str, float] 
             f"no chain check of {avatar} spans {t:g} s: {[(a, b) for a, b, _ in checks.get(avatar, [])]}")
     st = {k[len("stats/"):]: v for k, v in r.tap.snap.items() if k.startswith("stats/")}
     gen, done = st["readings_generated"], st["readings_processed"] + st.get("readings_discarded", 0)
-    assert gen == done + r.tap.snap["pending"], (st, r.tap.snap["pending"])
+    # a reading whose processings are all marked done keeps its raw key until SupervisorSLAM deletes it: in
+    # that window it counts as processed and as pending; one neither processed nor pending would be lost
+    assert done <= gen <= done + r.tap.snap["pending"], (st, r.tap.snap["pending"])
     assert done >= 0.6 * gen > 0, st
 
 
