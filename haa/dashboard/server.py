@@ -66,7 +66,12 @@ class DashboardServer:
         loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
         wake = self._wake
-        self.hub.set_waker(lambda: loop.call_soon_threadsafe(wake.set))
+
+        def waker() -> None:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile (shutting down)
+                loop.call_soon_threadsafe(wake.set)
+
+        self.hub.set_waker(waker)
         self.hub.take()  # what changed before: a page gets everything when it connects anyway
         app = web.Application()
         app.router.add_get("/", self.index)
@@ -88,6 +93,7 @@ class DashboardServer:
         return self.url
 
     async def stop(self) -> None:
+        self.hub.set_waker(lambda: None)
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
