@@ -26,7 +26,7 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import asdict
 from typing import Annotated, Any
 
@@ -37,8 +37,17 @@ from rich.table import Table
 from rich.tree import Tree
 
 from haa.agents.base import RECOVERY_STRATEGIES
-from haa.cluster.agents import PHASE_STATE, AgentRow, agent_lists, merge_agents, name_key  # noqa: F401
-from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key, rpc_error_text
+from haa.cluster.agents import (  # noqa: F401
+    PHASE_STATE,
+    AgentRow,
+    active_row,
+    agent_lists,
+    answering,
+    merge_agents,
+    name_key,
+    wait_rows,
+)
+from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group, natural_key
 from haa.cluster.events import (
     Merger,
     TimelineEvent,
@@ -69,15 +78,6 @@ STATE_STYLE = {"active": "green", "spawning": "cyan", "thawing": "cyan", "recove
 # ---------------------------------------------------------------------------------------------- reading
 
 
-def answering(backend: Backend, replies: dict[str, cpb.AgentListReply | Exception]) -> dict[str, cpb.AgentListReply]:
-    """The hosts that answered; a clear error if none did (a wrong token, no agent layer, ...)."""
-    ok = {n: r for n, r in replies.items() if isinstance(r, cpb.AgentListReply)}
-    if ok:
-        return ok
-    name, e = next(iter(replies.items()))
-    if isinstance(e, grpc.RpcError):
-        raise ClusterError(rpc_error_text(name, backend.host(name).address, e, "AgentList"))
-    raise ClusterError(f"no host answered AgentList in the {backend.describe()}")
 
 
 def resolve(rows: Iterable[AgentRow], ref: str) -> AgentRow:
@@ -200,26 +200,8 @@ def load_rows(backend: Backend) -> tuple[dict[str, cpb.AgentListReply], list[Age
     return ok, merge_agents(ok)
 
 
-def wait_rows(backend: Backend, pred: Callable[[list[AgentRow]], Any], timeout: float, what: str) -> Any:
-    """Poll the merged agent list until `pred` returns something truthy."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            v = pred(merge_agents(answering(backend, agent_lists(backend))))
-            if v:
-                return v
-        except ClusterError:
-            pass
-        if time.monotonic() > deadline:
-            raise ClusterError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(0.1)
 
 
-def active_row(rows: list[AgentRow], agent_id: str, host: str | None = None, min_epoch: int = 0) -> AgentRow | None:
-    for r in rows:
-        if r.id == agent_id and r.state == "active" and r.epoch >= min_epoch and (host is None or r.host == host):
-            return r
-    return None
 
 
 def parse_config(text: str) -> bytes:

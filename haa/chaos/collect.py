@@ -24,11 +24,11 @@ from typing import Any
 
 import grpc
 
+from haa.cluster.agents import AgentRow, agent_lists, merge_agents
 from haa.cluster.backend import ALIVE, Backend, ClusterError
 from haa.cluster.events import parse_lines
 from haa.hostd import ddb as ddbmod
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import AgentRow, agent_lists, merge_agents
 
 #: DDB prefixes the workloads write
 PREFIXES = ("chaos/", "demo/")

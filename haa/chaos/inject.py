@@ -32,8 +32,8 @@ from typing import Any
 
 from haa.agents.base import CHAOS_HANG
 from haa.chaos.plan import Fault, Plan
+from haa.cluster.agents import AgentRow, agent_lists, answering, merge_agents
 from haa.cluster.backend import ALIVE, PAUSED, Backend, ClusterError
-from haactl.agentcli import AgentRow, agent_lists, answering, merge_agents
 
 #: fewest live hosts a host fault may leave
 MIN_LIVE = 3

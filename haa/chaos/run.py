@@ -33,10 +33,10 @@ from haa.chaos.inject import Injected, Injector, local_problems
 from haa.chaos.plan import Plan, PlanError
 from haa.chaos.timeline import Entry, build
 from haa.chaos.workload import STOP_KEY, WORKLOAD_MODULE, WRITER_TYPE
+from haa.cluster.agents import AgentRow, active_row, wait_rows
 from haa.cluster.backend import ClusterError, wait_until
 from haa.cluster.local_backend import LocalBackend
 from haa.hostd import ddb as ddbmod
-from haactl.agentcli import AgentRow, active_row, wait_rows
 
 Progress = Callable[[str], None]
 

@@ -12,13 +12,15 @@ crashed, failed); its host is that host, else the table owner.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import grpc
 
-from haa.cluster.backend import ALIVE, Backend, ClusterError, natural_key
+from haa.cluster.backend import ALIVE, Backend, ClusterError, natural_key, rpc_error_text
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 
@@ -118,3 +120,33 @@ def name_key(name: str) -> tuple[Any, ...]:
     """A2 before A10, A1.2 before A1.10."""
     parts = name[1:].split(".") if name[:1] == "A" else [name]
     return tuple((0, int(p)) if p.isdigit() else (1, p) for p in parts)
+
+def answering(backend: Backend, replies: dict[str, cpb.AgentListReply | Exception]) -> dict[str, cpb.AgentListReply]:
+    """The hosts that answered; a clear error if none did (a wrong token, no agent layer, ...)."""
+    ok = {n: r for n, r in replies.items() if isinstance(r, cpb.AgentListReply)}
+    if ok:
+        return ok
+    name, e = next(iter(replies.items()))
+    if isinstance(e, grpc.RpcError):
+        raise ClusterError(rpc_error_text(name, backend.host(name).address, e, "AgentList"))
+    raise ClusterError(f"no host answered AgentList in the {backend.describe()}")
+
+def wait_rows(backend: Backend, pred: Callable[[list[AgentRow]], Any], timeout: float, what: str) -> Any:
+    """Poll the merged agent list until `pred` returns something truthy."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            v = pred(merge_agents(answering(backend, agent_lists(backend))))
+            if v:
+                return v
+        except ClusterError:
+            pass
+        if time.monotonic() > deadline:
+            raise ClusterError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(0.1)
+
+def active_row(rows: list[AgentRow], agent_id: str, host: str | None = None, min_epoch: int = 0) -> AgentRow | None:
+    for r in rows:
+        if r.id == agent_id and r.state == "active" and r.epoch >= min_epoch and (host is None or r.host == host):
+            return r
+    return None
