@@ -665,11 +665,10 @@ class MissionRun:
         self.outcome: tuple[bool, str] | None = None
         self.exec_failed = ""
         self.files: dict[str, str] = {}
-        #: the chaos plan the mission file names (`chaos: FILE`, checked by the schema), run by `run_chaos`
+        #: the chaos plan the mission file names (`chaos: FILE`, checked by the schema), run by `start_chaos`
         self.chaos_plan: Any = None
         if self.spec.chaos is not None:
             from haa.chaos.plan import load_plan
-            from haa.mission.schema import resolve
 
             self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
         self.chaos_thread: threading.Thread | None = None
