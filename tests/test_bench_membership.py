@@ -38,5 +38,8 @@ def test_ddb_bench_writes_and_replicas_agree(tmp_path: Path) -> None:
     assert all(r["requests"] > 0 and r["failed"] == 0 for r in rows)
     assert all(r["ops_per_s"] > 0 for r in rows if r["load"] == "clients")
     assert all(r["writes_per_s"] > 0 and r["oacs_per_s"] > 0 and r["p50_ms"] > 0 for r in every)
+    # the OACs themselves (the sequencer's batches, or each host's own): latency at their proposers, and OAC
+    # messages per OAC — at least the failure-free n^2 + 4n - 6 = 6 for two hosts
+    assert all(r["oacs_measured"] > 0 and r["oac_p50_ms"] > 0 and r["msgs_per_oac"] >= 5 for r in every)
     assert "ops per request" in ddb_table(rows)
     assert "| 2 | yes | 4 |" in all_writing_table(rows) and "| 2 | no | 4 |" in all_writing_table(rows)
