@@ -166,6 +166,10 @@ class StatsSampler:
     async def _loop(self) -> None:
         loop = asyncio.get_running_loop()
         due = loop.time()
+        # a sample at once: a host killed within its first period still leaves one (a restarted container,
+        # killed again as soon as it had joined, left none of its second life under load)
+        await asyncio.sleep(0)
+        self.tick()
         while True:
             due += self.period
             await asyncio.sleep(max(0.0, due - loop.time()))
