@@ -179,7 +179,6 @@ class AgentNode(TransferMixin, RecoveryMixin):
         self._starts: dict[int, SessionStart] = {}
         self._retries: list[tuple[Any, str, int]] = []
         self._retry_armed = False
-        self._acked_join = False  # `_ack_on_join` done for this membership
 
     def __getattr__(self, name: str) -> Any:
         # everything else is the membership node's (state, oac, peers, is_member, ...): drivers that know a
@@ -621,12 +620,6 @@ class AgentNode(TransferMixin, RecoveryMixin):
                     self.out.append(Log("agent_layer_error", {
                         "effect": type(e).__name__, "error": f"{type(err).__name__}: {err}",
                     }))
-            member = self.m.is_member()
-            if member and not self._acked_join:  # this host has just become a member (its join's view
-                self._acked_join = True  # applied, or a snapshot installed: then no ViewChange names it)
-                self._ack_on_join()
-            elif not member:
-                self._acked_join = False
             res.extend(self.out)
             self.out = []
         return res
@@ -750,32 +743,12 @@ class AgentNode(TransferMixin, RecoveryMixin):
         if any(m.name == self.name for m in e.added) or self._host_published is None:
             self._publish_host(force=True)
         self._maybe_session(self._now, "membership changed")
-        removed = {m.name for m in e.removed}
         for loc in list(self.local.values()):  # Alg. 5 l. 10 / Alg. 6 l. 9: "or h is removed"
-            # a removed host's claimAck will never come: it counts as given, also when a host of the same name
-            # joins again before the freeze or thaw ends (the new incarnation never got the claim: waiting for
-            # it left the agent thawing for ever — verify transfer/recovery seed 1085)
-            loc.wait_acks -= removed
             if loc.phase == "freezing":
                 self._freeze_progress(loc)
             elif loc.phase == "thawing":
                 self._thaw_progress(loc)
         self._reconcile()
-
-    def _ack_on_join(self) -> None:
-        """A joiner whose state came in a snapshot never applied the freezes and claims in it, but the hosts
-        freezing or thawing an agent count it in their commitGroup from the view that added it, which they
-        applied before the joiner caught up: it acknowledges every freeze and every claim its state holds
-        (Alg. 5 l. 24, Alg. 6 l. 16) once it is a member, else such an agent stayed thawing for ever (verify
-        transfer/recovery seeds 1085, 1229, once a63fa5f changed the OAC's timing). An ack that nobody waits
-        for is dropped by its receiver."""
-        for r in self.table.records.values():
-            if not r.owner or r.owner == self.name:
-                continue
-            if r.status == at.FREEZING:
-                self._send_agent_host(r.owner, "freeze_ack", r.id, r.epoch, b"")
-            elif r.status == at.ACTIVE:
-                self._send_agent_host(r.owner, "claim_ack", r.id, r.epoch, b"")
 
     def _publish_host(self, force: bool = False) -> None:
         """Commit this host's K_h, H_h and draining flag to the agent table. Every member publishes them, the
