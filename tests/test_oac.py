@@ -318,19 +318,3 @@ def test_lazy_marks_exactly_the_messages_nobody_waits_for(n):
     assert sum(1 for _s, k in lazy if k == "OacEstimate") == n - 2
     assert all(s != "h1" for s, _k in lazy)  # the coordinator's own messages are all on the critical path
     assert len(eager) == 5 * (n - 1)
-
-
-def test_orders_never_go_back_after_a_transaction_closes():
-    """A proposal starts above every order its proposer has seen, closed transactions included, so that a
-    participant still holding a closed transaction open does not have to raise the new one (l. 22-24)."""
-    names, oacs, sent, emitted, run = _direct_group(3)
-    parts = [(q, 1) for q in names]
-    oacs["h1"].propose(b"a", parts)
-    run()
-    assert all(not o.txs for o in oacs.values())  # closed everywhere
-    first = next(e.order for e in emitted["h2"] if type(e).__name__ == "Deliver")
-    oacs["h2"].propose(b"b", parts)
-    run()
-    orders = [e.order for e in emitted["h3"] if type(e).__name__ == "Deliver"]
-    assert orders[1] > first
-    assert not any(kind == "OacOrder" for _s, _d, kind, _l in sent)

@@ -184,10 +184,6 @@ class OrderedAtomicCommit:
         self._gate: list[tuple[int, TxId]] = []  # min-heap over active (order, id), lazily invalidated
         self._seq = 0
         self.delivered = 0
-        #: the highest order this host has seen on any transaction, closed ones included: a proposal starts
-        #: above it (l. 4, docs/oac.md "Orders never go back"), so that a transaction this host has already
-        #: closed but another participant still holds open does not force an order conflict (l. 22-24)
-        self.max_order = 0
 
     # ------------------------------------------------------------------ helpers
 
@@ -216,8 +212,6 @@ class OrderedAtomicCommit:
         return best
 
     def _push_gate(self, tx: _Tx) -> None:
-        if tx.order > self.max_order:
-            self.max_order = tx.order
         heapq.heappush(self._gate, (tx.order, tx.id))
 
     def _log(self, event: str, **fields: Any) -> None:
@@ -234,9 +228,9 @@ class OrderedAtomicCommit:
         parts_t: tuple[Participant, ...] = ((self.name, self.inc), *parts)
         self._seq += 1
         txid = TxId(self.name, self.inc, self._seq)
-        # l. 4: back of the queue — above every open transaction, and (docs/oac.md, "Orders never go back")
-        # above every order this host has seen, closed transactions included
-        order = self.max_order + 1
+        # l. 4: back of the queue (docs/oac.md, "Orders never go back", tried and taken back)
+        high = self._highest()
+        order = (high[0] if high else 0) + 1
         msg = OacTransaction(txid, bytes(payload), parts_t, order)
         for q, qi in parts_t:  # l. 5
             if q != self.name:
