@@ -53,6 +53,7 @@ from haa.cluster.events import (
     TimelineEvent,
     host_event,
     persisted_logs,
+    take_persisted,
     timeline_events,
     view_events,
 )
@@ -437,14 +438,7 @@ class EventFeed:
 
     def _persisted_already(self, host: str, ev: cpb.AgentEvent) -> bool:
         """Whether a persisted record holds this stream event (a stream replays the host's kept history)."""
-        times = self.persisted.get((host, ev.agent, ev.event, ev.detail))
-        if not times:
-            return False
-        best = min(times, key=lambda t: abs(t - ev.time))
-        if abs(best - ev.time) > 1.0:
-            return False
-        times.remove(best)
-        return True
+        return take_persisted(self.persisted, host, ev.agent, ev.event, ev.detail, ev.time)
 
     def start(self, settle: float = 0.4, limit: float = 5.0) -> list[str]:
         """Connect to every alive host and take their kept histories (until no event came for `settle` s),

@@ -210,6 +210,21 @@ class Merger:
         return [e for e in evs if self.take(e, evs)]
 
 
+def take_persisted(persisted: dict[tuple[str, str, str, str], list[float]], host: str, agent: str, event: str,
+                   detail: str, t: float) -> bool:
+    """Whether a persisted record (`persisted`: (host, agent, event, detail) -> times, from `timeline_events`)
+    holds this streamed event: an AgentEvents stream replays the host's kept history, which its log already
+    holds — the same host, agent, event and detail within a second. The matched record is used up."""
+    times = persisted.get((host, agent, event, detail))
+    if not times:
+        return False
+    best = min(times, key=lambda x: abs(x - t))
+    if abs(best - t) > 1.0:
+        return False
+    times.remove(best)
+    return True
+
+
 def persisted_timeline(backend: Backend, views: bool = True,
                        errors: dict[str, str] | None = None) -> list[TimelineEvent]:
     """The merged timeline of every host's persisted log (with the view changes unless `views` is False):

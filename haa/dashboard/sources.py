@@ -41,7 +41,14 @@ import numpy as np
 
 from haa.cluster.agents import agent_lists, merge_agents
 from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group
-from haa.cluster.events import Merger, TimelineEvent, persisted_logs, timeline_events, view_events
+from haa.cluster.events import (
+    Merger,
+    TimelineEvent,
+    persisted_logs,
+    take_persisted,
+    timeline_events,
+    view_events,
+)
 from haa.dashboard.model import OVERLAY_PREFIXES, DdbMirror
 from haa.hostd.control import ControlClient
 from haa.hostd.ddb import DdbError
@@ -412,14 +419,7 @@ class TimelineFeed(Source):
     def _persisted_already(self, host: str, ev: cpb.AgentEvent) -> bool:
         """A stream replays the host's kept history, which its persisted log already holds (same host, agent,
         event and detail within a second)."""
-        times = self.persisted.get((host, ev.agent, ev.event, ev.detail))
-        if not times:
-            return False
-        best = min(times, key=lambda t: abs(t - ev.time))
-        if abs(best - ev.time) > 1.0:
-            return False
-        times.remove(best)
-        return True
+        return take_persisted(self.persisted, host, ev.agent, ev.event, ev.detail, ev.time)
 
 
 # ---------------------------------------------------------------------------------------------- haa-sim
