@@ -14,22 +14,14 @@ from typing import Any
 
 import typer
 
+from haa.benchresults import RESULTS, write_json
 from haa.dsim.network import DelayModel
 from haa.dsim.ufdqos import QosMeasurement, measure
 from haa.hostd.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
 
 bench_app = typer.Typer(help="Benchmarks: print a table, write bench-results/<name>.json.", no_args_is_help=True)
 
-RESULTS = Path("bench-results")
-
 MEASURABLE_QOS = QosTargets(td_upper=0.5, tmr_lower=60.0, tm_upper=0.5)
-
-
-def write_json(name: str, data: Any) -> Path:
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{name}.json"
-    path.write_text(json.dumps(data, indent=2, default=lambda o: None if o == math.inf else str(o)) + "\n")
-    return path
 
 
 def _fmt_time(x: float) -> str:

@@ -25,6 +25,7 @@ from typing import Any
 import psutil
 
 from haa.agents.base import new_agent_id
+from haa.benchresults import write_json
 from haa.hostd.agentproc import AgentEvent, AgentSupervisor, Failed, Frozen, InstanceSpec, Ready
 
 
@@ -218,8 +219,6 @@ def main(argv: list[str] | None = None) -> int:
     for t in tput:
         print(f"| one supervisor | {t['count']} | {t['size']} | {t['msgs_per_s']:.0f} | {t['mib_per_s']:.1f} |")
     if not args.no_json:
-        from haactl.bench import write_json
-
         path = write_json("agents", {"machine": machine(), "rows": rows, "throughput": tput})
         print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -1,0 +1,80 @@
+"""The import contract (`.importlinter`, explained in docs/architecture.md) holds, and it would catch a breach.
+
+The contract: the core (the sans-I/O state machines, their messages, effects and wire codecs) imports no
+runtime; `haa` never imports `haactl`; packages import only lower layers; no import cycles. It is checked with
+import-linter on the real import graph (grimp; imports inside functions and under TYPE_CHECKING count). The
+breach tests add one import to that same graph and check that the contract guarding against it breaks — so
+a contract that silently matched nothing would fail here.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import grimp
+import pytest
+from importlinter.application import use_cases
+from importlinter.application.app_config import settings
+from importlinter.configuration import configure
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / ".importlinter"
+
+
+def test_import_contract_is_kept():
+    """`lint-imports` as a developer runs it: every contract kept, every named exception still needed."""
+    exe = Path(sys.executable).with_name("lint-imports")
+    r = subprocess.run([str(exe), "--no-cache", "--no-logo", str(CONFIG)], cwd=ROOT, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "0 broken" in r.stdout
+
+
+class _GraphWithExtraImport:
+    """import-linter's graph builder, plus one import that the code does not have."""
+
+    def __init__(self, importer: str, imported: str) -> None:
+        self.importer, self.imported = importer, imported
+
+    def build(self, root_package_names: list[str], cache_dir: str | None, include_external_packages: bool = False,
+              exclude_type_checking_imports: bool = False) -> grimp.ImportGraph:
+        g = grimp.build_graph(*root_package_names, include_external_packages=include_external_packages,
+                              exclude_type_checking_imports=exclude_type_checking_imports, cache_dir=None)
+        g.add_import(importer=self.importer, imported=self.imported, line_number=1, line_contents="import x")
+        return g
+
+
+def _broken_contracts(importer: str, imported: str) -> set[str]:
+    configure()
+    use_cases._register_built_in_contract_types()  # what `lint-imports` does before reading contracts
+    saved = settings.GRAPH_BUILDER
+    settings.configure(GRAPH_BUILDER=_GraphWithExtraImport(importer, imported))
+    try:
+        report = use_cases.create_report(use_cases.read_user_options(str(CONFIG)), cache_dir=None)
+    finally:
+        settings.configure(GRAPH_BUILDER=saved)
+    assert not report.could_not_run and not report.invalid_contract_options
+    return {c.name for c, check in report.get_contracts_and_checks() if not check.kept}
+
+
+@pytest.mark.parametrize(
+    ("importer", "imported", "contract"),
+    [
+        # the core reaching for a clock, the event loop, the runtime or grpc (directly or through a helper)
+        ("haa.hostd.oac", "time", "The core imports no runtime"),
+        ("haa.hostd.membership", "asyncio", "The core imports no runtime"),
+        ("haa.hostd.agentnode", "haa.hostd.runtime", "The core imports no runtime"),
+        ("haa.hostd.wire", "haa.pb.hostlink_pb2_grpc", "The core imports no runtime"),
+        ("haa.hostd.ddb", "haa.files", "The core imports no runtime"),
+        # the library reaching up into the CLI
+        ("haa.agents.bench", "haactl.bench", "haa never imports haactl"),
+        # a back-arrow between packages, and a cycle between two modules of one package
+        ("haa.hostd.transport", "haa.cluster.backend", "Packages import only lower layers"),
+        ("haa.hostd.qos", "haa.hostd.ufd", "No import cycles"),
+    ],
+)
+def test_contract_catches_a_breach(importer, imported, contract):
+    broken = _broken_contracts(importer, imported)
+    assert any(name.startswith(contract) for name in broken), (importer, imported, broken)
