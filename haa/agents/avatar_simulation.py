@@ -58,7 +58,6 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.agents.base import AgentBase
 from haa.agents.registry import register
 from haa.hostd import ddb as ddbops
 from haa.pb import sim_pb2 as spb
@@ -141,7 +140,7 @@ def to_odom(t_est: Pose, t_odo: Pose, x: float, y: float) -> tuple[float, float]
 
 
 @register
-class AvatarSimulation(AgentBase):
+class AvatarSimulation(team.TeamAgent):
     TYPE = "avatar_simulation"
     CONFIG = AvatarConfig
     COST = 0.05
@@ -182,9 +181,6 @@ class AvatarSimulation(AgentBase):
 
     # ------------------------------------------------------------------ life cycle
 
-    async def on_start(self) -> None:
-        await self._begin(fresh=True)
-
     def pack_backup(self) -> bytes:
         """The backup: planner, target and reading number (frames are not backed up: a crash loses them)."""
         return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings})
@@ -219,17 +215,14 @@ class AvatarSimulation(AgentBase):
         if backup:
             self.unpack_state(backup)
 
-    async def on_resume(self, how: str) -> None:
-        await self._begin(fresh=False, how=how)
-
     def on_stop(self) -> None:
         for t in self.tasks:
             t.cancel()
         if self.drive_task:
             self.drive_task.cancel()
 
-    async def _begin(self, fresh: bool, how: str = "start") -> None:
-        team.use_mission_clock(self, self.cfg)
+    async def begin(self, how: str) -> None:
+        fresh = how == "start"
         self.link = team.SimLink(self.cfg.sim, self.cfg.sim_token_file, self.name)
         try:
             reply = await self.link.avatar.Register(

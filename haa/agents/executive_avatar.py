@@ -25,7 +25,6 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.agents.base import AgentBase
 from haa.agents.registry import register
 from haa.hostd import ddb as ddbops
 
@@ -47,7 +46,7 @@ def decide(registry: dict[str, dict[str, Any]],
 
 
 @register
-class ExecutiveAvatar(AgentBase):
+class ExecutiveAvatar(team.TeamAgent):
     TYPE = "executive_avatar"
     CONFIG = ExecutiveAvatarConfig
     COST = 0.01
@@ -58,14 +57,7 @@ class ExecutiveAvatar(AgentBase):
         self.cfg: ExecutiveAvatarConfig
         self.pending = False
 
-    async def on_start(self) -> None:
-        await self._begin()
-
-    async def on_resume(self, how: str) -> None:
-        await self._begin()
-
-    async def _begin(self) -> None:
-        team.use_mission_clock(self, self.cfg)
+    async def begin(self, how: str) -> None:
         self.watch(team.K_AVATARS, self._changed)
         self.watch(team.K_BIDS, self._changed)
         self.every(self.cfg.period_s, self.assign)

@@ -43,7 +43,6 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.agents.base import AgentBase
 from haa.agents.registry import register
 from haa.hostd import ddb as ddbops
 from haa.slam.replica import decode_map
@@ -84,7 +83,7 @@ def explored_share(prob: np.ndarray, expected_cells: int) -> float:
 
 
 @register
-class ExecutiveMission(AgentBase):
+class ExecutiveMission(team.TeamAgent):
     TYPE = "executive_mission"
     CONFIG = MissionAgentConfig
     COST = 0.02
@@ -118,27 +117,20 @@ class ExecutiveMission(AgentBase):
         if backup:
             self.unpack_state(backup)
 
-    async def on_start(self) -> None:
-        team.use_mission_clock(self, self.cfg)
-        self.started_t = self.now()
-        await self.ddb_write([team.op_put_json(team.K_PARAMS, {"mission": self.m, "speed": self.cfg.speed,
-                                                                "sim": self.cfg.sim, "seed": self.cfg.seed,
-                                                                "expected_cells": self.cfg.expected_cells})])
-        await self._status("")
-        await team.transcript(self, f"Mission started: {self.m.get('name')} ({self.m.get('scenario')})")
-        await self._begin()
-
-    async def on_resume(self, how: str) -> None:
-        team.use_mission_clock(self, self.cfg)
-        if how == "recover":
+    async def begin(self, how: str) -> None:
+        if how == "start":
+            self.started_t = self.now()
+            await self.ddb_write([team.op_put_json(team.K_PARAMS, {
+                "mission": self.m, "speed": self.cfg.speed, "sim": self.cfg.sim, "seed": self.cfg.seed,
+                "expected_cells": self.cfg.expected_cells})])
+            await self._status("")
+            await team.transcript(self, f"Mission started: {self.m.get('name')} ({self.m.get('scenario')})")
+        elif how == "recover":
             if self.state == "running":  # the backup's share is old: the map says what it is now
                 await self._read_explored()
             await self._status(self.reason)
             await team.transcript(self, f"resumed after a crash: mission {self.state}, explored {self.explored:.1%}, "
                                         f"children {', '.join(sorted(self.children)) or 'none yet'}")
-        await self._begin()
-
-    async def _begin(self) -> None:
         self.facts = arena_facts(self.m)
         await self._spawn_children()
         if self.m.get("scenario") == "congregate":

@@ -32,7 +32,6 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.agents.base import AgentBase
 from haa.agents.registry import register
 from haa.control.pathplanner import PlannerConfig, plan_path
 from haa.slam.replica import decode_map
@@ -71,7 +70,7 @@ def cut_legs(start: tuple[float, float], waypoints: list[tuple[float, float]], h
 
 
 @register
-class AgentPathPlanner(AgentBase):
+class AgentPathPlanner(team.TeamAgent):
     TYPE = "path_planner"
     CONFIG = PlannerAgentConfig
     COST = 0.03
@@ -85,12 +84,9 @@ class AgentPathPlanner(AgentBase):
         self.failures = 0
         self.plans = 0
 
-    async def on_start(self) -> None:
-        team.use_mission_clock(self, self.cfg)
-        self.send(self.cfg.avatar_agent, team.dumps({"op": "hello"}))
-
-    async def on_resume(self, how: str) -> None:
-        team.use_mission_clock(self, self.cfg)
+    async def begin(self, how: str) -> None:
+        if how == "start":
+            self.send(self.cfg.avatar_agent, team.dumps({"op": "hello"}))
 
     def pack_state(self) -> bytes:
         return team.dumps({"goal": self.goal, "failures": self.failures})

@@ -40,13 +40,9 @@ class AgentSensorFloorFinder(team.SensorBase):
         self.finder = FloorFinder()
         self.published: list[float] | None = None  # the mean last written to K_FLOOR_COLOUR
 
-    async def on_start(self) -> None:
+    async def begin(self, how: str) -> None:
         await self._team_colour()
-        await super().on_start()
-
-    async def on_resume(self, how: str) -> None:
-        await self._team_colour()
-        await super().on_resume(how)
+        await super().begin(how)
 
     async def _team_colour(self) -> None:
         colour = await team.get_json(self, K_FLOOR_COLOUR, None)

@@ -96,14 +96,7 @@ class SupervisorExplore(team.SupervisorBase):
         self.blocked = [(float(x), float(y), float(u)) for x, y, u in st.get("blocked", [])]
         self.spots = [[float(x), float(y), float(n)] for x, y, n in st.get("spots", [])]
 
-    async def on_start(self) -> None:
-        await self._begin()
-
-    async def on_resume(self, how: str) -> None:
-        await self._begin()
-
-    async def _begin(self) -> None:
-        team.use_mission_clock(self, self.cfg)
+    async def begin(self, how: str) -> None:
         await self.start_bidding()
         self.every(self.cfg.replan_s, self._tick)
 

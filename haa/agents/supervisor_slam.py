@@ -78,7 +78,6 @@ from typing import Any, Literal
 import pydantic
 
 from haa.agents import team
-from haa.agents.base import AgentBase
 from haa.agents.registry import register
 from haa.hostd import ddb as ddbops
 from haa.slam import events as sev
@@ -133,7 +132,7 @@ class SlamAgentConfig(team.TeamConfig):
 
 
 @register
-class SupervisorSLAM(AgentBase):
+class SupervisorSLAM(team.TeamAgent):
     TYPE = "supervisor_slam"
     CONFIG = SlamAgentConfig
     COST = 0.15
@@ -206,14 +205,8 @@ class SupervisorSLAM(AgentBase):
         if backup:
             self.unpack_state(backup)
 
-    async def on_start(self) -> None:
-        await self._begin(fresh=True)
-
-    async def on_resume(self, how: str) -> None:
-        await self._begin(fresh=False)
-
-    async def _begin(self, fresh: bool) -> None:
-        team.use_mission_clock(self, self.cfg)
+    async def begin(self, how: str) -> None:
+        fresh = how == "start"
         self.watch_log(team.K_SLAM_LOG, self._on_event)
         await self._load()
         self.watch(team.K_SLAM_RAW, self._on_raw)

@@ -186,10 +186,36 @@ async def transcript(agent: AgentBase, text: str) -> None:
         agent.log("transcript_failed", level="warning", error=str(e))
 
 
+# ---------------------------------------------------------------------------------------------- team agents
+
+
+class TeamAgent(AgentBase):
+    """Base of the control-system agents (App. III): each runs on the mission clock and the mission's seeded
+    random source (`use_mission_clock`), and a start, a thaw after a transfer and a recovery from a backup all
+    go through one `begin(how)` — `how` is "start", "thaw" or "recover" (AgentBase.on_resume's values) — so
+    what an agent sets up on each of them (watches, timers, bidding) is written once.
+
+    A subclass reads `how` where the three differ: only a new agent announces itself, a recovered one may
+    drop what its backup cannot vouch for, a thawed one keeps everything it had."""
+
+    cfg: TeamConfig
+
+    async def on_start(self) -> None:
+        use_mission_clock(self, self.cfg)
+        await self.begin("start")
+
+    async def on_resume(self, how: str) -> None:
+        use_mission_clock(self, self.cfg)
+        await self.begin(how)
+
+    async def begin(self, how: str) -> None:
+        """Set the agent up after a start, a thaw or a recovery (the clock is the mission's already)."""
+
+
 # ---------------------------------------------------------------------------------------------- supervisors
 
 
-class SupervisorBase(AgentBase):
+class SupervisorBase(TeamAgent):
     """What the task supervisors share (the thesis' SupervisorTask parent class, Fig. 6.2-3): bidding for
     avatars with ExecutiveAvatar (App. III L3043: bids and assignments in the DDB), knowing which avatars it
     controls, and sending them targets.
@@ -340,7 +366,7 @@ class SensorConfig(TeamConfig):
     avatar: str = pydantic.Field("", max_length=64)
 
 
-class SensorBase(AgentBase):
+class SensorBase(TeamAgent):
     """What the sensor processing agents share (the thesis' AgentSensorProcessing parent class, Fig. 6.2-3).
 
     Protocol with SupervisorSLAM ("Assign processing requests" / "Report success or failure of processing",
@@ -405,13 +431,8 @@ class SensorBase(AgentBase):
     def _hello(self) -> None:
         self.send(self.cfg.supervisor, dumps({"op": "hello", "proc": self.proc, "avatar": self.cfg.avatar}))
 
-    async def on_start(self) -> None:
-        use_mission_clock(self, self.cfg)
-        self._hello()
-
-    async def on_resume(self, how: str) -> None:
-        use_mission_clock(self, self.cfg)
-        self._hello()
+    async def begin(self, how: str) -> None:
+        self._hello()  # a new, moved or recovered sensor agent tells its supervisor it is (again) there
 
     async def on_message(self, src: str, payload: bytes) -> None:
         msg = json.loads(payload)
