@@ -178,3 +178,26 @@ def test_large_arena_timing():
     plan = cm.plan(arena.start_poses[0][:2], (arena.width - 0.6, arena.height - 0.6))
     assert plan.ok and plan.length > 20
     assert plan.seconds < 2.0  # ~0.05 s measured (docs/control.md); loose for a loaded CI machine
+
+
+def test_cost_field_is_the_plans_cost_to_every_cell():
+    """One search to every cell gives what a plan to each cell costs (SupervisorCongregate weighs slots by it)."""
+    _a, p, spec = true_map("small", 0.1)
+    cm = CostMap(p, spec, PlannerConfig(radius=0.12))
+    start = (0.5, 0.5)
+    field = cm.cost_field(start)
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(200):
+        x, y = rng.uniform(0.2, 3.2), rng.uniform(0.2, 6.8)
+        cell = cm.cell(x, y)
+        if not cm.passable[cell]:  # a plan snaps such a target to a passable cell: not the same question
+            continue
+        plan = cm.plan(start, cm.centre(*cell))
+        assert plan.ok == math.isfinite(field[cell])
+        if plan.ok:
+            assert field[cell] == pytest.approx(plan.cost * spec.resolution, rel=1e-9)
+            assert field[cell] >= math.dist(start, cm.centre(*cell)) - 0.15  # never shorter than a line
+            checked += 1
+    assert checked > 100
+    assert np.isinf(cm.cost_field((-1.0, 0.5))).all()  # start outside the map

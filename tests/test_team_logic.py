@@ -139,3 +139,41 @@ def test_the_bumper_widens_the_motion_noise_by_what_the_wheels_may_have_missed()
     speed = 0.2 * 2.0
     assert sigma(me, 0.25, 0.55) == pytest.approx(av.BUMP_M + av.BUMP_SLIDE * speed * 0.25)
     assert sigma(me, 0.35, 0.45) == pytest.approx(av.BUMP_SLIDE * speed * 0.10)  # in contact, none begun
+
+
+def test_bottleneck_assignment_minimises_the_longest_drive_then_the_total() -> None:
+    """The congregation ends with its last avatar: brute force over every matching agrees on random costs,
+    with unreachable (inf) entries among them."""
+    import itertools
+
+    from haa.agents.supervisor_congregate import bottleneck_assignment
+
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        n = int(rng.integers(1, 6))
+        cost = rng.uniform(0, 10, (n, n)).round(1)
+        if trial % 3 == 0:
+            cost[rng.uniform(size=(n, n)) < 0.3] = np.inf
+        best = None
+        for perm in itertools.permutations(range(n)):
+            c = [cost[i, perm[i]] for i in range(n)]
+            key = (max(c), sum(c))
+            best = key if best is None or key < best else best
+        r, k = bottleneck_assignment(cost)
+        assert sorted(r.tolist()) == list(range(n)) and sorted(k.tolist()) == list(range(n))
+        got = (cost[r, k].max(), cost[r, k].sum())
+        if math.isfinite(best[0]):
+            assert got[0] == best[0] and got[1] == pytest.approx(best[1]), (trial, cost)
+    # least total drive would send the far avatar (row 1) 9 m; the bottleneck matching 6 m at most
+    cost = np.array([[1.0, 5.0], [6.0, 9.0]])
+    r, k = bottleneck_assignment(cost)
+    assert cost[r, k].max() == 6.0
+
+
+def test_the_ring_is_turned_to_end_the_congregation_soonest() -> None:
+    centre, towards = (2.4, 6.0), (2.4, 3.0)
+    score = lambda ring: max(p[0] for p in ring)  # noqa: E731  (e.g. the team waits in the west)
+    ring = placeable_ring(centre, 3, 0.6, towards, lambda p: True, score=score)
+    assert score(ring) < score(slots(centre, 3, 0.6, towards)) - 0.05
+    # equal scores: the least turn (the plain ring) as without a score
+    assert placeable_ring(centre, 3, 0.6, towards, lambda p: True, score=lambda r: 0) == slots(centre, 3, 0.6, towards)

@@ -6,11 +6,16 @@ them targets at equally spaced intervals around the congregation point." Executi
 congregation point's landmark is in the map (`slam/landmarks`); it bids `team.BID_CONGREGATE` (10, above
 SupervisorExplore's 1: docs/team.md) on every active avatar, so it gains control of all of them.
 
-Slots (thesis gap 8, ours): `n` points on a circle of `radius_m` around the landmark's estimate, the first
-towards the team's centroid, equally spaced; avatars are matched to slots by least total distance
-(Hungarian). An avatar is on its slot when its estimate is within `tolerance_m`; when all are, it writes
-`congregate/status` {"done": true} and ExecutiveMission ends the mission. Slots are recomputed when the
-landmark estimate moves by more than `tolerance_m` or the team changes.
+Slots (thesis gap 8, ours): `n` points on a circle of `radius_m` around the landmark's estimate, equally
+spaced. The mission ends when the last avatar is on its slot, so the ring's turn and the matching of avatars
+to slots minimise the longest drive (a bottleneck assignment; ties by the total), measured along the path
+planner's weighted paths on the published map (`CostMap.cost_field`, one search per avatar), not in straight
+lines: among the rings whose every slot is a passable cell, turned from the team's centroid in steps of a
+twelfth of the slot spacing (widened only if none fits), the one whose matching ends soonest. An avatar
+is on its slot when it reports the slot reached or its estimate is within `tolerance_m`; when all are, it
+writes `congregate/status` {"done": true} and ExecutiveMission ends the mission. Slots are placed again when
+the landmark's estimate moves by more than `replace_m`, the team changes or an avatar finds its slot
+unreachable.
 
 Recovery: "Restore configuration and retrieve Avatar* statuses, reassign targets if appropriate": RECOVERY =
 "backup" (the targets sent, the next target id; haa.agents.team.SupervisorBase) — after recovery the
@@ -55,14 +60,51 @@ def slots(centre: tuple[float, float], n: int, radius: float,
              centre[1] + radius * math.sin(a0 + 2 * math.pi * k / n)) for k in range(n)]
 
 
+def bottleneck_assignment(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of a perfect matching of a square cost matrix that minimises the largest cost, and among
+    those the total (an entry may be inf: never chosen while a finite matching exists). The least threshold t
+    for which the entries <= t hold a perfect matching is found by bisection over the sorted entries, each
+    test a linear assignment of 0/1 costs; then the least total within t."""
+    n = cost.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    finite = np.isfinite(cost)
+    values = np.unique(cost[finite])
+    if len(values) == 0:
+        return linear_sum_assignment(np.zeros_like(cost))
+
+    def feasible(t: float) -> bool:
+        over = np.where(finite & (cost <= t), 0.0, 1.0)
+        r, c = linear_sum_assignment(over)
+        return float(over[r, c].sum()) == 0.0
+
+    lo, hi = 0, len(values) - 1
+    if not feasible(values[hi]):  # no finite perfect matching: the least total of what is finite
+        big = float(values[-1]) * 10 * n + 1.0
+        return linear_sum_assignment(np.where(finite, cost, big))
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if feasible(values[mid]):
+            hi = mid
+        else:
+            lo = mid + 1
+    t = values[lo]
+    big = float(values[-1]) * 10 * n + 1.0
+    return linear_sum_assignment(np.where(finite & (cost <= t), cost, big))
+
+
 def placeable_ring(centre: tuple[float, float], n: int, radius: float, towards: tuple[float, float],
                    ok: Callable[[tuple[float, float]], bool], steps: int = 12,
-                   grow: tuple[float, ...] = (0.0, 0.15, 0.3)) -> list[tuple[float, float]]:
+                   grow: tuple[float, ...] = (0.0, 0.15, 0.3),
+                   score: Callable[[list[tuple[float, float]]], Any] | None = None) -> list[tuple[float, float]]:
     """The ring of `slots` whose every slot `ok` accepts (a passable cell of the map, not where an avatar
     found its slot unreachable): the ring is turned by fractions of the slot spacing, then widened, in that
-    order (the first fit is the one nearest the plain ring); the plain ring if none fits."""
+    order. Without `score` the first fit is taken (the one nearest the plain ring); with it, the fit of the
+    least radius with the least `score` (ties: the least turn). None fits: the ring with the most good slots,
+    each bad one moved out along its ray."""
     best: tuple[int, list[tuple[float, float]]] | None = None
     for extra in grow:
+        fits: list[tuple[Any, list[tuple[float, float]]]] = []
         for k in range(steps):
             # 0, +1/steps, -1/steps, +2/steps, ... of the spacing: the least turn first
             j = (k + 1) // 2 * (1 if k % 2 else -1)
@@ -70,9 +112,13 @@ def placeable_ring(centre: tuple[float, float], n: int, radius: float, towards: 
             ring = slots(centre, n, radius + extra, towards, turn)
             good = sum(1 for p in ring if ok(p))
             if good == n:
-                return ring
+                if score is None:
+                    return ring
+                fits.append((score(ring), ring))
             if best is None or good > best[0]:
                 best = (good, ring)
+        if fits:
+            return min(fits, key=lambda f: f[0])[1]  # min keeps the first (least turn) of equal scores
     # no ring fits: the one with the most good slots, each bad slot moved out along its ray (up to 0.6 m
     # farther) to the first point that is good
     assert best is not None
@@ -107,21 +153,15 @@ class SupervisorCongregate(team.SupervisorBase):
         self.bad: list[tuple[float, float]] = []  # slots an avatar found unreachable
         self.extent: tuple[float, float, float, float] | None = None  # the map's x0, y0, width, height
         self.arrived: dict[str, Any] = {}  # avatar -> tid of the slot it reported reached
+        self.costmap: CostMap | None = None  # the planner's costs on the map last read (_slot_test)
 
     def priority(self, avatar: str) -> float:
         return team.BID_CONGREGATE
 
-    async def on_start(self) -> None:
-        await self._begin()
-
-    async def on_resume(self, how: str) -> None:
+    async def begin(self, how: str) -> None:
         if how == "recover":  # every controlled avatar gets its slot again (a thaw keeps what it had sent)
             self.targets = {}
-        await self._begin(announce=how != "thaw")
-
-    async def _begin(self, announce: bool = True) -> None:
-        team.use_mission_clock(self, self.cfg)
-        if announce:
+        if how != "thaw":
             await team.transcript(self, "requesting control of all avatars")
         await self.start_bidding()
         self.every(self.cfg.check_s, self._check)
@@ -161,6 +201,7 @@ class SupervisorCongregate(team.SupervisorBase):
             spec, prob = decode_map(data)
             self.extent = (spec.x0, spec.y0, spec.width, spec.height)
             cm = CostMap(prob, spec, PlannerConfig(radius=self.cfg.avatar_radius))
+        self.costmap = cm
 
         def ok(p: tuple[float, float]) -> bool:
             if any(math.dist(p, b) < 0.2 for b in self.bad):
@@ -171,6 +212,26 @@ class SupervisorCongregate(team.SupervisorBase):
             return cell is not None and bool(cm.passable[cell])
 
         return ok
+
+    def _drive_cost(self, starts: list[tuple[float, float]]
+                    ) -> Callable[[list[tuple[float, float]]], np.ndarray]:
+        """cost(points)[i, k]: how far avatar i drives to point k — the path planner's weighted path length
+        on the map last read (one search from each avatar), the straight line where there is no map or
+        an avatar's estimate is off it (a point no path reaches costs inf)."""
+        cm = self.costmap
+        fields = [cm.cost_field(s) if cm is not None else None for s in starts]
+        fields = [f if f is not None and np.isfinite(f).any() else None for f in fields]  # off the map: a line
+
+        def cost(points: list[tuple[float, float]]) -> np.ndarray:
+            out = np.empty((len(starts), len(points)))
+            for i, s in enumerate(starts):
+                f = fields[i]
+                for k, p in enumerate(points):
+                    cell = cm.cell(*p) if cm is not None and f is not None else None
+                    out[i, k] = f[cell] if f is not None and cell is not None else math.dist(s, p)
+            return out
+
+        return cost
 
     async def _check(self) -> None:
         if self.done or not self.controlled:
@@ -189,9 +250,17 @@ class SupervisorCongregate(team.SupervisorBase):
             self.centre = c
             names = sorted(pos)
             mean = tuple(np.mean([pos[a] for a in names], axis=0))
-            pts = placeable_ring(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])), ok)
-            cost = np.array([[math.dist(pos[a], p) for p in pts] for a in names])
-            rows, cols = linear_sum_assignment(cost)
+            drive = self._drive_cost([pos[a] for a in names])
+
+            def makespan(ring: list[tuple[float, float]]) -> tuple[float, float]:
+                cost = drive(ring)
+                r, k = bottleneck_assignment(cost)
+                return (float(cost[r, k].max()), float(cost[r, k].sum()))
+
+            pts = placeable_ring(c, len(names), self.cfg.radius_m, (float(mean[0]), float(mean[1])), ok,
+                                 score=makespan)
+            cost = drive(pts)
+            rows, cols = bottleneck_assignment(cost)
             for r, k in zip(rows, cols, strict=True):
                 self.send_target(names[r], *pts[k])
             await team.transcript(self, "slots around ({:.2f}, {:.2f}): ".format(*c) + ", ".join(

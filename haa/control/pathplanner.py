@@ -169,6 +169,32 @@ class CostMap:
             return None
         return (int(rr[i] + lo_r), int(cc[i] + lo_c))
 
+    def _from(self, s: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(passable, cost) for a search from cell `s`: the inflated (not occupied) cells within one radius of
+        the start become passable at the highest penalty when the start itself is not (rule 3's escape)."""
+        passable = self.passable
+        cost = self.base_cost
+        if not passable[s]:
+            rows, cols = passable.shape
+            rr, cc = np.ogrid[0:rows, 0:cols]
+            k = (self.cfg.radius + self.spec.resolution) / self.spec.resolution
+            near = (rr - s[0]) ** 2 + (cc - s[1]) ** 2 <= k * k
+            passable = passable | (near & self.free_space & (~self.unknown if self.cfg.unknown == "blocked" else True))
+            cost = np.where(near & ~self.passable, self.max_cost, cost)
+        return passable, cost
+
+    def cost_field(self, start: XY) -> np.ndarray:
+        """The weighted cost of the best path from `start` to every cell, in metres (a clear, known-free cell
+        costs 1 per metre; rules 4-5 weigh the rest): the same search as `plan`, to all cells at once (one
+        Dijkstra for many targets). inf where no path leads, everywhere when the start is outside the map or
+        on an obstacle."""
+        s = self.cell(*start)
+        if s is None or self.obstacle[s]:
+            return np.full(self.spec.shape, np.inf)
+        passable, cost = self._from(s)
+        cum, _ = MCP_Geometric(np.where(passable, cost, np.inf), fully_connected=True).find_costs([s])
+        return np.asarray(cum) * self.spec.resolution
+
     def plan(self, start: XY, target: XY, heading: float | None = None) -> Plan:
         """A path from `start` to `target` (metres, arena frame); see the module docstring."""
         t0 = time.perf_counter()
@@ -181,16 +207,7 @@ class CostMap:
             return done(False, "target outside the map")
         if self.obstacle[s]:
             return done(False, "start on an obstacle")
-        passable = self.passable
-        cost = self.base_cost
-        if not passable[s]:
-            # escape: the inflated (not occupied) cells within one radius of the start become passable
-            rows, cols = passable.shape
-            rr, cc = np.ogrid[0:rows, 0:cols]
-            k = (self.cfg.radius + self.spec.resolution) / self.spec.resolution
-            near = (rr - s[0]) ** 2 + (cc - s[1]) ** 2 <= k * k
-            passable = passable | (near & self.free_space & (~self.unknown if self.cfg.unknown == "blocked" else True))
-            cost = np.where(near & ~self.passable, self.max_cost, cost)
+        passable, cost = self._from(s)
         gs = self._snap(g, passable)
         if gs is None:
             return done(False, "target blocked")
