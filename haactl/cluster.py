@@ -192,6 +192,7 @@ def host_row(h: Any, reply: cpb.StatusReply | Exception | None, cpu: float | Non
         "pid": h.pid,
         "container": h.container,
         "detail": h.detail,
+        "metrics_url": h.metrics_url or None,
         "error": None,
     }
     if isinstance(reply, cpb.StatusReply):

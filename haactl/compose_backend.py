@@ -48,6 +48,8 @@ from haa.cluster.backend import (
 
 REPO = Path(__file__).resolve().parents[1]
 CONTROL_PORT = "7000/tcp"
+#: each container's Prometheus /metrics (haa-hostd --metrics-port, HAA_METRICS_PORT in compose/compose.yaml)
+METRICS_PORT = "9400/tcp"
 LABEL_PROJECT = "com.docker.compose.project"
 LABEL_SERVICE = "com.docker.compose.service"
 
@@ -192,12 +194,23 @@ class ComposeBackend(Backend):
         host = bind.get("HostIp") or "127.0.0.1"
         return f"{'127.0.0.1' if host == '0.0.0.0' else host}:{bind.get('HostPort', '?')}"
 
+    @staticmethod
+    def _metrics_url(c: Any) -> str:
+        """The published port of the container's /metrics ("" if it publishes none)."""
+        ports = (c.attrs.get("HostConfig") or {}).get("PortBindings") or {}
+        bind = (ports.get(METRICS_PORT) or [{}])[0]
+        if not bind.get("HostPort"):
+            return ""
+        host = bind.get("HostIp") or "127.0.0.1"
+        return f"http://{'127.0.0.1' if host == '0.0.0.0' else host}:{bind['HostPort']}/metrics"
+
     def hosts(self) -> list[HostInfo]:
         out = []
         for name, c in self.containers().items():
             state, detail = self._state(c)
             out.append(
-                HostInfo(name, self._address(c), state, name in self.core_names, container=c.short_id, detail=detail)
+                HostInfo(name, self._address(c), state, name in self.core_names, container=c.short_id, detail=detail,
+                         metrics_url=self._metrics_url(c))
             )
         return sorted(out, key=lambda h: natural_key(h.name))
 

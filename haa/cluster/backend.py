@@ -66,6 +66,7 @@ class HostInfo:
     pid: int | None = None
     container: str | None = None  # short container id (compose)
     detail: str = ""  # e.g. the exit code of a dead container
+    metrics_url: str = ""  # its Prometheus /metrics reachable from this machine ("" if it serves none)
 
     @property
     def up(self) -> bool:

@@ -9,6 +9,9 @@ The cluster lives in one root directory (default `.haa/cluster` under the curren
     <root>/token               the cluster token (mode 600)
     <root>/<name>/             the host's --data-dir: JSON-lines log <name>.jsonl, stderr.<n>.txt per start
 
+Each host also gets a free loopback port of its own for its Prometheus `/metrics` (`--metrics-port`, haa.metrics;
+`metrics_port` in the state file, `metrics_url` in `haactl cluster status --json`).
+
 Processes are started in their own session, so they outlive the `haactl` command that started them and
 an interrupt of the terminal does not reach them; later commands find them through the state file.
 Every host gets the same `--core h1=ADDR,...` list (the first K hosts); hosts added later are not core and
@@ -218,7 +221,9 @@ class LocalBackend(Backend):
             st = _proc_state(rec.get("pid"), rec.get("create_time"))
             if st is None:
                 st = {"kill": KILLED, "leave": LEFT, "down": DEAD}.get(rec.get("stopped_by") or "", DEAD)
-            out.append(HostInfo(name, rec["address"], st, bool(rec.get("core")), pid=rec.get("pid")))
+            mp = rec.get("metrics_port")
+            out.append(HostInfo(name, rec["address"], st, bool(rec.get("core")), pid=rec.get("pid"),
+                                metrics_url=f"http://127.0.0.1:{mp}/metrics" if mp else ""))
         return sorted(out, key=lambda h: natural_key(h.name))
 
     def _spawn(self, name: str) -> None:
@@ -226,9 +231,10 @@ class LocalBackend(Backend):
         data_dir = Path(rec["data_dir"])
         data_dir.mkdir(parents=True, exist_ok=True)
         rec["starts"] = int(rec.get("starts", 0)) + 1
-        cmd = member_command(
-            name, rec["address"], self.state["core"], Path(self.state["token_file"]), data_dir, self.state["args"]
-        )
+        args = list(self.state["args"])
+        if rec.get("metrics_port"):
+            args += ["--metrics-port", str(rec["metrics_port"])]
+        cmd = member_command(name, rec["address"], self.state["core"], Path(self.state["token_file"]), data_dir, args)
         err_path = data_dir / f"stderr.{rec['starts']}.txt"
         with open(err_path, "wb") as err:
             p = subprocess.Popen(
@@ -301,7 +307,8 @@ class LocalBackend(Backend):
                 "core": {n: addrs[n] for n in names[:core]},
                 "args": args,
                 "hosts": {
-                    n: {"address": addrs[n], "core": i < core, "data_dir": str(self.root / n), "starts": 0}
+                    n: {"address": addrs[n], "core": i < core, "data_dir": str(self.root / n), "starts": 0,
+                        "metrics_port": free_port()}
                     for i, n in enumerate(names)
                 },
             }
@@ -363,6 +370,7 @@ class LocalBackend(Backend):
                 "core": False,
                 "data_dir": str(self.root / name),
                 "starts": 0,
+                "metrics_port": free_port(),
             }
             shutil.rmtree(self.root / name, ignore_errors=True)
             self._spawn(name)

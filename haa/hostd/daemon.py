@@ -26,6 +26,8 @@ series (`stats.jsonl` and `config.json`, every `--stats-period` s, default 1, 0 
 docs/stats.md), the last incarnation and the hosts of the last view (`known_hosts.json`): a restarted host
 applies to them as well as to the core processes and never founds a group of its own (`--forget-group` drops
 them: needed only if every host of the group was lost).
+`--metrics-port P` serves Prometheus metrics on http://<--listen's host>:P/metrics (haa.metrics,
+docs/metrics.md; 0, the default, = none).
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
@@ -170,6 +172,8 @@ class HostSettings(BaseModel):
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
     #: the statistics sampler's period (haa.stats.sampler: <data dir>/stats.jsonl), s; 0 = no sampling
     stats_period: float = Field(default=1.0, ge=0, le=3600, allow_inf_nan=False)
+    #: Prometheus /metrics on this port, bound to --listen's host (haa.metrics, docs/metrics.md); 0 = none
+    metrics_port: int = Field(default=0, ge=0, le=65535)
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
@@ -327,6 +331,7 @@ _OPTIONS = (
     "agent_start_grace",
     "agent_hang_timeout",
     "stats_period",
+    "metrics_port",
 )
 
 
@@ -372,6 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agent-hang-timeout", type=float, help="an agent silent this long is hung, s (3)")
     p.add_argument("--stats-period", type=float,
                    help="sample this host's statistics into <data dir>/stats.jsonl every this many s (1; 0 = off)")
+    p.add_argument("--metrics-port", type=int,
+                   help="serve Prometheus metrics on http://<listen host>:PORT/metrics (0 = off, the default)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
@@ -478,8 +485,9 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
         fail(f"{opt}: {msg}")
 
 
-async def serve(cfg: RuntimeConfig, stats_period: float = 0.0) -> None:
+async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int = 0) -> None:
     rt = HostRuntime(cfg)
+    metrics = await _start_metrics(rt, metrics_port) if metrics_port else None
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, rt.request_shutdown)
@@ -493,6 +501,23 @@ async def serve(cfg: RuntimeConfig, stats_period: float = 0.0) -> None:
     finally:
         if sampler is not None:
             await sampler.stop()
+        if metrics is not None:
+            await metrics.stop()
+
+
+async def _start_metrics(rt: HostRuntime, port: int) -> Any:
+    """Serve /metrics (haa.metrics) on the daemon's loop; a port that cannot be bound ends the process (code 1)."""
+    from haa.metrics.host import host_registry
+    from haa.metrics.http import MetricsServer, metrics_bind_host
+
+    reg, scrape = host_registry(rt)
+    server = MetricsServer(reg, metrics_bind_host(rt.config.listen), port)
+    scrape.server = server
+    try:
+        await server.start()
+    except OSError as e:
+        fail(f"--metrics-port: cannot listen on {server.host}:{port}: {e.strerror or e}", code=1)
+    return server
 
 
 def run_event_loop(coro: Coroutine[Any, Any, None]) -> None:
@@ -532,7 +557,7 @@ def main(argv: list[str] | None = None) -> None:
             fail(f"--data-dir: {settings.data_dir} is in use by another haa-hostd", code=1)
         fail(f"--data-dir: cannot lock {settings.data_dir}: {e.strerror or e}", code=1)
     try:
-        run_event_loop(serve(cfg, settings.stats_period))
+        run_event_loop(serve(cfg, settings.stats_period, settings.metrics_port))
     except RuntimeError as e:
         if "bind" in str(e).lower():
             fail(f"cannot listen on {cfg.listen}: {e}", code=1)

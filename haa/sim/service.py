@@ -2,7 +2,7 @@
 
 ```
 haa-sim --arena small|large|FILE --listen HOST:PORT --seed S [--speed X | --step] [--schedule FILE]
-        [--token-file FILE] [--tick 0.05] [--drift thesis|table|systematic]
+        [--token-file FILE] [--tick 0.05] [--drift thesis|table|systematic] [--metrics-port P]
 ```
 
 * Clock. Real time by default; `--speed X` runs X simulated seconds per wall second (as fast as it can when
@@ -27,7 +27,9 @@ With `--token-file`, every call must carry the token in metadata `x-haa-token` (
 before the request is decoded: haa.rpcguard); a request that does not parse is INVALID_ARGUMENT, and no call
 ends in UNKNOWN. Requests up to gRPC's default 4 MiB are accepted (larger: RESOURCE_EXHAUSTED), replies up
 to 32 MiB (a raw 640x480 capture is 0.9 MiB).
-Logs are JSON lines on stderr; the first is {"event": "listening", "address": ..., "port": ...}.
+Logs are JSON lines on stderr; the first is {"event": "listening", "address": ..., "port": ..., "metrics": URL}.
+With `--metrics-port P` (or HAA_METRICS_PORT) it serves Prometheus metrics on http://<listen host>:P/metrics
+(haa.metrics.sim, docs/metrics.md: simulated time, avatars by status, streams, refused calls, CPU).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import hmac
 import inspect
 import json
 import math
+import os
 import signal
 import sys
 import time
@@ -821,6 +824,7 @@ class Settings:
     schedule: Path | None
     token_file: Path | None
     drift: str = "thesis"
+    metrics_port: int = 0
 
 
 def parse_args(argv: list[str] | None = None) -> Settings:
@@ -840,10 +844,16 @@ def parse_args(argv: list[str] | None = None) -> Settings:
         help="odometry drift model: thesis (random walk, default), table (the same with Table 6.2-3's seeker"
         " drift as printed, 10x the default's) or systematic (table + scale and heading bias)",
     )
+    p.add_argument("--metrics-port", default=os.environ.get("HAA_METRICS_PORT") or "0",
+                   help="serve Prometheus metrics on http://<listen host>:PORT/metrics (haa.metrics; env "
+                   "HAA_METRICS_PORT; 0 = off, the default)")
     a = p.parse_args(argv)
 
     def fail(msg: str) -> None:
         p.exit(2, f"haa-sim: error: {msg}\n")
+
+    if not str(a.metrics_port).isdigit() or int(a.metrics_port) > 65535:
+        fail(f"--metrics-port: {a.metrics_port!r} is not a port number (0..65535)")
 
     if not (a.speed > 0 and math.isfinite(a.speed)):
         fail(f"--speed: {a.speed} must be a positive number")
@@ -854,7 +864,8 @@ def parse_args(argv: list[str] | None = None) -> Settings:
     host, sep, port = a.listen.rpartition(":")
     if not sep or not host or not port.isdigit() or int(port) > 65535:
         fail(f"--listen: {a.listen!r} is not HOST:PORT")
-    return Settings(a.arena, a.listen, a.seed, a.speed, a.step, a.tick, a.schedule, a.token_file, a.drift)
+    return Settings(a.arena, a.listen, a.seed, a.speed, a.step, a.tick, a.schedule, a.token_file, a.drift,
+                    int(a.metrics_port))
 
 
 def build(s: Settings) -> tuple[SimCore, str | None]:
@@ -874,13 +885,26 @@ def build(s: Settings) -> tuple[SimCore, str | None]:
     return core, token
 
 
-async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Event | None = None) -> None:
+async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Event | None = None,
+                metrics_port: int = 0) -> None:
     server = aio.server(options=[("grpc.max_send_message_length", 32 << 20)])
     svc = SimService(core, token)
     svc.add_to_server(server)
     port = server.add_insecure_port(listen)
     if port == 0:
         raise RuntimeError(f"cannot bind {listen}")
+    metrics = None
+    if metrics_port:  # Prometheus /metrics on the same loop (haa.metrics.sim, docs/metrics.md)
+        from haa.metrics.http import MetricsServer, metrics_bind_host
+        from haa.metrics.sim import sim_registry
+
+        reg, scrape = sim_registry(core, svc)
+        metrics = scrape.server = MetricsServer(reg, metrics_bind_host(listen), metrics_port)
+        try:
+            await metrics.start()
+        except OSError as e:
+            raise RuntimeError(f"--metrics-port: cannot listen on {metrics.host}:{metrics_port}: "
+                               f"{e.strerror or e}") from None
     await server.start()
     host = listen.rpartition(":")[0]
     log(
@@ -892,6 +916,7 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
         speed=core.speed,
         seed=core.world.seed,
         tick=core.tick,
+        metrics=metrics.url if metrics is not None else "",
     )
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -907,6 +932,8 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
         core.close_streams()
         await asyncio.sleep(0.1)
         await server.stop(grace=1.0)
+        if metrics is not None:
+            await metrics.stop()
         log("stopped", time=round(core.world.time, 3), dropped=core.dropped, rejected=svc.rejected,
             malformed=svc.malformed, errors=svc.errors)
 
@@ -922,7 +949,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"haa-sim: error: {e.strerror or e}", file=sys.stderr)
         sys.exit(2)
     try:
-        asyncio.run(serve(core, s.listen, token))
+        asyncio.run(serve(core, s.listen, token, metrics_port=s.metrics_port))
     except RuntimeError as e:
         print(f"haa-sim: error: {e}", file=sys.stderr)
         sys.exit(1)

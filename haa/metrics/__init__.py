@@ -1,0 +1,24 @@
+"""Prometheus metrics of haa-hostd and haa-sim (issue 19 §4; docs/metrics.md).
+
+Each daemon started with `--metrics-port P` serves `GET /metrics` (the Prometheus text format, through the
+`prometheus_client` library) on its own HTTP port, bound to the host part of its `--listen` address. Nothing is
+counted for the metrics: at each scrape, custom collectors read what the daemon already keeps — the runtime's
+counters and latency samples, the membership state, the replicated agent table, the agent supervisor's
+measurements, the DDB replica, haa-sim's world — the same sources the statistics sampler (haa.stats.sampler)
+writes to `stats.jsonl`. The sans-I/O core modules (haa.hostd.ufd, oac, core, membership, ddb, allocation,
+transfer, recovery, agentnode) do not know about any of it.
+
+* `haa.metrics.host` — `HostCollector`: the metrics of one haa-hostd (`host_registry(rt)`);
+* `haa.metrics.sim` — `SimCollector`: the metrics of one haa-sim (`sim_registry(core, service)`);
+* `haa.metrics.http` — `MetricsServer`: `/metrics` served by aiohttp on the daemon's own event loop, so that a
+  scrape reads the daemon's structures from the thread that changes them (no locks, no torn reads).
+
+Each daemon has its own `CollectorRegistry` (a test may run several hosts in one process); the registry also
+holds prometheus_client's `ProcessCollector` (CPU seconds, resident memory, open files of the process).
+"""
+
+from __future__ import annotations
+
+from haa.metrics.http import MetricsServer, metrics_bind_host
+
+__all__ = ["MetricsServer", "metrics_bind_host"]

@@ -1,0 +1,250 @@
+"""Prometheus `/metrics` of haa-hostd and haa-sim (haa.metrics, docs/metrics.md), scraped over HTTP from real
+processes: a local cluster of 2 hosts started by `haactl cluster up` (their URLs from `cluster status --json`),
+and an haa-sim in step mode. Values are checked against what the cluster and the simulator say themselves:
+DDB writes against the OAC histograms and the DDB size, agents by state against `haactl agent list`, a killed
+host against the survivor's suspicions, simulated time and avatars against the SimControl calls made."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections import Counter
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+from typer.testing import CliRunner
+
+from haa.cluster.procs import free_port, hostd_command
+from haa.hostd.daemon import load_settings
+from haa.sim.service import SimClient
+from haactl.main import app
+
+runner = CliRunner()
+
+
+def scrape(url: str) -> dict[str, dict[tuple[tuple[str, str], ...], float]]:
+    """{sample name: {sorted labels: value}} of one /metrics page (parsed by prometheus_client's parser)."""
+    with urllib.request.urlopen(url, timeout=10) as r:
+        assert r.status == 200
+        assert r.headers["Content-Type"].startswith("text/plain")
+        text = r.read().decode()
+    out: dict[str, dict[tuple[tuple[str, str], ...], float]] = {}
+    for fam in text_string_to_metric_families(text):
+        for s in fam.samples:
+            out.setdefault(s.name, {})[tuple(sorted(s.labels.items()))] = s.value
+    return out
+
+
+def one(m: dict[str, Any], name: str, **labels: str) -> float:
+    return m[name][tuple(sorted(labels.items()))]
+
+
+def by_label(m: dict[str, Any], name: str, label: str) -> dict[str, float]:
+    return {dict(k)[label]: v for k, v in m.get(name, {}).items() if v}
+
+
+def poll(fn: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    last = None
+    while True:
+        last = fn()
+        if last:
+            return last
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.1)
+
+
+class Cli:
+    def __init__(self, root: Path) -> None:
+        self.root = root
+
+    def __call__(self, *args: str) -> str:
+        r = runner.invoke(app, [*args, "--root", str(self.root)])
+        assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
+        return r.stdout
+
+    def json(self, *args: str) -> Any:
+        return json.loads(self(*args, "--json"))
+
+
+@pytest.fixture(scope="module")
+def cli(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cli]:
+    c = Cli(tmp_path_factory.mktemp("metrics"))
+    c("cluster", "up", "--local", "--hosts", "2", "--timeout", "60")
+    try:
+        yield c
+    finally:
+        runner.invoke(app, ["cluster", "down", "--grace", "1", "--root", str(c.root)])
+        state = c.root / "cluster.json"
+        if state.exists():  # down failed: leave no process behind
+            for rec in json.loads(state.read_text())["hosts"].values():
+                with contextlib.suppress(ProcessLookupError, TypeError):
+                    os.kill(rec["pid"], signal.SIGKILL)
+
+
+def urls(cli: Cli) -> dict[str, str]:
+    st = cli.json("cluster", "status", "--sample", "0")
+    return {h["name"]: h["metrics_url"] for h in st["hosts"]}
+
+
+def test_every_host_serves_metrics_and_status_gives_their_urls(cli: Cli) -> None:
+    u = urls(cli)
+    assert set(u) == {"h1", "h2"} and len(set(u.values())) == 2
+    for name, url in u.items():
+        assert url.startswith("http://127.0.0.1:") and url.endswith("/metrics"), url
+        m = scrape(url)
+        assert one(m, "haa_member") == 1 and one(m, "haa_members") == 2
+        assert one(m, "haa_leader") == (1 if name == "h1" else 0)
+        assert one(m, "haa_suspicions") == 0
+        assert one(m, "process_cpu_seconds_total") > 0 and one(m, "process_resident_memory_bytes") > 10e6
+        other = "h2" if name == "h1" else "h1"
+        assert one(m, "haa_link_connected", peer=other) == 1
+        assert one(m, "haa_messages_sent_total", kind="heartbeat") > 0
+    m = scrape(u["h1"])
+    assert one(m, "haa_metrics_scrapes_total") >= 1 and 0 < one(m, "haa_metrics_scrape_seconds") < 0.5
+
+
+def test_ddb_writes_show_in_the_oac_histograms_and_the_ddb_size(cli: Cli) -> None:
+    u = urls(cli)
+    before = {h: scrape(url) for h, url in u.items()}
+    n = 6
+    for i in range(n):
+        cli("ddb", "put", f"metrics/k{i}", json.dumps({"i": i, "pad": "x" * 100}), "--host", "h1")
+
+    def grown() -> dict[str, Any] | None:
+        now = {h: scrape(url) for h, url in u.items()}
+        ok = all(one(now[h], "haa_oac_decide_to_deliver_seconds_count")
+                 >= one(before[h], "haa_oac_decide_to_deliver_seconds_count") + n
+                 and one(now[h], "haa_ddb_objects") == one(before[h], "haa_ddb_objects") + n for h in u)
+        return now if ok else None
+
+    after = poll(grown, 20, f"{n} more deliveries and objects on every host")
+    for h in u:
+        m, b = after[h], before[h]
+        # a histogram is consistent: +Inf bucket == count, buckets never decrease
+        buckets = [v for k, v in sorted(m["haa_oac_decide_to_deliver_seconds_bucket"].items(),
+                                        key=lambda kv: float(dict(kv[0])["le"]))]
+        assert buckets == sorted(buckets) and buckets[-1] == one(m, "haa_oac_decide_to_deliver_seconds_count")
+        assert one(m, "haa_oac_delivered_total") >= one(b, "haa_oac_delivered_total") + n
+        assert one(m, "haa_ddb_bytes_by_prefix", prefix="metrics") >= n * 100
+        assert one(m, "haa_ddb_seq") >= one(b, "haa_ddb_seq") + n
+    # the proposals were made (by the sequencer: docs/oac.md) and decided: their latencies are in a histogram
+    p2d = sum(one(after[h], "haa_oac_propose_to_decide_seconds_count")
+              - one(before[h], "haa_oac_propose_to_decide_seconds_count") for h in u)
+    assert p2d >= 1
+    assert sum(one(after[h], "haa_oac_propose_to_decide_seconds_sum") for h in u) > 0
+
+
+def test_agents_by_state_match_agent_list(cli: Cli) -> None:
+    for _ in range(3):
+        cli("agent", "spawn", "counter")
+    u = urls(cli)
+
+    def agree() -> bool:
+        rows = cli.json("agent", "list")["agents"]
+        if len(rows) < 3:
+            return False
+        for h, url in u.items():
+            m = scrape(url)
+            listed = Counter(r["phases"][h] for r in rows if r["phases"].get(h))
+            if by_label(m, "haa_agents", "state") != dict(listed):
+                return False
+            if by_label(m, "haa_agent_table", "status") != dict(Counter(r["status"] for r in rows)):
+                return False
+        return True
+
+    poll(agree, 30, "haa_agents and haa_agent_table to match `agent list`")
+    m = {h: scrape(url) for h, url in u.items()}
+    assert sum(sum(by_label(m[h], "haa_agent_processes", "state").values()) for h in u) == 3
+    assert sum(one(m[h], "haa_agents_spawned_total") for h in u) >= 3
+    assert all(one(m[h], "haa_allocation_sessions_total") >= 1 for h in u)
+    assert sum(by_label(m[h], "haa_agent_events_total", "event").get("active", 0) for h in u) >= 3
+    rss = [v for h in u for v in m[h].get("haa_agent_rss_bytes", {}).values()]
+    assert len(rss) == 3 and min(rss) > 1e6
+
+
+def test_a_killed_host_is_suspected_by_the_survivor(cli: Cli) -> None:
+    u = urls(cli)
+    cli("host", "kill", "h2")
+    # the survivor's failure detector suspects h2 (2 core hosts: no quorum to remove it, it stays suspected)
+    m = poll(lambda: (lambda m: m if one(m, "haa_suspected", peer="h2") == 1 else None)(scrape(u["h1"])),
+             20, "h1 to suspect h2")
+    assert one(m, "haa_suspicions") == 1 and one(m, "haa_link_connected", peer="h2") == 0
+    with pytest.raises(OSError):
+        scrape(u["h2"])
+
+
+def test_bad_metrics_port_is_one_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tok = tmp_path / "token"
+    tok.write_text("t" * 32)
+    base = ["--name", "h1", "--listen", "127.0.0.1:0", "--core", "h1=127.0.0.1:1", "--token-file", str(tok)]
+    with pytest.raises(SystemExit) as e:
+        load_settings([*base, "--metrics-port", "70000"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("haa-hostd: error: --metrics-port:"), err
+    with socket.socket() as s:  # a taken port: exit 1 and one line, before the host joins anything
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run([*hostd_command(), *base, "--data-dir", str(tmp_path / "d"), "--metrics-port", str(port)],
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert lines == [f"haa-hostd: error: --metrics-port: cannot listen on 127.0.0.1:{port}: Address already in use"]
+
+
+def test_sim_metrics(tmp_path: Path) -> None:
+    tok = tmp_path / "token"
+    tok.write_text("s" * 32)
+    port = free_port()
+    p = subprocess.Popen([sys.executable, "-m", "haa.sim.service", "--listen", "127.0.0.1:0", "--step", "--seed", "2",
+                          "--token-file", str(tok), "--metrics-port", str(port)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stderr is not None
+        first = json.loads(p.stderr.readline())
+        assert first["event"] == "listening" and first["metrics"] == f"http://127.0.0.1:{port}/metrics", first
+        url = first["metrics"]
+        m0 = scrape(url)
+        assert one(m0, "haa_sim_time_seconds") == 0 and not m0.get("haa_sim_avatars")
+        with SimClient(first["address"], token="s" * 32, timeout=10, caller="A9") as c:
+            a = c.register("seeker").avatar.avatar_id
+            c.register("sweeper")
+            c.step(1.5)
+            c.crash(a)
+            c.poses()  # a ground-truth call, counted by caller
+            odo = c.odometry(c.register("seeker").avatar.avatar_id, period=0.1)
+            next(iter(c.events(replay=True)), None)
+            m = scrape(url)
+            assert one(m, "haa_sim_subscribers", stream="odometry") == 1
+            odo.cancel()
+        with SimClient(first["address"], token="wrong", timeout=10) as bad, contextlib.suppress(Exception):
+            bad.info()
+        m = scrape(url)
+        assert one(m, "haa_sim_time_seconds") == pytest.approx(1.5)
+        assert one(m, "haa_sim_avatars", status="crashed", type="seeker") == 1
+        assert one(m, "haa_sim_avatars", status="active", type="sweeper") == 1
+        assert one(m, "haa_sim_avatars", status="active", type="seeker") == 1
+        assert one(m, "haa_sim_truth_calls_total", caller="A9", method="Poses") == 1
+        assert one(m, "haa_sim_rejected_total", reason="unauthenticated") == 1
+        assert one(m, "haa_sim_speed_target_ratio") == 0  # step mode
+        assert one(m, "process_cpu_seconds_total") > 0
+    finally:
+        p.terminate()
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(10)
