@@ -5,7 +5,8 @@ Subcommands live in their own modules: `verify` (deterministic simulation of the
 operator commands `cluster`, `host`, `ddb` and `logs` (haactl.cluster, haactl.ddbcli, haactl.logview; local
 processes or, with --compose, the docker compose cluster: docs/cluster.md), and the robot team's `mission` and
 `experiment` (haactl.mission: docs/missions.md), `chaos` (haactl.chaos: docs/chaos.md), and `stats collect` and `report`
-(haactl.stats: docs/stats.md), and `dashboard` (haactl.dashboard: docs/dashboard.md).
+(haactl.stats: docs/stats.md), and `dashboard` (haactl.dashboard: docs/dashboard.md) and `foxglove` (haactl.foxglove:
+docs/metrics.md).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from haactl.cluster import cluster_app, host_app
 from haactl.dashboard import dashboard
 from haactl.ddbcli import ddb_app
 from haactl.demo import demo
+from haactl.foxglove import foxglove
 from haactl.logview import logs
 from haactl.mission import experiment, mission_app
 from haactl.sim import sim_app
@@ -55,6 +57,7 @@ app.add_typer(chaos_app, name="chaos")
 app.add_typer(stats_app, name="stats")
 app.command("report")(report)
 app.command("dashboard")(dashboard)
+app.command("foxglove")(foxglove)
 
 if __name__ == "__main__":
     app()
