@@ -17,7 +17,7 @@ from rich.table import Table
 from haa.chaos.checks import Check, run_checks
 from haa.chaos.inject import Injected
 from haa.chaos.plan import PlanError, load_plan, parse_plan
-from haa.chaos.run import run_local
+from haa.chaos.run import ChaosCluster, LocalChaosCluster, run_on
 from haa.chaos.timeline import Entry, build, clock
 from haactl.cliopts import cli_errors, err, out
 
@@ -72,7 +72,10 @@ def _run_dir(path: Path) -> Path:
 def chaos_run(
     plan_file: Annotated[Path, typer.Argument(metavar="PLAN", help="the chaos plan (YAML)")],
     local: Annotated[bool, typer.Option("--local", help="on a local cluster of its own (the default)")] = True,
-    compose: Annotated[bool, typer.Option("--compose", help="on the docker compose cluster")] = False,
+    compose: Annotated[bool, typer.Option("--compose", help="on the docker compose cluster (brought up for the run "
+                                          "and removed after it)")] = False,
+    compose_file: Annotated[Path | None, typer.Option("--compose-file", help="compose file (default "
+                                                      "$HAA_COMPOSE_FILE, else compose/compose.yaml)")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result (faults, checks, timeline) "
                                                   "as JSON to this file ('-': stdout)")] = None,
     out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="run directory (default .haa/chaos/<plan "
@@ -84,8 +87,8 @@ def chaos_run(
     Exit code 0 only when every check passed (2: the plan is invalid; nothing was started)."""
     try:
         plan = load_plan(plan_file)
-        if compose:
-            raise PlanError("chaos run --compose is not available yet (the local cluster only: --local)")
+        if compose_file is not None and not compose:
+            raise PlanError("--compose-file needs --compose")
         run = _run_dir(out_dir or Path(".haa") / "chaos" / plan.name)
     except PlanError as e:
         _plan_error(e)
@@ -94,8 +97,15 @@ def chaos_run(
     show = not quiet and not to_stdout
     say = (lambda s: err.print(f"[dim]{escape(s)}[/dim]")) if show else (lambda _s: None)
     on_fault = (lambda f: out.print(fault_line(f))) if show else None
+    cluster: ChaosCluster
     try:
-        res = run_local(plan, run, progress=say, on_fault=on_fault)
+        if compose:
+            from haactl.compose_chaos import ComposeChaosCluster
+
+            cluster = ComposeChaosCluster(compose_file, bundles_to=run.absolute() if out_dir is not None else None)
+        else:
+            cluster = LocalChaosCluster(run.absolute() / "cluster")
+        res = run_on(cluster, plan, run, progress=say, on_fault=on_fault)
     except PlanError as e:
         _plan_error(e)
         return
@@ -108,8 +118,10 @@ def chaos_run(
             out.print(checks_table(res.checks))
         if json_out is not None:
             json_out.write_text(json.dumps(res.to_json(), indent=1) + "\n")
-    if out_dir is not None:
+    if out_dir is not None and not compose:
         _bundles(res.out, show)
+    elif out_dir is not None and show:
+        err.print(escape(getattr(cluster, "bundle_note", "") or "stats bundles not collected"))
     if res.error:
         err.print(f"[bold red]error:[/bold red] {escape(res.error)}")
     verdict = "[green]every check passed[/green]" if res.passed else "[bold red]FAILED[/bold red]"

@@ -7,8 +7,11 @@
 * agent faults go through the hosts' control API: `kill` = AgentKill on the host running the agent (SIGKILL of
   its process), `hang` = an operator request `haa.agents.base.CHAOS_HANG` that makes the agent block its own
   event loop for `hang_s` and then fail — a stuck computation, not a SIGSTOP its host could read off /proc;
-* `partition` is refused on the local cluster before anything starts (`local_problems`): its hosts share
-  loopback, there is no link to cut without root;
+* `partition: [h1, h2]` for `for_s` (compose): each named host is cut off the cluster network (the
+  backend's `disconnect`: `docker network disconnect`, haactl.compose_chaos), so it is isolated from every
+  other host, and connected again with its address and name afterwards (`reconnect`); a partitioned host
+  counts as not live for the majority gate below. It is refused on the local cluster before anything starts
+  (`local_problems`): its hosts share loopback, there is no link to cut without root;
 * `life_s: [lo, hi]` (the thesis' failure model): every targeted agent instance (agent id and epoch) draws
   a failure time uniformly in the window, counted from when the injector first sees it active; a recovered
   instance (a higher epoch) draws again.
@@ -47,7 +50,7 @@ class Injected:
 
     t: float  # seconds since the chaos started
     ts: float  # unix time
-    action: str  # kill, pause, resume, restart, hang, partition
+    action: str  # kill, pause, resume, restart, hang, partition, heal
     target: str  # the concrete host or agent name
     fault: int  # index in plan.faults (-1: the end of a pause)
     ok: bool = True
@@ -73,7 +76,7 @@ def local_problems(plan: Plan) -> list[str]:
 class _Due:
     t: float
     seq: int
-    kind: str = field(compare=False)  # "fault" | "resume" | "life"
+    kind: str = field(compare=False)  # "fault" | "resume" | "heal" | "life"
     fault: int = field(compare=False, default=-1)
     target: str = field(compare=False, default="")
     epoch: int = field(compare=False, default=0)
@@ -107,6 +110,7 @@ class Injector:
         self._rows: list[AgentRow] = []
         self._rows_at = -1e9
         self.paused: set[str] = set()
+        self.partitioned: set[str] = set()
 
     # ------------------------------------------------------------------ schedule
     def _push(self, t: float, kind: str, fault: int = -1, target: str = "", epoch: int = 0) -> None:
@@ -143,12 +147,18 @@ class Injector:
             nxt = self._queue[0].t if self._queue else self.duration
             self.sleep(max(0.01, min(0.2, nxt - self.now())))
         self.end_pauses()
+        self.end_partitions()
         return self.injected
 
     def end_pauses(self) -> None:
         """SIGCONT every host a pause of this run still holds."""
         for h in sorted(self.paused):
             self._resume(h)
+
+    def end_partitions(self) -> None:
+        """Reconnect every host a partition of this run still holds."""
+        for h in sorted(self.partitioned):
+            self._heal(h)
 
     # ------------------------------------------------------------------ recording
     def _record(self, action: str, target: str, fault: int, ok: bool = True, detail: str = "",
@@ -217,12 +227,55 @@ class Injector:
         self._record(f.action, r.name, i, ok, detail, r.id, r.epoch)
 
     # ------------------------------------------------------------------ hosts
-    def _live_after(self, losing: str) -> tuple[int, int]:
+    def _live_after(self, losing: str | set[str]) -> tuple[int, int]:
         """(live hosts after `losing` fails, hosts up now): live = alive and not paused."""
         hosts = self.backend.hosts()
         up = [h for h in hosts if h.state in (ALIVE, PAUSED)]
-        live = [h for h in up if h.state == ALIVE and h.name != losing]
+        lose = {losing} if isinstance(losing, str) else set(losing)
+        live = [h for h in up if h.state == ALIVE and h.name not in lose and h.name not in self.partitioned]
         return len(live), len(up)
+
+    def _partition(self, i: int, f: Fault) -> None:
+        names = set(f.target.hosts)
+        text = ", ".join(f.target.hosts)
+        states = {h.name: h.state for h in self.backend.hosts()}
+        bad = [n for n in f.target.hosts if states.get(n) != ALIVE or n in self.partitioned]
+        if bad:
+            why = ", ".join(f"{n} is {'partitioned' if n in self.partitioned else states.get(n) or 'unknown'}"
+                            for n in bad)
+            self._record("partition", text, i, False, f"skipped: {why}")
+            return
+        live, up = self._live_after(names)
+        if live < MIN_LIVE or live * 2 <= up:
+            self._record("partition", text, i, False,
+                         f"skipped: would leave {live} live hosts of {up} in the group (it needs a live majority of "
+                         f"at least {MIN_LIVE} to remove a failed host)")
+            return
+        done = []
+        cut = getattr(self.backend, "disconnect", None)
+        if cut is None:
+            self._record("partition", text, i, False, f"not available on the {self.backend.describe()}")
+            return
+        try:
+            for n in f.target.hosts:
+                cut(n)
+                self.partitioned.add(n)
+                done.append(n)
+            self._record("partition", text, i, True, f"cut off the network for {f.for_s:g} s")
+        except ClusterError as e:
+            self._record("partition", text, i, False, f"{e} (cut: {', '.join(done) or 'none'})")
+        for n in done:
+            self._push(self.now() + float(f.for_s or 0), "heal", i, n)
+
+    def _heal(self, name: str, fault: int = -1) -> None:
+        if name not in self.partitioned:
+            return
+        self.partitioned.discard(name)
+        try:
+            self.backend.reconnect(name)  # type: ignore[attr-defined]
+            self._record("heal", name, fault, True, "connected again (same address and name)")
+        except ClusterError as e:
+            self._record("heal", name, fault, False, str(e))
 
     def _host_fault(self, i: int, f: Fault) -> None:
         hosts = self.backend.hosts()
@@ -231,7 +284,7 @@ class Injector:
             name = t.value
         else:
             pool = [h.name for h in hosts if (h.state == ALIVE) == (f.action != "restart")
-                    and (f.action != "restart" or h.state != PAUSED)]
+                    and (f.action != "restart" or h.state != PAUSED) and h.name not in self.partitioned]
             if not pool:
                 self._record(f.action, "random-host", i, False, f"skipped: no host to {f.action}")
                 return
@@ -285,7 +338,13 @@ class Injector:
         if d.kind == "resume":
             self._resume(d.target, d.fault)
             return
+        if d.kind == "heal":
+            self._heal(d.target, d.fault)
+            return
         f = self.plan.faults[d.fault]
+        if f.action == "partition":
+            self._partition(d.fault, f)
+            return
         if d.kind == "life":
             row = next((r for r in self.agents(fresh=True) if r.id == d.target), None)
             if row is None or row.epoch != d.epoch:

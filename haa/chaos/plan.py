@@ -7,14 +7,15 @@
     workload: ddb-writes       # or counters; none: faults only
     agents: 3                  # workload agents (writers, or counter pairs); period_s: 0.2 between writes
     settle_s: 30               # after the faults, the most seconds to wait for the group to settle
-    hostd_args: []             # extra haa-hostd arguments for every host
+    hostd_args: []             # extra haa-hostd arguments for every host (local cluster only)
+    mutation: late-commit      # optional: every host a broken variant (haa.chaos.mutations; local only)
     faults:
       - {at_s: 20, action: kill, target: host h3}
       - {at_s: 30, action: pause, target: host h2, for_s: 5}
       - {at_s: 40, action: restart, target: host h3}
       - {life_s: [30, 90], action: hang, target: agents, hang_s: 30}
       - {every_s: 25, action: kill, target: random-agent}
-      - {at_s: 60, action: partition, target: [h1, h2], for_s: 10}
+      - {at_s: 60, action: partition, target: [h1, h2], for_s: 10}   # --compose only
 
 A fault has exactly one schedule: `at_s` (once), `every_s` (periodically, first at `at_s` or at `every_s`)
 or `life_s: [lo, hi]` (the thesis' failure model: every targeted agent instance draws its failure time
@@ -39,6 +40,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from haa import files
+from haa.chaos.mutations import MUTATIONS
 
 #: the actions and which targets they take
 HOST_ACTIONS = frozenset({"kill", "pause", "restart"})
@@ -195,6 +197,16 @@ class Plan(BaseModel):
     hostd_args: Annotated[list[Annotated[str, Field(max_length=256)]], Field(max_length=32)] = Field(
         default_factory=list)
     faults: list[Fault] = Field(default_factory=list)
+    #: run every host as a deliberately broken variant (haa.chaos.mutations; local cluster only): the check
+    #: it targets must fail
+    mutation: str | None = None
+
+    @field_validator("mutation")
+    @classmethod
+    def _mutation(cls, v: str | None) -> str | None:
+        if v is not None and v not in MUTATIONS:
+            raise ValueError(f"unknown mutation {v!r} (one of {', '.join(MUTATIONS)})")
+        return v
 
     @model_validator(mode="after")
     def _fits(self) -> Plan:
@@ -219,6 +231,8 @@ def mission_problems(plan: Plan, hosts: set[str]) -> list[str]:
     out = []
     if plan.workload is not None:
         out.append(f"workload: {plan.workload} is for `haactl chaos run`; a mission's agents are its workload")
+    if plan.mutation is not None:
+        out.append("mutation: for `haactl chaos run` on a local cluster, not inside a mission")
     for i, f in enumerate(plan.faults):
         if f.action == "partition":
             out.append(f"faults[{i}]: partition is not available on a mission's local cluster (its hosts share "

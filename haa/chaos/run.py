@@ -1,14 +1,19 @@
-"""A whole chaos run on a local cluster of its own (`haactl chaos run PLAN --local`, docs/chaos.md).
+"""A whole chaos run on a cluster of its own (`haactl chaos run PLAN [--local|--compose]`, docs/chaos.md).
 
-1. refuse what the local cluster cannot do (`inject.local_problems`) before anything starts;
-2. start `plan.hosts` haa-hostd processes in `<out>/cluster` (they load the workload's agent type through
-   HAA_AGENT_MODULES) and wait until they form one group;
+`run_on(cluster, plan, out)` does the run on a `ChaosCluster`: `LocalChaosCluster` (haa-hostd processes in
+`<out>/cluster`, `run_local`) or the compose cluster (haactl.compose_backend.ComposeChaosCluster):
+
+1. refuse what the cluster cannot do (`cluster.problems`) before anything starts;
+2. start `plan.hosts` hosts (they load the workload's agent type through HAA_AGENT_MODULES; a plan's
+   `mutation` makes every local host a broken variant, haa.chaos.mutations) and wait until they form one
+   group;
 3. start the workload and wait until its agents are active; the chaos clock starts (t = 0);
 4. inject the plan's faults until `duration_s` (`haa.chaos.inject.Injector`), then end the pauses and stop
    the workload (writers: the key `chaos/stop`; counters: paused, then removed once their last counts are
    written);
-5. wait up to `settle_s` for the group to settle (`collect.settle`), read every live replica, stop the cluster
-   and copy every host's log out of its data dir;
+5. end pauses and partitions still held, wait up to `settle_s` for the group to settle (`collect.settle`),
+   read every live replica, stop the cluster and copy every host's log out of its data dir (a container's
+   through the docker SDK, also of a stopped one);
 6. check (`haa.chaos.checks`) and build the time line (`haa.chaos.timeline`) from those files alone.
 
 Everything lands in the run directory `out`; `result.json` has `faults`, `checks` (name -> passed, detail),
@@ -24,17 +29,18 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from haa.agents.registry import ENV_MODULES
 from haa.chaos import collect
 from haa.chaos.checks import Check, run_checks
 from haa.chaos.inject import Injected, Injector, local_problems
+from haa.chaos.mutations import mutation_env
 from haa.chaos.plan import Plan, PlanError
 from haa.chaos.timeline import Entry, build
 from haa.chaos.workload import STOP_KEY, WORKLOAD_MODULE, WRITER_TYPE
 from haa.cluster.agents import AgentRow, active_row, wait_rows
-from haa.cluster.backend import ClusterError, wait_until
+from haa.cluster.backend import Backend, ClusterError, wait_until
 from haa.cluster.local_backend import LocalBackend
 from haa.hostd import ddb as ddbmod
 
@@ -94,7 +100,7 @@ def agent_modules(module: str) -> Iterator[None]:
             os.environ[ENV_MODULES] = old
 
 
-def _spawn(backend: LocalBackend, type_name: str, config: dict[str, Any]) -> str:
+def _spawn(backend: Backend, type_name: str, config: dict[str, Any]) -> str:
     host = backend.pick_host()
     reply = backend.call(host, lambda c: c.agent_spawn(type_name, json.dumps(config).encode(), timeout=30.0),
                          "AgentSpawn", timeout=35.0)
@@ -103,7 +109,7 @@ def _spawn(backend: LocalBackend, type_name: str, config: dict[str, Any]) -> str
     return str(reply.id)
 
 
-def start_workload(plan: Plan, backend: LocalBackend) -> list[str]:
+def start_workload(plan: Plan, backend: Backend) -> list[str]:
     """Spawn the workload's agents and wait until every one (and every counter's peer) is active; their ids."""
     if plan.workload is None:
         return []
@@ -123,7 +129,7 @@ def start_workload(plan: Plan, backend: LocalBackend) -> list[str]:
     return ids
 
 
-def stop_workload(plan: Plan, backend: LocalBackend, progress: Progress) -> None:
+def stop_workload(plan: Plan, backend: Backend, progress: Progress) -> None:
     """Writers: commit `chaos/stop`. Counters: pause every counter, let them write their last counts, remove
     them (so that their keys stop changing)."""
     if plan.workload == "ddb-writes":
@@ -152,55 +158,108 @@ def stop_workload(plan: Plan, backend: LocalBackend, progress: Progress) -> None
                 backend.call(backend.pick_host(), lambda c, r=r: c.agent_remove(r.id), "AgentRemove", timeout=20.0)
 
 
+class ChaosCluster(Protocol):
+    """The cluster a run starts and takes down (`LocalChaosCluster`; the compose one is
+    haactl.compose_backend.ComposeChaosCluster). `backend` serves every fault and read in between."""
+
+    @property
+    def backend(self) -> Backend: ...
+
+    def problems(self, plan: Plan) -> list[str]:
+        """What the plan asks that this cluster cannot do, one line each (checked before anything starts)."""
+        ...
+
+    def start(self, plan: Plan, progress: Progress) -> list[str]:
+        """Bring up `plan.hosts` hosts able to run the workload; their names."""
+        ...
+
+    def stop(self, out: Path, progress: Progress) -> None:
+        """Stop every host and copy each host's JSON-lines log to `out/hosts/<name>.jsonl` (also hosts that
+        were killed); the cluster is gone afterwards."""
+        ...
+
+
+class LocalChaosCluster:
+    """A local cluster of its own under `<out>/cluster` (haa-hostd processes on loopback)."""
+
+    def __init__(self, root: Path) -> None:
+        self.backend = LocalBackend(root)
+        self.data_dirs: dict[str, Path] = {}
+
+    def problems(self, plan: Plan) -> list[str]:
+        return local_problems(plan)
+
+    def start(self, plan: Plan, progress: Progress) -> list[str]:
+        progress(f"starting {plan.hosts} hosts in {self.backend.root}")
+        with agent_modules(WORKLOAD_MODULE), mutation_env(plan.mutation):
+            names = self.backend.up(plan.hosts, min(3, plan.hosts), hostd_args=list(plan.hostd_args))
+        self.data_dirs = {n: Path(self.backend.state["hosts"][n]["data_dir"]) for n in names}
+        self.backend.check_started()
+        return names
+
+    def stop(self, out: Path, progress: Progress) -> None:
+        progress("stopping the cluster")
+        try:
+            self.backend.down(grace=5.0)
+        finally:
+            collect.copy_logs(self.data_dirs, out)
+
+
 def run_local(plan: Plan, out: Path, progress: Progress | None = None,
               on_fault: Callable[[Injected], None] | None = None) -> RunResult:
     """Run `plan` on a local cluster of its own under `out` (module docstring)."""
+    return run_on(LocalChaosCluster(out.absolute() / "cluster"), plan, out, progress, on_fault)
+
+
+def run_on(cluster: ChaosCluster, plan: Plan, out: Path, progress: Progress | None = None,
+           on_fault: Callable[[Injected], None] | None = None) -> RunResult:
+    """Run `plan` on `cluster` (started here, stopped at the end), everything in the run directory `out`."""
     say = progress or (lambda _s: None)
     if plan.duration_s is None:
         raise PlanError("duration_s: needed by `haactl chaos run` (only a plan a mission names may leave it out: "
                         "it then lasts until the mission ends)")
-    problems = local_problems(plan)
+    problems = cluster.problems(plan)
     if problems:
         raise PlanError(problems[0])
     out = out.absolute()
     out.mkdir(parents=True, exist_ok=True)
     (out / "plan.json").write_text(plan.model_dump_json(indent=1) + "\n")
     res = RunResult(plan, out)
-    backend = LocalBackend(out / "cluster")
-    data_dirs: dict[str, Path] = {}
+    backend = cluster.backend
     injector: Injector | None = None
-    with agent_modules(WORKLOAD_MODULE):
-        say(f"starting {plan.hosts} hosts in {out / 'cluster'}")
-        names = backend.up(plan.hosts, min(3, plan.hosts), hostd_args=list(plan.hostd_args))
-        data_dirs = {n: Path(backend.state["hosts"][n]["data_dir"]) for n in names}
+    started = False
+    try:
+        names = cluster.start(plan, say)
+        started = True
+        wait_until(lambda: backend.formation(names), FORM_TIMEOUT, what=f"{plan.hosts} hosts to form a group")
+        if plan.workload:
+            say(f"starting the workload: {plan.workload}, {plan.agents} x")
+            start_workload(plan, backend)
+        injector = Injector(plan, backend, on_fault=on_fault)
+        say(f"chaos for {plan.duration_s:g} s ({len(plan.faults)} fault lines)")
         try:
-            backend.check_started()
-            wait_until(lambda: backend.formation(names), FORM_TIMEOUT, what=f"{plan.hosts} hosts to form a group")
-            if plan.workload:
-                say(f"starting the workload: {plan.workload}, {plan.agents} x")
-                start_workload(plan, backend)
-            injector = Injector(plan, backend, on_fault=on_fault)
-            say(f"chaos for {plan.duration_s:g} s ({len(plan.faults)} fault lines)")
-            try:
-                injector.run()
-            finally:
-                injector.end_pauses()
-                res.t0, res.faults = injector.t0, injector.injected
-            say("faults over: stopping the workload")
-            stop_workload(plan, backend, say)
-            res.settled, res.settle_note, res.settle_s = collect.settle(backend, plan.settle_s)
-            say(f"settle: {res.settle_note} after {res.settle_s:.1f} s")
-            res.t_end = time.time()
-            collect.snapshot_replicas(backend, out)
-            collect.write_agents(backend, out)
-        except ClusterError as e:
-            res.error = str(e)
+            injector.run()
         finally:
-            say("stopping the cluster")
-            backend.down(grace=5.0)
-            collect.copy_logs(data_dirs, out)
-            (out / "faults.json").write_text(json.dumps(
-                {"t0": res.t0, "t_end": res.t_end, "faults": [f.to_json() for f in res.faults]}, indent=1) + "\n")
+            injector.end_pauses()
+            injector.end_partitions()
+            res.t0, res.faults = injector.t0, injector.injected
+        say("faults over: stopping the workload")
+        stop_workload(plan, backend, say)
+        res.settled, res.settle_note, res.settle_s = collect.settle(backend, plan.settle_s)
+        say(f"settle: {res.settle_note} after {res.settle_s:.1f} s")
+        res.t_end = time.time()
+        collect.snapshot_replicas(backend, out)
+        collect.write_agents(backend, out)
+    except ClusterError as e:
+        res.error = str(e)
+    finally:
+        try:
+            cluster.stop(out, say)
+        except ClusterError as e:
+            if started and not res.error:
+                res.error = f"stopping the cluster: {e}"
+        (out / "faults.json").write_text(json.dumps(
+            {"t0": res.t0, "t_end": res.t_end, "faults": [f.to_json() for f in res.faults]}, indent=1) + "\n")
     if not res.error:
         res.checks = run_checks(out, plan.workload)
     res.timeline = build(out) if res.t0 else []

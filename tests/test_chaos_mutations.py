@@ -1,0 +1,47 @@
+"""Every chaos check can fail on real hosts (issue 18 §2): one short local chaos run per mutation of
+haa.chaos.mutations — every haa-hostd of the run a deliberately broken variant — must fail exactly the check
+that mutation targets and pass the others. Plans of 3 hosts and 3-16 s; the settle wait is cut short where
+the broken group cannot settle (a diverged replica, an agent never recovered)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from haa.chaos.mutations import MUTATIONS
+from haa.chaos.plan import PlanError, parse_plan
+from haa.chaos.run import run_local
+
+WRITES = {"hosts": 3, "workload": "ddb-writes", "agents": 3, "period_s": 0.1}
+PLANS = {
+    "ack-before-commit": {**WRITES, "duration_s": 4, "settle_s": 20, "faults": []},
+    "diverge-replica": {**WRITES, "agents": 1, "duration_s": 3, "settle_s": 3, "faults": []},
+    # a killed writer's held write (5 s) lands after its successor's first writes (recovery takes ~1 s)
+    "late-commit": {**WRITES, "period_s": 0.2, "duration_s": 16, "settle_s": 20,
+                    "faults": [{"every_s": 4, "action": "kill", "target": "random-agent"}]},
+    "drop-message": {"hosts": 3, "workload": "counters", "agents": 2, "period_s": 0.05, "duration_s": 4,
+                     "settle_s": 20, "faults": []},
+    "no-recovery": {**WRITES, "agents": 2, "duration_s": 5, "settle_s": 3,
+                    "faults": [{"at_s": 1, "action": "kill", "target": "agent A1"}]},
+}
+
+
+def test_every_mutation_has_a_plan() -> None:
+    assert set(PLANS) == set(MUTATIONS)
+
+
+@pytest.mark.parametrize("name", sorted(MUTATIONS))
+def test_the_mutated_hosts_fail_exactly_their_check(name: str, tmp_path: Path) -> None:
+    plan = parse_plan({"name": f"mutation-{name}", "seed": 3, "mutation": name, **PLANS[name]})
+    res = run_local(plan, tmp_path / "run")
+    assert not res.error, res.error
+    failed = {k for k, c in res.checks.items() if not c.passed}
+    detail = {k: c.detail for k, c in res.checks.items()}
+    assert failed == {MUTATIONS[name]}, detail
+    assert not res.passed
+
+
+def test_a_mutation_is_refused_inside_a_mission_and_unknown_names_are_errors() -> None:
+    with pytest.raises(PlanError, match="unknown mutation 'nope'"):
+        parse_plan({"name": "x", "duration_s": 5, "mutation": "nope"})
