@@ -248,3 +248,27 @@ def test_sim_metrics(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait(10)
+
+
+def test_compose_backend_reports_the_published_metrics_port() -> None:
+    from types import SimpleNamespace
+
+    from haactl.compose_backend import METRICS_PORT, ComposeBackend
+
+    def container(bindings: dict[str, Any]) -> Any:
+        return SimpleNamespace(attrs={"HostConfig": {"PortBindings": bindings}})
+
+    c = container({"7000/tcp": [{"HostIp": "127.0.0.1", "HostPort": "17003"}],
+                   METRICS_PORT: [{"HostIp": "127.0.0.1", "HostPort": "19003"}]})
+    assert ComposeBackend._metrics_url(c) == "http://127.0.0.1:19003/metrics"
+    assert ComposeBackend._metrics_url(container({METRICS_PORT: [{"HostIp": "0.0.0.0", "HostPort": "19100"}]})) \
+        == "http://127.0.0.1:19100/metrics"
+    assert ComposeBackend._metrics_url(container({"7000/tcp": [{"HostPort": "17001"}]})) == ""
+    # compose/compose.yaml publishes 9400 of every service on 19000 + N (hosts) and 19100 (sim)
+    import yaml
+
+    spec = yaml.safe_load((Path(__file__).parents[1] / "compose" / "compose.yaml").read_text())
+    assert spec["x-hostd"]["environment"]["HAA_METRICS_PORT"] == "9400"
+    for name, svc in spec["services"].items():
+        want = 19100 if name == "sim" else 19000 + int(name[1:])
+        assert f"127.0.0.1:{want}:9400" in svc["ports"], (name, svc["ports"])
