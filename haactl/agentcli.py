@@ -464,7 +464,7 @@ class EventFeed:
             t = self.threads.get(h.name)
             if h.state != ALIVE or (t is not None and t.is_alive()):
                 continue
-            c = ControlClient(h.address, self.backend.token, timeout=self.backend.rpc_timeout)
+            c = self.backend.connect(h)
             stream = c.agent_events(history=True)
             self.streams[h.name] = stream
             th = threading.Thread(target=self._pump, args=(h.name, c, stream), daemon=True, name=f"events-{h.name}")

@@ -87,6 +87,11 @@ def cluster_up(
             "--config or HAA_CAPACITY set one; compose: the docker host's cores / N)",
         ),
     ] = None,
+    tls: Annotated[
+        bool,
+        typer.Option("--tls", help="mutual TLS: a new cluster CA, a certificate per host and one for haactl "
+                     "(docs/deploy.md); default: the cluster token only"),
+    ] = False,
     timeout: TimeoutOpt = 90.0,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the group has formed")] = True,
     json_out: Annotated[bool, typer.Option("--json", help="print the formed group as JSON")] = False,
@@ -105,17 +110,17 @@ def cluster_up(
         if config is not None or hostd_args:
             raise ClusterError("--config and --hostd-args are for local clusters (edit compose/compose.yaml)")
         with err.status(f"docker compose up of {hosts} hosts ..."):
-            names = backend.up(hosts, core, log=err.print, capacity=capacity)
+            names = backend.up(hosts, core, log=err.print, capacity=capacity, tls=tls)
         before = None
     else:
         from haa.cluster.local_backend import LocalBackend
 
         assert isinstance(backend, LocalBackend)
         k = core if core is not None else min(3, hosts)
-        names = backend.up(hosts, k, shlex.split(hostd_args), config, capacity)
+        names = backend.up(hosts, k, shlex.split(hostd_args), config, capacity, tls=tls)
         before = backend.check_started
     started = time.monotonic() - t0
-    err.print(f"started {len(names)} hosts ({backend.describe()}) in {started:.1f} s")
+    err.print(f"started {len(names)} hosts ({backend.describe()}{', mutual TLS' if tls else ''}) in {started:.1f} s")
     if not wait:
         return
     try:

@@ -9,6 +9,10 @@
 * The control API of hN is the port its container publishes for 7000/tcp (127.0.0.1:17001..17010); the
   token is compose/token (next to the compose file).
 * Core hosts are the names in the services' `--core` argument (h1, h2, h3).
+* `up(tls=True)` (`haactl cluster up --compose --tls`): a new cluster CA and certificates in compose/tls
+  (haa.cluster.tls; each host's directory compose/tls/hosts/hN is bind-mounted into its container alone at
+  /run/haa/tls) and HAA_TLS_DIR=/run/haa/tls (haa-hostd's `--tls-dir`). Later commands see HAA_TLS_DIR in the
+  running containers' environment and talk to them with haactl's certificate (compose/tls/client).
 * Only services that run `haa-hostd --name <service>` are hosts (`host_service`). Others — the `sim`
   service (profile `sim`, the avatar simulator) — are never listed, started, named or counted as hosts.
 
@@ -45,11 +49,15 @@ from haa.cluster.backend import (
     natural_key,
     state_phrase,
 )
+from haa.cluster.tls import CLIENT_DIR, CaError, make_cluster_tls
+from haa.tls import TlsError, load_client
 
 REPO = Path(__file__).resolve().parents[1]
 CONTROL_PORT = "7000/tcp"
 #: each container's Prometheus /metrics (haa-hostd --metrics-port, HAA_METRICS_PORT in compose/compose.yaml)
 METRICS_PORT = "9400/tcp"
+#: where a host's own compose/tls/hosts/hN is mounted in its container (compose.yaml)
+TLS_MOUNT = "/run/haa/tls"
 LABEL_PROJECT = "com.docker.compose.project"
 LABEL_SERVICE = "com.docker.compose.service"
 
@@ -131,6 +139,8 @@ class ComposeBackend(Backend):
                 raise ClusterError(f"cannot read the cluster token {e}") from None
         super().__init__(token)
         self._docker: Any = None
+        self.tls_dir = self.file.parent / "tls"
+        self._tls_known = False
 
     def _core_names(self) -> list[str]:
         for svc in self.services.values():
@@ -277,7 +287,25 @@ class ComposeBackend(Backend):
             n = 0
         return n if n > 0 else max(1, os.cpu_count() or 1)
 
-    def up(self, hosts: int, core: int | None = None, log: Any = print, capacity: float | None = None) -> list[str]:
+    def connect(self, h: HostInfo, timeout: float | None = None) -> Any:
+        if not self._tls_known:  # does the running cluster use TLS? (its containers' HAA_TLS_DIR)
+            self._tls_known = True
+            on = any(
+                e.startswith("HAA_TLS_DIR=") and e != "HAA_TLS_DIR="
+                for c in self.containers().values()
+                for e in (c.attrs.get("Config") or {}).get("Env") or []
+            )
+            if on:
+                try:
+                    self.tls = load_client(self.tls_dir / CLIENT_DIR)
+                except TlsError as e:
+                    raise ClusterError(f"the compose cluster uses TLS, but haactl's certificate is unusable: {e}") \
+                        from None
+        return super().connect(h, timeout)
+
+    def up(
+        self, hosts: int, core: int | None = None, log: Any = print, capacity: float | None = None, tls: bool = False
+    ) -> list[str]:
         names = sorted(self.services, key=natural_key)
         if hosts > len(names):
             raise ClusterError(f"the compose file defines {len(names)} hosts ({names[0]}..{names[-1]}), not {hosts}")
@@ -305,6 +333,16 @@ class ComposeBackend(Backend):
             from haa.cluster.local_backend import share_of_cores
 
             env["HAA_CAPACITY"] = repr(share_of_cores(hosts, self.docker_cores()))
+        env["HAA_TLS_DIR"] = TLS_MOUNT if tls else ""
+        if tls:  # a certificate for every host service (so that `host add` finds one), and haactl's
+            try:
+                make_cluster_tls(self.tls_dir, sorted(self.services, key=natural_key))
+            except CaError as e:
+                raise ClusterError(str(e)) from None
+            self.tls = load_client(self.tls_dir / CLIENT_DIR)
+        else:
+            self.tls = None
+        self._tls_known = True
         self.compose("up", "-d", "--force-recreate", *names, env=env)
         return names
 

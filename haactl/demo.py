@@ -136,7 +136,7 @@ class Demo:
     # ------------------------------------------------------------------ cluster access
 
     def client(self, name: str, timeout: float = 5.0) -> ControlClient:
-        return ControlClient(self.backend.host(name).address, self.backend.token, timeout=timeout)
+        return self.backend.connect(self.backend.host(name), timeout)
 
     def alive(self) -> list[str]:
         return [h.name for h in self.backend.hosts() if h.state == ALIVE]

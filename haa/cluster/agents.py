@@ -21,7 +21,6 @@ from typing import Any
 import grpc
 
 from haa.cluster.backend import ALIVE, Backend, ClusterError, natural_key, rpc_error_text
-from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 
 #: table statuses (haa.hostd.agenttable) and local phases (haa.hostd.agentnode.Local) -> the state shown
@@ -36,7 +35,7 @@ def agent_lists(backend: Backend, timeout: float | None = None) -> dict[str, cpb
         raise ClusterError(f"no host is alive in the {backend.describe()}")
 
     def one(h: Any) -> tuple[str, cpb.AgentListReply | Exception]:
-        c = ControlClient(h.address, backend.token, timeout=timeout or backend.rpc_timeout)
+        c = backend.connect(h, timeout)
         try:
             return h.name, c.agent_list()
         except grpc.RpcError as e:

@@ -7,6 +7,9 @@ is alive, paused or gone) and how to start, kill, pause, resume and restart them
 docker SDK). Everything that only talks to the hosts' control API — status fan-out, waiting for the group
 to form, for a host to leave the view or to rejoin, a graceful leave — is written once here.
 
+A cluster made with `--tls` (mutual TLS, docs/deploy.md) gives the backend haactl's client certificate
+(`tls`); `connect` is the one place a control channel is made, over TLS when the cluster has it.
+
 Every operator mistake or unreachable cluster raises `ClusterError` with one clear line; the CLI prints it
 and exits with code 1.
 """
@@ -25,6 +28,7 @@ import grpc
 
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
+from haa.tls import ClientTls
 
 #: host states (process or container)
 ALIVE = "alive"
@@ -81,6 +85,8 @@ def rpc_error_text(name: str, address: str, err: grpc.RpcError, what: str = "") 
     if code == grpc.StatusCode.UNAUTHENTICATED:
         return f"{where} rejected the cluster token: the token file does not belong to this cluster"
     if code == grpc.StatusCode.UNAVAILABLE:
+        if "ssl" in detail.lower() or "handshake" in detail.lower() or "certificate" in detail.lower():
+            return f"{where} refused the TLS handshake: this cluster's client certificate does not fit ({detail[:200]})"
         return f"{where} does not answer (connection refused or closed): is it down?"
     if code == grpc.StatusCode.DEADLINE_EXCEEDED:
         return f"{where} did not answer in time{f' ({what})' if what else ''}: paused, hung or overloaded?"
@@ -118,8 +124,15 @@ class Backend(ABC):
     kind = ""
     rpc_timeout = 2.0
 
-    def __init__(self, token: str) -> None:
+    def __init__(self, token: str, tls: ClientTls | None = None) -> None:
         self.token = token
+        #: haactl's client certificate of a `--tls` cluster (None: token only)
+        self.tls = tls
+
+    def connect(self, h: HostInfo, timeout: float | None = None) -> ControlClient:
+        """A control client of host `h` (over mutual TLS, checking the host's certificate, if the cluster has it)."""
+        return ControlClient(h.address, self.token, timeout=timeout or self.rpc_timeout, tls=self.tls,
+                             server_name=h.name)
 
     # ------------------------------------------------------------------ backend-specific
     @abstractmethod
@@ -193,7 +206,7 @@ class Backend(ABC):
             hint = {PAUSED: "haactl host resume", KILLED: "haactl host restart", LEFT: "haactl host restart"}
             extra = f" ({hint[h.state]} {name})" if h.state in hint else ""
             raise ClusterError(f"{state_phrase(name, h.state)}{extra}")
-        return ControlClient(h.address, self.token, timeout=timeout or self.rpc_timeout)
+        return self.connect(h, timeout)
 
     def call(self, name: str, fn: Callable[[ControlClient], Any], what: str, timeout: float | None = None) -> Any:
         """Run one control call on host `name`, turning RPC failures into `ClusterError`."""
@@ -214,7 +227,7 @@ class Backend(ABC):
         out: dict[str, cpb.StatusReply | Exception] = {}
 
         def one(n: str) -> tuple[str, cpb.StatusReply | Exception]:
-            c = ControlClient(infos[n].address, self.token, timeout=timeout or self.rpc_timeout)
+            c = self.connect(infos[n], timeout)
             try:
                 return n, c.status()
             except grpc.RpcError as e:

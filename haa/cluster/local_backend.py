@@ -7,6 +7,9 @@ The cluster lives in one root directory (default `.haa/cluster` under the curren
                                pid (+ process start time, so that a reused pid is not mistaken for it),
                                whether it is core, how it was stopped
     <root>/token               the cluster token (mode 600)
+    <root>/tls/                with `up(tls=True)` (`haactl cluster up --tls`): the cluster CA, one certificate per
+                               host (tls/hosts/<name>/, given to it as --tls-dir) and haactl's (tls/client/);
+                               keys mode 600 (haa.cluster.tls, docs/deploy.md)
     <root>/<name>/             the host's --data-dir: JSON-lines log <name>.jsonl, stderr.<n>.txt per start
 
 Each host also gets a free loopback port of its own for its Prometheus `/metrics` (`--metrics-port`, haa.metrics;
@@ -51,6 +54,8 @@ from haa.cluster.backend import (
     state_phrase,
 )
 from haa.cluster.procs import free_port, member_command
+from haa.cluster.tls import CLIENT_DIR, HOSTS_DIR, CaError, ClusterCA, make_cluster_tls
+from haa.tls import ClientTls, TlsError, load_client
 
 STATE_FILE = "cluster.json"
 LAST_STATE_FILE = "cluster.last.json"  # the state of the cluster `down` stopped, so that `logs` still finds it
@@ -159,7 +164,17 @@ class LocalBackend(Backend):
                 token = files.read_token(tf)
             except files.FileError as e:
                 raise ClusterError(f"cannot read the cluster token {e}") from None
-        super().__init__(token)
+        super().__init__(token, self._load_tls())
+
+    def _load_tls(self) -> ClientTls | None:
+        """haactl's client certificate if the cluster was made with `--tls`."""
+        d = self.state.get("tls_dir")
+        if not d:
+            return None
+        try:
+            return load_client(Path(d) / CLIENT_DIR)
+        except TlsError as e:
+            raise ClusterError(f"this cluster uses TLS, but haactl's certificate is unusable: {e}") from None
 
     # ------------------------------------------------------------------ state file
     @property
@@ -234,6 +249,8 @@ class LocalBackend(Backend):
         args = list(self.state["args"])
         if rec.get("metrics_port"):
             args += ["--metrics-port", str(rec["metrics_port"])]
+        if self.state.get("tls_dir"):
+            args += ["--tls-dir", str(Path(self.state["tls_dir"]) / HOSTS_DIR / name)]
         cmd = member_command(name, rec["address"], self.state["core"], Path(self.state["token_file"]), data_dir, args)
         err_path = data_dir / f"stderr.{rec['starts']}.txt"
         with open(err_path, "wb") as err:
@@ -268,8 +285,10 @@ class LocalBackend(Backend):
         hostd_args: Sequence[str] = (),
         config: Path | None = None,
         capacity: float | None = None,
+        tls: bool = False,
     ) -> list[str]:
-        """Create the state file and start h1..hN (the first `core` are core); returns the names.
+        """Create the state file and start h1..hN (the first `core` are core); returns the names. With `tls`,
+        a new cluster CA and certificates in <root>/tls: the hosts talk and serve over mutual TLS.
 
         Capacity K_h of every host: `capacity` when given; else what `hostd_args`, the config file or
         HAA_CAPACITY say; else this machine's cores divided among the N hosts (`share_of_cores`)."""
@@ -293,6 +312,16 @@ class LocalBackend(Backend):
             token_file.write_text(secrets.token_hex(32) + "\n")
             token_file.chmod(0o600)
             self.token = token_file.read_text().strip()
+            tls_dir = self.root / "tls"
+            if tls:
+                try:
+                    make_cluster_tls(tls_dir, names)
+                except CaError as e:
+                    raise ClusterError(str(e)) from None
+                self.tls = load_client(tls_dir / CLIENT_DIR)
+            else:
+                shutil.rmtree(tls_dir, ignore_errors=True)
+                self.tls = None
             addrs = {n: f"127.0.0.1:{free_port()}" for n in names}
             args = list(hostd_args)
             if config is not None:
@@ -304,6 +333,7 @@ class LocalBackend(Backend):
                 "kind": "local",
                 "created": time.time(),
                 "token_file": str(token_file),
+                "tls_dir": str(tls_dir) if tls else "",
                 "core": {n: addrs[n] for n in names[:core]},
                 "args": args,
                 "hosts": {
@@ -373,6 +403,11 @@ class LocalBackend(Backend):
                 "metrics_port": free_port(),
             }
             shutil.rmtree(self.root / name, ignore_errors=True)
+            if self.state.get("tls_dir"):  # its certificate, from the cluster's CA
+                try:
+                    ClusterCA.load(Path(self.state["tls_dir"])).issue_host(name)
+                except CaError as e:
+                    raise ClusterError(f"cannot make a certificate for {name}: {e}") from None
             self._spawn(name)
         return self.host(name)
 
@@ -448,6 +483,7 @@ class LocalBackend(Backend):
                 for rec in hosts.values():
                     shutil.rmtree(rec["data_dir"], ignore_errors=True)
                 (self.root / "token").unlink(missing_ok=True)
+                shutil.rmtree(self.root / "tls", ignore_errors=True)
             self.state = {}
         if purge:
             (self.root / "cluster.lock").unlink(missing_ok=True)

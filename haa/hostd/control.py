@@ -36,7 +36,13 @@ suspicions, DDB size/hash/seq, global sequence and state hash) and serves the DD
 Static mode answers the DDB calls with `FAILED_PRECONDITION`. The agent calls (AgentList, AgentSpawn, AgentKill,
 AgentRemove, AgentMove, AgentSend, Alloc, AgentEvents) are in `haa.hostd.agentcontrol`.
 
-`ControlClient` is a small blocking client for tests, benchmarks and tools.
+Under mutual TLS (`--tls-dir`, docs/deploy.md) the server takes only clients with a certificate of the cluster's
+CA (the TLS handshake refuses the others: `rejected_tls_handshake`, haa.hostd.runtime), and the control API
+only *client* certificates (haactl's): a host's certificate is refused like a wrong token (counted as
+`rejected_not_client` too), so a host's key cannot drive the cluster. The token is checked as well.
+
+`ControlClient` is a small blocking client for tests, benchmarks and tools (`tls` + `server_name`: over TLS,
+checking that the server holds host `server_name`'s certificate).
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ import grpc
 from grpc import aio
 
 from haa import rpcguard
+from haa import tls as tlsmod
 from haa.hostd import ddb as ddbmod
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
@@ -68,6 +75,7 @@ from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
 from haa.pb import ddb_pb2 as dpb
 from haa.pb import hostlink_pb2 as pb
+from haa.tls import ClientTls
 
 if TYPE_CHECKING:
     from haa.hostd.messages import TxId
@@ -133,12 +141,27 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
     def add_to_server(self, server: aio.Server) -> None:
         """Register every method with raw requests: the token is checked before decoding (haa.rpcguard)."""
         guard = rpcguard.Guard(
-            authenticate=lambda ctx: self.rt.transport.check_token(ctx.invocation_metadata()),
+            authenticate=self._authenticate,
             on_event=self._guard_event,
             statuses=STATUSES,
             log=log,
         )
         server.add_generic_rpc_handlers((rpcguard.guarded_handler(SERVICE, self, guard),))
+
+    def _authenticate(self, ctx: aio.ServicerContext) -> bool:
+        """The cluster token, and under TLS a client (operator) certificate."""
+        if not self.rt.transport.check_token(ctx.invocation_metadata()):
+            return False
+        if self.rt.config.tls is None:
+            return True
+        ident = tlsmod.peer_identity(ctx)
+        if ident is not None and ident[0] == tlsmod.CLIENT:
+            return True
+        self.rt.counters["rejected_not_client"] += 1
+        if self._limiter.allow("not_client"):
+            log_event(log, logging.WARNING, "control_reject_not_client",
+                      certificate=f"{ident[0]} {ident[1]}" if ident else "none", peer=ctx.peer())
+        return False
 
     def _guard_event(self, kind: str, method: str, detail: str, exc: BaseException | None) -> None:
         """Count (and log, rate-limited) a call refused before its handler or a handler's exception."""
@@ -470,16 +493,25 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
 class ControlClient(AgentClientMixin):
     """Blocking client of one host's control API (the agent calls come from `AgentClientMixin`)."""
 
-    def __init__(self, address: str, token: str, timeout: float = 5.0) -> None:
+    def __init__(
+        self, address: str, token: str, timeout: float = 5.0, tls: ClientTls | None = None, server_name: str = ""
+    ) -> None:
         self.address = address
         self.timeout = timeout
         self._md = ((MD_TOKEN, token),)
         # the server's limits (64 MiB each way), not gRPC's client default of 4 MiB replies: a DdbGet or a
         # Mirror snapshot of a large DDB is bigger than that
-        self._channel = grpc.insecure_channel(
-            address,
-            options=[("grpc.max_receive_message_length", MAX_MESSAGE), ("grpc.max_send_message_length", MAX_MESSAGE)],
-        )
+        options: list[tuple[str, Any]] = [
+            ("grpc.max_receive_message_length", MAX_MESSAGE), ("grpc.max_send_message_length", MAX_MESSAGE)
+        ]
+        if tls is None:
+            self._channel = grpc.insecure_channel(address, options=options)
+        else:
+            if not server_name:
+                raise ValueError("a TLS control client needs the host's name (server_name)")
+            self._channel = grpc.secure_channel(
+                address, tls.channel_credentials(), options=options + tlsmod.channel_options(server_name)
+            )
         self._stub = control_pb2_grpc.HostControlStub(self._channel)
 
     def status(self) -> cpb.StatusReply:

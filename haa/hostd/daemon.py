@@ -29,6 +29,10 @@ them: needed only if every host of the group was lost).
 `--metrics-port P` serves Prometheus metrics on http://<--listen's host>:P/metrics (haa.metrics,
 docs/metrics.md; 0, the default, = none).
 
+`--tls-dir DIR` turns on mutual TLS (haa.tls, docs/deploy.md): DIR holds the cluster CA's `ca.pem` and this
+host's `host.pem` / `host.key` (made by `haactl cluster up --tls`); the certificate must be for `--name`,
+the key not readable by others. Links and the control API then need a certificate of that CA.
+
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
 (default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
@@ -64,6 +68,7 @@ from pydantic import (
 )
 
 from haa import files
+from haa import tls as tlsmod
 from haa.hostd.agentnode import AgentConfig
 from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY
 from haa.hostd.core import CoreConfig
@@ -174,6 +179,8 @@ class HostSettings(BaseModel):
     stats_period: float = Field(default=1.0, ge=0, le=3600, allow_inf_nan=False)
     #: Prometheus /metrics on this port, bound to --listen's host (haa.metrics, docs/metrics.md); 0 = none
     metrics_port: int = Field(default=0, ge=0, le=65535)
+    #: mutual TLS: this host's ca.pem, host.pem, host.key (haa.tls); None = token only
+    tls_dir: Path | None = None
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
@@ -286,6 +293,7 @@ class HostSettings(BaseModel):
                 start_grace=self.agent_start_grace,
             ),
             agent_hang_timeout=self.agent_hang_timeout,
+            tls=tlsmod.load_host(self.tls_dir, self.name) if self.tls_dir is not None else None,
         )
 
 
@@ -331,6 +339,7 @@ _OPTIONS = (
     "agent_start_grace",
     "agent_hang_timeout",
     "stats_period",
+    "tls_dir",
     "metrics_port",
 )
 
@@ -379,6 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sample this host's statistics into <data dir>/stats.jsonl every this many s (1; 0 = off)")
     p.add_argument("--metrics-port", type=int,
                    help="serve Prometheus metrics on http://<listen host>:PORT/metrics (0 = off, the default)")
+    p.add_argument("--tls-dir", help="mutual TLS: directory with ca.pem, host.pem, host.key (haactl cluster up --tls)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
@@ -389,6 +399,12 @@ def read_token(path: str) -> str:
     try:
         token = files.read_text(path, what="token file", max_bytes=files.MAX_TOKEN_BYTES).strip()
     except files.FileError as e:
+        if e.os_errno == errno.EISDIR:
+            # what docker makes of a bind mount whose source does not exist (compose/token before `make image`)
+            raise ValueError(
+                f"token file {path} is a directory, not a file: make one first (`make image` writes compose/token; "
+                "or put a random line in it), and remove the directory docker created in its place"
+            ) from None
         raise ValueError(f"cannot read token file {e}") from None
     if not token:
         raise ValueError(f"token file {path!r} is empty")
@@ -474,7 +490,7 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
     name = str(merged["name"])
     merged["data_dir"] = Path(str(merged["data_dir"])) if merged.get("data_dir") else Path("data") / name
     try:
-        return HostSettings(token=SecretStr(token), **merged)
+        settings = HostSettings(token=SecretStr(token), **merged)
     except ValidationError as e:
         err = e.errors()[0]
         loc = ".".join(str(x) for x in err["loc"] if not isinstance(x, int))
@@ -483,6 +499,12 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
             opt = f"membership.{loc.split('.', 1)[1]}"
         msg = err["msg"].removeprefix("Value error, ")
         fail(f"{opt}: {msg}")
+    if settings.tls_dir is not None:
+        try:
+            tlsmod.load_host(settings.tls_dir, settings.name)
+        except tlsmod.TlsError as e:
+            fail(f"--tls-dir: {e}")
+    return settings
 
 
 async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int = 0) -> None:

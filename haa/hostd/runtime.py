@@ -72,6 +72,7 @@ from haa.hostd.membership import AppliedTx, Connect, Left, MembershipNode, NodeC
 from haa.hostd.messages import Message, TxId
 from haa.hostd.resources import LoopWatch, tune_malloc
 from haa.hostd.transport import Transport, split_address
+from haa.tls import HandshakeTap, HostTls
 
 log = logging.getLogger(LOGGER_NAME + ".runtime")
 
@@ -221,6 +222,8 @@ class RuntimeConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
     #: hang detection of agent processes (no heartbeat for this long), s
     agent_hang_timeout: float = 3.0
+    #: mutual TLS (haa.tls, `--tls-dir`): links and control API over TLS with this host's certificate
+    tls: HostTls | None = None
 
     @property
     def membership(self) -> bool:
@@ -257,7 +260,9 @@ class HostRuntime:
             accept_unknown=config.membership,
             on_superseded=self._on_superseded,
             datagram_heartbeats=config.datagram_heartbeats,
+            tls=config.tls,
         )
+        self._tap: HandshakeTap | None = None
         self.advertise = config.advertise
         self.server: aio.Server | None = None
         self.port = 0
@@ -404,7 +409,10 @@ class HostRuntime:
         server = aio.server(options=Transport.server_options())
         self.transport.add_to_server(server)
         HostControlService(self).add_to_server(server)
-        self.port = server.add_insecure_port(cfg.listen)
+        if cfg.tls is None:
+            self.port = server.add_insecure_port(cfg.listen)
+        else:  # mutual TLS: a client without a certificate of the cluster's CA never gets past the handshake
+            self.port = server.add_secure_port(cfg.listen, cfg.tls.server_credentials())
         hp = split_address(cfg.listen)
         await self.transport.open_heartbeats(hp[0] if hp else "", self.port)
         if not self.advertise:
@@ -431,9 +439,20 @@ class HostRuntime:
 
             self.agents = AgentDriver(self, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout)
             await self.agents.start()
+        if cfg.tls is not None:
+            # after the agents' fork server started (it keeps the real stderr); see haa.tls.HandshakeTap
+            self._tap = HandshakeTap(lambda reason: loop.call_soon_threadsafe(self._tls_refused, reason))
+            self._tap.start()
         self.transport.start()
         self.loopwatch.start()
         self._feed(self.node.start)
+
+    def _tls_refused(self, reason: str) -> None:
+        """gRPC refused a TLS handshake (no client certificate, another CA's, expired): count and log it."""
+        self.counters["rejected_tls_handshake"] += 1
+        self.counters["rejected_tls_handshake." + reason.lower()[:60]] += 1
+        if self.transport.limiter.allow("tls_handshake"):
+            log_event(log, logging.WARNING, "reject_tls_handshake", reason=reason)
 
     def request_stop(self) -> None:
         """Ask `run()` to return."""
@@ -496,6 +515,9 @@ class HostRuntime:
             await asyncio.sleep(0)
         if self.server is not None:
             await self.server.stop(0.5)
+        if self._tap is not None:
+            self._tap.stop()
+            self._tap = None
         teardown_logging(self._log_handlers)
         self._log_handlers = []
         self._stopped.set()

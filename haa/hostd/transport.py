@@ -39,6 +39,16 @@ Receiver (the `HostLink` servicer, raw bytes)
     at or below it are duplicates of a resend and are dropped (`link_duplicates`).
   * Replies: first the handshake, then cumulative acks at most every `ack_interval` (1 s) seconds.
 
+Mutual TLS (`tls`, a `haa.tls.HostTls`; docs/deploy.md): the links are TLS channels with this host's
+certificate as the client's, checked against the peer's name (`grpc.ssl_target_name_override`: a host at the
+address that is not that peer fails the handshake), and the server (haa.hostd.runtime) requires a client
+certificate of the cluster's CA. A stream whose `x-haa-sender` is not the host its certificate names is
+refused with `PERMISSION_DENIED` (`rejected_name_mismatch`, before every other check but the token): a host
+can speak only as itself. Heartbeat datagrams travel outside TLS, so under TLS each link has its own random
+MAC key, sent to the receiver inside the TLS stream (metadata `x-haa-hb-key`, 64 hex digits, required):
+the receiver checks a datagram from `src` with the key of `src`'s accepted stream, so one host's key cannot
+forge another's heartbeats. Without TLS the key is derived from the cluster token, as before.
+
 Every message and byte sent and received is counted per payload kind in `counters` (a `collections.Counter`
 the status RPC exposes), e.g. `tx_msgs.heartbeat`, `rx_bytes.oac_decide`.
 
@@ -55,6 +65,7 @@ import hashlib
 import hmac
 import logging
 import re
+import secrets
 import socket
 import time
 from collections import Counter, deque
@@ -65,6 +76,7 @@ import grpc
 from google.protobuf.message import DecodeError
 from grpc import aio
 
+from haa import tls as tlsmod
 from haa.hostd import wire
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.messages import Heartbeat, Message
@@ -76,6 +88,9 @@ OPEN_METHOD = "/haa.v1.HostLink/Open"
 MD_TOKEN = "x-haa-token"
 MD_SENDER = "x-haa-sender"
 MD_INC = "x-haa-incarnation"
+#: under TLS: the link's heartbeat MAC key, hex (see the module docstring)
+MD_HB_KEY = "x-haa-hb-key"
+_HB_KEY_RE = re.compile(r"[0-9a-f]{64}")
 #: trailing metadata of a stale-incarnation refusal: the newer incarnation of the sender the receiver knows
 MD_NEWER = "x-haa-newer-incarnation"
 
@@ -223,6 +238,8 @@ class OutLink:
         #: where heartbeats go as datagrams (resolved at each handshake that announced a heartbeat port);
         #: None: heartbeats travel on the stream
         self.hb_addr: tuple[Any, ...] | None = None
+        #: the MAC key of this link's heartbeat datagrams: the token's under token mode, a random one under TLS
+        self.hb_key = secrets.token_bytes(32) if transport.tls is not None else transport._hb_key
         #: something queued must go now: an ordinary (not lazy) message, lazy ones the transport released
         #: (`Transport._lazy_check`), or a resend after a handshake. Lazy messages alone only register the link
         #: with the transport (docs/transport.md, "Lazy messages")
@@ -268,7 +285,12 @@ class OutLink:
         two sessions of one link must never run at once — they would take messages from the same queue
         and write them, numbered from the same counters, on two streams (the receiver then sees gaps)."""
         if self._channel is None:
-            self._channel = aio.insecure_channel(self.address, options=client_options())
+            tls = self.t.tls
+            if tls is None:
+                self._channel = aio.insecure_channel(self.address, options=client_options())
+            else:  # the peer must hold a certificate for its name (docs/deploy.md, "Mutual TLS")
+                self._channel = aio.secure_channel(self.address, tls.channel_credentials(),
+                                                   options=client_options() + tlsmod.channel_options(self.peer))
             self._open = self._channel.stream_stream(OPEN_METHOD)
         prev = self.task
         if prev is not None and not prev.done():
@@ -384,7 +406,9 @@ class OutLink:
 
     async def _session(self) -> None:
         t = self.t
-        md = ((MD_TOKEN, t.token), (MD_SENDER, t.name), (MD_INC, str(t.incarnation)))
+        md: tuple[tuple[str, str], ...] = ((MD_TOKEN, t.token), (MD_SENDER, t.name), (MD_INC, str(t.incarnation)))
+        if t.tls is not None:
+            md += ((MD_HB_KEY, self.hb_key.hex()),)
         call = self._open(metadata=md, wait_for_ready=True)
         try:
             try:
@@ -583,7 +607,7 @@ class OutLink:
 
 
 class _RxState:
-    __slots__ = ("confirmed", "gaps", "heard", "inc", "last", "period", "streams")
+    __slots__ = ("confirmed", "gaps", "hb_key", "heard", "inc", "last", "period", "streams")
 
     def __init__(self, inc: int) -> None:
         self.inc = inc
@@ -593,6 +617,7 @@ class _RxState:
         self.confirmed = False  # it delivered a valid envelope (more than a claim in metadata)
         self.heard = float("-inf")  # loop time of its last valid envelope
         self.period = 0.0  # the heartbeat period it announced last, s
+        self.hb_key: bytes | None = None  # under TLS: the MAC key of its heartbeat datagrams to this host
 
 
 class LinkGap(Exception):
@@ -612,6 +637,7 @@ class Transport:
         on_superseded: told when a peer refuses this host's incarnation as stale (see `OnSuperseded`).
         max_ahead: seconds a sender's incarnation may be ahead of `wall_ns()` (`MAX_INCARNATION_AHEAD`).
         live_window: see `LIVE_WINDOW`; wall_ns: the wall clock in ns (tests move it).
+        tls: this host's certificate (mutual TLS, see the module docstring); None: token only.
     The caller sets `incarnation` before `start()` and calls `set_incarnation` when the host reincarnates.
     """
 
@@ -640,11 +666,13 @@ class Transport:
         datagram_heartbeats: bool = True,
         lazy_delay: float = LAZY_DELAY,
         lazy_quiet: float = LAZY_QUIET,
+        tls: tlsmod.HostTls | None = None,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
         self.name = name
         self.token = token
+        self.tls = tls
         self._token_b = token.encode()
         self.incarnation = 0
         self.peers = dict(peers)
@@ -718,7 +746,7 @@ class Transport:
             return False
         body = HB_MAGIC + data
         try:
-            udp.sendto(body + hmac.new(self._hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES], addr)
+            udp.sendto(body + hmac.new(link.hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES], addr)
         except OSError:  # (asyncio reports send errors to the protocol; this is a closed transport)
             self.counters["hb_send_failed"] += 1
             return False
@@ -736,7 +764,9 @@ class Transport:
             c["hb_rejected_malformed"] += 1
             return
         body, mac = data[:-HB_MAC_BYTES], data[-HB_MAC_BYTES:]
-        if not hmac.compare_digest(mac, hmac.new(self._hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES]):
+        if self.tls is None and not hmac.compare_digest(
+            mac, hmac.new(self._hb_key, body, hashlib.sha256).digest()[:HB_MAC_BYTES]
+        ):
             c["hb_rejected_unauthenticated"] += 1
             return
         try:
@@ -749,6 +779,13 @@ class Transport:
             c["hb_rejected_malformed"] += 1
             return
         st = self._rx.get(src)
+        if self.tls is not None:  # the key `src` gave this host inside its TLS stream (module docstring)
+            key = st.hb_key if st is not None else None
+            if key is None or not hmac.compare_digest(
+                mac, hmac.new(key, body, hashlib.sha256).digest()[:HB_MAC_BYTES]
+            ):
+                c["hb_rejected_unauthenticated"] += 1
+                return
         if st is None or st.inc != src_inc:
             # no stream of this incarnation was accepted (yet), or a newer one was (a superseded process: its
             # streams were ended when the newer one connected, so it learns of it when it reconnects)
@@ -933,6 +970,22 @@ class Transport:
             await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
         mdd = {k: v for k, v in md if isinstance(v, str)}
         sender = mdd.get(MD_SENDER, "")
+        hb_key = None
+        if self.tls is not None:
+            ident = tlsmod.peer_identity(context)
+            if ident != (tlsmod.HOST, sender):
+                # a certificate of this cluster's CA (the TLS handshake checked that), but not of `sender`: a host
+                # speaks only as itself (docs/deploy.md, "Mutual TLS")
+                cert = f"{ident[0]} {ident[1]}" if ident else "none"
+                self._reject("rejected_name_mismatch", "reject_name_mismatch", sender=sender[:100], certificate=cert,
+                             peer=context.peer())
+                await context.abort(grpc.StatusCode.PERMISSION_DENIED,
+                                    f"the certificate is {cert}'s: it cannot speak as {sender[:100]!r}")
+            text = mdd.get(MD_HB_KEY, "")
+            if not _HB_KEY_RE.fullmatch(text):
+                self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender, why=MD_HB_KEY)
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_HB_KEY}: 64 hex digits under TLS")
+            hb_key = bytes.fromhex(text)
         if sender not in self.peers and not (self.accept_unknown and valid_name(sender) and sender != self.name):
             self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=context.peer())
             await context.abort(grpc.StatusCode.PERMISSION_DENIED, f"{sender[:100]!r} is not a configured peer")
@@ -992,6 +1045,8 @@ class Transport:
                     self.counters["link_superseded_streams"] += 1
                     self._ended.add(other)
                     other.cancel()
+        if hb_key is not None:
+            st.hb_key = hb_key
         st.streams += 1
         self._inbound[sender] += 1
         self.counters["link_accepts"] += 1

@@ -377,9 +377,7 @@ def check_sim_matches(info: Any, mission: Mission) -> None:
 
 
 def _client(backend: Any, name: str, timeout: float = 3.0) -> Any:
-    from haa.hostd.control import ControlClient
-
-    return ControlClient(backend.host(name).address, backend.token, timeout=timeout)
+    return backend.connect(backend.host(name), timeout)
 
 
 def alive_hosts(backend: Any) -> list[str]:
