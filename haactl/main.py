@@ -23,6 +23,8 @@ from haactl.demo import demo
 from haactl.foxglove import foxglove
 from haactl.logview import logs
 from haactl.mission import experiment, mission_app
+from haactl.record import record_app
+from haactl.replay import replay
 from haactl.sim import sim_app
 from haactl.stats import report, stats_app
 from haactl.verify import verify
@@ -58,6 +60,8 @@ app.add_typer(stats_app, name="stats")
 app.command("report")(report)
 app.command("dashboard")(dashboard)
 app.command("foxglove")(foxglove)
+app.add_typer(record_app, name="record")
+app.command("replay")(replay)
 
 if __name__ == "__main__":
     app()

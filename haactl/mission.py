@@ -90,6 +90,9 @@ def mission_run(
     out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="folder for the PNGs, transcript, results "
                                                  "and the cluster's logs (default mission-runs/NAME-TIME)")] = None,
     transcript: Annotated[bool, typer.Option("--transcript", help="print the transcript at the end")] = False,
+    record: Annotated[Path | None, typer.Option("--record", help="record every agent's inputs and outputs into "
+                                                "this folder (AgentPlayback: haactl record ls, haactl replay; "
+                                                "docs/playback.md)")] = None,
 ) -> None:
     """Run a mission end to end on its own local cluster and haa-sim; exit 0 iff it completed."""
     from haa.mission.runner import MissionRunError, ProgressInfo, run_mission
@@ -112,7 +115,7 @@ def mission_run(
     try:
         with progress:
             results = run_mission(mission, speed, out_dir, json_out, show, log=lambda s: progress.console.print(
-                f"[dim]{escape(s)}[/]"))
+                f"[dim]{escape(s)}[/]"), record=record)
     except MissionRunError as e:
         _fail(str(e))
     except KeyboardInterrupt:

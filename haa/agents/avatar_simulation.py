@@ -223,7 +223,7 @@ class AvatarSimulation(team.TeamAgent):
 
     async def begin(self, how: str) -> None:
         fresh = how == "start"
-        self.link = team.SimLink(self.cfg.sim, self.cfg.sim_token_file, self.name)
+        self.link = team.SimLink(self.cfg.sim, self.cfg.sim_token_file, self.name, tap=self._ctx.tap)
         try:
             reply = await self.link.avatar.Register(
                 spb.RegisterRequest(type=self.cfg.type, avatar_id=self.name_), metadata=self.link.metadata

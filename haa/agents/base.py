@@ -48,6 +48,12 @@ failure for the host).
 
 `AgentContext` is the host-facing side: the runner feeds it the host's frames (`feed`) and runs its mailbox
 worker (`run`); it emits the agent's frames through a callable, so it can be driven in-process by tests.
+
+AgentPlayback (thesis §6.1.4, docs/playback.md): an optional `tap` (haa.playback) sees every input where the
+agent consumes it — the mailbox item the worker takes (`_take_item`), the host's answer a call awaited
+(`_await_answer`), the reply a request awaited (`_await_reply`), each `now()` and random number (the clock and
+random source are wrapped by the tap) — and every frame the agent emits. The recorder writes them to MCAP; the
+offline replay (haa.playback.replay) overrides the same three methods to feed the recorded inputs back.
 """
 
 from __future__ import annotations
@@ -177,6 +183,9 @@ class Timer:
         self.cancelled = False
         self.fired = 0
         self._queued = False
+        ctx._timer_ids += 1
+        #: 1-based number of this timer among those the instance armed (AgentPlayback names timers by it)
+        self.id = ctx._timer_ids
         self._handle: asyncio.TimerHandle | None = None
         loop = asyncio.get_running_loop()
         # delays are in the agent's clock; the loop runs on wall time
@@ -351,6 +360,13 @@ class AgentBase:
         """The agent's time in seconds: the wall clock, or the simulated clock a mission set."""
         return self._ctx.clock.now()
 
+    def perf_counter(self) -> float:
+        """A monotonic wall clock, seconds, for measuring how long something took (`time.perf_counter()`),
+        taken through the agent so that AgentPlayback records it: an agent that reads time.perf_counter(),
+        time.time() or the random module itself cannot be replayed (docs/playback.md)."""
+        read = getattr(self._ctx, "perf_counter", None)  # a test's stand-in context may not have it
+        return read() if read is not None else time.perf_counter()
+
     @property
     def random(self) -> random.Random:
         """The agent's random source (seeded by the mission when it sets the clock)."""
@@ -491,7 +507,13 @@ class AgentContext:
         *,
         drain: Callable[[], Awaitable[None]] | None = None,
         send_raw: Callable[[bytes], None] | None = None,
+        tap: Any = None,
     ) -> None:
+        #: AgentPlayback (module docstring): a recorder or a replay feed (haa.playback), or None
+        self.tap = tap
+        if tap is not None:
+            emit = tap.wrap_emit(emit)
+        self._timer_ids = 0
         self.agent_id = init.agent_id
         self.name = init.name
         self.type_name = init.type_name
@@ -520,17 +542,29 @@ class AgentContext:
         self.handler_errors = 0
         self._stop_requested = False
         #: the agent's clock (default the wall clock) and seeded random source; a mission sets both
-        self.clock: Clock = WALL_CLOCK
+        self.clock: Clock = self._wrap_clock(WALL_CLOCK)
         self.scan_truncated = False
-        self.random: random.Random = agent_random(self.agent_id, self.name, self.epoch)
+        self.random: random.Random = self._wrap_random(agent_random(self.agent_id, self.name, self.epoch))
         self.agent: AgentBase = cls(self)
 
     def set_clock(self, clock: Clock, seed: int | str | None = None) -> None:
         """Use `clock` from now on (timers armed later follow it) and, with `seed`, a random source seeded by
         the mission seed, the agent's name and epoch (reproducible across runs)."""
-        self.clock = clock
+        self.clock = self._wrap_clock(clock)
         if seed is not None:
-            self.random = agent_random(seed, self.name, self.epoch)
+            self.random = self._wrap_random(agent_random(seed, self.name, self.epoch))
+
+    def perf_counter(self) -> float:
+        v = time.perf_counter()
+        if self.tap is not None:
+            self.tap.perf_counter(v)
+        return v
+
+    def _wrap_clock(self, clock: Clock) -> Clock:
+        return clock if self.tap is None else self.tap.wrap_clock(clock)
+
+    def _wrap_random(self, rnd: random.Random) -> random.Random:
+        return rnd if self.tap is None else self.tap.wrap_random(rnd)
 
     # ------------------------------------------------------------------ host -> agent
 
@@ -590,7 +624,7 @@ class AgentContext:
     async def run(self) -> int:
         """Handle mailbox items one at a time until the agent freezes, stops or fails; the exit code."""
         while self.exit_code is None:
-            kind, data = await self._mailbox.get()
+            kind, data = await self._take_item()
             try:
                 await self._handle(kind, data)
             except AgentFatal as e:
@@ -608,6 +642,38 @@ class AgentContext:
         for fut in [*self._convs.values(), *self._calls.values()]:
             fut.cancel()
         return self.exit_code if self.exit_code is not None else 0
+
+    async def _take_item(self) -> tuple[str, Any]:
+        """The next mailbox item (the worker consumes it now: the tap records it)."""
+        item = await self._mailbox.get()
+        if self.tap is not None:
+            self.tap.item(*item)
+        return item
+
+    async def _await_answer(self, fut: asyncio.Future[pb.HostToAgent.Answer], req_id: int,
+                            timeout: float) -> pb.HostToAgent.Answer:
+        """The host's answer to call `req_id` (TimeoutError after `timeout`); the tap records either."""
+        try:
+            ans = await asyncio.wait_for(fut, timeout)
+        except TimeoutError:
+            if self.tap is not None:
+                self.tap.answer(req_id, None)
+            raise
+        if self.tap is not None:
+            self.tap.answer(req_id, ans)
+        return ans
+
+    async def _await_reply(self, fut: asyncio.Future[pb.AgentMsg], conv: int, timeout: float) -> pb.AgentMsg:
+        """The reply to request `conv` (TimeoutError after `timeout`); the tap records either."""
+        try:
+            env = await asyncio.wait_for(fut, timeout)
+        except TimeoutError:
+            if self.tap is not None:
+                self.tap.reply(conv, None)
+            raise
+        if self.tap is not None:
+            self.tap.reply(conv, env)
+        return env
 
     async def _handle(self, kind: str, data: Any) -> None:
         a = self.agent
@@ -769,7 +835,7 @@ class AgentContext:
         try:
             self.send(to, payload, conv=conv)
             try:
-                env = await asyncio.wait_for(fut, timeout)
+                env = await self._await_reply(fut, conv, timeout)
             except TimeoutError:
                 raise TimeoutError(f"request to {to} timed out after {timeout:g} s") from None
         finally:
@@ -784,7 +850,7 @@ class AgentContext:
         try:
             self._emit(frame)
             try:
-                ans = await asyncio.wait_for(fut, timeout)
+                ans = await self._await_answer(fut, req_id, timeout)
             except TimeoutError:
                 raise TimeoutError(f"{what}: the host did not answer within {timeout:g} s") from None
         finally:

@@ -33,6 +33,7 @@ from haa.agents import registry
 from haa.agents.base import AgentContext, AgentFatal
 from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError
 from haa.pb import agent_pb2 as pb
+from haa.playback import recorder
 
 #: how long a new process waits for its Init frame
 INIT_TIMEOUT = 30.0
@@ -123,9 +124,13 @@ async def _serve(chan: Channel[pb.HostToAgent]) -> int:
     except (LookupError, TypeError, ValueError) as e:
         _error(chan, str(e))
         return EXIT_BAD_INIT
+    # AgentPlayback (docs/playback.md): with HAA_RECORD_DIR set every input and output is recorded here
+    tap = recorder.from_env(init)
     try:
-        ctx = AgentContext(init, cls, chan.send, drain=chan.drain, send_raw=chan.send_raw)
+        ctx = AgentContext(init, cls, chan.send, drain=chan.drain, send_raw=chan.send_raw, tap=tap)
     except Exception as e:
+        if tap is not None:
+            tap.close()
         _error(chan, f"{cls.__name__}.__init__ raised {type(e).__name__}: {e}")
         return EXIT_FATAL
     chan.send(pb.AgentToHost(hello=pb.AgentToHost.Hello(pid=os.getpid(), type_name=init.type_name)))
@@ -168,6 +173,8 @@ async def _serve(chan: Channel[pb.HostToAgent]) -> int:
         for t in (worker, reader, beat):
             t.cancel()
         await asyncio.gather(worker, reader, beat, return_exceptions=True)
+        if tap is not None:
+            tap.close()
     return code
 
 

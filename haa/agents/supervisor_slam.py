@@ -72,7 +72,6 @@ import asyncio
 import json
 import os
 import struct
-import time
 from typing import Any, Literal
 
 import pydantic
@@ -260,12 +259,12 @@ class SupervisorSLAM(team.TeamAgent):
         data = await self.ddb_get(team.K_SLAM_LOG)
         if data is not None:
             first, items = ddbops.decode_log(data)
-            t = time.perf_counter()
+            t = self.perf_counter()
             for k, item in enumerate(items):
                 self._apply(first + k, item)
-                if time.perf_counter() - t > LOAD_SLICE_S:  # let the loop heartbeat (events wait in `buffer`)
+                if self.perf_counter() - t > LOAD_SLICE_S:  # let the loop heartbeat (events wait in `buffer`)
                     await asyncio.sleep(0)
-                    t = time.perf_counter()
+                    t = self.perf_counter()
         self.loading = False
         for index, item in sorted(self.buffer):
             self._apply(index, item)
@@ -322,7 +321,7 @@ class SupervisorSLAM(team.TeamAgent):
         if evs:
             self._upkeep("requests", self.ddb_write([ddbops.log_append(team.K_SLAM_LOG, evs)]))
         if self.since_ckpt >= self.cfg.checkpoint_events and "checkpoint" not in self.inflight:
-            self._upkeep("checkpoint", self._checkpoint(self.replica.checkpoint(), time.perf_counter()))
+            self._upkeep("checkpoint", self._checkpoint(self.replica.checkpoint(), self.perf_counter()))
 
     async def _checkpoint(self, blobs: dict[str, bytes], t0: float) -> None:
         assert self.replica is not None
@@ -337,7 +336,7 @@ class SupervisorSLAM(team.TeamAgent):
             return
         self.since_ckpt = self.replica.next_index - upto
         self.log("checkpoint", index=upto, bytes=sum(map(len, blobs.values())),
-                 ms=round(1000 * (time.perf_counter() - t0), 1))
+                 ms=round(1000 * (self.perf_counter() - t0), 1))
 
     async def _status_log(self) -> None:
         """What the replica applied and skipped (SlamReplica.counts), what the sensor agents made of their

@@ -108,13 +108,23 @@ def team_config(agent: AgentBase, **extra: Any) -> dict[str, Any]:
 
 
 class SimLink:
-    """An asyncio gRPC channel to haa-sim (AvatarSim only: the hardware a robot driver talks to)."""
+    """An asyncio gRPC channel to haa-sim (AvatarSim only: the hardware a robot driver talks to).
 
-    def __init__(self, address: str, token_file: str, caller: str) -> None:
+    `tap`: the agent's AgentPlayback tap (`agent._ctx.tap`, docs/playback.md): recording, every call and reply
+    is recorded (haa-sim's replies bypass the host); replaying offline, the recording answers and nothing is
+    connected."""
+
+    def __init__(self, address: str, token_file: str, caller: str, tap: Any = None) -> None:
         from grpc import aio
 
         from haa.pb import sim_pb2_grpc as pbg
+        from haa.playback.external import sim_service
 
+        self.channel: Any = None
+        if tap is not None and getattr(tap, "offline", False):
+            self.metadata: tuple[tuple[str, str], ...] = (("x-haa-caller", caller),)
+            self.avatar = tap.wrap_stub("haa-sim", sim_service(), None)
+            return
         if not address:
             raise ValueError("config.sim: the haa-sim address is required")
         md = [("x-haa-caller", caller)]
@@ -125,9 +135,12 @@ class SimLink:
             address, options=[("grpc.max_receive_message_length", 32 * 1024 * 1024)]
         )
         self.avatar = pbg.AvatarSimStub(self.channel)
+        if tap is not None:
+            self.avatar = tap.wrap_stub("haa-sim", sim_service(), self.avatar)
 
     async def close(self) -> None:
-        await self.channel.close(grace=None)
+        if self.channel is not None:
+            await self.channel.close(grace=None)
 
 
 def frame_from_pb(m: Any, avatar: str) -> SimpleNamespace:
@@ -467,7 +480,7 @@ class SensorBase(TeamAgent):
     async def _process_one(self, src: str, msg: dict[str, Any]) -> None:
         from haa.slam import events as sev
 
-        t0 = time.perf_counter()
+        t0 = self.perf_counter()  # recorded (AgentPlayback, docs/playback.md)
         ok, why, wrote, skipped = True, "", False, ""
         readings: list[Any] = []
         marker = done_key(str(msg.get("key", "")), self.proc)
@@ -507,7 +520,7 @@ class SensorBase(TeamAgent):
         try:  # noqa: SIM105 (one import fewer in the shared module)
             self.send(src, dumps({"op": "done", "key": msg.get("key"), "proc": self.proc, "ok": ok, "why": why,
                                   "wrote": wrote, "skipped": skipped,
-                                  "ms": round(1000 * (time.perf_counter() - t0), 2), "n": len(readings) if ok else 0,
+                                  "ms": round(1000 * (self.perf_counter() - t0), 2), "n": len(readings) if ok else 0,
                                   "items": items if ok else 0}))
         except RuntimeError:
             pass

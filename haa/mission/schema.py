@@ -211,6 +211,9 @@ class MissionSpec(_Model):
     #: extra haa-hostd arguments for every host of the mission's own cluster, e.g. ["--agent-hang-timeout", "1"]
     #: (missions/r1.yaml); `haa-hostd --help` lists them
     hostd_args: list[Annotated[str, Field(max_length=256)]] = Field(default_factory=list, max_length=32)
+    #: AgentPlayback (docs/playback.md): record every agent's inputs and outputs; a folder (relative to the
+    #: run's output folder) or true (`<out>/recording`). `haactl mission run --record DIR` overrides it
+    record: bool | Annotated[str, Field(min_length=1, max_length=4096)] = False
     map_resolution: float = Field(0.1, ge=0.02, le=1.0, allow_inf_nan=False)
     congregation: Congregation = Congregation()
     agent_faults: list[AgentFault] = Field(default_factory=list, max_length=1000)

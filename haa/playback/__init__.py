@@ -1,0 +1,11 @@
+"""AgentPlayback (thesis §6.1.4, Table 6.1-1; docs/playback.md): recording every external input of every agent
+and re-running one agent offline from its recording.
+
+* `haa.playback.recorder` — `Recorder`, the tap an agent process installs on its `AgentContext` when
+  `HAA_RECORD_DIR` is set (haa-hostd `--record DIR`, `haactl mission run --record DIR`): MCAP segments of
+  protobuf messages (proto/haa/pb/playback.proto), one folder per agent, rotated by size, flushed every second.
+* `haa.playback.external` — inputs that bypass the host (haa-sim's replies to an avatar agent): a recording
+  proxy of a gRPC stub and its offline stand-in.
+* `haa.playback.reader` — reads a recording folder or file (a crashed writer's truncated file too).
+* `haa.playback.replay` — re-runs one agent instance from its recorded inputs and compares every output.
+"""

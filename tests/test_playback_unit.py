@@ -1,0 +1,143 @@
+"""AgentPlayback's recorder and reader without a cluster (docs/playback.md): segments rotate by size and
+join up again, an idle recorder's inputs reach the disk within about a second (a crash loses at most that),
+a cut file reads up to its last chunk, random draws and clock reads replay to the same values, the schemas
+are the protobuf FileDescriptorSets Foxglove reads, and bad input gets one clear line."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+from google.protobuf import descriptor_pb2
+from mcap.reader import make_reader
+from typer.testing import CliRunner
+
+from haa.agents.base import WALL_CLOCK
+from haa.pb import agent_pb2 as pb
+from haa.pb import playback_pb2 as ppb
+from haa.playback import reader
+from haa.playback.recorder import Recorder
+from haa.playback.replay import ReplayFeed, ReplayStopped
+from haactl.main import app
+
+INIT = pb.HostToAgent.Init(agent_id="0f0e0d0c-aaaa-bbbb-cccc-000000000001", name="A7.2", type_name="probe",
+                           config=b"{}", epoch=3, host="h2")
+
+
+def _draws(rnd: random.Random) -> list:
+    xs = list(range(20))
+    rnd.shuffle(xs)
+    return [rnd.random(), rnd.uniform(-1, 1), rnd.randint(0, 10**12), rnd.choice("abcdefgh"), xs,
+            rnd.gauss(0, 1), rnd.randbytes(5), rnd.sample(range(1000), 3)]
+
+
+def test_segments_rotate_by_size_and_read_back_in_order(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, INIT, segment_bytes=4096)
+    for k in range(600):
+        rec.input(ppb.PlaybackInput(clock=float(k)))
+        if k % 7 == 0:
+            rec.output(ppb.PlaybackOutput(frame=pb.AgentToHost(sent=pb.AgentMsg(dst="x", payload=b"p" * 40))))
+    rec.close()
+    files = sorted((tmp_path / "A7.2").iterdir())
+    assert len(files) >= 3 and all(f.name.startswith("e3-h2-") for f in files), files
+    (inst,) = reader.load(tmp_path)["A7.2"]
+    assert [i.seq for i in inst.inputs] == list(range(600))
+    assert [i.clock for i in inst.inputs] == [float(k) for k in range(600)]
+    assert [o.after_input for o in inst.outputs] == [k + 1 for k in range(0, 600, 7)]
+    assert not inst.truncated and inst.init.init == INIT
+    assert all(s.header.first_input == s.inputs[0].seq for s in inst.segments if s.inputs)
+    (row,) = reader.summarize(tmp_path)
+    assert (row.name, row.instances, row.segments, row.inputs) == ("A7.2", 1, len(files), 600)
+
+
+def test_an_idle_recorder_flushes_within_a_second_and_a_cut_file_reads_to_its_last_chunk(tmp_path: Path) -> None:
+    async def go() -> tuple[float, int]:
+        rec = Recorder(tmp_path, INIT)
+        for k in range(50):
+            rec.input(ppb.PlaybackInput(clock=float(k)))
+        t0 = time.monotonic()
+        path = next((tmp_path / "A7.2").iterdir())
+        while time.monotonic() - t0 < 10:  # the agent records nothing more; its file is still open
+            seg = reader.read_segment(path)
+            if len(seg.inputs) == 50:
+                break
+            await asyncio.sleep(0.05)
+        took = time.monotonic() - t0
+        n = len(reader.read_segment(path).inputs)
+        rec.close()
+        return took, n
+
+    took, n = asyncio.run(go())
+    assert n == 50 and took < 3.0, (n, took)  # FLUSH_S = 1 s (+ a loaded machine's slack)
+    path = next((tmp_path / "A7.2").iterdir())
+    whole = path.read_bytes()
+    seg = reader.read_segment(path)
+    assert not seg.truncated and len(seg.inputs) == 50
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole[: len(whole) - 40])  # the summary and footer lost, as if the writer had died
+    seg = reader.read_segment(cut)
+    assert seg.truncated and [i.clock for i in seg.inputs] == [float(k) for k in range(50)]
+
+
+def test_random_draws_and_clock_reads_replay_to_the_same_values(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, INIT)
+    rnd = rec.wrap_random(random.Random("seed/A7.2/3"))
+    clock = rec.wrap_clock(WALL_CLOCK)
+    live = _draws(rnd)
+    t = clock.now()
+    rec.close()
+    assert live == _draws(random.Random("seed/A7.2/3"))  # recording does not change what the agent draws
+    (inst,) = reader.load(tmp_path)["A7.2"]
+
+    async def again() -> tuple[list, float, ReplayFeed]:
+        feed = ReplayFeed(inst)
+        return _draws(feed.wrap_random(random.Random(0))), feed.wrap_clock(WALL_CLOCK).now(), feed
+
+    got, t2, feed = asyncio.run(again())
+    assert got == live and t2 == t and feed.pos == len(inst.inputs)
+
+    async def diverge() -> None:
+        ReplayFeed(inst).wrap_clock(WALL_CLOCK).now()  # live, the first input was a random draw
+
+    with pytest.raises(ReplayStopped):
+        asyncio.run(diverge())
+
+
+def test_schemas_are_protobuf_file_descriptor_sets(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, INIT)
+    rec.input(ppb.PlaybackInput(clock=1.0))
+    rec.close()
+    path = next((tmp_path / "A7.2").iterdir())
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    names = {}
+    for s in summary.schemas.values():
+        assert s.encoding == "protobuf"
+        fds = descriptor_pb2.FileDescriptorSet.FromString(s.data)
+        names[s.name] = {m.name for fd in fds.file for m in fd.message_type}
+    assert set(names) == {"haa.v1.PlaybackInstance", "haa.v1.PlaybackInput", "haa.v1.PlaybackOutput"}
+    assert {c.topic for c in summary.channels.values()} == {reader.TOPIC_INSTANCE, reader.TOPIC_INPUT,
+                                                             reader.TOPIC_OUTPUT}
+
+
+def test_bad_input_gets_one_line(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    with pytest.raises(reader.RecordingError, match="not a readable AgentPlayback recording"):
+        reader.read_segment(junk)
+    cli = CliRunner()
+    res = cli.invoke(app, ["record", "ls", str(tmp_path / "nowhere")])
+    assert res.exit_code == 1 and res.output.strip().endswith("no such file or folder"), res.output
+    (tmp_path / "empty").mkdir()
+    res = cli.invoke(app, ["replay", str(tmp_path / "empty"), "--agent", "A1"])
+    assert res.exit_code == 2 and "no recording segments" in res.output and len(res.output.splitlines()) == 1
+    rec = Recorder(tmp_path / "r", INIT)
+    rec.close()
+    shutil.copy(junk, tmp_path / "r" / "A7.2" / "zz.mcap")
+    res = cli.invoke(app, ["record", "ls", str(tmp_path / "r")])
+    assert res.exit_code == 1 and "zz.mcap: not a readable AgentPlayback recording" in res.output, res.output
