@@ -249,6 +249,9 @@ class SimHandle:
     log: str = ""
     started_here: bool = False
     proc: subprocess.Popen[bytes] | None = field(default=None, repr=False)
+    #: where the agents reach it, when not at `address` (compose: sim:7100 and the token in the containers)
+    agent_address: str = ""
+    agent_token_file: str = ""
 
     def client(self, timeout: float = 5.0) -> Any:
         from haa import files
@@ -292,12 +295,15 @@ class SimHandle:
 
     def to_json(self) -> dict[str, Any]:
         return {"address": self.address, "token_file": self.token_file, "pid": self.pid,
-                "create_time": self.create_time, "log": self.log, "started_here": self.started_here}
+                "create_time": self.create_time, "log": self.log, "started_here": self.started_here,
+                "agent_address": self.agent_address, "agent_token_file": self.agent_token_file}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SimHandle:
         return cls(str(d["address"]), str(d.get("token_file") or ""), d.get("pid"), d.get("create_time"),
-                   str(d.get("log") or ""), bool(d.get("started_here")))
+                   str(d.get("log") or ""), bool(d.get("started_here")),
+                   agent_address=str(d.get("agent_address") or ""),
+                   agent_token_file=str(d.get("agent_token_file") or ""))
 
 
 def sim_command() -> list[str]:
@@ -485,6 +491,42 @@ def spawn_agent(backend: Any, type_name: str, config: dict[str, Any], timeout: f
     raise MissionRunError(f"spawn {type_name}: {last}")
 
 
+#: DDB prefixes of the robot team's state (docs/team.md "DDB layout")
+TEAM_PREFIXES = ("mission/", "avatars/", "bids/", "assign/", "slam/", "targets/")
+
+
+def clear_team_state(backend: Any, timeout: float = 15.0) -> int:
+    """Delete every key of TEAM_PREFIXES from the cluster's DDB (a committed write), so that a mission started
+    on a cluster that ran another one has a status, map and filters of its own (`haactl mission start` twice:
+    the second must not read the first's `mission/status = complete`). The number of keys deleted."""
+    from haa.hostd import ddb as ddbmod
+
+    names = alive_hosts(backend)
+    if not names:
+        raise MissionRunError("no host is alive: cannot clear the previous mission's DDB keys")
+    host = names[0]
+    c = _client(backend, host, timeout)
+    try:
+        keys = sorted(o.key for p in TEAM_PREFIXES for o in c.ddb_get(prefix=p, keys_only=True).objects)
+    except grpc.RpcError as e:
+        raise MissionRunError(f"reading the previous mission's DDB keys on {host}: {e.code().name}") from None
+    finally:
+        c.close()
+    for i in range(0, len(keys), 200):
+        ops = [ddbmod.delete(k) for k in keys[i:i + 200]]
+        c = _client(backend, host, timeout)
+        try:
+            rep = c.ddb_write(ops, timeout=timeout)
+        except grpc.RpcError as e:
+            raise MissionRunError(f"clearing the previous mission's DDB keys on {host}: {e.code().name}") from None
+        finally:
+            c.close()
+        if not rep.committed:
+            why = rep.reason or "not committed"
+            raise MissionRunError(f"clearing the previous mission's DDB keys on {host}: {why}")
+    return len(keys)
+
+
 def registered_types(backend: Any) -> list[str] | None:
     for n in alive_hosts(backend):
         c = _client(backend, n)
@@ -589,7 +631,6 @@ class MissionRun:
         fresh_sim: bool | None = None,
         on_poll: Callable[[MissionRun], None] | None = None,
         agent_types: tuple[str, str] = (EXECUTIVE, AVATAR),
-        record: Path | None = None,
     ) -> None:
         self.mission = mission
         self.spec = mission.spec
@@ -670,9 +711,6 @@ class MissionRun:
             from haa.chaos.plan import load_plan
 
             self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
-        #: AgentPlayback (docs/playback.md): every agent of our own cluster records into this folder
-        self.record_dir = record_folder(self.spec.record, self.out_dir, record)
-        self._record_env: str | None = None
         self.chaos_thread: threading.Thread | None = None
         self.chaos_done = threading.Event()
         self.injector: Any = None
@@ -710,7 +748,6 @@ class MissionRun:
         psutil.cpu_percent(None)
         if self.owns_cluster:
             n = self.spec.hosts.start
-            self.start_recording()
             self.backend = LocalBackend(self.root)
             self.say(f"starting {n} hosts (local cluster in {self.root})")
             names = self.backend.up(n, min(3, n), hostd_args=list(self.spec.hostd_args))
@@ -748,6 +785,10 @@ class MissionRun:
         if not self.fresh_sim:  # an haa-sim that was running: the mission starts now, avatars join by SimControl
             self.t0 = now
         self.now = now
+        if not self.owns_cluster:  # an operator's cluster may hold an earlier mission's status, map and filters
+            n = clear_team_state(self.backend)
+            if n:
+                self.say(f"cleared {n} DDB keys of an earlier mission ({', '.join(TEAM_PREFIXES)})")
         self.poll_sim()
         self.spawn_executive()
 
@@ -759,7 +800,9 @@ class MissionRun:
             w0 = time.time()
             t = c.info().time
             w1 = time.time()
-        return {"sim": self.sim.address, "sim_token_file": self.sim.token_file, "speed": self.speed,
+        return {"sim": self.sim.agent_address or self.sim.address,
+                "sim_token_file": self.sim.agent_token_file if self.sim.agent_address else self.sim.token_file,
+                "speed": self.speed,
                 "seed": self.spec.seed, "sim0": t, "wall0": (w0 + w1) / 2}
 
     def spawn_executive(self) -> None:
@@ -1286,31 +1329,6 @@ class MissionRun:
                             p.wait(2)
         self.host_pool.shutdown(wait=True)
         self.agent_pool.shutdown(wait=True)
-        self.stop_recording()
-
-    # ------------------------------------------------------------------ AgentPlayback recording
-    def start_recording(self) -> None:
-        """Our hosts (and the ones restarted later) inherit HAA_RECORD_DIR: their agent processes record
-        (haa.playback.recorder). Taken back by `stop_recording` at teardown."""
-        if self.record_dir is None:
-            return
-        from haa.playback.recorder import RECORD_ENV
-
-        self.record_dir.mkdir(parents=True, exist_ok=True)
-        self._record_env = os.environ.get(RECORD_ENV, "")
-        os.environ[RECORD_ENV] = str(self.record_dir)
-        self.say(f"recording every agent's inputs into {self.record_dir} (haactl record ls / haactl replay)")
-
-    def stop_recording(self) -> None:
-        if self._record_env is None:
-            return
-        from haa.playback.recorder import RECORD_ENV
-
-        if self._record_env:
-            os.environ[RECORD_ENV] = self._record_env
-        else:
-            os.environ.pop(RECORD_ENV, None)
-        self._record_env = None
 
     def run(self, json_out: Path | None = None) -> dict[str, Any]:
         try:
@@ -1345,24 +1363,9 @@ def run_mission(
     root: Path | None = None,
     log: Callable[[str], None] | None = None,
     agent_types: tuple[str, str] = (EXECUTIVE, AVATAR),
-    record: Path | None = None,
 ) -> dict[str, Any]:
-    """Run `mission` on its own local cluster and haa-sim (module docstring); the results dict. `record`: a
-    folder for the AgentPlayback recording (else the mission file's `record` key decides)."""
-    return MissionRun(mission, speed, out_dir, root, progress, log=log, agent_types=agent_types,
-                      record=record).run(json_out)
-
-
-def record_folder(key: bool | str, out_dir: Path, override: Path | None) -> Path | None:
-    """Where a mission records (docs/playback.md): `override` (haactl --record), else the mission file's
-    `record` key — true: `<out>/recording`, a folder: relative to the output folder; None = no recording."""
-    if override is not None:
-        return Path(override).absolute()
-    if key is True:
-        return out_dir / "recording"
-    if isinstance(key, str) and key:
-        return (out_dir / Path(key).expanduser()).absolute()
-    return None
+    """Run `mission` on its own local cluster and haa-sim (module docstring); the results dict."""
+    return MissionRun(mission, speed, out_dir, root, progress, log=log, agent_types=agent_types).run(json_out)
 
 
 # ---------------------------------------------------------------------------------------------- pictures
@@ -1542,24 +1545,30 @@ def snapshot(run: MissionRun) -> dict[str, Any]:
     }
 
 
-def start_attached(root: Path, mission: Mission, speed: float | None = None, sim_address: str | None = None,
+def start_attached(root: Path | None, mission: Mission, speed: float | None = None, sim_address: str | None = None,
                    sim_token_file: str = "", wait: float = 60.0,
-                   agent_types: tuple[str, str] = (EXECUTIVE, AVATAR)) -> dict[str, Any]:
+                   agent_types: tuple[str, str] = (EXECUTIVE, AVATAR), backend: Any = None,
+                   md: Path | None = None, conductor: Sequence[str] = (),
+                   agent_sim: tuple[str, str] = ("", "")) -> dict[str, Any]:
     """`haactl mission start`: check the cluster, check or start haa-sim, launch the conductor; returns its
-    first status snapshot. MissionRunError when anything is wrong (nothing is left running then)."""
+    first status snapshot. MissionRunError when anything is wrong (nothing is left running then).
+
+    The local cluster at `root` by default; another cluster (compose) comes as `backend` with its state
+    directory `md`, `conductor` (the command that runs `conduct` with that backend, haactl.mission_compose)
+    and `agent_sim` (haa-sim's address and token file as the agents see them)."""
     from haa.cluster.backend import ClusterError
     from haa.cluster.local_backend import LocalBackend
 
     if mission.path is None:
         raise MissionRunError("mission start needs a mission file")
     try:
-        backend = LocalBackend(root)
+        backend = backend if backend is not None else LocalBackend(Path(root or "."))
         backend.require_hosts()
     except ClusterError as e:
         raise MissionRunError(str(e)) from None
     if not alive_hosts(backend):
         raise MissionRunError(f"no host is alive in the {backend.describe()}")
-    md = mission_dir(backend.root)
+    md = md or mission_dir(backend.root)
     md.mkdir(parents=True, exist_ok=True)
     state = read_json(md / STATE_FILE)
     if conductor_alive(state):
@@ -1571,7 +1580,7 @@ def start_attached(root: Path, mission: Mission, speed: float | None = None, sim
     if handle is not None and handle.started_here and not handle.alive():
         handle = None
     if sim_address:
-        handle = SimHandle(sim_address, sim_token_file)
+        handle = SimHandle(sim_address, sim_token_file, agent_address=agent_sim[0], agent_token_file=agent_sim[1])
     fresh = False
     if handle is not None:
         try:
@@ -1587,12 +1596,15 @@ def start_attached(root: Path, mission: Mission, speed: float | None = None, sim
                                   f"{', '.join(clash)}: stop it first (haactl mission stop)")
         if info.mode == "realtime" and info.speed and abs(info.speed - speed) > 1e-9:
             speed = float(info.speed)  # the agents' clocks must follow the haa-sim that runs
+        if sim_address:  # the conductor finds it there
+            write_json(md / SIM_FILE, handle.to_json())
     else:
         handle = start_sim(mission, speed, md, schedule=True, detached=True)
         fresh = True
         write_json(md / SIM_FILE, handle.to_json())
     (md / TRANSCRIPT_FILE).unlink(missing_ok=True)
-    cmd = [sys.executable, "-m", "haa.mission.runner", "conduct", "--root", str(backend.root), "--mission",
+    where = ["--state-dir", str(md)] if conductor else ["--root", str(backend.root)]
+    cmd = [*(conductor or [sys.executable, "-m", "haa.mission.runner", "conduct"]), *where, "--mission",
            str(Path(mission.path).absolute()), "--speed", repr(speed), "--out", str(md / "run")]
     if fresh:
         cmd.append("--fresh-sim")
@@ -1621,13 +1633,15 @@ def start_attached(root: Path, mission: Mission, speed: float | None = None, sim
         time.sleep(0.2)
 
 
-def stop_attached(root: Path, timeout: float = 90.0) -> dict[str, Any]:
+def stop_attached(root: Path | None, timeout: float = 90.0, md: Path | None = None,
+                  backend: Any = None) -> dict[str, Any]:
     """`haactl mission stop`: end the conductor (it collects the results and removes the mission's agents),
     or remove the agents itself if the conductor is gone; stop the haa-sim `start` started. Returns
-    {"results": ... or None, "removed": [...], "sim": "stopped" | "left running" | ""}."""
+    {"results": ... or None, "removed": [...], "sim": "stopped" | "left running" | ""}. The local cluster at
+    `root`, or `backend` with its state directory `md` (compose)."""
     from haa.cluster.local_backend import LocalBackend
 
-    md = mission_dir(root)
+    md = md or mission_dir(Path(root or "."))
     state = read_json(md / STATE_FILE)
     out: dict[str, Any] = {"results": None, "removed": [], "sim": "", "was_running": False}
     if conductor_alive(state):
@@ -1640,8 +1654,8 @@ def stop_attached(root: Path, timeout: float = 90.0) -> dict[str, Any]:
         if conductor_alive(state):
             os.kill(int(state["pid"]), signal.SIGKILL)
     elif state and state.get("agent_ids") and state.get("state") not in ("finished", "failed"):
-        backend = LocalBackend(root)
         with contextlib.suppress(Exception):
+            backend = backend if backend is not None else LocalBackend(Path(root or "."))
             out["removed"] = remove_agents(backend, [i for i in state["agent_ids"] if i])
     rec = read_json(md / SIM_FILE)
     if rec:
@@ -1654,8 +1668,8 @@ def stop_attached(root: Path, timeout: float = 90.0) -> dict[str, Any]:
     return out
 
 
-def live_transcript(root: Path) -> list[dict[str, Any]]:
-    path = mission_dir(root) / TRANSCRIPT_FILE
+def live_transcript(root: Path | None, md: Path | None = None) -> list[dict[str, Any]]:
+    path = (md or mission_dir(Path(root or "."))) / TRANSCRIPT_FILE
     out = []
     with contextlib.suppress(OSError):
         for line in path.read_text().splitlines():
@@ -1664,15 +1678,17 @@ def live_transcript(root: Path) -> list[dict[str, Any]]:
     return out
 
 
-def conduct(argv: Sequence[str] | None = None) -> int:
-    """The detached process behind `haactl mission start` (see above)."""
+def conduct(argv: Sequence[str] | None = None, backend: Any = None) -> int:
+    """The detached process behind `haactl mission start` (see above): on the local cluster `--root`, or on
+    `backend` with its state directory `--state-dir` (haactl.mission_compose for the compose cluster)."""
     import argparse
 
     from haa.cluster.local_backend import LocalBackend
     from haa.mission.schema import MissionError, load_mission
 
     p = argparse.ArgumentParser(prog="python -m haa.mission.runner conduct")
-    p.add_argument("--root", type=Path, required=True)
+    p.add_argument("--root", type=Path)
+    p.add_argument("--state-dir", type=Path, help="the mission state directory (default <root>/mission)")
     p.add_argument("--mission", type=Path, required=True)
     p.add_argument("--speed", type=float, required=True)
     p.add_argument("--out", type=Path, required=True)
@@ -1680,7 +1696,9 @@ def conduct(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--agent-types", default=f"{EXECUTIVE},{AVATAR}", help="stand-ins of the two top-level types")
     a = p.parse_args(argv)
     exec_type, _, avatar_type = a.agent_types.partition(",")
-    md = mission_dir(a.root)
+    if a.root is None and (backend is None or a.state_dir is None):
+        p.error("--root, or a backend and --state-dir")
+    md = a.state_dir.absolute() if a.state_dir is not None else mission_dir(a.root)
     me = psutil.Process()
     base = {"pid": me.pid, "create_time": me.create_time()}
     try:
@@ -1705,7 +1723,8 @@ def conduct(argv: Sequence[str] | None = None) -> int:
                     tmp.replace(md / TRANSCRIPT_FILE)
 
         write_json(md / STATE_FILE, {**base, "state": "starting", "mission": mission.spec.name})
-        run = MissionRun(mission, a.speed, a.out, backend=LocalBackend(a.root), sim=sim, fresh_sim=a.fresh_sim,
+        run = MissionRun(mission, a.speed, a.out, backend=backend if backend is not None else LocalBackend(a.root),
+                         sim=sim, fresh_sim=a.fresh_sim,
                          on_poll=on_poll, log=lambda text: print(text, flush=True),
                          agent_types=(exec_type, avatar_type))
         signal.signal(signal.SIGTERM, lambda *_: run.stop_flag.set())

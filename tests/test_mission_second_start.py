@@ -1,0 +1,58 @@
+"""A second `haactl mission start` on the same local cluster runs a mission of its own (issue 15 §3): the
+first mission's `mission/status = complete` (and its map, estimates, ...) stays in the DDB after it ended, and
+a second start used to read it and finish at once. The runner now clears the team's keys
+(haa.mission.runner.TEAM_PREFIXES) before it spawns the new executive. Stand-in team agents
+(test_mission_runner_fakes: complete after FAKE_DURATION_S simulated seconds, at speed 4 about 6 s); ≈ 40 s."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from test_mission_runner import FAKE_MISSION, fake_team, mission_file, our_processes
+from test_mission_runner_fakes import FAKE_DURATION_S
+
+from haa.cluster.local_backend import LocalBackend
+from haa.mission import load_mission
+from haa.mission import runner as rn
+
+
+def wait_state(root: Path, pred, timeout: float, what: str) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        st = rn.read_json(rn.mission_dir(root) / rn.STATE_FILE) or {}
+        if pred(st):
+            return st
+        assert time.monotonic() < deadline, f"timed out waiting for {what}: {st}"
+        time.sleep(0.3)
+
+
+def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
+    types = fake_team(monkeypatch)
+    root = tmp_path / "cluster"
+    b = LocalBackend(root)
+    b.up(2, 2)
+    try:
+        deadline = time.monotonic() + 60
+        while not b.formation(["h1", "h2"]).done:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        m = load_mission(mission_file(tmp_path, FAKE_MISSION))
+        durations = []
+        for _ in range(2):
+            st = rn.start_attached(root, m, agent_types=types)
+            assert st["mission"] == "fake"
+            st = wait_state(root, lambda s: s.get("state") == "running", 30, "the mission to run")
+            st = wait_state(root, lambda s: s.get("state") in ("finished", "failed"), 60, "the mission to end")
+            res = st["results"]
+            assert res["completed"] is True, res
+            durations.append(float(res["duration_s"]))
+            rn.stop_attached(root)  # stops the haa-sim `start` started
+        # each mission ran its own FAKE_DURATION_S: the second did not inherit the first's `complete`
+        assert all(d >= 0.8 * FAKE_DURATION_S for d in durations), durations
+        values = rn.ddb_read(b, keys=[rn.K_STATUS])
+        assert values is not None and values[1][rn.K_STATUS]["state"] == "complete"
+    finally:
+        rn.stop_attached(root)
+        b.down(grace=1.0)
+    assert not our_processes(str(tmp_path))
