@@ -631,6 +631,7 @@ class MissionRun:
         fresh_sim: bool | None = None,
         on_poll: Callable[[MissionRun], None] | None = None,
         agent_types: tuple[str, str] = (EXECUTIVE, AVATAR),
+        record: Path | None = None,
     ) -> None:
         self.mission = mission
         self.spec = mission.spec
@@ -711,6 +712,9 @@ class MissionRun:
             from haa.chaos.plan import load_plan
 
             self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
+        #: AgentPlayback (docs/playback.md): every agent of our own cluster records into this folder
+        self.record_dir = record_folder(self.spec.record, self.out_dir, record)
+        self._record_env: str | None = None
         self.chaos_thread: threading.Thread | None = None
         self.chaos_done = threading.Event()
         self.injector: Any = None
@@ -748,6 +752,7 @@ class MissionRun:
         psutil.cpu_percent(None)
         if self.owns_cluster:
             n = self.spec.hosts.start
+            self.start_recording()
             self.backend = LocalBackend(self.root)
             self.say(f"starting {n} hosts (local cluster in {self.root})")
             names = self.backend.up(n, min(3, n), hostd_args=list(self.spec.hostd_args))
@@ -1329,6 +1334,31 @@ class MissionRun:
                             p.wait(2)
         self.host_pool.shutdown(wait=True)
         self.agent_pool.shutdown(wait=True)
+        self.stop_recording()
+
+    # ------------------------------------------------------------------ AgentPlayback recording
+    def start_recording(self) -> None:
+        """Our hosts (and the ones restarted later) inherit HAA_RECORD_DIR: their agent processes record
+        (haa.playback.recorder). Taken back by `stop_recording` at teardown."""
+        if self.record_dir is None:
+            return
+        from haa.playback.recorder import RECORD_ENV
+
+        self.record_dir.mkdir(parents=True, exist_ok=True)
+        self._record_env = os.environ.get(RECORD_ENV, "")
+        os.environ[RECORD_ENV] = str(self.record_dir)
+        self.say(f"recording every agent's inputs into {self.record_dir} (haactl record ls / haactl replay)")
+
+    def stop_recording(self) -> None:
+        if self._record_env is None:
+            return
+        from haa.playback.recorder import RECORD_ENV
+
+        if self._record_env:
+            os.environ[RECORD_ENV] = self._record_env
+        else:
+            os.environ.pop(RECORD_ENV, None)
+        self._record_env = None
 
     def run(self, json_out: Path | None = None) -> dict[str, Any]:
         try:
@@ -1363,9 +1393,24 @@ def run_mission(
     root: Path | None = None,
     log: Callable[[str], None] | None = None,
     agent_types: tuple[str, str] = (EXECUTIVE, AVATAR),
+    record: Path | None = None,
 ) -> dict[str, Any]:
-    """Run `mission` on its own local cluster and haa-sim (module docstring); the results dict."""
-    return MissionRun(mission, speed, out_dir, root, progress, log=log, agent_types=agent_types).run(json_out)
+    """Run `mission` on its own local cluster and haa-sim (module docstring); the results dict. `record`: a
+    folder for the AgentPlayback recording (else the mission file's `record` key decides)."""
+    return MissionRun(mission, speed, out_dir, root, progress, log=log, agent_types=agent_types,
+                      record=record).run(json_out)
+
+
+def record_folder(key: bool | str, out_dir: Path, override: Path | None) -> Path | None:
+    """Where a mission records (docs/playback.md): `override` (haactl --record), else the mission file's
+    `record` key — true: `<out>/recording`, a folder: relative to the output folder; None = no recording."""
+    if override is not None:
+        return Path(override).absolute()
+    if key is True:
+        return out_dir / "recording"
+    if isinstance(key, str) and key:
+        return (out_dir / Path(key).expanduser()).absolute()
+    return None
 
 
 # ---------------------------------------------------------------------------------------------- pictures
