@@ -186,7 +186,7 @@ def test_bridge_publishes_a_recorded_mirror_feed() -> None:
         ddbops.put("mission/status", "json", {"state": "running", "t": 3.0, "explored": 0.25}),
         *[ddbops.put(f"slam/ckpt/{k}", "blob", v) for k, v in checkpoint_blobs(particles).items()],
         ddbops.log_append("mission/events", [json.dumps({"t": 1.0, "text": "Mission started"}).encode(),
-                                             json.dumps({"t": 2.0, "agent": "A1", "type": "ExecutiveMission",
+                                             json.dumps({"t": 2.0, "agent": "A1", "type": "executive_mission",
                                                          "text": "assigned s1"}).encode()]),
     ))
     hub.set_truth({"t": 3.0, "avatars": {"s1": {"x": 1.05, "y": 2.02, "theta": 0.52, "status": "active"}}})

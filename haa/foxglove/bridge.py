@@ -17,7 +17,8 @@ Foxglove's well-known ones, protobuf-encoded by the SDK; `/mission/status` is JS
     /landmarks                foxglove.SceneUpdate  landmark estimates (`slam/landmarks`: a sphere of radius
                                                     2σ and a label each) and, when known, the true landmarks
     /paths                    foxglove.SceneUpdate  estimated path of each avatar, planned paths, targets
-    /transcript               foxglove.Log          the mission transcript (`mission/events`), one line each
+    /transcript               foxglove.Log          the mission transcript (`mission/events`), one line each, as
+                                                    the transcript prints it: "00:31 A1 (ExecutiveMission) ..."
     /agents/events            foxglove.Log          the agent timeline: spawning, active, freezing, crashed, ...
     /mission/status           JSON                  `mission/status` (state, explored, ...) for plots
 
@@ -33,7 +34,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import json
 import logging
 import math
 import threading
@@ -48,6 +48,7 @@ from foxglove import channels as fch
 from foxglove import messages as fm
 
 from haa.dashboard.sources import Changes, Hub
+from haa.mission.transcript import Line, mission_lines
 
 log = logging.getLogger("haa.foxglove")
 
@@ -303,8 +304,9 @@ class FoxgloveBridge:
                       fm.PoseInFrame(timestamp=stamp, frame_id=FRAME, pose=p))
         self._log(self.true_all, fm.PosesInFrame(timestamp=stamp, frame_id=FRAME, poses=poses))
 
-    def _new_transcript(self, m: Any) -> list[dict[str, Any]]:
-        """`mission/events` lines not published yet (all of them again if the log started over)."""
+    def _new_transcript(self, m: Any) -> list[Line]:
+        """`mission/events` lines not published yet (all of them again if the log started over), as the mission
+        transcript reads them (haa.mission.transcript.mission_lines)."""
         o = m.get("mission/events")
         if o is None or o.type_name != "log":
             return []
@@ -315,21 +317,11 @@ class FoxgloveBridge:
             self._events_next = 0
         start = max(self._events_next, first, end - MAX_LINES_PER_TICK)
         self._events_next = end
-        out = []
-        for item in items[start - first:]:
-            try:
-                line = json.loads(item)
-            except ValueError:
-                line = {"text": bytes(item[:200]).decode("utf-8", "replace")}
-            out.append(line if isinstance(line, dict) else {"text": str(line)})
-        return out
+        return mission_lines(bytes(item) for item in items[start - first:])
 
-    def _log_line(self, topic: str, channel: Any, line: dict[str, Any], now: float) -> None:
-        t = line.get("t")
-        when = f"{int(t) // 60:02d}:{int(t) % 60:02d} " if _finite(t) and float(t) >= 0 else ""
-        who = f"{line['agent']} ({line.get('type') or '?'}) " if line.get("agent") else ""
-        msg = fm.Log(timestamp=_stamp(now), level=fm.LogLevel.Info, message=f"{when}{who}{line.get('text', '')}",
-                     name=str(line.get("agent") or "mission"))
+    def _log_line(self, topic: str, channel: Any, line: Line, now: float) -> None:
+        msg = fm.Log(timestamp=_stamp(now), level=fm.LogLevel.Info, message=line.format(),
+                     name=line.agent or "mission")
         t_ns = int(now * 1e9)
         self._lines[topic].append((t_ns, msg))
         self._log(channel, msg, t_ns)
