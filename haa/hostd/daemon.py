@@ -529,10 +529,12 @@ async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int
 
 async def _start_metrics(rt: HostRuntime, port: int) -> Any:
     """Serve /metrics (haa.metrics) on the daemon's loop; a port that cannot be bound ends the process (code 1)."""
-    from haa.metrics.host import host_registry
+    from haa.hostd.metrics import host_registry
     from haa.metrics.http import MetricsServer, metrics_bind_host
+    from haa.stats.sampler import HIST_BOUNDS_MS, ddb_prefix
 
-    reg, scrape = host_registry(rt)
+    # the statistics sampler's histogram bounds and DDB key prefixes: metrics and stats.jsonl bin alike
+    reg, scrape = host_registry(rt, bounds_s=tuple(b / 1000.0 for b in HIST_BOUNDS_MS), prefix_of=ddb_prefix)
     server = MetricsServer(reg, metrics_bind_host(rt.config.listen), port)
     scrape.server = server
     try:

@@ -8,10 +8,14 @@ measurements, the DDB replica, haa-sim's world — the same sources the statisti
 writes to `stats.jsonl`. The sans-I/O core modules (haa.hostd.ufd, oac, core, membership, ddb, allocation,
 transfer, recovery, agentnode) do not know about any of it.
 
-* `haa.metrics.host` — `HostCollector`: the metrics of one haa-hostd (`host_registry(rt)`);
-* `haa.metrics.sim` — `SimCollector`: the metrics of one haa-sim (`sim_registry(core, service)`);
+The collectors live next to what they read; this package holds what they share and imports no other HAA
+package (it sits below haa.hostd and haa.sim):
+
+* `haa.hostd.metrics` — `HostCollector`: the metrics of one haa-hostd (`host_registry(rt)`);
+* `haa.sim.metrics` — `SimCollector`: the metrics of one haa-sim (`sim_registry(core, service)`);
 * `haa.metrics.http` — `MetricsServer`: `/metrics` served by aiohttp on the daemon's own event loop, so that a
-  scrape reads the daemon's structures from the thread that changes them (no locks, no torn reads).
+  scrape reads the daemon's structures from the thread that changes them (no locks, no torn reads);
+* `haa.metrics.latency` — cumulative histograms folded from the daemons' bounded buffers of latency samples.
 
 Each daemon has its own `CollectorRegistry` (a test may run several hosts in one process); the registry also
 holds prometheus_client's `ProcessCollector` (CPU seconds, resident memory, open files of the process).

@@ -29,7 +29,7 @@ ends in UNKNOWN. Requests up to gRPC's default 4 MiB are accepted (larger: RESOU
 to 32 MiB (a raw 640x480 capture is 0.9 MiB).
 Logs are JSON lines on stderr; the first is {"event": "listening", "address": ..., "port": ..., "metrics": URL}.
 With `--metrics-port P` (or HAA_METRICS_PORT) it serves Prometheus metrics on http://<listen host>:P/metrics
-(haa.metrics.sim, docs/metrics.md: simulated time, avatars by status, streams, refused calls, CPU).
+(haa.sim.metrics, docs/metrics.md: simulated time, avatars by status, streams, refused calls, CPU).
 """
 
 from __future__ import annotations
@@ -894,9 +894,9 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
     if port == 0:
         raise RuntimeError(f"cannot bind {listen}")
     metrics = None
-    if metrics_port:  # Prometheus /metrics on the same loop (haa.metrics.sim, docs/metrics.md)
+    if metrics_port:  # Prometheus /metrics on the same loop (haa.sim.metrics, docs/metrics.md)
         from haa.metrics.http import MetricsServer, metrics_bind_host
-        from haa.metrics.sim import sim_registry
+        from haa.sim.metrics import sim_registry
 
         reg, scrape = sim_registry(core, svc)
         metrics = scrape.server = MetricsServer(reg, metrics_bind_host(listen), metrics_port)

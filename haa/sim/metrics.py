@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -27,13 +27,13 @@ from haa.metrics.http import ScrapeCollector
 
 if TYPE_CHECKING:
     from haa.metrics.http import MetricsServer
-    from haa.sim.service import SimCore, SimService
 
 
 class SimCollector:
-    """See the module docstring."""
+    """See the module docstring. `core` is haa-sim's `haa.sim.service.SimCore`, `service` its `SimService`
+    (typed Any: haa.sim.service imports this module, and modules of a package form no import cycle)."""
 
-    def __init__(self, core: SimCore, service: SimService) -> None:
+    def __init__(self, core: Any, service: Any) -> None:
         self.core = core
         self.service = service
 
@@ -81,7 +81,7 @@ class SimCollector:
         yield tc
 
 
-def sim_registry(core: SimCore, service: SimService,
+def sim_registry(core: Any, service: Any,
                  server: MetricsServer | None = None) -> tuple[CollectorRegistry, ScrapeCollector]:
     """A fresh registry with the simulator's collector, the process collector and the scrape collector."""
     reg = CollectorRegistry(auto_describe=False)

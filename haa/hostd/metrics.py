@@ -3,7 +3,8 @@
 `host_registry(rt)` returns a fresh `CollectorRegistry` holding a `HostCollector` for `rt` and
 prometheus_client's `ProcessCollector` (`process_cpu_seconds_total`, `process_resident_memory_bytes`, ...).
 `HostCollector.collect()` runs on the daemon's event loop (haa.metrics.http) and only reads what the daemon
-already keeps; the sources are the statistics sampler's (haa.stats.sampler):
+already keeps; the sources are the statistics sampler's (haa.stats.sampler), and the daemon hands it the
+sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.stats: .importlinter):
 
 * group — `haa_member`, `haa_view`, `haa_members`, `haa_leader` (this host is the leader), `haa_incarnation`;
 * failure detector — `haa_suspected{peer}` (1 while this host's UFD suspects it, thesis §4.4), `haa_suspicions`
@@ -36,86 +37,37 @@ Agent names (A6.2.1) are the `agent` label: an agent keeps its name across trans
 
 from __future__ import annotations
 
-import itertools
-from bisect import bisect_left
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, ProcessCollector
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from haa.metrics.http import ScrapeCollector
-from haa.stats.sampler import HIST_BOUNDS_MS, ddb_prefix
+from haa.metrics.latency import Histogram, SampleTail
 
 if TYPE_CHECKING:
     from haa.hostd.runtime import HostRuntime
     from haa.metrics.http import MetricsServer
 
-#: histogram bucket upper bounds, seconds (the statistics sampler's, haa.stats.sampler.HIST_BOUNDS_MS)
-BUCKETS_S = tuple(b / 1000.0 for b in HIST_BOUNDS_MS)
+#: histogram bucket upper bounds, seconds, when the daemon gives none (it gives the statistics sampler's,
+#: haa.stats.sampler.HIST_BOUNDS_MS, so that metrics and stats.jsonl bin alike)
+BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 #: counter-name prefixes exported with their own metric (not again in haa_host_events_total)
 _PER_KIND = ("tx_msgs.", "tx_bytes.", "rx_msgs.", "rx_bytes.")
 _OWN = frozenset({"oac_committed", "oac_aborted", "oac_delivered"})
 
 
-class Histogram:
-    """A cumulative histogram (bucket counts, sum) that grows by folding in new samples."""
-
-    def __init__(self, bounds: tuple[float, ...] = BUCKETS_S) -> None:
-        self.bounds = bounds
-        self.counts = [0] * (len(bounds) + 1)
-        self.sum = 0.0
-
-    def add(self, values: Iterable[float]) -> None:
-        for v in values:
-            self.counts[bisect_left(self.bounds, v)] += 1
-            self.sum += v
-
-    def family(self, name: str, doc: str) -> HistogramMetricFamily:
-        cum = list(itertools.accumulate(self.counts))
-        buckets = [(repr(b), c) for b, c in zip(self.bounds, cum, strict=False)] + [("+Inf", cum[-1])]
-        return HistogramMetricFamily(name, doc, buckets=buckets, sum_value=self.sum)
-
-
-class SampleTail:
-    """Which items of a bounded deque of latency samples are new since the last look.
-
-    `by_count`: the runtime appends exactly one sample per increment of a counter (decide->deliver: one per
-    `oac_delivered`), so the counter's growth is the number of new samples. Otherwise (propose->decide: one per
-    decided transaction this host proposed, not counted apart) the newest item seen is remembered *as an
-    object* and the deque is read from the right until it: each sample is a float computed anew
-    (`now - t0`), so identity tells it from an equal value. Either way the new samples are exact unless more
-    than the deque holds (`MAX_SAMPLES`, 100,000) arrived between two scrapes."""
-
-    def __init__(self) -> None:
-        self.last_count = 0
-        self.last_item: object | None = None
-
-    def new_by_count(self, samples: Any, count: int) -> list[float]:
-        n = min(len(samples), max(0, count - self.last_count))
-        self.last_count = count
-        return list(itertools.islice(reversed(samples), n)) if n else []
-
-    def new_by_identity(self, samples: Any) -> list[float]:
-        out: list[float] = []
-        last = self.last_item
-        for v in reversed(samples):
-            if v is last:
-                break
-            out.append(v)
-        if samples:
-            self.last_item = samples[-1]
-        return out
-
-
 class HostCollector:
     """The metrics of one haa-hostd (module docstring); register it in the daemon's own registry."""
 
-    def __init__(self, rt: HostRuntime) -> None:
+    def __init__(self, rt: HostRuntime, bounds_s: tuple[float, ...] = BUCKETS_S,
+                 prefix_of: Callable[[str], str] = lambda key: key.split("/", 1)[0]) -> None:
         self.rt = rt
-        self.p2d = Histogram()
-        self.d2d = Histogram()
+        self.prefix_of = prefix_of
+        self.p2d = Histogram(bounds_s)
+        self.d2d = Histogram(bounds_s)
         self._p2d_tail = SampleTail()
         self._d2d_tail = SampleTail()
         self._events: Counter[str] = Counter()
@@ -171,7 +123,7 @@ class HostCollector:
             by: Counter[str] = Counter()
             total = 0
             for k, obj in ddb._objects.items():
-                by[ddb_prefix(k)] += obj.size
+                by[self.prefix_of(k)] += obj.size
                 total += obj.size
             self._ddb = (ddb.size, total, dict(by))
             self._ddb_key = key
@@ -351,11 +303,13 @@ class HostCollector:
         yield fam
 
 
-def host_registry(rt: HostRuntime, server: MetricsServer | None = None) -> tuple[CollectorRegistry, ScrapeCollector]:
+def host_registry(rt: HostRuntime, server: MetricsServer | None = None, bounds_s: tuple[float, ...] = BUCKETS_S,
+                  prefix_of: Callable[[str], str] | None = None) -> tuple[CollectorRegistry, ScrapeCollector]:
     """A fresh registry with the host's collector, the process collector and the scrape collector (set its
-    `server` once the server exists)."""
+    `server` once the server exists). `bounds_s`, `prefix_of`: the histogram buckets and the DDB key-prefix rule
+    (the daemon passes the statistics sampler's)."""
     reg = CollectorRegistry(auto_describe=False)
-    reg.register(HostCollector(rt))
+    reg.register(HostCollector(rt, bounds_s, prefix_of) if prefix_of else HostCollector(rt, bounds_s))
     ProcessCollector(registry=reg)
     scrape = ScrapeCollector(server)
     reg.register(scrape)
