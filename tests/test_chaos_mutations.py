@@ -45,3 +45,23 @@ def test_the_mutated_hosts_fail_exactly_their_check(name: str, tmp_path: Path) -
 def test_a_mutation_is_refused_inside_a_mission_and_unknown_names_are_errors() -> None:
     with pytest.raises(PlanError, match="unknown mutation 'nope'"):
         parse_plan({"name": "x", "duration_s": 5, "mutation": "nope"})
+
+
+def test_a_pair_that_never_crashed_may_lose_nothing_at_all() -> None:
+    """Per-sender order across transfers (issue 18 §2): `lost_after_recovery` is allowed only where the counter
+    or its peer crashed (a recovery from an older backup, Alg. 8)."""
+    from haa.chaos.checks import check_counter_streams
+
+    def reps(lost_after_recovery: int) -> dict:
+        stats = {"A1": {"id": "a1", "peer": "b1", "received": 50, "lost_after_recovery": lost_after_recovery,
+                        "thaws": 2},
+                 "A1.1": {"id": "b1", "peer": "a1", "received": 48, "thaws": 1}}
+        return {"h1": {"status": {"member": True},
+                       "objects": {f"demo/{n}": {"type": "json", "value": v} for n, v in stats.items()}}}
+
+    crash = {"h1": [{"ts": 1.0, "event": "agent_crashed", "fields": {"agent": "b1", "name": "A1.1", "detail": ""}}]}
+    ok = check_counter_streams(reps(0), {})
+    assert ok.passed and "2 counters whose pair never crashed" in ok.detail and "across 3 transfers" in ok.detail
+    bad = check_counter_streams(reps(3), {})
+    assert not bad.passed and "lost_after_recovery 3 though neither it nor its peer crashed" in bad.detail
+    assert check_counter_streams(reps(3), crash).passed  # its peer was recovered: allowed

@@ -10,7 +10,8 @@ believed while it ran is used. Each check returns `Check(passed, detail)`:
 * `single_instance` (fencing): no output of an older instance of an agent is accepted once a newer one's is —
   ddb-writes: in each writer's log (commit order) the epochs never go down; counters: no receiver counted a
   `stale` message (an older life of a sender after its newer one);
-* `counter_streams` (counters): no message lost outside a recovery, none out of order, none twice;
+* `counter_streams` (counters): no message lost outside a recovery, none out of order, none twice; for a
+  pair whose counters never crashed, none lost or resent at all (per-sender order across transfers);
 * `crashed_agents_recovered`: every agent that a host reported crashed was afterwards recovered, thawed or
   started again somewhere, or is reported `failed` with its reason, or was removed.
 """
@@ -177,21 +178,36 @@ def check_fencing_counters(reps: dict[str, dict[str, Any]]) -> Check:
     return Check(True, f"{len(stats)} counters: no message of an older instance after a newer one's")
 
 
-def check_counter_streams(reps: dict[str, dict[str, Any]]) -> Check:
+def check_counter_streams(reps: dict[str, dict[str, Any]],
+                          logs: dict[str, list[dict[str, Any]]] | None = None) -> Check:
+    """No message lost outside a recovery, none out of order, none twice; and for a pair whose two counters
+    never crashed (no `agent_crashed` of either in any host's log) not even that: every message of the peer
+    arrived once and in its sender's order across every transfer (AT-Consistency, thesis §4.5)."""
     stats = counter_stats(reps)
     if not stats:
         return Check(False, "no counter statistics (demo/) in the live replicas")
+    crashed = {e["agent"] for e in agent_events(logs or {}) if e["event"] == "agent_crashed"}
     problems = []
+    intact = 0
+    thaws = 0
     for n, s in sorted(stats.items()):
         for k in ("lost", "out_of_order", "duplicate"):
             if s.get(k, 0):
                 problems.append(f"{n}: {k} {s[k]}")
+        if logs is not None and s.get("id") and s.get("peer") and not {s["id"], s["peer"]} & crashed:
+            intact += 1
+            thaws += int(s.get("thaws", 0))
+            for k in ("lost_after_recovery", "resent_after_recovery"):
+                if s.get(k, 0):
+                    problems.append(f"{n}: {k} {s[k]} though neither it nor its peer crashed")
     if problems:
         return Check(False, _listing(problems))
     got = sum(int(s.get("received", 0)) for s in stats.values())
     rec = sum(int(s.get("lost_after_recovery", 0)) for s in stats.values())
+    kept = (f"; {intact} counters whose pair never crashed: every message once and in order, across {thaws} "
+            "transfers" if logs is not None else "")
     return Check(True, f"{len(stats)} counters received {got} messages: none lost outside a recovery, out of "
-                       f"order or twice ({rec} lost to recoveries from older backups, Alg. 8)")
+                       f"order or twice ({rec} lost to recoveries from older backups, Alg. 8){kept}")
 
 
 def agent_events(logs: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
@@ -257,7 +273,7 @@ def run_checks(run: Path, workload: str | None) -> dict[str, Check]:
         out["single_instance"] = check_fencing_writes(reps)
     elif workload == "counters":
         out["single_instance"] = check_fencing_counters(reps)
-        out["counter_streams"] = check_counter_streams(reps)
+        out["counter_streams"] = check_counter_streams(reps, logs)
     t_end = None
     with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
         t_end = float(json.loads((run / "faults.json").read_text()).get("t_end") or 0) or None
