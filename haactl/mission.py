@@ -7,7 +7,8 @@ results are printed with rich. docs/missions.md, "Running a mission".
   the results table (Table 7.1-1's shape), where the PNGs and the transcript are; exit 0 iff the mission
   completed. A bad mission file: one error line, exit 2, nothing started.
 * `mission start FILE` against the running local cluster (`--root`), starting haa-sim unless one runs (and
-  refusing one with another arena or seed); `status`, `logs [-f]`, `stop`.
+  refusing one with another arena or seed); `status`, `logs [-f]`, `stop`. With `--compose` the same on the
+  compose cluster, its `sim` service as haa-sim (haactl.mission_compose).
 * `experiment af1|af2 [--runs N] [--speed X]`: N runs on seeds seed..seed+N-1, the table beside the thesis'
   values, bench-results/<name>.json.
 """
@@ -48,10 +49,29 @@ def _fail(message: str, code: int = 1) -> None:
     raise typer.Exit(code)
 
 
-def _no_compose(compose: bool) -> None:
+def _compose_backend() -> Any:
+    """The compose cluster (HAA_COMPOSE_FILE, HAA_COMPOSE_PROJECT) for `--compose` (haactl.mission_compose)."""
+    from haa.cluster.backend import ClusterError
+    from haactl.compose_backend import ComposeBackend
+
+    try:
+        return ComposeBackend()
+    except ClusterError as e:
+        _fail(str(e))
+
+
+def _state_dir(compose: bool, root: Path | None) -> Path:
+    """Where the mission's state lives: <root>/mission, or the compose cluster's (haactl.mission_compose)."""
+    from haa.cluster.local_backend import default_root
+    from haa.mission.runner import mission_dir
+
     if compose:
-        _fail("missions on the compose cluster are not supported yet: use a local cluster "
-              "(haactl cluster up; haactl mission start FILE) or haactl mission run FILE")
+        from haactl.mission_compose import state_dir
+
+        if root is not None:
+            _fail("--root is for local clusters; not with --compose")
+        return state_dir(_compose_backend())
+    return mission_dir(root or default_root())
 
 
 def results_table(results: dict[str, Any], title: str) -> Table:
@@ -144,10 +164,20 @@ def mission_start(
 
     if local and compose:
         _fail("--local and --compose exclude each other")
-    _no_compose(compose)
     mission = _load(file)
     try:
-        st = start_attached(root or default_root(), mission, speed, sim, str(sim_token_file or ""))
+        if compose:
+            from haa.cluster.backend import ClusterError
+            from haactl import mission_compose
+
+            if root is not None or sim is not None:
+                _fail("--root and --sim are for local clusters (the compose cluster's haa-sim is its `sim` service)")
+            try:
+                st = mission_compose.start(_compose_backend(), mission, speed)
+            except ClusterError as e:
+                _fail(str(e))
+        else:
+            st = start_attached(root or default_root(), mission, speed, sim, str(sim_token_file or ""))
     except MissionRunError as e:
         _fail(str(e))
     out.print(f"mission {mission.spec.name} started (conductor pid {st.get('pid')}, haa-sim {st.get('sim', '?')}): "
@@ -161,11 +191,9 @@ def mission_status(
     json_out: Annotated[bool, typer.Option("--json", help="JSON output")] = False,
 ) -> None:
     """Explored share, coverage, accuracy, each avatar's supervisor and target, agents per host."""
-    from haa.cluster.local_backend import default_root
-    from haa.mission.runner import STATE_FILE, conductor_alive, mission_dir, read_json
+    from haa.mission.runner import STATE_FILE, conductor_alive, read_json
 
-    _no_compose(compose)
-    st = read_json(mission_dir(root or default_root()) / STATE_FILE)
+    st = read_json(_state_dir(compose, root) / STATE_FILE)
     if not st:
         _fail("no mission on this cluster (haactl mission start FILE)")
     assert st is not None
@@ -205,24 +233,22 @@ def mission_logs(
     root: RootOpt = None,
 ) -> None:
     """The mission transcript (Fig. 7.1-3 style): mission, agent, host and avatar events in simulated mm:ss."""
-    from haa.cluster.local_backend import default_root
-    from haa.mission.runner import STATE_FILE, conductor_alive, live_transcript, mission_dir, read_json
+    from haa.mission.runner import STATE_FILE, conductor_alive, live_transcript, read_json
 
-    _no_compose(compose)
-    r = root or default_root()
-    if read_json(mission_dir(r) / STATE_FILE) is None:
+    md = _state_dir(compose, root)
+    if read_json(md / STATE_FILE) is None:
         _fail("no mission on this cluster (haactl mission start FILE)")
     shown: set[tuple[str, str]] = set()
     try:
         while True:
-            for ln in live_transcript(r):
+            for ln in live_transcript(None, md):
                 key = (str(ln.get("clock")), str(ln.get("text")))
                 if key not in shown:
                     shown.add(key)
                     out.print(f"[dim]{ln.get('clock')}[/] {escape(str(ln.get('text')))}")
-            if not follow or not conductor_alive(read_json(mission_dir(r) / STATE_FILE)):
+            if not follow or not conductor_alive(read_json(md / STATE_FILE)):
                 if follow:  # the conductor wrote the final transcript as it ended
-                    for ln in live_transcript(r):
+                    for ln in live_transcript(None, md):
                         key = (str(ln.get("clock")), str(ln.get("text")))
                         if key not in shown:
                             shown.add(key)
@@ -242,8 +268,19 @@ def mission_stop(
     from haa.cluster.local_backend import default_root
     from haa.mission.runner import stop_attached
 
-    _no_compose(compose)
-    res = stop_attached(root or default_root())
+    if compose:
+        from haa.cluster.backend import ClusterError
+        from haactl import mission_compose
+
+        if root is not None:
+            _fail("--root is for local clusters; not with --compose")
+        try:
+            res = mission_compose.stop(_compose_backend())
+        except ClusterError as e:
+            _fail(str(e))
+            return
+    else:
+        res = stop_attached(root or default_root())
     if not res["was_running"] and not res["sim"] and not res["removed"]:
         out.print("no mission running" + (" (the last one's results follow)" if res["results"] else ""))
     if res["removed"]:
