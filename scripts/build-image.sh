@@ -8,7 +8,9 @@
 # 2. Wheelhouse compose/wheelhouse/ (gitignored): the haa wheel built from this working tree, and every
 #    runtime dependency as cp311 manylinux x86_64 wheels fetched with `pip download` on the host (skipped
 #    when the wheelhouse already satisfies them).
-# 3. compose/token (gitignored): the cluster token, generated when missing.
+# 3. compose/token (gitignored): the cluster token, generated when missing; and compose/tls/hosts/hN (gitignored),
+#    the empty mount points of the hosts' TLS directories (`haactl cluster up --compose --tls` fills them):
+#    docker would otherwise create them, owned by root, at the first `up`.
 # 4. `docker build --network none` of compose/Dockerfile -> $HAA_IMAGE (default haa-hostd:latest).
 #
 # Environment: HAA_BASE_IMAGE, HAA_IMAGE, PYTHON (host interpreter for pip, default python3),
@@ -172,6 +174,9 @@ if [ ! -s "$TOKEN" ]; then
     (umask 077 && od -An -N32 -tx1 /dev/urandom | tr -d ' \n' >"$TOKEN" && echo >>"$TOKEN")
     say "generated the cluster token $TOKEN"
 fi
+for d in $(grep -o '\./tls/hosts/[A-Za-z0-9_.-]*' "$CTX/compose.yaml" | sort -u); do
+    (umask 077 && mkdir -p "$CTX/$d")
+done
 
 # ---------------------------------------------------------------- 4. image
 T_IMG=$(now)
