@@ -147,13 +147,14 @@ def test_ddb_writes_show_in_the_oac_histograms_and_the_ddb_size(cli: Cli) -> Non
 
 
 def test_agents_by_state_match_agent_list(cli: Cli) -> None:
-    for _ in range(3):
+    for _ in range(2):
         cli("agent", "spawn", "counter")
+    cli("agent", "spawn", "counter", "--config", '{"spawn_peer": true}')  # A3 and its child A3.1 ping each other
     u = urls(cli)
 
     def agree() -> bool:
         rows = cli.json("agent", "list")["agents"]
-        if len(rows) < 3:
+        if len(rows) < 4 or any(r["state"] != "active" for r in rows):
             return False
         for h, url in u.items():
             m = scrape(url)
@@ -164,14 +165,32 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
                 return False
         return True
 
-    poll(agree, 30, "haa_agents and haa_agent_table to match `agent list`")
-    m = {h: scrape(url) for h, url in u.items()}
-    assert sum(sum(by_label(m[h], "haa_agent_processes", "state").values()) for h in u) == 3
-    assert sum(one(m[h], "haa_agents_spawned_total") for h in u) >= 3
+    poll(agree, 30, "every agent active, and haa_agents and haa_agent_table to match `agent list`")
+    def four_processes() -> dict[str, Any] | None:  # (an allocation session may still be moving one)
+        ms = {h: scrape(url) for h, url in u.items()}
+        return ms if sum(sum(by_label(ms[h], "haa_agent_processes", "state").values()) for h in u) == 4 else None
+
+    m = poll(four_processes, 30, "4 agent processes")
+    assert sum(one(m[h], "haa_agents_spawned_total") for h in u) >= 4
     assert all(one(m[h], "haa_allocation_sessions_total") >= 1 for h in u)
-    assert sum(by_label(m[h], "haa_agent_events_total", "event").get("active", 0) for h in u) >= 3
+    assert sum(by_label(m[h], "haa_agent_events_total", "event").get("active", 0) for h in u) >= 4
     rss = [v for h in u for v in m[h].get("haa_agent_rss_bytes", {}).values()]
-    assert len(rss) == 3 and min(rss) > 1e6
+    assert len(rss) == 4 and min(rss) > 1e6
+
+    # messages and bytes by peer agent: A3 -> A3.1, wherever A3 runs, and no more than `agent list` counts later
+    def pinged() -> tuple[float, float] | None:
+        for url in u.values():
+            mm = scrape(url)
+            n = mm.get("haa_agent_messages_sent_total", {}).get((("agent", "A3"), ("peer", "A3.1")), 0)
+            b = mm.get("haa_agent_bytes_sent_total", {}).get((("agent", "A3"), ("peer", "A3.1")), 0)
+            if n >= 3:
+                return n, b
+        return None
+
+    n, b = poll(pinged, 30, "A3's pings to A3.1 in haa_agent_messages_sent_total")
+    assert b >= n * 8  # every ping carries at least its header
+    listed = {r["name"]: r for r in cli.json("agent", "list")["agents"]}
+    assert listed["A3"]["msgs_out"] >= n
 
 
 def test_a_killed_host_is_suspected_by_the_survivor(cli: Cli) -> None:
