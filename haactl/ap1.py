@@ -173,13 +173,14 @@ def run_ap1(
     log: Callable[[str], None] = print,
     min_hosts: int = 2,
     modes: Sequence[str] = MODES,
+    tls: bool = False,
 ) -> list[dict[str, Any]]:
     names = [f"h{i + 1}" for i in range(max_hosts)]
     with contextlib.ExitStack() as stack:
         if root is None:
             root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="haa-ap1-")))
-        cluster = stack.enter_context(LocalCluster(names, root))
-        log(f"starting {max_hosts} haa-hostd processes under {root} ...")
+        cluster = stack.enter_context(LocalCluster(names, root, tls=tls))
+        log(f"starting {max_hosts} haa-hostd processes under {root}{' (mutual TLS)' if tls else ''} ...")
         cluster.start()
         cluster.wait_trusted(timeout=60)
         log("cluster formed; warming up")

@@ -119,6 +119,7 @@ def bench_ap1(
     min_hosts: int = typer.Option(2, "--min-hosts", min=2, max=16, help="smallest participant count"),
     mode: list[str] = typer.Option([], "--mode", help="only these loads (repeat): paced, back-to-back, "
                                    "all-proposing, concurrent"),
+    tls: bool = typer.Option(False, "--tls", help="the hosts talk over mutual TLS (docs/deploy.md)"),
 ) -> None:
     """Experiment AP-1 (thesis §7.2.1): OAC latency and messages vs. participants, real haa-hostd processes."""
     from haactl.ap1 import MODES, machine, markdown_table, run_ap1
@@ -128,14 +129,15 @@ def bench_ap1(
         raise typer.BadParameter(f"unknown load {bad[0]!r}: one of {', '.join(MODES)}", param_hint="--mode")
     t0 = time.perf_counter()
     rows = run_ap1(max_hosts=hosts, transactions=transactions, concurrency=concurrency,
-                   min_hosts=min(min_hosts, hosts), modes=tuple(mode) or MODES)
+                   min_hosts=min(min_hosts, hosts), modes=tuple(mode) or MODES, tls=tls)
     print()
     print(markdown_table(rows))
-    # a partial run (some sizes or loads only) does not overwrite the full table
-    partial = min_hosts > 2 or bool(mode)
+    # a partial run (some sizes or loads only, or over TLS) does not overwrite the full table
+    partial = min_hosts > 2 or bool(mode) or tls
     path = write_json(
         "ap1-partial" if partial else "ap1",
-        {"machine": machine(), "transactions_per_step": transactions, "concurrency": concurrency, "rows": rows},
+        {"machine": machine(), "transactions_per_step": transactions, "concurrency": concurrency, "tls": tls,
+         "rows": rows},
     )
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 

@@ -3,7 +3,8 @@
 Used by `haactl demo`, `haactl bench ap1` and the tests. Each host gets its own folder under the cluster
 root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
 file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
-`LocalCluster` starts them all and waits until every host trusts every other. `free_port`, `hostd_command`
+`LocalCluster` starts them all and waits until every host trusts every other (with `tls`, over mutual TLS:
+a cluster CA and certificates in `<root>/tls`, haa.cluster.tls). `free_port`, `hostd_command`
 and `member_command` live in haa.cluster.procs (the local cluster backend and the mission runner use them too)
 and are importable from here as before.
 """
@@ -23,8 +24,10 @@ from typing import Any, TypeVar
 import grpc
 
 from haa.cluster.procs import free_port, hostd_command, member_command
+from haa.cluster.tls import CLIENT_DIR, make_cluster_tls
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
+from haa.tls import ClientTls, load_client
 
 T = TypeVar("T")
 
@@ -47,9 +50,11 @@ def wait_for(fn: Callable[[], T], timeout: float, what: str, interval: float = 0
 
 class HostProc:
     def __init__(
-        self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str]
+        self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str],
+        tls: ClientTls | None = None,
     ) -> None:
         self.name = name
+        self.tls = tls
         self.port = port
         self.address = f"127.0.0.1:{port}"
         self.data_dir = root / name
@@ -82,7 +87,7 @@ class HostProc:
     @property
     def client(self) -> ControlClient:
         if self._client is None:
-            self._client = ControlClient(self.address, self.token)
+            self._client = ControlClient(self.address, self.token, tls=self.tls, server_name=self.name)
         return self._client
 
     def status(self) -> cpb.StatusReply:
@@ -120,7 +125,9 @@ class HostProc:
 class LocalCluster:
     """N haa-hostd processes, full mesh, on free loopback ports."""
 
-    def __init__(self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None) -> None:
+    def __init__(
+        self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None, tls: bool = False
+    ) -> None:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         token = token or secrets.token_hex(24)
@@ -129,8 +136,13 @@ class LocalCluster:
         self.token_file.write_text(token + "\n")
         self.token_file.chmod(0o600)
         ports = {n: free_port() for n in names}
+        client = None
+        if tls:
+            ca = make_cluster_tls(root / "tls", names)
+            client = load_client(root / "tls" / CLIENT_DIR)
         self.hosts = {
-            n: HostProc(n, ports[n], {p: pp for p, pp in ports.items() if p != n}, root, self.token_file, args or [])
+            n: HostProc(n, ports[n], {p: pp for p, pp in ports.items() if p != n}, root, self.token_file,
+                        [*(args or []), *(["--tls-dir", str(ca.host_dir(n))] if tls else [])], client)
             for n in names
         }
 

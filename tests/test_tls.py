@@ -268,3 +268,16 @@ def test_haactl_works_a_host_joins_and_a_write_commits_after_the_refusals(cluste
         assert c.get("hb_rejected_unauthenticated", 0) == 0, (h, c)
         assert c.get("rx_datagrams", 0) > 0, (h, c)
     assert os.path.exists(cluster.root / "tls" / "ca.key")
+
+
+def test_a_static_mesh_over_tls_commits(tmp_path: Path) -> None:
+    """`haactl bench ap1 --tls` and the demo's static mode: `LocalCluster(tls=True)`, real processes."""
+    from haactl.local import LocalCluster
+
+    with LocalCluster(["h1", "h2", "h3"], tmp_path, tls=True) as c:
+        c.start()
+        c.wait_trusted(timeout=60)
+        r = c["h2"].client.propose(b"over tls", wait=True)
+        assert r.decided and r.committed and sorted(r.participants) == ["h1", "h2", "h3"]
+        counters = dict(c["h1"].status().counters.values)
+        assert counters.get("rejected_name_mismatch", 0) == 0 and counters.get("rejected_tls_handshake", 0) == 0
