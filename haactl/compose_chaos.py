@@ -18,6 +18,7 @@ containers get no NET_ADMIN either.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any
 
@@ -86,10 +87,19 @@ class ComposeChaosCluster:
         return out
 
     def start(self, plan: Plan, progress: Progress) -> list[str]:
-        progress(f"starting {plan.hosts} hosts of {self.backend.describe()}")
-        with agent_modules(WORKLOAD_MODULE):
-            names = self.backend.up(plan.hosts, log=progress)
-        return names
+        b = self.backend
+        running = [h.name for h in b.hosts() if h.up]
+        if running:  # never take down a cluster this run did not start
+            raise ClusterError(f"the {b.describe()} is running ({', '.join(running)}): a chaos run brings up its own; "
+                               "`haactl cluster down --compose` first (or another project: HAA_COMPOSE_PROJECT)")
+        progress(f"starting {plan.hosts} hosts of {b.describe()}")
+        try:
+            with agent_modules(WORKLOAD_MODULE):
+                return b.up(plan.hosts, log=progress)
+        except ClusterError:
+            with contextlib.suppress(ClusterError):
+                b.down(grace=1.0)
+            raise
 
     def stop(self, out: Path, progress: Progress) -> None:
         from haa.stats.collect import collect_quietly, read_host

@@ -65,3 +65,29 @@ def test_a_pair_that_never_crashed_may_lose_nothing_at_all() -> None:
     bad = check_counter_streams(reps(3), {})
     assert not bad.passed and "lost_after_recovery 3 though neither it nor its peer crashed" in bad.detail
     assert check_counter_streams(reps(3), crash).passed  # its peer was recovered: allowed
+
+
+def test_a_run_never_stops_a_cluster_it_did_not_start(tmp_path: Path) -> None:
+    """`chaos run --compose` while the compose project already runs: refused with one line, and the running
+    cluster is left alone (run_on stops only what its start brought up)."""
+    from haa.chaos.run import run_on
+    from haa.cluster.backend import ClusterError
+
+    calls: list[str] = []
+
+    class Running:
+        backend = None
+
+        def problems(self, plan):
+            return []
+
+        def start(self, plan, progress):
+            calls.append("start")
+            raise ClusterError("the compose cluster is running (h1, h2, h3): a chaos run brings up its own")
+
+        def stop(self, out, progress):
+            calls.append("stop")
+
+    plan = parse_plan({"name": "x", "duration_s": 5, "workload": "ddb-writes"})
+    res = run_on(Running(), plan, tmp_path / "run")  # type: ignore[arg-type]
+    assert calls == ["start"] and "brings up its own" in res.error and not res.passed

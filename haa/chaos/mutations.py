@@ -209,6 +209,9 @@ def mutation_env(name: str | None, host: str | None = None) -> Iterator[None]:
         return
     if name not in MUTATIONS:
         raise ValueError(f"unknown mutation {name!r} ({', '.join(MUTATIONS)})")
+    if not (SITE_DIR / "sitecustomize.py").is_file():
+        raise ValueError(f"mutation {name}: {SITE_DIR}/sitecustomize.py is missing (mutations need a source "
+                         "checkout or an editable install)")
     keys = (ENV, ENV_HOST, "PYTHONPATH")
     old = {k: os.environ.get(k) for k in keys}
     path = [str(SITE_DIR), *[p for p in (old["PYTHONPATH"] or "").split(os.pathsep) if p]]

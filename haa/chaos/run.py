@@ -35,7 +35,7 @@ from haa.agents.registry import ENV_MODULES
 from haa.chaos import collect
 from haa.chaos.checks import Check, run_checks
 from haa.chaos.inject import Injected, Injector, local_problems
-from haa.chaos.mutations import mutation_env
+from haa.chaos.mutations import SITE_DIR, mutation_env
 from haa.chaos.plan import Plan, PlanError
 from haa.chaos.timeline import Entry, build
 from haa.chaos.workload import STOP_KEY, WORKLOAD_MODULE, WRITER_TYPE
@@ -187,14 +187,22 @@ class LocalChaosCluster:
         self.data_dirs: dict[str, Path] = {}
 
     def problems(self, plan: Plan) -> list[str]:
-        return local_problems(plan)
+        out = local_problems(plan)
+        if plan.mutation and not (SITE_DIR / "sitecustomize.py").is_file():
+            out.append(f"mutation: {SITE_DIR}/sitecustomize.py is missing (mutations need a source checkout or "
+                       "an editable install)")
+        return out
 
     def start(self, plan: Plan, progress: Progress) -> list[str]:
         progress(f"starting {plan.hosts} hosts in {self.backend.root}")
         with agent_modules(WORKLOAD_MODULE), mutation_env(plan.mutation):
             names = self.backend.up(plan.hosts, min(3, plan.hosts), hostd_args=list(plan.hostd_args))
         self.data_dirs = {n: Path(self.backend.state["hosts"][n]["data_dir"]) for n in names}
-        self.backend.check_started()
+        try:
+            self.backend.check_started()
+        except ClusterError:
+            self.stop(self.backend.root.parent, progress)
+            raise
         return names
 
     def stop(self, out: Path, progress: Progress) -> None:
@@ -254,9 +262,10 @@ def run_on(cluster: ChaosCluster, plan: Plan, out: Path, progress: Progress | No
         res.error = str(e)
     finally:
         try:
-            cluster.stop(out, say)
+            if started:  # a start that failed cleaned up after itself (and never touches a cluster it did not start)
+                cluster.stop(out, say)
         except ClusterError as e:
-            if started and not res.error:
+            if not res.error:
                 res.error = f"stopping the cluster: {e}"
         (out / "faults.json").write_text(json.dumps(
             {"t0": res.t0, "t_end": res.t_end, "faults": [f.to_json() for f in res.faults]}, indent=1) + "\n")
