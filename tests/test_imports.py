@@ -9,6 +9,7 @@ a contract that silently matched nothing would fail here.
 
 from __future__ import annotations
 
+import configparser
 import subprocess
 import sys
 from pathlib import Path
@@ -30,6 +31,22 @@ def test_import_contract_is_kept():
                        text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "0 broken" in r.stdout
+
+
+def test_every_package_has_a_layer_and_is_forbidden_to_the_core():
+    """A new package of haa is placed in the layers on purpose, and the core may not import it."""
+    import pkgutil
+
+    import haa
+
+    ini = configparser.ConfigParser()
+    ini.read(CONFIG)
+    layers = ini["importlinter:contract:layers"]["layers"]
+    placed = {m.strip() for line in layers.split("\n") for m in line.split("|") if m.strip()}
+    forbidden = set(ini["importlinter:contract:core-is-sans-io"]["forbidden_modules"].split())
+    children = {f"haa.{m.name}" for m in pkgutil.iter_modules(haa.__path__)}
+    assert children - placed == set(), "packages without a layer in .importlinter"
+    assert children - {"haa.hostd", "haa.pb"} - forbidden == set(), "packages the core could import"
 
 
 class _GraphWithExtraImport:
