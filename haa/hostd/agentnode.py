@@ -30,7 +30,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from google.protobuf.message import DecodeError
 
@@ -68,7 +68,7 @@ from haa.hostd.allocation import (
     SessionStart,
 )
 from haa.hostd.effects import Log, Send, SetTimer
-from haa.hostd.globalstate import decode_tx
+from haa.hostd.globalstate import TxAgent, decode_tx
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
 from haa.hostd.messages import AgentHostMsg, Message
 from haa.hostd.oac import DONE
@@ -638,7 +638,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
     # ------------------------------------------------------------------ committed transactions
 
     def _on_write_done(self, e: WriteDone) -> None:
-        kind, agent, epoch_or_n, n = e.req[1], e.req[2], e.req[3], e.req[4]
+        key = cast("tuple[str, str, str, int, int]", e.req)  # ("agent", kind, agent, epoch or n, n): `_propose`
+        kind, agent, epoch_or_n, n = key[1], key[2], key[3], key[4]
         if kind == "push":
             agent, msgs = self._push_reqs.pop(n, (agent, []))
             if not e.ok and self.m.is_member() and not self._left_group:
@@ -696,7 +697,9 @@ class AgentNode(TransferMixin, RecoveryMixin):
         k = res.kind
         if k == "create":
             if res.ok:
-                self._timeline(res.agent, "created", self.table.get(res.agent).type)  # type: ignore[union-attr]
+                created = self.table.get(res.agent)
+                assert created is not None  # the create was applied
+                self._timeline(res.agent, "created", created.type)
                 self._maybe_session(self._now, "agent list changed")
         elif k == "remove":
             if res.ok:
@@ -849,12 +852,11 @@ class AgentNode(TransferMixin, RecoveryMixin):
 
     def _alloc_effects(self) -> None:
         for e in self.allocator.drain():
-            t = type(e)
-            if t is SendUpdate:
+            if isinstance(e, SendUpdate):
                 data = allocwire.encode_update(e.update)
                 for h in e.dsts:
                     self._send_agent_host(h, "alloc", "", 0, data)
-            elif t is ProposeStart:
+            elif isinstance(e, ProposeStart):
                 st = e.start
                 tx = apb.AgentTx()
                 tx.start.data = allocwire.encode_start(st)
@@ -863,17 +865,17 @@ class AgentNode(TransferMixin, RecoveryMixin):
                 tx.start.agents.extend(st.agent_ids)
                 self._starts[st.ses_id] = st
                 self._propose(tx, ("start", "", st.ses_id))
-            elif t is ProposeFinish:
+            elif isinstance(e, ProposeFinish):
                 tx = apb.AgentTx()
                 tx.finish.ses_id, tx.finish.leader = e.ses_id, self.name
                 for a, h in sorted(e.allocation.items()):
                     tx.finish.allocation[a] = h
                 self._propose(tx, ("finish", "", e.ses_id))
-            elif t is Allocated:
+            elif isinstance(e, Allocated):
                 self.policy.finished(self._now)
                 self._log("allocation_accepted", session=e.ses_id, agents=len(e.allocation),
                           unallocatable=list(e.unallocatable))
-            elif t is Log:
+            elif isinstance(e, Log):
                 self.out.append(e)
 
     def _on_host_done(self, _agent: str, _n: int, ok: bool) -> None:
@@ -899,7 +901,8 @@ class AgentNode(TransferMixin, RecoveryMixin):
     def _on_start_applied(self, payload: bytes) -> None:
         try:
             tx = decode_tx(payload)
-            start = allocwire.decode_start(at.decode(tx.data).start.data)  # type: ignore[union-attr]
+            # a start is proposed as an agent transaction (another kind raises AttributeError here)
+            start = allocwire.decode_start(at.decode(cast(TxAgent, tx).data).start.data)
         except (ValueError, AttributeError) as e:
             self._log("allocation_bad_start", reason=str(e))
             return

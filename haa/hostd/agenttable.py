@@ -200,7 +200,8 @@ class AgentApplied:
 
 
 def encode(tx: apb.AgentTx) -> bytes:
-    return tx.SerializeToString()
+    encoded: bytes = tx.SerializeToString()
+    return encoded
 
 
 def decode(data: bytes) -> apb.AgentTx:
@@ -366,7 +367,8 @@ class AgentTable:
         if handler is None:  # a body this version does not know (decode keeps unknown oneof cases unset)
             return AgentApplied("invalid", "", False, f"unknown agent transaction kind {kind!r}")
         try:
-            return getattr(self, handler)(getattr(tx, kind))  # type: ignore[no-any-return]
+            applied: AgentApplied = getattr(self, handler)(getattr(tx, kind))
+            return applied
         except Exception as e:  # pragma: no cover - a bug; the handlers validate before they change anything
             # Applying a committed transaction is total: every replica runs the same code on the same bytes,
             # so it fails the same way everywhere and the outcome is a deterministic refusal, not a crash that
@@ -668,7 +670,8 @@ class AgentTable:
             s.hosts.append(self.hosts[name])
         for (a, b), rate in sorted(self.affinity.items()):
             s.affinity.add(a=a, b=b, rate=rate)
-        return s.SerializeToString()
+        encoded: bytes = s.SerializeToString()
+        return encoded
 
     @staticmethod
     def restore(data: bytes) -> AgentTable:

@@ -57,7 +57,7 @@ import dataclasses
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 from haa.hostd.effects import Log
 
@@ -1096,6 +1096,7 @@ class Allocator:
         while True:
             prev = s.bundle[-1] if s.bundle and warp else None
             pkey = _vals_key(prev.reward, prev.support) if prev is not None else None
+            prev_r, prev_s = (prev.reward, prev.support) if prev is not None else (0.0, 0.0)  # read iff pkey
             best: tuple[tuple[int, float, float], tuple[str, ...], float, float] | None = None
             for i in s.eligible:
                 if i in in_bundle:
@@ -1103,16 +1104,16 @@ class Allocator:
                 kl = limits.get(i)
                 if kl is not None and held.get(kl[0], 0) >= kl[1]:
                     continue
-                a = agents[i]
-                reward = (a.cost + bonus[i]) * factor[i] + back[i]
-                support = (k - used - (0.0 if i in excl else a.cost)) / k
+                aspec = agents[i]
+                reward = (aspec.cost + bonus[i]) * factor[i] + back[i]
+                support = (k - used - (0.0 if i in excl else aspec.cost)) / k
                 if support <= 0.0:  # over capacity: the margin (within it, the reward's decides)
                     support -= margin[i]
                 key = _vals_key(reward, support)
                 placed, placed_s = reward, support
                 if pkey is not None and key > pkey:  # _warp, spelled out for speed
-                    placed = min(reward, prev.reward)  # type: ignore[union-attr]
-                    placed_s = min(support, prev.support)  # type: ignore[union-attr]
+                    placed = min(reward, prev_r)
+                    placed_s = min(support, prev_s)
                 if not _beats(placed, placed_s, me, to_beat[i]):
                     continue
                 if best is None or key > best[0]:
@@ -1132,8 +1133,8 @@ class Allocator:
                 key = _vals_key(reward, support)
                 placed, placed_s = reward, support
                 if pkey is not None and key > pkey:
-                    placed = min(reward, prev.reward)  # type: ignore[union-attr]
-                    placed_s = min(support, prev.support)  # type: ignore[union-attr]
+                    placed = min(reward, prev_r)
+                    placed_s = min(support, prev_s)
                 if not all(_beats(placed, placed_s, me, to_beat[i]) for i in cl):
                     continue
                 if best is None or key > best[0]:
@@ -1281,8 +1282,9 @@ class Allocator:
         if s.unclaimed or s.mismatch or s.build_queued:  # l. 75-76 would decide before the queued build
             return
         s.decided = True
-        alloc = {j: s.own[j].winner for j in s.agents if j in s.allocatable}  # type: ignore[misc]
-        fin = ProposeFinish(s.ses_id, alloc, self.me, s.unallocatable)  # type: ignore[arg-type]
+        # every allocatable agent has a winner here (`s.unclaimed` is empty)
+        alloc = cast("dict[str, str]", {j: s.own[j].winner for j in s.agents if j in s.allocatable})
+        fin = ProposeFinish(s.ses_id, alloc, self.me, s.unallocatable)
         self._pending_finish = fin
         self._log("alloc.consensus", ses=s.ses_id, builds=s.builds, messages=s.messages_sent)
         self._out.append(fin)

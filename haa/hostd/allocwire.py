@@ -67,7 +67,8 @@ def encode_update(upd: BidUpdate, sender: str | None = None) -> bytes:
     m = apb.AllocBidUpdate(sender=sender if sender is not None else upd.sender, ses_id=upd.ses_id)
     for b in upd.bids:
         m.bids.add(agent=b.agent, winner=b.winner or "", reward=b.reward, support=b.support, round=b.round)
-    return m.SerializeToString()
+    encoded: bytes = m.SerializeToString()
+    return encoded
 
 
 def decode_update(data: bytes) -> BidUpdate:
@@ -109,7 +110,8 @@ def encode_start(st: SessionStart) -> bytes:
             pa.affinity.add(agent=k, alpha=v)
     for h in st.hosts:
         m.hosts.add(name=h.name, capacity=h.capacity, hardware=sorted(h.hardware), draining=h.draining)
-    return m.SerializeToString()
+    encoded: bytes = m.SerializeToString()
+    return encoded
 
 
 def decode_start(data: bytes) -> SessionStart:
@@ -158,7 +160,8 @@ def encode_finish(fin: SessionFinish | ProposeFinish) -> bytes:
     m = apb.AllocFinish(leader=f.leader, ses_id=f.ses_id, unallocatable=list(f.unallocatable))
     for agent, host in f.allocation:
         m.allocation.add(agent=agent, host=host)
-    return m.SerializeToString()
+    encoded: bytes = m.SerializeToString()
+    return encoded
 
 
 def decode_finish(data: bytes) -> SessionFinish:

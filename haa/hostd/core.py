@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from haa.hostd.effects import (
     CancelTimer,
@@ -200,8 +200,9 @@ class HostCore:
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now
-        kind = key[0]  # type: ignore[index]
-        q = key[1]  # type: ignore[index]
+        k = cast("tuple[str, str, int]", key)  # ("hb"|"fd", peer) or ("excl", peer, incarnation): see _timer calls
+        kind = k[0]
+        q = k[1]
         p = self.peers.get(q)
         if p is None:
             return
@@ -220,7 +221,7 @@ class HostCore:
             elif obs.trusted and now < obs.freshness:  # fired early (a driver's clock rounding): wait again
                 self._timer(("fd", q), obs.freshness)
         elif kind == "excl":
-            if key[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:  # type: ignore[index]
+            if k[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:
                 self._exclude(now, p)
 
     def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
@@ -253,26 +254,26 @@ class HostCore:
                 self._send(src, src_inc, Excluded(src_inc))
             return
         t = type(msg)
-        if t is Heartbeat:
+        if isinstance(msg, Heartbeat):
             obs = p.observer
             if obs is None:
                 return
-            became_trusted, new_period = obs.on_heartbeat(now, msg)  # type: ignore[arg-type]
+            became_trusted, new_period = obs.on_heartbeat(now, msg)
             self._timer(("fd", src), obs.freshness)
             if new_period is not None:
                 self._send(src, src_inc, SetPeriod(new_period))  # Alg. 1 l. 27
             if became_trusted:
                 self._set_suspected(now, p, False)
         elif t in OAC_TYPES:
-            self.oac.on_message(src, src_inc, msg)  # type: ignore[arg-type]
-        elif t is SetPeriod:
+            self.oac.on_message(src, src_inc, cast(OacMessage, msg))
+        elif isinstance(msg, SetPeriod):
             if p.sender is not None:
                 try:
-                    p.sender.set_period(msg.period)  # type: ignore[union-attr]
+                    p.sender.set_period(msg.period)
                 except ValueError:
                     self.counters["rejected_bad_period"] += 1
-        elif t is Excluded:
-            if msg.incarnation == self.inc:  # type: ignore[union-attr]
+        elif isinstance(msg, Excluded):
+            if msg.incarnation == self.inc:
                 self._log("excluded_by_peer", by=src)
                 self.out.append(Reincarnate(by=src))
         elif self.group_handler is not None and t in GROUP_TYPES:

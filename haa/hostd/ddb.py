@@ -253,7 +253,8 @@ class ListType(ObjectType):
         return items, sum(map(len, items))
 
     def encode(self, raw: tuple[bytes, ...]) -> bytes:
-        return pb.DdbListValue(items=raw).SerializeToString()
+        encoded: bytes = pb.DdbListValue(items=raw).SerializeToString()
+        return encoded
 
     def client_encode(self, value: Any) -> bytes:
         if isinstance(value, bytes | str) or not isinstance(value, Iterable):
@@ -261,7 +262,8 @@ class ListType(ObjectType):
         items = list(value)
         if not all(isinstance(i, bytes) for i in items):
             raise DdbError("list items must be bytes")
-        return pb.DdbListValue(items=items).SerializeToString()
+        encoded: bytes = pb.DdbListValue(items=items).SerializeToString()
+        return encoded
 
 
 _I64 = struct.Struct(">q")
@@ -329,7 +331,8 @@ class LogType(ObjectType):
         return (v.first, items), size
 
     def encode(self, raw: LogValue) -> bytes:
-        return pb.DdbLogValue(first=raw[0], items=raw[1]).SerializeToString()
+        encoded: bytes = pb.DdbLogValue(first=raw[0], items=raw[1]).SerializeToString()
+        return encoded
 
     def public(self, raw: LogValue) -> dict[str, Any]:
         return {"first": raw[0], "items": raw[1]}
@@ -345,7 +348,8 @@ class LogType(ObjectType):
             raise DdbError(f"a log's first index must be an int in [0, {MAX_LOG_INDEX}], not {first!r}")
         if isinstance(items, bytes | str) or not all(isinstance(i, bytes) for i in items):
             raise DdbError("log items must be bytes")
-        return pb.DdbLogValue(first=first, items=list(items)).SerializeToString()
+        encoded: bytes = pb.DdbLogValue(first=first, items=list(items)).SerializeToString()
+        return encoded
 
 
 #: every object type, by name
@@ -613,7 +617,8 @@ class Ddb:
         for k in self._keys:
             o = self._objects[k]
             snap.objects.add(key=k, type=o.type_name, value=o.data, version=o.version, created=o.created)
-        return snap.SerializeToString()
+        encoded: bytes = snap.SerializeToString()
+        return encoded
 
     @classmethod
     def restore(
@@ -1125,7 +1130,7 @@ def encode_batch(ops: Iterable[pb.DdbOp], origin: str = "", client_seq: int = 0,
         raise DdbError(f"invalid batch: {e}") from None
     if not batch.ops:
         raise DdbError("batch has no operations")
-    data = batch.SerializeToString()
+    data: bytes = batch.SerializeToString()
     if len(data) > MAX_BATCH_BYTES:
         raise DdbError(f"batch too large: {len(data)} bytes > {MAX_BATCH_BYTES}")
     why = check_json_sizes(batch.ops)

@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from google.protobuf.message import DecodeError
 
@@ -34,6 +36,9 @@ from haa.hostd.agenttable import AgentTable, AgentTxError
 from haa.hostd.ddb import Ddb, DdbError
 from haa.hostd.messages import Member, TxId
 from haa.pb import group_pb2 as gpb
+
+if TYPE_CHECKING:
+    from google.protobuf.internal.containers import RepeatedCompositeFieldContainer
 
 Proc = tuple[str, int]
 
@@ -123,41 +128,41 @@ def _proc(m: gpb.GroupProc, p: Proc) -> None:
     m.incarnation = p[1]
 
 
-def _members(rep: object, members: tuple[Member, ...]) -> None:
+def _members(rep: RepeatedCompositeFieldContainer[gpb.GroupMember], members: tuple[Member, ...]) -> None:
     for x in members:
-        rep.add(name=x.name, incarnation=x.inc, addr=x.addr)  # type: ignore[attr-defined]
+        rep.add(name=x.name, incarnation=x.inc, addr=x.addr)
 
 
 def encode_tx(tx: GroupTx) -> bytes:
     m = gpb.GroupTx()
-    t = type(tx)
-    if t is TxRemove:
-        _proc(m.remove.proposer, tx.proposer)  # type: ignore[union-attr]
-        m.remove.key = tx.key  # type: ignore[union-attr]
-        for p in tx.removal:  # type: ignore[union-attr]
+    if isinstance(tx, TxRemove):
+        _proc(m.remove.proposer, tx.proposer)
+        m.remove.key = tx.key
+        for p in tx.removal:
             _proc(m.remove.removal.add(), p)
-    elif t is TxMembership:
-        m.membership.key = tx.key  # type: ignore[union-attr]
-        _proc(m.membership.proposer, tx.proposer)  # type: ignore[union-attr]
-        _members(m.membership.members, tx.members)  # type: ignore[union-attr]
-    elif t is TxFormation:
-        _proc(m.formation.proposer, tx.proposer)  # type: ignore[union-attr]
-        _members(m.formation.members, tx.members)  # type: ignore[union-attr]
-    elif t is TxDdb:
-        m.ddb = tx.data  # type: ignore[union-attr]
-    elif t is TxTest:
-        m.test = tx.data  # type: ignore[union-attr]
-    elif t is TxAgent:
-        m.agent = tx.data  # type: ignore[union-attr]
-    elif t is TxSeq:
+    elif isinstance(tx, TxMembership):
+        m.membership.key = tx.key
+        _proc(m.membership.proposer, tx.proposer)
+        _members(m.membership.members, tx.members)
+    elif isinstance(tx, TxFormation):
+        _proc(m.formation.proposer, tx.proposer)
+        _members(m.formation.members, tx.members)
+    elif isinstance(tx, TxDdb):
+        m.ddb = tx.data
+    elif isinstance(tx, TxTest):
+        m.test = tx.data
+    elif isinstance(tx, TxAgent):
+        m.agent = tx.data
+    elif isinstance(tx, TxSeq):
         add = m.seq.entries.add
-        for e in tx.entries:  # type: ignore[union-attr]
+        for e in tx.entries:
             add(origin=e.origin[0], origin_incarnation=e.origin[1], cseq=e.cseq, floor=e.floor, tx=e.tx)
-        if not tx.entries:  # type: ignore[union-attr]
+        if not tx.entries:
             m.seq.SetInParent()
     else:
-        raise TypeError(f"not a group transaction: {t.__name__}")
-    return m.SerializeToString()
+        raise TypeError(f"not a group transaction: {type(tx).__name__}")
+    data: bytes = m.SerializeToString()
+    return data
 
 
 def _dec_proc(m: gpb.GroupProc, what: str) -> Proc:
@@ -166,8 +171,8 @@ def _dec_proc(m: gpb.GroupProc, what: str) -> Proc:
     return (m.name, m.incarnation)
 
 
-def _dec_members(rep: object, what: str, allow_empty: bool = False) -> tuple[Member, ...]:
-    out = [Member(x.name, x.incarnation, x.addr) for x in rep]  # type: ignore[attr-defined]
+def _dec_members(rep: Iterable[gpb.GroupMember], what: str, allow_empty: bool = False) -> tuple[Member, ...]:
+    out = [Member(x.name, x.incarnation, x.addr) for x in rep]
     names = [x.name for x in out]
     if not out and not allow_empty:
         raise GroupTxError(f"{what}: empty member list")
@@ -205,10 +210,10 @@ def decode_tx(payload: bytes) -> GroupTx:
         return TxAgent(m.agent)
     if kind == "seq":
         entries = []
-        for e in m.seq.entries:
-            if not e.origin or e.origin_incarnation == 0 or e.cseq == 0:
+        for en in m.seq.entries:
+            if not en.origin or en.origin_incarnation == 0 or en.cseq == 0:
                 raise GroupTxError("seq: an entry without origin, incarnation or cseq")
-            entries.append(SeqEntry((e.origin, e.origin_incarnation), e.cseq, e.floor, e.tx))
+            entries.append(SeqEntry((en.origin, en.origin_incarnation), en.cseq, en.floor, en.tx))
         return TxSeq(tuple(entries))
     raise GroupTxError("group transaction: body not set")
 
@@ -352,44 +357,43 @@ class GlobalState:
         kind = tx_kind(tx) if tx is not None else "invalid"
         removed: tuple[Member, ...] = ()
         added: tuple[Member, ...] = ()
-        ddb_result = None
+        ddb_result: object | None = None
         before = list(self.members)
         stale = False
-        t = type(tx)
-        if t is TxRemove:
-            gone = set(tx.removal)  # type: ignore[union-attr]
+        if isinstance(tx, TxRemove):
+            gone = set(tx.removal)
             rest = [m for m in self.members if m.proc not in gone]
-            if rest and rest[0].proc == tx.proposer:  # type: ignore[union-attr]
+            if rest and rest[0].proc == tx.proposer:
                 self.members = rest  # l. 118
             else:
                 stale = True
-        elif t is TxMembership:
+        elif isinstance(tx, TxMembership):
             if not self.members and not self.genesis:
-                if tx.members:  # type: ignore[union-attr]
+                if tx.members:
                     self.genesis = str(txid)  # l. 43: the first core process' group of one
-                    self.members = list(tx.members)  # type: ignore[union-attr]
-            elif not self.members or self.members[0].proc == tx.proposer:  # type: ignore[union-attr]
+                    self.members = list(tx.members)
+            elif not self.members or self.members[0].proc == tx.proposer:
                 # l. 141; an empty list dissolves the group (every member asked to leave, `TxMembership`)
-                self.members = list(tx.members)  # type: ignore[union-attr]  # l. 141
+                self.members = list(tx.members)  # l. 141
             else:
                 stale = True
-        elif t is TxFormation:
+        elif isinstance(tx, TxFormation):
             if not self.members:  # l. 167: only accept one formation message
                 self.genesis = str(txid)
-                self.members = list(tx.members)  # type: ignore[union-attr]  # l. 169
+                self.members = list(tx.members)  # l. 169
                 self.group_correct = True  # l. 178
-        elif t is TxDdb:
+        elif isinstance(tx, TxDdb):
             try:
-                ddb_result = self.ddb.apply(tx.data)  # type: ignore[union-attr]
+                ddb_result = self.ddb.apply(tx.data)
             except DdbError as e:
                 err = str(e)
             except Exception as e:  # a bug: the same bytes fail the same way on every replica (apply is total)
                 err = f"ddb apply failed: {type(e).__name__}: {e}"
-        elif t is TxAgent:
+        elif isinstance(tx, TxAgent):
             # total: AgentTable.apply turns anything it cannot apply into a refusal (AgentApplied.ok False)
-            ddb_result = self.agents.apply(tx.data, tuple(m.name for m in self.members))  # type: ignore[union-attr]
-        elif t is TxSeq:
-            ddb_result = tuple(self._apply_entry(e) for e in tx.entries)  # type: ignore[union-attr]
+            ddb_result = self.agents.apply(tx.data, tuple(m.name for m in self.members))
+        elif isinstance(tx, TxSeq):
+            ddb_result = tuple(self._apply_entry(e) for e in tx.entries)
         changed = self.members != before
         if changed:
             self.view += 1
@@ -421,15 +425,14 @@ class GlobalState:
             inner = decode_tx(e.tx)
         except GroupTxError as ex:
             return SeqApplied(e.origin, e.cseq, True, "invalid", None, str(ex))
-        t = type(inner)
-        if t is TxDdb:
+        if isinstance(inner, TxDdb):
             try:
-                return SeqApplied(e.origin, e.cseq, True, "ddb", self.ddb.apply(inner.data), "")  # type: ignore[union-attr]
+                return SeqApplied(e.origin, e.cseq, True, "ddb", self.ddb.apply(inner.data), "")
             except DdbError as ex:
                 return SeqApplied(e.origin, e.cseq, True, "ddb", None, str(ex))
             except Exception as ex:  # a bug: the same bytes fail the same way on every replica (apply is total)
                 return SeqApplied(e.origin, e.cseq, True, "ddb", None, f"ddb apply failed: {type(ex).__name__}: {ex}")
-        if t is TxTest:
+        if isinstance(inner, TxTest):
             return SeqApplied(e.origin, e.cseq, True, "test", None, "")
         return SeqApplied(e.origin, e.cseq, True, "invalid", None, f"a sequencer batch cannot carry {tx_kind(inner)}")
 
@@ -451,7 +454,8 @@ class GlobalState:
             s.recent.add(host=t.host, incarnation=t.inc, seq=t.seq, applied_seq=q)
         for (name, inc), d in sorted(self.seq_origins.items()):
             s.seq_origins.add(name=name, incarnation=inc, floor=d.floor, done=sorted(d.done))
-        return s.SerializeToString()
+        data: bytes = s.SerializeToString()
+        return data
 
     @staticmethod
     def peek(data: bytes) -> tuple[int, str, bool]:

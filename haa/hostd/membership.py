@@ -50,10 +50,10 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from haa.hostd.core import CoreConfig, HostCore
-from haa.hostd.effects import Decided, Deliver, Log, PeerDead, Reincarnate, Send, Suspicion
+from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, Suspicion
 from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
@@ -150,6 +150,10 @@ class WriteDone:
 @dataclass(slots=True)
 class Left:
     """The voluntary leave of this host was committed (Alg. 3 l. 16): it stops taking part."""
+
+
+#: the effects the node adds to the core's (`haa.hostd.effects.Effect`)
+NodeEffect = Connect | ViewChange | AppliedTx | WriteDone | Left
 
 
 # ------------------------------------------------------------------------------------------------ config
@@ -279,7 +283,8 @@ class MembershipNode:
         self.addrs[name] = addr
         self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate)
         self.core.group_handler = self._on_group
-        self.out = self.core.out  # node effects go through the same outbox, in order
+        #: node effects go through the core's outbox, in order (so it holds both kinds)
+        self.out = cast("list[Effect | NodeEffect]", self.core.out)
         self.state = GlobalState(self.core_names, self.c_f)
         # Alg. 3 ll. 2-13 (removeList_p is computed on demand: members ∩ ◇S_p, see `_remove_list`)
         self.join_list: dict[Proc, str] = {}  # l. 2, applicant -> address, in application order
@@ -336,21 +341,20 @@ class MembershipNode:
     def counters(self) -> Any:
         return self.core.counters
 
-    def drain(self) -> list[Any]:
+    def drain(self) -> list[Effect | NodeEffect]:
         """Effects of the last input. OAC decisions about group transactions are consumed here (and also
         passed on, for logs and the simulator's history)."""
-        res: list[Any] = []
+        res: list[Effect | NodeEffect] = []
         core = self.core
         while True:
-            effects = core.drain()
+            effects = cast("list[Effect | NodeEffect]", core.drain())  # the shared outbox (see __init__)
             if not effects:
                 self._poll()
                 if not core.out:
                     break
                 continue
             for e in effects:
-                t = type(e)
-                if t is Reincarnate and self.leaving:
+                if isinstance(e, Reincarnate) and self.leaving:
                     # we are leaving on purpose: a peer's removal notice is no reason to come back. Removed
                     # (excluded) before our leave committed, we are out of the group all the same (seen when
                     # the whole group leaves at once and the last two members suspect each other)
@@ -360,13 +364,13 @@ class MembershipNode:
                         res.append(Left())
                     continue
                 res.append(e)
-                if t is Deliver:
+                if isinstance(e, Deliver):
                     self._on_deliver(e)
-                elif t is Decided:
+                elif isinstance(e, Decided):
                     self._on_decided(e)
-                elif t is Suspicion:
+                elif isinstance(e, Suspicion):
                     self._on_suspicion_change((e.peer, e.inc), e.suspected)
-                elif t is PeerDead:
+                elif isinstance(e, PeerDead):
                     self._on_peer_dead((e.peer, e.inc))
         return res
 
@@ -457,10 +461,11 @@ class MembershipNode:
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now
-        if key[0] != "m":  # type: ignore[index]
+        tk = cast("tuple[str, str]", key)  # ("m", what) is ours (see _timer), the rest the core's
+        if tk[0] != "m":
             self.core.on_timer(now, key)
             return
-        k = key[1]  # type: ignore[index]
+        k = tk[1]
         if self.left:
             return
         if k == "discovery":
@@ -584,28 +589,27 @@ class MembershipNode:
             tx = decode_tx(payload)
         except GroupTxError:
             return True  # not ours to judge: it is applied as a no-op everywhere
-        t = type(tx)
-        if t is TxRemove:
+        if isinstance(tx, TxRemove):
             self.group_txs.add(txid)
             if "no-weak-validity" in self.mutations:
                 return True
             rl = self._remove_list()
             cand = [m.proc for m in self.state.members if m.proc not in rl]
-            if not cand or cand[0] != tx.proposer:  # type: ignore[union-attr]
+            if not cand or cand[0] != tx.proposer:
                 return False  # l. 111-112: not the accepted leader
-            if not set(tx.removal) <= rl:  # type: ignore[union-attr]  # l. 113-114
+            if not set(tx.removal) <= rl:  # l. 113-114
                 return False
-            return self._quorum(tx.removal)  # type: ignore[union-attr]
-        if t is TxMembership:
+            return self._quorum(tx.removal)
+        if isinstance(tx, TxMembership):
             self.group_txs.add(txid)
-            if tx.key:  # type: ignore[union-attr]
-                self.lock_keys[txid] = tx.key  # type: ignore[union-attr]  # for l. 153 if it aborts
+            if tx.key:
+                self.lock_keys[txid] = tx.key  # for l. 153 if it aborts
             return True
-        if t is TxFormation:
+        if isinstance(tx, TxFormation):
             if self.state.members:  # l. 160-161
                 return False
             want = [m.proc for m in self._core_head_list()]
-            return [m.proc for m in tx.members] == want  # type: ignore[union-attr]  # l. 162-163
+            return [m.proc for m in tx.members] == want  # l. 162-163
         return True
 
     # ------------------------------------------------------------------ OAC outcomes
@@ -713,23 +717,22 @@ class MembershipNode:
         if w is not None:
             self.out.append(WriteDone(w.req, True, txid, res.seq, res.error, res.ddb_result))
         if type(tx) is TxSeq:
-            self._seq_applied(txid, res.seq, res.ddb_result)  # type: ignore[arg-type]
+            self._seq_applied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result))
         elif txid in self.seq_inflight:  # (our batch, but it did not decode as one: cannot happen)
             self._seq_done(txid, True)
         if res.view_changed:
             self._seq_retarget()
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
-        t = type(tx)
         if res.stale:
             self._on_stale(txid)
-        elif t is TxRemove:
+        elif isinstance(tx, TxRemove):
             if was_member:
-                self._on_remove_committed(tx)  # type: ignore[arg-type]
-        elif t is TxMembership:
-            self._on_membership_committed(txid, tx, was_member)  # type: ignore[arg-type]
-        elif t is TxFormation:
-            self._on_formation_committed(tx)  # type: ignore[arg-type]
+                self._on_remove_committed(tx)
+        elif isinstance(tx, TxMembership):
+            self._on_membership_committed(txid, tx, was_member)
+        elif isinstance(tx, TxFormation):
+            self._on_formation_committed(tx)
         if self.is_member() and not was_leader and self._leader_now():
             self._log("leader", view=self.state.view)
 
@@ -938,10 +941,10 @@ class MembershipNode:
             new = [m for m in self.state.members if m.proc not in leave]  # l. 105
             have = {m.proc for m in new}
             new += [m for m in a.accept if m.proc not in have and m.proc not in leave]
-            tx = TxMembership(a.key, self.me, tuple(new))
+            mtx = TxMembership(a.key, self.me, tuple(new))
             parts = list(dict.fromkeys([*a.active, *(m.proc for m in a.accept)]))
             a.stage = "membership"
-            a.membership_txid = self.core.propose_to(self._now, encode_tx(tx), parts)  # l. 106
+            a.membership_txid = self.core.propose_to(self._now, encode_tx(mtx), parts)  # l. 106
             self.group_txs.add(a.membership_txid)
             self._log("membership_proposed", tx=str(a.membership_txid), members=[m.name for m in new])
             if not new:  # every member asked to leave: the group dissolves (`TxMembership`)
@@ -1237,32 +1240,31 @@ class MembershipNode:
 
     def _on_group(self, src: str, src_inc: int, msg: Message) -> None:
         q = (src, src_inc)
-        t = type(msg)
         if self.left:
             return
-        if t is Apply:
-            self._on_apply(q, msg.addr)  # type: ignore[union-attr]
-        elif t is Introduce:
-            self._on_introduce(q, msg)  # type: ignore[arg-type]
-        elif t is Sponsor:  # ll. 71-73
+        if isinstance(msg, Apply):
+            self._on_apply(q, msg.addr)
+        elif isinstance(msg, Introduce):
+            self._on_introduce(q, msg)
+        elif isinstance(msg, Sponsor):  # ll. 71-73
             if not self.is_member():
                 self.sponsor = q
                 self._send(q, Connections(self._two_way()))
-        elif t is Connections:  # ll. 74-75
-            self.conns_of[q] = set(msg.peers)  # type: ignore[union-attr]
+        elif isinstance(msg, Connections):  # ll. 74-75
+            self.conns_of[q] = set(msg.peers)
             self._update()
-        elif t is Leave:
+        elif isinstance(msg, Leave):
             self._on_leave(q)
-        elif t is Locked:
-            self._on_locked(q, msg.key)  # type: ignore[union-attr]
-        elif t is StateForward:
-            self._on_forward(msg.seq, msg.txid, msg.payload)  # type: ignore[union-attr]
-        elif t is StateSnapshot:
-            self._on_snapshot(q, msg)  # type: ignore[arg-type]
-        elif t is StateRequest:
-            self._on_state_request(q, msg.txid)  # type: ignore[union-attr]
-        elif t is SeqWrite:
-            self._seq_accept(q, msg.floor, msg.writes)  # type: ignore[union-attr]
+        elif isinstance(msg, Locked):
+            self._on_locked(q, msg.key)
+        elif isinstance(msg, StateForward):
+            self._on_forward(msg.seq, msg.txid, msg.payload)
+        elif isinstance(msg, StateSnapshot):
+            self._on_snapshot(q, msg)
+        elif isinstance(msg, StateRequest):
+            self._on_state_request(q, msg.txid)
+        elif isinstance(msg, SeqWrite):
+            self._seq_accept(q, msg.floor, msg.writes)
 
     def _on_apply(self, a: Proc, addr: str) -> None:
         """ll. 50-61."""

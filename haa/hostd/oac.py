@@ -257,28 +257,27 @@ class OrderedAtomicCommit:
             self.txs[msg.id] = tx
             self._push_gate(tx)
         tx.senders.add((src, src_inc))
-        t = type(msg)
         if tx.state == DONE:
-            if t is OacDecide and msg.delivered:
+            if isinstance(msg, OacDecide) and msg.delivered:
                 tx.decide_from.add(src)
                 self._close_check(tx)
             return
         if msg.order > tx.order and tx.state == UNDECIDED:  # l. 76
             self._accept_order(tx, msg.order)
-        if t is OacDecide:
+        if isinstance(msg, OacDecide):
             self._on_decide(tx, src, msg)
             return
         if not tx.content:
-            if t is not OacOrder and tx.state == UNDECIDED:
+            if not isinstance(msg, OacOrder) and tx.state == UNDECIDED:
                 tx.pending.append((src, src_inc, msg))
             return
-        if t is OacEstimate:
+        if isinstance(msg, OacEstimate):
             if msg.order == tx.order and msg.round >= tx.r:
                 tx.ests.setdefault((msg.order, msg.round), {})[src] = (msg.precommit, msg.ts)
-        elif t is OacProposal:
+        elif isinstance(msg, OacProposal):
             if msg.order == tx.order and msg.round >= tx.r and self._coord_name(tx, msg.round) == src:
                 tx.props[(msg.order, msg.round)] = msg.precommit
-        elif t is OacAck:
+        elif isinstance(msg, OacAck):
             if msg.order == tx.order and msg.round >= tx.r:
                 tx.acks.setdefault((msg.order, msg.round), {})[src] = msg.ack
         self._progress(tx)
@@ -442,15 +441,14 @@ class OrderedAtomicCommit:
                         if e is not None and e[1] == best_ts:
                             tx.est = e[0]
                             break
-                prop = OacProposal(tx.id, tx.order, tx.r, tx.est)
-                self._send_all(tx, prop)  # l. 56
+                self._send_all(tx, OacProposal(tx.id, tx.order, tx.r, tx.est))  # l. 56
                 tx.props[key] = tx.est
                 tx.phase = P2
             elif tx.phase == P2:  # ll. 57-63
                 cname, cinc = self._coord(tx, tx.r)
-                prop = tx.props.get(key)
-                if prop is not None:  # l. 58-61
-                    tx.est = prop
+                proposed = tx.props.get(key)
+                if proposed is not None:  # l. 58-61
+                    tx.est = proposed
                     tx.ts = tx.r
                     ack = True
                 elif self._suspected(cname, cinc):  # l. 62-63
