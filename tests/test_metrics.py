@@ -166,16 +166,17 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
         return True
 
     poll(agree, 30, "every agent active, and haa_agents and haa_agent_table to match `agent list`")
-    def four_processes() -> dict[str, Any] | None:  # (an allocation session may still be moving one)
+    def four_processes() -> dict[str, Any] | None:
+        """4 processes (an allocation session may still be moving one), each measured by its supervisor once."""
         ms = {h: scrape(url) for h, url in u.items()}
-        return ms if sum(sum(by_label(ms[h], "haa_agent_processes", "state").values()) for h in u) == 4 else None
+        n = sum(sum(by_label(ms[h], "haa_agent_processes", "state").values()) for h in u)
+        rss = [v for h in u for v in ms[h].get("haa_agent_rss_bytes", {}).values()]
+        return ms if n == 4 and len(rss) == 4 and min(rss) > 1e6 else None
 
-    m = poll(four_processes, 30, "4 agent processes")
+    m = poll(four_processes, 30, "4 agent processes, their memory measured")
     assert sum(one(m[h], "haa_agents_spawned_total") for h in u) >= 4
     assert all(one(m[h], "haa_allocation_sessions_total") >= 1 for h in u)
     assert sum(by_label(m[h], "haa_agent_events_total", "event").get("active", 0) for h in u) >= 4
-    rss = [v for h in u for v in m[h].get("haa_agent_rss_bytes", {}).values()]
-    assert len(rss) == 4 and min(rss) > 1e6
 
     # messages and bytes by peer agent: A3 -> A3.1, wherever A3 runs, and no more than `agent list` counts later
     def pinged() -> tuple[float, float] | None:
