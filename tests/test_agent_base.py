@@ -7,6 +7,7 @@ import asyncio
 import json
 
 import pytest
+from waits import until
 
 from haa.agents import registry
 from haa.agents.base import AgentBase, AgentContext, RemoteError, child_name, new_agent_id, root_name
@@ -34,14 +35,6 @@ def start(ctx: AgentContext, how: str = "start") -> None:
 
 def kinds(frames: list) -> list[str]:
     return [f.WhichOneof("msg") for f in frames]
-
-
-async def until(cond, timeout: float = 5.0) -> None:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout
-    while not cond():
-        assert loop.time() < end, "timed out"
-        await asyncio.sleep(0.005)
 
 
 class Slow(AgentBase):

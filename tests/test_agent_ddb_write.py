@@ -16,6 +16,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from waits import until
 
 from haa.agents.base import AgentBase, AgentContext, HostError, new_agent_id
 from haa.hostd import agentproc as ap
@@ -31,14 +32,6 @@ from haactl.local import wait_for as wait
 
 def run(coro: Any) -> Any:
     return asyncio.run(asyncio.wait_for(coro, 20))
-
-
-async def until(cond: Any, timeout: float = 5.0) -> None:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout
-    while not cond():
-        assert loop.time() < end, "timed out"
-        await asyncio.sleep(0.005)
 
 
 class Writer(AgentBase):

@@ -16,6 +16,7 @@ import time
 
 import psutil
 import pytest
+from waits import until
 
 from haa.agents.base import new_agent_id
 from haa.agents.harness import LocalHosts
@@ -36,13 +37,6 @@ HANG = 1.0
 
 def run(coro, timeout: float = 60):
     return asyncio.run(asyncio.wait_for(coro, timeout))
-
-
-async def until(cond, timeout: float = 10.0, what: str = "condition") -> None:
-    end = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < end, f"timed out waiting for {what}"
-        await asyncio.sleep(0.01)
 
 
 def hosts(**kw) -> LocalHosts:

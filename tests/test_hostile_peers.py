@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import grpc
@@ -35,6 +35,7 @@ from hostilecluster import (
     start_cluster,
     view,
 )
+from waits import until
 
 from haa.hostd import wire
 from haa.hostd.messages import Heartbeat, Message
@@ -227,14 +228,6 @@ class Node:
         await self.t.stop()
         if self.server is not None:
             await self.server.stop(0)
-
-
-async def until(cond: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.005)
 
 
 async def claim(port: int, sender: str, inc: int, heartbeat: bool) -> aio.StreamStreamCall:

@@ -14,6 +14,7 @@ from pathlib import Path
 import grpc
 import pytest
 from grpc import aio
+from waits import until
 
 from haa.hostd.control import ControlClient
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD
@@ -156,10 +157,8 @@ def test_garbage_on_the_host_link_is_counted_and_dropped(cluster: LocalCluster) 
             hello = pb.LinkReply.FromString(await call.read())
             for g in garbage:
                 await call.write(g)
-            for _ in range(200):
-                if counter(h1, "rejected_malformed") >= before + len(garbage):
-                    break
-                await asyncio.sleep(0.02)
+            await until(lambda: counter(h1, "rejected_malformed") >= before + len(garbage), interval=0.02,
+                        what="the garbage counted")
             call.cancel()
             return hello
 

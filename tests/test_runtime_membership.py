@@ -20,6 +20,7 @@ from typing import Any
 
 import grpc
 import pytest
+from waits import until
 
 from haa.hostd import ddb
 from haa.hostd.control import ControlClient
@@ -287,10 +288,7 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
         )
         await rt.start()
         try:
-            for _ in range(200):
-                if rt.status()["member"]:
-                    break
-                await asyncio.sleep(0.02)
+            await until(lambda: rt.status()["member"], what="a group of one")
             # one core process: c_f = 0, so its group of one is a correct group and takes writes
             writes = [rt.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 100)]) for i in range(30)]
             writes.append(rt.ddb_write([ddb.cas("k0", 999, "counter", 7)], atomic=True))  # stale version

@@ -16,6 +16,7 @@ from typing import Any
 import grpc
 import pytest
 from grpc import aio
+from waits import until
 
 from haa.hostd import wire
 from haa.hostd.messages import Excluded, Heartbeat, Message
@@ -71,14 +72,6 @@ class Node:
             await self.stop_server()
 
 
-async def until(cond: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.005)
-
-
 def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
     asyncio.run(asyncio.wait_for(coro_fn(), 30))
 
@@ -119,7 +112,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
             await until(lambda m=mark: len(b.got) > m + 500, what="progress")
             await b.stop_server()  # the connection breaks with frames in flight
             await until(lambda: not a.t.connected("b"), what="disconnect")
-            await asyncio.sleep(0.15)
+            await until(lambda: a.t.queued("b") > 0, what="messages queued while b is down")
             queued_while_down.append(a.t.queued("b"))
             await b.serve()  # same Transport object: it remembers what it already has
         mark = len(b.got)
