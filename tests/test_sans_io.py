@@ -27,6 +27,7 @@ CORE_MODULES = [
     "haa/hostd/agentnode.py",
     "haa/hostd/allocation.py",
     "haa/hostd/allocwire.py",
+    "haa/hostd/wire.py",
 ]
 FORBIDDEN = {
     "asyncio",
