@@ -148,14 +148,19 @@ def stop_workload(plan: Plan, backend: Backend, progress: Progress) -> None:
     if plan.workload == "counters":
         rows = collect._agents(backend) or []
         counters = [r for r in rows if r.type == "counter"]
+        def pause(agent: str) -> Callable[[Any], Any]:
+            return lambda c: c.agent_request(agent, b"pause", timeout=5.0)
+
+        def remove(agent: str) -> Callable[[Any], Any]:
+            return lambda c: c.agent_remove(agent)
+
         for r in counters:
             with contextlib.suppress(ClusterError):
-                backend.call(backend.pick_host(), lambda c, r=r: c.agent_request(r.id, b"pause", timeout=5.0),
-                             "AgentRequest", timeout=10.0)
+                backend.call(backend.pick_host(), pause(r.id), "AgentRequest", timeout=10.0)
         time.sleep(2.5)  # > stats_period: the last counts reach the DDB
         for r in counters:
             with contextlib.suppress(ClusterError):
-                backend.call(backend.pick_host(), lambda c, r=r: c.agent_remove(r.id), "AgentRemove", timeout=20.0)
+                backend.call(backend.pick_host(), remove(r.id), "AgentRemove", timeout=20.0)
 
 
 class ChaosCluster(Protocol):
