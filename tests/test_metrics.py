@@ -194,6 +194,27 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
     assert listed["A3"]["msgs_out"] >= n
 
 
+def test_transfers_and_recoveries_are_counted(cli: Cli) -> None:
+    u = urls(cli)
+
+    def events() -> dict[str, float]:
+        out: Counter[str] = Counter()
+        for url in u.values():
+            out.update(by_label(scrape(url), "haa_agent_events_total", "event"))
+        return dict(out)
+
+    before = events()
+    rows = {r["name"]: r for r in cli.json("agent", "list")["agents"]}
+    dest = "h2" if rows["A1"]["host"] == "h1" else "h1"
+    cli("agent", "move", "A1", dest)  # a transfer: frozen here, thawed there (Alg. 6)
+    cli("agent", "kill", "A2")  # an agent failure, recovered from its backup (Alg. 8)
+    after = poll(lambda: (lambda e: e if e.get("thawed", 0) > before.get("thawed", 0)
+                          and e.get("recovered", 0) > before.get("recovered", 0) else None)(events()),
+                 20, "a thawed and a recovered event")
+    assert after.get("crashed", 0) > before.get("crashed", 0)
+    assert after.get("freezing", 0) > before.get("freezing", 0)
+
+
 def test_a_killed_host_is_suspected_by_the_survivor(cli: Cli) -> None:
     u = urls(cli)
     cli("host", "kill", "h2")
