@@ -75,7 +75,13 @@ def test_transfer_keeps_counters_no_loss_no_duplicate_order_kept():
             # at rest: stop both pingers, let the last messages arrive, compare
             p1 = await H.request_json(a1, b"pause")
             p2 = await H.request_json(a2, b"pause")
-            await asyncio.sleep(0.3)
+
+            async def arrived() -> bool:  # each has received everything the other sent before its pause
+                r1 = await H.request_json(a1, b"stats")
+                r2 = await H.request_json(a2, b"stats")
+                return r2["streams"][a1]["received"] >= p1["sent"] and r1["streams"][a2]["received"] >= p2["sent"]
+
+            await until(arrived, interval=0.05, what="the last messages before the pause")
             s1 = await H.request_json(a1, b"stats")
             s2 = await H.request_json(a2, b"stats")
             for s in (s1, s2):
@@ -307,7 +313,11 @@ def test_request_response_timeout_and_late_reply():
             slow = json.dumps({"op": "sleep", "seconds": 0.5})
             r = await H.request_json(a, {"op": "request", "to": b, "data": slow, "timeout": 0.1})
             assert r == {"error": f"TimeoutError: request to {b} timed out after 0.1 s"}
-            await asyncio.sleep(0.6)
+
+            async def late_reply() -> bool:  # b answers 0.5 s after the request
+                return (await H.request_json(a, {"op": "state"}))["late_replies"] > 0
+
+            await until(late_reply, interval=0.05, what="b's late reply")
             st = await H.request_json(a, {"op": "state"})
             assert st["late_replies"] == 1  # b's answer came after the timeout and was dropped
             boom = json.dumps({"op": "raise", "message": "no"})
