@@ -59,7 +59,7 @@ from haa.cluster.events import (
 )
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, err, open_backend, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
 
 agent_app = typer.Typer(
     help="List, spawn, kill, move and remove agents; follow the allocation timeline.", no_args_is_help=True
@@ -134,12 +134,13 @@ def warn_unanswered(replies: dict[str, Any]) -> None:
 @cli_errors
 def agent_list(
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Every agent: name, id prefix, type, state, host, CPU, parent, epoch, backup (merged from every host)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     replies = agent_lists(backend)
     ok = answering(backend, replies)
     rows = merge_agents(ok)
@@ -160,11 +161,12 @@ def agent_list(
 @cli_errors
 def agent_tree(
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
 ) -> None:
     """The parentage tree (A1 -> A1.1 -> A1.1.1), each agent with its type, state and host."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     replies = agent_lists(backend)
     rows = merge_agents(answering(backend, replies))
     warn_unanswered(replies)
@@ -225,6 +227,7 @@ def agent_spawn(
     hardware: Annotated[str, typer.Option("--hardware", help="required hardware, comma separated")] = "",
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active on some host")] = True,
@@ -236,7 +239,7 @@ def agent_spawn(
         raise ClusterError(f"--recovery must be one of {', '.join(sorted(RECOVERY_STRATEGIES))}, not {recovery!r}")
     hw = tuple(h.strip() for h in hardware.split(",") if h.strip())
     cfg = parse_config(config)
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     t0 = time.monotonic()
     reply: cpb.AgentOpReply = backend.call(
@@ -269,13 +272,14 @@ def agent_spawn(
 def agent_kill(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the group has recovered it")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """SIGKILL the agent's process on the host running it: an agent failure that the group recovers (Alg. 8)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     _, rows = load_rows(backend)
     r = resolve(rows, ref)
     owner = next((h for h, p in r.phases.items() if p == "active"), r.owner)
@@ -308,13 +312,14 @@ def agent_move(
     to: Annotated[str, typer.Argument(metavar="HOST", help="destination host (a member)")],
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active there")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """Allocate an agent to HOST (until the next allocation session): frozen where it runs, thawed there."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     backend.host(to)  # unknown host names get the list of hosts
     h = backend.pick_host(host)
     t0 = time.monotonic()
@@ -338,12 +343,13 @@ def agent_remove(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """End an agent for good (its process is stopped; its children stay)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply: cpb.AgentOpReply = backend.call(h, lambda c: c.agent_remove(ref, timeout=timeout), "AgentRemove",
                                            timeout=timeout)
@@ -362,13 +368,14 @@ def agent_request(
     payload: Annotated[str, typer.Argument(help="the request (text, given to the agent's on_request)")],
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     timeout: WaitTimeoutOpt = 10.0,
 ) -> None:
     """Send an operator request to an agent and print its reply (e.g. `agent request A1 stats` for a counter).
     The reply comes back through the host asked, wherever the agent runs."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply: cpb.AgentRequestReply = backend.call(
         h, lambda c: c.agent_request(ref, payload.encode(), timeout=timeout), "AgentRequest", timeout=timeout + 5
@@ -627,6 +634,7 @@ def event_json(e: TimelineEvent, t0: float) -> dict[str, Any]:
 def agent_events(
     follow: Annotated[bool, typer.Option("--follow", "-f", help="keep following new events until Ctrl-C")] = False,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     absolute: Annotated[bool, typer.Option("--clock", help="wall-clock times instead of mm:ss")] = False,
@@ -640,7 +648,7 @@ def agent_events(
     happened (a crash that another host reported says which). Times are mm:ss since the first line. With -f,
     new events follow as they happen (the alive hosts' AgentEvents streams), with hosts joining and leaving
     the group. Without -f it also works on the cluster that `cluster down` stopped (its logs are kept)."""
-    backend = open_backend(compose, root, compose_file, last=not follow)
+    backend = open_backend(compose, root, compose_file, last=not follow, swarm=swarm)
     backend.require_hosts()
     feed = EventFeed(backend, views=True)
     feed.load_persisted()
@@ -718,8 +726,8 @@ def leader_of(backend: Backend) -> str:
 
 
 def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file: Any,
-           timeout: float) -> tuple[Backend, cpb.AgentListReply]:
-    backend = open_backend(compose, root, compose_file)
+           timeout: float, swarm: bool = False) -> tuple[Backend, cpb.AgentListReply]:
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply = backend.call(h, lambda c: c.alloc(action, timeout=timeout), f"Alloc({action})", timeout=timeout)
     return backend, reply
@@ -730,12 +738,13 @@ def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file
 def alloc_status(
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Session ids, paused or not, load per host and every agent's host, state, CPU and parent."""
-    backend, reply = _alloc("status", host, compose, root, compose_file, 10.0)
+    backend, reply = _alloc("status", host, compose, root, compose_file, 10.0, swarm=swarm)
     rows = merge_agents(answering(backend, agent_lists(backend)))
     s = alloc_summary(reply, rows)
     if json_out:
@@ -749,11 +758,12 @@ def alloc_status(
 def alloc_pause(
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
 ) -> None:
     """Pause the periodic rebalancing (membership and agent-list changes still start sessions)."""
-    _, reply = _alloc("pause", host, compose, root, compose_file, 15.0)
+    _, reply = _alloc("pause", host, compose, root, compose_file, 15.0, swarm=swarm)
     out.print(f"allocation paused (committed via {reply.host}; last session {reply.session})")
 
 
@@ -762,11 +772,12 @@ def alloc_pause(
 def alloc_resume(
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
 ) -> None:
     """Resume the periodic rebalancing."""
-    _, reply = _alloc("resume", host, compose, root, compose_file, 15.0)
+    _, reply = _alloc("resume", host, compose, root, compose_file, 15.0, swarm=swarm)
     out.print(f"allocation resumed (committed via {reply.host}; last session {reply.session})")
 
 
@@ -775,6 +786,7 @@ def alloc_resume(
 def alloc_run(
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the session has finished")] = True,
@@ -782,7 +794,7 @@ def alloc_run(
 ) -> None:
     """Start an allocation session now (Alg. 4; the group's leader starts sessions, so it is asked unless --host
     says otherwise); with --wait report the agents it moved."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = host or leader_of(backend)
     before = backend.call(h, lambda c: c.alloc("status", timeout=timeout), "Alloc(status)", timeout=timeout)
     rows0 = {r.id: r for r in merge_agents(answering(backend, agent_lists(backend)))}

@@ -1,4 +1,4 @@
-"""Options shared by `haactl cluster|host|ddb|logs`: which cluster (local or compose) and clean errors."""
+"""Options shared by `haactl cluster|host|ddb|logs`: which cluster (local, compose or swarm) and clean errors."""
 
 from __future__ import annotations
 
@@ -28,6 +28,15 @@ ComposeOpt = Annotated[
         help="the docker compose cluster (compose/compose.yaml) instead of the local one (env HAA_COMPOSE=1)",
     ),
 ]
+SwarmOpt = Annotated[
+    bool,
+    typer.Option(
+        "--swarm",
+        envvar="HAA_SWARM",
+        help="the Docker Swarm stack (compose/stack.yaml, stack $HAA_SWARM_STACK or haa; docs/swarm.md) instead of "
+        "the local cluster (env HAA_SWARM=1)",
+    ),
+]
 RootOpt = Annotated[
     Path | None,
     typer.Option(
@@ -40,7 +49,8 @@ ComposeFileOpt = Annotated[
     Path | None,
     typer.Option(
         "--compose-file",
-        help="compose file (default $HAA_COMPOSE_FILE, else compose/compose.yaml)",
+        help="compose file (default $HAA_COMPOSE_FILE, else compose/compose.yaml); with --swarm the stack file "
+        "(default $HAA_STACK_FILE, else compose/stack.yaml)",
         show_default=False,
     ),
 ]
@@ -50,9 +60,17 @@ HostOpt = Annotated[
 
 
 def open_backend(
-    compose: bool, root: Path | None = None, compose_file: Path | None = None, last: bool = False
+    compose: bool, root: Path | None = None, compose_file: Path | None = None, last: bool = False, swarm: bool = False
 ) -> Backend:
     """The cluster a command works on; `last`: a local cluster that `cluster down` stopped will do (logs)."""
+    if swarm:
+        if compose:
+            raise ClusterError("--swarm and --compose exclude each other")
+        if root is not None:
+            raise ClusterError("--root is for local clusters; not with --swarm")
+        from haa.cluster.swarm_backend import SwarmBackend
+
+        return SwarmBackend(compose_file)
     if compose:
         if root is not None:
             raise ClusterError("--root is for local clusters; not with --compose")
@@ -60,7 +78,7 @@ def open_backend(
 
         return ComposeBackend(compose_file)
     if compose_file is not None:
-        raise ClusterError("--compose-file needs --compose")
+        raise ClusterError("--compose-file needs --compose (or --swarm)")
     from haa.cluster.local_backend import LocalBackend
 
     return LocalBackend(root, last=last)

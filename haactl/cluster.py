@@ -1,7 +1,7 @@
 """`haactl cluster up|status|down` and `haactl host add|leave|kill|pause|resume|restart` (issue 3 §5).
 
 Each command is written once against `haa.cluster.backend.Backend`; `--compose` selects the docker compose
-cluster instead of the local one (docs/cluster.md).
+cluster instead of the local one (docs/cluster.md), `--swarm` the Docker Swarm stack (docs/swarm.md).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from rich.table import Table
 
 from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, agreed_group, wait_until
 from haa.pb import control_pb2 as cpb
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, err, open_backend, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
 
 cluster_app = typer.Typer(help="Bring a cluster of haa-hostd hosts up, inspect it, take it down.", no_args_is_help=True)
 host_app = typer.Typer(help="Add, retire, kill, pause, resume or restart one host.", no_args_is_help=True)
@@ -67,6 +67,7 @@ def wait_with_progress(
 def cluster_up(
     local: Annotated[bool, typer.Option("--local", help="real haa-hostd processes on loopback (the default)")] = False,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     hosts: Annotated[int, typer.Option("--hosts", "-n", min=1, max=64, help="number of hosts h1..hN")] = 3,
     core: Annotated[
         int | None, typer.Option("--core", min=1, help="core hosts: the first K (default 3, or N if N < 3)")
@@ -97,13 +98,22 @@ def cluster_up(
     json_out: Annotated[bool, typer.Option("--json", help="print the formed group as JSON")] = False,
 ) -> None:
     """Start hosts h1..hN and wait until they have formed one group with all N members."""
-    if local and compose:
-        raise ClusterError("--local and --compose exclude each other")
+    if local and (compose or swarm):
+        raise ClusterError(f"--local and --{'compose' if compose else 'swarm'} exclude each other")
     if core is not None and core > hosts:
         raise ClusterError(f"--core {core} is more than --hosts {hosts}")
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     t0 = time.monotonic()
-    if compose:
+    if swarm:
+        from haa.cluster.swarm_backend import SwarmBackend
+
+        assert isinstance(backend, SwarmBackend)
+        if config is not None or hostd_args:
+            raise ClusterError("--config and --hostd-args are for local clusters (edit compose/stack.yaml)")
+        with err.status(f"docker stack deploy of {hosts} hosts ..."):
+            names = backend.up(hosts, core, log=err.print, capacity=capacity, tls=tls)
+        before = None
+    elif compose:
         from haactl.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
@@ -161,13 +171,22 @@ def cluster_up(
 @cli_errors
 def cluster_down(
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     grace: Annotated[float, typer.Option("--grace", min=0, help="seconds for a graceful leave before SIGKILL")] = 5.0,
     purge: Annotated[bool, typer.Option("--purge", help="also delete the local cluster's logs and data")] = False,
 ) -> None:
     """Stop every host (SIGTERM = graceful leave, SIGKILL after --grace) and forget the cluster."""
-    backend = open_backend(compose, root, compose_file, last=purge)
+    backend = open_backend(compose, root, compose_file, last=purge, swarm=swarm)
+    if swarm:
+        from haa.cluster.swarm_backend import SwarmBackend
+
+        assert isinstance(backend, SwarmBackend)
+        with err.status("docker stack rm ..."):
+            done = backend.down(grace)
+        out.print(f"{backend.describe()}: down ({done})")
+        return
     if compose:
         from haactl.compose_backend import ComposeBackend
 
@@ -320,13 +339,14 @@ def status_table(st: dict[str, Any]) -> Table:
 @cli_errors
 def cluster_status(
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object (members, leader, view, hosts)")] = False,
     sample: Annotated[float, typer.Option("--sample", min=0, help="seconds over which CPU use is measured")] = 1.0,
 ) -> None:
     """Members in rank order, leader, view, and per host its state, view, rank, suspicions, DDB, CPU, RSS."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     st = gather_status(backend, sample)
     if json_out:
         print(json.dumps(st, indent=2))
@@ -386,13 +406,14 @@ def _wait_joined(backend: Backend, name: str, timeout: float) -> None:
 def host_add(
     name: Annotated[str | None, typer.Argument(help="new host name (default: the next free hN)")] = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is a member")] = True,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """Start a new non-core host; it finds the group through the core list and joins."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     backend.require_hosts()
     name = name or backend.next_name()
     h = backend.add(name)
@@ -406,13 +427,14 @@ def host_add(
 def host_restart(
     name: Annotated[str, typer.Argument(help="a killed or departed host")],
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is a member again")] = True,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """Start a killed (or departed) host again: a new incarnation that re-applies to the group."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.restart(name)
     out.print(f"restarted {name} at {h.address}")
     if wait:
@@ -424,13 +446,14 @@ def host_restart(
 def host_leave(
     name: Annotated[str, typer.Argument(help="host to retire")],
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     use_signal: Annotated[bool, typer.Option("--signal", help="send SIGTERM instead of calling Leave")] = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """Retire a host gracefully (Alg. 3 voluntary leave): the Leave RPC, or SIGTERM with --signal."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     t0 = time.monotonic()
     if use_signal:
         backend.host(name)
@@ -463,13 +486,14 @@ def _break_hosts(
 def host_kill(
     names: NamesArg,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: WaitOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """SIGKILL host(s): a crash (connections refused from then on)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     _break_hosts(backend, names, backend.kill, "killed", wait, timeout)
 
 
@@ -478,13 +502,14 @@ def host_kill(
 def host_pause(
     names: NamesArg,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: WaitOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """SIGSTOP / freeze host(s): a hung host whose TCP connections stay open."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     _break_hosts(backend, names, backend.pause, "paused", wait, timeout)
 
 
@@ -493,13 +518,14 @@ def host_pause(
 def host_resume(
     names: NamesArg,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until each is a member again")] = False,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """SIGCONT / unfreeze host(s). A host the group removed meanwhile comes back as a new incarnation."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     _check_names(backend, names)
     for n in names:
         backend.resume(n)

@@ -20,7 +20,7 @@ from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.hostd import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, open_backend, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, SwarmOpt, cli_errors, open_backend, out
 
 ddb_app = typer.Typer(help="Read, write and watch the replicated database (DDB).", no_args_is_help=True)
 
@@ -122,6 +122,7 @@ def ddb_put(
     type_name: Annotated[str, typer.Option("--type", "-t", help="json | blob | counter | list")] = "json",
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     timeout: Annotated[float, typer.Option("--timeout", min=0.1)] = 30.0,
@@ -134,7 +135,7 @@ def ddb_put(
         op = ddb.put(key, type_name, parse_value(type_name, value))
     except ddb.DdbError as e:
         raise ClusterError(str(e)) from None
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply = _write(backend, h, [op], timeout)
     res = reply.results[0] if reply.results else None
@@ -165,12 +166,13 @@ def ddb_del(
     keys: Annotated[list[str], typer.Argument(help="object keys")],
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     timeout: Annotated[float, typer.Option("--timeout", min=0.1)] = 30.0,
 ) -> None:
     """Delete objects (one batch; each key succeeds or fails on its own)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply = _write(backend, h, [ddb.delete(k) for k in keys], timeout)
     failed = [f"{r.key}: {r.reason}" for r in reply.results if not r.ok]
@@ -187,12 +189,13 @@ def ddb_get(
     keys: Annotated[list[str], typer.Argument(help="object keys")],
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Read objects from one host's replica (exit code 1 if a key is missing)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply: cpb.DdbGetReply = backend.call(h, lambda c: c.ddb_get(keys=keys), "DdbGet")
     found = {r.key: r for r in reply.objects}
@@ -228,6 +231,7 @@ def ddb_ls(
     prefix: Annotated[str, typer.Argument(help="key prefix")] = "",
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     limit: Annotated[int, typer.Option("--limit", min=0, help="at most this many (0 = all)")] = 0,
@@ -235,7 +239,7 @@ def ddb_ls(
     json_out: JsonOpt = False,
 ) -> None:
     """List the keys under a prefix (type, version; values with -v)."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     reply: cpb.DdbGetReply = backend.call(
         h, lambda c: c.ddb_get(prefix=prefix, keys_only=not values, limit=limit), "DdbGet"
@@ -362,6 +366,7 @@ def ddb_watch(
     prefix: Annotated[str, typer.Argument(help="only keys with this prefix")] = "",
     host: HostOpt = None,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
     views: Annotated[bool, typer.Option("--views/--no-views", help="also show view changes")] = True,
@@ -369,7 +374,7 @@ def ddb_watch(
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object per event")] = False,
 ) -> None:
     """Follow the mirror stream of one host: a snapshot, then every write (and view change) until Ctrl-C."""
-    backend = open_backend(compose, root, compose_file)
+    backend = open_backend(compose, root, compose_file, swarm=swarm)
     h = backend.pick_host(host)
     c = backend.client(h, timeout=None)
     stream = c.mirror(views=views)

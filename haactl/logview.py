@@ -21,7 +21,7 @@ import typer
 from rich.markup import escape
 
 from haa.cluster.backend import ClusterError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, open_backend, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, open_backend, out
 
 PALETTE = (
     "cyan",
@@ -99,11 +99,12 @@ def logs(
     event: Annotated[list[str] | None, typer.Option("--event", "-e", help="only these events (repeatable)")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="print the JSON lines as they are")] = False,
     compose: ComposeOpt = False,
+    swarm: SwarmOpt = False,
     root: RootOpt = None,
     compose_file: ComposeFileOpt = None,
 ) -> None:
     """Show the hosts' JSON-lines logs merged by time (rich-formatted; -f follows)."""
-    backend = open_backend(compose, root, compose_file, last=True)
+    backend = open_backend(compose, root, compose_file, last=True, swarm=swarm)
     hosts = backend.require_hosts()
     names = [h.name for h in hosts]
     for n in host or []:

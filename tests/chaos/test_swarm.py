@@ -1,0 +1,181 @@
+"""The Docker Swarm stack (issue 20 §1, compose/stack.yaml, haa.cluster.swarm_backend): a single-node swarm on
+this machine's engine (`docker swarm init --advertise-addr 127.0.0.1` when the engine is in none; it leaves the
+swarm again at the end if it made it and nothing else runs in it).
+
+One stack of its own (`haaswarm<pid>`, so a user's `haa` stack is never touched) is deployed with
+`haactl cluster up --swarm --hosts 6` (core1..core3 and host1..host3): the six form one group. A counter pair
+(haa/agents/demo.py) is spawned and A1 moved to host2. `docker service scale <stack>_host=5` adds host4 and
+host5: the group grows to eight. host2's task container is killed (`docker kill`, SIGKILL): the group removes
+host2, the agent is recovered on a survivor, and the swarm's replacement task of slot 2 (same name, same data
+volume) joins as a new incarnation. Then the counters must be active on member hosts, still exchanging pings,
+with no message lost (outside Alg. 8's documented loss after a recovery), none out of order, none duplicated.
+`haactl cluster down --swarm` removes the stack and its data volumes. Marker `docker`: skipped without an
+engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈ 2 minutes on a loaded 2-core machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from chaoslib import docker_problem
+from typer.testing import CliRunner
+
+from haa.cluster.backend import ClusterError, wait_until
+from haa.cluster.swarm_backend import SwarmBackend
+from haa.hostd import ddb
+from haactl.main import app
+
+pytestmark = pytest.mark.docker
+runner = CliRunner()
+CORE = ["core1", "core2", "core3"]
+VICTIM = "host2"
+
+
+def docker(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["docker", *args], capture_output=True, text=True, timeout=timeout)
+
+
+class Swarm:
+    def __init__(self, stack: str) -> None:
+        self.stack = stack
+        self.env = {"HAA_SWARM_STACK": stack}
+        self.backend = SwarmBackend(stack=stack)
+
+    def __call__(self, *args: str) -> str:
+        r = runner.invoke(app, [*args, "--swarm"], env=self.env)
+        assert r.exit_code == 0, f"haactl {' '.join(args)} --swarm -> {r.exit_code}\n{r.output}\n{r.exception!r}"
+        return r.stdout
+
+    def agents(self) -> dict[str, dict[str, Any]]:
+        return {a["name"]: a for a in json.loads(self("agent", "list", "--json"))["agents"]}
+
+    def counters(self) -> dict[str, dict[str, Any]]:
+        """The counters' stats as published in the DDB (`demo/<agent name>`), read on a member."""
+        h = self.backend.host(self.backend.pick_host())
+        c = self.backend.connect(h, 5.0)
+        try:
+            objs = c.ddb_get(prefix="demo/").objects
+        finally:
+            c.close()
+        t = ddb.TYPES["json"]
+        return {o.key.removeprefix("demo/"): t.public(t.decode(o.value)[0]) for o in objs if o.type == "json"}
+
+
+def poll(what: str, timeout: float, fn: Callable[[], Any]) -> Any:
+    """fn() until it returns something true (AssertionError / ClusterError / RPC trouble count as not yet)."""
+    deadline = time.monotonic() + timeout
+    last = ""
+    while True:
+        try:
+            got = fn()
+            if got:
+                return got
+        except (AssertionError, ClusterError) as e:
+            last = str(e)[:300]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} ({last})")
+        time.sleep(0.5)
+
+
+@pytest.fixture(scope="module")
+def swarm() -> Iterator[Swarm]:
+    problem = docker_problem()
+    if problem:
+        if os.environ.get("HAA_REQUIRE_DOCKER") == "1":
+            pytest.fail(f"HAA_REQUIRE_DOCKER=1 but {problem}")
+        pytest.skip(problem)
+    made_swarm = False
+    state = docker("info", "--format", "{{.Swarm.LocalNodeState}}").stdout.strip()
+    if state == "inactive":
+        r = docker("swarm", "init", "--advertise-addr", "127.0.0.1")
+        assert r.returncode == 0, f"docker swarm init: {r.stderr}"
+        made_swarm = True
+    s = Swarm(f"haaswarm{os.getpid()}")
+    try:
+        yield s
+    finally:
+        with contextlib.suppress(ClusterError):
+            for h in s.backend.hosts():  # a paused task would not stop
+                if h.state == "paused":
+                    s.backend.resume(h.name)
+        r = runner.invoke(app, ["cluster", "down", "--swarm"], env=s.env)
+        print(r.output)
+        if made_swarm and not docker("service", "ls", "-q").stdout.strip():
+            docker("swarm", "leave", "--force")
+
+
+def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
+    b = swarm.backend
+    t0 = time.monotonic()
+    up = json.loads(swarm("cluster", "up", "--hosts", "6", "--json", "--timeout", "150"))
+    first = [*CORE, "host1", "host2", "host3"]
+    assert sorted(up["members"]) == sorted(first), up
+    assert up["backend"] == "swarm"
+    print(f"6 hosts formed one group in {up['formed_seconds']:.1f} s")
+    hosts = {h.name: h for h in b.hosts()}
+    assert [n for n, h in hosts.items() if h.core] == CORE
+    assert all(h.state == "alive" and h.metrics_url for h in hosts.values()), hosts
+    st = json.loads(swarm("cluster", "status", "--json", "--sample", "0"))
+    assert st["agreed"] and st["ddb_hashes_equal"] and sorted(st["members"]) == sorted(first), st
+
+    # a counter pair, A1 on the host that will be killed
+    swarm("agent", "spawn", "counter", "--config", json.dumps({"spawn_peer": True, "period": 0.1, "backup_every": 5}))
+    poll("both counters active", 60,
+         lambda: (a := swarm.agents()) and len(a) == 2 and all(x["state"] == "active" for x in a.values()))
+    swarm("agent", "move", "A1", VICTIM)
+    poll(f"A1 active on {VICTIM}", 60, lambda: swarm.agents()["A1"]["state"] == "active"
+         and swarm.agents()["A1"]["host"] == VICTIM)
+
+    # docker service scale: two more hosts join
+    t1 = time.monotonic()
+    assert b.next_name() == "host4"
+    r = docker("service", "scale", "--detach", f"{swarm.stack}_host=5")
+    assert r.returncode == 0, r.stderr
+    eight = [*first, "host4", "host5"]
+    f, _ = wait_until(lambda: b.formation(eight), 120, what="8 hosts in one group")
+    print(f"scaled to 8: one group in {time.monotonic() - t1:.1f} s (view {f.view})")
+
+    # a killed task: removed from the group, then its replacement (same slot, same name) joins again
+    inc_before = {m.name: m.incarnation for m in b.call("core1", lambda c: c.status(), "Status").member_info}
+    t2 = time.monotonic()
+    victim = b.container(VICTIM)
+    r = docker("kill", victim.id)
+    assert r.returncode == 0, r.stderr
+    poll(f"{VICTIM} killed", 20, lambda: b.host(VICTIM).state == "killed")
+    wait_until(lambda: b.removed_everywhere([VICTIM]), 30, what=f"{VICTIM} removed from every view")
+    t_removed = time.monotonic() - t2
+    f, _ = wait_until(lambda: b.rejoined(VICTIM), 90, what=f"the replacement of {VICTIM} to join")
+    assert b.container(VICTIM).id != victim.id  # a new task's container
+    inc_after = {m.name: m.incarnation for m in b.call("core1", lambda c: c.status(), "Status").member_info}
+    assert inc_after[VICTIM] != inc_before[VICTIM]
+    wait_until(lambda: b.formation(eight), 60, what="8 hosts in one group again")
+    print(f"{VICTIM} removed {t_removed:.1f} s after the kill, its replacement a member "
+          f"{time.monotonic() - t2:.1f} s after the kill (view {f.view})")
+
+    # the agents survived the lot: recovered from the killed host, both active on members, counting cleanly
+    members = set(eight)
+    poll("both counters active on members", 60, lambda: (a := swarm.agents()) and len(a) == 2
+         and all(x["state"] == "active" and x["host"] in members for x in a.values()))
+    before = poll("counter stats", 30, lambda: (c := swarm.counters()) and len(c) == 2 and c)
+
+    def progressing() -> dict[str, dict[str, Any]] | None:
+        now = swarm.counters()
+        ok = len(now) == 2 and all(now[n]["received"] > before[n]["received"] for n in now)
+        return now if ok else None
+
+    after = poll("both counters receiving", 30, progressing)
+    for name, s in after.items():
+        assert s["lost"] == 0 and s["out_of_order"] == 0 and s["duplicate"] == 0, (name, s)
+    print("counters:", {n: {k: s[k] for k in ("received", "lost", "lost_after_recovery")} for n, s in after.items()})
+    print(f"swarm scenario: {time.monotonic() - t0:.1f} s")
+
+    # down removes the stack and the data volumes of every slot
+    swarm("cluster", "down")
+    assert not b.hosts() and not b.volumes()
