@@ -141,3 +141,27 @@ def test_bad_input_gets_one_line(tmp_path: Path) -> None:
     shutil.copy(junk, tmp_path / "r" / "A7.2" / "zz.mcap")
     res = cli.invoke(app, ["record", "ls", str(tmp_path / "r")])
     assert res.exit_code == 1 and "zz.mcap: not a readable AgentPlayback recording" in res.output, res.output
+
+
+def test_haa_hostd_record_dir_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from haa.hostd.daemon import load_settings
+
+    token = tmp_path / "token"
+    token.write_text("t" * 32)
+    base = ["--name", "h1", "--listen", "127.0.0.1:1", "--token-file", str(token)]
+    monkeypatch.delenv("HAA_RECORD_DIR", raising=False)
+    assert load_settings(base).record_dir is None
+    assert load_settings([*base, "--record-dir", str(tmp_path / "rec")]).record_dir == tmp_path / "rec"
+    monkeypatch.setenv("HAA_RECORD_DIR", str(tmp_path / "env"))  # the agents' variable is the option's too
+    assert load_settings(base).record_dir == tmp_path / "env"
+
+
+def test_where_a_mission_records(tmp_path: Path) -> None:
+    from haa.mission.runner import record_folder
+
+    out = tmp_path / "out"
+    assert record_folder(False, out, None) is None
+    assert record_folder(True, out, None) == out / "recording"
+    assert record_folder("rec/a", out, None) == out / "rec" / "a"
+    assert record_folder("/abs/rec", out, None) == Path("/abs/rec")
+    assert record_folder(False, out, Path("cli")) == Path("cli").absolute()  # haactl --record wins

@@ -59,6 +59,7 @@ offline replay (haa.playback.replay) overrides the same three methods to feed th
 from __future__ import annotations
 
 import asyncio
+import functools
 import inspect
 import json
 import random
@@ -367,6 +368,16 @@ class AgentBase:
         read = getattr(self._ctx, "perf_counter", None)  # a test's stand-in context may not have it
         return read() if read is not None else time.perf_counter()
 
+    async def run_in_thread(self, executor: Any, fn: Callable[..., Any], *args: Any) -> Any:
+        """`fn(*args)` on `executor` (a concurrent.futures executor; None = the loop's default), awaited without
+        blocking the loop, taken through the agent so that AgentPlayback records when its result came back
+        among the other inputs (a replay hands it over at the same point; docs/playback.md)."""
+        call = functools.partial(fn, *args)
+        run = getattr(self._ctx, "run_in_thread", None)  # a test's stand-in context may not have it
+        if run is None:
+            return await asyncio.get_running_loop().run_in_executor(executor, call)
+        return await run(executor, call)
+
     @property
     def random(self) -> random.Random:
         """The agent's random source (seeded by the mission when it sets the clock)."""
@@ -514,6 +525,7 @@ class AgentContext:
         if tap is not None:
             emit = tap.wrap_emit(emit)
         self._timer_ids = 0
+        self._thread_calls = 0
         self.agent_id = init.agent_id
         self.name = init.name
         self.type_name = init.type_name
@@ -553,6 +565,15 @@ class AgentContext:
         self.clock = self._wrap_clock(clock)
         if seed is not None:
             self.random = self._wrap_random(agent_random(seed, self.name, self.epoch))
+
+    async def run_in_thread(self, executor: Any, call: Callable[[], Any]) -> Any:
+        self._thread_calls += 1
+        n = self._thread_calls
+        try:
+            return await asyncio.get_running_loop().run_in_executor(executor, call)
+        finally:
+            if self.tap is not None:
+                self.tap.thread_done(n)
 
     def perf_counter(self) -> float:
         v = time.perf_counter()

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import functools
 import json
 import time
 from collections.abc import Callable
@@ -431,7 +430,7 @@ class SensorBase(TeamAgent):
         flight share the detector objects, which are not made for concurrent use."""
         if self._compute_pool is None:
             self._compute_pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compute")
-        return await asyncio.get_running_loop().run_in_executor(self._compute_pool, functools.partial(fn, *args))
+        return await self.run_in_thread(self._compute_pool, fn, *args)  # its return recorded (docs/playback.md)
 
     async def process(self, reading: dict[str, Any]) -> list[Any]:
         """The haa.slam readings (SonarReading, LandmarkReading, ...) of one raw reading; [] if it gives none."""

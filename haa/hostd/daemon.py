@@ -33,6 +33,9 @@ docs/metrics.md; 0, the default, = none).
 host's `host.pem` / `host.key` (made by `haactl cluster up --tls`); the certificate must be for `--name`,
 the key not readable by others. Links and the control API then need a certificate of that CA.
 
+`--record-dir DIR` (env HAA_RECORD_DIR) makes every agent this host runs record its inputs and outputs into
+DIR (AgentPlayback: haa.playback, docs/playback.md); the agent processes inherit it as HAA_RECORD_DIR.
+
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
 (default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
@@ -181,6 +184,8 @@ class HostSettings(BaseModel):
     metrics_port: int = Field(default=0, ge=0, le=65535)
     #: mutual TLS: this host's ca.pem, host.pem, host.key (haa.tls); None = token only
     tls_dir: Path | None = None
+    #: AgentPlayback: every agent of this host records into this folder (haa.playback, docs/playback.md)
+    record_dir: Path | None = None
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
     log_stderr: bool = False
@@ -341,6 +346,7 @@ _OPTIONS = (
     "stats_period",
     "tls_dir",
     "metrics_port",
+    "record_dir",
 )
 
 
@@ -389,6 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--metrics-port", type=int,
                    help="serve Prometheus metrics on http://<listen host>:PORT/metrics (0 = off, the default)")
     p.add_argument("--tls-dir", help="mutual TLS: directory with ca.pem, host.pem, host.key (haactl cluster up --tls)")
+    p.add_argument("--record-dir", help="every agent of this host records its inputs and outputs into this folder "
+                   "(AgentPlayback, docs/playback.md; env HAA_RECORD_DIR)")
     p.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     p.add_argument("--log-stderr", action="store_const", const=True, help="also write the JSON log lines to stderr")
     return p
@@ -574,6 +582,8 @@ def lock_data_dir(path: Path) -> int:
 def main(argv: list[str] | None = None) -> None:
     settings = load_settings(argv)
     cfg = settings.runtime_config()
+    if settings.record_dir is not None:  # the fork server and every agent process inherit it (haa.playback.recorder)
+        os.environ["HAA_RECORD_DIR"] = str(settings.record_dir.absolute())
     try:
         lock_data_dir(settings.data_dir)
     except OSError as e:

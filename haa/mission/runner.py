@@ -714,7 +714,6 @@ class MissionRun:
             self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
         #: AgentPlayback (docs/playback.md): every agent of our own cluster records into this folder
         self.record_dir = record_folder(self.spec.record, self.out_dir, record)
-        self._record_env: str | None = None
         self.chaos_thread: threading.Thread | None = None
         self.chaos_done = threading.Event()
         self.injector: Any = None
@@ -752,10 +751,9 @@ class MissionRun:
         psutil.cpu_percent(None)
         if self.owns_cluster:
             n = self.spec.hosts.start
-            self.start_recording()
             self.backend = LocalBackend(self.root)
             self.say(f"starting {n} hosts (local cluster in {self.root})")
-            names = self.backend.up(n, min(3, n), hostd_args=list(self.spec.hostd_args))
+            names = self.backend.up(n, min(3, n), hostd_args=[*self.spec.hostd_args, *self.record_args()])
             self.actions_backend = LocalBackend(self.root)
 
             def formed() -> Any:
@@ -1334,31 +1332,16 @@ class MissionRun:
                             p.wait(2)
         self.host_pool.shutdown(wait=True)
         self.agent_pool.shutdown(wait=True)
-        self.stop_recording()
 
     # ------------------------------------------------------------------ AgentPlayback recording
-    def start_recording(self) -> None:
-        """Our hosts (and the ones restarted later) inherit HAA_RECORD_DIR: their agent processes record
-        (haa.playback.recorder). Taken back by `stop_recording` at teardown."""
+    def record_args(self) -> list[str]:
+        """haa-hostd's `--record-dir` for our hosts (the ones restarted later too): their agent processes
+        record (haa.playback.recorder)."""
         if self.record_dir is None:
-            return
-        from haa.playback.recorder import RECORD_ENV
-
+            return []
         self.record_dir.mkdir(parents=True, exist_ok=True)
-        self._record_env = os.environ.get(RECORD_ENV, "")
-        os.environ[RECORD_ENV] = str(self.record_dir)
         self.say(f"recording every agent's inputs into {self.record_dir} (haactl record ls / haactl replay)")
-
-    def stop_recording(self) -> None:
-        if self._record_env is None:
-            return
-        from haa.playback.recorder import RECORD_ENV
-
-        if self._record_env:
-            os.environ[RECORD_ENV] = self._record_env
-        else:
-            os.environ.pop(RECORD_ENV, None)
-        self._record_env = None
+        return ["--record-dir", str(self.record_dir)]
 
     def run(self, json_out: Path | None = None) -> dict[str, Any]:
         try:

@@ -25,7 +25,7 @@ class PlaybackInstance(_message.Message):
     def __init__(self, init: _Optional[_Union[_agent_pb2.HostToAgent.Init, _Mapping]] = ..., instance: _Optional[str] = ..., segment: _Optional[int] = ..., first_input: _Optional[int] = ..., first_output: _Optional[int] = ..., wall_start_ns: _Optional[int] = ..., format: _Optional[str] = ...) -> None: ...
 
 class PlaybackInput(_message.Message):
-    __slots__ = ("seq", "wall_ns", "begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop", "answer", "reply", "request_timeout", "call_timeout", "clock", "random", "random_bits", "external", "perf_counter")
+    __slots__ = ("seq", "wall_ns", "begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop", "answer", "reply", "request_timeout", "call_timeout", "clock", "random", "random_bits", "external", "perf_counter", "thread_done")
     class Begin(_message.Message):
         __slots__ = ("how", "has_blob", "blob")
         HOW_FIELD_NUMBER: _ClassVar[int]
@@ -93,6 +93,7 @@ class PlaybackInput(_message.Message):
     RANDOM_BITS_FIELD_NUMBER: _ClassVar[int]
     EXTERNAL_FIELD_NUMBER: _ClassVar[int]
     PERF_COUNTER_FIELD_NUMBER: _ClassVar[int]
+    THREAD_DONE_FIELD_NUMBER: _ClassVar[int]
     seq: int
     wall_ns: int
     begin: PlaybackInput.Begin
@@ -112,7 +113,8 @@ class PlaybackInput(_message.Message):
     random_bits: PlaybackInput.RandomBits
     external: PlaybackInput.External
     perf_counter: float
-    def __init__(self, seq: _Optional[int] = ..., wall_ns: _Optional[int] = ..., begin: _Optional[_Union[PlaybackInput.Begin, _Mapping]] = ..., message: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., timer: _Optional[_Union[PlaybackInput.TimerFired, _Mapping]] = ..., watch: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., log_item: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., resume: _Optional[str] = ..., freeze: _Optional[bool] = ..., stop: _Optional[bool] = ..., answer: _Optional[_Union[_agent_pb2.HostToAgent.Answer, _Mapping]] = ..., reply: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., request_timeout: _Optional[_Union[PlaybackInput.RequestTimeout, _Mapping]] = ..., call_timeout: _Optional[_Union[PlaybackInput.CallTimeout, _Mapping]] = ..., clock: _Optional[float] = ..., random: _Optional[float] = ..., random_bits: _Optional[_Union[PlaybackInput.RandomBits, _Mapping]] = ..., external: _Optional[_Union[PlaybackInput.External, _Mapping]] = ..., perf_counter: _Optional[float] = ...) -> None: ...
+    thread_done: int
+    def __init__(self, seq: _Optional[int] = ..., wall_ns: _Optional[int] = ..., begin: _Optional[_Union[PlaybackInput.Begin, _Mapping]] = ..., message: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., timer: _Optional[_Union[PlaybackInput.TimerFired, _Mapping]] = ..., watch: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., log_item: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., resume: _Optional[str] = ..., freeze: _Optional[bool] = ..., stop: _Optional[bool] = ..., answer: _Optional[_Union[_agent_pb2.HostToAgent.Answer, _Mapping]] = ..., reply: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., request_timeout: _Optional[_Union[PlaybackInput.RequestTimeout, _Mapping]] = ..., call_timeout: _Optional[_Union[PlaybackInput.CallTimeout, _Mapping]] = ..., clock: _Optional[float] = ..., random: _Optional[float] = ..., random_bits: _Optional[_Union[PlaybackInput.RandomBits, _Mapping]] = ..., external: _Optional[_Union[PlaybackInput.External, _Mapping]] = ..., perf_counter: _Optional[float] = ..., thread_done: _Optional[int] = ...) -> None: ...
 
 class PlaybackOutput(_message.Message):
     __slots__ = ("seq", "after_input", "wall_ns", "frame", "external_call")

@@ -278,6 +278,9 @@ class Recorder:
     def perf_counter(self, v: float) -> None:
         self.input(ppb.PlaybackInput(perf_counter=v))
 
+    def thread_done(self, n: int) -> None:
+        self.input(ppb.PlaybackInput(thread_done=n))
+
     def item(self, kind: str, data: Any) -> None:
         """The mailbox worker took this item (haa.agents.base.AgentContext._take_item)."""
         self.input(item_input(kind, data))

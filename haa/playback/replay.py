@@ -42,7 +42,9 @@ STALL_S = 2.0
 SETTLE_S = 0.3
 
 #: loop iterations a consumer gives the agent's other tasks before it takes its input (`ReplayFeed.take`)
-YIELDS = 3
+YIELDS = 0
+#: ... and after being woken by another consumer's input (`ReplayFeed.take`)
+WAKE_YIELDS = 0
 
 #: the mailbox kinds (haa.agents.base.AgentContext) among the PlaybackInput fields
 ITEM_KINDS = frozenset({"begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop"})
@@ -174,14 +176,21 @@ class ReplayFeed:
         """Wait until the next input is one `match` accepts (the inputs before it taken by other consumers).
         Live, awaiting an input always lets the agent's other ready tasks run first (the answer is not there
         yet): so here, before looking."""
-        for _ in range(YIELDS):
-            await asyncio.sleep(0)
+        woke = False
         while True:
+            # after a wake-up, WAKE_YIELDS quiet loop iterations (no input taken, no output made meanwhile) before
+            # looking: the task that took the input before may not be done with it yet (its done-callbacks)
+            seen = self.progress
+            for _ in range(YIELDS + (WAKE_YIELDS if woke else 0)):
+                await asyncio.sleep(0)
+            if self.progress != seen:
+                continue
             if self.divergence is not None:
                 raise ReplayStopped(str(self.divergence))
             if self.pos < len(self.inputs) and match(self.inputs[self.pos]) and not self.output_due():
                 return self._consume()
             await self._changed.wait()
+            woke = True
 
     def output_due(self) -> bool:
         """Live, the next recorded output was made before the next input was taken: hold the input until the
@@ -223,6 +232,9 @@ class ReplayFeed:
         return _ReplayRandom(self)
 
     def perf_counter(self, v: float) -> None:  # pragma: no cover - ReplayContext reads it itself
+        pass
+
+    def thread_done(self, n: int) -> None:  # pragma: no cover - as above
         pass
 
     def item(self, kind: str, data: Any) -> None:  # pragma: no cover - ReplayContext takes items itself
@@ -336,6 +348,20 @@ class ReplayContext(AgentContext):
     def perf_counter(self) -> float:
         return self.feed.take_now("perf_counter", "perf_counter()").perf_counter
 
+    async def run_in_thread(self, executor: Any, call: Callable[[], Any]) -> Any:
+        """Run it here and now (its result depends on its arguments only), hand it back where it came back live."""
+        self._thread_calls += 1
+        n = self._thread_calls
+        try:
+            return call()
+        finally:
+            try:
+                await self.feed.take(lambda i: input_kind(i) == "thread_done" and i.thread_done == n,
+                                     f"the result of thread call {n}")
+            except asyncio.CancelledError:  # live, its task was cancelled while it ran: recorded right then
+                self.feed.take_now("thread_done", f"the cancelled thread call {n}")
+                raise
+
     def timer(self, fn: Any, delay: float, period: float | None) -> Any:
         t = super().timer(fn, delay, period)
         if t._handle is not None:  # offline a timer fires only when the recording says it did
@@ -349,7 +375,8 @@ def _pdb_break(n: int, inp: ppb.PlaybackInput) -> None:
     import pdb
 
     print(f"replay: stopped before input {n} ({input_kind(inp)}): {describe(inp, 200)}")
-    print("replay: `n` / `s` step into the agent's code as it consumes it; `c` goes on")
+    print("replay: `w` shows the agent's stack waiting for it (`up` to its frames, `p` its variables); `r` a few "
+          "times returns into the agent's code as it takes the input, `n`/`s` from there; `c` replays on")
     pdb.Pdb().set_trace(__import__("sys")._getframe(2))
 
 
