@@ -19,8 +19,9 @@ whatever answers at its address.
 * `HandshakeTap` — a TLS handshake that fails (no client certificate, a certificate of another CA, an expired
   one) never reaches Python: grpc's core refuses the connection and writes one line to the process's
   stderr. The tap sits between file descriptor 2 and the real stderr (every byte is passed on), counts those
-  lines and reports each (rate-limited) to a callback: the host counts them as `rejected_tls_handshake` and
-  logs `reject_tls_handshake` with grpc's reason.
+  lines and reports each to a callback: the host counts them as `rejected_tls_handshake` (and by reason) and
+  logs `reject_tls_handshake` (rate-limited) with grpc's reason. grpc's line does not say which side refused:
+  a handshake this host's own link failed (a peer with another CA's certificate) is counted the same way.
 """
 
 from __future__ import annotations
