@@ -532,7 +532,7 @@ async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int
         if sampler is not None:
             await sampler.stop()
         if metrics is not None:
-            await metrics.stop()
+            await asyncio.to_thread(metrics.stop)
 
 
 async def _start_metrics(rt: HostRuntime, port: int) -> Any:
@@ -542,11 +542,11 @@ async def _start_metrics(rt: HostRuntime, port: int) -> Any:
     from haa.stats.sampler import HIST_BOUNDS_MS, ddb_prefix
 
     # the statistics sampler's histogram bounds and DDB key prefixes: metrics and stats.jsonl bin alike
-    reg, scrape = host_registry(rt, bounds_s=tuple(b / 1000.0 for b in HIST_BOUNDS_MS), prefix_of=ddb_prefix)
+    reg = host_registry(rt, asyncio.get_running_loop(), bounds_s=tuple(b / 1000.0 for b in HIST_BOUNDS_MS),
+                        prefix_of=ddb_prefix)
     server = MetricsServer(reg, metrics_bind_host(rt.config.listen), port)
-    scrape.server = server
     try:
-        await server.start()
+        server.start()
     except OSError as e:
         fail(f"--metrics-port: cannot listen on {server.host}:{port}: {e.strerror or e}", code=1)
     return server

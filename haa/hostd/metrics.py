@@ -1,9 +1,9 @@
 """The Prometheus metrics of one haa-hostd, read from its `HostRuntime` at scrape time (docs/metrics.md).
 
-`host_registry(rt)` returns a fresh `CollectorRegistry` holding a `HostCollector` for `rt` and
-prometheus_client's `ProcessCollector` (`process_cpu_seconds_total`, `process_resident_memory_bytes`, ...).
-`HostCollector.collect()` runs on the daemon's event loop (haa.metrics.http) and only reads what the daemon
-already keeps; the sources are the statistics sampler's (haa.stats.sampler), and the daemon hands it the
+`host_registry(rt, loop)` returns a fresh `CollectorRegistry` holding a `HostCollector` for `rt` (run on the
+daemon's loop by `haa.metrics.http.OnLoop`) and prometheus_client's `ProcessCollector`
+(`process_cpu_seconds_total`, `process_resident_memory_bytes`, ...). `HostCollector.collect()` only reads what the
+daemon already keeps; the sources are the statistics sampler's (haa.stats.sampler), and the daemon hands it the
 sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.stats: .importlinter):
 
 * group — `haa_member`, `haa_view`, `haa_members`, `haa_leader` (this host is the leader), `haa_incarnation`;
@@ -44,12 +44,13 @@ from typing import TYPE_CHECKING, Any
 from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from haa.metrics.http import ScrapeCollector
+from haa.metrics.http import OnLoop
 from haa.metrics.latency import Histogram, SampleTail
 
 if TYPE_CHECKING:
+    import asyncio
+
     from haa.hostd.runtime import HostRuntime
-    from haa.metrics.http import MetricsServer
 
 #: histogram bucket upper bounds, seconds, when the daemon gives none (it gives the statistics sampler's,
 #: haa.stats.sampler.HIST_BOUNDS_MS, so that metrics and stats.jsonl bin alike)
@@ -303,14 +304,12 @@ class HostCollector:
         yield fam
 
 
-def host_registry(rt: HostRuntime, server: MetricsServer | None = None, bounds_s: tuple[float, ...] = BUCKETS_S,
-                  prefix_of: Callable[[str], str] | None = None) -> tuple[CollectorRegistry, ScrapeCollector]:
-    """A fresh registry with the host's collector, the process collector and the scrape collector (set its
-    `server` once the server exists). `bounds_s`, `prefix_of`: the histogram buckets and the DDB key-prefix rule
-    (the daemon passes the statistics sampler's)."""
+def host_registry(rt: HostRuntime, loop: asyncio.AbstractEventLoop, bounds_s: tuple[float, ...] = BUCKETS_S,
+                  prefix_of: Callable[[str], str] | None = None) -> CollectorRegistry:
+    """A fresh registry with the host's collector (run on `loop`, the daemon's) and the process collector.
+    `bounds_s`, `prefix_of`: the histogram buckets and the DDB key-prefix rule (the daemon passes the statistics
+    sampler's)."""
     reg = CollectorRegistry(auto_describe=False)
-    reg.register(HostCollector(rt, bounds_s, prefix_of) if prefix_of else HostCollector(rt, bounds_s))
+    reg.register(OnLoop(loop, [HostCollector(rt, bounds_s, prefix_of) if prefix_of else HostCollector(rt, bounds_s)]))
     ProcessCollector(registry=reg)
-    scrape = ScrapeCollector(server)
-    reg.register(scrape)
-    return reg, scrape
+    return reg

@@ -11,10 +11,11 @@ transfer, recovery, agentnode) do not know about any of it.
 The collectors live next to what they read; this package holds what they share and imports no other HAA
 package (it sits below haa.hostd and haa.sim):
 
-* `haa.hostd.metrics` — `HostCollector`: the metrics of one haa-hostd (`host_registry(rt)`);
-* `haa.sim.metrics` — `SimCollector`: the metrics of one haa-sim (`sim_registry(core, service)`);
-* `haa.metrics.http` — `MetricsServer`: `/metrics` served by aiohttp on the daemon's own event loop, so that a
-  scrape reads the daemon's structures from the thread that changes them (no locks, no torn reads);
+* `haa.hostd.metrics` — `HostCollector`: the metrics of one haa-hostd (`host_registry(rt, loop)`);
+* `haa.sim.metrics` — `SimCollector`: the metrics of one haa-sim (`sim_registry(core, service, loop)`);
+* `haa.metrics.http` — `MetricsServer`: `/metrics` served by prometheus_client's own HTTP server from a thread,
+  and `OnLoop`, which runs the collectors on the daemon's event loop at each scrape, so that they read the
+  daemon's structures from the thread that changes them (no locks, no torn reads);
 * `haa.metrics.latency` — cumulative histograms folded from the daemons' bounded buffers of latency samples.
 
 Each daemon has its own `CollectorRegistry` (a test may run several hosts in one process); the registry also

@@ -1,27 +1,32 @@
-"""`/metrics` over HTTP on the daemon's own asyncio loop (aiohttp), for one `CollectorRegistry`.
+"""`/metrics` over HTTP for one daemon: prometheus_client's own exposition server, reading on the daemon's loop.
 
-    GET /metrics    the registry in the Prometheus text format (OpenMetrics when the scraper asks for it)
-    GET /           one line saying where the metrics are
+    GET /metrics    the registry in the Prometheus text format (OpenMetrics when the scraper asks for it; gzip
+                    when it accepts it) — prometheus_client's WSGI app and server, a thread per request
 
-The handler runs on the daemon's event loop: the collectors read the runtime's structures from the thread that
-changes them, between two of its callbacks, so a scrape never sees a half-applied update and needs no lock.
-The price is that a scrape delays the loop by its own duration (a few milliseconds: docs/metrics.md has the
-measurement); each scrape's CPU time is kept in `last_scrape_s` and exported as `haa_metrics_scrape_seconds`.
+The daemon's collectors read structures its asyncio loop changes; a scrape runs on a server thread. So the
+collectors are wrapped in `OnLoop`: at a scrape, their `collect()` runs *on the loop* (scheduled with
+`call_soon_threadsafe`, between two of its callbacks: no half-applied update is ever seen, no lock is needed)
+and the server thread only encodes the result. A loop that does not answer within `timeout` seconds (a hung
+host) fails the scrape with HTTP 500, which Prometheus records as `up == 0`. The loop's share of a scrape —
+its CPU time — is kept in `OnLoop.last_s` and exported as `haa_metrics_scrape_seconds` (docs/metrics.md has
+the measurement). The server costs about 1 MiB of memory (prometheus_client; wsgiref is in the standard library).
 """
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from typing import Any
 
-from aiohttp import web
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
-from prometheus_client.exposition import choose_encoder
+from prometheus_client.exposition import start_http_server
 
-#: the scrape of an haa daemon: a GaugeMetricFamily reads `MetricsServer.last_scrape_s` (see `ScrapeCollector`)
-SCRAPE_METRIC = "haa_metrics_scrape_seconds"
+#: a scrape waits at most this long for the daemon's loop (then HTTP 500)
+LOOP_TIMEOUT = 5.0
 
 
 def metrics_bind_host(listen: str) -> str:
@@ -31,16 +36,46 @@ def metrics_bind_host(listen: str) -> str:
     return host[1:-1] if host.startswith("[") and host.endswith("]") else host
 
 
+class OnLoop:
+    """A collector that runs other collectors' `collect()` on an asyncio loop and returns their metrics to the
+    calling (server) thread; counts scrapes and keeps the loop's CPU time of the last one."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, collectors: Iterable[Any],
+                 timeout: float = LOOP_TIMEOUT) -> None:
+        self.loop = loop
+        self.collectors = list(collectors)
+        self.timeout = timeout
+        self.last_s = 0.0
+        self.scrapes = 0
+
+    def _gather(self, fut: concurrent.futures.Future[list[Metric]]) -> None:
+        t0 = time.thread_time()
+        try:
+            fut.set_result([m for c in self.collectors for m in c.collect()])
+        except BaseException as e:  # the scrape fails (HTTP 500) with it; the loop goes on
+            fut.set_exception(e)
+        finally:
+            self.last_s = time.thread_time() - t0
+
+    def collect(self) -> Iterator[Metric]:
+        fut: concurrent.futures.Future[list[Metric]] = concurrent.futures.Future()
+        self.loop.call_soon_threadsafe(self._gather, fut)
+        metrics = fut.result(self.timeout)
+        self.scrapes += 1
+        yield from metrics
+        yield GaugeMetricFamily("haa_metrics_scrape_seconds",
+                                "CPU seconds this scrape took on the daemon's event loop", value=self.last_s)
+        yield CounterMetricFamily("haa_metrics_scrapes", "scrapes of this daemon's /metrics", value=self.scrapes)
+
+
 class MetricsServer:
-    """Serves `registry` on http://host:port/metrics from the running event loop (`start`, `stop`)."""
+    """Serves `registry` on http://host:port/metrics from a server thread (`start`, `stop`)."""
 
     def __init__(self, registry: CollectorRegistry, host: str, port: int) -> None:
         self.registry = registry
         self.host = host
         self.port = port
-        self.scrapes = 0
-        self.last_scrape_s = 0.0  # CPU seconds (thread time) of the last scrape's rendering
-        self._runner: web.AppRunner | None = None
+        self._server: Any = None
 
     @property
     def url(self) -> str:
@@ -49,62 +84,18 @@ class MetricsServer:
             host = "127.0.0.1"
         return f"http://{host}:{self.port}/metrics"
 
-    async def start(self) -> None:
-        """Bind and serve; raises OSError if the port cannot be bound. Port 0 takes any free port (`port` is
-        then the one bound)."""
-        app = web.Application()
-        app.router.add_get("/metrics", self._metrics)
-        app.router.add_get("/", self._index)
-        runner = web.AppRunner(app, access_log=None, handle_signals=False)
-        await runner.setup()
-        site = web.TCPSite(runner, self.host, self.port)
+    def start(self) -> None:
+        """Bind and serve; OSError (its `strerror` the plain reason) if the port cannot be bound. Port 0 takes any
+        free port (`port` is then the one bound)."""
         try:
-            await site.start()
+            self._server, _thread = start_http_server(self.port, addr=self.host, registry=self.registry)
         except OSError as e:
-            await runner.cleanup()
-            if e.errno:  # aiohttp words it "error while attempting to bind on address ...": the plain reason
-                raise OSError(e.errno, os.strerror(e.errno)) from None
-            raise
-        self._runner = runner
-        server = site._server
-        if self.port == 0 and server is not None and getattr(server, "sockets", None):
-            self.port = int(server.sockets[0].getsockname()[1])
+            raise OSError(e.errno, os.strerror(e.errno) if e.errno else str(e)) from None
+        self.port = int(self._server.server_port)
 
-    async def stop(self) -> None:
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
-
-    def render(self, accept: str = "") -> tuple[bytes, str]:
-        """The registry as (body, content type) for a scraper's Accept header."""
-        t0 = time.thread_time()
-        encoder, content_type = choose_encoder(accept)
-        body = encoder(self.registry)
-        self.last_scrape_s = time.thread_time() - t0
-        self.scrapes += 1
-        return body, content_type
-
-    async def _metrics(self, request: web.Request) -> web.Response:
-        body, content_type = self.render(request.headers.get("Accept", ""))
-        resp = web.Response(body=body)
-        resp.headers["Content-Type"] = content_type
-        return resp
-
-    async def _index(self, request: web.Request) -> web.Response:
-        return web.Response(text="haa metrics: GET /metrics (Prometheus text format)\n")
-
-
-class ScrapeCollector:
-    """`haa_metrics_scrape_seconds` (CPU time the previous scrape took to render) and
-    `haa_metrics_scrapes_total` of one `MetricsServer`."""
-
-    def __init__(self, server: MetricsServer | None = None) -> None:
-        self.server = server
-
-    def collect(self) -> Iterator[Metric]:
-        s = self.server
-        if s is None:
-            return
-        yield GaugeMetricFamily(SCRAPE_METRIC, "CPU seconds the previous scrape of this daemon took to render",
-                                value=s.last_scrape_s)
-        yield CounterMetricFamily("haa_metrics_scrapes", "scrapes of this daemon's /metrics", value=s.scrapes)
+    def stop(self) -> None:
+        """Stop serving (waits for the server thread's poll, at most half a second)."""
+        s, self._server = self._server, None
+        if s is not None:
+            s.shutdown()
+            s.server_close()

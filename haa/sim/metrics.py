@@ -1,7 +1,8 @@
 """The Prometheus metrics of one haa-sim, read from its `SimCore` and `SimService` at scrape time.
 
-`sim_registry(core, service)` returns a fresh `CollectorRegistry` holding a `SimCollector`, prometheus_client's
-`ProcessCollector` (the simulator's CPU and memory) and the scrape collector. Metrics (docs/metrics.md):
+`sim_registry(core, service, loop)` returns a fresh `CollectorRegistry` holding a `SimCollector` (run on the
+simulator's event loop by `haa.metrics.http.OnLoop`) and prometheus_client's `ProcessCollector` (the simulator's
+CPU and memory). Metrics (docs/metrics.md):
 
 * `haa_sim_time_seconds` — simulated time; `haa_sim_speed_ratio` — simulated seconds per wall second achieved
   lately (SimInfo.achieved_speed), `haa_sim_speed_target_ratio` — the `--speed` asked for;
@@ -23,10 +24,10 @@ from typing import TYPE_CHECKING, Any
 from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from haa.metrics.http import ScrapeCollector
+from haa.metrics.http import OnLoop
 
 if TYPE_CHECKING:
-    from haa.metrics.http import MetricsServer
+    import asyncio
 
 
 class SimCollector:
@@ -81,12 +82,9 @@ class SimCollector:
         yield tc
 
 
-def sim_registry(core: Any, service: Any,
-                 server: MetricsServer | None = None) -> tuple[CollectorRegistry, ScrapeCollector]:
-    """A fresh registry with the simulator's collector, the process collector and the scrape collector."""
+def sim_registry(core: Any, service: Any, loop: asyncio.AbstractEventLoop) -> CollectorRegistry:
+    """A fresh registry with the simulator's collector (run on `loop`, the simulator's) and the process collector."""
     reg = CollectorRegistry(auto_describe=False)
-    reg.register(SimCollector(core, service))
+    reg.register(OnLoop(loop, [SimCollector(core, service)]))
     ProcessCollector(registry=reg)
-    scrape = ScrapeCollector(server)
-    reg.register(scrape)
-    return reg, scrape
+    return reg

@@ -898,10 +898,10 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
         from haa.metrics.http import MetricsServer, metrics_bind_host
         from haa.sim.metrics import sim_registry
 
-        reg, scrape = sim_registry(core, svc)
-        metrics = scrape.server = MetricsServer(reg, metrics_bind_host(listen), metrics_port)
+        metrics = MetricsServer(sim_registry(core, svc, asyncio.get_running_loop()), metrics_bind_host(listen),
+                                metrics_port)
         try:
-            await metrics.start()
+            metrics.start()
         except OSError as e:
             raise RuntimeError(f"--metrics-port: cannot listen on {metrics.host}:{metrics_port}: "
                                f"{e.strerror or e}") from None
@@ -933,7 +933,7 @@ async def serve(core: SimCore, listen: str, token: str | None, stop: asyncio.Eve
         await asyncio.sleep(0.1)
         await server.stop(grace=1.0)
         if metrics is not None:
-            await metrics.stop()
+            await asyncio.to_thread(metrics.stop)
         log("stopped", time=round(core.world.time, 3), dropped=core.dropped, rejected=svc.rejected,
             malformed=svc.malformed, errors=svc.errors)
 
