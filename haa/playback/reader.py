@@ -197,7 +197,8 @@ def summarize(root: Path, agent: str | None = None) -> list[AgentSummary]:
     rows = []
     for name, insts in load(root, agent).items():
         segs = [s for i in insts for s in i.segments]
-        stamps = [m.wall_ns for s in segs for m in (*s.inputs, *s.outputs)] or [insts[0].init.wall_start_ns]
+        stamps = [m.wall_ns for s in segs for m in s.inputs] + [m.wall_ns for s in segs for m in s.outputs]
+        stamps = stamps or [insts[0].init.wall_start_ns]
         hosts: list[str] = []
         for i in insts:
             if i.init.init.host not in hosts:

@@ -293,22 +293,22 @@ class _ReplayRandom(random.Random):
 class ReplayContext(AgentContext):
     """An AgentContext fed from a recording (module docstring)."""
 
-    feed: ReplayFeed
+    replay: ReplayFeed
 
     def __init__(self, init: pb.HostToAgent.Init, cls: Any, feed: ReplayFeed) -> None:
-        self.feed = feed
+        self.replay = feed
         self._timer_by_id: dict[int, Any] = {}
         super().__init__(init, cls, lambda _f: None, tap=feed)
 
     async def _take_item(self) -> tuple[str, Any]:
-        inp = await self.feed.take(lambda i: input_kind(i) in ITEM_KINDS, "a mailbox item")
+        inp = await self.replay.take(lambda i: input_kind(i) in ITEM_KINDS, "a mailbox item")
         kind = input_kind(inp)
         if kind == "message":
             return "msg", inp.message
         if kind == "timer":
             t = self._timer_by_id.get(inp.timer.timer_id)
             if t is None:
-                raise self.feed._diverge("a timer fired that the agent did not arm",
+                raise self.replay._diverge("a timer fired that the agent did not arm",
                                          f"timer {inp.timer.timer_id} fires",
                                          f"{len(self._timer_by_id)} timers armed")
             return "timer", t
@@ -330,7 +330,7 @@ class ReplayContext(AgentContext):
         return "stop", None
 
     async def _await_answer(self, fut: Any, req_id: int, timeout: float) -> pb.HostToAgent.Answer:
-        inp = await self.feed.take(
+        inp = await self.replay.take(
             lambda i: (input_kind(i) == "answer" and i.answer.req_id == req_id)
             or (input_kind(i) == "call_timeout" and i.call_timeout.req_id == req_id), f"the answer to call {req_id}")
         if input_kind(inp) == "call_timeout":
@@ -338,7 +338,7 @@ class ReplayContext(AgentContext):
         return inp.answer
 
     async def _await_reply(self, fut: Any, conv: int, timeout: float) -> pb.AgentMsg:
-        inp = await self.feed.take(
+        inp = await self.replay.take(
             lambda i: (input_kind(i) == "reply" and i.reply.conv == conv)
             or (input_kind(i) == "request_timeout" and i.request_timeout.conv == conv), f"the reply to {conv}")
         if input_kind(inp) == "request_timeout":
@@ -346,7 +346,7 @@ class ReplayContext(AgentContext):
         return inp.reply
 
     def perf_counter(self) -> float:
-        return self.feed.take_now("perf_counter", "perf_counter()").perf_counter
+        return self.replay.take_now("perf_counter", "perf_counter()").perf_counter
 
     async def run_in_thread(self, executor: Any, call: Callable[[], Any]) -> Any:
         """Run it here and now (its result depends on its arguments only), hand it back where it came back live."""
@@ -356,10 +356,10 @@ class ReplayContext(AgentContext):
             return call()
         finally:
             try:
-                await self.feed.take(lambda i: input_kind(i) == "thread_done" and i.thread_done == n,
+                await self.replay.take(lambda i: input_kind(i) == "thread_done" and i.thread_done == n,
                                      f"the result of thread call {n}")
             except asyncio.CancelledError:  # live, its task was cancelled while it ran: recorded right then
-                self.feed.take_now("thread_done", f"the cancelled thread call {n}")
+                self.replay.take_now("thread_done", f"the cancelled thread call {n}")
                 raise
 
     def timer(self, fn: Any, delay: float, period: float | None) -> Any:
