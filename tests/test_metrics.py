@@ -313,3 +313,37 @@ def test_compose_backend_reports_the_published_metrics_port() -> None:
     for name, svc in spec["services"].items():
         want = 19100 if name == "sim" else 19000 + int(name[1:])
         assert f"127.0.0.1:{want}:9400" in svc["ports"], (name, svc["ports"])
+
+
+def test_collectors_run_on_the_daemons_loop_and_a_hung_loop_fails_the_scrape() -> None:
+    """`OnLoop` runs the collectors on the event loop's thread (they read what only that thread changes); a loop
+    that does not come round within the timeout fails the scrape instead of hanging it."""
+    import asyncio
+    import concurrent.futures
+    import threading
+
+    from prometheus_client.core import GaugeMetricFamily
+
+    from haa.metrics.http import OnLoop
+
+    loop = asyncio.new_event_loop()
+    t = threading.Thread(target=loop.run_forever, daemon=True)
+    t.start()
+    seen: list[int] = []
+
+    class Probe:
+        def collect(self) -> Iterator[Any]:
+            seen.append(threading.get_ident())
+            yield GaugeMetricFamily("probe", "a probe", value=1)
+
+    try:
+        c = OnLoop(loop, [Probe()], timeout=2.0)
+        names = [m.name for m in c.collect()]
+        assert names == ["probe", "haa_metrics_scrape_seconds", "haa_metrics_scrapes"] and seen == [t.ident]
+        loop.call_soon_threadsafe(time.sleep, 1.0)  # the loop is busy for a second
+        with pytest.raises(concurrent.futures.TimeoutError):
+            list(OnLoop(loop, [Probe()], timeout=0.2).collect())
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        t.join(5)
+        loop.close()
