@@ -47,7 +47,7 @@ from haa.hostd import ddb as ddbmod
 Progress = Callable[[str], None]
 
 #: seconds to wait for the group to form and for the workload to start
-FORM_TIMEOUT = 120.0
+FORM_TIMEOUT = 180.0  # a loaded 2-core machine: 5 containers took > 120 s once
 WORKLOAD_TIMEOUT = 90.0
 
 
