@@ -10,6 +10,7 @@ a contract that silently matched nothing would fail here.
 from __future__ import annotations
 
 import configparser
+import copy
 import subprocess
 import sys
 from pathlib import Path
@@ -49,16 +50,24 @@ def test_every_package_has_a_layer_and_is_forbidden_to_the_core():
     assert children - {"haa.hostd", "haa.pb"} - forbidden == set(), "packages the core could import"
 
 
+_GRAPHS: dict[tuple[tuple[str, ...], bool, bool], grimp.ImportGraph] = {}
+
+
 class _GraphWithExtraImport:
-    """import-linter's graph builder, plus one import that the code does not have."""
+    """import-linter's graph builder, plus one import that the code does not have (the real graph is built
+    once per test session and copied)."""
 
     def __init__(self, importer: str, imported: str) -> None:
         self.importer, self.imported = importer, imported
 
     def build(self, root_package_names: list[str], cache_dir: str | None, include_external_packages: bool = False,
               exclude_type_checking_imports: bool = False) -> grimp.ImportGraph:
-        g = grimp.build_graph(*root_package_names, include_external_packages=include_external_packages,
-                              exclude_type_checking_imports=exclude_type_checking_imports, cache_dir=None)
+        key = (tuple(root_package_names), include_external_packages, exclude_type_checking_imports)
+        if key not in _GRAPHS:
+            _GRAPHS[key] = grimp.build_graph(*root_package_names, include_external_packages=include_external_packages,
+                                             exclude_type_checking_imports=exclude_type_checking_imports,
+                                             cache_dir=None)
+        g = copy.deepcopy(_GRAPHS[key])
         g.add_import(importer=self.importer, imported=self.imported, line_number=1, line_contents="import x")
         return g
 
