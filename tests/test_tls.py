@@ -117,6 +117,7 @@ def test_handshake_reason_reads_grpc_core_lines() -> None:
 class Cluster:
     def __init__(self, root: Path) -> None:
         self.root = root
+        self.view0 = 0  # the view the group formed in
 
     def cli(self, *args: str) -> Any:
         r = runner.invoke(app, [*args, "--root", str(self.root)])
@@ -189,6 +190,7 @@ def open_link(cluster: Cluster, target: str, creds: grpc.ChannelCredentials, sen
 def test_the_tls_cluster_formed_and_keeps_its_material_private(cluster: Cluster) -> None:
     st = cluster.members()
     assert sorted(st["members"]) == ["h1", "h2", "h3"]
+    cluster.view0 = st["view"]
     for key in (cluster.root / "tls").rglob("*.key"):
         assert stat.S_IMODE(key.stat().st_mode) == 0o600
     # the hosts really serve TLS only: a plaintext client gets nowhere
@@ -252,6 +254,10 @@ def test_a_host_certificate_cannot_drive_the_control_api(cluster: Cluster) -> No
 
 
 def test_haactl_works_a_host_joins_and_a_write_commits_after_the_refusals(cluster: Cluster) -> None:
+    # the refusals changed nothing: the same view, nobody suspected
+    st = cluster.members()
+    assert st["view"] == cluster.view0 and sorted(st["members"]) == ["h1", "h2", "h3"]
+    assert all(not h["suspicions"] for h in st["hosts"]), st["hosts"]
     # haactl's commands go over TLS with its client certificate
     cluster.cli("ddb", "put", "tls/before", "1")
     cluster.cli("host", "add", "h4", "--timeout", "60")
