@@ -295,3 +295,15 @@ def test_haactl_foxglove_bridges_a_running_cluster(cluster: Path) -> None:
             p.kill()
             out = p.communicate()[0]
     assert p.returncode == 130 and "Traceback" not in out, out
+
+
+def test_a_taken_port_is_one_clear_error() -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        with pytest.raises(OSError) as e:
+            FoxgloveBridge(Hub(), port=port).start()
+    assert str(e.value).startswith("Failed to bind port") and "\n" not in str(e.value), str(e.value)
