@@ -347,3 +347,19 @@ def test_collectors_run_on_the_daemons_loop_and_a_hung_loop_fails_the_scrape() -
         loop.call_soon_threadsafe(loop.stop)
         t.join(5)
         loop.close()
+
+
+def test_a_missions_haa_sim_serves_metrics(tmp_path: Path) -> None:
+    """The haa-sim a mission starts (haactl mission run|start) serves /metrics too, and says where."""
+    from haa.mission import load_mission
+    from haa.mission.runner import SimHandle, start_sim
+
+    m = load_mission(Path(__file__).resolve().parent / "missions" / "ci.yaml")
+    h = start_sim(m, 1.0, tmp_path)
+    try:
+        assert h.metrics_url.startswith("http://127.0.0.1:") and h.metrics_url.endswith("/metrics"), h
+        got = scrape(h.metrics_url)
+        assert "haa_sim_time_seconds" in got
+        assert SimHandle.from_json(json.loads(json.dumps(h.to_json()))).metrics_url == h.metrics_url
+    finally:
+        h.stop()

@@ -48,6 +48,7 @@ import grpc
 import numpy as np
 import psutil
 
+from haa.cluster import procs
 from haa.mission import metrics as mm
 from haa.mission import transcript as tr
 from haa.mission.schema import Mission, resolve
@@ -252,6 +253,8 @@ class SimHandle:
     #: where the agents reach it, when not at `address` (compose: sim:7100 and the token in the containers)
     agent_address: str = ""
     agent_token_file: str = ""
+    #: its Prometheus endpoint (docs/metrics.md), "" when it serves none
+    metrics_url: str = ""
 
     def client(self, timeout: float = 5.0) -> Any:
         from haa import files
@@ -296,14 +299,16 @@ class SimHandle:
     def to_json(self) -> dict[str, Any]:
         return {"address": self.address, "token_file": self.token_file, "pid": self.pid,
                 "create_time": self.create_time, "log": self.log, "started_here": self.started_here,
-                "agent_address": self.agent_address, "agent_token_file": self.agent_token_file}
+                "agent_address": self.agent_address, "agent_token_file": self.agent_token_file,
+                "metrics_url": self.metrics_url}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SimHandle:
         return cls(str(d["address"]), str(d.get("token_file") or ""), d.get("pid"), d.get("create_time"),
                    str(d.get("log") or ""), bool(d.get("started_here")),
                    agent_address=str(d.get("agent_address") or ""),
-                   agent_token_file=str(d.get("agent_token_file") or ""))
+                   agent_token_file=str(d.get("agent_token_file") or ""),
+                   metrics_url=str(d.get("metrics_url") or ""))
 
 
 def sim_command() -> list[str]:
@@ -324,14 +329,15 @@ def arena_argument(mission: Mission) -> str:
 def start_sim(mission: Mission, speed: float, workdir: Path, schedule: bool = True, detached: bool = False,
               timeout: float = 30.0) -> SimHandle:
     """Start haa-sim for the mission (arena, seed, speed; the avatar schedule unless `schedule` is False) on a
-    free loopback port with a fresh token; wait until it listens. `detached`: it outlives this process."""
+    free loopback port with a fresh token, its Prometheus /metrics on another (`SimHandle.metrics_url`); wait
+    until it listens. `detached`: it outlives this process."""
     workdir.mkdir(parents=True, exist_ok=True)
     token_file = workdir / "sim.token"
     token_file.write_text(secrets.token_hex(24) + "\n")
     token_file.chmod(0o600)
     cmd = [*sim_command(), "--arena", arena_argument(mission), "--listen", "127.0.0.1:0",
            "--seed", str(mission.spec.seed), "--speed", repr(float(speed)), "--token-file", str(token_file),
-           "--drift", mission.spec.drift]
+           "--drift", mission.spec.drift, "--metrics-port", str(procs.free_port())]
     if schedule:
         sched = workdir / "sim-schedule.yaml"
         sched.write_text(schedule_yaml(mission))
@@ -352,6 +358,7 @@ def start_sim(mission: Mission, speed: float, workdir: Path, schedule: bool = Tr
                 rec = json.loads(line)
                 if isinstance(rec, dict) and rec.get("event") == "listening":
                     h.address = str(rec["address"])
+                    h.metrics_url = str(rec.get("metrics") or "")
                     return h
         code = p.poll()
         if code is not None:
