@@ -41,11 +41,6 @@ STALL_S = 2.0
 #: after the last input, how long the agent may still run (its last handler) before the replay ends
 SETTLE_S = 0.3
 
-#: loop iterations a consumer gives the agent's other tasks before it takes its input (`ReplayFeed.take`)
-YIELDS = 0
-#: ... and after being woken by another consumer's input (`ReplayFeed.take`)
-WAKE_YIELDS = 0
-
 #: the mailbox kinds (haa.agents.base.AgentContext) among the PlaybackInput fields
 ITEM_KINDS = frozenset({"begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop"})
 
@@ -173,24 +168,16 @@ class ReplayFeed:
         return self._consume()
 
     async def take(self, match: Callable[[ppb.PlaybackInput], bool], what: str) -> ppb.PlaybackInput:
-        """Wait until the next input is one `match` accepts (the inputs before it taken by other consumers).
-        Live, awaiting an input always lets the agent's other ready tasks run first (the answer is not there
-        yet): so here, before looking."""
-        woke = False
+        """Wait until the next input is one `match` accepts (the inputs before it taken by other consumers) and
+        no output the live agent made before it is still to come; then take it at once. (Giving the agent's
+        other ready tasks a few loop iterations first, before or after a wake-up, made more replays diverge
+        than it saved, measured over three recorded missions: docs/playback.md.)"""
         while True:
-            # after a wake-up, WAKE_YIELDS quiet loop iterations (no input taken, no output made meanwhile) before
-            # looking: the task that took the input before may not be done with it yet (its done-callbacks)
-            seen = self.progress
-            for _ in range(YIELDS + (WAKE_YIELDS if woke else 0)):
-                await asyncio.sleep(0)
-            if self.progress != seen:
-                continue
             if self.divergence is not None:
                 raise ReplayStopped(str(self.divergence))
             if self.pos < len(self.inputs) and match(self.inputs[self.pos]) and not self.output_due():
                 return self._consume()
             await self._changed.wait()
-            woke = True
 
     def output_due(self) -> bool:
         """Live, the next recorded output was made before the next input was taken: hold the input until the
