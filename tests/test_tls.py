@@ -111,6 +111,45 @@ def test_handshake_reason_reads_grpc_core_lines() -> None:
     assert tls.handshake_reason(b"E1127 ssl_transport_security.cc:3238] No match found for server name: h2") is None
 
 
+def test_handshake_tap_counts_grpc_lines_and_passes_stderr_through(tmp_path: Path) -> None:
+    seen: list[str] = []
+    sink = tmp_path / "stderr.txt"
+    saved = os.dup(2)
+    fd = os.open(sink, os.O_WRONLY | os.O_CREAT, 0o600)
+    os.dup2(fd, 2)  # the "real" stderr of this test
+    os.close(fd)
+    try:
+        tap = tls.HandshakeTap(seen.append)
+        tap.start()
+        os.write(2, b"ordinary line\nE1127 ssl_transport_security.cc:1] Handshake failed with error SSL_ERROR_SSL: "
+                    b"error:1000:SSL routines:OPENSSL_internal:CERTIFICATE_VERIFY_FAILED: x\n")
+        deadline = time.monotonic() + 10
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.01)
+        tap.stop()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    assert seen == ["CERTIFICATE_VERIFY_FAILED"]
+    text = sink.read_text()
+    assert text.startswith("ordinary line\n") and "CERTIFICATE_VERIFY_FAILED" in text
+
+
+def test_haa_hostd_refuses_material_for_another_name_in_one_line(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from haa.hostd.daemon import load_settings
+
+    make_cluster_tls(tmp_path / "tls", ["h1"])
+    token = tmp_path / "token"
+    token.write_text("t\n")
+    with pytest.raises(SystemExit) as e:
+        load_settings(["--name", "h2", "--listen", "127.0.0.1:0", "--core", "h1=127.0.0.1:1", "--token-file",
+                       str(token), "--tls-dir", str(tmp_path / "tls" / "hosts" / "h1")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--tls-dir: certificate" in err and "is for host 'h1', not 'h2'" in err
+
+
 # ------------------------------------------------------------------------------------------------ a TLS cluster
 
 
