@@ -18,7 +18,10 @@
   gone, and removes the stack's data volumes (`<stack>_core_N`, `<stack>_host_N`, label
   com.docker.stack.namespace). kill, pause, resume, stop and logs use the docker SDK on the task's container.
 * The token is the file the stack's `haa_token` secret is made from (compose/token next to the stack file).
-* Not here: mutual TLS (`--tls`) under swarm; docs/swarm.md describes how a scaled task would enroll.
+* `up(tls=True)` (`haactl cluster up --swarm --tls`): a new cluster CA, an enrollment token and haactl's client
+  certificate in compose/tls/swarm-<stack>/, deployed with compose/stack-tls.yaml over the stack file: every
+  task enrolls for a certificate of its own name (haa.cluster.enroll). Later commands see HAA_TLS_ENROLL in the
+  core service and talk to the hosts with haactl's certificate.
 
 Environment: HAA_STACK_FILE (default: compose/stack.yaml under the current directory, else the one of this
 checkout), HAA_SWARM_STACK (default haa), HAA_SWARM_TIMEOUT (seconds `down` waits, default 120).
@@ -57,6 +60,8 @@ from haa.cluster.backend import (
     natural_key,
     state_phrase,
 )
+from haa.cluster.tls import CLIENT_DIR, CaError, make_cluster_tls
+from haa.tls import TlsError, load_client
 
 REPO = Path(__file__).resolve().parents[2]
 CONTROL_PORT = 7000
@@ -64,6 +69,8 @@ METRICS_PORT = 9400
 GWBRIDGE = "docker_gwbridge"
 LABEL_STACK = "com.docker.stack.namespace"
 SLOT = "{{.Task.Slot}}"
+#: the enrollment token's file in the stack's TLS directory (secret haa_enroll_token)
+ENROLL_TOKEN = "enroll-token"
 #: task states before the container runs (swarmkit's TaskState names)
 STARTING = frozenset({"new", "pending", "assigned", "accepted", "preparing", "ready", "starting"})
 
@@ -172,6 +179,11 @@ class SwarmBackend(Backend):
                 raise ClusterError(f"cannot read the cluster token {e}") from None
         super().__init__(token)
         self._docker: Any = None
+        #: the TLS overlay (compose/stack-tls.yaml) and this stack's CA, enrollment token and haactl's certificate
+        self.tls_file = self.file.parent / "stack-tls.yaml"
+        self.tls_dir = self.file.parent / "tls" / f"swarm-{self.stack}"
+        self._tls_known = False
+        self._tls_lock = threading.Lock()
         self.image = str(next(iter(services.values())).get("image") or "haa-hostd:latest")
         self.image = re.sub(r"\$\{HAA_IMAGE:-([^}]*)\}", lambda m: os.environ.get("HAA_IMAGE") or m.group(1),
                             self.image)
@@ -375,9 +387,8 @@ class SwarmBackend(Backend):
     def up(self, hosts: int, core: int | None = None, log: Any = print, capacity: float | None = None,
            tls: bool = False) -> list[str]:
         ncore = len(self.core_names)
-        if tls:
-            raise ClusterError("--tls is not available with --swarm yet: a scaled task cannot get a certificate of "
-                               "its own (docs/swarm.md, \"TLS under docker service scale\"); use --compose --tls")
+        if tls and not self.tls_file.is_file():
+            raise ClusterError(f"--tls needs {self.tls_file} next to the stack file (it adds the enrollment service)")
         if core is not None and core != ncore:
             raise ClusterError(f"the stack's core is {', '.join(self.core_names)} ({ncore} hosts); --core {core} is "
                                "not possible with --swarm")
@@ -397,7 +408,22 @@ class SwarmBackend(Backend):
             from haa.cluster.local_backend import share_of_cores
 
             env["HAA_CAPACITY"] = repr(share_of_cores(hosts, self.docker_cores()))
-        self.docker_cli("stack", "deploy", "--compose-file", str(self.file), "--prune", self.stack, env=env)
+        cfiles = ["--compose-file", str(self.file)]
+        if tls:  # a new CA, the enrollment token and haactl's certificate; the tasks enroll for theirs
+            try:
+                ca = make_cluster_tls(self.tls_dir, [])
+            except CaError as e:
+                raise ClusterError(str(e)) from None
+            fd = os.open(self.tls_dir / ENROLL_TOKEN, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                f.write(secrets.token_hex(32) + "\n")
+            self.tls = load_client(ca.client_dir)
+            env["HAA_SWARM_TLS_DIR"] = str(self.tls_dir)
+            cfiles += ["--compose-file", str(self.tls_file)]
+        else:
+            self.tls = None
+        self._tls_known = True
+        self.docker_cli("stack", "deploy", *cfiles, "--prune", self.stack, env=env)
         prefix_core, prefix_host = self.prefixes[self.core_service], self.prefixes[self.host_service]
         return [f"{prefix_core}{i}" for i in range(1, ncore + 1)] + [f"{prefix_host}{i}"
                                                                      for i in range(1, hosts - ncore + 1)]
@@ -407,8 +433,8 @@ class SwarmBackend(Backend):
         deadline = time.monotonic() + timeout
         flt = {"label": f"{LABEL_STACK}={self.stack}"}
         while True:
-            left = (self.docker.containers.list(all=True, filters=flt) or self.docker.networks.list(filters=flt)
-                    or self.docker.secrets.list(filters=flt))
+            left = (self.docker.containers.list(all=True, filters=flt, sparse=True)
+                    or self.docker.networks.list(filters=flt) or self.docker.secrets.list(filters=flt))
             if not left:
                 return True
             if time.monotonic() > deadline:
@@ -437,6 +463,21 @@ class SwarmBackend(Backend):
             except Exception as e:
                 raise ClusterError(f"cannot remove volume {v.name} of the stack: {e}") from None
         return f"removed {len(running)} services and {gone} data volumes"
+
+    def connect(self, h: HostInfo, timeout: float | None = None) -> Any:
+        with self._tls_lock:  # statuses() connects from several threads: decide once, before any of them dials
+            if not self._tls_known:  # does the running stack use TLS? (HAA_TLS_ENROLL in its core service)
+                core = self.services().get(self.core_service)
+                spec = (((core.attrs.get("Spec") or {}).get("TaskTemplate") or {}).get("ContainerSpec") or {}) \
+                    if core is not None else {}
+                if any(e.startswith("HAA_TLS_ENROLL=") and e != "HAA_TLS_ENROLL=" for e in spec.get("Env") or []):
+                    try:
+                        self.tls = load_client(self.tls_dir / CLIENT_DIR)
+                    except TlsError as e:
+                        raise ClusterError(f"the swarm stack uses TLS, but haactl's certificate is unusable: {e}") \
+                            from None
+                self._tls_known = True
+        return super().connect(h, timeout)
 
     # ------------------------------------------------------------------ Backend
     def kill(self, name: str) -> None:
