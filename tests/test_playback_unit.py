@@ -165,3 +165,33 @@ def test_where_a_mission_records(tmp_path: Path) -> None:
     assert record_folder("rec/a", out, None) == out / "rec" / "a"
     assert record_folder("/abs/rec", out, None) == Path("/abs/rec")
     assert record_folder(False, out, Path("cli")) == Path("cli").absolute()  # haactl --record wins
+
+
+def test_a_large_output_is_kept_as_its_digest_and_still_compared_byte_for_byte(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, INIT)
+    sent: list = []
+    emit = rec.wrap_emit(sent.append)
+    big = pb.AgentToHost(sent=pb.AgentMsg(src=INIT.agent_id, dst="sensor", payload=random.Random(1).randbytes(256_000)))
+    small = pb.AgentToHost(sent=pb.AgentMsg(src=INIT.agent_id, dst="sensor", payload=b"hello"))
+    emit(big)
+    emit(small)
+    rec.close()
+    assert sent == [big, small]  # what the host gets is untouched
+    (inst,) = reader.load(tmp_path)["A7.2"]
+    assert [o.WhichOneof("output") for o in inst.outputs] == ["digest", "frame"]
+    assert inst.outputs[0].digest.size == big.ByteSize() and inst.outputs[0].digest.dst == "sensor"
+    assert sum(f.stat().st_size for f in (tmp_path / "A7.2").iterdir()) < 100_000  # not the 256 kB frame
+
+    async def check(frames: list) -> ReplayFeed:
+        feed = ReplayFeed(inst)
+        out = feed.wrap_emit(None)
+        for f in frames:
+            out(f)
+        return feed
+
+    assert asyncio.run(check([big, small])).out_pos == 2
+    changed = pb.AgentToHost()
+    changed.CopyFrom(big)
+    changed.sent.payload = big.sent.payload[:-1] + b"\xff"
+    with pytest.raises(ReplayStopped, match="output 0"):
+        asyncio.run(check([changed]))

@@ -627,6 +627,8 @@ class AgentContext:
             # Alg. 5 l. 17: stop the timers now; what was delivered before the freeze is still handled
             self.state = "freezing"
             self._cancel_timers()
+            if self.tap is not None:
+                self.tap.freeze_fed()  # an input of its own: it changes how the queued items are handled
             self._put(("freeze", None))
         elif kind == "stop":
             self._put(("stop", None))

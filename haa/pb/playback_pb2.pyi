@@ -25,7 +25,7 @@ class PlaybackInstance(_message.Message):
     def __init__(self, init: _Optional[_Union[_agent_pb2.HostToAgent.Init, _Mapping]] = ..., instance: _Optional[str] = ..., segment: _Optional[int] = ..., first_input: _Optional[int] = ..., first_output: _Optional[int] = ..., wall_start_ns: _Optional[int] = ..., format: _Optional[str] = ...) -> None: ...
 
 class PlaybackInput(_message.Message):
-    __slots__ = ("seq", "wall_ns", "begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop", "answer", "reply", "request_timeout", "call_timeout", "clock", "random", "random_bits", "external", "perf_counter", "thread_done")
+    __slots__ = ("seq", "wall_ns", "begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop", "answer", "reply", "request_timeout", "call_timeout", "clock", "random", "random_bits", "external", "perf_counter", "thread_done", "freeze_fed")
     class Begin(_message.Message):
         __slots__ = ("how", "has_blob", "blob")
         HOW_FIELD_NUMBER: _ClassVar[int]
@@ -94,6 +94,7 @@ class PlaybackInput(_message.Message):
     EXTERNAL_FIELD_NUMBER: _ClassVar[int]
     PERF_COUNTER_FIELD_NUMBER: _ClassVar[int]
     THREAD_DONE_FIELD_NUMBER: _ClassVar[int]
+    FREEZE_FED_FIELD_NUMBER: _ClassVar[int]
     seq: int
     wall_ns: int
     begin: PlaybackInput.Begin
@@ -114,10 +115,11 @@ class PlaybackInput(_message.Message):
     external: PlaybackInput.External
     perf_counter: float
     thread_done: int
-    def __init__(self, seq: _Optional[int] = ..., wall_ns: _Optional[int] = ..., begin: _Optional[_Union[PlaybackInput.Begin, _Mapping]] = ..., message: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., timer: _Optional[_Union[PlaybackInput.TimerFired, _Mapping]] = ..., watch: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., log_item: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., resume: _Optional[str] = ..., freeze: _Optional[bool] = ..., stop: _Optional[bool] = ..., answer: _Optional[_Union[_agent_pb2.HostToAgent.Answer, _Mapping]] = ..., reply: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., request_timeout: _Optional[_Union[PlaybackInput.RequestTimeout, _Mapping]] = ..., call_timeout: _Optional[_Union[PlaybackInput.CallTimeout, _Mapping]] = ..., clock: _Optional[float] = ..., random: _Optional[float] = ..., random_bits: _Optional[_Union[PlaybackInput.RandomBits, _Mapping]] = ..., external: _Optional[_Union[PlaybackInput.External, _Mapping]] = ..., perf_counter: _Optional[float] = ..., thread_done: _Optional[int] = ...) -> None: ...
+    freeze_fed: bool
+    def __init__(self, seq: _Optional[int] = ..., wall_ns: _Optional[int] = ..., begin: _Optional[_Union[PlaybackInput.Begin, _Mapping]] = ..., message: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., timer: _Optional[_Union[PlaybackInput.TimerFired, _Mapping]] = ..., watch: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., log_item: _Optional[_Union[_agent_pb2.HostToAgent.WatchEvent, _Mapping]] = ..., resume: _Optional[str] = ..., freeze: _Optional[bool] = ..., stop: _Optional[bool] = ..., answer: _Optional[_Union[_agent_pb2.HostToAgent.Answer, _Mapping]] = ..., reply: _Optional[_Union[_agent_pb2.AgentMsg, _Mapping]] = ..., request_timeout: _Optional[_Union[PlaybackInput.RequestTimeout, _Mapping]] = ..., call_timeout: _Optional[_Union[PlaybackInput.CallTimeout, _Mapping]] = ..., clock: _Optional[float] = ..., random: _Optional[float] = ..., random_bits: _Optional[_Union[PlaybackInput.RandomBits, _Mapping]] = ..., external: _Optional[_Union[PlaybackInput.External, _Mapping]] = ..., perf_counter: _Optional[float] = ..., thread_done: _Optional[int] = ..., freeze_fed: _Optional[bool] = ...) -> None: ...
 
 class PlaybackOutput(_message.Message):
-    __slots__ = ("seq", "after_input", "wall_ns", "frame", "external_call")
+    __slots__ = ("seq", "after_input", "wall_ns", "frame", "external_call", "digest")
     class ExternalCall(_message.Message):
         __slots__ = ("source", "method", "call", "request")
         SOURCE_FIELD_NUMBER: _ClassVar[int]
@@ -129,14 +131,27 @@ class PlaybackOutput(_message.Message):
         call: int
         request: bytes
         def __init__(self, source: _Optional[str] = ..., method: _Optional[str] = ..., call: _Optional[int] = ..., request: _Optional[bytes] = ...) -> None: ...
+    class Digest(_message.Message):
+        __slots__ = ("sha256", "size", "kind", "dst")
+        SHA256_FIELD_NUMBER: _ClassVar[int]
+        SIZE_FIELD_NUMBER: _ClassVar[int]
+        KIND_FIELD_NUMBER: _ClassVar[int]
+        DST_FIELD_NUMBER: _ClassVar[int]
+        sha256: bytes
+        size: int
+        kind: str
+        dst: str
+        def __init__(self, sha256: _Optional[bytes] = ..., size: _Optional[int] = ..., kind: _Optional[str] = ..., dst: _Optional[str] = ...) -> None: ...
     SEQ_FIELD_NUMBER: _ClassVar[int]
     AFTER_INPUT_FIELD_NUMBER: _ClassVar[int]
     WALL_NS_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     EXTERNAL_CALL_FIELD_NUMBER: _ClassVar[int]
+    DIGEST_FIELD_NUMBER: _ClassVar[int]
     seq: int
     after_input: int
     wall_ns: int
     frame: _agent_pb2.AgentToHost
     external_call: PlaybackOutput.ExternalCall
-    def __init__(self, seq: _Optional[int] = ..., after_input: _Optional[int] = ..., wall_ns: _Optional[int] = ..., frame: _Optional[_Union[_agent_pb2.AgentToHost, _Mapping]] = ..., external_call: _Optional[_Union[PlaybackOutput.ExternalCall, _Mapping]] = ...) -> None: ...
+    digest: PlaybackOutput.Digest
+    def __init__(self, seq: _Optional[int] = ..., after_input: _Optional[int] = ..., wall_ns: _Optional[int] = ..., frame: _Optional[_Union[_agent_pb2.AgentToHost, _Mapping]] = ..., external_call: _Optional[_Union[PlaybackOutput.ExternalCall, _Mapping]] = ..., digest: _Optional[_Union[PlaybackOutput.Digest, _Mapping]] = ...) -> None: ...

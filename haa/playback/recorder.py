@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
 import random
 import re
@@ -49,6 +50,8 @@ MIN_SEGMENT_BYTES = 4096
 FLUSH_S = 1.0
 #: a chunk is closed at this many bytes anyway
 CHUNK_BYTES = 256 * 1024
+#: an output frame larger than this (bytes) is kept as its SHA-256 and size (camera frames sent to sensor agents)
+DIGEST_OVER = 64 * 1024
 
 _SAFE = re.compile(r"[^A-Za-z0-9._-]")
 
@@ -265,7 +268,7 @@ class Recorder:
     def wrap_emit(self, emit: Callable[[pb.AgentToHost], None]) -> Callable[[pb.AgentToHost], None]:
         def recorded(frame: pb.AgentToHost) -> None:
             emit(frame)  # may raise (a frame too large): then it was not sent, and is not an output
-            self.output(ppb.PlaybackOutput(frame=frame))
+            self.output(output_of(frame))
 
         return recorded
 
@@ -280,6 +283,9 @@ class Recorder:
 
     def thread_done(self, n: int) -> None:
         self.input(ppb.PlaybackInput(thread_done=n))
+
+    def freeze_fed(self) -> None:
+        self.input(ppb.PlaybackInput(freeze_fed=True))
 
     def item(self, kind: str, data: Any) -> None:
         """The mailbox worker took this item (haa.agents.base.AgentContext._take_item)."""
@@ -310,6 +316,16 @@ class Recorder:
         from haa.playback.external import RecordingStub
 
         return RecordingStub(self, source, service, stub)
+
+
+def output_of(frame: pb.AgentToHost) -> ppb.PlaybackOutput:
+    """The PlaybackOutput of a frame: the frame, or its digest when it is larger than DIGEST_OVER (not a log)."""
+    kind = frame.WhichOneof("msg") or ""
+    if kind == "log" or frame.ByteSize() <= DIGEST_OVER:
+        return ppb.PlaybackOutput(frame=frame)
+    data = frame.SerializeToString(deterministic=True)
+    return ppb.PlaybackOutput(digest=ppb.PlaybackOutput.Digest(
+        sha256=hashlib.sha256(data).digest(), size=len(data), kind=kind, dst=frame.sent.dst if kind == "sent" else ""))
 
 
 def item_input(kind: str, data: Any) -> ppb.PlaybackInput:

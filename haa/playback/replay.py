@@ -22,6 +22,7 @@ Log frames are compared without their `traceback` field (its frames name the rep
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import random
 from collections.abc import Callable
@@ -113,6 +114,16 @@ def output_bytes(out: ppb.PlaybackOutput) -> bytes:
     return out.external_call.SerializeToString(deterministic=True)
 
 
+def same_output(exp: ppb.PlaybackOutput, got: ppb.PlaybackOutput) -> bool:
+    """`got` (a replayed output) is the recorded `exp` byte for byte (by SHA-256 when only its digest was kept)."""
+    if exp.WhichOneof("output") == "digest":
+        if got.WhichOneof("output") != "frame":
+            return False
+        data = got.frame.SerializeToString(deterministic=True)
+        return len(data) == exp.digest.size and hashlib.sha256(data).digest() == exp.digest.sha256
+    return output_bytes(exp) == output_bytes(got)
+
+
 class ReplayFeed:
     """The recorded inputs, handed out in order, and the recorded outputs, checked in order (module docstring).
     It is also the replayed context's tap (clock, random source, emit, haa-sim stub)."""
@@ -130,6 +141,8 @@ class ReplayFeed:
         self.break_at = break_at
         self.on_break = on_break or _pdb_break
         self.external_calls = 0
+        #: what the host's Freeze does on arrival (ReplayContext: stop the timers)
+        self.on_freeze: Callable[[], None] | None = None
         self.progress = 0  # bumped by every input taken and output checked
         self._changed = asyncio.Event()
 
@@ -159,6 +172,7 @@ class ReplayFeed:
         """A synchronous read (now(), random): it must be the next input."""
         if self.divergence is not None:
             raise ReplayStopped(str(self.divergence))
+        self._arrivals()
         if self.pos >= len(self.inputs):
             raise ReplayStopped("the recording ends")
         head = self.inputs[self.pos]
@@ -175,6 +189,7 @@ class ReplayFeed:
         while True:
             if self.divergence is not None:
                 raise ReplayStopped(str(self.divergence))
+            self._arrivals()
             if self.pos < len(self.inputs) and match(self.inputs[self.pos]) and not self.output_due():
                 return self._consume()
             await self._changed.wait()
@@ -196,7 +211,7 @@ class ReplayFeed:
                 return
             raise self._diverge("an output the live agent did not make", "(no more outputs)", describe(out), k)
         exp = self.outputs[k]
-        if output_bytes(exp) != output_bytes(out):
+        if not same_output(exp, out):
             raise self._diverge("a different output", describe(exp), describe(out), k)
         if exp.after_input != self.pos:
             raise self._diverge(f"output {k} made after a different number of inputs",
@@ -223,6 +238,17 @@ class ReplayFeed:
 
     def thread_done(self, n: int) -> None:  # pragma: no cover - as above
         pass
+
+    def freeze_fed(self) -> None:  # pragma: no cover - the replay feeds nothing
+        pass
+
+    def _arrivals(self) -> None:
+        """Inputs that act on arrival, not when a consumer takes them (the host's Freeze stopping the timers):
+        applied as soon as they are next."""
+        while self.pos < len(self.inputs) and input_kind(self.inputs[self.pos]) == "freeze_fed":
+            self._consume()
+            if self.on_freeze is not None:
+                self.on_freeze()
 
     def item(self, kind: str, data: Any) -> None:  # pragma: no cover - ReplayContext takes items itself
         pass
@@ -286,6 +312,11 @@ class ReplayContext(AgentContext):
         self.replay = feed
         self._timer_by_id: dict[int, Any] = {}
         super().__init__(init, cls, lambda _f: None, tap=feed)
+        feed.on_freeze = self._freeze_arrived
+
+    def _freeze_arrived(self) -> None:
+        self.state = "freezing"  # as AgentContext.feed does when the host's Freeze arrives (Alg. 5 l. 17)
+        self._cancel_timers()
 
     async def _take_item(self) -> tuple[str, Any]:
         inp = await self.replay.take(lambda i: input_kind(i) in ITEM_KINDS, "a mailbox item")
@@ -384,6 +415,7 @@ async def _replay(inst: Instance, break_at: int | None,
     last, since = -1, loop.time()
     while not worker.done() and feed.divergence is None:
         await asyncio.sleep(0.005)
+        feed._arrivals()
         if feed.progress != last:
             last, since = feed.progress, loop.time()
             continue
