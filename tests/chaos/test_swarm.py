@@ -3,12 +3,16 @@ this machine's engine (`docker swarm init --advertise-addr 127.0.0.1` when the e
 swarm again at the end if it made it and nothing else runs in it).
 
 One stack of its own (`haaswarm<pid>`, so a user's `haa` stack is never touched) is deployed with
-`haactl cluster up --swarm --hosts 6` (core1..core3 and host1..host3): the six form one group. A counter pair
-(haa/agents/demo.py) is spawned and A1 moved to host2. `docker service scale <stack>_host=5` adds host4 and
-host5: the group grows to eight. host2's task container is killed (`docker kill`, SIGKILL): the group removes
+`haactl cluster up --swarm --tls --hosts 6` (core1..core3 and host1..host3; mutual TLS, every task enrolled for
+a certificate of its own: haa.cluster.enroll): the six form one group. A client with the token but without a
+certificate is refused, and a task asking for another host's certificate is refused. A counter pair
+(haa/agents/demo.py) is spawned. `docker service scale <stack>_host=5` adds host4 and host5: the group grows to
+eight. A1 is moved to host2, and host2's task container is killed (`docker kill`, SIGKILL): the group removes
 host2, the agent is recovered on a survivor, and the swarm's replacement task of slot 2 (same name, same data
 volume) joins as a new incarnation. Then the counters must be active on member hosts, still exchanging pings,
-with no message lost (outside Alg. 8's documented loss after a recovery), none out of order, none duplicated.
+with no message lost (outside Alg. 8's documented loss after a recovery), none out of order, none duplicated;
+`agent events` (read from the tasks' logs) shows A1's crash on host2 and its recovery elsewhere; the enrollment
+service issued one certificate to each of the eight names and a second one to host2's replacement.
 `haactl cluster down --swarm` removes the stack and its data volumes. Marker `docker`: skipped without an
 engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈ 2 minutes on a loaded 2-core machine.
 """
@@ -23,6 +27,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import grpc
 import pytest
 from chaoslib import docker_problem
 from typer.testing import CliRunner
@@ -30,6 +35,7 @@ from typer.testing import CliRunner
 from haa.cluster.backend import ClusterError, wait_until
 from haa.cluster.swarm_backend import SwarmBackend
 from haa.hostd import ddb
+from haa.hostd.control import ControlClient
 from haactl.main import app
 
 pytestmark = pytest.mark.docker
@@ -114,7 +120,7 @@ def swarm() -> Iterator[Swarm]:
 def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     b = swarm.backend
     t0 = time.monotonic()
-    up = json.loads(swarm("cluster", "up", "--hosts", "6", "--json", "--timeout", "150"))
+    up = json.loads(swarm("cluster", "up", "--hosts", "6", "--tls", "--json", "--timeout", "150"))
     first = [*CORE, "host1", "host2", "host3"]
     assert sorted(up["members"]) == sorted(first), up
     assert up["backend"] == "swarm"
@@ -125,13 +131,19 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     st = json.loads(swarm("cluster", "status", "--json", "--sample", "0"))
     assert st["agreed"] and st["ddb_hashes_equal"] and sorted(st["members"]) == sorted(first), st
 
+    # mutual TLS: a client with the token but no certificate is refused; a task cannot enroll as another host
+    plain = ControlClient(hosts["host1"].address, b.token, timeout=3)
+    with pytest.raises(grpc.RpcError):
+        plain.status()
+    plain.close()
+    r = b.container("host1").exec_run(["/opt/haa/bin/python", "-m", "haa.cluster.enroll", "request", "--name",
+                                        "core2", "--out", "/tmp/stolen", "--timeout", "2"])
+    assert r.exit_code == 2 and b"403 core2 resolves to" in r.output, r.output
+
     # a counter pair, A1 on the host that will be killed
     swarm("agent", "spawn", "counter", "--config", json.dumps({"spawn_peer": True, "period": 0.1, "backup_every": 5}))
     poll("both counters active", 60,
          lambda: (a := swarm.agents()) and len(a) == 2 and all(x["state"] == "active" for x in a.values()))
-    swarm("agent", "move", "A1", VICTIM)
-    poll(f"A1 active on {VICTIM}", 60, lambda: swarm.agents()["A1"]["state"] == "active"
-         and swarm.agents()["A1"]["host"] == VICTIM)
 
     # docker service scale: two more hosts join
     t1 = time.monotonic()
@@ -142,7 +154,11 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     f, _ = wait_until(lambda: b.formation(eight), 120, what="8 hosts in one group")
     print(f"scaled to 8: one group in {time.monotonic() - t1:.1f} s (view {f.view})")
 
-    # a killed task: removed from the group, then its replacement (same slot, same name) joins again
+    # a killed task: removed from the group, then its replacement (same slot, same name) joins again. A1 is
+    # moved there first (now: the joins of host4 and host5 may have rebalanced the agents)
+    swarm("agent", "move", "A1", VICTIM)
+    poll(f"A1 active on {VICTIM}", 60, lambda: (a := swarm.agents()["A1"])["state"] == "active"
+         and a["host"] == VICTIM)
     inc_before = {m.name: m.incarnation for m in b.call("core1", lambda c: c.status(), "Status").member_info}
     t2 = time.monotonic()
     victim = b.container(VICTIM)
@@ -173,6 +189,21 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     after = poll("both counters receiving", 30, progressing)
     for name, s in after.items():
         assert s["lost"] == 0 and s["out_of_order"] == 0 and s["duplicate"] == 0, (name, s)
+    evs = [json.loads(ln) for ln in swarm("agent", "events", "--json").splitlines()]  # read from the tasks' logs
+    a1 = [e for e in evs if e["name"] == "A1"]
+    crash = [e for e in a1 if e["event"] == "crashed" and e["host"] == VICTIM]
+    assert crash, "\n".join(e["text"] for e in evs)
+    assert any(e["event"] == "recovered" and e["host"] != VICTIM and e["time"] > crash[0]["time"] for e in a1)
+
+    # every task enrolled for its own certificate: the scaled ones and the replacement too
+    issued: dict[str, int] = {}
+    service = {"label": f"com.docker.swarm.service.name={swarm.stack}_enroll"}
+    for c in b.docker.containers.list(all=True, filters=service, ignore_removed=True):
+        for ln in c.logs().decode().splitlines():
+            rec = json.loads(ln)
+            if rec["event"] == "enroll_issued":
+                issued[rec["name"]] = issued.get(rec["name"], 0) + 1
+    assert set(issued) == set(eight) and issued[VICTIM] == 2, issued
     print("counters:", {n: {k: s[k] for k in ("received", "lost", "lost_after_recovery")} for n, s in after.items()})
     print(f"swarm scenario: {time.monotonic() - t0:.1f} s")
 
