@@ -286,7 +286,9 @@ class ExternalFd:
 
     def on_restart(self, q: str, inc: int) -> None:
         self.crashed.discard(q)
-        for x in self.crashed:  # the new process's detector must come to suspect the crashed hosts
+        # the new process's detector must come to suspect the crashed hosts (sorted: the rng draws must not
+        # follow the order of a set of names, which changes with PYTHONHASHSEED)
+        for x in sorted(self.crashed):
             d = self.rng.uniform(0.001, self.sc.detect_max)
             self.cl.at(self.cl.now + d, lambda x=x: self._set(q, x, True))
         for p in self.sc.names:
