@@ -16,7 +16,8 @@
   the data volumes of an earlier run of the same stack (a host with old known hosts would re-apply to a group
   that no longer exists); `down` runs `docker stack rm`, waits until the tasks, the network and the secret are
   gone, and removes the stack's data volumes (`<stack>_core_N`, `<stack>_host_N`, label
-  com.docker.stack.namespace). kill, pause, resume, stop and logs use the docker SDK on the task's container.
+  com.docker.stack.namespace) and its TLS directory. kill, pause, resume, stop and logs use the docker SDK on
+  the task's container.
 * The token is the file the stack's `haa_token` secret is made from (compose/token next to the stack file).
 * `up(tls=True)` (`haactl cluster up --swarm --tls`): a new cluster CA, an enrollment token and haactl's client
   certificate in compose/tls/swarm-<stack>/, deployed with compose/stack-tls.yaml over the stack file: every
@@ -462,6 +463,9 @@ class SwarmBackend(Backend):
                 gone += 1
             except Exception as e:
                 raise ClusterError(f"cannot remove volume {v.name} of the stack: {e}") from None
+        if self.tls_dir.is_dir():  # the stack's CA and haactl's certificate: useless once the stack is gone
+            shutil.rmtree(self.tls_dir, ignore_errors=True)
+            self.tls = None
         return f"removed {len(running)} services and {gone} data volumes"
 
     def connect(self, h: HostInfo, timeout: float | None = None) -> Any:

@@ -15,8 +15,9 @@ must be active on member hosts, still exchanging pings, with no message lost (ou
 after a recovery), none out of order, none duplicated; `agent events` (read from the tasks' logs) shows A1's
 crash on host2 and its recovery elsewhere; the enrollment service issued a certificate to each of the eight
 names, and a second one to host2's replacement and to each renewed core task.
-`haactl cluster down --swarm` removes the stack and its data volumes. Marker `docker`: skipped without an
-engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈ 2 minutes on a loaded 2-core machine.
+`haactl cluster down --swarm` removes the stack, its data volumes and its TLS directory. Marker `docker`:
+skipped without an engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈ 2 minutes on a loaded 2-core
+machine.
 """
 
 from __future__ import annotations
@@ -242,4 +243,4 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
 
     # down removes the stack and the data volumes of every slot
     swarm("cluster", "down")
-    assert not b.hosts() and not b.volumes()
+    assert not b.hosts() and not b.volumes() and not b.tls_dir.exists()
