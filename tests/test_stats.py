@@ -86,6 +86,9 @@ def test_bundle_contents_name_their_host(run):
         samples = b.samples
         assert len(samples) >= 3, b.host
         assert all(s["host"] == b.host for s in samples)
+        # every sample belongs to a life of the host: none before its incarnation was made (the first sample,
+        # taken at start, once was: a restarted container's bundle then showed three lives, one of them 0)
+        assert all(s["inc"] > 0 for s in samples), [s["inc"] for s in samples]
         assert all(r["host"] == b.host for r in b.log)
         assert all(e["host"] == b.host for e in b.events)
         assert all(v["host"] == b.host for v in b.views) and b.views

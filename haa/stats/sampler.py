@@ -167,8 +167,11 @@ class StatsSampler:
         loop = asyncio.get_running_loop()
         due = loop.time()
         # a sample at once: a host killed within its first period still leaves one (a restarted container,
-        # killed again as soon as it had joined, left none of its second life under load)
+        # killed again as soon as it had joined, left none of its second life under load) — once the runtime
+        # has its incarnation (0 until its node is made: a sample of incarnation 0 is nobody's life)
         await asyncio.sleep(0)
+        while self.rt.ident.inc == 0 and loop.time() - due < self.period:
+            await asyncio.sleep(0.01)
         self.tick()
         while True:
             due += self.period
@@ -201,7 +204,10 @@ class StatsSampler:
     # ------------------------------------------------------------------ one sample
 
     def tick(self) -> None:
-        """One sample, written. `cost_s` counts this sample's building and the previous samples' writing."""
+        """One sample, written. `cost_s` counts this sample's building and the previous samples' writing.
+        None before the runtime has its incarnation."""
+        if self.rt.ident.inc == 0:
+            return
         t0 = time.thread_time()
         try:
             rec = self.sample()
