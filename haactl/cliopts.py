@@ -16,6 +16,23 @@ from haa.cluster.backend import Backend, ClusterError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+
+def stop_on_signals() -> None:
+    """For a command that serves until stopped (dashboard, foxglove): SIGINT and SIGTERM end it as Ctrl-C does
+    (KeyboardInterrupt: a clean shutdown, exit code 130). A process started in the background by a shell
+    inherits SIGINT *ignored*, and Python then installs no handler of its own: `kill -INT` did nothing.
+    SIGUSR1 prints every thread's stack to stderr (faulthandler): where a server that does not stop is stuck."""
+    import faulthandler
+    import signal
+
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, interrupt)
+
 # Not a terminal (a pipe, a file, a test runner): wide lines rather than tables squeezed into 80 columns.
 out = Console(highlight=False, width=None if sys.stdout.isatty() else 200)
 err = Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 200)

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from haa.cluster.backend import ClusterError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, out, stop_on_signals
 
 
 @cli_errors
@@ -43,6 +43,7 @@ def dashboard(
     def ready(url: str) -> None:
         out.print(f"dashboard of the {backend.describe()} on [bold]{url}[/] (Ctrl-C to stop)", soft_wrap=True)
 
+    stop_on_signals()
     try:
         dashboard.run(backend, port=port, bind=bind, host=host, sim=target, truth=not no_truth, on_ready=ready)
     except OSError as e:

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from haa.cluster.backend import ClusterError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, out
+from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, out, stop_on_signals
 
 
 @cli_errors
@@ -48,6 +48,7 @@ def foxglove(
         out.print(f"Foxglove bridge of the {backend.describe()} on [bold]{url}[/] (in Foxglove: Open connection -> "
                   "Foxglove WebSocket; Ctrl-C to stop)", soft_wrap=True)
 
+    stop_on_signals()
     try:
         bridge.run(backend, port=port, bind=bind, host=host, sim=target, truth=not no_truth, on_ready=ready)
     except OSError as e:

@@ -27,6 +27,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -292,6 +293,8 @@ def test_haactl_foxglove_bridges_a_running_cluster(cluster: Path) -> None:
         try:
             out = p.communicate(timeout=60)[0]  # a clean exit, not a fast one: CI machines are loaded
         except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGUSR1)  # every thread's stack into the output below (haactl's faulthandler)
+            time.sleep(2)
             p.kill()
             out = p.communicate()[0]
     assert p.returncode == 130 and "Traceback" not in out, out
