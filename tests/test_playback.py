@@ -98,13 +98,15 @@ def test_supervisor_explore_replays_identically(recorded: tuple[dict, Path]) -> 
         r = ir.result
         assert r.identical, str(r.divergence)
         assert (r.inputs, r.outputs) == (len(inst.inputs), len(inst.outputs))
-    assert sum(ir.result.inputs for ir in results) > 100, results
+    assert sum(ir.result.inputs for ir in results) > 50, results  # 60-200 here, fewer on a loaded machine
     # its first life began with on_start (unless it was killed within its first second: then the kill took
     # its only chunk), one after the kill with the recovery
     hows = [ir.how for ir in results]
     assert hows[0] in ("start", "") and "recover" in hows, hows
-    # the killed instance's process died with its file open: read up to its last flushed chunk
-    assert insts[0].truncated
+    # the killed instance (the life before the recovered one; an earlier life may have ended in a transfer,
+    # which closes its file) died with its file open: read up to its last flushed chunk
+    k = hows.index("recover")
+    assert k >= 1 and insts[k - 1].truncated, [(ir.how, i.truncated) for ir, i in zip(results, insts, strict=True)]
 
 
 def test_a_changed_target_computation_is_reported_where_the_first_target_goes_out(
