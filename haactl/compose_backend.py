@@ -141,6 +141,7 @@ class ComposeBackend(Backend):
         self._docker: Any = None
         self.tls_dir = self.file.parent / "tls"
         self._tls_known = False
+        self._tls_lock = threading.Lock()
 
     def _core_names(self) -> list[str]:
         for svc in self.services.values():
@@ -288,19 +289,23 @@ class ComposeBackend(Backend):
         return n if n > 0 else max(1, os.cpu_count() or 1)
 
     def connect(self, h: HostInfo, timeout: float | None = None) -> Any:
-        if not self._tls_known:  # does the running cluster use TLS? (its containers' HAA_TLS_DIR)
-            self._tls_known = True
-            on = any(
-                e.startswith("HAA_TLS_DIR=") and e != "HAA_TLS_DIR="
-                for c in self.containers().values()
-                for e in (c.attrs.get("Config") or {}).get("Env") or []
-            )
-            if on:
-                try:
-                    self.tls = load_client(self.tls_dir / CLIENT_DIR)
-                except TlsError as e:
-                    raise ClusterError(f"the compose cluster uses TLS, but haactl's certificate is unusable: {e}") \
-                        from None
+        # does the running cluster use TLS? (its containers' HAA_TLS_DIR) — decided once, under a lock:
+        # `statuses()` connects from several threads, and one must not go on in plain text while another is
+        # still loading haactl's certificate
+        with self._tls_lock:
+            if not self._tls_known:
+                on = any(
+                    e.startswith("HAA_TLS_DIR=") and e != "HAA_TLS_DIR="
+                    for c in self.containers().values()
+                    for e in (c.attrs.get("Config") or {}).get("Env") or []
+                )
+                if on:
+                    try:
+                        self.tls = load_client(self.tls_dir / CLIENT_DIR)
+                    except TlsError as e:
+                        raise ClusterError(
+                            f"the compose cluster uses TLS, but haactl's certificate is unusable: {e}") from None
+                self._tls_known = True
         return super().connect(h, timeout)
 
     def up(
