@@ -154,6 +154,27 @@ def derive_compose(dst: Path, n: int, prefix: str) -> Path:
     return f
 
 
+def up_on_free_subnet(make_dir: Callable[[], Path], n: int, project: str, rng: random.Random,
+                      prepare: Callable[[Path, str], None] | None = None) -> tuple[ComposeBackend, list[str], str]:
+    """`compose up` of a derived compose file (`derive_compose` in a fresh `make_dir()`, then `prepare(file,
+    prefix)`) as `project`: a subnet taken between our look and compose's network create is tried again with
+    another, up to 3 times; any other failure fails the test. (backend, host names, subnet prefix)."""
+    for _attempt in range(3):
+        prefix = free_prefix(rng)
+        f = derive_compose(make_dir(), n, prefix)
+        if prepare is not None:
+            prepare(f, prefix)
+        backend = ComposeBackend(f, project=project)
+        try:
+            return backend, backend.up(n), prefix
+        except ClusterError as e:
+            with contextlib.suppress(ClusterError):
+                backend.down(grace=1)
+            if "overlap" not in str(e) and "Pool" not in str(e):
+                pytest.fail(f"compose up of project {project} failed: {e}")
+    pytest.fail(f"compose up of project {project}: no free subnet after 3 attempts")
+
+
 def clock(t: float) -> str:
     """Seconds since the run started as mm:ss.s (the thesis transcript's style, Fig. 7.1-3)."""
     return f"{'-' if t < 0 else ''}{int(abs(t) // 60):02d}:{abs(t) % 60:04.1f}"
@@ -297,23 +318,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     rng = random.Random(seed)
     keep = KEEP / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{seed}"
     t0 = time.monotonic()
-    backend = None
-    names: list[str] = []
-    for _attempt in range(3):  # a subnet taken between our look and compose's network create: another one
-        prefix = free_prefix(rng)
-        f = derive_compose(tmp_path_factory.mktemp("agentchaos"), N_HOSTS, prefix)
-        backend = ComposeBackend(f, project=project)
-        try:
-            names = backend.up(N_HOSTS)
-            break
-        except ClusterError as e:
-            with contextlib.suppress(ClusterError):
-                backend.down(grace=1)
-            if "overlap" not in str(e) and "Pool" not in str(e):
-                pytest.fail(f"compose up of project {project} failed: {e}")
-    else:
-        pytest.fail(f"compose up of project {project}: no free subnet after 3 attempts")
-    assert backend is not None
+    backend, names, prefix = up_on_free_subnet(lambda: tmp_path_factory.mktemp("agentchaos"), N_HOSTS, project, rng)
     try:
         formed, _ = wait_until(lambda: backend.formation(names), 180, what=f"{N_HOSTS} hosts in one group")
         print(f"project {project}: {N_HOSTS} containers (subnet {prefix}.0/24) formed one group in "

@@ -24,11 +24,10 @@ from typing import Any
 
 import pytest
 from chaoslib import docker_problem
-from test_agents_chaos import derive_compose, free_prefix
+from test_agents_chaos import up_on_free_subnet
 from typer.testing import CliRunner
 
-from haa.cluster.backend import ClusterError, wait_until
-from haactl.compose_backend import ComposeBackend
+from haa.cluster.backend import wait_until
 from haactl.main import app
 
 pytestmark = pytest.mark.docker
@@ -72,21 +71,8 @@ def compose(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Compose]:
         pytest.skip(problem)
     project = f"haaevents{os.getpid()}"
     rng = random.Random(os.getpid())
-    backend: ComposeBackend | None = None
-    for _attempt in range(3):  # a subnet taken between our look and compose's network create: another one
-        f = derive_compose(tmp_path_factory.mktemp("events"), N, free_prefix(rng))
-        backend = ComposeBackend(f, project=project)
-        try:
-            names = backend.up(N)
-            break
-        except ClusterError as e:
-            with contextlib.suppress(ClusterError):
-                backend.down(grace=1)
-            if "overlap" not in str(e) and "Pool" not in str(e):
-                pytest.fail(f"compose up of project {project} failed: {e}")
-    else:
-        pytest.fail(f"compose up of project {project}: no free subnet after 3 attempts")
-    assert backend is not None
+    backend, names, _ = up_on_free_subnet(lambda: tmp_path_factory.mktemp("events"), N, project, rng)
+    f = backend.file
     try:
         wait_until(lambda: backend.formation(names), 120, what=f"{N} hosts in one group")
         yield Compose(f, project)

@@ -11,7 +11,6 @@ HAA_REQUIRE_DOCKER=1). ≈ 60-90 s.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import random
@@ -23,10 +22,10 @@ from pathlib import Path
 import pytest
 import yaml
 from chaoslib import docker_problem
-from test_agents_chaos import SOURCE, derive_compose, free_prefix
+from test_agents_chaos import SOURCE, up_on_free_subnet
 from typer.testing import CliRunner
 
-from haa.cluster.backend import ClusterError, wait_until
+from haa.cluster.backend import wait_until
 from haactl.compose_backend import ComposeBackend
 from haactl.local import free_port
 from haactl.main import app
@@ -87,23 +86,9 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ComposeB
         pytest.skip(problem)
     project = f"haamission{os.getpid()}"
     rng = random.Random(os.getpid() + 1)
-    backend: ComposeBackend | None = None
-    for _attempt in range(3):
-        prefix = free_prefix(rng)
-        f = derive_compose(tmp_path_factory.mktemp("mission-compose"), N, prefix)
-        with_sim(f, prefix)
-        backend = ComposeBackend(f, project=project)
-        try:
-            names = backend.up(N)
-            break
-        except ClusterError as e:
-            with contextlib.suppress(ClusterError):
-                backend.down(grace=1)
-            if "overlap" not in str(e) and "Pool" not in str(e):
-                pytest.fail(f"compose up of project {project} failed: {e}")
-    else:
-        pytest.fail(f"compose up of project {project}: no free subnet after 3 attempts")
-    assert backend is not None
+    backend, names, _ = up_on_free_subnet(lambda: tmp_path_factory.mktemp("mission-compose"), N, project, rng,
+                                          prepare=with_sim)
+    f = backend.file
     try:
         wait_until(lambda: backend.formation(names), 120, what=f"{N} hosts in one group")
         yield backend, f
