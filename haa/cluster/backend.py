@@ -16,7 +16,9 @@ and exits with code 1.
 
 from __future__ import annotations
 
+import queue
 import re
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -57,6 +59,22 @@ def natural_key(name: str) -> tuple[str, int, str]:
     """Sort h2 before h10."""
     m = re.match(r"^(.*?)(\d+)$", name)
     return (m.group(1), int(m.group(2)), name) if m else (name, -1, name)
+
+
+def merged_follow(names: Sequence[str], follow: Callable[[str, queue.Queue[tuple[str, str]], threading.Event], None]
+                  ) -> Iterator[tuple[str, str]]:
+    """(host, line) pairs from one `follow(name, q, stop)` thread per host, merged as they come, until the
+    consumer stops (then `stop` is set: each follower ends at its next check). The container backends'
+    `log_records(follow=True)`."""
+    q: queue.Queue[tuple[str, str]] = queue.Queue()
+    stop = threading.Event()
+    for n in names:
+        threading.Thread(target=follow, args=(n, q, stop), daemon=True).start()
+    try:
+        while True:
+            yield q.get()
+    finally:
+        stop.set()
 
 
 @dataclass

@@ -58,6 +58,7 @@ from haa.cluster.backend import (
     Backend,
     ClusterError,
     HostInfo,
+    merged_follow,
     natural_key,
     state_phrase,
 )
@@ -577,15 +578,7 @@ class SwarmBackend(Backend):
                         if line.strip():
                             yield n, line
             return
-        q: queue.Queue[tuple[str, str]] = queue.Queue()
-        stop = threading.Event()
-        for n in names:
-            threading.Thread(target=self._follow, args=(n, q, stop), daemon=True).start()
-        try:
-            while True:
-                yield q.get()
-        finally:
-            stop.set()
+        yield from merged_follow(names, self._follow)
 
     def _follow(self, name: str, q: queue.Queue[tuple[str, str]], stop: threading.Event) -> None:
         """Stream the log of the newest task's container; when a replacement task starts, stream its log."""
