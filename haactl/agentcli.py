@@ -59,7 +59,18 @@ from haa.cluster.events import (
 )
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
+from haactl.cliopts import (
+    ComposeFileOpt,
+    ComposeOpt,
+    HostOpt,
+    JsonOpt,
+    RootOpt,
+    SwarmOpt,
+    cli_errors,
+    err,
+    open_backend,
+    out,
+)
 
 agent_app = typer.Typer(
     help="List, spawn, kill, move and remove agents; follow the allocation timeline.", no_args_is_help=True
@@ -69,7 +80,6 @@ alloc_app = typer.Typer(
     no_args_is_help=True,
 )
 
-JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
 WaitTimeoutOpt = Annotated[float, typer.Option("--timeout", min=0.5, help="seconds to wait")]
 
 STATE_STYLE = {"active": "green", "spawning": "cyan", "thawing": "cyan", "recovering": "magenta",

@@ -100,7 +100,7 @@ def chaos_run(
     cluster: ChaosCluster
     try:
         if compose:
-            from haactl.compose_chaos import ComposeChaosCluster
+            from haa.chaos.compose import ComposeChaosCluster
 
             cluster = ComposeChaosCluster(compose_file, bundles_to=run.absolute() if out_dir is not None else None)
         else:

@@ -114,7 +114,7 @@ def cluster_up(
             names = backend.up(hosts, core, log=err.print, capacity=capacity, tls=tls)
         before = None
     elif compose:
-        from haactl.compose_backend import ComposeBackend
+        from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
         if config is not None or hostd_args:
@@ -188,7 +188,7 @@ def cluster_down(
         out.print(f"{backend.describe()}: down ({done})")
         return
     if compose:
-        from haactl.compose_backend import ComposeBackend
+        from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
         with err.status("docker compose down ..."):

@@ -20,12 +20,21 @@ from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.hostd import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, SwarmOpt, cli_errors, open_backend, out
+from haactl.cliopts import (
+    ComposeFileOpt,
+    ComposeOpt,
+    HostOpt,
+    JsonOpt,
+    RootOpt,
+    SwarmOpt,
+    cli_errors,
+    open_backend,
+    out,
+)
 
 ddb_app = typer.Typer(help="Read, write and watch the replicated database (DDB).", no_args_is_help=True)
 
 TYPE_NAMES = ("json", "blob", "counter", "list")
-JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
 
 
 def show_bytes(b: bytes) -> str:

@@ -8,7 +8,7 @@ results are printed with rich. docs/missions.md, "Running a mission".
   completed. A bad mission file: one error line, exit 2, nothing started.
 * `mission start FILE` against the running local cluster (`--root`), starting haa-sim unless one runs (and
   refusing one with another arena or seed); `status`, `logs [-f]`, `stop`. With `--compose` the same on the
-  compose cluster, its `sim` service as haa-sim (haactl.mission_compose).
+  compose cluster, its `sim` service as haa-sim (haa.mission.compose).
 * `experiment af1|af2 [--runs N] [--speed X]`: N runs on seeds seed..seed+N-1, the table beside the thesis'
   values, bench-results/<name>.json.
 """
@@ -50,9 +50,9 @@ def _fail(message: str, code: int = 1) -> None:
 
 
 def _compose_backend() -> Any:
-    """The compose cluster (HAA_COMPOSE_FILE, HAA_COMPOSE_PROJECT) for `--compose` (haactl.mission_compose)."""
+    """The compose cluster (HAA_COMPOSE_FILE, HAA_COMPOSE_PROJECT) for `--compose` (haa.mission.compose)."""
     from haa.cluster.backend import ClusterError
-    from haactl.compose_backend import ComposeBackend
+    from haa.cluster.compose_backend import ComposeBackend
 
     try:
         return ComposeBackend()
@@ -61,12 +61,12 @@ def _compose_backend() -> Any:
 
 
 def _state_dir(compose: bool, root: Path | None) -> Path:
-    """Where the mission's state lives: <root>/mission, or the compose cluster's (haactl.mission_compose)."""
+    """Where the mission's state lives: <root>/mission, or the compose cluster's (haa.mission.compose)."""
     from haa.cluster.local_backend import default_root
     from haa.mission.runner import mission_dir
 
     if compose:
-        from haactl.mission_compose import state_dir
+        from haa.mission.compose import state_dir
 
         if root is not None:
             _fail("--root is for local clusters; not with --compose")
@@ -168,7 +168,7 @@ def mission_start(
     try:
         if compose:
             from haa.cluster.backend import ClusterError
-            from haactl import mission_compose
+            from haa.mission import compose as mission_compose
 
             if root is not None or sim is not None:
                 _fail("--root and --sim are for local clusters (the compose cluster's haa-sim is its `sim` service)")
@@ -270,7 +270,7 @@ def mission_stop(
 
     if compose:
         from haa.cluster.backend import ClusterError
-        from haactl import mission_compose
+        from haa.mission import compose as mission_compose
 
         if root is not None:
             _fail("--root is for local clusters; not with --compose")
