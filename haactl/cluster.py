@@ -21,6 +21,7 @@ from rich.table import Table
 from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, agreed_group, wait_until
 from haa.pb import control_pb2 as cpb
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
+from haactl.tables import table
 
 cluster_app = typer.Typer(help="Bring a cluster of haa-hostd hosts up, inspect it, take it down.", no_args_is_help=True)
 host_app = typer.Typer(help="Add, retire, kill, pause, resume or restart one host.", no_args_is_help=True)
@@ -290,24 +291,11 @@ STATE_STYLE = {"alive": "green", "paused": "yellow", "killed": "red", "left": "b
 
 
 def status_table(st: dict[str, Any]) -> Table:
-    t = Table(
+    t = table(
+        ["host", "state", "address", "member", "rank", "view", "suspects", "ddb", "ddb hash", "cpu %", "rss MiB"],
         title=f"{st['cluster']}: {len(st['members'])} members, leader {st['leader'] or '-'}, view {st['view']}",
-        title_justify="left",
+        right=["rank", "view", "ddb", "cpu %", "rss MiB"],
     )
-    for col, just in (
-        ("host", "left"),
-        ("state", "left"),
-        ("address", "left"),
-        ("member", "left"),
-        ("rank", "right"),
-        ("view", "right"),
-        ("suspects", "left"),
-        ("ddb", "right"),
-        ("ddb hash", "left"),
-        ("cpu %", "right"),
-        ("rss MiB", "right"),
-    ):
-        t.add_column(col, justify=just)  # type: ignore[arg-type]
     for r in st["hosts"]:
         state = f"[{STATE_STYLE.get(r['state'], 'white')}]{r['state']}[/]"
         if r.get("detail"):

@@ -14,7 +14,6 @@ from typing import Annotated, Any
 import grpc
 import typer
 from rich.markup import escape
-from rich.table import Table
 
 from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.hostd import ddb
@@ -31,6 +30,7 @@ from haactl.cliopts import (
     open_backend,
     out,
 )
+from haactl.tables import table
 
 ddb_app = typer.Typer(help="Read, write and watch the replicated database (DDB).", no_args_is_help=True)
 
@@ -221,7 +221,7 @@ def ddb_get(
             )
         )
     else:
-        t = Table("key", "type", "version", "value", title=f"{h}: DDB #{reply.ddb_seq}", title_justify="left")
+        t = table(["key", "type", "version", "value"], title=f"{h}: DDB #{reply.ddb_seq}")
         for k in keys:
             if k in found:
                 r = found[k]
@@ -267,12 +267,8 @@ def ddb_ls(
             )
         )
         return
-    t = Table(
-        "key",
-        "type",
-        "version",
-        *(["value"] if values else []),
-        title_justify="left",
+    t = table(
+        ["key", "type", "version", *(["value"] if values else [])],
         title=f"{h}: {len(recs)} objects under {prefix!r} (DDB #{reply.ddb_seq}, hash {reply.ddb_hash[:12]})",
     )
     for r in recs:

@@ -14,7 +14,7 @@ each step waiting for its effect:
 
 While it runs, the allocation timeline of every host is merged and printed as it happens in the style of
 the thesis' transcript (Fig. 7.1-3): "00:51 A1 (counter) freezing on h4 (to h3)", "00:53 A1 (counter) thawed
-by h3" (haactl.agentcli.EventFeed), with hosts joining and being removed and the operator's actions.
+by h3" (haa.cluster.feed.EventFeed), with hosts joining and being removed and the operator's actions.
 
 Checks. Every counter publishes its counters to DDB key `demo/<name>`. At the end the demo takes a first
 snapshot, then waits until every receiver has taken every message its peer had sent by that snapshot
@@ -50,14 +50,17 @@ from typing import Any
 import grpc
 import typer
 from rich.console import Console
-from rich.table import Table
 
+from haa.cluster.agents import AgentRow, merge_agents
 from haa.cluster.backend import ALIVE, ClusterError, Formation, agreed_group
+from haa.cluster.events import TimelineEvent, host_event
+from haa.cluster.feed import EventFeed, operator_event
 from haa.cluster.local_backend import LocalBackend
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import AgentRow, EventFeed, TimelineEvent, event_line, host_event, merge_agents, operator_event
+from haactl.agentcli import event_line
 from haactl.ddbcli import plain_value
+from haactl.tables import table
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 120)
 
@@ -455,9 +458,7 @@ class Demo:
         overlap = self.overlaps()
         self.checks.overlap_dups = overlap
         hosts = {r.name: r.host for r in rows}
-        t = Table(title="counter agents at the end", title_justify="left")
-        for col in ("agent", "host", *HEADERS):
-            t.add_column(col, justify="left" if col in ("agent", "host") else "right")
+        t = table(["agent", "host", *HEADERS], title="counter agents at the end", right=HEADERS)
         total = dict.fromkeys(COUNTS, 0)
         for name in sorted(last):
             s = last[name]

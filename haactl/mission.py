@@ -27,6 +27,7 @@ from rich.table import Table
 
 from haa.mission.schema import MissionError, load_mission
 from haactl.cliopts import ComposeOpt, RootOpt, err, out
+from haactl.tables import table
 
 mission_app = typer.Typer(help="Run robot-team missions: run one end to end, or start/status/logs/stop one on a "
                           "running cluster.", no_args_is_help=True)
@@ -77,9 +78,7 @@ def _state_dir(compose: bool, root: Path | None) -> Path:
 def results_table(results: dict[str, Any], title: str) -> Table:
     from haa.mission.metrics import results_rows
 
-    t = Table(title=title, title_justify="left")
-    t.add_column("Title")
-    t.add_column("Value", justify="right")
+    t = table(["Title", "Value"], title=title, right=["Value"])
     for name, value in results_rows(results):
         t.add_row(escape(name), value)
     return t
@@ -212,9 +211,7 @@ def mission_status(
         out.print(f"t = {st['t']:.0f} s of {st.get('limit', 0):.0f} s simulated; explored {pct(st.get('explored'))} "
                   f"(target {pct(st.get('target_explored'))}); coverage {pct(st.get('coverage'))}, accuracy "
                   f"{pct(st.get('accuracy'))}")
-        t = Table(title="avatars", title_justify="left")
-        for col in ("avatar", "type", "in arena", "agent", "supervisor", "task", "target"):
-            t.add_column(col)
+        t = table(["avatar", "type", "in arena", "agent", "supervisor", "task", "target"], title="avatars")
         for a in st.get("avatars", []):
             t.add_row(*(escape(str(a.get(k, ""))) for k in ("avatar", "type", "in_arena", "agent", "supervisor",
                                                              "task", "target")))
@@ -334,10 +331,9 @@ def experiment(
     except KeyboardInterrupt:
         err.print("interrupted")
         raise typer.Exit(130) from None
-    t = Table(title=f"{name.upper()}: {doc['runs']} runs, {doc['completed']} completed "
-                    f"(representative: seed {doc['representative_seed']})", title_justify="left")
-    for col in ("Title", "Rep. run", "Mean", "RMS", "STD", "thesis rep.", "thesis mean", "thesis RMS", "thesis STD"):
-        t.add_column(col, justify="left" if col == "Title" else "right")
+    cols = ["Title", "Rep. run", "Mean", "RMS", "STD", "thesis rep.", "thesis mean", "thesis RMS", "thesis STD"]
+    t = table(cols, title=f"{name.upper()}: {doc['runs']} runs, {doc['completed']} completed "
+                          f"(representative: seed {doc['representative_seed']})", right=cols[1:])
     for row in table_rows(doc):
         t.add_row(escape(row[0]), *row[1:])
     out.print(t)
@@ -373,13 +369,9 @@ def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_di
         raise typer.Exit(130) from None
     names = [n.capitalize() for n, _ in r1.LEVELS]
     for which in ("mean", "std"):
-        t = Table(title=f"R-1 ({which.upper()}): {doc['runs_done']} runs, beside the thesis' Table 7.3-1",
-                  title_justify="left")
-        t.add_column("Title")
-        for n in names:
-            t.add_column(n, justify="right")
-        for n in names:
-            t.add_column(f"thesis {n}", justify="right")
+        numbers = [*names, *(f"thesis {n}" for n in names)]
+        t = table(["Title", *numbers], title=f"R-1 ({which.upper()}): {doc['runs_done']} runs, beside the thesis' "
+                  "Table 7.3-1", right=numbers)
         for row in r1.table(doc, which):
             t.add_row(escape(row[0]), *row[1:])
         out.print(t)

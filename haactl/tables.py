@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
-from rich.console import JustifyMethod
 from rich.table import Table
 from rich.text import Text
 
@@ -31,27 +30,25 @@ def table(
     rows: Iterable[Sequence[Cell]] = (),
     *,
     title: str | None = None,
-    styles: Sequence[str | None] | None = None,
-    justify: Sequence[JustifyMethod] | None = None,
+    right: Iterable[str] = (),
 ) -> Table:
-    """A table with these column `headers` and `rows` (each as long as `headers`); `styles`/`justify`
-    per column for the terminal ("right" for numbers), ignored by `markdown()`."""
+    """A table with these column `headers` and `rows` (each at most as long as `headers`: a shorter row ends
+    in empty cells); the columns named in `right` are right-justified on the terminal (numbers)."""
+    right = set(right)
+    unknown = right - set(headers)
+    if unknown:
+        raise ValueError(f"right-justified columns {sorted(unknown)} are not among the headers {list(headers)}")
     t = Table(title=title, title_justify="left")
-    for i, h in enumerate(headers):
-        t.add_column(
-            h,
-            style=(styles[i] or "") if styles else "",
-            justify=justify[i] if justify else "left",
-            overflow="fold",
-        )
+    for h in headers:
+        t.add_column(h, justify="right" if h in right else "left")
     for r in rows:
         add_row(t, r)
     return t
 
 
 def add_row(t: Table, row: Sequence[Cell]) -> None:
-    """Append one row (as long as the table has columns; a short or long row is a bug of the caller)."""
-    if len(row) != len(t.columns):
+    """Append one row; a row longer than the table is wide is a bug of the caller (ValueError)."""
+    if len(row) > len(t.columns):
         raise ValueError(f"a row of {len(row)} cells for a table of {len(t.columns)} columns: {row!r}")
     t.add_row(*("" if c is None else c if isinstance(c, Text) else str(c) for c in row))
 
@@ -69,5 +66,5 @@ def markdown(t: Table) -> str:
     lines.append("|---" * len(cols) + "|")
     cells = [list(c.cells) for c in cols]
     for i in range(t.row_count):
-        lines.append("| " + " | ".join(_plain(col[i]) for col in cells) + " |")
+        lines.append("| " + " | ".join(_plain(col[i]) if i < len(col) else "" for col in cells) + " |")
     return "\n".join(lines)

@@ -14,8 +14,10 @@ import sys
 import time
 from pathlib import Path
 
+from haa.cluster.events import TimelineEvent
+from haa.cluster.feed import EventFeed, operator_event
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import EventFeed, TimelineEvent, event_line, operator_event
+from haactl.agentcli import event_line
 from haactl.demo import Demo
 
 BIN = Path(sys.executable).parent / "haactl"

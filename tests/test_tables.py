@@ -29,7 +29,7 @@ def test_markdown_layout() -> None:
 
 
 def test_markdown_title_and_styled_cells() -> None:
-    t = table(["state", "count"], title="Agents", styles=["bold", None], justify=["left", "right"])
+    t = table(["state", "count"], title="Agents", right=["count"])
     add_row(t, [Text("active", style="green"), 3])
     # a cell is printed as given (no markup parsing in markdown); a Text cell by its plain text
     add_row(t, ["[x]", 0])
@@ -38,19 +38,26 @@ def test_markdown_title_and_styled_cells() -> None:
 
 def test_rows_must_fit_the_columns() -> None:
     t = table(["a", "b"])
-    with pytest.raises(ValueError, match="1 cells for a table of 2 columns"):
-        add_row(t, ["only one"])
-    with pytest.raises(ValueError):
-        table(["a"], [["x", "y"]])
+    with pytest.raises(ValueError, match="3 cells for a table of 2 columns"):
+        add_row(t, ["x", "y", "z"])
+    add_row(t, ["only a"])  # a short row ends in empty cells
+    assert markdown(t).splitlines()[-1] == "| only a |  |"
+    with pytest.raises(ValueError, match="not among the headers"):
+        table(["a"], right=["b"])
 
 
 def test_the_same_table_draws_on_the_terminal() -> None:
-    t = table(["host", "state"], [["h1", "alive"], ["h2", "dead"]], title="Cluster")
+    t = table(["host", "state", "cpu %"], [["h1", "[green]alive[/]", "12.5"], ["h2", "dead", "3.0"]],
+              title="Cluster", right=["cpu %"])
     buf = io.StringIO()
     Console(file=buf, width=80, color_system=None).print(t)
-    text = buf.getvalue()
-    assert "Cluster" in text and "h1" in text and "alive" in text and "dead" in text
-    assert "|---" not in text  # a box, not markdown
+    lines = buf.getvalue().splitlines()
+    assert lines[0].strip() == "Cluster" and "|---" not in buf.getvalue()  # a box, not markdown
+    h1 = next(x for x in lines if "h1" in x)
+    assert "alive" in h1 and "[green]" not in h1  # markup drawn, not printed
+    # right-justified: the two numbers end in the same column
+    h2 = next(x for x in lines if "h2" in x)
+    assert h1.index("12.5") + 4 == h2.index("3.0") + 3
 
 
 def test_machine_description() -> None:
