@@ -7,12 +7,12 @@ this module only chooses the columns and formats the numbers.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from haa.dsim.ufdqos import QosMeasurement
-from haa.experiments.ap4 import METRICS
-from haa.experiments.slam import mean_sd, variants
 from haactl.tables import Cell, markdown, table
+
+if TYPE_CHECKING:  # the experiments are imported by the table that needs them: `haactl --help` stays quick
+    from haa.dsim.ufdqos import QosMeasurement
 
 
 def _md(headers: list[str], rows: list[list[Cell]], title: str | None = None) -> str:
@@ -223,6 +223,8 @@ def _ms(x: float | None) -> str:
 
 
 def ap4(rows: list[dict[str, Any]]) -> str:
+    from haa.experiments.ap4 import METRICS
+
     out: list[list[Cell]] = []
     for key, (_kind, _field, label, thesis, target) in METRICS.items():
         for r in rows:
@@ -303,6 +305,8 @@ def ap52(rows: list[dict[str, Any]]) -> str:
 
 
 def ap51(data: dict[str, Any]) -> str:
+    from haa.experiments.slam import mean_sd, variants
+
     rows = data["rows"]
     parts = []
     ps = data["particles"]

@@ -16,9 +16,9 @@ from pathlib import Path
 
 from haa.cluster.events import TimelineEvent
 from haa.cluster.feed import EventFeed, operator_event
+from haa.experiments.demo import Demo
 from haa.pb import control_pb2 as cpb
 from haactl.agentcli import event_line
-from haactl.demo import Demo
 
 BIN = Path(sys.executable).parent / "haactl"
 

@@ -10,4 +10,7 @@ mission runner can use them; haa must not import haactl).
 * `haa.cluster.hostprocs` — host processes for experiments and tests (`HostProc`, `LocalCluster`,
   `MemberHost`, `wait_for`).
 * `haa.cluster.events` — the allocation timeline from every host's persisted log (parser, merge, attribution).
+* `haa.cluster.feed` — `EventFeed`: that timeline merged with the live `AgentEvents` streams of every host.
+* `haa.cluster.status` — `gather_status`: every host's Status, the agreed group, whether views and DDBs agree.
+* `haa.cluster.agents` — every agent as the whole cluster sees it (`merge_agents`).
 """

@@ -20,6 +20,7 @@ One module per experiment, named after it:
 | `memory` | `memory` | RSS and event-loop stalls under maximum-size requests | |
 | `idle` | `idle` | CPU and memory of an idle membership-mode cluster | |
 | `sim` | `sim` | the robot simulator's stepping, camera and sonar speed | |
+| `demo` | (`haactl demo`) | agents while hosts join, retire, crash: nothing lost, reordered, run twice | §7.1 |
 
 Experiments that start hosts use haa.cluster.hostprocs (real haa-hostd processes on loopback). The package
 sits above haa.cluster, haa.dsim, haa.agents and haa.slam in the import layers (.importlinter) and is imported
