@@ -1,4 +1,4 @@
-"""`haactl bench ddb`: DDB write throughput and latency through OAC, real processes.
+"""DDB write throughput and latency through OAC (thesis §4.7; `haactl bench ddb`), real processes.
 
 A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core).
 
@@ -13,7 +13,8 @@ A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core
 
 Every load runs with the sequencer (docs/oac.md, "The sequencer": writes forwarded to the leader and batched)
 and, for the comparison, without it (every host proposes its own group-committed batches: Alg. 3 as printed).
-At the end every replica's content hash must be equal (the run fails otherwise).
+At the end every replica's content hash must be equal (the run fails otherwise). `run_ddb_bench` returns one
+row dict per load (`load`: "clients" or "all writing"), the rows of bench-results/ddb.json.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""`haactl bench memory`: RSS of every host and event-loop stalls under maximum-size traffic. Real processes.
+"""RSS of every host and event-loop stalls under maximum-size traffic (`haactl bench memory`), real processes.
 
 A local group of 4 membership-mode `haa-hostd` processes (h1-h3 core, agents on) is driven for `seconds`
 with the largest requests the limits accept (docs/limits.md, "Sizes and memory"), in a loop, each through

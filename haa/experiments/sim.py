@@ -1,4 +1,4 @@
-"""`haactl bench sim`: the simulator's speed (issue 5 §5) -> bench-results/sim.json.
+"""The robot simulator's speed (issue 5 §5; `haactl bench sim` -> bench-results/sim.json).
 
 * stepping: 10 avatars (2 sweepers, 4 enhanced seekers, 4 carriers, as in R-2) in the large arena driving
   seeded random velocity commands, stepped in the server's 0.05 s ticks; simulated seconds per second of
@@ -10,7 +10,8 @@
 * landmark detections: `World.landmark_observations` of one avatar.
 
 Everything runs on one thread (OpenCV limited to one thread). Times are reported as CPU time of this
-thread (what the work costs on one core, whatever else the machine runs) and as wall time.
+thread (what the work costs on one core, whatever else the machine runs) and as wall time. `run_sim_bench`
+returns the dict of bench-results/sim.json ("stepping", "camera", "sensors", "quick").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Bodies of `haactl bench slam`, `bench ap5.2` and `bench ap5.1` (JC-SLAM, thesis §5.2 and §7.2.5).
+"""JC-SLAM measurements (thesis §5.2 and §7.2.5): `haactl bench slam`, `bench ap5.2` and `bench ap5.1`.
 
 * `bench slam` — how fast the library is: CPU time per reading (thread CPU time, so per core and independent
   of other load) for sonar scans, camera images (landmark sightings) and co-occupancy readings, predictions
