@@ -33,13 +33,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from haa.cluster.agents import wait_rows  # noqa: E402
 from haa.cluster.backend import wait_until  # noqa: E402
 from haa.cluster.local_backend import LocalBackend  # noqa: E402
 from haa.dashboard.browser import Chromium  # noqa: E402
 from haa.hostd import ddb as ddbops  # noqa: E402
 from haa.slam.grid import GridSpec  # noqa: E402
 from haa.slam.replica import encode_map  # noqa: E402
-from haactl.agentcli import wait_rows  # noqa: E402
 
 HAACTL = [sys.executable, "-c", "from haactl.main import app; app()"]
 

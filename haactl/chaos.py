@@ -20,6 +20,7 @@ from haa.chaos.plan import PlanError, load_plan, parse_plan
 from haa.chaos.run import ChaosCluster, LocalChaosCluster, run_on
 from haa.chaos.timeline import Entry, build, clock
 from haactl.cliopts import cli_errors, err, out
+from haactl.tables import table
 
 chaos_app = typer.Typer(help="Chaos experiments: faults on a schedule, then Jepsen-style checks (docs/chaos.md).",
                         no_args_is_help=True)
@@ -36,10 +37,7 @@ def fault_line(f: Injected) -> str:
 
 
 def timeline_table(entries: list[Entry]) -> Table:
-    t = Table(title="timeline (faults and their effects, from every host's log)", title_justify="left")
-    t.add_column("t", justify="right")
-    t.add_column("host")
-    t.add_column("event")
+    t = table(["t", "host", "event"], title="timeline (faults and their effects, from every host's log)", right=["t"])
     for e in entries:
         text = f"[bold]{escape(e.text)}[/bold]" if e.kind == "fault" else escape(e.text)
         t.add_row(clock(e.t), e.host or "chaos", text)
@@ -47,10 +45,7 @@ def timeline_table(entries: list[Entry]) -> Table:
 
 
 def checks_table(checks: dict[str, Check]) -> Table:
-    t = Table(title="checks (from the hosts' persisted logs and their replicas)", title_justify="left")
-    t.add_column("check")
-    t.add_column("result")
-    t.add_column("detail")
+    t = table(["check", "result", "detail"], title="checks (from the hosts' persisted logs and their replicas)")
     for name, c in checks.items():
         t.add_row(name, "[green]passed[/green]" if c.passed else "[bold red]FAILED[/bold red]", escape(c.detail))
     return t
@@ -100,7 +95,7 @@ def chaos_run(
     cluster: ChaosCluster
     try:
         if compose:
-            from haactl.compose_chaos import ComposeChaosCluster
+            from haa.chaos.compose import ComposeChaosCluster
 
             cluster = ComposeChaosCluster(compose_file, bundles_to=run.absolute() if out_dir is not None else None)
         else:

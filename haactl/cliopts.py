@@ -1,4 +1,9 @@
-"""Options shared by `haactl cluster|host|ddb|logs`: which cluster (local, compose or swarm) and clean errors."""
+"""What the commands of haactl share: the typer options that say which cluster a command works on (local,
+compose or swarm: `ComposeOpt`, `SwarmOpt`, `RootOpt`, `ComposeFileOpt`, `HostOpt`; defined once here and used
+as parameter annotations by every command of `cluster`, `host`, `agent`, `alloc`, `ddb`, `logs`, `stats`,
+`dashboard`, `foxglove`), `open_backend` (those options -> the haa.cluster backend), `JsonOpt`, the benchmarks'
+`BenchRootOpt`, the consoles `out`/`err`, and `cli_errors` (a ClusterError as one red line, exit code 1).
+Tables are drawn with haactl.tables."""
 
 from __future__ import annotations
 
@@ -74,6 +79,10 @@ ComposeFileOpt = Annotated[
 HostOpt = Annotated[
     str | None, typer.Option("--host", "-H", help="talk to this host (default: the first alive member)")
 ]
+JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
+BenchRootOpt = Annotated[
+    Path | None, typer.Option("--root", help="data dirs and logs (default: a temporary dir)")
+]
 
 
 def open_backend(
@@ -91,7 +100,7 @@ def open_backend(
     if compose:
         if root is not None:
             raise ClusterError("--root is for local clusters; not with --compose")
-        from haactl.compose_backend import ComposeBackend
+        from haa.cluster.compose_backend import ComposeBackend
 
         return ComposeBackend(compose_file)
     if compose_file is not None:

@@ -13,14 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
-import grpc
 import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, agreed_group, wait_until
-from haa.pb import control_pb2 as cpb
+from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, wait_until
+from haa.cluster.status import gather_status
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
+from haactl.tables import table
 
 cluster_app = typer.Typer(help="Bring a cluster of haa-hostd hosts up, inspect it, take it down.", no_args_is_help=True)
 host_app = typer.Typer(help="Add, retire, kill, pause, resume or restart one host.", no_args_is_help=True)
@@ -114,7 +114,7 @@ def cluster_up(
             names = backend.up(hosts, core, log=err.print, capacity=capacity, tls=tls)
         before = None
     elif compose:
-        from haactl.compose_backend import ComposeBackend
+        from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
         if config is not None or hostd_args:
@@ -188,7 +188,7 @@ def cluster_down(
         out.print(f"{backend.describe()}: down ({done})")
         return
     if compose:
-        from haactl.compose_backend import ComposeBackend
+        from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
         with err.status("docker compose down ..."):
@@ -207,107 +207,15 @@ def cluster_down(
     out.print(msg + ("; data purged" if purge else f"; logs kept in {backend.root}"))
 
 
-def host_row(h: Any, reply: cpb.StatusReply | Exception | None, cpu: float | None) -> dict[str, Any]:
-    row: dict[str, Any] = {
-        "name": h.name,
-        "address": h.address,
-        "state": h.state,
-        "core": h.core,
-        "pid": h.pid,
-        "container": h.container,
-        "detail": h.detail,
-        "metrics_url": h.metrics_url or None,
-        "error": None,
-    }
-    if isinstance(reply, cpb.StatusReply):
-        row.update(
-            mode=reply.mode,
-            incarnation=reply.incarnation,
-            member=reply.member,
-            members=list(reply.members),
-            leader=reply.leader,
-            view=reply.view,
-            rank=reply.rank,
-            suspicions=list(reply.suspicions),
-            ddb_size=reply.ddb_size,
-            ddb_hash=reply.ddb_hash,
-            ddb_seq=reply.ddb_seq,
-            global_seq=reply.global_seq,
-            state_hash=reply.state_hash,
-            group_id=reply.group_id,
-            locked=reply.locked,
-            applicants=list(reply.applicants),
-            leaving=reply.leaving,
-            cpu_percent=round(cpu if cpu is not None else reply.cpu_percent, 2),
-            rss_bytes=reply.rss_bytes,
-            uptime=round(reply.uptime, 3),
-        )
-    elif isinstance(reply, grpc.RpcError):
-        row["error"] = f"{reply.code().name}: {reply.details()}"
-    elif reply is not None:
-        row["error"] = str(reply)
-    return row
-
-
-def gather_status(backend: Backend, sample: float = 0.5) -> dict[str, Any]:
-    """The cluster status object of `haactl cluster status --json`."""
-    hosts = backend.require_hosts()
-    first = backend.statuses()
-    backend.check_token(first)
-    second = first
-    if sample > 0 and first:
-        time.sleep(sample)
-        second = backend.statuses(list(first))
-    cpu: dict[str, float] = {}
-    for n, b in second.items():
-        a = first.get(n)
-        if (
-            isinstance(a, cpb.StatusReply)
-            and isinstance(b, cpb.StatusReply)
-            and b.incarnation == a.incarnation
-            and b.uptime > a.uptime
-            and b.load_cpu_seconds > 0
-        ):
-            cpu[n] = 100.0 * (b.load_cpu_seconds - a.load_cpu_seconds) / (b.uptime - a.uptime)
-    replies = {n: r for n, r in second.items() if isinstance(r, cpb.StatusReply)}
-    members, leader, view = agreed_group(replies)
-    rows = [host_row(h, second.get(h.name), cpu.get(h.name)) for h in hosts]
-    member_rows = [r for r in rows if r.get("member")]
-    return {
-        "backend": backend.kind,
-        "cluster": backend.describe(),
-        "members": members,
-        "leader": leader,
-        "view": view,
-        "group_id": next((r.group_id for r in replies.values() if r.member), ""),
-        "agreed": bool(member_rows) and all(r["view"] == view and r["members"] == members for r in member_rows),
-        "ddb_hashes_equal": len({r["ddb_hash"] for r in member_rows}) == 1 if member_rows else False,
-        "hosts": rows,
-    }
-
-
 STATE_STYLE = {"alive": "green", "paused": "yellow", "killed": "red", "left": "blue", "dead": "red"}
 
 
 def status_table(st: dict[str, Any]) -> Table:
-    t = Table(
+    t = table(
+        ["host", "state", "address", "member", "rank", "view", "suspects", "ddb", "ddb hash", "cpu %", "rss MiB"],
         title=f"{st['cluster']}: {len(st['members'])} members, leader {st['leader'] or '-'}, view {st['view']}",
-        title_justify="left",
+        right=["rank", "view", "ddb", "cpu %", "rss MiB"],
     )
-    for col, just in (
-        ("host", "left"),
-        ("state", "left"),
-        ("address", "left"),
-        ("member", "left"),
-        ("rank", "right"),
-        ("view", "right"),
-        ("suspects", "left"),
-        ("ddb", "right"),
-        ("ddb hash", "left"),
-        ("cpu %", "right"),
-        ("rss MiB", "right"),
-    ):
-        t.add_column(col, justify=just)  # type: ignore[arg-type]
     for r in st["hosts"]:
         state = f"[{STATE_STYLE.get(r['state'], 'white')}]{r['state']}[/]"
         if r.get("detail"):

@@ -7,51 +7,34 @@ follows the host's mirror stream (thesis AgentMirror): a snapshot, then every ap
 
 from __future__ import annotations
 
-import base64
 import json
 from typing import Annotated, Any
 
 import grpc
 import typer
 from rich.markup import escape
-from rich.table import Table
 
 from haa.cluster.backend import ClusterError, rpc_error_text
+from haa.cluster.values import plain_value, show_bytes
 from haa.hostd import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, SwarmOpt, cli_errors, open_backend, out
+from haactl.cliopts import (
+    ComposeFileOpt,
+    ComposeOpt,
+    HostOpt,
+    JsonOpt,
+    RootOpt,
+    SwarmOpt,
+    cli_errors,
+    open_backend,
+    out,
+)
+from haactl.tables import table
 
 ddb_app = typer.Typer(help="Read, write and watch the replicated database (DDB).", no_args_is_help=True)
 
 TYPE_NAMES = ("json", "blob", "counter", "list")
-JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output")]
-
-
-def show_bytes(b: bytes) -> str:
-    try:
-        return b.decode("utf-8")
-    except UnicodeDecodeError:
-        return "base64:" + base64.b64encode(b).decode()
-
-
-def plain_value(type_name: str, data: bytes) -> Any:
-    """A record's canonical value bytes -> a JSON-able Python value."""
-    t = ddb.TYPES.get(type_name)
-    if t is None:
-        return show_bytes(data)
-    try:
-        raw, _ = t.decode(data)
-    except Exception:
-        return show_bytes(data)
-    value = t.public(raw)
-    if isinstance(value, bytes):
-        return show_bytes(value)
-    if isinstance(value, tuple):
-        return [show_bytes(i) for i in value]
-    if type_name == "log":
-        return {"first": value["first"], "items": [show_bytes(i) for i in value["items"]]}
-    return value
 
 
 #: `ddb get` shows at most this many items of a log (the newest), each cut to LOG_ITEM_CHARS characters
@@ -212,7 +195,7 @@ def ddb_get(
             )
         )
     else:
-        t = Table("key", "type", "version", "value", title=f"{h}: DDB #{reply.ddb_seq}", title_justify="left")
+        t = table(["key", "type", "version", "value"], title=f"{h}: DDB #{reply.ddb_seq}")
         for k in keys:
             if k in found:
                 r = found[k]
@@ -258,12 +241,8 @@ def ddb_ls(
             )
         )
         return
-    t = Table(
-        "key",
-        "type",
-        "version",
-        *(["value"] if values else []),
-        title_justify="left",
+    t = table(
+        ["key", "type", "version", *(["value"] if values else [])],
         title=f"{h}: {len(recs)} objects under {prefix!r} (DDB #{reply.ddb_seq}, hash {reply.ddb_hash[:12]})",
     )
     for r in recs:

@@ -8,7 +8,7 @@ results are printed with rich. docs/missions.md, "Running a mission".
   completed. A bad mission file: one error line, exit 2, nothing started.
 * `mission start FILE` against the running local cluster (`--root`), starting haa-sim unless one runs (and
   refusing one with another arena or seed); `status`, `logs [-f]`, `stop`. With `--compose` the same on the
-  compose cluster, its `sim` service as haa-sim (haactl.mission_compose).
+  compose cluster, its `sim` service as haa-sim (haa.mission.compose).
 * `experiment af1|af2 [--runs N] [--speed X]`: N runs on seeds seed..seed+N-1, the table beside the thesis'
   values, bench-results/<name>.json.
 """
@@ -27,6 +27,7 @@ from rich.table import Table
 
 from haa.mission.schema import MissionError, load_mission
 from haactl.cliopts import ComposeOpt, RootOpt, err, out
+from haactl.tables import table
 
 mission_app = typer.Typer(help="Run robot-team missions: run one end to end, or start/status/logs/stop one on a "
                           "running cluster.", no_args_is_help=True)
@@ -50,9 +51,9 @@ def _fail(message: str, code: int = 1) -> None:
 
 
 def _compose_backend() -> Any:
-    """The compose cluster (HAA_COMPOSE_FILE, HAA_COMPOSE_PROJECT) for `--compose` (haactl.mission_compose)."""
+    """The compose cluster (HAA_COMPOSE_FILE, HAA_COMPOSE_PROJECT) for `--compose` (haa.mission.compose)."""
     from haa.cluster.backend import ClusterError
-    from haactl.compose_backend import ComposeBackend
+    from haa.cluster.compose_backend import ComposeBackend
 
     try:
         return ComposeBackend()
@@ -61,12 +62,12 @@ def _compose_backend() -> Any:
 
 
 def _state_dir(compose: bool, root: Path | None) -> Path:
-    """Where the mission's state lives: <root>/mission, or the compose cluster's (haactl.mission_compose)."""
+    """Where the mission's state lives: <root>/mission, or the compose cluster's (haa.mission.compose)."""
     from haa.cluster.local_backend import default_root
     from haa.mission.runner import mission_dir
 
     if compose:
-        from haactl.mission_compose import state_dir
+        from haa.mission.compose import state_dir
 
         if root is not None:
             _fail("--root is for local clusters; not with --compose")
@@ -77,9 +78,7 @@ def _state_dir(compose: bool, root: Path | None) -> Path:
 def results_table(results: dict[str, Any], title: str) -> Table:
     from haa.mission.metrics import results_rows
 
-    t = Table(title=title, title_justify="left")
-    t.add_column("Title")
-    t.add_column("Value", justify="right")
+    t = table(["Title", "Value"], title=title, right=["Value"])
     for name, value in results_rows(results):
         t.add_row(escape(name), value)
     return t
@@ -168,7 +167,7 @@ def mission_start(
     try:
         if compose:
             from haa.cluster.backend import ClusterError
-            from haactl import mission_compose
+            from haa.mission import compose as mission_compose
 
             if root is not None or sim is not None:
                 _fail("--root and --sim are for local clusters (the compose cluster's haa-sim is its `sim` service)")
@@ -212,9 +211,7 @@ def mission_status(
         out.print(f"t = {st['t']:.0f} s of {st.get('limit', 0):.0f} s simulated; explored {pct(st.get('explored'))} "
                   f"(target {pct(st.get('target_explored'))}); coverage {pct(st.get('coverage'))}, accuracy "
                   f"{pct(st.get('accuracy'))}")
-        t = Table(title="avatars", title_justify="left")
-        for col in ("avatar", "type", "in arena", "agent", "supervisor", "task", "target"):
-            t.add_column(col)
+        t = table(["avatar", "type", "in arena", "agent", "supervisor", "task", "target"], title="avatars")
         for a in st.get("avatars", []):
             t.add_row(*(escape(str(a.get(k, ""))) for k in ("avatar", "type", "in_arena", "agent", "supervisor",
                                                              "task", "target")))
@@ -270,7 +267,7 @@ def mission_stop(
 
     if compose:
         from haa.cluster.backend import ClusterError
-        from haactl import mission_compose
+        from haa.mission import compose as mission_compose
 
         if root is not None:
             _fail("--root is for local clusters; not with --compose")
@@ -334,10 +331,9 @@ def experiment(
     except KeyboardInterrupt:
         err.print("interrupted")
         raise typer.Exit(130) from None
-    t = Table(title=f"{name.upper()}: {doc['runs']} runs, {doc['completed']} completed "
-                    f"(representative: seed {doc['representative_seed']})", title_justify="left")
-    for col in ("Title", "Rep. run", "Mean", "RMS", "STD", "thesis rep.", "thesis mean", "thesis RMS", "thesis STD"):
-        t.add_column(col, justify="left" if col == "Title" else "right")
+    cols = ["Title", "Rep. run", "Mean", "RMS", "STD", "thesis rep.", "thesis mean", "thesis RMS", "thesis STD"]
+    t = table(cols, title=f"{name.upper()}: {doc['runs']} runs, {doc['completed']} completed "
+                          f"(representative: seed {doc['representative_seed']})", right=cols[1:])
     for row in table_rows(doc):
         t.add_row(escape(row[0]), *row[1:])
     out.print(t)
@@ -373,13 +369,9 @@ def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_di
         raise typer.Exit(130) from None
     names = [n.capitalize() for n, _ in r1.LEVELS]
     for which in ("mean", "std"):
-        t = Table(title=f"R-1 ({which.upper()}): {doc['runs_done']} runs, beside the thesis' Table 7.3-1",
-                  title_justify="left")
-        t.add_column("Title")
-        for n in names:
-            t.add_column(n, justify="right")
-        for n in names:
-            t.add_column(f"thesis {n}", justify="right")
+        numbers = [*names, *(f"thesis {n}" for n in names)]
+        t = table(["Title", *numbers], title=f"R-1 ({which.upper()}): {doc['runs_done']} runs, beside the thesis' "
+                  "Table 7.3-1", right=numbers)
         for row in r1.table(doc, which):
             t.add_row(escape(row[0]), *row[1:])
         out.print(t)

@@ -12,9 +12,9 @@ from typing import Annotated
 
 import typer
 from rich.markup import escape
-from rich.table import Table
 
 from haactl.cliopts import err, out
+from haactl.tables import table
 
 record_app = typer.Typer(help="AgentPlayback recordings: what they hold (docs/playback.md).", no_args_is_help=True)
 
@@ -51,11 +51,8 @@ def record_ls(
                                   "bytes": r.bytes, "hosts": r.hosts, "truncated_segments": r.truncated}),
                       soft_wrap=True)
         return
-    t = Table(title=f"recording {folder}", title_justify="left")
-    for col, just in (("agent", "left"), ("type", "left"), ("instances", "right"), ("segments", "right"),
-                      ("inputs", "right"), ("outputs", "right"), ("from", "left"), ("span s", "right"),
-                      ("size", "right"), ("hosts", "left")):
-        t.add_column(col, justify=just)  # type: ignore[arg-type]
+    t = table(["agent", "type", "instances", "segments", "inputs", "outputs", "from", "span s", "size", "hosts"],
+              title=f"recording {folder}", right=["instances", "segments", "inputs", "outputs", "span s", "size"])
     for r in rows:
         segs = f"{r.segments}" + (f" ({r.truncated} cut)" if r.truncated else "")
         t.add_row(escape(r.name), escape(r.type_name), str(r.instances), segs, str(r.inputs), str(r.outputs),

@@ -15,6 +15,7 @@ from rich.table import Table
 from haa.cluster.backend import ClusterError
 from haa.stats.bundle import BundleError
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, err, open_backend, out
+from haactl.tables import table
 
 stats_app = typer.Typer(help="Per-host statistics bundles (docs/stats.md).", no_args_is_help=True)
 
@@ -26,24 +27,18 @@ def _ms(d: dict[str, Any] | None) -> str:
 
 
 def summary_tables(s: dict[str, Any]) -> list[Table]:
-    hosts = Table(title=f"hosts ({s.get('duration_s', 0):.0f} s, sampled every {s.get('sampler_period_s')} s)",
-                  title_justify="left")
-    for col in ("host", "state", "inc.", "samples", "events", "host CPU %", "agents CPU %", "RSS MB",
-                "sampler CPU %", "errors"):
-        hosts.add_column(col, justify="left" if col in ("host", "state", "errors") else "right")
+    numbers = ["inc.", "samples", "events", "host CPU %", "agents CPU %", "RSS MB", "sampler CPU %"]
+    hosts = table(["host", "state", *numbers, "errors"], right=numbers,
+                  title=f"hosts ({s.get('duration_s', 0):.0f} s, sampled every {s.get('sampler_period_s')} s)")
     for name, h in s.get("hosts", {}).items():
         hosts.add_row(name, str(h.get("state")), str(h.get("incarnations")), str(h.get("samples")),
                       str(h.get("events")), str(h.get("cpu_host_pct", "-")), str(h.get("cpu_agents_pct", "-")),
                       str(h.get("rss_max_mb", "-")), str(h.get("sampler_cost_pct", "-")),
                       escape("; ".join(h.get("errors") or [])))
-    counts = Table(title="the cluster", title_justify="left")
-    counts.add_column("what")
-    counts.add_column("count", justify="right")
+    counts = table(["what", "count"], title="the cluster", right=["count"])
     for k, v in s.get("counts", {}).items():
         counts.add_row(k.replace("_", " "), str(v))
-    lat = Table(title="latencies (ms)", title_justify="left")
-    lat.add_column("phase")
-    lat.add_column("latency")
+    lat = table(["phase", "latency"], title="latencies (ms)")
     for k, v in s.get("latency", {}).items():
         lat.add_row(k.replace("_", " "), _ms(v))
     return [hosts, counts, lat]

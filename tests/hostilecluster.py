@@ -15,9 +15,9 @@ from pathlib import Path
 import grpc
 import psutil
 
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import ddb
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
 
 TOKEN = "hostile-peers-token"
 NAMES = ["h1", "h2", "h3"]

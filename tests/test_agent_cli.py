@@ -20,8 +20,10 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
+from haa.cluster.agents import merge_agents
+from haa.cluster.events import TimelineEvent
+from haa.cluster.feed import EventFeed
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import EventFeed, TimelineEvent, merge_agents
 from haactl.main import app
 
 runner = CliRunner()

@@ -19,13 +19,13 @@ import pytest
 from waits import until
 
 from haa.agents.base import AgentBase, AgentContext, HostError, new_agent_id
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import agentproc as ap
 from haa.hostd import ddb
 from haa.hostd.agentdriver import AgentDriver
 from haa.pb import agent_pb2 as pb
 from haa.pb import ddb_pb2
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
 
 # ============================================================================ the agent's side (in-process)
 

@@ -152,7 +152,7 @@ def test_compose_reads_the_container_logs_of_stopped_and_restarted_hosts(monkeyp
         FakeContainer("h2", "running", 0, logs["h2"], 17002),
         FakeContainer("h10", "exited", 137, logs["h10"], 17010),  # killed, not restarted
     ])
-    monkeypatch.setattr("haactl.compose_backend.docker_client", lambda: fake)
+    monkeypatch.setattr("haa.cluster.compose_backend.docker_client", lambda: fake)
     monkeypatch.delenv("HAA_COMPOSE_PROJECT", raising=False)
     args = ["agent", "events", "--compose", "--compose-file", str(REPO / "compose" / "compose.yaml")]
     r = runner.invoke(app, [*args, "--json"])
@@ -186,7 +186,7 @@ def test_compose_unreadable_log_is_a_warning(monkeypatch: pytest.MonkeyPatch) ->
 
     broken.logs = gone  # type: ignore[method-assign]
     fake = FakeDocker([FakeContainer("h1", "running", 0, logs["h1"], 17001), broken])
-    monkeypatch.setattr("haactl.compose_backend.docker_client", lambda: fake)
+    monkeypatch.setattr("haa.cluster.compose_backend.docker_client", lambda: fake)
     r = runner.invoke(app, ["agent", "events", "--compose", "--compose-file", str(REPO / "compose" / "compose.yaml")])
     assert r.exit_code == 0, r.output
     assert "the log of h2 could not be read" in " ".join(r.output.split())

@@ -20,12 +20,12 @@ from pathlib import Path
 import pytest
 
 from haa.agents.base import new_agent_id
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import agenttable as at
 from haa.hostd import ddb
 from haa.hostd.agentproc import AgentSupervisor, Envelope, Failed, InstanceSpec
 from haa.pb import agenttx_pb2 as apb
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
 
 TESTS = Path(__file__).resolve().parent
 TOKEN = "limits-test-token"

@@ -160,23 +160,25 @@ def test_the_optimum_is_exhaustive_on_a_tiny_case():
 
 
 def test_bench_ap3_smoke(tmp_path, monkeypatch):
-    from haactl.ap3 import markdown_tables, run_ap3
+    from haa.experiments.ap3 import run_ap3
+    from haactl import benchtables
 
     monkeypatch.chdir(tmp_path)
     rows = run_ap3(hosts=(2, 4), agents=(5, 10), reps=1)
     assert [(r["hosts"], r["agents"]) for r in rows] == [(2, 5), (2, 10), (4, 5), (4, 10)]
     assert all(r["failed"] == 0 and r["allocated_ms"]["mean"] > 0 and r["bid_messages"]["mean"] > 0 for r in rows)
     assert all(r["consensus_ms"]["mean"] <= r["allocated_ms"]["mean"] for r in rows)
-    assert "| 4 |" in markdown_tables(rows)
+    assert "| 4 |" in benchtables.ap3(rows)
 
 
 def test_bench_alloc_quality_smoke():
-    from haactl.ap3 import quality_table, run_quality_study
+    from haa.experiments.ap3 import run_quality_study
+    from haactl import benchtables
 
     study = run_quality_study(instances=20)
     assert set(study["regimes"]) == {"roomy", "tight"}
     assert all(0 < q["mean_ratio"] <= 1.0 + 1e-9 for q in study["regimes"].values())
-    assert "roomy (20)" in quality_table(study)
+    assert "roomy (20)" in benchtables.alloc_quality(study)
 
 
 def test_without_bid_warping_an_affinity_rich_instance_never_converges(monkeypatch):

@@ -87,7 +87,8 @@ def test_pinger_report_finds_the_longest_reply_gap_in_the_window() -> None:
 
 @pytest.mark.slow
 def test_bench_ap4_smoke_two_hosts(tmp_path) -> None:
-    from haactl.ap4 import METRICS, compact_table, markdown_table, run_ap4
+    from haa.experiments.ap4 import METRICS, run_ap4
+    from haactl import benchtables
 
     rows = run_ap4((2,), reps=2, root=tmp_path, log=lambda _s: None)
     assert len(rows) == 1
@@ -111,14 +112,15 @@ def test_bench_ap4_smoke_two_hosts(tmp_path) -> None:
         assert s["crash_detect"] <= s["recovery_total"]
     assert "host_recovery" not in r["summary"]
     assert set(r["summary"]) <= set(METRICS)
-    table = markdown_table(rows)
+    table = benchtables.ap4(rows)
     assert table.count("\n") >= 12 and "| transfer (move request -> thawed) | 2 |" in table
-    assert compact_table(rows).splitlines()[-1].startswith("| 2 |")
+    assert benchtables.ap4_compact(rows).splitlines()[-1].startswith("| 2 |")
 
 
 @pytest.mark.slow
 def test_bench_ap3_real_smoke_two_hosts(tmp_path) -> None:
-    from haactl.ap3real import markdown_tables, merge_json, run_ap3_real
+    from haa.experiments.ap3real import merge_json, run_ap3_real
+    from haactl import benchtables
 
     rows = run_ap3_real((2,), (5,), reps=2, root=tmp_path, log=lambda _s: None)
     assert len(rows) == 1
@@ -131,7 +133,7 @@ def test_bench_ap3_real_smoke_two_hosts(tmp_path) -> None:
         assert 0 < s["consensus_s"] <= s["allocated_s"] <= s["request_s"]
         assert s["bid_messages"] >= 0
         assert s["oac_messages_window"] >= s["oac_messages_session"] == 12  # 2 OACs of 2 participants
-    assert "| 2 |" in markdown_tables(rows)
+    assert "| 2 |" in benchtables.ap3_real(rows)
     path = tmp_path / "ap3.json"
     path.write_text(json.dumps({"mode": "simulated", "rows": [1]}))
     merged = merge_json(path, {"rows": rows})

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from haactl.ap2 import markdown_table, run_ap2
-from haactl.ddbbench import all_writing_table, run_ddb_bench
-from haactl.ddbbench import markdown_table as ddb_table
+from haa.experiments.ap2 import run_ap2
+from haa.experiments.ddb import run_ddb_bench
+from haactl import benchtables
 
 
 def test_ap2_measures_join_leave_and_removal(tmp_path: Path) -> None:
@@ -19,7 +19,7 @@ def test_ap2_measures_join_leave_and_removal(tmp_path: Path) -> None:
         # removal needs a failure detection first: at least a good part of T_D^U (1 s) after the kill
         assert 0.3 < r["crash_to_removal"]["median"] < 10
         assert 0 <= r["remove"]["median"] <= r["crash_to_removal"]["median"]
-    assert "| 3 |" in markdown_table(rows)
+    assert "| 3 |" in benchtables.ap2(rows)
 
 
 def test_ddb_bench_writes_and_replicas_agree(tmp_path: Path) -> None:
@@ -41,5 +41,6 @@ def test_ddb_bench_writes_and_replicas_agree(tmp_path: Path) -> None:
     # the OACs themselves (the sequencer's batches, or each host's own): latency at their proposers, and OAC
     # messages per OAC — at least the failure-free n^2 + 4n - 6 = 6 for two hosts
     assert all(r["oacs_measured"] > 0 and r["oac_p50_ms"] > 0 and r["msgs_per_oac"] >= 5 for r in every)
-    assert "ops per request" in ddb_table(rows)
-    assert "| 2 | yes | 4 |" in all_writing_table(rows) and "| 2 | no | 4 |" in all_writing_table(rows)
+    assert "ops per request" in benchtables.ddb_clients(rows)
+    every_table = benchtables.ddb_all_writing(rows)
+    assert "| 2 | yes | 4 |" in every_table and "| 2 | no | 4 |" in every_table

@@ -8,9 +8,9 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
+from haa.chaos.compose import ComposeChaosCluster
 from haa.chaos.plan import parse_plan
 from haa.chaos.run import LocalChaosCluster
-from haactl.compose_chaos import ComposeChaosCluster
 from haactl.main import app
 
 REPO = Path(__file__).resolve().parents[1]

@@ -16,9 +16,9 @@ from haa.agents.base import CHAOS_HANG, AgentBase, AgentContext, new_agent_id
 from haa.chaos import inject
 from haa.chaos.inject import Injector, local_problems
 from haa.chaos.plan import PlanError, load_plan, parse_plan
+from haa.cluster.agents import AgentRow
 from haa.cluster.backend import ALIVE, KILLED, PAUSED, HostInfo
 from haa.pb import agent_pb2 as pb
-from haactl.agentcli import AgentRow
 from haactl.main import app
 
 ISSUE_PLAN = """

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from haa.cluster.backend import ClusterError
-from haactl.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend, host_service
+from haa.cluster.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend, host_service
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE = REPO / "compose" / "compose.yaml"

@@ -482,7 +482,8 @@ def test_replicas_with_logs_agree_with_each_other_the_model_and_their_events(bat
 
 
 def test_haactl_ddb_get_shows_a_log_by_index_with_its_newest_items_cut():
-    from haactl.ddbcli import LOG_ITEM_CHARS, LOG_SHOW_ITEMS, plain_value, show_log
+    from haa.cluster.values import plain_value
+    from haactl.ddbcli import LOG_ITEM_CHARS, LOG_SHOW_ITEMS, show_log
 
     db = Ddb()
     run(db, D.log_append("L", [f"line {i}".encode() for i in range(LOG_SHOW_ITEMS + 3)]))

@@ -14,9 +14,11 @@ import sys
 import time
 from pathlib import Path
 
+from haa.cluster.events import TimelineEvent
+from haa.cluster.feed import EventFeed, operator_event
+from haa.experiments.demo import Demo
 from haa.pb import control_pb2 as cpb
-from haactl.agentcli import EventFeed, TimelineEvent, event_line, operator_event
-from haactl.demo import Demo
+from haactl.agentcli import event_line
 
 BIN = Path(sys.executable).parent / "haactl"
 

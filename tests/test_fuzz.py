@@ -59,6 +59,8 @@ from test_sim_service import SimProcess
 
 from haa.agents.base import AgentBase, AgentContext, new_agent_id
 from haa.agents.channel import DEFAULT_MAX_FRAME, HEADER, MAX_AGENT_MESSAGE, Channel, ChannelError
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import agenttable, wire
 from haa.hostd import ddb as ddbmod
 from haa.hostd.control import MD_TOKEN
@@ -72,8 +74,6 @@ from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2 as dpb
 from haa.pb import hostlink_pb2 as pb
 from haa.pb import sim_pb2 as spb
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
 
 # ------------------------------------------------------------------------------------------------ budget
 

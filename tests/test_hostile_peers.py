@@ -37,6 +37,8 @@ from hostilecluster import (
 )
 from waits import until
 
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import wire
 from haa.hostd.messages import Heartbeat, Message
 from haa.hostd.transport import (
@@ -50,8 +52,6 @@ from haa.hostd.transport import (
     parse_incarnation,
 )
 from haa.pb import hostlink_pb2 as pb
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
 
 
 @pytest.fixture(scope="module")

@@ -20,6 +20,9 @@ import grpc
 import psutil
 import pytest
 
+from haa.cluster.hostprocs import MemberHost
+from haa.cluster.hostprocs import wait_for as wait
+from haa.experiments import memory as membench
 from haa.hostd import agenttable as at
 from haa.hostd import ddb
 from haa.hostd import runtime as rtmod
@@ -30,9 +33,6 @@ from haa.hostd.transport import MAX_MESSAGE, Transport
 from haa.pb import agenttx_pb2 as apb
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
-from haactl import membench
-from haactl.local import MemberHost
-from haactl.local import wait_for as wait
 
 MiB = 1 << 20
 #: what the memory budget of a host allows each of the byte-bounded buffers to hold (docs/limits.md)

@@ -294,7 +294,7 @@ def test_sim_metrics(tmp_path: Path) -> None:
 def test_compose_backend_reports_the_published_metrics_port() -> None:
     from types import SimpleNamespace
 
-    from haactl.compose_backend import METRICS_PORT, ComposeBackend
+    from haa.cluster.compose_backend import METRICS_PORT, ComposeBackend
 
     def container(bindings: dict[str, Any]) -> Any:
         return SimpleNamespace(attrs={"HostConfig": {"PortBindings": bindings}})

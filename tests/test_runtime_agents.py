@@ -13,8 +13,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from haactl.local import MemberHost, free_port
-from haactl.local import wait_for as wait
+from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import wait_for as wait
 
 TOKEN = "agents-test-token"
 NAMES = ["h1", "h2", "h3", "h4"]

@@ -16,10 +16,10 @@ import pytest
 from grpc import aio
 from waits import until
 
+from haa.cluster.hostprocs import LocalCluster, wait_for
 from haa.hostd.control import ControlClient
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD
 from haa.pb import hostlink_pb2 as pb
-from haactl.local import LocalCluster, wait_for
 
 NAMES = ["h1", "h2", "h3"]
 EXCLUDE_AFTER = 1.5

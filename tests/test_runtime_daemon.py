@@ -9,8 +9,8 @@ from pathlib import Path
 import grpc
 import pytest
 
+from haa.cluster.hostprocs import free_port, hostd_command
 from haa.hostd.daemon import HostSettings, load_settings, parse_peers
-from haactl.local import free_port, hostd_command
 
 
 @pytest.fixture

@@ -11,6 +11,7 @@ from collections.abc import Awaitable, Callable, Hashable
 import pytest
 from waits import until
 
+from haa.cluster.hostprocs import free_port
 from haa.hostd.core import CoreConfig
 from haa.hostd.effects import CancelTimer, SetTimer
 from haa.hostd.messages import Excluded, TxId
@@ -26,7 +27,6 @@ from haa.hostd.runtime import (
     chain_hash,
 )
 from haa.hostd.ufd import UfdConfig
-from haactl.local import free_port
 
 FAST_CORE = CoreConfig(
     ufd=UfdConfig(qos=QosTargets(td_upper=0.3, tmr_lower=3600.0, tm_upper=1.0), initial_period=0.02),

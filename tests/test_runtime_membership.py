@@ -22,10 +22,10 @@ import grpc
 import pytest
 from waits import until
 
+from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
+from haa.cluster.hostprocs import wait_for as wait
 from haa.hostd import ddb
 from haa.hostd.control import ControlClient
-from haactl.local import MemberHost, free_port, hostd_command
-from haactl.local import wait_for as wait
 
 TOKEN = "membership-test-token"
 NAMES = ["h1", "h2", "h3", "h4", "h5"]

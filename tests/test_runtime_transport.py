@@ -18,11 +18,11 @@ import pytest
 from grpc import aio
 from waits import until
 
+from haa.cluster.hostprocs import free_port
 from haa.hostd import wire
 from haa.hostd.messages import Excluded, Heartbeat, Message
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
-from haactl.local import free_port
 
 TOKEN = "test-token"
 FAST = {"min_backoff": 0.01, "max_backoff": 0.1, "handshake_timeout": 1.0}

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from haactl import simbench
+from haa.experiments import sim as simbench
+from haactl import benchtables
 
 
 def test_bench_sim_pieces_run_and_report() -> None:
@@ -14,6 +15,6 @@ def test_bench_sim_pieces_run_and_report() -> None:
     assert sens["sonar_scan_cpu"]["n"] == 20 and sens["avatars_in_world"] == 10
     r = {"stepping": [step, step], "camera": [cam], "sensors": sens}
     r["camera"][0]["recall"] = r["camera"][0]["recall"] or 0.0
-    text = simbench.markdown(r)
+    text = benchtables.sim(r)
     assert "| physics + odometry + sonar 1 Hz + detections 1 Hz | 2 s |" in text
     assert "| small | basic | 320x240 |" in text and "| sonar scan (5 sonars x 9 rays) |" in text

@@ -9,6 +9,7 @@ pytest.importorskip("haa.sim.world")
 
 from haa.slam.explorer import explored_by_driver, record
 from haa.slam.strategies import READING
+from haactl import benchtables
 
 
 def test_recording_from_the_simulator_is_consistent():
@@ -40,7 +41,7 @@ def test_recording_from_the_simulator_is_consistent():
 
 @pytest.fixture
 def tiny(monkeypatch, tmp_path):
-    import haactl.slambench as sb
+    import haa.experiments.slam as sb
 
     monkeypatch.setattr(sb, "CACHE", tmp_path)
     monkeypatch.setattr(sb, "QUICK_DURATIONS", {"basic": 8.0, "advanced_a": 5.0, "advanced_b": 4.0})
@@ -52,7 +53,7 @@ def test_bench_slam_smoke(tiny):
     row = data["rows"][0]
     assert row["sonar_per_s"] > 0 and row["landmark_per_s"] > 0 and row["all_readings_per_s"] > 0
     assert row["memory_mb_per_hour_at_1hz"] == pytest.approx((12 * 30 + 8) * 3600 / 2**20)
-    assert "| 30 |" in tiny.bench_slam_table(data)
+    assert "| 30 |" in benchtables.slam(data)
 
 
 def test_ap52_and_ap51_smoke(tiny):
@@ -63,13 +64,13 @@ def test_ap52_and_ap51_smoke(tiny):
             m = r["M"]
             assert r["savings_formula"] == pytest.approx(1 - (m + 2) / (3 * m))
             assert r["savings_counted"] == pytest.approx(r["savings_formula"], abs=1e-9)
-    assert "Advanced B" in tiny.ap52_table(rows)
+    assert "Advanced B" in benchtables.ap52(rows)
     data = tiny.run_ap51(quick=True, particles=(30,), seeds=1, scenarios=("basic",), log=lambda s: None)
     assert len(data["rows"]) == 13  # baseline + 6 strategies x 2 conditions
     names = {(r["strategy"], r["condition"]) for r in data["rows"]}
     assert ("jcslam", "constrained") in names and ("baseline", "unlimited") in names
     assert all(r["loc_error_m"] == r["loc_error_m"] for r in data["rows"])  # not NaN
-    text = tiny.ap51_tables(data)
+    text = benchtables.ap51(data)
     assert "### Basic" in text and "| nfp | constrained |" in text
 
 
@@ -79,7 +80,7 @@ def test_bench_commands_are_registered():
     from haactl.bench import bench_app
 
     out = CliRunner().invoke(bench_app, ["--help"]).output
-    for name in ("slam", "ap5.1", "ap5.2"):
+    for name in ("slam", "ap5.1", "ap5.2", "replica"):
         assert name in out
 
 
@@ -101,3 +102,14 @@ def test_driver_keeps_clear_so_odometry_only_drifts(monkeypatch):
         worst = max(worst, float(np.hypot(t[:, 0] - o[:, 0], t[:, 1] - o[:, 1]).max()))
     assert worst < 0.02, f"odometry {worst:.3f} m off the true track without drift"
     assert explored_by_driver(rec) > 0.5
+
+
+def test_replica_bench_smoke():
+    """`haactl bench replica` (haa.experiments.replica, formerly `python -m haa.slam.replica`): a short recorded
+    run through the log into a replica, with one checkpoint and restore at 10 s of the run."""
+    from haa.experiments.replica import run_replica_bench
+
+    r = run_replica_bench("basic", duration=12.0, n_particles=20)
+    assert r["scenario"] == "Basic" and r["n_particles"] == 20 and r["items"] == sum(r["count"].values())
+    assert r["apply_us"]["predict"] > 0 and r["log_bytes"] > 0 and r["map_bytes"] > 0
+    assert r["checkpoint_biggest"]["t"] >= 10.0 and r["checkpoint_bytes_mean"] > 0

@@ -317,7 +317,7 @@ def test_haactl_works_a_host_joins_and_a_write_commits_after_the_refusals(cluste
 
 def test_a_static_mesh_over_tls_commits(tmp_path: Path) -> None:
     """`haactl bench ap1 --tls` and the demo's static mode: `LocalCluster(tls=True)`, real processes."""
-    from haactl.local import LocalCluster
+    from haa.cluster.hostprocs import LocalCluster
 
     with LocalCluster(["h1", "h2", "h3"], tmp_path, tls=True) as c:
         c.start()

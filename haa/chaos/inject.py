@@ -8,7 +8,7 @@
   its process), `hang` = an operator request `haa.agents.base.CHAOS_HANG` that makes the agent block its own
   event loop for `hang_s` and then fail — a stuck computation, not a SIGSTOP its host could read off /proc;
 * `partition: [h1, h2]` for `for_s` (compose): each named host is cut off the cluster network (the
-  backend's `disconnect`: `docker network disconnect`, haactl.compose_chaos), so it is isolated from every
+  backend's `disconnect`: `docker network disconnect`, haa.chaos.compose), so it is isolated from every
   other host, and connected again with its address and name afterwards (`reconnect`); a partitioned host
   counts as not live for the majority gate below. It is refused on the local cluster before anything starts
   (`local_problems`): its hosts share loopback, there is no link to cut without root;

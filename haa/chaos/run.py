@@ -1,7 +1,7 @@
 """A whole chaos run on a cluster of its own (`haactl chaos run PLAN [--local|--compose]`, docs/chaos.md).
 
 `run_on(cluster, plan, out)` does the run on a `ChaosCluster`: `LocalChaosCluster` (haa-hostd processes in
-`<out>/cluster`, `run_local`) or the compose cluster (haactl.compose_backend.ComposeChaosCluster):
+`<out>/cluster`, `run_local`) or the compose cluster (haa.chaos.compose.ComposeChaosCluster):
 
 1. refuse what the cluster cannot do (`cluster.problems`) before anything starts;
 2. start `plan.hosts` hosts (they load the workload's agent type through HAA_AGENT_MODULES; a plan's
@@ -165,7 +165,7 @@ def stop_workload(plan: Plan, backend: Backend, progress: Progress) -> None:
 
 class ChaosCluster(Protocol):
     """The cluster a run starts and takes down (`LocalChaosCluster`; the compose one is
-    haactl.compose_backend.ComposeChaosCluster). `backend` serves every fault and read in between."""
+    haa.chaos.compose.ComposeChaosCluster). `backend` serves every fault and read in between."""
 
     @property
     def backend(self) -> Backend: ...

@@ -1,6 +1,6 @@
 """Every agent as the whole cluster sees it: `agent_lists` asks every alive host for its AgentList and
-`merge_agents` folds the replies into one `AgentRow` per agent (moved here from haactl.agentcli, which still
-exports them, so that libraries — the dashboard, chaos — can use them: haa must not import haactl).
+`merge_agents` folds the replies into one `AgentRow` per agent (used by `haactl agent`, the demo, the
+dashboard and chaos; moved here from haactl.agentcli: haa must not import haactl).
 
 What each host can tell (haa.hostd.agentcontrol): the replicated agent table (the same on every member, up to
 the last few commits) and, for the instances it runs or prepares, their local phase (claiming, thawing,

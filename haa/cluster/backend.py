@@ -3,7 +3,7 @@
 A `Backend` knows the hosts of one cluster (names, control addresses, whether each process or container
 is alive, paused or gone) and how to start, kill, pause, resume and restart them. Two implementations:
 `haa.cluster.local_backend.LocalBackend` (haa-hostd processes on loopback, recorded in a state file) and
-`haactl.compose_backend.ComposeBackend` (the docker compose cluster of compose/compose.yaml, through the
+`haa.cluster.compose_backend.ComposeBackend` (the docker compose cluster of compose/compose.yaml, through the
 docker SDK). Everything that only talks to the hosts' control API — status fan-out, waiting for the group
 to form, for a host to leave the view or to rejoin, a graceful leave — is written once here.
 

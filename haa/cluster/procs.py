@@ -1,7 +1,7 @@
 """Starting haa-hostd processes on this machine: a free loopback port, the daemon's command line.
 
 Shared by the local cluster backend (haa.cluster.local_backend), the mission runner (haa.mission.runner) and
-haactl's benchmark and test helpers (haactl.local).
+the experiments' and tests' host processes (haa.cluster.hostprocs).
 """
 
 from __future__ import annotations

@@ -1589,7 +1589,7 @@ def start_attached(root: Path | None, mission: Mission, speed: float | None = No
     first status snapshot. MissionRunError when anything is wrong (nothing is left running then).
 
     The local cluster at `root` by default; another cluster (compose) comes as `backend` with its state
-    directory `md`, `conductor` (the command that runs `conduct` with that backend, haactl.mission_compose)
+    directory `md`, `conductor` (the command that runs `conduct` with that backend, haa.mission.compose)
     and `agent_sim` (haa-sim's address and token file as the agents see them)."""
     from haa.cluster.backend import ClusterError
     from haa.cluster.local_backend import LocalBackend
@@ -1715,7 +1715,7 @@ def live_transcript(root: Path | None, md: Path | None = None) -> list[dict[str,
 
 def conduct(argv: Sequence[str] | None = None, backend: Any = None) -> int:
     """The detached process behind `haactl mission start` (see above): on the local cluster `--root`, or on
-    `backend` with its state directory `--state-dir` (haactl.mission_compose for the compose cluster)."""
+    `backend` with its state directory `--state-dir` (haa.mission.compose for the compose cluster)."""
     import argparse
 
     from haa.cluster.local_backend import LocalBackend

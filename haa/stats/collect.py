@@ -7,7 +7,7 @@ files are read as they are; a line being written is left out), killed, paused, l
 
 * local clusters (haa.cluster.local_backend): `<root>/<host>/`, recorded in the cluster's state file (also
   after `cluster down`, which keeps it as `cluster.last.json`);
-* the compose cluster (haactl.compose_backend): inside each container, the `--data-dir` of its service
+* the compose cluster (haa.cluster.compose_backend): inside each container, the `--data-dir` of its service
   (`/var/lib/haa/<host>`), read through the docker SDK (`get_archive`, which works on running, paused and
   stopped containers alike); if the log file is missing there, the container's log (the host logs to
   stderr too) is used.

@@ -10,9 +10,9 @@ from typing import Any
 
 import grpc
 
+from haa.cluster.compose_backend import ComposeBackend
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.compose_backend import ComposeBackend
 
 NAMES = [f"h{i}" for i in range(1, 11)]
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from chaoslib import Chaos, docker_problem
 
-from haactl.compose_backend import ComposeBackend
+from haa.cluster.compose_backend import ComposeBackend
 
 HAACTL = Path(sys.executable).parent / "haactl"
 REPO = Path(__file__).resolve().parents[2]

@@ -68,11 +68,11 @@ import yaml
 from chaoslib import docker_problem
 
 from haa.cluster.backend import ClusterError, natural_key, wait_until
+from haa.cluster.compose_backend import ComposeBackend, host_service
+from haa.cluster.hostprocs import free_port
 from haa.hostd import ddb
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.compose_backend import ComposeBackend, host_service
-from haactl.local import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCE = REPO / "compose" / "compose.yaml"

@@ -21,7 +21,7 @@ from chaoslib import docker_problem
 from test_agents_chaos import derive_compose, free_prefix
 from typer.testing import CliRunner
 
-from haactl.compose_backend import ComposeBackend
+from haa.cluster.compose_backend import ComposeBackend
 from haactl.main import app
 
 pytestmark = pytest.mark.docker

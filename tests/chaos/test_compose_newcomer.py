@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from chaoslib import docker_problem
 
-from haactl.compose_backend import compose_command
+from haa.cluster.compose_backend import compose_command
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.docker

@@ -26,8 +26,8 @@ from test_agents_chaos import SOURCE, up_on_free_subnet
 from typer.testing import CliRunner
 
 from haa.cluster.backend import wait_until
-from haactl.compose_backend import ComposeBackend
-from haactl.local import free_port
+from haa.cluster.compose_backend import ComposeBackend
+from haa.cluster.hostprocs import free_port
 from haactl.main import app
 
 pytestmark = pytest.mark.docker

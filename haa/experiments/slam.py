@@ -1,4 +1,4 @@
-"""Bodies of `haactl bench slam`, `bench ap5.2` and `bench ap5.1` (JC-SLAM, thesis §5.2 and §7.2.5).
+"""JC-SLAM measurements (thesis §5.2 and §7.2.5): `haactl bench slam`, `bench ap5.2` and `bench ap5.1`.
 
 * `bench slam` — how fast the library is: CPU time per reading (thread CPU time, so per core and independent
   of other load) for sonar scans, camera images (landmark sightings) and co-occupancy readings, predictions
@@ -18,7 +18,6 @@ Recordings are made once per (scenario, duration, seed) with haa.slam.explorer a
 from __future__ import annotations
 
 import math
-import os
 import statistics
 import time
 from collections.abc import Callable
@@ -31,10 +30,6 @@ from haa.slam.recording import Recording, load, save
 CACHE = Path(".haa/slam-recordings")
 STRATEGY_ORDER = ("baseline", "discard", "jcslam", "fifo", "random", "nfp", "delay")
 QUICK_DURATIONS = {"basic": 60.0, "advanced_a": 60.0, "advanced_b": 45.0}
-
-
-def machine() -> dict[str, Any]:
-    return {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}
 
 
 def sim_available() -> bool:
@@ -128,24 +123,6 @@ def run_bench_slam(
     return {"source": source, "readings": rec.reading_counts(), "rows": rows}
 
 
-def bench_slam_table(data: dict[str, Any]) -> str:
-    out = [
-        f"Workload: {data['source']}; readings {data['readings']}. Rates are readings per CPU-second of one core "
-        "(thread CPU time); 'all' includes predictions and weight requests.\n",
-        "| particles | sonar scans/s | camera images/s | co-occupancy/s | all readings/s | predictions/s | "
-        "weight requests/s | history MB per avatar-hour (at ~Hz) | MB/hour at 1 prediction/s |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data["rows"]:
-        out.append(
-            f"| {r['particles']} | {r['sonar_per_s']:,.0f} | {r['landmark_per_s']:,.0f} | "
-            f"{r['cooccupancy_per_s']:,.0f} | {r['all_readings_per_s']:,.0f} | {r['predictions_per_s']:,.0f} | "
-            f"{r['requests_per_s']:,.0f} | {r['memory_mb_per_avatar_hour']:.0f} ({r['prediction_rate_hz']:.1f} Hz) | "
-            f"{r['memory_mb_per_hour_at_1hz']:.1f} |"
-        )
-    return "\n".join(out)
-
-
 # ----- AP-5.2 -------------------------------------------------------------------------------------------------
 
 
@@ -197,28 +174,12 @@ def run_ap52(
     return rows
 
 
-def ap52_table(rows: list[dict[str, Any]]) -> str:
-    out = [
-        "| experiment | team | weight request period | N | M (observations per weight update) | "
-        "standard cost (MN ×, MN +, MN /) | JC-SLAM cost (MN ×, N +, N /) | savings (formula) | "
-        "savings (counted over the run) | thesis (M → savings) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    thesis = {"Basic": "2.93 → 44%", "Advanced A": "3.97 → 50%", "Advanced B": "4.89 → 53%"}
-    for r in rows:
-        s, j = r["standard_cost"], r["jcslam_cost"]
-        out.append(
-            f"| {r['scenario']} | {r['team']} | {r['request_period_s']:g} s | {r['n_particles']} | {r['M']:.2f} | "
-            f"{s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f} | {j[0]:.0f}, {j[1]:.0f}, {j[2]:.0f} | "
-            f"{100 * r['savings_formula']:.0f}% | {100 * r['savings_counted']:.0f}% | {thesis.get(r['scenario'], '')} |"
-        )
-    return "\n".join(out)
-
-
 # ----- AP-5.1 -------------------------------------------------------------------------------------------------
 
 
-def _variants() -> list[tuple[str, str]]:
+def variants() -> list[tuple[str, str]]:
+    """The (strategy, condition) pairs of AP-5.1 in table order: the baseline unlimited, then every strategy at
+    nominal and at constrained capacity."""
     out = [("baseline", "unlimited")]
     for cond in ("nominal", "constrained"):
         out += [(s, cond) for s in STRATEGY_ORDER if s != "baseline"]
@@ -277,7 +238,7 @@ def run_ap51(
             "capacity": {c: {"workers": v.workers, "cost_s": v.cost} for c, v in caps.items()},
         }
         tasks = []
-        for strat, cond in _variants():
+        for strat, cond in variants():
             if strategies and strat not in strategies:
                 continue
             cap = None if cond == "unlimited" else {"workers": caps[cond].workers, "cost": caps[cond].cost}
@@ -309,56 +270,9 @@ def merge_ap51(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _agg(rows: list[dict[str, Any]], field: str) -> tuple[float, float]:
+def mean_sd(rows: list[dict[str, Any]], field: str) -> tuple[float, float]:
+    """Mean and population standard deviation of `field` over `rows`, NaN values left out (NaN, NaN if none)."""
     xs = [r[field] for r in rows if r[field] == r[field]]
     if not xs:
         return math.nan, math.nan
     return statistics.fmean(xs), statistics.pstdev(xs) if len(xs) > 1 else 0.0
-
-
-def ap51_tables(data: dict[str, Any]) -> str:
-    rows = data["rows"]
-    parts = []
-    ps = data["particles"]
-    for key, info in data["scenarios"].items():
-        mine = [r for r in rows if r["scenario_key"] == key]
-        unc, _ = _agg(mine, "uncorrected_error_m")
-        parts.append(
-            f"### {info['name']} ({info['team']}, {info['arena']} arena, {info['duration_s']:g} s recorded; "
-            f"uncorrected error {unc:.3f} m)\n"
-        )
-        parts.append(
-            "Localization error [m], mean ± std over seeds (each seed's error is the mean over all weight "
-            "requests of all avatars):\n"
-        )
-        parts.append("| strategy | condition | " + " | ".join(f"N={n}" for n in ps) + " | processed | OOO | delay |")
-        parts.append("|---|---|" + "---|" * len(ps) + "---|---|---|")
-        for strat, cond in _variants():
-            sel = [r for r in mine if r["strategy"] == strat and r["condition"] == cond]
-            cells = []
-            for n in ps:
-                m, s = _agg([r for r in sel if r["n_particles"] == n], "loc_error_m")
-                cells.append(f"{m:.3f} ± {s:.3f}")
-            proc, _ = _agg(sel, "processed_share")
-            ooo, _ = _agg(sel, "ooo_share")
-            dly, _ = _agg(sel, "mean_delay_s")
-            parts.append(
-                f"| {strat} | {cond} | "
-                + " | ".join(cells)
-                + f" | {100 * proc:.0f}% | {100 * ooo:.1f}% | {dly:.2f} s |"
-            )
-        parts.append("")
-        parts.append("Resampling vs processing (all particle counts and seeds pooled):\n")
-        parts.append(
-            "| strategy | condition | readings processed/s | resamples/min | landmark error [m] | map accuracy |"
-        )
-        parts.append("|---|---|---|---|---|---|")
-        for strat, cond in _variants():
-            sel = [r for r in mine if r["strategy"] == strat and r["condition"] == cond]
-            pr, _ = _agg(sel, "processing_rate_per_s")
-            rr, _ = _agg(sel, "resample_rate_per_min")
-            le, _ = _agg(sel, "landmark_error")
-            ma, _ = _agg(sel, "map_accuracy")
-            parts.append(f"| {strat} | {cond} | {pr:.1f} | {rr:.1f} | {le:.3f} | {ma:.3f} |")
-        parts.append("")
-    return "\n".join(parts)

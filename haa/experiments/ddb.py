@@ -1,4 +1,4 @@
-"""`haactl bench ddb`: DDB write throughput and latency through OAC, real processes.
+"""DDB write throughput and latency through OAC (thesis §4.7; `haactl bench ddb`), real processes.
 
 A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core).
 
@@ -13,7 +13,8 @@ A group of `hosts` membership-mode `haa-hostd` processes on loopback (h1-h3 core
 
 Every load runs with the sequencer (docs/oac.md, "The sequencer": writes forwarded to the leader and batched)
 and, for the comparison, without it (every host proposes its own group-committed batches: Alg. 3 as printed).
-At the end every replica's content hash must be equal (the run fails otherwise).
+At the end every replica's content hash must be equal (the run fails otherwise). `run_ddb_bench` returns one
+row dict per load (`load`: "clients" or "all writing"), the rows of bench-results/ddb.json.
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.experiments.ap2 import CORE
 from haa.hostd import ddb
-from haactl.ap2 import CORE
-from haactl.local import MemberHost, free_port, wait_for
 
 
 def _pct(xs: list[float], q: float) -> float:
@@ -216,39 +217,3 @@ def _all_writing(group: list[MemberHost], writers: int, seconds: float, sequence
 
 def _oac_messages(group: list[MemberHost]) -> int:
     return sum(v for h in group for k, v in h.client.status().counters.values.items() if k.startswith("tx_msgs.oac_"))
-
-
-def all_writing_table(rows: list[dict[str, Any]]) -> str:
-    out = [
-        "| hosts | sequencer | writers per host | writes/s | OACs/s | writes per OAC | latency p50 | p99 | failed "
-        "| OAC p50 / p99 | msgs per OAC (n²+4n−6) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        if r.get("load") != "all writing":
-            continue
-        out.append(
-            f"| {r['hosts']} | {'yes' if r['sequencer'] else 'no'} | {r['writers_per_host']} | "
-            f"{r['writes_per_s']:.0f} | {r['oacs_per_s']:.0f} | {r['writes_per_oac']:.1f} | "
-            f"{r['p50_ms']:.1f} ms | {r['p99_ms']:.1f} ms | {r['failed']} | "
-            f"{r.get('oac_p50_ms', 0.0):.1f} / {r.get('oac_p99_ms', 0.0):.1f} ms | "
-            f"{r.get('msgs_per_oac', 0.0):.0f} ({r.get('formula_n2_4n_minus_6', '')}) |"
-        )
-    return "\n".join(out)
-
-
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    out = [
-        "| hosts | sequencer | clients | writing through | ops per request | ops/s | requests/s | latency p50 | p99 |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        if r.get("load") == "all writing":
-            continue
-        out.append(
-            f"| {r['hosts']} | {'yes' if r['sequencer'] else 'no'} | {r['clients']} | {r['through']} | "
-            f"{r['batch']} | {r['ops_per_s']:.0f} | "
-            f"{r['requests_per_s']:.0f} | "
-            f"{r['p50_ms']:.1f} ms | {r['p99_ms']:.1f} ms |"
-        )
-    return "\n".join(out)

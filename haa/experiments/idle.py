@@ -177,7 +177,7 @@ def measure_local(hosts: int, duration: float, settle: float, log: Callable[[str
 
 
 def measure_compose(hosts: int, duration: float, settle: float, log: Callable[[str], None] = print) -> dict[str, Any]:
-    from haactl.compose_backend import ComposeBackend
+    from haa.cluster.compose_backend import ComposeBackend
 
     backend = ComposeBackend()
     t0 = time.monotonic()

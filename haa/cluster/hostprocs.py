@@ -1,12 +1,15 @@
-"""A local cluster: real `haa-hostd` processes on free loopback ports, full mesh, one data dir each.
+"""Host processes for experiments and tests: real `haa-hostd` processes on free loopback ports, one data dir each.
 
-Used by `haactl demo`, `haactl bench ap1` and the tests. Each host gets its own folder under the cluster
+Used by the experiments (haa.experiments: AP-1..AP-4, ddb, memory) and the tests (moved here from
+haactl/local.py: haa must not import haactl). Each host gets its own folder under the cluster
 root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
 file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
 `LocalCluster` starts them all and waits until every host trusts every other (with `tls`, over mutual TLS:
 a cluster CA and certificates in `<root>/tls`, haa.cluster.tls). `free_port`, `hostd_command`
 and `member_command` live in haa.cluster.procs (the local cluster backend and the mission runner use them too)
-and are importable from here as before.
+and are importable from here as before. `MemberHost` is one membership-mode host with a given core (the
+experiments grow and shrink groups of them); `wait_for` polls a condition, RPC errors counting as "not yet".
+(`haactl cluster` itself runs on haa.cluster.local_backend, which keeps its state on disk between commands.)
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from haa.chaos.plan import Plan
 from haa.chaos.run import Progress, agent_modules
 from haa.chaos.workload import WORKLOAD_MODULE
 from haa.cluster.backend import ClusterError, natural_key
-from haactl.compose_backend import ComposeBackend
+from haa.cluster.compose_backend import ComposeBackend
 
 
 class PartitionCompose(ComposeBackend):

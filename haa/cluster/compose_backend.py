@@ -53,7 +53,7 @@ from haa.cluster.backend import (
 from haa.cluster.tls import CLIENT_DIR, CaError, make_cluster_tls
 from haa.tls import TlsError, load_client
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONTROL_PORT = "7000/tcp"
 #: each container's Prometheus /metrics (haa-hostd --metrics-port, HAA_METRICS_PORT in compose/compose.yaml)
 METRICS_PORT = "9400/tcp"

@@ -195,38 +195,6 @@ def run_ap3(
     return rows
 
 
-def _table(rows: list[dict[str, Any]], key: str, fmt: str, title: str) -> str:
-    hosts = sorted({r["hosts"] for r in rows})
-    agents = sorted({r["agents"] for r in rows})
-    cell = {(r["hosts"], r["agents"]): r[key] for r in rows}
-    out = [f"### {title}\n", "| hosts \\ agents | " + " | ".join(str(a) for a in agents) + " |"]
-    out.append("|---" * (len(agents) + 1) + "|")
-    for h in hosts:
-        vals = []
-        for a in agents:
-            v = cell.get((h, a))
-            if v is None:
-                vals.append("")
-            elif isinstance(v, dict):
-                vals.append(f"{v['mean']:{fmt}} ± {v['sd']:{fmt}}" if v["n"] else "n/a")
-            else:
-                vals.append(f"{v:{fmt}}")
-        out.append(f"| {h} | " + " | ".join(vals) + " |")
-    return "\n".join(out)
-
-
-def markdown_tables(rows: list[dict[str, Any]]) -> str:
-    return "\n\n".join(
-        [
-            _table(rows, "allocated_ms", ".1f", "Time from OAC(start) proposal to committed OAC(finish), ms"),
-            _table(rows, "consensus_ms", ".1f", "Time from OAC(start) proposal to the leader's consensus, ms"),
-            _table(rows, "bid_messages", ".0f", "Bid-update messages per session"),
-            _table(rows, "oac_messages", "d", "OAC messages per session (start + finish)"),
-            _table(rows, "cpu_ms", ".1f", "CPU time of all Allocator calls per session, ms (sum over hosts)"),
-        ]
-    )
-
-
 # --------------------------------------------------------------------------------------------- quality
 
 
@@ -253,17 +221,3 @@ def run_quality_study(instances: int = 500, seed: int = 0) -> dict[str, Any]:
             "worst": [(r.seed, round(r.ratio, 3)) for r in sorted(ok, key=lambda r: r.ratio)[:5]],
         }
     return out
-
-
-def quality_table(study: dict[str, Any]) -> str:
-    out = [
-        "| instances | rated | mean ratio | median | p10 | min | optimal | sum R / sum R* | msgs | time ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for regime, q in study["regimes"].items():
-        out.append(
-            f"| {regime} ({q['instances']}) | {q['rated']} | {q['mean_ratio']:.3f} | {q['median_ratio']:.3f} | "
-            f"{q['p10_ratio']:.3f} | {q['min_ratio']:.3f} | {q['optimal_share'] * 100:.0f}% | "
-            f"{q['aggregate_ratio']:.3f} | {q['mean_messages']:.0f} | {q['mean_time_ms']:.1f} |"
-        )
-    return "\n".join(out)

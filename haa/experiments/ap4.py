@@ -56,8 +56,8 @@ from typing import Any
 import grpc
 
 from haa.agents.benchagents import THESIS_STATE_BYTES
-from haactl.ap1 import percentile
-from haactl.local import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.experiments.ap1 import percentile
 
 HOSTS = (2, 4, 6, 8, 10)
 CORE = 3
@@ -542,43 +542,6 @@ def run_ap4(hosts: Iterable[int] = HOSTS, reps: int = 10, root: Path | None = No
     return rows
 
 
-def _ms(x: float | None) -> str:
-    return "-" if x is None else f"{x * 1e3:.0f}"
-
-
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    out = [
-        "| action | hosts | median (ms) | p90 (ms) | max (ms) | samples | thesis (mean) | target |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for key, (_kind, _field, label, thesis, target) in METRICS.items():
-        for r in rows:
-            s = r["summary"].get(key)
-            if not s:
-                continue
-            miss = f" ({s['missing']} missing)" if s.get("missing") else ""
-            out.append(f"| {label} | {r['hosts']} | {_ms(s.get('median'))} | {_ms(s.get('p90'))} | "
-                       f"{_ms(s.get('max'))} | {s['n']}{miss} | {thesis} | {target} |")
-    return "\n".join(out)
-
-
-def compact_table(rows: list[dict[str, Any]]) -> str:
-    """One row per group size: median / p90 of the four headline delays (for the README)."""
-    cols = [("spawn", "spawn"), ("freeze", "freeze"), ("transfer", "transfer"),
-            ("transfer_unreachable", "unreachable in transfer"), ("recovery", "recovery after detection"),
-            ("host_recovery", "host crash: recovery after removal")]
-    out = ["| hosts | " + " | ".join(label for _k, label in cols) + " |", "|---" * (len(cols) + 1) + "|"]
-    out.append("| thesis (mean) | 1-2 s | ~1/3-1/2 of transfer | 1.3-2.1 s | - | 0.7-2.9 s | 0.7-2.9 s |")
-    out.append("| target | <= 500 ms | - | <= 150 ms | - | <= 300 ms | <= 300 ms |")
-    for r in rows:
-        cells = []
-        for k, _label in cols:
-            s = r["summary"].get(k) or {}
-            cells.append(f"{_ms(s.get('median'))} / {_ms(s.get('p90'))} ms" if s.get("n") else "-")
-        out.append(f"| {r['hosts']} | " + " | ".join(cells) + " |")
-    return "\n".join(out)
-
-
 def parse_hosts(text: str) -> tuple[int, ...]:
     """"2,4,6" -> (2, 4, 6); a clear error naming --hosts otherwise."""
     try:
@@ -588,7 +551,3 @@ def parse_hosts(text: str) -> tuple[int, ...]:
     if not sizes or any(not 2 <= n <= 16 for n in sizes):
         raise ValueError(f"--hosts: every group size must be in 2..16, got {text!r}")
     return sizes
-
-
-def machine() -> dict[str, Any]:
-    return {"cpus": os.cpu_count(), "load_avg_at_end": os.getloadavg()}

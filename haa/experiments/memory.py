@@ -1,4 +1,4 @@
-"""`haactl bench memory`: RSS of every host and event-loop stalls under maximum-size traffic. Real processes.
+"""RSS of every host and event-loop stalls under maximum-size traffic (`haactl bench memory`), real processes.
 
 A local group of 4 membership-mode `haa-hostd` processes (h1-h3 core, agents on) is driven for `seconds`
 with the largest requests the limits accept (docs/limits.md, "Sizes and memory"), in a loop, each through
@@ -36,9 +36,9 @@ from typing import Any
 import psutil
 
 from haa.agents.channel import MAX_AGENT_MESSAGE
+from haa.cluster.hostprocs import MemberHost, free_port, wait_for
 from haa.hostd import agenttable as at
 from haa.hostd import ddb
-from haactl.local import MemberHost, free_port, wait_for
 
 NAMES = ["h1", "h2", "h3", "h4"]
 CORE = ["h1", "h2", "h3"]
@@ -304,15 +304,3 @@ def _run(
         "members": {n: sorted(s.members) for n, s in st.items()},
         "hosts": per_host,
     }
-
-
-def markdown(res: dict[str, Any]) -> str:
-    lines = ["| host | RSS start | peak | end of traffic | after settle | max loop lag |", "|---|---|---|---|---|---|"]
-    for n, h in res["hosts"].items():
-        lines.append(f"| {n} | {h['rss_start_mib']} MiB | {h['rss_peak_mib']} MiB | {h['rss_end_of_traffic_mib']} MiB "
-                     f"| {h['rss_after_settle_mib']} MiB | {h['loop_lag_max_ms']} ms |")
-    lines += ["", "| step | count | failed | largest stall | of it busy (CPU) | slowest |", "|---|---|---|---|---|---|"]
-    for name, s in res["steps"].items():
-        lines.append(f"| {name} | {s['count']} | {s['failed']} | {s['max_stall_ms']} ms | {s['max_stall_cpu_ms']} ms "
-                     f"| {s['max_seconds']} s |")
-    return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""`haactl bench sim`: the simulator's speed (issue 5 §5) -> bench-results/sim.json.
+"""The robot simulator's speed (issue 5 §5; `haactl bench sim` -> bench-results/sim.json).
 
 * stepping: 10 avatars (2 sweepers, 4 enhanced seekers, 4 carriers, as in R-2) in the large arena driving
   seeded random velocity commands, stepped in the server's 0.05 s ticks; simulated seconds per second of
@@ -10,7 +10,8 @@
 * landmark detections: `World.landmark_observations` of one avatar.
 
 Everything runs on one thread (OpenCV limited to one thread). Times are reported as CPU time of this
-thread (what the work costs on one core, whatever else the machine runs) and as wall time.
+thread (what the work costs on one core, whatever else the machine runs) and as wall time. `run_sim_bench`
+returns the dict of bench-results/sim.json ("stepping", "camera", "sensors", "quick").
 """
 
 from __future__ import annotations
@@ -203,46 +204,3 @@ def run_sim_bench(quick: bool = False) -> dict[str, Any]:
         "quick": quick,
     }
     return out
-
-
-def markdown(r: dict[str, Any]) -> str:
-    lines = [
-        "### Stepping (large arena, 10 avatars, 0.05 s ticks)",
-        "",
-        "| workload | simulated | CPU | x real time (CPU) | x real time (wall) | target |",
-        "|---|---|---|---|---|---|",
-    ]
-    for s in r["stepping"]:
-        what = "physics + odometry + sonar 1 Hz + detections 1 Hz" if s["sensors"] else "headless: physics + odometry"
-        lines.append(
-            f"| {what} | {s['sim_seconds']:.0f} s | {s['cpu_s']:.2f} s | {s['x_realtime_cpu']:.0f}x | "
-            f"{s['x_realtime_wall']:.0f}x | >= 50x |"
-        )
-    lines += [
-        "",
-        "### Camera frame (render), PNG encoding and OpenCV ArUco detection, CPU ms per frame",
-        "",
-        "| arena | camera | size | render mean / p95 | render wall p50 | PNG | ArUco detect | recall | target |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in r["camera"]:
-        rc, rw = c["render_cpu"], c["render_wall"]
-        lines.append(
-            f"| {c['arena']} | {c['camera']} | {c['size']} | {rc['mean_ms']:.2f} / {rc['p95_ms']:.2f} | "
-            f"{rw['p50_ms']:.2f} | {c['png_cpu']['mean_ms']:.2f} | {c['aruco_cpu']['mean_ms']:.2f} | "
-            f"{c['recall']:.3f} ({c['markers_found']}/{c['markers_expected']}) | render <= 10 ms |"
-        )
-    s = r["sensors"]
-    lines += [
-        "",
-        "### Sensors (large arena, a sweeper among 10 avatars), CPU ms",
-        "",
-        "| reading | mean | p95 | target |",
-        "|---|---|---|---|",
-        f"| sonar scan (5 sonars x 9 rays) | {s['sonar_scan_cpu']['mean_ms']:.3f} | "
-        f"{s['sonar_scan_cpu']['p95_ms']:.3f} | <= 1 ms |",
-        f"| one sonar (scan / 5) | {s['sonar_per_sonar_cpu_ms']:.3f} | | <= 1 ms |",
-        f"| landmark detections of one camera | {s['landmarks_cpu']['mean_ms']:.3f} | "
-        f"{s['landmarks_cpu']['p95_ms']:.3f} | |",
-    ]
-    return "\n".join(lines)

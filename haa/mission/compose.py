@@ -1,4 +1,4 @@
-"""`haactl mission start|status|logs|stop --compose` (issue 15 §3): a mission on the running compose cluster.
+"""A mission on the running compose cluster (issue 15 §3), for `haactl mission start|status|logs|stop --compose`.
 
 The agents run in the host containers; haa-sim is the compose file's `sim` service (profile `sim`, same
 image): agents reach it as `sim:7100` in the cluster network with the token the containers mount
@@ -9,7 +9,7 @@ image): agents reach it as `sim:7100` in the cluster network with the token the 
   cannot read an arena file of this machine), seed and speed (HAA_SIM_ARENA/SEED/SPEED of compose.yaml) and
   remembers that it did, so that `stop` stops it again; the avatars then join through SimControl at their
   times (haa-sim's own `--schedule` is not used);
-* runs the mission conductor of haa.mission.runner (`python -m haactl.mission_compose conduct ...`: the
+* runs the mission conductor of haa.mission.runner (`python -m haa.mission.compose conduct ...`: the
   conductor with a ComposeBackend) in the background, with its state in `.haa/compose-<project>/mission/`
   under the current directory (state.json, transcript.jsonl, the run's results and PNGs in run/).
 
@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from haa.cluster.backend import ClusterError
+from haa.cluster.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend
 from haa.mission.runner import MissionRunError, read_json, start_attached, stop_attached, write_json
 from haa.mission.schema import Mission
-from haactl.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend
 
 SIM_SERVICE = "sim"
 SIM_PORT = "7100/tcp"
@@ -105,7 +105,7 @@ def start(backend: ComposeBackend, mission: Mission, speed: float | None) -> dic
     address, started = ensure_sim(backend, mission, sp)
     if started:
         write_json(md / SIM_STARTED, {"started": True, "address": address})
-    conductor = [sys.executable, "-m", "haactl.mission_compose", "conduct", "--compose-file", str(backend.file),
+    conductor = [sys.executable, "-m", "haa.mission.compose", "conduct", "--compose-file", str(backend.file),
                  "--project", backend.project]
     try:
         return start_attached(None, mission, speed, address, str(backend.token_file), backend=backend, md=md,
@@ -131,12 +131,12 @@ def stop(backend: ComposeBackend) -> dict[str, Any]:
 
 
 def conduct_main(argv: list[str]) -> int:
-    """`python -m haactl.mission_compose conduct --compose-file F --project P <runner conduct args>`."""
+    """`python -m haa.mission.compose conduct --compose-file F --project P <runner conduct args>`."""
     import argparse
 
     from haa.mission.runner import conduct
 
-    p = argparse.ArgumentParser(prog="python -m haactl.mission_compose conduct")
+    p = argparse.ArgumentParser(prog="python -m haa.mission.compose conduct")
     p.add_argument("--compose-file", type=Path, required=True)
     p.add_argument("--project", required=True)
     a, rest = p.parse_known_args(argv)
@@ -146,5 +146,5 @@ def conduct_main(argv: list[str]) -> int:
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "conduct":
         sys.exit(conduct_main(sys.argv[2:]))
-    print("usage: python -m haactl.mission_compose conduct --compose-file F --project P ...", file=sys.stderr)
+    print("usage: python -m haa.mission.compose conduct --compose-file F --project P ...", file=sys.stderr)
     sys.exit(2)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
-import os
 import statistics
 import tempfile
 import threading
@@ -34,7 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from haactl.local import LocalCluster
+from haa.cluster.hostprocs import LocalCluster
 
 
 def percentile(xs: Sequence[float], q: float) -> float:
@@ -197,24 +196,3 @@ def run_ap1(
                     f"d->d p50 {dd['p50']:.3f} ms msgs/tx {row['messages_per_tx']:.1f}"
                 )
         return rows
-
-
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    out = [
-        "| n | load | tx | propose→decide p50 / p90 / p99 (ms) | decide→deliver p50 / p90 / p99 (ms) | "
-        "msgs/tx | n²+4n−6 | tx/s |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        pd, dd = r["propose_to_decide_ms"], r["decide_to_deliver_ms"]
-        out.append(
-            f"| {r['participants']} | {r['mode']} | {r['transactions']} | "
-            f"{pd['p50']:.2f} / {pd['p90']:.2f} / {pd['p99']:.2f} | "
-            f"{dd['p50']:.3f} / {dd['p90']:.3f} / {dd['p99']:.3f} | "
-            f"{r['messages_per_tx']:.1f} | {r['formula_n2_4n_minus_6']} | {r['throughput_tx_per_s']:.0f} |"
-        )
-    return "\n".join(out)
-
-
-def machine() -> dict[str, Any]:
-    return {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}

@@ -1,6 +1,6 @@
 """Experiment AP-3 (thesis §7.2.3) on real processes: `haactl bench ap3 --real`.
 
-The simulated `bench ap3` (haactl.ap3) runs the real Allocator objects in the deterministic simulator with a
+The simulated `bench ap3` (haa.experiments.ap3) runs the real Allocator objects in the deterministic simulator with a
 delay model; this module measures the same two quantities — time to allocation consensus and messages sent
 — on real `haa-hostd` processes on loopback (h1-h3 core, `--rebalance-period 0`), for n = 2..10 hosts and
 5..60 agents:
@@ -50,9 +50,9 @@ from typing import Any
 import grpc
 import psutil
 
+from haa.cluster.hostprocs import wait_for
+from haa.experiments.ap4 import BenchCluster
 from haa.pb import control_pb2 as cpb
-from haactl.ap4 import BenchCluster
-from haactl.local import wait_for
 
 HOSTS = (2, 4, 6, 8, 10)
 AGENTS = (5, 10, 20, 30, 45, 60)
@@ -241,44 +241,6 @@ def run_ap3_real(hosts: Iterable[int] = HOSTS, agents: Iterable[int] = AGENTS, r
         for n in hosts:
             rows += run_group(n, agents, reps, base / f"n{n}", seed, log)
     return rows
-
-
-def _table(rows: list[dict[str, Any]], key: str, stat: str, fmt: str, title: str) -> str:
-    hosts = sorted({r["hosts"] for r in rows})
-    agents = sorted({r["agents"] for r in rows})
-    cell = {(r["hosts"], r["agents"]): r[key] for r in rows if key in r}
-    out = [f"### {title}\n", "| hosts \\ agents | " + " | ".join(str(a) for a in agents) + " |",
-           "|---" * (len(agents) + 1) + "|"]
-    for h in hosts:
-        vals = []
-        for a in agents:
-            v = cell.get((h, a))
-            if v is None:
-                vals.append("")
-            elif isinstance(v, dict):
-                vals.append(f"{v[stat]:{fmt}}" + (f" ± {v['sd']:{fmt}}" if stat == "mean" else "")
-                            if v["n"] else "n/a")
-            else:
-                vals.append(f"{v:{fmt}}")
-        out.append(f"| {h} | " + " | ".join(vals) + " |")
-    return "\n".join(out)
-
-
-def markdown_tables(rows: list[dict[str, Any]]) -> str:
-    return "\n\n".join([
-        _table(rows, "consensus_ms", "median", ".1f",
-               "Real hosts: OAC(start) proposal to the leader's consensus, ms (median)"),
-        _table(rows, "allocated_ms", "median", ".1f",
-               "Real hosts: OAC(start) proposal to OAC(finish) applied on every host, ms (median)"),
-        _table(rows, "allocated_ms", "max", ".1f", "Real hosts: the same, ms (max)"),
-        _table(rows, "bid_messages", "mean", ".0f", "Real hosts: bid-update messages per session (mean ± sd)"),
-        _table(rows, "oac_messages_session", "", "d", "OAC messages of the session's two OACs, 2 (n²+4n−6)"),
-        _table(rows, "oac_messages_window", "mean", ".0f",
-               "Real hosts: all OAC messages during the session and the transfers it started (mean ± sd)"),
-        _table(rows, "transfers", "mean", ".1f", "Real hosts: transfers the session started (mean ± sd)"),
-        _table(rows, "hostd_cpu_ms", "median", ".0f",
-               "Real hosts: CPU of all haa-hostd processes from Alloc(run) to the last commit, ms (median)"),
-    ])
 
 
 def existing(path: Path) -> dict[str, Any]:

@@ -21,7 +21,6 @@ The process start-up (Python imports, ~0.5-1 s on this machine) is not part of a
 from __future__ import annotations
 
 import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -29,9 +28,8 @@ from pathlib import Path
 from typing import Any
 
 import grpc
-import psutil
 
-from haactl.local import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberHost, free_port, wait_for
 
 CORE = 3
 
@@ -184,29 +182,3 @@ def run_ap2(root: Path, max_hosts: int = 10, reps: int = 3, log: Callable[[str],
     finally:
         run.close()
     return rows
-
-
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    def ms(d: dict[str, float], key: str = "median") -> str:
-        return f"{d[key] * 1e3:.0f}" if d else "-"
-
-    out = [
-        "| hosts | join (ms, median / max) | join, all members | leave | removal after 1st suspicion | "
-        "crash to removal |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        out.append(
-            f"| {r['hosts']} | {ms(r['join'])} / {ms(r['join'], 'max')} | {ms(r['join_all'])} / "
-            f"{ms(r['join_all'], 'max')} | {ms(r['leave'])} / {ms(r['leave'], 'max')} | {ms(r['remove'])} / "
-            f"{ms(r['remove'], 'max')} | {ms(r['crash_to_removal'])} / {ms(r['crash_to_removal'], 'max')} |"
-        )
-    return "\n".join(out)
-
-
-def machine() -> dict[str, Any]:
-    return {
-        "cpus": psutil.cpu_count(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-    }
