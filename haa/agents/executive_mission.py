@@ -23,15 +23,15 @@ docs/team.md) with the mission spec; it
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
 dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
 
-Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": RECOVERY =
-"backup" — the backup holds the children's ids and the mission state (running | complete | stopped, its
-times and reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned
-(a crash between start and spawn) is spawned on recovery. Recovered without a backup (a crash before the
-first one), it resumes from `mission/status` (start time, state, children), or begins the mission if there
-is none yet. The recovered instance writes `mission/status`
-again at once (a crash between deciding the end and writing it must not leave the runner waiting) and says
-in the transcript what it resumed with. Not covered: a crash after a child's spawn committed and before the
-backup that records it (a few milliseconds at mission start) spawns that child twice.
+Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": RECOVERY = "backup"
+— the backup holds the children's ids and the mission state (running | complete | stopped, its times and
+reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned (a crash
+between start and spawn) is spawned on recovery. Recovered without a backup (a crash before the first one), it
+resumes from `mission/status` (start time, state, children), or begins the mission if there is none yet. The
+recovered instance writes `mission/status` again at once (a crash between deciding the end and writing it must
+not leave the runner waiting) and says in the transcript what it resumed with. Not covered: a crash after a
+child's spawn committed and before the backup that records it (an OAC round at mission start) spawns that child
+twice (`haactl verify executive` counts it: "duplicate children", 1 in 6 to 8 schedules of its fault mix).
 """
 
 from __future__ import annotations

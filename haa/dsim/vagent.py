@@ -97,6 +97,7 @@ from haa.hostd.agentio import (
     StartAgent,
     Stopped,
 )
+from haa.hostd.agentnode import AgentNode
 from haa.hostd.membership import AppliedTx, WriteDone
 from haa.pb import agent_pb2 as pb
 
@@ -182,7 +183,7 @@ class RealAgentSim(AgentSim):
         self.rh = RealHistory()
         self.rrng = random.Random(sc.group.seed * 8191 + 11)  # child ids: the core draws no random numbers
         self.config = mission_config(sc.group.seed)
-        self._writes: dict[int, tuple[RealInstance, int, SimHost]] = {}
+        self._agent_writes: dict[int, tuple[RealInstance, int, SimHost]] = {}
         self._write_n = 0
 
     # ------------------------------------------------------------------ the scenario
@@ -194,7 +195,7 @@ class RealAgentSim(AgentSim):
             return
         h = self.arng.choice(hs)
         cls = ExecutiveMission
-        h.core.create_agent(h.local(self.cl.now), self.ah.ids[0], REAL_TYPE, self.config, cost=cls.COST,
+        _node(h).create_agent(h.local(self.cl.now), self.ah.ids[0], REAL_TYPE, self.config, cost=cls.COST,
                             transfer_penalty=cls.TRANSFER_PENALTY, recovery=cls.RECOVERY, req=("create", 0))
         self.cl._apply(h)
 
@@ -208,7 +209,7 @@ class RealAgentSim(AgentSim):
 
     def _on_effect(self, h: SimHost, e: Any) -> None:
         if type(e) is WriteDone and isinstance(e.req, tuple) and e.req[:1] == ("vagent",):
-            self._write_done(e)
+            self._agent_write_done(e)
             return
         if type(e) is AppliedTx:
             for a in self.inst.get((h.name, h.inc), {}).values():
@@ -345,9 +346,9 @@ class RealAgentSim(AgentSim):
         elif kind == "ddb_put":
             p = f.ddb_put
             value = json.loads(p.value) if p.type_name == "json" else bytes(p.value)
-            self._write(h, a, p.req_id, [ddbmod.put(p.key, p.type_name, value)], False)
+            self._agent_write(h, a, p.req_id, [ddbmod.put(p.key, p.type_name, value)], False)
         elif kind == "ddb_write":
-            self._write(h, a, f.ddb_write.req_id, list(f.ddb_write.ops), f.ddb_write.atomic)
+            self._agent_write(h, a, f.ddb_write.req_id, list(f.ddb_write.ops), f.ddb_write.atomic)
         elif kind == "ddb_watch":
             a.watches[f.ddb_watch.watch_id] = f.ddb_watch.prefix
             self._watch_replica(h, a)
@@ -358,8 +359,7 @@ class RealAgentSim(AgentSim):
         # hello, ready, heartbeat: nothing for the node (the driver only logs them)
 
     def _replica(self, h: SimHost) -> ddbmod.Ddb:
-        assert h.core is not None
-        return h.core.m.state.ddb  # type: ignore[no-any-return]
+        return _node(h).m.state.ddb
 
     def _spawn_child(self, h: SimHost, a: RealInstance, s: pb.AgentToHost.SpawnChild) -> None:
         """As `AgentDriver._spawn_child`: an unknown type or a config its model refuses is answered at once."""
@@ -393,7 +393,7 @@ class RealAgentSim(AgentSim):
         ans = pb.HostToAgent.Answer(req_id=s.req_id, ok=True, keys=keys, values=values, truncated=truncated)
         self._to_agent(h, a.agent, a.epoch, pb.HostToAgent(answer=ans))
 
-    def _write(self, h: SimHost, a: RealInstance, req_id: int, ops: list[Any], atomic: bool) -> None:
+    def _agent_write(self, h: SimHost, a: RealInstance, req_id: int, ops: list[Any], atomic: bool) -> None:
         """As `AgentDriver._ddb_write`: every op checked, the instance fenced by its epoch, then one batch
         through the group; the answer (one reason per op) once it is committed and applied here."""
         why = "" if ops else "empty batch"
@@ -402,8 +402,7 @@ class RealAgentSim(AgentSim):
             if bad:
                 why = f"op {i}: {bad}"
                 break
-        node = h.core
-        assert node is not None
+        node = _node(h)
         r = node.table.get(a.agent)
         if not why and (r is None or r.owner != h.name or r.epoch != a.epoch):
             where = f"epoch {r.epoch} on {r.owner or 'nobody'}" if r is not None else "nothing"
@@ -416,13 +415,13 @@ class RealAgentSim(AgentSim):
             if op.WhichOneof("op") == "put" and op.put.key == K_STATUS:
                 self.rh.statuses.append((self.cl.now, a.epoch, json.loads(op.put.value)))
         self._write_n += 1
-        self._writes[self._write_n] = (a, req_id, h)
+        self._agent_writes[self._write_n] = (a, req_id, h)
         payload = ddbmod.encode_batch(ops, origin=h.name, atomic=atomic)
         node.m.submit(h.local(self.cl.now), payload, ("vagent", self._write_n), kind="ddb")
         self.cl._apply(h)
 
-    def _write_done(self, e: WriteDone) -> None:
-        entry = self._writes.pop(e.req[1], None)
+    def _agent_write_done(self, e: WriteDone) -> None:
+        entry = self._agent_writes.pop(e.req[1], None)  # type: ignore[index]  # ("vagent", n): _agent_write
         if entry is None:
             return
         a, req_id, h = entry
@@ -461,6 +460,17 @@ class RealAgentSim(AgentSim):
         a.replica_watch = ddb.watch(on_event)
 
 
+def _node(h: SimHost) -> AgentNode:
+    """The agent node a live simulated host runs (`AgentSim` builds one per incarnation)."""
+    node: Any = h.core
+    assert isinstance(node, AgentNode)
+    return node
+
+
+def _member_nodes(sim: AgentSim) -> list[AgentNode]:
+    return [_node(h) for h in sim.cl.by_idx if h.state == ALIVE and h.core is not None and _node(h).m.is_member()]
+
+
 def _agent_msg(m: Any) -> pb.AgentMsg:
     return pb.AgentMsg(src=m.src, dst=m.dst, payload=m.payload, conv=m.conv, reply=m.reply, error=m.error)
 
@@ -477,8 +487,8 @@ def check_real(sim: RealAgentSim) -> list[GroupViolation]:
     def bad(prop: str, detail: str) -> None:
         out.append(GroupViolation(prop, detail, []))
 
-    members = [h for h in sim.cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
-    table = members[0].core.table if members else None
+    members = _member_nodes(sim)
+    table = members[0].table if members else None
     children = [r for r in table if r.parent == exec_id] if table is not None else []
     for v in check_agents(sim):
         # the table holds the executive and its children, not only the scenario's agents
@@ -500,10 +510,11 @@ def check_real(sim: RealAgentSim) -> list[GroupViolation]:
         if typ in recorded:
             bad("EX-Once", f"t={t:.3f} epoch {epoch} ({mode}) spawned a {typ} again, its state records "
                 f"{recorded[typ][:8]}")
-    ddb = members[0].core.m.state.ddb if members else None
+    ddb = members[0].m.state.ddb if members else None
     started = 0
-    if ddb is not None and ddb.get(K_EVENTS) is not None:
-        _first, items = ddbmod.decode_log(ddb.get(K_EVENTS).data)
+    events = ddb.get(K_EVENTS) if ddb is not None else None
+    if events is not None:
+        _first, items = ddbmod.decode_log(events.data)
         started = sum(1 for it in items if json.loads(it)["text"].startswith("Mission started"))
         if started > 1:
             bad("EX-Once", f"the transcript says 'Mission started' {started} times")
@@ -535,10 +546,10 @@ def check_real(sim: RealAgentSim) -> list[GroupViolation]:
 
 def duplicate_children(sim: RealAgentSim) -> int:
     """Children the agent table holds beyond one per type (the window EX-Once describes)."""
-    members = [h for h in sim.cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
+    members = _member_nodes(sim)
     if not members:
         return 0
-    kids = [r.type for r in members[0].core.table if r.parent == sim.ah.ids[0]]
+    kids = [r.type for r in members[0].table if r.parent == sim.ah.ids[0]]
     return len(kids) - len(set(kids))
 
 
