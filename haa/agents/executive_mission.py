@@ -31,7 +31,7 @@ resumes from `mission/status` (start time, state, children), or begins the missi
 recovered instance writes `mission/status` again at once (a crash between deciding the end and writing it must
 not leave the runner waiting) and says in the transcript what it resumed with. Not covered: a crash after a
 child's spawn committed and before the backup that records it (an OAC round at mission start) spawns that child
-twice (`haactl verify executive` counts it: "duplicate children", 1 in 6 to 8 schedules of its fault mix).
+twice (`haactl verify executive` counts it: "duplicate children", 6 in its first 60 schedules).
 """
 
 from __future__ import annotations
