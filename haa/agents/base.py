@@ -25,14 +25,15 @@ and Alg. 6 l. 20), `pack_backup() -> bytes` (defaults to `pack_state()`), `recov
 defaults to `unpack_state(backup)` when there is a backup), `on_resume(how)` (after a thaw or a recovery: the
 place to re-arm timers and watches) and `on_stop()`. State is bytes the agent packs itself: no pickle.
 
-Execution model. Everything the agent's code does runs on one asyncio loop, and the *handlers* run one at a
-time, in arrival order, from one mailbox: messages and requests (in delivery order — the host's transfer
-algorithm relies on it), timer callbacks, watch notifications, and the start/thaw/recover/freeze steps. A
-handler may await (a request, a DDB read): the mailbox waits for it — the next handler starts only when the
-current one returns. Replies to the agent's own requests and answers from its host do not go through the
-mailbox (they resolve the awaiting call directly), so awaiting them inside a handler cannot deadlock on the
-agent itself. The loop must not be blocked: the agent heartbeats its host from the same loop, and an agent
-that does not heartbeat for the host's hang timeout is killed as hung.
+Execution model. Everything the agent's code does runs on one scheduler (`haa.agents.sched`: the process's
+asyncio loop and wall clock by default; the simulator's virtual time in `haa.dsim.vagent`, issue 17), and the
+*handlers* run one at a time, in arrival order, from one mailbox: messages and requests (in delivery order —
+the host's transfer algorithm relies on it), timer callbacks, watch notifications, and the
+start/thaw/recover/freeze steps. A handler may await (a request, a DDB read): the mailbox waits for it — the
+next handler starts only when the current one returns. Replies to the agent's own requests and answers from
+its host do not go through the mailbox (they resolve the awaiting call directly), so awaiting them inside a
+handler cannot deadlock on the agent itself. The loop must not be blocked: the agent heartbeats its host from
+the same loop, and an agent that does not heartbeat for the host's hang timeout is killed as hung.
 
 Freeze (Alg. 5 ll. 17-20): timers stop at once (a queued tick is dropped), every message delivered before
 the freeze is handled, then `pack_state()`, the state goes to the host, and the process exits. Every message
@@ -73,6 +74,12 @@ from typing import Any, ClassVar
 import pydantic
 
 from haa.agents.channel import message_too_large
+
+# Clock, WALL_CLOCK and ScaledClock live with the schedulers; imported from here as before
+from haa.agents.sched import WALL_CLOCK as WALL_CLOCK
+from haa.agents.sched import AgentScheduler, AsyncioScheduler
+from haa.agents.sched import Clock as Clock
+from haa.agents.sched import ScaledClock as ScaledClock
 from haa.hostd import ddb as ddbmod
 from haa.pb import agent_pb2 as pb
 
@@ -133,41 +140,6 @@ def child_name(parent_name: str, n: int) -> str:
     return f"{parent_name}.{n}"
 
 
-class Clock:
-    """The time an agent sees (issue 15: at `--speed X` an agent's `now()`, timers and random numbers follow
-    the simulator's clock). `now()` is the agent's time in seconds; `wall_delay(d)` is how many wall seconds
-    `d` of the agent's seconds last (timers are armed on the event loop with it). The default is the wall
-    clock; a mission sets a `ScaledClock` (or, later, a virtual clock) with `AgentContext.set_clock`."""
-
-    def now(self) -> float:
-        return time.time()
-
-    def wall_delay(self, delay: float) -> float:
-        return delay
-
-
-#: the default clock of every agent
-WALL_CLOCK = Clock()
-
-
-class ScaledClock(Clock):
-    """Simulated time running `speed` times faster than the wall clock: `start` simulated seconds at the
-    wall-clock instant `wall_start` (time.monotonic(); default: now)."""
-
-    def __init__(self, speed: float, start: float = 0.0, wall_start: float | None = None) -> None:
-        if not (speed > 0 and speed < float("inf")):
-            raise ValueError(f"speed: must be a positive finite number, got {speed}")
-        self.speed = float(speed)
-        self.start = float(start)
-        self.wall_start = time.monotonic() if wall_start is None else float(wall_start)
-
-    def now(self) -> float:
-        return self.start + (time.monotonic() - self.wall_start) * self.speed
-
-    def wall_delay(self, delay: float) -> float:
-        return delay / self.speed
-
-
 def agent_random(seed: int | str, name: str, epoch: int) -> random.Random:
     """The seeded random source of one agent instance: the mission seed, the agent's name (stable across
     runs, unlike its UUID) and its epoch (a recovered instance draws new numbers)."""
@@ -187,12 +159,13 @@ class Timer:
         ctx._timer_ids += 1
         #: 1-based number of this timer among those the instance armed (AgentPlayback names timers by it)
         self.id = ctx._timer_ids
-        self._handle: asyncio.TimerHandle | None = None
-        loop = asyncio.get_running_loop()
-        # delays are in the agent's clock; the loop runs on wall time
+        self._handle: Any = None
+        sched = ctx.sched
+        # delays are in the agent's clock; the scheduler's timers run on its own time base (the loop's wall
+        # time, or the simulator's virtual time: haa.agents.sched)
         self._wall_period = None if period is None else ctx.clock.wall_delay(period)
-        self._due = loop.time() + ctx.clock.wall_delay(delay)
-        self._handle = loop.call_at(self._due, self._fire)
+        self._due = sched.time() + ctx.clock.wall_delay(delay)
+        self._handle = sched.call_at(self._due, self._fire)
 
     def cancel(self) -> None:
         self.cancelled = True
@@ -210,14 +183,14 @@ class Timer:
         if self.cancelled:
             return
         if self.period is not None:
-            loop = asyncio.get_running_loop()
+            sched = self._ctx.sched
             # fixed rate; ticks missed while the loop was busy are skipped, not bunched
             assert self._wall_period is not None
             self._due += self._wall_period
-            now = loop.time()
+            now = sched.time()
             if self._due <= now:
                 self._due = now + self._wall_period
-            self._handle = loop.call_at(self._due, self._fire)
+            self._handle = sched.call_at(self._due, self._fire)
         if not self._queued:  # a periodic timer whose last tick still waits in the mailbox is not queued twice
             self._queued = True
             self._ctx._put(("timer", self))
@@ -519,7 +492,11 @@ class AgentContext:
         drain: Callable[[], Awaitable[None]] | None = None,
         send_raw: Callable[[bytes], None] | None = None,
         tap: Any = None,
+        scheduler: AgentScheduler | None = None,
     ) -> None:
+        #: what the runtime waits on: timers, futures, the mailbox, the clock (haa.agents.sched); the default
+        #: is the process's asyncio loop and wall clock, the simulator injects a VirtualScheduler
+        self.sched: AgentScheduler = scheduler if scheduler is not None else AsyncioScheduler()
         #: AgentPlayback (module docstring): a recorder or a replay feed (haa.playback), or None
         self.tap = tap
         if tap is not None:
@@ -537,10 +514,10 @@ class AgentContext:
         self._drain = drain
         #: writes bytes to the channel unframed: fault injection only (the probe demo agent)
         self.send_raw = send_raw
-        self._mailbox: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+        self._mailbox = self.sched.queue()
         self._timers: set[Timer] = set()
-        self._convs: dict[int, asyncio.Future[pb.AgentMsg]] = {}
-        self._calls: dict[int, asyncio.Future[pb.HostToAgent.Answer]] = {}
+        self._convs: dict[int, Any] = {}  # conv -> future of the reply (the scheduler's futures)
+        self._calls: dict[int, Any] = {}  # req id -> future of the host's answer
         self._watches: dict[int, WatchCallback] = {}
         self._log_watches: dict[int, tuple[str, LogCallback]] = {}  # watch id -> (log key, callback)
         # conversation ids are unique across the instances of one agent: the epoch in the high 32 bits
@@ -554,15 +531,16 @@ class AgentContext:
         self.handler_errors = 0
         self._stop_requested = False
         #: the agent's clock (default the wall clock) and seeded random source; a mission sets both
-        self.clock: Clock = self._wrap_clock(WALL_CLOCK)
+        self.clock: Clock = self._wrap_clock(self.sched.clock_for(WALL_CLOCK))
         self.scan_truncated = False
         self.random: random.Random = self._wrap_random(agent_random(self.agent_id, self.name, self.epoch))
         self.agent: AgentBase = cls(self)
 
     def set_clock(self, clock: Clock, seed: int | str | None = None) -> None:
         """Use `clock` from now on (timers armed later follow it) and, with `seed`, a random source seeded by
-        the mission seed, the agent's name and epoch (reproducible across runs)."""
-        self.clock = self._wrap_clock(clock)
+        the mission seed, the agent's name and epoch (reproducible across runs). On a virtual scheduler the
+        clock stays the simulator's (haa.agents.sched: the simulated time is the mission time)."""
+        self.clock = self._wrap_clock(self.sched.clock_for(clock))
         if seed is not None:
             self.random = self._wrap_random(agent_random(seed, self.name, self.epoch))
 
@@ -570,7 +548,7 @@ class AgentContext:
         self._thread_calls += 1
         n = self._thread_calls
         try:
-            return await asyncio.get_running_loop().run_in_executor(executor, call)
+            return await self.sched.run_in_executor(executor, call)
         finally:
             if self.tap is not None:
                 self.tap.thread_done(n)
@@ -660,7 +638,7 @@ class AgentContext:
                 await self._drain()  # backpressure: wait while the host is not reading
             # Queue.get() and a handler that never awaits do not yield: without this a long backlog (a thaw
             # with many queued messages) would starve the heartbeat and the reader, and look like a hang
-            await asyncio.sleep(0)
+            await self.sched.sleep(0)
         self._cancel_timers()
         for fut in [*self._convs.values(), *self._calls.values()]:
             fut.cancel()
@@ -673,11 +651,10 @@ class AgentContext:
             self.tap.item(*item)
         return item
 
-    async def _await_answer(self, fut: asyncio.Future[pb.HostToAgent.Answer], req_id: int,
-                            timeout: float) -> pb.HostToAgent.Answer:
+    async def _await_answer(self, fut: Any, req_id: int, timeout: float) -> pb.HostToAgent.Answer:
         """The host's answer to call `req_id` (TimeoutError after `timeout`); the tap records either."""
         try:
-            ans = await asyncio.wait_for(fut, timeout)
+            ans = await self.sched.wait_for(fut, timeout)
         except TimeoutError:
             if self.tap is not None:
                 self.tap.answer(req_id, None)
@@ -686,10 +663,10 @@ class AgentContext:
             self.tap.answer(req_id, ans)
         return ans
 
-    async def _await_reply(self, fut: asyncio.Future[pb.AgentMsg], conv: int, timeout: float) -> pb.AgentMsg:
+    async def _await_reply(self, fut: Any, conv: int, timeout: float) -> pb.AgentMsg:
         """The reply to request `conv` (TimeoutError after `timeout`); the tap records either."""
         try:
-            env = await asyncio.wait_for(fut, timeout)
+            env = await self.sched.wait_for(fut, timeout)
         except TimeoutError:
             if self.tap is not None:
                 self.tap.reply(conv, None)
@@ -790,7 +767,7 @@ class AgentContext:
                                                    payload=b"hanging")))
         if self._drain is not None:
             await self._drain()
-        await asyncio.sleep(0)
+        await self.sched.sleep(0)
         time.sleep(seconds)  # deliberately synchronous: the loop (heartbeat included) stops, as in a stuck handler
         raise AgentFatal(f"chaos hang: blocked its event loop for {seconds:g} s")
 
@@ -853,7 +830,7 @@ class AgentContext:
     async def request(self, to: str, payload: bytes, timeout: float) -> bytes:
         conv = self._next_conv
         self._next_conv += 1
-        fut: asyncio.Future[pb.AgentMsg] = asyncio.get_running_loop().create_future()
+        fut = self.sched.create_future()
         self._convs[conv] = fut
         try:
             self.send(to, payload, conv=conv)
@@ -868,7 +845,7 @@ class AgentContext:
         return bytes(env.payload)
 
     async def _call(self, frame: pb.AgentToHost, req_id: int, timeout: float, what: str) -> pb.HostToAgent.Answer:
-        fut: asyncio.Future[pb.HostToAgent.Answer] = asyncio.get_running_loop().create_future()
+        fut = self.sched.create_future()
         self._calls[req_id] = fut
         try:
             self._emit(frame)

@@ -23,13 +23,15 @@ docs/team.md) with the mission spec; it
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
 dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
 
-Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": RECOVERY =
-"backup" — the backup holds the children's ids and the mission state (running | complete | stopped, its
-times and reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned
-(a crash between start and spawn) is spawned on recovery. The recovered instance writes `mission/status`
-again at once (a crash between deciding the end and writing it must not leave the runner waiting) and says
-in the transcript what it resumed with. Not covered: a crash after a child's spawn committed and before the
-backup that records it (a few milliseconds at mission start) spawns that child twice.
+Recovery: "Restore configuration, confirm that appropriate Supervisor agents are active": RECOVERY = "backup"
+— the backup holds the children's ids and the mission state (running | complete | stopped, its times and
+reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned (a crash
+between start and spawn) is spawned on recovery. Recovered without a backup (a crash before the first one), it
+resumes from `mission/status` (start time, state, children), or begins the mission if there is none yet. The
+recovered instance writes `mission/status` again at once (a crash between deciding the end and writing it must
+not leave the runner waiting) and says in the transcript what it resumed with. Not covered: a crash after a
+child's spawn committed and before the backup that records it (an OAC round at mission start) spawns that child
+twice (`haactl verify executive` counts it: "duplicate children", 6 in its first 60 schedules).
 """
 
 from __future__ import annotations
@@ -118,6 +120,10 @@ class ExecutiveMission(team.TeamAgent):
             self.unpack_state(backup)
 
     async def begin(self, how: str) -> None:
+        if how == "recover" and self.started_t is None:
+            # no backup (a crash before the first one, right after the start): the mission's state is in the
+            # DDB if the first instance wrote it; if it did not, the mission has not begun and begins now
+            how = await self._resume_from_status()
         if how == "start":
             self.started_t = self.now()
             await self.ddb_write([team.op_put_json(team.K_PARAMS, {
@@ -137,6 +143,22 @@ class ExecutiveMission(team.TeamAgent):
             self.watch(team.K_SLAM_LANDMARKS, self._on_landmarks)
             self.watch("congregate/status", self._on_congregate)
         self.every(self.cfg.check_s, self._check)
+
+    async def _resume_from_status(self) -> str:
+        """The mission state of `mission/status` (its start time, state, children): "recover" if there was
+        one, "start" if the mission had not begun (found by running this agent in the simulator, haa.dsim.vagent:
+        a recovered instance without a backup had no start time, so its time limit never ended the mission, and
+        one whose first instance died before writing anything never said "Mission started")."""
+        st = await team.get_json(self, team.K_STATUS)
+        if not isinstance(st, dict) or st.get("started_t") is None:
+            return "start"
+        self.started_t = float(st["started_t"])
+        self.state = str(st.get("state", "running"))
+        self.finished_t = st.get("finished_t")
+        self.explored = float(st.get("explored", 0.0))
+        self.reason = str(st.get("reason", ""))
+        self.children = {str(k): str(v) for k, v in dict(st.get("children") or {}).items()}
+        return "recover"
 
     async def _spawn_children(self) -> None:
         f = self.facts

@@ -32,6 +32,7 @@ from typing import Any, TypeVar
 from haa.agents import registry
 from haa.agents.base import AgentContext, AgentFatal
 from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError
+from haa.agents.sched import AsyncioScheduler
 from haa.pb import agent_pb2 as pb
 from haa.playback import recorder
 
@@ -127,7 +128,9 @@ async def _serve(chan: Channel[pb.HostToAgent]) -> int:
     # AgentPlayback (docs/playback.md): with HAA_RECORD_DIR set every input and output is recorded here
     tap = recorder.from_env(init)
     try:
-        ctx = AgentContext(init, cls, chan.send, drain=chan.drain, send_raw=chan.send_raw, tap=tap)
+        # the process's asyncio loop and wall clock (haa.agents.sched; the simulator injects a VirtualScheduler)
+        ctx = AgentContext(init, cls, chan.send, drain=chan.drain, send_raw=chan.send_raw, tap=tap,
+                           scheduler=AsyncioScheduler())
     except Exception as e:
         if tap is not None:
             tap.close()

@@ -47,8 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import heapq
-import itertools
 import math
 import random
 import time
@@ -58,6 +56,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from haa.dsim.network import DelayModel
+from haa.dsim.scheduler import EventHeap
 from haa.hostd.allocation import (
     AgentSpec,
     Allocated,
@@ -325,7 +324,7 @@ class _Node:
         self.alive = True
         self.member = True
         self.paused_until = -math.inf
-        self.deferred: list[tuple[float, int, str, tuple[Any, ...]]] = []
+        self.deferred: list[tuple[float, str, tuple[Any, ...]]] = []  # (time, kind, args) while paused
         self.inbox: list[tuple[str, Any]] = []
         self.process_at: float | None = None
         self.next_entry = first_entry
@@ -358,8 +357,9 @@ class AllocSim:
         self.cpu_time = 0.0
         self.oac_delay = oac_delay
         self.trace: list[str] | None = [] if trace else None
-        self._q: list[tuple[float, int, str, tuple[Any, ...]]] = []
-        self._seq = itertools.count()
+        #: the pending events (haa.dsim.scheduler): items (kind, args); args[0] names the node, except for
+        #: the global kinds fault, detect, append and oac
+        self._q: EventHeap[tuple[str, tuple[Any, ...]]] = EventHeap()
         self.log: list[Entry] = []
         self.world = World(tuple(sc.names), sc.agents, dict(sc.hosts))
         self.ledger = Allocator("~ledger")  # the reference: validity of starts/finishes in the total order
@@ -391,7 +391,7 @@ class AllocSim:
         return _Node(name, Allocator(name, committed), pol, first_entry, self.world)
 
     def _push(self, at: float, kind: str, args: tuple[Any, ...]) -> None:
-        heapq.heappush(self._q, (at, next(self._seq), kind, args))
+        self._q.push(at, (kind, args))
 
     def _t(self, line: str, hashed: bool = True) -> None:
         if hashed:
@@ -404,11 +404,11 @@ class AllocSim:
 
     def run(self, until: float | None = None) -> None:
         horizon = until if until is not None else self.horizon()
-        while self._q:
-            at, seq, kind, args = self._q[0]
-            if at > horizon:
+        q = self._q
+        while q:
+            if q.next_time() > horizon:
                 break
-            heapq.heappop(self._q)
+            at, _seq, (kind, args) = q.pop()
             self.now = at
             self.events += 1
             if kind in ("fault", "detect", "append", "oac"):
@@ -418,7 +418,7 @@ class AllocSim:
             if not node.alive or not node.member:
                 continue
             if node.paused_until > at and kind != "resume":
-                node.deferred.append((at, seq, kind, args))
+                node.deferred.append((at, kind, args))
                 continue
             if self.cpu and node.busy_until > at and kind != "resume":
                 self._push(node.busy_until, kind, args)
@@ -678,9 +678,8 @@ class AllocSim:
         if node.paused_until > self.now:
             return
         self._t(f"{node.name}# resumes")
-        for at, _seq, kind, args in node.deferred:
+        for _at, kind, args in node.deferred:
             self._push(self.now, kind, args)
-            del at
         node.deferred = []
 
     # ------------------------------------------------------------------ faults and membership

@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import hashlib
-import heapq
 import random
 from collections import Counter
 from collections.abc import Callable, Hashable
@@ -23,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from haa.dsim.network import DelayModel
+from haa.dsim.scheduler import EventHeap
 from haa.hostd.core import FD_EXTERNAL, CoreConfig, HostCore
 from haa.hostd.effects import (
     CancelTimer,
@@ -155,8 +155,9 @@ class SimCluster:
             self.hosts[n] = SimHost(n, i, off, dr)
         self.by_idx = [self.hosts[n] for n in self.names]
         self.no_votes = no_votes or set()
-        self.heap: list[tuple[float, int, int, int, Any]] = []
-        self.seq = 0
+        #: the pending events (haa.dsim.scheduler): items (kind, host index, data); EV_CALL items carry a
+        #: callable and index -1
+        self.heap: EventHeap[tuple[int, int, Any]] = EventHeap()
         self.now = 0.0
         self.chan_last: dict[tuple[int, int], float] = {}
         self.spikes: list[tuple[int, int, DelayModel, float, float]] = []  # (src|-1, dst|-1, extra, t0, t1)
@@ -212,8 +213,7 @@ class SimCluster:
     # ------------------------------------------------------------------ scheduling
 
     def _push(self, t: float, kind: int, idx: int, data: Any) -> None:
-        self.seq += 1
-        heapq.heappush(self.heap, (t, self.seq, kind, idx, data))
+        self.heap.push(t, (kind, idx, data))
 
     def at(self, t: float, fn: Callable[[], None]) -> None:
         self._push(max(t, self.now), EV_CALL, -1, fn)
@@ -332,10 +332,12 @@ class SimCluster:
 
     def run(self, until: float) -> None:
         heap = self.heap
+        entries = heap.entries
+        pop = heap.pop
         hosts = self.by_idx
         upd = self._hash.update
-        while heap and heap[0][0] <= until:
-            t, _seq, kind, idx, data = heapq.heappop(heap)
+        while entries and entries[0][0] <= until:
+            t, _seq, (kind, idx, data) = pop()
             self.now = t
             self.events += 1
             if kind == EV_CALL:
@@ -399,10 +401,10 @@ class SimCluster:
                     sends_allowed -= 1
                 self._transmit(h, e)
             elif t is SetTimer:
-                self.seq += 1
-                h.timers[e.key] = self.seq
+                gen = self.heap.new_id()  # the timer's generation (haa.dsim.scheduler)
+                h.timers[e.key] = gen
                 at = h.virtual(e.at)
-                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, self.seq, e.at))
+                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, gen, e.at))
             elif t is CancelTimer:
                 h.timers.pop(e.key, None)
             elif t is Deliver:

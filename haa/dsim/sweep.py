@@ -34,7 +34,9 @@ from haa.dsim.checks import CheckResult, Violation, check_oac, check_ufd
 GROUP_ALGORITHMS = ("membership", "ddb")
 #: the agent layer (haa.dsim.agents): transfers under pauses and false suspicions; recoveries under crashes
 AGENT_ALGORITHMS = ("transfer", "recovery")
-ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation", *AGENT_ALGORITHMS, "join")
+#: `executive`: a real control-system agent (ExecutiveMission) on virtual time under the recovery mix of faults
+#: (haa.dsim.vagent: the agent layer's properties and the executive's EX-*)
+ALGORITHMS = ("ufd", "oac", *GROUP_ALGORITHMS, "allocation", *AGENT_ALGORITHMS, "join", "executive")
 #: per-seed figures of the group verifiers that the summary adds up
 GROUP_TOTALS = ("faults_injected", "faults_dropped", "writes_acked", "views")
 
@@ -82,6 +84,10 @@ def run_seed(
         from haa.dsim import joins as join_sim
 
         return SeedResult(**join_sim.seed_result(seed, hosts))
+    if algorithm == "executive":
+        from haa.dsim import vagent
+
+        return SeedResult(**vagent.seed_result(seed, hosts))
     if algorithm in GROUP_ALGORITHMS:
         return run_group_seed(algorithm, seed, hosts)
     sc = sched.draw(seed, hosts, algorithm)
@@ -145,6 +151,10 @@ def full_trace(algorithm: str, seed: int, hosts: int) -> list[str]:
         from haa.dsim import joins as join_sim
 
         return join_sim.full_trace(seed, hosts)
+    if algorithm == "executive":
+        from haa.dsim import vagent
+
+        return vagent.full_trace(seed, hosts)
     if algorithm in GROUP_ALGORITHMS:
         sc = group.draw_group(seed, hosts, algorithm)
         sim = group.GroupSim(sc, trace=True)
@@ -195,6 +205,10 @@ def trace_excerpt(algorithm: str, seed: int, hosts: int, result: SeedResult, lin
         from haa.dsim import joins as join_sim
 
         return join_sim.trace_excerpt(seed, hosts, result.hosts, lines)
+    if algorithm == "executive":
+        from haa.dsim import vagent
+
+        return vagent.trace_excerpt(seed, hosts, result.hosts, lines)
     if algorithm in GROUP_ALGORITHMS:
         return _group_excerpt(algorithm, seed, hosts, result, lines)
     sc = sched.draw(seed, hosts, algorithm)
@@ -283,6 +297,8 @@ def sweep(
     totals: dict[str, float] = dict.fromkeys(GROUP_TOTALS, 0.0) if algorithm in GROUP_ALGORITHMS else {}
     if algorithm in AGENT_ALGORITHMS:
         totals = dict.fromkeys(("transfers", "recoveries", "processed", "faults_dropped"), 0.0)
+    if algorithm == "executive":
+        totals = dict.fromkeys(("transfers", "recoveries", "duplicate_children", "faults_dropped"), 0.0)
     if algorithm == "join":
         totals = dict.fromkeys(("joins", "transfers_after_joins", "transfers_to_joiners", "agents_moved_twice"), 0.0)
     again = f" --mutate {mutate}" if mutate else ""

@@ -18,12 +18,12 @@ travel with the same delays. Clocks have a random constant offset.
 
 from __future__ import annotations
 
-import heapq
 import math
 import random
 from dataclasses import asdict, dataclass
 
 from haa.dsim.network import DelayModel
+from haa.dsim.scheduler import EventHeap
 from haa.hostd.messages import Heartbeat
 from haa.hostd.qos import QosTargets
 from haa.hostd.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
@@ -80,14 +80,11 @@ def _run_pair(
     offset = rng.uniform(-1000.0, 1000.0)  # sender clock = virtual + offset
     sender = HeartbeatSender(cfg.initial_period, offset)
     observer = HeartbeatObserver(cfg, 0.0)
-    events: list[tuple[float, int, int, object]] = []  # (virtual time, seq, kind, data)
-    seq = 0
+    events: EventHeap[tuple[int, object]] = EventHeap()  # items (kind, data) (haa.dsim.scheduler)
     ARRIVE, SETP, SEND = 0, 1, 2
 
     def push(t: float, kind: int, data: object) -> None:
-        nonlocal seq
-        seq += 1
-        heapq.heappush(events, (t, seq, kind, data))
+        events.push(t, (kind, data))
 
     push(0.0, SEND, None)
     suspected = True
@@ -111,7 +108,7 @@ def _run_pair(
         since = t
 
     while True:
-        t, _s, kind, data = events[0] if events else (math.inf, 0, -1, None)
+        t = events.next_time()
         fresh = observer.freshness
         if observer.trusted and fresh <= t and fresh <= end:  # l. 17-18 fires before this event
             set_state(fresh, True)
@@ -121,7 +118,7 @@ def _run_pair(
             continue
         if t > end or not events:
             break
-        heapq.heappop(events)
+        _t, _s, (kind, data) = events.pop()
         if kind == SEND:
             if crash_at is not None and t >= crash_at:
                 continue
