@@ -24,7 +24,7 @@ console = Console(stderr=True)
 
 
 def verify(
-    algorithm: str = typer.Argument(..., help="ufd, oac, membership, ddb, allocation, transfer, recovery or join"),
+    algorithm: str = typer.Argument(..., help=", ".join(sweep.ALGORITHMS)),
     schedules: int = typer.Option(2000, "--schedules", "-n", min=1, help="number of seeded schedules"),
     seed: int = typer.Option(0, "--seed", "-s", min=0, help="first seed; schedules use seed .. seed+N-1"),
     hosts: int = typer.Option(7, "--hosts", min=2, max=64, help="hosts per schedule"),
