@@ -1,8 +1,11 @@
-"""The host-to-host transport (haa.hostd.transport), in-process on loopback.
+"""The host-to-host transport (haa.hostd.transport), in-process on loopback, over both carriers of the links
+(a grpc.aio stream, or a framed TCP connection: haa.hostd.tcplink) — the tests of link semantics run once per
+carrier (`carrier` fixture).
 
 FIFO and no loss across broken connections, receiver and sender reincarnations, a down peer not stalling the
 others, and the receiver's handling of hostile input (bad token, unknown sender, garbage, invalid envelopes,
-duplicates).
+duplicates); the TCP carrier's own hostile input (bytes that are not frames, oversized lengths, a peer that
+stops mid-frame) and a cluster whose hosts use different carriers.
 """
 
 from __future__ import annotations
@@ -28,8 +31,14 @@ TOKEN = "test-token"
 FAST = {"min_backoff": 0.01, "max_backoff": 0.1, "handshake_timeout": 1.0}
 
 
+@pytest.fixture(params=["grpc", "tcp"])
+def carrier(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
+
+
 class Node:
-    """A Transport with its own grpc.aio server, recording what it receives."""
+    """A Transport with its own grpc.aio server (and, on the TCP carrier, its TCP link server: a new port at every
+    `serve`, which the senders learn from the gRPC server), recording what it receives."""
 
     def __init__(self, name: str, inc: int, port: int, peers: dict[str, int], **kw: Any) -> None:
         self.name = name
@@ -60,9 +69,12 @@ class Node:
         assert server.add_insecure_port(f"127.0.0.1:{self.port}") == self.port
         await server.start()
         self.server = server
+        if self.t.carrier == "tcp":
+            await self.t.open_tcp("127.0.0.1", 0)
 
     async def stop_server(self) -> None:
         assert self.server is not None
+        self.t.close_tcp()
         await self.server.stop(0)
         self.server = None
 
@@ -83,14 +95,14 @@ def hb(i: int) -> Heartbeat:
 # ------------------------------------------------------------------------------------------------ (f)
 
 
-def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
+def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
     """The receiver's gRPC server is closed and reopened twice while the sender keeps queueing messages:
     every message arrives exactly once and in order."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"), what="first connection")
@@ -136,11 +148,11 @@ def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
     run(main)
 
 
-def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
+def test_new_receiver_incarnation_discards_messages_for_the_old_one(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"))
@@ -154,7 +166,7 @@ def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
             a.t.send("b", 22, hb(i))  # addressed to the dead incarnation
         for i in range(16, 19):
             a.t.send("b", 0, hb(i))  # addressed to "whoever b is"
-        b2 = Node("b", 33, pb_, {"a": pa})
+        b2 = Node("b", 33, pb_, {"a": pa}, carrier=carrier)
         await b2.serve()
         await until(lambda: a.t.connected("b"))
         await until(lambda: len(b2.got) == 3)
@@ -171,11 +183,11 @@ def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
     run(main)
 
 
-def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -> None:
+def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"))
@@ -193,7 +205,7 @@ def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -
         with pytest.raises(ValueError):
             a.t.set_incarnation(12)
         # a leftover process of incarnation 11 is refused
-        old = Node("a", 11, free_port(), {"b": pb_})
+        old = Node("a", 11, free_port(), {"b": pb_}, carrier=carrier)
         old.t.start()
         await until(lambda: b.t.counters["rejected_stale_incarnation"] >= 1)
         assert not old.t.connected("b")
@@ -204,11 +216,11 @@ def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -
     run(main)
 
 
-def test_a_down_peer_does_not_stall_the_others() -> None:
+def test_a_down_peer_does_not_stall_the_others(carrier: str) -> None:
     async def main() -> None:
         pa, pb_, pc = free_port(), free_port(), free_port()  # nothing listens on pc
-        a = Node("a", 11, pa, {"b": pb_, "c": pc})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_, "c": pc}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         t0 = time.monotonic()
@@ -226,15 +238,15 @@ def test_a_down_peer_does_not_stall_the_others() -> None:
     run(main)
 
 
-def test_lazy_messages_wait_for_other_traffic_and_keep_their_order() -> None:
+def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str) -> None:
     """A lazy message is written once the host is quiet (no frame received for `lazy_quiet`), or with the next
     ordinary message on its link, in order; while frames keep arriving it waits, but at most `lazy_delay`
     (docs/transport.md, "Lazy messages")."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, lazy_delay=0.6, lazy_quiet=0.15)
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier, lazy_delay=0.6, lazy_quiet=0.15)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         await a.serve()
         a.t.start()
@@ -283,11 +295,11 @@ def test_lazy_messages_wait_for_other_traffic_and_keep_their_order() -> None:
     run(main)
 
 
-def test_before_first_contact_only_recent_unaddressed_messages_are_kept() -> None:
+def test_before_first_contact_only_recent_unaddressed_messages_are_kept(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, precontact_limit=16)
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier, precontact_limit=16)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         a.t.start()
         for i in range(1, 101):
             a.t.send("b", 0, hb(i))  # heartbeats to a peer that has not started yet
@@ -437,7 +449,7 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() 
     run(main)
 
 
-def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
+def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) -> None:
     """Regression: a link restarted (a kick, a reincarnation) while its session waited for the handshake
     could keep running next to its replacement (asyncio.wait_for in 3.11 swallows a cancellation that
     coincides with the read completing); both sessions then wrote from one queue on two streams and the
@@ -446,8 +458,8 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"), what="first connection")
@@ -474,16 +486,16 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
     run(main)
 
 
-def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted() -> None:
+def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(carrier: str) -> None:
     """Heartbeats go as UDP datagrams to the port the receiver announced in the handshake (docs/transport.md,
     "Heartbeats as datagrams"); forged, malformed, unknown-incarnation and non-heartbeat datagrams are counted
     and dropped; a receiver without a heartbeat socket gets them on the stream."""
 
     async def main() -> None:
         pa, pb_, pc = free_port(), free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_, "c": pc})
-        b = Node("b", 22, pb_, {"a": pa})
-        c = Node("c", 33, pc, {"a": pa}, datagram_heartbeats=False)
+        a = Node("a", 11, pa, {"b": pb_, "c": pc}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
+        c = Node("c", 33, pc, {"a": pa}, carrier=carrier, datagram_heartbeats=False)
         for n in (a, b, c):
             await n.serve()
             await n.t.open_heartbeats("127.0.0.1", n.port)
@@ -538,22 +550,22 @@ def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(
     run(main)
 
 
-def test_a_newer_incarnation_ends_the_streams_of_the_older_one() -> None:
+def test_a_newer_incarnation_ends_the_streams_of_the_older_one(carrier: str) -> None:
     """A superseded process that only sends heartbeats (datagrams) still learns of it: when the newer
     incarnation's stream is accepted, the older one's stream ends, and its reconnection is refused as stale."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        b = Node("b", 22, pb_, {"a": pa})
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
-        old = Node("a", 11, pa, {"b": pb_})
+        old = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
         superseded: list[tuple[str, int]] = []
         old.t.on_superseded = lambda p, i: superseded.append((p, i))
         old.t.start()
         await until(lambda: old.t.connected("b"), what="old a connected")
         old.t.send("b", 22, hb(1))
         await until(lambda: len(b.seqs()) == 1, what="a message of the old incarnation")
-        new = Node("a", 12, pa, {"b": pb_})
+        new = Node("a", 12, pa, {"b": pb_}, carrier=carrier)
         new.t.start()
         await until(lambda: new.t.connected("b"), timeout=10, what="new a accepted")
         new.t.send("b", 22, hb(1))  # more than a claim: it speaks (docs/transport.md, incarnation claims)
