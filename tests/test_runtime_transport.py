@@ -11,9 +11,13 @@ stops mid-frame) and a cluster whose hosts use different carriers.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import math
+import ssl
 import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -21,7 +25,7 @@ import pytest
 from grpc import aio
 from waits import until
 
-from haa.hostd import wire
+from haa.hostd import tcplink, wire
 from haa.hostd.messages import Excluded, Heartbeat, Message
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
@@ -335,6 +339,76 @@ class RawLink:
         await self.channel.close()
 
 
+class TcpRefused(Exception):
+    def __init__(self, code: str, newer: int | None) -> None:
+        super().__init__(code)
+        self.code = code
+        self.newer = newer
+
+
+class RawTcp:
+    """A hand-driven TCP host link (haa.hostd.tcplink's framing): the hello, then frames; replies one by one.
+    `call` is itself, so that tests drive it like `RawLink` (`call.write`, `call.read` returning `aio.EOF`)."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.call = self
+
+    @classmethod
+    async def open(cls, port: int, md: tuple[tuple[str, str], ...] | None, raw: bytes = b"") -> RawTcp:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        conn = cls(reader, writer)
+        if md is not None:
+            conn.send(tcplink.HELLO, tcplink.HELLO_MAGIC + json.dumps(dict(md)).encode())
+        if raw:
+            writer.write(raw)
+        return conn
+
+    def send(self, kind: int, payload: bytes) -> None:
+        self.writer.write(tcplink.HEADER.pack(kind, len(payload)) + payload)
+
+    async def write(self, data: bytes) -> None:
+        self.send(tcplink.FRAME, data)
+        await self.writer.drain()
+
+    async def read(self) -> Any:
+        try:
+            kind, n = tcplink.HEADER.unpack(await asyncio.wait_for(self.reader.readexactly(5), 5))
+            payload = await asyncio.wait_for(self.reader.readexactly(n), 5)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return aio.EOF
+        if kind == tcplink.REFUSE:
+            r = json.loads(payload)
+            raise TcpRefused(r["code"], r["newer"])
+        assert kind == tcplink.REPLY
+        return payload
+
+    async def reply(self) -> pb.LinkReply:
+        data = await self.read()
+        assert data is not aio.EOF
+        return pb.LinkReply.FromString(data)
+
+    async def closed(self) -> bool:
+        """The receiver closed the connection (everything it sent before is read and dropped)."""
+        try:
+            while await asyncio.wait_for(self.reader.read(1 << 16), 5):
+                pass
+        except ConnectionError:
+            pass
+        return True
+
+    async def close(self) -> None:
+        self.writer.close()
+
+
+async def raw_link(node: Node, metadata: tuple[tuple[str, str], ...]) -> RawLink | RawTcp:
+    """A hand-driven link to `node` over its carrier."""
+    if node.t.carrier == "tcp":
+        return await RawTcp.open(node.t.tcp_port, metadata)
+    return RawLink(node.port, metadata)
+
+
 def md(token: str = TOKEN, sender: str = "a", inc: str = "11") -> tuple[tuple[str, str], ...]:
     return ((MD_TOKEN, token), (MD_SENDER, sender), (MD_INC, inc))
 
@@ -354,19 +428,22 @@ def frame(first: int, msgs: list[Message], sender: str = "a", inc: int = 11) -> 
     ],
     ids=["wrong-token", "no-token", "unknown-sender", "bad-inc", "zero-inc"],
 )
-def test_refused_calls(metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str) -> None:
+def test_refused_calls(
+    metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str, carrier: str
+) -> None:
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port()})
+        b = Node("b", 22, pb_, {"a": free_port()}, carrier=carrier)
         await b.serve()
-        raw = RawLink(pb_, metadata)
-        with pytest.raises(aio.AioRpcError) as exc:
+        raw = await raw_link(b, metadata)
+        with pytest.raises((aio.AioRpcError, TcpRefused)) as exc:
             await raw.reply()
-        assert exc.value.code() == code
+        got = exc.value.code if isinstance(exc.value, TcpRefused) else exc.value.code().name
+        assert got == code.name
         assert b.t.counters[counter] == 1
         await raw.close()
         # the server still serves a correct peer
-        ok = RawLink(pb_, md())
+        ok = await raw_link(b, md())
         assert (await ok.reply()).receiver == "b"
         await ok.close()
         await b.close()
@@ -374,12 +451,12 @@ def test_refused_calls(metadata: tuple[tuple[str, str], ...], code: grpc.StatusC
     run(main)
 
 
-def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives() -> None:
+def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives(carrier: str) -> None:
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port(), "c": free_port()}, ack_interval=0.001)
+        b = Node("b", 22, pb_, {"a": free_port(), "c": free_port()}, ack_interval=0.001, carrier=carrier)
         await b.serve()
-        raw = RawLink(pb_, md())
+        raw = await raw_link(b, md())
         hello = await raw.reply()
         assert (hello.receiver, hello.receiver_incarnation, hello.acked_seq) == ("b", 22, 0)
         c = b.t.counters
@@ -412,21 +489,21 @@ def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream
     run(main)
 
 
-def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() -> None:
+def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered(carrier: str) -> None:
     """The receiver never skips a link sequence number: a frame that does ends the stream, and the next
     stream's handshake tells the sender where to resend from. Two streams of one sender incarnation open
     at once (a reconnect while the old stream still delivers) interleave without loss or duplicates."""
 
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port()}, ack_interval=0.001)
+        b = Node("b", 22, pb_, {"a": free_port()}, ack_interval=0.001, carrier=carrier)
         await b.serve()
         c = b.t.counters
-        old = RawLink(pb_, md())
+        old = await raw_link(b, md())
         await old.reply()
         await old.call.write(frame(1, [hb(1), hb(2)]))
         await until(lambda: b.seqs() == [1, 2])
-        new = RawLink(pb_, md())
+        new = await raw_link(b, md())
         hello = await new.reply()
         assert hello.acked_seq == 2
         await new.call.write(frame(3, [hb(3), hb(4)]))
@@ -438,7 +515,7 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() 
         while (await asyncio.wait_for(new.call.read(), 5)) is not aio.EOF:
             pass  # the receiver ended the stream
         assert b.seqs() == [1, 2, 3, 4]
-        again = RawLink(pb_, md())
+        again = await raw_link(b, md())
         assert (await again.reply()).acked_seq == 4  # resend from 5
         await again.call.write(frame(5, [hb(5), hb(6), hb(7)]))
         await until(lambda: b.seqs() == [1, 2, 3, 4, 5, 6, 7])
@@ -575,5 +652,189 @@ def test_a_newer_incarnation_ends_the_streams_of_the_older_one(carrier: str) -> 
         assert superseded[0] == ("b", 12)
         for x in (old, new, b):
             await x.close()
+
+    run(main)
+
+
+# ------------------------------------------------------------------------------------- the TCP carrier only
+
+
+def test_tcp_hostile_bytes_cost_one_counter_and_the_connection() -> None:
+    """Bytes that are not a hello, a length above the limit (before the handshake: `MAX_HELLO`; after it:
+    `MAX_FRAME`), a peer that stops mid-frame or never says hello, a second hello, a malformed hello: each is
+    counted and its connection closed, no more than one unfinished frame is ever buffered, and the receiver
+    keeps serving a correct peer (haa.hostd.tcplink, "Hostile or broken input")."""
+
+    async def main() -> None:
+        b = Node("b", 22, free_port(), {"a": free_port()}, carrier="tcp", stall_timeout=0.3)
+        await b.serve()
+        c = b.t.counters
+        port = b.t.tcp_port
+        hdr = tcplink.HEADER.pack
+        cases: list[tuple[str, Callable[[], Awaitable[RawTcp]], str]] = [
+            ("an HTTP request", lambda: RawTcp.open(port, None, b"GET / HTTP/1.1\r\nHost: b\r\n\r\n"),
+             "rejected_malformed"),
+            ("a huge hello", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, tcplink.MAX_HELLO + 1)),
+             "rejected_malformed"),
+            ("a hello of another protocol", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 4) + b"{}\n\n"),
+             "rejected_malformed"),
+            ("a frame before the hello", lambda: RawTcp.open(port, None, hdr(tcplink.FRAME, 2) + b"\x08\x01"),
+             "rejected_malformed"),
+            ("a hello that is not JSON of strings",
+             lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 13) + tcplink.HELLO_MAGIC + b"[1]\n"),
+             "rejected_malformed"),
+            ("nothing at all", lambda: RawTcp.open(port, None), "rejected_stalled"),
+            ("half a hello", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 100) + b"HAA"), "rejected_stalled"),
+        ]
+        for what, opener, counter in cases:
+            before = c[counter]
+            raw = await opener()
+            t0 = time.monotonic()
+            assert await raw.closed(), what
+            assert c[counter] == before + 1, what
+            assert time.monotonic() - t0 < 3.0, what
+            await raw.close()
+        # after the handshake
+        for what, data, counter in [
+            ("an oversized length", hdr(tcplink.FRAME, tcplink.MAX_FRAME + 1), "rejected_malformed"),
+            ("a second hello", hdr(tcplink.HELLO, 2) + b"{}", "rejected_malformed"),
+            ("a reply from the sender", hdr(tcplink.REPLY, 0), "rejected_malformed"),
+            ("half a frame, then silence (slowloris)", hdr(tcplink.FRAME, 1000) + b"\x08\x01" + b"\x00" * 100,
+             "rejected_stalled"),
+        ]:
+            before = c[counter]
+            raw = await RawTcp.open(port, md())
+            await raw.reply()
+            raw.writer.write(data)
+            await until(lambda: len(b.t._handlers) == 1, what="the link registered")
+            conn = next(iter(b.t._handlers))
+            assert await raw.closed(), what
+            assert c[counter] == before + 1, what
+            assert len(conn._buf) <= 1000 + 5  # type: ignore[attr-defined]
+            await until(lambda: not b.t._handlers, what="the link unregistered")
+            await raw.close()
+        # a frame that is not a Frame is dropped as on a gRPC stream: the link stays
+        raw = await RawTcp.open(port, md())
+        await raw.reply()
+        await raw.write(b"\xff\xff garbage")
+        await raw.write(frame(1, [hb(1)]))
+        await until(lambda: b.seqs() == [1], what="the next frame delivered")
+        assert c["rejected_malformed"] == 9
+        await raw.close()
+        assert c["rejected_stalled"] == 3
+        await b.close()
+
+    run(main)
+
+
+def test_a_frame_split_into_single_bytes_and_frames_in_one_segment_arrive_whole() -> None:
+    """The receiver's framing: a frame written byte by byte and many frames in one write are parsed alike."""
+
+    async def main() -> None:
+        b = Node("b", 22, free_port(), {"a": free_port()}, carrier="tcp")
+        await b.serve()
+        raw = await RawTcp.open(b.t.tcp_port, md())
+        await raw.reply()
+        data = tcplink.HEADER.pack(tcplink.FRAME, len(frame(1, [hb(1), hb(2)]))) + frame(1, [hb(1), hb(2)])
+        for i in range(len(data)):
+            raw.writer.write(data[i:i + 1])
+            await raw.writer.drain()
+            await asyncio.sleep(0)
+        await until(lambda: b.seqs() == [1, 2], what="the frame written byte by byte")
+        many = b"".join(tcplink.HEADER.pack(tcplink.FRAME, len(f)) + f
+                        for f in (frame(i, [hb(i)]) for i in range(3, 503)))
+        raw.writer.write(many)
+        await until(lambda: len(b.seqs()) == 502, what="500 frames in one write")
+        assert b.seqs() == list(range(1, 503)) and b.t.counters["rejected_malformed"] == 0
+        await raw.close()
+        await b.close()
+
+    run(main)
+
+
+def test_hosts_with_different_carriers_refuse_each_other_loudly() -> None:
+    """Every host of a cluster must use the same carrier: a TCP sender whose peer runs gRPC links counts
+    `link_wrong_carrier` (logged at ERROR); a gRPC sender to a TCP host is refused (FAILED_PRECONDITION, counted
+    `rejected_wrong_carrier` there, `link_refused` here). Nothing is delivered either way."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier="tcp")
+        b = Node("b", 22, pb_, {"a": pa}, carrier="grpc")
+        await a.serve()
+        await b.serve()
+        a.t.start()
+        b.t.start()
+        a.t.send("b", 0, hb(1))
+        b.t.send("a", 0, hb(1))
+        await until(lambda: a.t.counters["link_wrong_carrier"] >= 1, what="a finds b on gRPC")
+        await until(lambda: b.t.counters["link_refused"] >= 1, what="b refused by a")
+        assert a.t.counters["rejected_wrong_carrier"] >= 1
+        assert not a.t.connected("b") and not b.t.connected("a") and not a.got and not b.got
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_tcp_links_over_mutual_tls(tmp_path: Path) -> None:
+    """Mutual TLS on the TCP carrier: links between hosts with certificates of the cluster's CA carry messages
+    (heartbeats as datagrams under each link's own key); a client without a certificate never gets a hello in,
+    one with another host's certificate speaking as `a` is refused (`rejected_name_mismatch`), and a link to
+    an address where another host answers fails the server-name check."""
+    from haa import tls as tlsmod
+    from haa.cluster.tls import make_cluster_tls
+
+    make_cluster_tls(tmp_path / "tls", ["a", "b", "c"])
+
+    def material(n: str) -> tlsmod.HostTls:
+        return tlsmod.load_host(tmp_path / "tls" / "hosts" / n, n)
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier="tcp", tls=material("a"))
+        b = Node("b", 22, pb_, {"a": pa}, carrier="tcp", tls=material("b"))
+        for n in (a, b):
+            server = aio.server(options=Transport.server_options())
+            n.t.add_to_server(server)
+            assert n.t.tls is not None
+            server.add_secure_port(f"127.0.0.1:{n.port}", n.t.tls.server_credentials())
+            await server.start()
+            n.server = server
+            await n.t.open_tcp("127.0.0.1", 0)
+            await n.t.open_heartbeats("127.0.0.1", n.port)
+        a.t.start()
+        b.t.start()
+        await until(lambda: a.t.connected("b") and b.t.connected("a"), what="TLS links up")
+        for i in range(1, 6):
+            a.t.send("b", 22, hb(i))
+            a.t.send("b", 22, Excluded(22))
+        await until(lambda: len(b.got) == 10, what="messages over TLS")
+        assert b.seqs() == [1, 2, 3, 4, 5] and b.t.counters["rx_datagrams"] == 5
+        # no client certificate: the TLS handshake fails, nothing reaches the link
+        ctx = ssl.create_default_context(cadata=material("a").ca.decode())
+        ctx.check_hostname = False
+        accepts = b.t.counters["link_accepts"]
+        with contextlib.suppress(ssl.SSLError, ConnectionError, asyncio.IncompleteReadError, TimeoutError):
+            r, w = await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=ctx, server_hostname="b")
+            w.write(tcplink.HEADER.pack(tcplink.HELLO, 2) + b"{}")
+            await asyncio.wait_for(r.read(), 5)
+        # c's certificate, speaking as a
+        cctx = tcplink.client_context(material("c"))
+        r, w = await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=cctx, server_hostname="b")
+        raw = RawTcp(r, w)
+        raw.send(tcplink.HELLO, tcplink.HELLO_MAGIC + json.dumps(
+            dict(md(sender="a")) | {"x-haa-hb-key": "0" * 64}).encode())
+        with pytest.raises(TcpRefused) as exc:
+            await raw.reply()
+        assert exc.value.code == "PERMISSION_DENIED"
+        assert b.t.counters["rejected_name_mismatch"] == 1 and b.t.counters["link_accepts"] == accepts
+        await raw.close()
+        # a's link to "c" at b's address: b's certificate is not c's
+        with pytest.raises(ssl.SSLCertVerificationError):
+            await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=tcplink.client_context(material("a")),
+                                          server_hostname="c")
+        await a.close()
+        await b.close()
 
     run(main)

@@ -68,19 +68,58 @@ import socket
 import ssl
 import struct
 import tempfile
-from collections import deque
-from typing import TYPE_CHECKING, Any
+from collections import Counter, deque
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol
 
 import grpc
 from grpc import aio
 
 from haa import tls as tlsmod
-from haa.hostd.logs import LOGGER_NAME, log_event
-
-if TYPE_CHECKING:
-    from haa.hostd.transport import OutLink, Transport, _Acker, _RxState
+from haa.hostd.linkcommon import MD_TOKEN, LinkDown, LinkGap, LinkRefused, Refusal, parse_incarnation, split_address
+from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 
 log = logging.getLogger(LOGGER_NAME + ".tcplink")
+
+
+class Transport(Protocol):
+    """What this carrier uses of `haa.hostd.transport.Transport` (which imports this module, so it is not
+    imported here): its settings, counters, and the checks and frame handling both carriers share."""
+
+    token: str
+    carrier: str
+    tls: tlsmod.HostTls | None
+    stall_timeout: float
+    counters: Counter[str]
+    limiter: RateLimiter
+
+    def check_token(self, metadata: Any) -> bool: ...
+
+    def _admit(self, md: dict[str, str], token_ok: bool, peer: str,
+               ident: tuple[str, str] | None) -> tuple[str, int, Any, bytes | None]: ...
+
+    def _reject(self, counter: str, event: str, **fields: Any) -> None: ...
+
+    def _opened_stream(self, handle: Any, sender: str, inc: int) -> None: ...
+
+    def _closed_stream(self, handle: Any, sender: str, st: Any) -> None: ...
+
+    def handshake_reply(self, st: Any) -> bytes: ...
+
+    def acker(self, write: Callable[[bytes], Awaitable[None]], st: Any) -> Any: ...
+
+    def on_frame(self, data: bytes, sender: str, inc: int, st: Any) -> bool: ...
+
+
+class OutLink(Protocol):
+    """What this carrier uses of a `haa.hostd.transport.OutLink`: whom it links to, and its gRPC channel."""
+
+    peer: str
+    address: str
+    _channel: aio.Channel | None
+
+    @property
+    def t(self) -> Transport: ...
 
 #: kind byte + payload length
 HEADER = struct.Struct(">BI")
@@ -300,8 +339,8 @@ class ServerConn(_Framed):
         super().__init__(t)
         self.sender = ""
         self.inc = 0
-        self.st: _RxState | None = None
-        self.acker: _Acker | None = None
+        self.st: Any = None  # the sender's `transport._RxState` once the hello was accepted
+        self.acker: Any = None  # its `transport._Acker`
         self.peer = "?"
         self._hello_timer: asyncio.TimerHandle | None = None
 
@@ -339,8 +378,6 @@ class ServerConn(_Framed):
         try:
             ok = t.on_frame(payload, self.sender, self.inc, st)
         except Exception as e:  # a LinkGap (the sender resends), or the core's callback failed: end this link
-            from haa.hostd.transport import LinkGap
-
             if not isinstance(e, LinkGap):
                 t.counters["link_receive_errors"] += 1
                 log_event(log, logging.DEBUG, "link_receive_ended", sender=self.sender,
@@ -355,8 +392,6 @@ class ServerConn(_Framed):
         return True
 
     def _hello(self, kind: int, payload: bytes) -> bool:
-        from haa.hostd.transport import Refusal
-
         t = self.t
         md: Any = None
         if kind == HELLO and payload.startswith(HELLO_MAGIC):
@@ -442,8 +477,6 @@ class ClientConn(_Framed):
         if kind == REPLY:
             self._replies.append(payload)
         elif kind == REFUSE:
-            from haa.hostd.transport import LinkRefused, parse_incarnation
-
             try:
                 r = json.loads(payload)
                 code, details, newer = str(r["code"]), str(r["details"]), r.get("newer")
@@ -503,8 +536,6 @@ async def connect(link: OutLink, md: tuple[tuple[str, str], ...]) -> ClientConn:
     """Open a TCP session of `link`: ask the peer's gRPC server where its TCP link listens, connect (TLS with
     this host's certificate if it has one, the peer's checked by name), send the hello. The handshake reply is
     the caller's to read (`ClientConn.read`)."""
-    from haa.hostd.transport import MD_TOKEN, LinkDown, split_address
-
     t = link.t
     channel = link._channel
     assert channel is not None

@@ -1,4 +1,4 @@
-"""Host-to-host transport: one reliable FIFO channel per ordered host pair over gRPC (`haa.v1.HostLink`).
+"""Host-to-host transport: one reliable FIFO channel per ordered host pair over gRPC (`haa.v1.HostLink`) or TCP.
 
 The algorithms of thesis Appendix II assume reliable FIFO channels between correct processes (§4.3.1). A TCP
 connection is FIFO but not reliable across reconnects, so each direction of each host pair is a *link* with
@@ -49,6 +49,15 @@ MAC key, sent to the receiver inside the TLS stream (metadata `x-haa-hb-key`, 64
 the receiver checks a datagram from `src` with the key of `src`'s accepted stream, so one host's key cannot
 forge another's heartbeats. Without TLS the key is derived from the cluster token, as before.
 
+Carriers (`carrier`, `haa-hostd --host-link`): everything above is the link; what carries a session is a
+grpc.aio stream (`GRPC`, the default) or a framed TCP connection (`TCP`, haa.hostd.tcplink: the same Frame
+and LinkReply bytes, the same handshake metadata, the same refusals by status code name, several times less
+CPU per frame). Only the carrier differs: the sender's `OutLink` talks to a `LinkCall` (read a reply, write a
+frame, cancel) that either carrier provides, and the receiver's checks (`Transport._admit`), frame handling
+(`Transport.on_frame`) and acks (`_Acker`) are shared. Every host of a cluster must use the same carrier; a
+link to a host with the other one is refused with a log line that says so (`link_wrong_carrier`,
+`rejected_wrong_carrier`).
+
 Every message and byte sent and received is counted per payload kind in `counters` (a `collections.Counter`
 the status RPC exposes), e.g. `tx_msgs.heartbeat`, `rx_bytes.oac_decide`.
 
@@ -78,6 +87,18 @@ from grpc import aio
 
 from haa import tls as tlsmod
 from haa.hostd import tcplink, wire
+from haa.hostd.linkcommon import (
+    MD_INC,
+    MD_NEWER,
+    MD_SENDER,
+    MD_TOKEN,
+    LinkDown,
+    LinkGap,
+    LinkRefused,
+    Refusal,
+    parse_incarnation,
+    split_address,
+)
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.messages import Heartbeat, Message
 from haa.pb import hostlink_pb2 as pb
@@ -89,14 +110,9 @@ OPEN_METHOD = "/haa.v1.HostLink/Open"
 GRPC = "grpc"
 TCP = "tcp"
 CARRIERS = (GRPC, TCP)
-MD_TOKEN = "x-haa-token"
-MD_SENDER = "x-haa-sender"
-MD_INC = "x-haa-incarnation"
 #: under TLS: the link's heartbeat MAC key, hex (see the module docstring)
 MD_HB_KEY = "x-haa-hb-key"
 _HB_KEY_RE = re.compile(r"[0-9a-f]{64}")
-#: trailing metadata of a stale-incarnation refusal: the newer incarnation of the sender the receiver knows
-MD_NEWER = "x-haa-newer-incarnation"
 
 #: (dst_inc, envelope chunk) — what a link queues
 Entry = tuple[int, bytes]
@@ -108,24 +124,13 @@ OnPeerIncarnation = Callable[[str, int], None]
 #: host's name (`newer`): this process has been superseded (docs/membership.md, "incarnation claims")
 OnSuperseded = Callable[[str, int], None]
 
-#: incarnations are unsigned 64-bit numbers (the wire's `uint64`); 0 means "unknown" and is never valid
-MAX_INCARNATION = (1 << 64) - 1
 #: an incarnation is `time.time_ns()` when the daemon (re)started (haa.hostd.runtime): a claim more than this
 #: many seconds ahead of the receiver's clock is refused (`rejected_future_incarnation`, OUT_OF_RANGE)
 MAX_INCARNATION_AHEAD = 60.0
 #: a sender incarnation counts as live on this host while one of its streams is open and it sent a valid
 #: message within this many seconds plus twice the heartbeat period it announced last
 LIVE_WINDOW = 1.0
-_INC_RE = re.compile(r"[1-9][0-9]{0,19}")
 
-
-def parse_incarnation(text: str) -> int | None:
-    """The `x-haa-incarnation` metadata value as an incarnation, or None: plain decimal digits only (no sign,
-    spaces, underscores or non-ASCII digits, which `int()` would accept), 1 .. `MAX_INCARNATION`."""
-    if not isinstance(text, str) or not _INC_RE.fullmatch(text):
-        return None
-    inc = int(text)
-    return inc if inc <= MAX_INCARNATION else None
 
 #: the largest gRPC message a host sends or accepts, host-link frames and control requests alike (one server
 #: serves both, and gRPC's limits are per server): a larger one is refused by gRPC itself before it is decoded
@@ -155,16 +160,6 @@ LAZY_LATE = 0.001
 def heartbeat_key(token: str) -> bytes:
     """The MAC key of heartbeat datagrams (a hash of the token: the token itself never keys two things)."""
     return hashlib.sha256(b"haa-heartbeat\0" + token.encode()).digest()
-
-
-def split_address(address: str) -> tuple[str, int] | None:
-    """("host", port) of "host:port" or "[v6]:port"; None if it has no numeric port."""
-    host, sep, port = address.rpartition(":")
-    if not sep or not port.isdigit():
-        return None
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    return host, int(port)
 
 
 def _varint(n: int) -> bytes:
@@ -212,21 +207,6 @@ NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
 def valid_name(name: str) -> bool:
     """A host name as haa-hostd accepts it (`--name`): 1-63 of [A-Za-z0-9_.-], not starting with [_.-]."""
     return bool(NAME_RE.match(name))
-
-
-class LinkDown(Exception):
-    """The current stream of a link ended (the link task reconnects)."""
-
-
-class LinkRefused(Exception):
-    """The receiver refused the link: `code` is a `grpc.StatusCode` name (both carriers use gRPC's codes),
-    `newer` the newer incarnation of this host's name it knows (a stale-incarnation refusal), if any."""
-
-    def __init__(self, code: str, details: str, newer: int | None = None) -> None:
-        super().__init__(f"{code}: {details}")
-        self.code = code
-        self.details = details
-        self.newer = newer
 
 
 class LinkCall(Protocol):
@@ -671,21 +651,6 @@ class _RxState:
         self.heard = float("-inf")  # loop time of its last valid envelope
         self.period = 0.0  # the heartbeat period it announced last, s
         self.hb_key: bytes | None = None  # under TLS: the MAC key of its heartbeat datagrams to this host
-
-
-class LinkGap(Exception):
-    """A frame skips link sequence numbers: end the stream, the sender resends from our last + 1."""
-
-
-class Refusal(Exception):
-    """`Transport._admit` refuses an inbound link: a `grpc.StatusCode` name, the details, and for a stale
-    incarnation the newer one the receiver knows (both carriers send all three to the sender)."""
-
-    def __init__(self, code: str, details: str, newer: int | None = None) -> None:
-        super().__init__(f"{code}: {details}")
-        self.code = code
-        self.details = details
-        self.newer = newer
 
 
 class Cancellable(Protocol):
