@@ -727,6 +727,13 @@ def test_tcp_hostile_bytes_cost_one_counter_and_the_connection() -> None:
     run(main)
 
 
+def test_the_tcp_frame_limit_is_the_grpc_message_limit() -> None:
+    """A frame either carrier carries, the other carries too (a joiner's whole state is one message)."""
+    from haa.hostd.transport import MAX_MESSAGE
+
+    assert tcplink.MAX_FRAME == MAX_MESSAGE
+
+
 def test_a_frame_split_into_single_bytes_and_frames_in_one_segment_arrive_whole() -> None:
     """The receiver's framing: a frame written byte by byte and many frames in one write are parsed alike."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -102,3 +103,22 @@ def test_a_host_with_the_other_carrier_is_refused_loudly(cluster: dict[str, Memb
     assert not odd.status().member
     assert agreed(hosts, NAMES)
     odd.kill()
+
+
+def test_a_static_mesh_over_tls_on_tcp_links_commits(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Mutual TLS on the TCP carrier with real daemons (uvloop): `LocalCluster(tls=True)` started with
+    HAA_HOST_LINK=tcp in the environment the hosts inherit, as `haactl bench ap1 --tls` would be."""
+    from haactl.local import LocalCluster
+
+    monkeypatch.setenv("HAA_HOST_LINK", "tcp")
+    with LocalCluster(["h1", "h2", "h3"], tmp_path, tls=True) as c:
+        c.start()
+        c.wait_trusted(timeout=60)
+        r = c["h2"].client.propose(b"over tls and tcp", wait=True)
+        assert r.decided and r.committed and sorted(r.participants) == ["h1", "h2", "h3"]
+        for h in c.hosts.values():
+            start = next(e for e in h.log_events() if e.get("event") == "startup")["fields"]
+            assert start["host_link"] == "tcp"
+            counters = dict(h.status().counters.values)
+            assert counters["link_accepts"] >= 2 and counters["rx_frames"] >= 1
+            assert counters.get("rejected_name_mismatch", 0) == 0 and counters.get("link_wrong_carrier", 0) == 0
