@@ -1,16 +1,23 @@
-"""The host-to-host transport (haa.hostd.transport), in-process on loopback.
+"""The host-to-host transport (haa.hostd.transport), in-process on loopback, over both carriers of the links
+(a grpc.aio stream, or a framed TCP connection: haa.hostd.tcplink) — the tests of link semantics run once per
+carrier (`carrier` fixture).
 
 FIFO and no loss across broken connections, receiver and sender reincarnations, a down peer not stalling the
 others, and the receiver's handling of hostile input (bad token, unknown sender, garbage, invalid envelopes,
-duplicates).
+duplicates); the TCP carrier's own hostile input (bytes that are not frames, oversized lengths, a peer that
+stops mid-frame) and a cluster whose hosts use different carriers.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import math
+import ssl
 import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -19,7 +26,7 @@ from grpc import aio
 from waits import until
 
 from haa.cluster.hostprocs import free_port
-from haa.hostd import wire
+from haa.hostd import tcplink, wire
 from haa.hostd.messages import Excluded, Heartbeat, Message
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
@@ -28,8 +35,14 @@ TOKEN = "test-token"
 FAST = {"min_backoff": 0.01, "max_backoff": 0.1, "handshake_timeout": 1.0}
 
 
+@pytest.fixture(params=["grpc", "tcp"])
+def carrier(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
+
+
 class Node:
-    """A Transport with its own grpc.aio server, recording what it receives."""
+    """A Transport with its own grpc.aio server (and, on the TCP carrier, its TCP link server: a new port at every
+    `serve`, which the senders learn from the gRPC server), recording what it receives."""
 
     def __init__(self, name: str, inc: int, port: int, peers: dict[str, int], **kw: Any) -> None:
         self.name = name
@@ -60,9 +73,12 @@ class Node:
         assert server.add_insecure_port(f"127.0.0.1:{self.port}") == self.port
         await server.start()
         self.server = server
+        if self.t.carrier == "tcp":
+            await self.t.open_tcp("127.0.0.1", 0)
 
     async def stop_server(self) -> None:
         assert self.server is not None
+        self.t.close_tcp()
         await self.server.stop(0)
         self.server = None
 
@@ -83,14 +99,14 @@ def hb(i: int) -> Heartbeat:
 # ------------------------------------------------------------------------------------------------ (f)
 
 
-def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
+def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
     """The receiver's gRPC server is closed and reopened twice while the sender keeps queueing messages:
     every message arrives exactly once and in order."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"), what="first connection")
@@ -136,11 +152,11 @@ def test_fifo_and_no_loss_across_receiver_server_restarts() -> None:
     run(main)
 
 
-def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
+def test_new_receiver_incarnation_discards_messages_for_the_old_one(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"))
@@ -154,7 +170,7 @@ def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
             a.t.send("b", 22, hb(i))  # addressed to the dead incarnation
         for i in range(16, 19):
             a.t.send("b", 0, hb(i))  # addressed to "whoever b is"
-        b2 = Node("b", 33, pb_, {"a": pa})
+        b2 = Node("b", 33, pb_, {"a": pa}, carrier=carrier)
         await b2.serve()
         await until(lambda: a.t.connected("b"))
         await until(lambda: len(b2.got) == 3)
@@ -171,11 +187,11 @@ def test_new_receiver_incarnation_discards_messages_for_the_old_one() -> None:
     run(main)
 
 
-def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -> None:
+def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"))
@@ -193,7 +209,7 @@ def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -
         with pytest.raises(ValueError):
             a.t.set_incarnation(12)
         # a leftover process of incarnation 11 is refused
-        old = Node("a", 11, free_port(), {"b": pb_})
+        old = Node("a", 11, free_port(), {"b": pb_}, carrier=carrier)
         old.t.start()
         await until(lambda: b.t.counters["rejected_stale_incarnation"] >= 1)
         assert not old.t.connected("b")
@@ -204,11 +220,11 @@ def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused() -
     run(main)
 
 
-def test_a_down_peer_does_not_stall_the_others() -> None:
+def test_a_down_peer_does_not_stall_the_others(carrier: str) -> None:
     async def main() -> None:
         pa, pb_, pc = free_port(), free_port(), free_port()  # nothing listens on pc
-        a = Node("a", 11, pa, {"b": pb_, "c": pc})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_, "c": pc}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         t0 = time.monotonic()
@@ -226,15 +242,15 @@ def test_a_down_peer_does_not_stall_the_others() -> None:
     run(main)
 
 
-def test_lazy_messages_wait_for_other_traffic_and_keep_their_order() -> None:
+def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str) -> None:
     """A lazy message is written once the host is quiet (no frame received for `lazy_quiet`), or with the next
     ordinary message on its link, in order; while frames keep arriving it waits, but at most `lazy_delay`
     (docs/transport.md, "Lazy messages")."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, lazy_delay=0.6, lazy_quiet=0.15)
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier, lazy_delay=0.6, lazy_quiet=0.15)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         await a.serve()
         a.t.start()
@@ -283,11 +299,11 @@ def test_lazy_messages_wait_for_other_traffic_and_keep_their_order() -> None:
     run(main)
 
 
-def test_before_first_contact_only_recent_unaddressed_messages_are_kept() -> None:
+def test_before_first_contact_only_recent_unaddressed_messages_are_kept(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, precontact_limit=16)
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier, precontact_limit=16)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         a.t.start()
         for i in range(1, 101):
             a.t.send("b", 0, hb(i))  # heartbeats to a peer that has not started yet
@@ -323,6 +339,76 @@ class RawLink:
         await self.channel.close()
 
 
+class TcpRefused(Exception):
+    def __init__(self, code: str, newer: int | None) -> None:
+        super().__init__(code)
+        self.code = code
+        self.newer = newer
+
+
+class RawTcp:
+    """A hand-driven TCP host link (haa.hostd.tcplink's framing): the hello, then frames; replies one by one.
+    `call` is itself, so that tests drive it like `RawLink` (`call.write`, `call.read` returning `aio.EOF`)."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.call = self
+
+    @classmethod
+    async def open(cls, port: int, md: tuple[tuple[str, str], ...] | None, raw: bytes = b"") -> RawTcp:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        conn = cls(reader, writer)
+        if md is not None:
+            conn.send(tcplink.HELLO, tcplink.HELLO_MAGIC + json.dumps(dict(md)).encode())
+        if raw:
+            writer.write(raw)
+        return conn
+
+    def send(self, kind: int, payload: bytes) -> None:
+        self.writer.write(tcplink.HEADER.pack(kind, len(payload)) + payload)
+
+    async def write(self, data: bytes) -> None:
+        self.send(tcplink.FRAME, data)
+        await self.writer.drain()
+
+    async def read(self) -> Any:
+        try:
+            kind, n = tcplink.HEADER.unpack(await asyncio.wait_for(self.reader.readexactly(5), 5))
+            payload = await asyncio.wait_for(self.reader.readexactly(n), 5)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return aio.EOF
+        if kind == tcplink.REFUSE:
+            r = json.loads(payload)
+            raise TcpRefused(r["code"], r["newer"])
+        assert kind == tcplink.REPLY
+        return payload
+
+    async def reply(self) -> pb.LinkReply:
+        data = await self.read()
+        assert data is not aio.EOF
+        return pb.LinkReply.FromString(data)
+
+    async def closed(self) -> bool:
+        """The receiver closed the connection (everything it sent before is read and dropped)."""
+        try:
+            while await asyncio.wait_for(self.reader.read(1 << 16), 5):
+                pass
+        except ConnectionError:
+            pass
+        return True
+
+    async def close(self) -> None:
+        self.writer.close()
+
+
+async def raw_link(node: Node, metadata: tuple[tuple[str, str], ...]) -> RawLink | RawTcp:
+    """A hand-driven link to `node` over its carrier."""
+    if node.t.carrier == "tcp":
+        return await RawTcp.open(node.t.tcp_port, metadata)
+    return RawLink(node.port, metadata)
+
+
 def md(token: str = TOKEN, sender: str = "a", inc: str = "11") -> tuple[tuple[str, str], ...]:
     return ((MD_TOKEN, token), (MD_SENDER, sender), (MD_INC, inc))
 
@@ -342,19 +428,22 @@ def frame(first: int, msgs: list[Message], sender: str = "a", inc: int = 11) -> 
     ],
     ids=["wrong-token", "no-token", "unknown-sender", "bad-inc", "zero-inc"],
 )
-def test_refused_calls(metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str) -> None:
+def test_refused_calls(
+    metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str, carrier: str
+) -> None:
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port()})
+        b = Node("b", 22, pb_, {"a": free_port()}, carrier=carrier)
         await b.serve()
-        raw = RawLink(pb_, metadata)
-        with pytest.raises(aio.AioRpcError) as exc:
+        raw = await raw_link(b, metadata)
+        with pytest.raises((aio.AioRpcError, TcpRefused)) as exc:
             await raw.reply()
-        assert exc.value.code() == code
+        got = exc.value.code if isinstance(exc.value, TcpRefused) else exc.value.code().name
+        assert got == code.name
         assert b.t.counters[counter] == 1
         await raw.close()
         # the server still serves a correct peer
-        ok = RawLink(pb_, md())
+        ok = await raw_link(b, md())
         assert (await ok.reply()).receiver == "b"
         await ok.close()
         await b.close()
@@ -362,12 +451,12 @@ def test_refused_calls(metadata: tuple[tuple[str, str], ...], code: grpc.StatusC
     run(main)
 
 
-def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives() -> None:
+def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives(carrier: str) -> None:
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port(), "c": free_port()}, ack_interval=0.001)
+        b = Node("b", 22, pb_, {"a": free_port(), "c": free_port()}, ack_interval=0.001, carrier=carrier)
         await b.serve()
-        raw = RawLink(pb_, md())
+        raw = await raw_link(b, md())
         hello = await raw.reply()
         assert (hello.receiver, hello.receiver_incarnation, hello.acked_seq) == ("b", 22, 0)
         c = b.t.counters
@@ -400,21 +489,21 @@ def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream
     run(main)
 
 
-def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() -> None:
+def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered(carrier: str) -> None:
     """The receiver never skips a link sequence number: a frame that does ends the stream, and the next
     stream's handshake tells the sender where to resend from. Two streams of one sender incarnation open
     at once (a reconnect while the old stream still delivers) interleave without loss or duplicates."""
 
     async def main() -> None:
         pb_ = free_port()
-        b = Node("b", 22, pb_, {"a": free_port()}, ack_interval=0.001)
+        b = Node("b", 22, pb_, {"a": free_port()}, ack_interval=0.001, carrier=carrier)
         await b.serve()
         c = b.t.counters
-        old = RawLink(pb_, md())
+        old = await raw_link(b, md())
         await old.reply()
         await old.call.write(frame(1, [hb(1), hb(2)]))
         await until(lambda: b.seqs() == [1, 2])
-        new = RawLink(pb_, md())
+        new = await raw_link(b, md())
         hello = await new.reply()
         assert hello.acked_seq == 2
         await new.call.write(frame(3, [hb(3), hb(4)]))
@@ -426,7 +515,7 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() 
         while (await asyncio.wait_for(new.call.read(), 5)) is not aio.EOF:
             pass  # the receiver ended the stream
         assert b.seqs() == [1, 2, 3, 4]
-        again = RawLink(pb_, md())
+        again = await raw_link(b, md())
         assert (await again.reply()).acked_seq == 4  # resend from 5
         await again.call.write(frame(5, [hb(5), hb(6), hb(7)]))
         await until(lambda: b.seqs() == [1, 2, 3, 4, 5, 6, 7])
@@ -437,7 +526,7 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered() 
     run(main)
 
 
-def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
+def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) -> None:
     """Regression: a link restarted (a kick, a reincarnation) while its session waited for the handshake
     could keep running next to its replacement (asyncio.wait_for in 3.11 swallows a cancellation that
     coincides with the read completing); both sessions then wrote from one queue on two streams and the
@@ -446,8 +535,8 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_})
-        b = Node("b", 22, pb_, {"a": pa})
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
         a.t.start()
         await until(lambda: a.t.connected("b"), what="first connection")
@@ -474,16 +563,16 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions() -> None:
     run(main)
 
 
-def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted() -> None:
+def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(carrier: str) -> None:
     """Heartbeats go as UDP datagrams to the port the receiver announced in the handshake (docs/transport.md,
     "Heartbeats as datagrams"); forged, malformed, unknown-incarnation and non-heartbeat datagrams are counted
     and dropped; a receiver without a heartbeat socket gets them on the stream."""
 
     async def main() -> None:
         pa, pb_, pc = free_port(), free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_, "c": pc})
-        b = Node("b", 22, pb_, {"a": pa})
-        c = Node("c", 33, pc, {"a": pa}, datagram_heartbeats=False)
+        a = Node("a", 11, pa, {"b": pb_, "c": pc}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
+        c = Node("c", 33, pc, {"a": pa}, carrier=carrier, datagram_heartbeats=False)
         for n in (a, b, c):
             await n.serve()
             await n.t.open_heartbeats("127.0.0.1", n.port)
@@ -538,22 +627,22 @@ def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(
     run(main)
 
 
-def test_a_newer_incarnation_ends_the_streams_of_the_older_one() -> None:
+def test_a_newer_incarnation_ends_the_streams_of_the_older_one(carrier: str) -> None:
     """A superseded process that only sends heartbeats (datagrams) still learns of it: when the newer
     incarnation's stream is accepted, the older one's stream ends, and its reconnection is refused as stale."""
 
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
-        b = Node("b", 22, pb_, {"a": pa})
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
         await b.serve()
-        old = Node("a", 11, pa, {"b": pb_})
+        old = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
         superseded: list[tuple[str, int]] = []
         old.t.on_superseded = lambda p, i: superseded.append((p, i))
         old.t.start()
         await until(lambda: old.t.connected("b"), what="old a connected")
         old.t.send("b", 22, hb(1))
         await until(lambda: len(b.seqs()) == 1, what="a message of the old incarnation")
-        new = Node("a", 12, pa, {"b": pb_})
+        new = Node("a", 12, pa, {"b": pb_}, carrier=carrier)
         new.t.start()
         await until(lambda: new.t.connected("b"), timeout=10, what="new a accepted")
         new.t.send("b", 22, hb(1))  # more than a claim: it speaks (docs/transport.md, incarnation claims)
@@ -563,5 +652,196 @@ def test_a_newer_incarnation_ends_the_streams_of_the_older_one() -> None:
         assert superseded[0] == ("b", 12)
         for x in (old, new, b):
             await x.close()
+
+    run(main)
+
+
+# ------------------------------------------------------------------------------------- the TCP carrier only
+
+
+def test_tcp_hostile_bytes_cost_one_counter_and_the_connection() -> None:
+    """Bytes that are not a hello, a length above the limit (before the handshake: `MAX_HELLO`; after it:
+    `MAX_FRAME`), a peer that stops mid-frame or never says hello, a second hello, a malformed hello: each is
+    counted and its connection closed, no more than one unfinished frame is ever buffered, and the receiver
+    keeps serving a correct peer (haa.hostd.tcplink, "Hostile or broken input")."""
+
+    async def main() -> None:
+        b = Node("b", 22, free_port(), {"a": free_port()}, carrier="tcp", stall_timeout=0.3)
+        await b.serve()
+        c = b.t.counters
+        port = b.t.tcp_port
+        hdr = tcplink.HEADER.pack
+        cases: list[tuple[str, Callable[[], Awaitable[RawTcp]], str]] = [
+            ("an HTTP request", lambda: RawTcp.open(port, None, b"GET / HTTP/1.1\r\nHost: b\r\n\r\n"),
+             "rejected_malformed"),
+            ("a huge hello", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, tcplink.MAX_HELLO + 1)),
+             "rejected_malformed"),
+            ("a hello of another protocol", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 4) + b"{}\n\n"),
+             "rejected_malformed"),
+            ("a frame before the hello", lambda: RawTcp.open(port, None, hdr(tcplink.FRAME, 2) + b"\x08\x01"),
+             "rejected_malformed"),
+            ("a hello that is not JSON of strings",
+             lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 13) + tcplink.HELLO_MAGIC + b"[1]\n"),
+             "rejected_malformed"),
+            ("nothing at all", lambda: RawTcp.open(port, None), "rejected_stalled"),
+            ("half a hello", lambda: RawTcp.open(port, None, hdr(tcplink.HELLO, 100) + b"HAA"), "rejected_stalled"),
+        ]
+        for what, opener, counter in cases:
+            before = c[counter]
+            raw = await opener()
+            t0 = time.monotonic()
+            assert await raw.closed(), what
+            assert c[counter] == before + 1, what
+            assert time.monotonic() - t0 < 3.0, what
+            await raw.close()
+        # after the handshake
+        for what, data, counter in [
+            ("an oversized length", hdr(tcplink.FRAME, tcplink.MAX_FRAME + 1), "rejected_malformed"),
+            ("a second hello", hdr(tcplink.HELLO, 2) + b"{}", "rejected_malformed"),
+            ("a reply from the sender", hdr(tcplink.REPLY, 0), "rejected_malformed"),
+            ("half a frame, then silence (slowloris)", hdr(tcplink.FRAME, 1000) + b"\x08\x01" + b"\x00" * 100,
+             "rejected_stalled"),
+        ]:
+            before = c[counter]
+            raw = await RawTcp.open(port, md())
+            await raw.reply()
+            raw.writer.write(data)
+            await until(lambda: len(b.t._handlers) == 1, what="the link registered")
+            conn = next(iter(b.t._handlers))
+            assert await raw.closed(), what
+            assert c[counter] == before + 1, what
+            assert len(conn._buf) <= 1000 + 5  # type: ignore[attr-defined]
+            await until(lambda: not b.t._handlers, what="the link unregistered")
+            await raw.close()
+        # a frame that is not a Frame is dropped as on a gRPC stream: the link stays
+        raw = await RawTcp.open(port, md())
+        await raw.reply()
+        await raw.write(b"\xff\xff garbage")
+        await raw.write(frame(1, [hb(1)]))
+        await until(lambda: b.seqs() == [1], what="the next frame delivered")
+        assert c["rejected_malformed"] == 9
+        await raw.close()
+        assert c["rejected_stalled"] == 3
+        await b.close()
+
+    run(main)
+
+
+def test_the_tcp_frame_limit_is_the_grpc_message_limit() -> None:
+    """A frame either carrier carries, the other carries too (a joiner's whole state is one message)."""
+    from haa.hostd.transport import MAX_MESSAGE
+
+    assert tcplink.MAX_FRAME == MAX_MESSAGE
+
+
+def test_a_frame_split_into_single_bytes_and_frames_in_one_segment_arrive_whole() -> None:
+    """The receiver's framing: a frame written byte by byte and many frames in one write are parsed alike."""
+
+    async def main() -> None:
+        b = Node("b", 22, free_port(), {"a": free_port()}, carrier="tcp")
+        await b.serve()
+        raw = await RawTcp.open(b.t.tcp_port, md())
+        await raw.reply()
+        data = tcplink.HEADER.pack(tcplink.FRAME, len(frame(1, [hb(1), hb(2)]))) + frame(1, [hb(1), hb(2)])
+        for i in range(len(data)):
+            raw.writer.write(data[i:i + 1])
+            await raw.writer.drain()
+            await asyncio.sleep(0)
+        await until(lambda: b.seqs() == [1, 2], what="the frame written byte by byte")
+        many = b"".join(tcplink.HEADER.pack(tcplink.FRAME, len(f)) + f
+                        for f in (frame(i, [hb(i)]) for i in range(3, 503)))
+        raw.writer.write(many)
+        await until(lambda: len(b.seqs()) == 502, what="500 frames in one write")
+        assert b.seqs() == list(range(1, 503)) and b.t.counters["rejected_malformed"] == 0
+        await raw.close()
+        await b.close()
+
+    run(main)
+
+
+def test_hosts_with_different_carriers_refuse_each_other_loudly() -> None:
+    """Every host of a cluster must use the same carrier: a TCP sender whose peer runs gRPC links counts
+    `link_wrong_carrier` (logged at ERROR); a gRPC sender to a TCP host is refused (FAILED_PRECONDITION, counted
+    `rejected_wrong_carrier` there, `link_refused` here). Nothing is delivered either way."""
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier="tcp")
+        b = Node("b", 22, pb_, {"a": pa}, carrier="grpc")
+        await a.serve()
+        await b.serve()
+        a.t.start()
+        b.t.start()
+        a.t.send("b", 0, hb(1))
+        b.t.send("a", 0, hb(1))
+        await until(lambda: a.t.counters["link_wrong_carrier"] >= 1, what="a finds b on gRPC")
+        await until(lambda: b.t.counters["link_refused"] >= 1, what="b refused by a")
+        assert a.t.counters["rejected_wrong_carrier"] >= 1
+        assert not a.t.connected("b") and not b.t.connected("a") and not a.got and not b.got
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_tcp_links_over_mutual_tls(tmp_path: Path) -> None:
+    """Mutual TLS on the TCP carrier: links between hosts with certificates of the cluster's CA carry messages
+    (heartbeats as datagrams under each link's own key); a client without a certificate never gets a hello in,
+    one with another host's certificate speaking as `a` is refused (`rejected_name_mismatch`), and a link to
+    an address where another host answers fails the server-name check."""
+    from haa import tls as tlsmod
+    from haa.cluster.tls import make_cluster_tls
+
+    make_cluster_tls(tmp_path / "tls", ["a", "b", "c"])
+
+    def material(n: str) -> tlsmod.HostTls:
+        return tlsmod.load_host(tmp_path / "tls" / "hosts" / n, n)
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier="tcp", tls=material("a"))
+        b = Node("b", 22, pb_, {"a": pa}, carrier="tcp", tls=material("b"))
+        for n in (a, b):
+            server = aio.server(options=Transport.server_options())
+            n.t.add_to_server(server)
+            assert n.t.tls is not None
+            server.add_secure_port(f"127.0.0.1:{n.port}", n.t.tls.server_credentials())
+            await server.start()
+            n.server = server
+            await n.t.open_tcp("127.0.0.1", 0)
+            await n.t.open_heartbeats("127.0.0.1", n.port)
+        a.t.start()
+        b.t.start()
+        await until(lambda: a.t.connected("b") and b.t.connected("a"), what="TLS links up")
+        for i in range(1, 6):
+            a.t.send("b", 22, hb(i))
+            a.t.send("b", 22, Excluded(22))
+        await until(lambda: len(b.got) == 10, what="messages over TLS")
+        assert b.seqs() == [1, 2, 3, 4, 5] and b.t.counters["rx_datagrams"] == 5
+        # no client certificate: the TLS handshake fails, nothing reaches the link
+        ctx = ssl.create_default_context(cadata=material("a").ca.decode())
+        ctx.check_hostname = False
+        accepts = b.t.counters["link_accepts"]
+        with contextlib.suppress(ssl.SSLError, ConnectionError, asyncio.IncompleteReadError, TimeoutError):
+            r, w = await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=ctx, server_hostname="b")
+            w.write(tcplink.HEADER.pack(tcplink.HELLO, 2) + b"{}")
+            await asyncio.wait_for(r.read(), 5)
+        # c's certificate, speaking as a
+        cctx = tcplink.client_context(material("c"))
+        r, w = await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=cctx, server_hostname="b")
+        raw = RawTcp(r, w)
+        raw.send(tcplink.HELLO, tcplink.HELLO_MAGIC + json.dumps(
+            dict(md(sender="a")) | {"x-haa-hb-key": "0" * 64}).encode())
+        with pytest.raises(TcpRefused) as exc:
+            await raw.reply()
+        assert exc.value.code == "PERMISSION_DENIED"
+        assert b.t.counters["rejected_name_mismatch"] == 1 and b.t.counters["link_accepts"] == accepts
+        await raw.close()
+        # a's link to "c" at b's address: b's certificate is not c's
+        with pytest.raises(ssl.SSLCertVerificationError):
+            await asyncio.open_connection("127.0.0.1", b.t.tcp_port, ssl=tcplink.client_context(material("a")),
+                                          server_hostname="c")
+        await a.close()
+        await b.close()
 
     run(main)

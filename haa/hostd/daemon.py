@@ -168,6 +168,10 @@ class HostSettings(BaseModel):
     forget_group: bool = False
     #: heartbeats as UDP datagrams on the listen port (docs/transport.md); off: on the host-link streams
     datagram_heartbeats: bool = True
+    #: what carries the host links: gRPC streams, or framed TCP connections on `link_port` (haa.hostd.tcplink;
+    #: every host of a cluster must use the same; docs/transport.md, "The TCP host link")
+    host_link: Literal["grpc", "tcp"] = "grpc"
+    link_port: int = Field(default=0, ge=0, le=65535)
     #: the agent layer (membership mode): off with --no-agents
     agents: bool = True
     # the allocator's bounds (docs/limits.md, "Agent and host numbers"): a capacity outside them is refused here
@@ -288,6 +292,8 @@ class HostSettings(BaseModel):
             node=NodeConfig(core=core, **self.membership.model_dump()),
             forget_group=self.forget_group,
             datagram_heartbeats=self.datagram_heartbeats,
+            host_link=self.host_link,
+            link_port=self.link_port,
             leave_timeout=self.leave_timeout,
             agents=self.agents,
             agent=AgentConfig(
@@ -334,6 +340,8 @@ _OPTIONS = (
     "leave_timeout",
     "forget_group",
     "datagram_heartbeats",
+    "host_link",
+    "link_port",
     "log_level",
     "log_stderr",
     "agents",
@@ -381,6 +389,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--stream-heartbeats", dest="datagram_heartbeats", action="store_const", const=False,
                    help="send failure-detector heartbeats on the host-link streams, not as UDP datagrams")
+    p.add_argument("--host-link", choices=["grpc", "tcp"],
+                   help="what carries the host-to-host links: gRPC streams (default) or framed TCP connections; "
+                        "every host of a cluster must use the same (env HAA_HOST_LINK)")
+    p.add_argument("--link-port", type=int,
+                   help="--host-link tcp: the TCP port of the links on the --listen host (default 0: any free port; "
+                        "peers ask the gRPC server for it)")
     p.add_argument("--no-agents", dest="agents", action="store_const", const=False,
                    help="membership mode without the agent layer (no agent processes)")
     p.add_argument("--capacity", type=float, help="processing capacity K_h for the allocation (1.0 = one core)")

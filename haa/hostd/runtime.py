@@ -214,6 +214,9 @@ class RuntimeConfig:
     #: failure-detector heartbeats as UDP datagrams on the listen port (docs/transport.md, "Heartbeats as
     #: datagrams"); False: on the host-link streams like every other message
     datagram_heartbeats: bool = True
+    #: the carrier of the host links, "grpc" or "tcp" (haa.hostd.tcplink), and the TCP one's port (0: any free)
+    host_link: str = "grpc"
+    link_port: int = 0
     #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s (with agents: after
     #: handing them over, which takes at most `agent.drain_timeout`)
     leave_timeout: float = 3.0
@@ -261,6 +264,7 @@ class HostRuntime:
             on_superseded=self._on_superseded,
             datagram_heartbeats=config.datagram_heartbeats,
             tls=config.tls,
+            carrier=config.host_link,
         )
         self._tap: HandshakeTap | None = None
         self.advertise = config.advertise
@@ -415,6 +419,11 @@ class HostRuntime:
             self.port = server.add_secure_port(cfg.listen, cfg.tls.server_credentials())
         hp = split_address(cfg.listen)
         await self.transport.open_heartbeats(hp[0] if hp else "", self.port)
+        if cfg.host_link == "tcp":
+            try:
+                await self.transport.open_tcp(hp[0] if hp else "", cfg.link_port)
+            except OSError as e:
+                raise RuntimeError(f"--link-port {cfg.link_port}: cannot bind the tcp host link: {e}") from None
         if not self.advertise:
             self.advertise = advertised_address(cfg.listen, self.port)
         self._make_node(inc)
@@ -433,6 +442,8 @@ class HostRuntime:
             advertise=self.advertise if self.membership else "",
             qos={"td": ufd.qos.td_upper, "tmr": ufd.qos.tmr_lower, "tm": ufd.qos.tm_upper},
             exclude_after=cfg.core.exclude_after,
+            host_link=cfg.host_link,
+            link_port=self.transport.tcp_port,
         )
         if self.membership and cfg.agents:
             from haa.hostd.agentdriver import AgentDriver

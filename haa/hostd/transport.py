@@ -1,4 +1,4 @@
-"""Host-to-host transport: one reliable FIFO channel per ordered host pair over gRPC (`haa.v1.HostLink`).
+"""Host-to-host transport: one reliable FIFO channel per ordered host pair over gRPC (`haa.v1.HostLink`) or TCP.
 
 The algorithms of thesis Appendix II assume reliable FIFO channels between correct processes (§4.3.1). A TCP
 connection is FIFO but not reliable across reconnects, so each direction of each host pair is a *link* with
@@ -49,6 +49,15 @@ MAC key, sent to the receiver inside the TLS stream (metadata `x-haa-hb-key`, 64
 the receiver checks a datagram from `src` with the key of `src`'s accepted stream, so one host's key cannot
 forge another's heartbeats. Without TLS the key is derived from the cluster token, as before.
 
+Carriers (`carrier`, `haa-hostd --host-link`): everything above is the link; what carries a session is a
+grpc.aio stream (`GRPC`, the default) or a framed TCP connection (`TCP`, haa.hostd.tcplink: the same Frame
+and LinkReply bytes, the same handshake metadata, the same refusals by status code name, several times less
+CPU per frame). Only the carrier differs: the sender's `OutLink` talks to a `LinkCall` (read a reply, write a
+frame, cancel) that either carrier provides, and the receiver's checks (`Transport._admit`), frame handling
+(`Transport.on_frame`) and acks (`_Acker`) are shared. Every host of a cluster must use the same carrier; a
+link to a host with the other one is refused with a log line that says so (`link_wrong_carrier`,
+`rejected_wrong_carrier`).
+
 Every message and byte sent and received is counted per payload kind in `counters` (a `collections.Counter`
 the status RPC exposes), e.g. `tx_msgs.heartbeat`, `rx_bytes.oac_decide`.
 
@@ -69,15 +78,27 @@ import secrets
 import socket
 import time
 from collections import Counter, deque
-from collections.abc import AsyncIterator, Callable
-from typing import Any
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any, Protocol
 
 import grpc
 from google.protobuf.message import DecodeError
 from grpc import aio
 
 from haa import tls as tlsmod
-from haa.hostd import wire
+from haa.hostd import tcplink, wire
+from haa.hostd.linkcommon import (
+    MD_INC,
+    MD_NEWER,
+    MD_SENDER,
+    MD_TOKEN,
+    LinkDown,
+    LinkGap,
+    LinkRefused,
+    Refusal,
+    parse_incarnation,
+    split_address,
+)
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.messages import Heartbeat, Message
 from haa.pb import hostlink_pb2 as pb
@@ -85,14 +106,13 @@ from haa.pb import hostlink_pb2 as pb
 log = logging.getLogger(LOGGER_NAME + ".transport")
 
 OPEN_METHOD = "/haa.v1.HostLink/Open"
-MD_TOKEN = "x-haa-token"
-MD_SENDER = "x-haa-sender"
-MD_INC = "x-haa-incarnation"
+#: the carriers of a host link (`Transport(carrier=...)`, `haa-hostd --host-link`): every host of a cluster uses one
+GRPC = "grpc"
+TCP = "tcp"
+CARRIERS = (GRPC, TCP)
 #: under TLS: the link's heartbeat MAC key, hex (see the module docstring)
 MD_HB_KEY = "x-haa-hb-key"
 _HB_KEY_RE = re.compile(r"[0-9a-f]{64}")
-#: trailing metadata of a stale-incarnation refusal: the newer incarnation of the sender the receiver knows
-MD_NEWER = "x-haa-newer-incarnation"
 
 #: (dst_inc, envelope chunk) — what a link queues
 Entry = tuple[int, bytes]
@@ -104,24 +124,13 @@ OnPeerIncarnation = Callable[[str, int], None]
 #: host's name (`newer`): this process has been superseded (docs/membership.md, "incarnation claims")
 OnSuperseded = Callable[[str, int], None]
 
-#: incarnations are unsigned 64-bit numbers (the wire's `uint64`); 0 means "unknown" and is never valid
-MAX_INCARNATION = (1 << 64) - 1
 #: an incarnation is `time.time_ns()` when the daemon (re)started (haa.hostd.runtime): a claim more than this
 #: many seconds ahead of the receiver's clock is refused (`rejected_future_incarnation`, OUT_OF_RANGE)
 MAX_INCARNATION_AHEAD = 60.0
 #: a sender incarnation counts as live on this host while one of its streams is open and it sent a valid
 #: message within this many seconds plus twice the heartbeat period it announced last
 LIVE_WINDOW = 1.0
-_INC_RE = re.compile(r"[1-9][0-9]{0,19}")
 
-
-def parse_incarnation(text: str) -> int | None:
-    """The `x-haa-incarnation` metadata value as an incarnation, or None: plain decimal digits only (no sign,
-    spaces, underscores or non-ASCII digits, which `int()` would accept), 1 .. `MAX_INCARNATION`."""
-    if not isinstance(text, str) or not _INC_RE.fullmatch(text):
-        return None
-    inc = int(text)
-    return inc if inc <= MAX_INCARNATION else None
 
 #: the largest gRPC message a host sends or accepts, host-link frames and control requests alike (one server
 #: serves both, and gRPC's limits are per server): a larger one is refused by gRPC itself before it is decoded
@@ -151,16 +160,6 @@ LAZY_LATE = 0.001
 def heartbeat_key(token: str) -> bytes:
     """The MAC key of heartbeat datagrams (a hash of the token: the token itself never keys two things)."""
     return hashlib.sha256(b"haa-heartbeat\0" + token.encode()).digest()
-
-
-def split_address(address: str) -> tuple[str, int] | None:
-    """("host", port) of "host:port" or "[v6]:port"; None if it has no numeric port."""
-    host, sep, port = address.rpartition(":")
-    if not sep or not port.isdigit():
-        return None
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    return host, int(port)
 
 
 def _varint(n: int) -> bytes:
@@ -210,8 +209,31 @@ def valid_name(name: str) -> bool:
     return bool(NAME_RE.match(name))
 
 
-class LinkDown(Exception):
-    """The current stream of a link ended (the link task reconnects)."""
+class LinkCall(Protocol):
+    """One sender-side session of a link, whatever carries it (a grpc.aio stream call, `_GrpcCall`, or a TCP
+    connection, `haa.hostd.tcplink.ClientConn`): the receiver's replies, serialized `LinkReply`s (None once
+    the stream ended), and the serialized `Frame`s this side writes."""
+
+    async def read(self) -> bytes | None: ...
+
+    async def write(self, data: bytes) -> None: ...
+
+    def cancel(self) -> bool | None: ...
+
+
+class _GrpcCall:
+    """A `HostLink.Open` stream call as a `LinkCall`."""
+
+    __slots__ = ("call", "cancel", "write")
+
+    def __init__(self, call: aio.StreamStreamCall) -> None:
+        self.call = call
+        self.write = call.write
+        self.cancel = call.cancel
+
+    async def read(self) -> bytes | None:
+        data = await self.call.read()
+        return None if data is aio.EOF else data
 
 
 class OutLink:
@@ -363,9 +385,18 @@ class OutLink:
                 code = e.code() if isinstance(e, aio.AioRpcError) else None
                 reason = f"{code.name if code else 'rpc error'}: {e.details() if code else e}"
                 if code is not None:
-                    self._refused(e, code, reason)
+                    newer = None
+                    for key, value in e.trailing_metadata() or ():
+                        if key == MD_NEWER and isinstance(value, str):
+                            newer = parse_incarnation(value)
+                    self._refused(code.name, reason, newer)
+            except LinkRefused as e:  # the TCP carrier's refusal (haa.hostd.tcplink)
+                reason = f"{e.code}: {e.details}"
+                self._refused(e.code, reason, e.newer)
             except asyncio.InvalidStateError as e:  # grpc.aio: a write on a call that has just finished
                 reason = f"stream finished: {e}"
+            except OSError as e:  # the TCP carrier: connection refused or reset, a TLS handshake that failed
+                reason = f"{type(e).__name__}: {e}"
             except Exception as e:  # a link must survive anything and reconnect
                 reason = f"{type(e).__name__}: {e}"
                 log.exception("link %s failed", self.peer, extra={"event": "link_error", "fields": {}})
@@ -382,23 +413,20 @@ class OutLink:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2.0, t.max_backoff)
 
-    def _refused(self, e: aio.AioRpcError, code: grpc.StatusCode, reason: str) -> None:
-        """The receiver refused this host's stream: say why (rate-limited), and if it knows a newer incarnation
-        of this host's name, this process has been superseded (`Transport.on_superseded`)."""
+    def _refused(self, code: str, reason: str, newer: int | None) -> None:
+        """The receiver refused this host's stream with status `code` (a `grpc.StatusCode` name, whichever the
+        carrier): say why (rate-limited), and if it knows a newer incarnation of this host's name (`newer`), this
+        process has been superseded (`Transport.on_superseded`)."""
         t = self.t
-        if code not in (grpc.StatusCode.FAILED_PRECONDITION, grpc.StatusCode.OUT_OF_RANGE) and not (
-            code == grpc.StatusCode.UNAVAILABLE and " is live on " in reason
+        if code not in ("FAILED_PRECONDITION", "OUT_OF_RANGE") and not (
+            code == "UNAVAILABLE" and " is live on " in reason
         ):
             return
         t.counters["link_refused"] += 1
         if t.limiter.allow("refused." + self.peer):
             log_event(log, logging.WARNING, "link_refused", peer=self.peer, reason=reason[:300])
-        if code != grpc.StatusCode.FAILED_PRECONDITION:
+        if code != "FAILED_PRECONDITION":
             return
-        newer = None
-        for key, value in e.trailing_metadata() or ():
-            if key == MD_NEWER and isinstance(value, str):
-                newer = parse_incarnation(value)
         if newer is not None and newer > t.incarnation:
             t.counters["link_superseded"] += 1
             # not from inside this task: the callback reincarnates, which restarts (cancels) every link task
@@ -409,16 +437,20 @@ class OutLink:
         md: tuple[tuple[str, str], ...] = ((MD_TOKEN, t.token), (MD_SENDER, t.name), (MD_INC, str(t.incarnation)))
         if t.tls is not None:
             md += ((MD_HB_KEY, self.hb_key.hex()),)
-        call = self._open(metadata=md, wait_for_ready=True)
+        call: LinkCall | None = None
         try:
             try:
                 async with asyncio.timeout(t.handshake_timeout):
+                    if t.carrier == TCP:
+                        call = await tcplink.connect(self, md)
+                    else:
+                        call = _GrpcCall(self._open(metadata=md, wait_for_ready=True))
                     data = await call.read()
             except TimeoutError:
                 raise LinkDown("no handshake") from None
             if not self._current():
                 raise asyncio.CancelledError
-            if data is aio.EOF:
+            if data is None:
                 raise LinkDown("stream closed before the handshake")
             try:
                 reply = pb.LinkReply.FromString(data)
@@ -462,7 +494,8 @@ class OutLink:
             finally:
                 reader.cancel()
         finally:
-            call.cancel()
+            if call is not None:
+                call.cancel()
 
     async def _resolve_heartbeats(self, port: int) -> None:
         """Send heartbeats as datagrams to the receiver's announced `port` at the address of this link
@@ -526,11 +559,11 @@ class OutLink:
             self.pending.extendleft(reversed(unacked))
             unacked.clear()
 
-    async def _read_acks(self, call: aio.StreamStreamCall, gen: int) -> None:
+    async def _read_acks(self, call: LinkCall, gen: int) -> None:
         try:
             while True:
                 data = await call.read()
-                if data is aio.EOF or gen != self._gen:
+                if data is None or gen != self._gen:
                     return
                 try:
                     a = pb.LinkReply.FromString(data).acked_seq
@@ -559,7 +592,7 @@ class OutLink:
         self.base += n
         self.acked = a
 
-    async def _write_loop(self, call: aio.StreamStreamCall) -> None:
+    async def _write_loop(self, call: LinkCall) -> None:
         t = self.t
         pending = self.pending
         unacked = self.unacked
@@ -620,8 +653,14 @@ class _RxState:
         self.hb_key: bytes | None = None  # under TLS: the MAC key of its heartbeat datagrams to this host
 
 
-class LinkGap(Exception):
-    """A frame skips link sequence numbers: end the stream, the sender resends from our last + 1."""
+class Cancellable(Protocol):
+    """An inbound stream as the transport ends it: a handler task (gRPC) or a connection (TCP)."""
+
+    def cancel(self) -> Any: ...
+
+
+#: what `Transport._admit` returns: (sender, sender incarnation, its receive state, its heartbeat key under TLS)
+Admitted = tuple[str, int, _RxState, bytes | None]
 
 
 class Transport:
@@ -667,9 +706,20 @@ class Transport:
         lazy_delay: float = LAZY_DELAY,
         lazy_quiet: float = LAZY_QUIET,
         tls: tlsmod.HostTls | None = None,
+        carrier: str = GRPC,
+        stall_timeout: float = tcplink.STALL_TIMEOUT,
     ) -> None:
         if name in peers:
             raise ValueError(f"{name!r} cannot be its own peer")
+        if carrier not in CARRIERS:
+            raise ValueError(f"host link carrier {carrier!r}: one of {', '.join(CARRIERS)}")
+        #: what carries this host's links: gRPC streams, or framed TCP connections (haa.hostd.tcplink)
+        self.carrier = carrier
+        #: TCP carrier: the port the link server listens on (`open_tcp`), 0 before; its server and connections
+        self.tcp_port = 0
+        self._tcp_server: asyncio.AbstractServer | None = None
+        #: TCP carrier: a peer that leaves a frame (or its hello) unfinished this long is cut off (tcplink)
+        self.stall_timeout = stall_timeout
         self.name = name
         self.token = token
         self.tls = tls
@@ -703,9 +753,9 @@ class Transport:
         self.links: dict[str, OutLink] = {}
         self._rx: dict[str, _RxState] = {}
         self._inbound: dict[str, int] = Counter()  # open inbound streams per sender
-        self._handlers: set[asyncio.Task[Any]] = set()  # tasks serving inbound streams
-        self._rx_tasks: dict[str, dict[asyncio.Task[Any], int]] = {}  # sender -> its stream tasks -> incarnation
-        self._ended: set[asyncio.Task[Any]] = set()  # stream tasks ended because the sender was superseded
+        self._handlers: set[Cancellable] = set()  # inbound streams (tasks, TCP connections), channel closings
+        self._rx_tasks: dict[str, dict[Cancellable, int]] = {}  # sender -> its inbound streams -> incarnation
+        self._ended: set[Cancellable] = set()  # inbound streams ended because the sender was superseded
         self._started = False
         self._closing = False
         #: heartbeats as datagrams (`open_heartbeats`); the port is announced in every handshake
@@ -824,6 +874,7 @@ class Transport:
         if self._lazy_timer is not None:
             self._lazy_timer.cancel()
             self._lazy_timer = None
+        self.close_tcp()
         for task in list(self._handlers):
             task.cancel()
         for link in self.links.values():
@@ -917,13 +968,33 @@ class Transport:
 
     # ------------------------------------------------------------------ receiving
 
+    async def open_tcp(self, host: str, port: int = 0) -> int:
+        """TCP carrier: listen for links on `host:port` (0: any free port; "" or "0.0.0.0": every address) with
+        this host's TLS material if it has some; returns the port (peers learn it from `HostLink/LinkPort`).
+        OSError if the port cannot be had."""
+        self._tcp_server, self.tcp_port = await tcplink.serve(self, host, port)
+        return self.tcp_port
+
+    def close_tcp(self) -> None:
+        """TCP carrier: stop listening and end every inbound TCP link (their senders reconnect and resend)."""
+        if self._tcp_server is not None:
+            self._tcp_server.close()
+            self._tcp_server = None
+        self.tcp_port = 0
+        for conn in [h for h in self._handlers if isinstance(h, tcplink.ServerConn)]:
+            conn.cancel()
+
     def rpc_handler(self) -> grpc.GenericRpcHandler:
         return grpc.method_handlers_generic_handler(
             "haa.v1.HostLink",
             {
                 "Open": grpc.stream_stream_rpc_method_handler(
                     self._serve_open, request_deserializer=None, response_serializer=None
-                )
+                ),
+                # (a raw-bytes method outside hostlink.proto's service: `b"tcp PORT"` or the carrier's name)
+                "LinkPort": grpc.unary_unary_rpc_method_handler(
+                    self._serve_link_port, request_deserializer=None, response_serializer=None
+                ),
             },
         )
 
@@ -963,48 +1034,47 @@ class Transport:
         if self.limiter.allow(counter):
             log_event(log, logging.WARNING, event, **fields)
 
-    async def _serve_open(self, request_iterator: AsyncIterator[bytes], context: aio.ServicerContext) -> None:
-        md = context.invocation_metadata() or ()
-        if not self.check_token(md):
-            self._reject("rejected_unauthenticated", "reject_unauthenticated", peer=context.peer())
-            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
-        mdd = {k: v for k, v in md if isinstance(v, str)}
-        sender = mdd.get(MD_SENDER, "")
+    def _admit(self, md: dict[str, str], token_ok: bool, peer: str, ident: tuple[str, str] | None) -> Admitted:
+        """The checks of a new inbound link, whichever carrier opened it: the token (`token_ok`), under TLS the
+        certificate's identity `ident` against the sender's name, the sender, its incarnation claim. Counts and
+        logs a refusal and raises `Refusal` (a `grpc.StatusCode` name, the details, the newer incarnation of a
+        stale-incarnation refusal); else registers the stream (`_RxState.streams`, `link_accepts`) and returns
+        (sender, incarnation, state, heartbeat key). The caller must call `_closed_stream` when it ends."""
+        if not token_ok:
+            self._reject("rejected_unauthenticated", "reject_unauthenticated", peer=peer)
+            raise Refusal("UNAUTHENTICATED", "missing or wrong cluster token")
+        sender = md.get(MD_SENDER, "")
         hb_key = None
         if self.tls is not None:
-            ident = tlsmod.peer_identity(context)
             if ident != (tlsmod.HOST, sender):
                 # a certificate of this cluster's CA (the TLS handshake checked that), but not of `sender`: a host
                 # speaks only as itself (docs/deploy.md, "Mutual TLS")
                 cert = f"{ident[0]} {ident[1]}" if ident else "none"
                 self._reject("rejected_name_mismatch", "reject_name_mismatch", sender=sender[:100], certificate=cert,
-                             peer=context.peer())
-                await context.abort(grpc.StatusCode.PERMISSION_DENIED,
-                                    f"the certificate is {cert}'s: it cannot speak as {sender[:100]!r}")
-            text = mdd.get(MD_HB_KEY, "")
+                             peer=peer)
+                raise Refusal("PERMISSION_DENIED", f"the certificate is {cert}'s: it cannot speak as {sender[:100]!r}")
+            text = md.get(MD_HB_KEY, "")
             if not _HB_KEY_RE.fullmatch(text):
                 self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender, why=MD_HB_KEY)
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_HB_KEY}: 64 hex digits under TLS")
+                raise Refusal("INVALID_ARGUMENT", f"bad {MD_HB_KEY}: 64 hex digits under TLS")
             hb_key = bytes.fromhex(text)
         if sender not in self.peers and not (self.accept_unknown and valid_name(sender) and sender != self.name):
-            self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=context.peer())
-            await context.abort(grpc.StatusCode.PERMISSION_DENIED, f"{sender[:100]!r} is not a configured peer")
-        inc = parse_incarnation(mdd.get(MD_INC, ""))
+            self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=peer)
+            raise Refusal("PERMISSION_DENIED", f"{sender[:100]!r} is not a configured peer")
+        inc = parse_incarnation(md.get(MD_INC, ""))
         if inc is None:
             self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender)
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad {MD_INC}: a decimal in 1..2**64-1")
-            return
+            raise Refusal("INVALID_ARGUMENT", f"bad {MD_INC}: a decimal in 1..2**64-1")
         ahead = (inc - self.wall_ns()) / 1e9
         if ahead > self.max_ahead:
             # incarnations are wall-clock timestamps: one far in the future is a forgery (or a broken clock);
             # believed, it would make every real incarnation of that host look stale
             self._reject("rejected_future_incarnation", "reject_future_incarnation", sender=sender, inc=inc,
                          ahead_s=round(ahead, 3))
-            await context.abort(
-                grpc.StatusCode.OUT_OF_RANGE,
+            raise Refusal(
+                "OUT_OF_RANGE",
                 f"incarnation {inc} is {ahead:.0f} s ahead of {self.name}'s clock (at most {self.max_ahead:g} s)",
             )
-            return
         st = self._rx.get(sender)
         now = asyncio.get_running_loop().time()
         if st is None or st.inc == inc:
@@ -1016,19 +1086,11 @@ class Transport:
                 # its streams, and is accepted at the next attempt (docs/membership.md, "incarnation claims")
                 self._reject("rejected_live_incarnation", "reject_live_incarnation", sender=sender, inc=inc,
                              live=st.inc)
-                await context.abort(
-                    grpc.StatusCode.UNAVAILABLE, f"{sender} incarnation {st.inc} is live on {self.name}"
-                )
-                return
+                raise Refusal("UNAVAILABLE", f"{sender} incarnation {st.inc} is live on {self.name}")
         elif st.confirmed or self._live(st, now):
             self._reject("rejected_stale_incarnation", "reject_stale_incarnation", sender=sender, inc=inc,
                          newer=st.inc)
-            await context.abort(
-                grpc.StatusCode.FAILED_PRECONDITION,
-                "a newer incarnation of the sender exists",
-                trailing_metadata=((MD_NEWER, str(st.inc)),),
-            )
-            return
+            raise Refusal("FAILED_PRECONDITION", "a newer incarnation of the sender exists", st.inc)
         else:
             # the newer incarnation was only ever a claim (no valid message came with it) and it is gone:
             # forget it, so that a claim alone can never lock the real host out
@@ -1053,21 +1115,80 @@ class Transport:
         link = self.links.get(sender)
         if link is not None:
             link.kick()
+        return sender, inc, st, hb_key
+
+    def _opened_stream(self, handle: Cancellable, sender: str, inc: int) -> None:
+        """Remember an accepted inbound stream (an asyncio task under gRPC, a connection under TCP): `stop` and a
+        newer incarnation of its sender end it with `handle.cancel()`."""
+        self._handlers.add(handle)
+        self._rx_tasks.setdefault(sender, {})[handle] = inc
+
+    def _closed_stream(self, handle: Cancellable | None, sender: str, st: _RxState) -> None:
+        """An inbound stream `_admit` accepted ended (`handle`: as given to `_opened_stream`, if it was)."""
+        if handle is not None:
+            self._handlers.discard(handle)
+            self._ended.discard(handle)
+            tasks = self._rx_tasks.get(sender)
+            if tasks is not None:
+                tasks.pop(handle, None)
+                if not tasks:
+                    del self._rx_tasks[sender]
+        self._inbound[sender] -= 1
+        st.streams -= 1
+
+    def acker(self, write: Callable[[bytes], Awaitable[None]], st: _RxState) -> _Acker:
+        """The acks of an inbound link whose replies `write` writes (see `_Acker`)."""
+        return _Acker(self, write, st)
+
+    def handshake_reply(self, st: _RxState) -> bytes:
+        """The first reply on an accepted link: who this host is and what it already has from the sender."""
+        return pb.LinkReply(
+            receiver=self.name,
+            receiver_incarnation=self.incarnation,
+            acked_seq=st.last,
+            heartbeat_port=self.heartbeat_port,
+        ).SerializeToString()
+
+    def wrong_carrier(self, peer: str, theirs: str) -> str:
+        """A peer tried to open a link with the carrier this host does not use: count, log, and the reason."""
+        why = (f"{self.name} uses the {self.carrier} host link, the sender {theirs}: every host of a cluster must use "
+               f"the same (haa-hostd --host-link)")
+        self._reject("rejected_wrong_carrier", "reject_wrong_carrier", peer=peer, theirs=theirs, ours=self.carrier)
+        return why
+
+    async def _serve_link_port(self, _request: bytes, context: aio.ServicerContext) -> bytes:
+        """`HostLink/LinkPort`: where this host takes TCP links (`b"tcp PORT"`), or `b"grpc"` if it does not
+        (the TCP carrier's sender asks before it connects: haa.hostd.tcplink, "Where the TCP link listens")."""
+        if not self.check_token(context.invocation_metadata() or ()):
+            self._reject("rejected_unauthenticated", "reject_unauthenticated", peer=context.peer())
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
+        if self.carrier == TCP and self.tcp_port:
+            return b"tcp %d" % self.tcp_port
+        return self.carrier.encode()
+
+    async def _serve_open(self, request_iterator: AsyncIterator[bytes], context: aio.ServicerContext) -> None:
+        if self.carrier != GRPC:
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, self.wrong_carrier(context.peer(), GRPC))
+        md = context.invocation_metadata() or ()
+        mdd = {k: v for k, v in md if isinstance(v, str)}
+        try:
+            sender, inc, st, _hb = self._admit(
+                mdd, self.check_token(md), context.peer(),
+                tlsmod.peer_identity(context) if self.tls is not None else None,
+            )
+        except Refusal as r:
+            await context.abort(
+                getattr(grpc.StatusCode, r.code), r.details,
+                trailing_metadata=((MD_NEWER, str(r.newer)),) if r.newer is not None else (),
+            )
+            return
         acker: _Acker | None = None
         task = asyncio.current_task()
         if task is not None:
-            self._handlers.add(task)
-            self._rx_tasks.setdefault(sender, {})[task] = inc
+            self._opened_stream(task, sender, inc)
         try:
-            await context.write(
-                pb.LinkReply(
-                    receiver=self.name,
-                    receiver_incarnation=self.incarnation,
-                    acked_seq=st.last,
-                    heartbeat_port=self.heartbeat_port,
-                ).SerializeToString()
-            )
-            acker = _Acker(self, context, st)
+            await context.write(self.handshake_reply(st))
+            acker = _Acker(self, context.write, st)
             await self._receive(request_iterator, sender, inc, st, acker)
         except asyncio.CancelledError:
             if not self._closing and task not in self._ended:
@@ -1080,16 +1201,7 @@ class Transport:
         finally:
             if acker is not None:
                 acker.stop()
-            if task is not None:
-                self._handlers.discard(task)
-                self._ended.discard(task)
-                tasks = self._rx_tasks.get(sender)
-                if tasks is not None:
-                    tasks.pop(task, None)
-                    if not tasks:
-                        del self._rx_tasks[sender]
-            self._inbound[sender] -= 1
-            st.streams -= 1
+            self._closed_stream(task, sender, st)
 
     async def _receive(
         self,
@@ -1099,67 +1211,76 @@ class Transport:
         st: _RxState,
         acker: _Acker,
     ) -> None:
-        counters = self.counters
-        decode = wire.decode
-        parse = pb.Frame.FromString
+        on_frame = self.on_frame
         async for data in request_iterator:
-            if self._rx.get(sender) is not st:
-                # a newer incarnation of the sender connected: this stream belongs to a dead process
-                counters["rejected_stale_incarnation"] += 1
+            if not on_frame(data, sender, inc, st):
                 return
-            try:
-                frame = parse(data)
-            except DecodeError:
-                self._reject("rejected_malformed", "reject_malformed", sender=sender, size=len(data))
-                continue
-            seq = frame.first_seq
-            if seq == 0:
-                self._reject("rejected_malformed", "reject_malformed", sender=sender, why="first_seq 0")
-                continue
-            counters["rx_frames"] += 1
-            items: list[tuple[int, Message]] = []
-            for env in frame.envelopes:
-                last = st.last
-                if seq <= last:
-                    counters["link_duplicates"] += 1
-                    seq += 1
-                    continue
-                if seq > last + 1:
-                    counters["link_gap"] += 1
-                    log_event(log, logging.WARNING, "link_gap", sender=sender, expected=last + 1, got=seq)
-                    if st.gaps < 3:
-                        # never skip a message: end the stream; the sender reconnects and resends from
-                        # last + 1. (After three such streams in a row the sender evidently no longer has
-                        # the message — a bug — and the gap is accepted rather than stalling the link.)
-                        st.gaps += 1
-                        if items:
-                            self.on_envelopes(sender, inc, items)
-                        raise LinkGap(f"expected {last + 1}, got {seq}")
-                    log_event(log, logging.ERROR, "link_gap_accepted", sender=sender, expected=last + 1, got=seq)
-                st.gaps = 0
-                st.last = seq
-                seq += 1
-                try:
-                    src, src_inc, dst_inc, msg = decode(env)
-                except wire.WireError as e:
-                    self._reject("rejected_invalid", "reject_invalid", sender=sender, reason=str(e))
-                    continue
-                if src != sender or src_inc != inc:
-                    self._reject(
-                        "rejected_invalid", "reject_invalid", sender=sender, reason=f"envelope from {src}#{src_inc}"
-                    )
-                    continue
-                kind = wire.KIND[type(msg)]
-                counters["rx_msgs." + kind] += 1
-                counters["rx_bytes." + kind] += env.ByteSize()
-                items.append((dst_inc, msg))
-                if type(msg) is Heartbeat:
-                    st.period = min(msg.period, 10.0)  # (wire.decode checked it is finite and positive)
-            if items:
-                st.confirmed = True
-                st.heard = self._last_rx = asyncio.get_running_loop().time()
-                self.on_envelopes(sender, inc, items)
             acker.frame()
+
+    def on_frame(self, data: bytes, sender: str, inc: int, st: _RxState) -> bool:
+        """One serialized `Frame` of an accepted link from `sender`#`inc` (whichever carrier brought it): deliver
+        its new, valid envelopes (see the module docstring). False: this stream belongs to a dead process (a newer
+        incarnation of the sender connected) and must end; raises `LinkGap` when the frame skips sequence numbers
+        (the stream must end: the sender resends)."""
+        counters = self.counters
+        if self._rx.get(sender) is not st:
+            # a newer incarnation of the sender connected: this stream belongs to a dead process
+            counters["rejected_stale_incarnation"] += 1
+            return False
+        try:
+            frame = pb.Frame.FromString(data)
+        except DecodeError:
+            self._reject("rejected_malformed", "reject_malformed", sender=sender, size=len(data))
+            return True
+        seq = frame.first_seq
+        if seq == 0:
+            self._reject("rejected_malformed", "reject_malformed", sender=sender, why="first_seq 0")
+            return True
+        counters["rx_frames"] += 1
+        decode = wire.decode
+        items: list[tuple[int, Message]] = []
+        for env in frame.envelopes:
+            last = st.last
+            if seq <= last:
+                counters["link_duplicates"] += 1
+                seq += 1
+                continue
+            if seq > last + 1:
+                counters["link_gap"] += 1
+                log_event(log, logging.WARNING, "link_gap", sender=sender, expected=last + 1, got=seq)
+                if st.gaps < 3:
+                    # never skip a message: end the stream; the sender reconnects and resends from
+                    # last + 1. (After three such streams in a row the sender evidently no longer has
+                    # the message — a bug — and the gap is accepted rather than stalling the link.)
+                    st.gaps += 1
+                    if items:
+                        self.on_envelopes(sender, inc, items)
+                    raise LinkGap(f"expected {last + 1}, got {seq}")
+                log_event(log, logging.ERROR, "link_gap_accepted", sender=sender, expected=last + 1, got=seq)
+            st.gaps = 0
+            st.last = seq
+            seq += 1
+            try:
+                src, src_inc, dst_inc, msg = decode(env)
+            except wire.WireError as e:
+                self._reject("rejected_invalid", "reject_invalid", sender=sender, reason=str(e))
+                continue
+            if src != sender or src_inc != inc:
+                self._reject(
+                    "rejected_invalid", "reject_invalid", sender=sender, reason=f"envelope from {src}#{src_inc}"
+                )
+                continue
+            kind = wire.KIND[type(msg)]
+            counters["rx_msgs." + kind] += 1
+            counters["rx_bytes." + kind] += env.ByteSize()
+            items.append((dst_inc, msg))
+            if type(msg) is Heartbeat:
+                st.period = min(msg.period, 10.0)  # (wire.decode checked it is finite and positive)
+        if items:
+            st.confirmed = True
+            st.heard = self._last_rx = asyncio.get_running_loop().time()
+            self.on_envelopes(sender, inc, items)
+        return True
 
 
 class _Acker:
@@ -1168,11 +1289,12 @@ class _Acker:
     most `ack_interval` (a profile of 10 hosts under load showed 5 ms acks costing a sixth of each host's
     CPU; at 100 ms an idle 10-host group still acked every heartbeat — 36 acks/s per host — and 1 s cut the
     idle cluster's CPU from 49 % to 37 % of one core; the price is up to 1 s of traffic kept for resending,
-    memory only). All writes after the handshake happen in this task (a stream allows one write at a time)."""
+    memory only). All writes after the handshake happen in this task (a stream allows one write at a time);
+    `write` writes one serialized `LinkReply` on the stream, whichever carrier it is."""
 
-    def __init__(self, t: Transport, context: aio.ServicerContext, st: _RxState) -> None:
+    def __init__(self, t: Transport, write: Callable[[bytes], Awaitable[None]], st: _RxState) -> None:
         self.t = t
-        self.context = context
+        self.write = write
         self.st = st
         self.sent = -1
         self.need = asyncio.Event()
@@ -1192,7 +1314,7 @@ class _Acker:
                 self.need.clear()
                 last = self.st.last
                 if last != self.sent:
-                    await self.context.write(pb.LinkReply(acked_seq=last).SerializeToString())
+                    await self.write(pb.LinkReply(acked_seq=last).SerializeToString())
                     self.sent = last
                     t.counters["acks_sent"] += 1
                 await asyncio.sleep(t.ack_interval)
