@@ -24,8 +24,8 @@ from typing import Any
 
 import psutil
 
-from haa.experiments.ap1 import MODES, run_step
 from haa.cluster.hostprocs import LocalCluster
+from haa.experiments.ap1 import MODES, run_step
 
 
 def _cpu(cluster: LocalCluster) -> float:

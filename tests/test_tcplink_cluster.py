@@ -14,9 +14,9 @@ from typing import Any
 
 import pytest
 
-from haa.hostd import ddb
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
+from haa.hostd import ddb
 
 TOKEN = "tcplink-test-token"
 NAMES = ["h1", "h2", "h3"]
