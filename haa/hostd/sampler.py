@@ -7,10 +7,10 @@ outlives the process; `haactl stats collect` later packs the file into the host'
 and `haactl report` draws it (haa.stats.report). Nothing here talks to other hosts.
 
 How: `StatsSampler(rt, period, agents)` is started by the daemon (haa.hostd.daemon.serve) next to its `HostRuntime`
-(and its agent driver, if any)
-and, every `period` seconds (default 1 s, `haa-hostd --stats-period`, 0 = off), appends one JSON line to
-`<data dir>/stats.jsonl` (flushed at once: a SIGKILL loses at most the sample being built). It only *reads*
-what the runtime already keeps; it adds no bookkeeping to the hot paths:
+and agent driver (None without agents) and, every `period` seconds (default 1 s, `haa-hostd --stats-period`,
+0 = off), appends one JSON line to `<data dir>/stats.jsonl` (flushed at once: a SIGKILL loses at most the
+sample being built). It only *reads* what the runtime and the driver already keep; it adds no bookkeeping to
+the hot paths. It lives next to the daemon, its only user; `haa.stats` reads the files it writes.
 
 Each sample's keys, and where they are read:
 
