@@ -1,7 +1,9 @@
 """The agent part of the control API (`haa.v1.HostControl`, proto/haa/pb/control.proto), and its client.
 
 Served by `HostControlService` (haa.hostd.control), which inherits `AgentControl`; every call needs the
-cluster token like the rest of the API. Operator requests go through the host's agent layer
+cluster token like the rest of the API. The service reaches the agent layer through the runtime
+(`HostRuntime.agent_ops`, `feed`) and the agent processes through the `AgentDriver` the composition root
+(haa.hostd.daemon.build_host) gives it. Operator requests go through the host's agent layer
 (`haa.hostd.agentnode.AgentNode`) and are committed to the replicated agent table:
 
 * `AgentList`: the table as this host holds it (identical on every member), with what this host knows of

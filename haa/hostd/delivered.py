@@ -38,7 +38,7 @@ def chain_hash(prev: str, txid: TxId, payload: bytes) -> str:
     return h.hexdigest()
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class DeliveredEntry:
     """One delivered transaction: its index in this process's delivery order, id, OAC order number, payload
     and the chain hash up to and including it."""
