@@ -12,7 +12,6 @@ import json
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -158,15 +157,21 @@ class FakeSup:
 
 
 class FakeRuntime:
-    """Commits a write by applying it to one replica, as `HostRuntime.ddb_write` does once OAC delivers it."""
+    """The driver's host (`AgentHost`): commits a write by applying it to one replica, as the runtime's group
+    commit does once OAC delivers it."""
 
     def __init__(self, fenced: bool = False) -> None:
         self.name = "h1"
         self.replica = ddb.Ddb()
         self.writes: list[tuple[list[Any], bool]] = []
-        self.counters: dict[str, int] = {}
-        self.node = SimpleNamespace(state=SimpleNamespace(ddb=self.replica), table=None)
+        self.counters: Counter[str] = Counter()
         self.fenced = fenced
+
+    def local_replica(self) -> ddb.Ddb:
+        return self.replica
+
+    def agent_table(self) -> None:
+        return None
 
     async def ddb_write(self, ops: list[Any], atomic: bool = False) -> Any:
         self.writes.append((ops, atomic))
@@ -175,7 +180,7 @@ class FakeRuntime:
 
 def driver(rt: FakeRuntime) -> tuple[AgentDriver, FakeSup]:
     drv = AgentDriver.__new__(AgentDriver)
-    drv.rt = rt  # type: ignore[assignment]
+    drv.host = rt  # type: ignore[assignment]
     drv.sup = FakeSup()  # type: ignore[assignment]
     drv.epochs = {"a": 1}
     drv._tasks = set()

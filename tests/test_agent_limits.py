@@ -337,12 +337,12 @@ def test_a_ddb_write_from_a_stale_instance_is_fenced() -> None:
         getattr(tx, kind).CopyFrom(body)
         assert table.apply(tx.SerializeToString(), ("h1", "h2")).ok
     drv = AgentDriver.__new__(AgentDriver)
-    drv.rt = SimpleNamespace(name="h1", node=SimpleNamespace(table=table))  # type: ignore[assignment]
+    drv.host = SimpleNamespace(name="h1", agent_table=lambda: table)  # type: ignore[assignment]
     drv.epochs = {"a": 1}
     assert drv._fenced("a") == ""
     drv.epochs = {"a": 0}  # an older instance of a, still running here
     assert "stale instance" in drv._fenced("a")
-    drv.rt = SimpleNamespace(name="h2", node=SimpleNamespace(table=table))  # type: ignore[assignment]
+    drv.host = SimpleNamespace(name="h2", agent_table=lambda: table)  # type: ignore[assignment]
     drv.epochs = {"a": 1}  # h2 runs an instance the table does not give it
     assert "stale instance" in drv._fenced("a")
     assert "stale instance" in drv._fenced("unknown")

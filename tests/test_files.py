@@ -431,17 +431,16 @@ def test_fuzz_arena_files_only_arena_error_escapes(text: str) -> None:
 def test_a_corrupt_known_hosts_file_is_ignored_with_a_warning(tmp_path: Path) -> None:
     """haa-hostd reads `<data-dir>/known_hosts.json` at start: a huge, deep or broken one is ignored (the host
     starts without the hint), never read without limit."""
-    from types import SimpleNamespace
+    from haa.hostd.datadir import HostDataDir
 
-    from haa.hostd.runtime import HostRuntime
-
+    data = HostDataDir("h1", tmp_path)
     f = tmp_path / "known_hosts.json"
-    fake = SimpleNamespace(name="h1", _known_hosts_file=lambda: f)
+    assert data.known_hosts_file == f
     for text in ("[" * 100_000, '{"members": 5}', "\xff", " " * (2 << 20), '{"members": [["h1", "a"], ["h1", "a"]]'):
         f.write_text(text, errors="surrogateescape")
-        assert HostRuntime._load_known_hosts(fake) == []  # type: ignore[arg-type]
+        assert data.load_known_hosts() == []
     f.write_text('{"members": [["h1", "127.0.0.1:1"], ["h2", "127.0.0.1:2"]]}')
-    assert HostRuntime._load_known_hosts(fake) == [("h2", "127.0.0.1:2")]  # type: ignore[arg-type]
+    assert data.load_known_hosts() == [("h2", "127.0.0.1:2")]
 
 
 def test_a_broken_cluster_state_file_is_one_clear_error(tmp_path: Path) -> None:

@@ -25,9 +25,9 @@ from haa.cluster.hostprocs import wait_for as wait
 from haa.experiments import memory as membench
 from haa.hostd import agenttable as at
 from haa.hostd import ddb
-from haa.hostd import runtime as rtmod
-from haa.hostd.effects import Deliver
+from haa.hostd.delivered import DeliveredLog
 from haa.hostd.messages import TxId
+from haa.hostd.mirrors import MirrorSub
 from haa.hostd.resources import LoopWatch
 from haa.hostd.transport import MAX_MESSAGE, Transport
 from haa.pb import agenttx_pb2 as apb
@@ -45,24 +45,20 @@ QUEUE_BUDGET = 4 * MiB
 # ----------------------------------------------------------------------------------------- unit: bounds
 
 
-def _runtime() -> rtmod.HostRuntime:
-    return rtmod.HostRuntime(rtmod.RuntimeConfig(name="h1", listen="127.0.0.1:0", peers={}, token="t"))
-
-
 def test_delivered_log_is_bounded_in_bytes_and_keeps_counting() -> None:
-    rt = _runtime()
+    log_ = DeliveredLog()
     payload = b"p" * MiB
     n = 3 * BUFFER_BUDGET // MiB
     for i in range(n):
-        rt._on_deliver(0.0, Deliver(TxId("h2", 1, i + 1), i + 1, payload))
-    kept = sum(len(e.payload) for e in rt.delivered)
-    assert kept == rt.delivered_bytes <= BUFFER_BUDGET
-    assert rt.delivered_count == n and rt.delivered[-1].index == n - 1
-    assert rt.delivered_base + len(rt.delivered) == n
+        log_.append(TxId("h2", 1, i + 1), i + 1, payload)
+    kept = sum(len(e.payload) for e in log_.entries)
+    assert kept == log_.bytes <= BUFFER_BUDGET
+    assert log_.count == n and log_.entries[-1].index == n - 1
+    assert log_.base + len(log_.entries) == n
     # many small entries: the count bound still applies, bytes stay exact
     for i in range(50):
-        rt._on_deliver(0.0, Deliver(TxId("h2", 1, n + i + 1), n + i + 1, b"x"))
-    assert rt.delivered_bytes == sum(len(e.payload) for e in rt.delivered)
+        log_.append(TxId("h2", 1, n + i + 1), n + i + 1, b"x")
+    assert log_.bytes == sum(len(e.payload) for e in log_.entries)
 
 
 def test_mirror_ring_is_bounded_in_bytes() -> None:
@@ -78,7 +74,7 @@ def test_mirror_ring_is_bounded_in_bytes() -> None:
 
 def test_mirror_subscriber_queue_is_bounded_in_bytes() -> None:
     async def main() -> None:
-        sub = rtmod.MirrorSub(views=False)
+        sub = MirrorSub(views=False)
         for seq in range(1, 40):
             sub.push(("batch", seq, b"b" * MiB, seq))
             assert sub.bytes <= BUFFER_BUDGET

@@ -13,19 +13,13 @@ from waits import until
 
 from haa.cluster.hostprocs import free_port
 from haa.hostd.core import CoreConfig
+from haa.hostd.delivered import GENESIS_HASH, chain_hash
 from haa.hostd.effects import CancelTimer, SetTimer
 from haa.hostd.messages import Excluded, TxId
 from haa.hostd.oac import OacError
+from haa.hostd.outcomes import HostReincarnated, ProposeTimeout, TransactionAborted
 from haa.hostd.qos import QosTargets
-from haa.hostd.runtime import (
-    GENESIS_HASH,
-    HostReincarnated,
-    HostRuntime,
-    ProposeTimeout,
-    RuntimeConfig,
-    TransactionAborted,
-    chain_hash,
-)
+from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.ufd import UfdConfig
 
 FAST_CORE = CoreConfig(
@@ -108,12 +102,12 @@ def test_single_host_commit_and_abort_and_delivered_log() -> None:
             await rt.propose(b"veto", participants=[])
         assert exc.value.txid.seq == res.txid.seq + 1
         res2 = await rt.propose(b"b", participants=[])
-        assert [(e.index, e.payload) for e in rt.delivered] == [(0, b"a"), (1, b"b")]
+        assert [(e.index, e.payload) for e in rt.delivered.entries] == [(0, b"a"), (1, b"b")]
         h = chain_hash(chain_hash(GENESIS_HASH, res.txid, b"a"), res2.txid, b"b")
-        assert rt.delivered_hash == h == rt.delivered[-1].chain_hash
-        d2d, p2d = rt.take_latencies(reset=True)
+        assert rt.delivered.hash == h == rt.delivered.entries[-1].chain_hash
+        d2d, p2d = rt.proposals.take_latencies(reset=True)
         assert len(d2d) == 2 and len(p2d) == 3
-        assert rt.take_latencies(reset=False) == ([], [])
+        assert rt.proposals.take_latencies(reset=False) == ([], [])
         st = rt.status()
         assert st["delivered"] == 2 and st["counters"]["oac_aborted"] == 1
         with pytest.raises(OacError):
@@ -131,8 +125,8 @@ def test_two_hosts_commit_then_timeout_when_the_peer_is_gone() -> None:
         await until(lambda: trusted(rts))
         res = await rts["a"].propose(b"both", participants=["a", "b"])
         assert res.participants == ("a", "b")
-        await until(lambda: len(rts["b"].delivered) == 1)
-        assert rts["a"].delivered_hash == rts["b"].delivered_hash
+        await until(lambda: len(rts["b"].delivered.entries) == 1)
+        assert rts["a"].delivered.hash == rts["b"].delivered.hash
         await rts["b"].stop()
         # with two participants nothing can be decided without b: the proposer times out
         with pytest.raises(ProposeTimeout) as exc:
@@ -153,7 +147,7 @@ def test_reincarnation_on_exclusion_notice() -> None:
         old = a.incarnation
         open_tx = asyncio.create_task(a.propose(b"pending", participants=["a", "b"], timeout=5))
         await asyncio.sleep(0)
-        n_timers = len(a._timers)
+        n_timers = len(a.timers)
         assert n_timers > 0
         # b tells a that its incarnation has been excluded
         a._on_envelopes("b", b.incarnation, [(old, Excluded(old))])
@@ -190,8 +184,8 @@ def test_concurrent_proposals_commit_and_close_everything() -> None:
         results = await asyncio.gather(*jobs)
         assert len(results) == 45
         await until(lambda: all(not rt.core.oac.txs for rt in rts.values()), 5)  # type: ignore[union-attr]
-        assert len({rt.delivered_hash for rt in rts.values()}) == 1
-        assert all(len(rt.delivered) == 45 for rt in rts.values())
+        assert len({rt.delivered.hash for rt in rts.values()}) == 1
+        assert all(len(rt.delivered.entries) == 45 for rt in rts.values())
         for rt in rts.values():
             await rt.stop()
 
@@ -199,9 +193,9 @@ def test_concurrent_proposals_commit_and_close_everything() -> None:
 
 
 def test_delivered_log_is_bounded_and_the_chain_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
-    import haa.hostd.runtime as runtime_mod
+    import haa.hostd.delivered as delivered_mod
 
-    monkeypatch.setattr(runtime_mod, "MAX_DELIVERED", 4)
+    monkeypatch.setattr(delivered_mod, "MAX_DELIVERED", 4)
 
     async def main() -> None:
         rt = runtimes(["solo"])["solo"]
@@ -210,10 +204,11 @@ def test_delivered_log_is_bounded_and_the_chain_goes_on(monkeypatch: pytest.Monk
         for i in range(10):
             res = await rt.propose(f"p{i}".encode(), participants=[])
             h = chain_hash(h, res.txid, f"p{i}".encode())
-        assert rt.delivered_count == 10 and rt.status()["delivered"] == 10
-        assert len(rt.delivered) <= 4 and rt.delivered[0].index == rt.delivered_base
-        assert [e.index for e in rt.delivered] == list(range(rt.delivered_base, 10))
-        assert rt.delivered_hash == h == rt.delivered[-1].chain_hash
+        log_ = rt.delivered
+        assert log_.count == 10 and rt.status()["delivered"] == 10
+        assert len(log_.entries) <= 4 and log_.entries[0].index == log_.base
+        assert [e.index for e in log_.entries] == list(range(log_.base, 10))
+        assert log_.hash == h == log_.entries[-1].chain_hash
         await rt.stop()
 
     run(main)

@@ -268,8 +268,9 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
     request gets exactly its own ops' results, later ops see earlier ones, atomic requests travel alone."""
     import asyncio
 
+    from haa.hostd.groupcommit import DDB_MAX_INFLIGHT
     from haa.hostd.membership import NodeConfig
-    from haa.hostd.runtime import DDB_MAX_INFLIGHT, HostRuntime, RuntimeConfig
+    from haa.hostd.runtime import HostRuntime, RuntimeConfig
 
     port = free_port()
     addr = f"127.0.0.1:{port}"
@@ -290,9 +291,9 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
         try:
             await until(lambda: rt.status()["member"], what="a group of one")
             # one core process: c_f = 0, so its group of one is a correct group and takes writes
-            writes = [rt.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 100)]) for i in range(30)]
-            writes.append(rt.ddb_write([ddb.cas("k0", 999, "counter", 7)], atomic=True))  # stale version
-            writes.append(rt.ddb_write([ddb.delete("k1"), ddb.delete("nope")]))
+            writes = [rt.writes.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 100)]) for i in range(30)]
+            writes.append(rt.writes.ddb_write([ddb.cas("k0", 999, "counter", 7)], atomic=True))  # stale version
+            writes.append(rt.writes.ddb_write([ddb.delete("k1"), ddb.delete("nope")]))
             res = await asyncio.gather(*writes)
             for i, r in enumerate(res[:30]):
                 assert [o.key for o in r.results] == [f"k{i}", f"k{i}"] and all(o.ok for o in r.results)

@@ -66,7 +66,7 @@ def _ack_before_commit() -> None:
     def mutated(self: AgentDriver, ev: Any) -> None:
         seen["n"] += 1
         if ev.ops and seen["n"] % ACK_EVERY == 0 and not self._fenced(ev.agent_id):
-            self.rt.counters["mutation_acked_uncommitted"] += 1
+            self.host.counters["mutation_acked_uncommitted"] += 1
             self.sup.answer(ev.agent_id, ev.req_id, True, b"", op_errors=[""] * len(ev.ops))
             return
         orig(self, ev)
@@ -119,7 +119,7 @@ def _late_commit() -> None:
                 self.sup.answer(agent, ev.req_id, False, b"", "mutation late-commit: dropped after chaos/stop")
                 return
             try:
-                res = await self.rt.ddb_write(list(ev.ops), ev.atomic)  # no fencing here: the mutation
+                res = await self.host.ddb_write(list(ev.ops), ev.atomic)  # no fencing here: the mutation
                 errors = ["" if r.ok else (r.reason or "failed") for r in res.results]
                 if self.epochs.get(agent) == epoch:
                     self.sup.answer(agent, ev.req_id, True, b"", op_errors=errors)
@@ -145,7 +145,7 @@ def _drop_message() -> None:
         if type(c) is io.DeliverAgent and not c.msg.src.startswith("@") and not c.msg.reply:
             seen["n"] += 1
             if seen["n"] % DROP_EVERY == 0:
-                self.rt.counters["mutation_dropped_messages"] += 1
+                self.host.counters["mutation_dropped_messages"] += 1
                 return
         orig(self, c)
 

@@ -1,7 +1,9 @@
 """The agent part of the control API (`haa.v1.HostControl`, proto/haa/pb/control.proto), and its client.
 
 Served by `HostControlService` (haa.hostd.control), which inherits `AgentControl`; every call needs the
-cluster token like the rest of the API. Operator requests go through the host's agent layer
+cluster token like the rest of the API. The service reaches the agent layer through the runtime
+(`HostRuntime.agent_ops`, `feed`) and the agent processes through the `AgentDriver` the composition root
+(haa.hostd.daemon.build_host) gives it. Operator requests go through the host's agent layer
 (`haa.hostd.agentnode.AgentNode`) and are committed to the replicated agent table:
 
 * `AgentList`: the table as this host holds it (identical on every member), with what this host knows of
@@ -34,10 +36,11 @@ from grpc import aio
 from haa.agents.channel import message_too_large
 from haa.hostd.agentnode import AgentNode
 from haa.hostd.agenttable import MAX_CONFIG
-from haa.hostd.runtime import NotMembershipMode
+from haa.hostd.outcomes import NotMembershipMode
 from haa.pb import control_pb2 as cpb
 
 if TYPE_CHECKING:
+    from haa.hostd.agentdriver import AgentDriver
     from haa.hostd.runtime import HostRuntime
 
 MD_TOKEN = "x-haa-token"
@@ -49,10 +52,11 @@ class AgentControl:
     """Mixin of `HostControlService`: the agent RPCs."""
 
     rt: HostRuntime
+    agents: AgentDriver | None
 
     async def _agent_node(self, context: aio.ServicerContext) -> AgentNode:
         node = self.rt.node
-        if not isinstance(node, AgentNode) or self.rt.agents is None:
+        if not isinstance(node, AgentNode) or self.agents is None:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION,
                                 f"{self.rt.name} does not run the agent layer (static mode or --no-agents)")
             raise NotMembershipMode("no agent layer")
@@ -60,7 +64,7 @@ class AgentControl:
 
     def _list(self, node: AgentNode) -> cpb.AgentListReply:
         t = node.table
-        drv = self.rt.agents
+        drv = self.agents
         stats = drv.sup.stats() if drv is not None else {}
         out = []
         for r in sorted(t, key=lambda x: x.name):
@@ -95,7 +99,7 @@ class AgentControl:
 
     async def AgentSpawn(self, request: cpb.AgentSpawnRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
-        drv = self.rt.agents
+        drv = self.agents
         info = drv.sup.types.get(request.type) if drv is not None else None
         if info is None:
             known = ", ".join(sorted(drv.sup.types)) if drv is not None else ""
@@ -113,7 +117,7 @@ class AgentControl:
             if why:
                 return cpb.AgentOpReply(ok=False, reason=f"{request.type}: {why}")
         agent_id = str(uuid.uuid4())
-        done = await self.rt.agent_op(
+        done = await self.rt.agent_ops.agent_op(
             node.create_agent, agent_id, request.type, request.config,
             parent=parent,
             cost=request.cost if request.cost > 0 else info.cost,
@@ -129,7 +133,7 @@ class AgentControl:
         r = node.table.resolve(request.ref)
         if r is None:
             return cpb.AgentOpReply(ok=False, reason=f"unknown agent {request.ref!r}")
-        drv = self.rt.agents
+        drv = self.agents
         if drv is None or r.id not in drv.sup.agents():
             return cpb.AgentOpReply(ok=False, id=r.id, name=r.name,
                                     reason=f"not running here; its owner is {r.owner or 'nobody'}")
@@ -144,11 +148,11 @@ class AgentControl:
 
     async def AgentRemove(self, request: cpb.AgentRef, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
-        return self._reply(await self.rt.agent_op(node.remove_agent, request.ref))
+        return self._reply(await self.rt.agent_ops.agent_op(node.remove_agent, request.ref))
 
     async def AgentMove(self, request: cpb.AgentMoveRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
-        return self._reply(await self.rt.agent_op(node.move_agent, request.ref, request.host))
+        return self._reply(await self.rt.agent_ops.agent_op(node.move_agent, request.ref, request.host))
 
     async def AgentSend(self, request: cpb.AgentSendRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
@@ -156,7 +160,7 @@ class AgentControl:
         if too_large:
             self.rt.counters["control_oversized"] += 1
             return cpb.AgentOpReply(ok=False, reason=too_large)
-        ok = self.rt._feed(node.operator_send, request.ref, request.payload)
+        ok = self.rt.feed(node.operator_send, request.ref, request.payload)
         return cpb.AgentOpReply(ok=bool(ok), reason="" if ok else f"unknown agent {request.ref!r}")
 
     async def AgentRequest(self, request: cpb.AgentSendRequest,
@@ -168,7 +172,7 @@ class AgentControl:
             return cpb.AgentRequestReply(ok=False, error=too_large)
         timeout = min(request.timeout, MAX_REQUEST_TIMEOUT) if request.timeout > 0 else 5.0  # NaN: 5 s
         try:
-            rep = await self.rt.agent_request(request.ref, request.payload, timeout=timeout)
+            rep = await self.rt.agent_ops.agent_request(request.ref, request.payload, timeout=timeout)
         except LookupError as e:
             return cpb.AgentRequestReply(ok=False, error=str(e).strip("'\""))
         except TimeoutError:
@@ -179,11 +183,11 @@ class AgentControl:
         node = await self._agent_node(context)
         a = request.action or "status"
         if a in ("pause", "resume"):
-            done = await self.rt.agent_op(node.set_paused, a == "pause")
+            done = await self.rt.agent_ops.agent_op(node.set_paused, a == "pause")
             if not done.ok:
                 await context.abort(grpc.StatusCode.UNAVAILABLE, done.reason)
         elif a == "run":
-            self.rt._feed(node.run_allocation)
+            self.rt.feed(node.run_allocation)
         elif a != "status":
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"unknown action {a!r} (status|pause|resume|run)")
         return self._list(node)
@@ -191,7 +195,7 @@ class AgentControl:
     async def AgentEvents(self, request: cpb.AgentEventsRequest,
                           context: aio.ServicerContext) -> AsyncIterator[cpb.AgentEvent]:
         await self._agent_node(context)
-        drv = self.rt.agents
+        drv = self.agents
         assert drv is not None
         q: asyncio.Queue[dict[str, Any]] = asyncio.Queue(maxsize=10_000)
 

@@ -1,8 +1,12 @@
 """AgentDriver: carries out the agent layer's commands on real agent processes, and feeds their events back.
 
 The sans-I/O `AgentNode` (haa.hostd.agentnode) says what should happen to this host's agent instances
-(`haa.hostd.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver, owned
-by the daemon's `HostRuntime`, joins the two:
+(`haa.hostd.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver joins
+the two. The daemon's composition root (haa.hostd.daemon.build_host) builds it and hands it to the
+`HostRuntime` as its agent backend (the `AgentBackend` protocol of haa.hostd.agentops); at `start` the runtime
+gives it an `AgentHost` — the runtime's `AgentOps` — which is everything the driver reaches of its host: node
+inputs (events, undeliverable messages, costs), the local replica and agent table, and DDB writes. The driver
+never imports or reads the runtime itself:
 
 * SpawnShell -> `supervisor.spawn` (a task; ShellReady when the process said hello, Failed if it could not
   start); StartAgent -> start_fresh / thaw / recover with the messages; DeliverAgent -> deliver (a message
@@ -13,8 +17,8 @@ by the daemon's `HostRuntime`, joins the two:
   type's model refuses (`AgentSupervisor.validate_config`, asked of the fork server), is answered with the
   error at once instead of being committed as an agent that can never start; and the agents' DDB requests,
   served from the local replica (reads, watches) or through the group (writes — DdbPut, and DdbWrite, a batch
-  of ops checked with `ddb.check_op` before anything is proposed — through `HostRuntime.ddb_write`, fenced by
-  the instance's epoch);
+  of ops checked with `ddb.check_op` before anything is proposed — through the host's group commit, fenced
+  by the instance's epoch);
 * every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
   `AgentNode.report_costs`, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
 """
@@ -27,24 +31,23 @@ import json
 import logging
 import time
 import uuid
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol, assert_never
 
 from haa.hostd import agentio as io
 from haa.hostd import agentproc as ap
 from haa.hostd import ddb as ddbmod
-from haa.hostd.agenttable import MAX_CONFIG
+from haa.hostd.agentops import AgentCommand
+from haa.hostd.agenttable import MAX_CONFIG, AgentTable
 from haa.hostd.logs import log_event
+from haa.hostd.outcomes import DdbWriteResult
 from haa.pb import agenttx_pb2 as apb
 
 #: most keys one DdbScan answers, and most value bytes (the answer must fit one channel frame, 16 MiB)
 SCAN_LIMIT = 10_000
 SCAN_MAX_BYTES = 8 * 1024 * 1024
-
-if TYPE_CHECKING:
-    from haa.hostd.runtime import HostRuntime
 
 log = logging.getLogger("haa.hostd.agents")
 
@@ -56,13 +59,36 @@ def to_env(m: apb.RoutedMsg) -> ap.Envelope:
     return ap.Envelope(src=m.src, dst=m.dst, payload=m.payload, conv=m.conv, reply=m.reply, error=m.error)
 
 
-class AgentDriver:
-    """See the module docstring."""
+class AgentHost(Protocol):
+    """What the driver reaches of the host it runs in (the runtime's `haa.hostd.agentops.AgentOps`)."""
 
-    def __init__(self, rt: HostRuntime, workdir: Path | None, stats_period: float = 2.0,
-                 hang_timeout: float = 3.0) -> None:
-        self.rt = rt
-        self.sup = ap.AgentSupervisor(rt.name, self._on_event, workdir=workdir, hang_timeout=hang_timeout)
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def counters(self) -> Counter[str]: ...
+
+    def on_agent_event(self, ev: io.AgentEvent) -> None: ...
+
+    def undeliverable(self, agent: str, epoch: int, msg: apb.RoutedMsg) -> None: ...
+
+    def report_costs(self, cpu: dict[str, float], rates: dict[tuple[str, str], float]) -> None: ...
+
+    def local_replica(self) -> ddbmod.Ddb | None: ...
+
+    def agent_table(self) -> AgentTable | None: ...
+
+    async def ddb_write(self, ops: list[Any], atomic: bool = False) -> DdbWriteResult: ...
+
+
+class AgentDriver:
+    """See the module docstring. `host` is given at `start`."""
+
+    host: AgentHost
+
+    def __init__(self, name: str, workdir: Path | None, stats_period: float = 2.0, hang_timeout: float = 3.0) -> None:
+        self.name = name
+        self.sup = ap.AgentSupervisor(name, self._on_event, workdir=workdir, hang_timeout=hang_timeout)
         self.epochs: dict[str, int] = {}  # agent id -> epoch of the instance the supervisor runs here
         self.stats_period = stats_period
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -78,7 +104,8 @@ class AgentDriver:
 
     # ------------------------------------------------------------------ lifecycle
 
-    async def start(self) -> None:
+    async def start(self, host: AgentHost) -> None:
+        self.host = host
         await self.sup.start()
         self.started = True
         self._stats_task = asyncio.create_task(self._stats_loop(), name="agent-stats")
@@ -102,35 +129,38 @@ class AgentDriver:
 
     # ------------------------------------------------------------------ commands from the node
 
-    def command(self, c: Any) -> None:
-        t = type(c)
+    def command(self, c: AgentCommand) -> None:
         sup = self.sup
         try:
-            if t is io.SpawnShell:
-                self._spawn(c)
-            elif t is io.StartAgent:
-                msgs = [to_env(m) for m in c.messages]
-                if c.mode == "fresh":
-                    for e in msgs:  # messages sent to the agent before it first started
-                        sup.deliver(c.agent, e)
-                    sup.start_fresh(c.agent)
-                elif c.mode == "thaw":
-                    sup.thaw(c.agent, c.state or b"", msgs)
-                else:
-                    sup.recover(c.agent, c.state, msgs)
-            elif t is io.DeliverAgent:
-                if not sup.deliver(c.agent, to_env(c.msg)):
-                    self.rt._feed(self.rt.node.undeliverable, c.agent, c.epoch, c.msg)  # type: ignore[union-attr]
-            elif t is io.FreezeAgent:
-                if sup.state(c.agent) == "running":
-                    sup.freeze(c.agent)
-            elif t is io.KillAgent:
-                if self.epochs.get(c.agent) == c.epoch:
-                    sup.kill(c.agent)
-            elif t is io.AnswerAgent:
-                sup.answer(c.agent, c.req, c.ok, c.value.encode(), c.error)
+            match c:
+                case io.SpawnShell():
+                    self._spawn(c)
+                case io.StartAgent():
+                    msgs = [to_env(m) for m in c.messages]
+                    if c.mode == "fresh":
+                        for e in msgs:  # messages sent to the agent before it first started
+                            sup.deliver(c.agent, e)
+                        sup.start_fresh(c.agent)
+                    elif c.mode == "thaw":
+                        sup.thaw(c.agent, c.state or b"", msgs)
+                    else:
+                        sup.recover(c.agent, c.state, msgs)
+                case io.DeliverAgent():
+                    if not sup.deliver(c.agent, to_env(c.msg)):
+                        self.host.undeliverable(c.agent, c.epoch, c.msg)
+                case io.FreezeAgent():
+                    if sup.state(c.agent) == "running":
+                        sup.freeze(c.agent)
+                case io.KillAgent():
+                    if self.epochs.get(c.agent) == c.epoch:
+                        sup.kill(c.agent)
+                case io.AnswerAgent():
+                    sup.answer(c.agent, c.req, c.ok, c.value.encode(), c.error)
+                case _:
+                    assert_never(c)
         except (KeyError, RuntimeError, ValueError) as e:
-            log_event(log, logging.WARNING, "agent_command_failed", command=t.__name__, agent=c.agent, error=str(e))
+            log_event(log, logging.WARNING, "agent_command_failed", command=type(c).__name__, agent=c.agent,
+                      error=str(e))
 
     def _spawn(self, c: io.SpawnShell) -> None:
         spec = ap.InstanceSpec(c.agent, c.name, c.type, c.config, c.epoch, c.parent or None)
@@ -174,10 +204,8 @@ class AgentDriver:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def _feed_event(self, ev: Any) -> None:
-        node = self.rt.node
-        if node is not None and hasattr(node, "on_agent_event"):
-            self.rt._feed(node.on_agent_event, ev)
+    def _feed_event(self, ev: io.AgentEvent) -> None:
+        self.host.on_agent_event(ev)
 
     # ------------------------------------------------------------------ events of the processes
 
@@ -186,43 +214,45 @@ class AgentDriver:
         epoch = self.epochs.get(a)
         if epoch is None:
             return
-        t = type(ev)
-        if t is ap.Sent:
-            e = ev.env  # type: ignore[union-attr]
-            self._feed_event(io.Sent(a, epoch, e.dst, e.payload, e.conv, e.reply, e.error))
-        elif t is ap.Backup:
-            self._feed_event(io.BackupMade(a, epoch, ev.data))  # type: ignore[union-attr]
-        elif t is ap.Frozen:
-            self.epochs.pop(a, None)
-            self._feed_event(io.Frozen(a, epoch, ev.state))  # type: ignore[union-attr]
-        elif t is ap.Failed:
-            self.epochs.pop(a, None)
-            self._feed_event(io.Failed(a, epoch, ev.reason))  # type: ignore[union-attr]
-        elif t is ap.Stopped:
-            self.epochs.pop(a, None)
-            self._feed_event(io.Stopped(a, epoch))
-        elif t is ap.SpawnChild:
-            self._spawn_child(a, epoch, ev)  # type: ignore[arg-type]
-        elif t is ap.DdbGet:
-            self._ddb_get(ev)  # type: ignore[arg-type]
-        elif t is ap.DdbPut:
-            self._ddb_put(ev)  # type: ignore[arg-type]
-        elif t is ap.DdbScan:
-            self._ddb_scan(ev)  # type: ignore[arg-type]
-        elif t is ap.DdbWrite:
-            self._ddb_write(ev)  # type: ignore[arg-type]
-        elif t is ap.DdbWatch:
-            self._watches[(a, ev.watch_id)] = ev.prefix  # type: ignore[union-attr]
-            self._ensure_ddb_watch()
-        elif t is ap.DdbUnwatch:
-            self._watches.pop((a, ev.watch_id), None)  # type: ignore[union-attr]
+        match ev:
+            case ap.Sent():
+                e = ev.env
+                self._feed_event(io.Sent(a, epoch, e.dst, e.payload, e.conv, e.reply, e.error))
+            case ap.Backup():
+                self._feed_event(io.BackupMade(a, epoch, ev.data))
+            case ap.Frozen():
+                self.epochs.pop(a, None)
+                self._feed_event(io.Frozen(a, epoch, ev.state))
+            case ap.Failed():
+                self.epochs.pop(a, None)
+                self._feed_event(io.Failed(a, epoch, ev.reason))
+            case ap.Stopped():
+                self.epochs.pop(a, None)
+                self._feed_event(io.Stopped(a, epoch))
+            case ap.SpawnChild():
+                self._spawn_child(a, epoch, ev)
+            case ap.DdbGet():
+                self._ddb_get(ev)
+            case ap.DdbPut():
+                self._ddb_put(ev)
+            case ap.DdbScan():
+                self._ddb_scan(ev)
+            case ap.DdbWrite():
+                self._ddb_write(ev)
+            case ap.DdbWatch():
+                self._watches[(a, ev.watch_id)] = ev.prefix
+                self._ensure_ddb_watch()
+            case ap.DdbUnwatch():
+                self._watches.pop((a, ev.watch_id), None)
+            case ap.Ready():
+                pass  # the supervisor's own (the hello of a process); spawn() returns on it
+            case _:
+                assert_never(ev)
 
     # ------------------------------------------------------------------ DDB for agents
 
-    def _replica(self) -> Any:
-        node = self.rt.node
-        st = getattr(node, "state", None)
-        return getattr(st, "ddb", None)
+    def _replica(self) -> ddbmod.Ddb | None:
+        return self.host.local_replica()
 
     def _ddb_get(self, ev: ap.DdbGet) -> None:
         ddb = self._replica()
@@ -254,11 +284,10 @@ class AgentDriver:
     def _fenced(self, agent: str) -> str:
         """'' if this host's instance of `agent` holds the agent's current epoch in the table (its outputs are
         accepted), else the reason: an instance displaced by a newer one elsewhere writes nothing (issue 13)."""
-        node = self.rt.node
-        table = getattr(node, "table", None)
+        table = self.host.agent_table()
         r = table.get(agent) if table is not None else None
         epoch = self.epochs.get(agent)
-        if r is None or r.owner != self.rt.name or epoch is None or r.epoch != epoch:
+        if r is None or r.owner != self.host.name or epoch is None or r.epoch != epoch:
             where = f"epoch {r.epoch} on {r.owner or 'nobody'}" if r is not None else "nothing"
             return f"stale instance (epoch {epoch}): the table gives {agent[:8]} {where}"
         return ""
@@ -267,12 +296,12 @@ class AgentDriver:
         async def run() -> None:
             why = self._fenced(ev.agent_id)
             if why:
-                self.rt.counters["agent_ddb_put_fenced"] += 1
+                self.host.counters["agent_ddb_put_fenced"] += 1
                 self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
                 return
             try:
                 op = ddbmod.put(ev.key, ev.type_name, _decode_value(ev.type_name, ev.value))
-                res = await self.rt.ddb_write([op])
+                res = await self.host.ddb_write([op])
                 bad = [r.reason for r in res.results if not r.ok]
                 self.sup.answer(ev.agent_id, ev.req_id, not bad, b"", "; ".join(bad))
             except Exception as e:
@@ -293,18 +322,18 @@ class AgentDriver:
                 why = f"op {i}: {bad}"
                 break
         if why:
-            self.rt.counters["agent_ddb_write_refused"] += 1
+            self.host.counters["agent_ddb_write_refused"] += 1
             self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
             return
 
         async def run() -> None:
             why = self._fenced(ev.agent_id)
             if why:
-                self.rt.counters["agent_ddb_write_fenced"] += 1
+                self.host.counters["agent_ddb_write_fenced"] += 1
                 self.sup.answer(ev.agent_id, ev.req_id, False, b"", why)
                 return
             try:
-                res = await self.rt.ddb_write(list(ev.ops), ev.atomic)
+                res = await self.host.ddb_write(list(ev.ops), ev.atomic)
                 errors = ["" if r.ok else (r.reason or "failed") for r in res.results]
                 self.sup.answer(ev.agent_id, ev.req_id, True, b"", op_errors=errors)
             except Exception as e:
@@ -351,9 +380,6 @@ class AgentDriver:
                 log.exception("agent stats failed")
 
     def _report(self) -> None:
-        node = self.rt.node
-        if node is None or not hasattr(node, "report_costs"):
-            return
         now = time.monotonic()
         dt = now - self._last_stats if self._last_stats else self.stats_period
         self._last_stats = now
@@ -370,7 +396,7 @@ class AgentDriver:
             prev = self._last_bytes.get(key, 0)
             rates[key] = max(0.0, (total - prev) / dt)
         self._last_bytes = pair_bytes
-        self.rt._feed(node.report_costs, cpu, rates)
+        self.host.report_costs(cpu, rates)
 
     # ------------------------------------------------------------------ the timeline
 

@@ -62,9 +62,8 @@ from haa.hostd import ddb as ddbmod
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.oac import OacError
-from haa.hostd.runtime import (
+from haa.hostd.outcomes import (
     HostReincarnated,
-    MirrorSub,
     NotMembershipMode,
     ProposeTimeout,
     TransactionAborted,
@@ -78,6 +77,7 @@ from haa.pb import hostlink_pb2 as pb
 from haa.tls import ClientTls
 
 if TYPE_CHECKING:
+    from haa.hostd.agentdriver import AgentDriver
     from haa.hostd.messages import TxId
     from haa.hostd.runtime import HostRuntime
 
@@ -132,10 +132,12 @@ def _group_fields(st: dict[str, Any]) -> dict[str, Any]:
 
 
 class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
-    """`haa.v1.HostControl` backed by a `HostRuntime`."""
+    """`haa.v1.HostControl` backed by a `HostRuntime` and, for the agent calls, its agent driver (both given by
+    the composition root, haa.hostd.daemon.build_host; `agents` None without the agent layer)."""
 
-    def __init__(self, runtime: HostRuntime) -> None:
+    def __init__(self, runtime: HostRuntime, agents: AgentDriver | None = None) -> None:
         self.rt = runtime
+        self.agents = agents
         self._limiter = RateLimiter(1.0)
 
     def add_to_server(self, server: aio.Server) -> None:
@@ -224,7 +226,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "membership mode: a transaction goes to every member")
         rt = self.rt
         try:
-            res = await rt.submit(request.payload, "test", timeout=self._deadline(context))
+            res = await rt.writes.submit(request.payload, "test", timeout=self._deadline(context))
         except WriteFailed as e:
             await context.abort(grpc.StatusCode.UNAVAILABLE, e.reason)
             raise
@@ -241,7 +243,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         if size > ddbmod.MAX_BATCH_BYTES:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch larger than {ddbmod.MAX_BATCH_BYTES} bytes")
         try:
-            res = await rt.ddb_write(list(request.ops), request.atomic, timeout=self._deadline(context))
+            res = await rt.writes.ddb_write(list(request.ops), request.atomic, timeout=self._deadline(context))
         except WriteFailed as e:
             return cpb.DdbWriteReply(committed=False, reason=e.reason)
         except NotMembershipMode as e:
@@ -291,7 +293,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             while time.perf_counter() < stop:
                 t = time.perf_counter()
                 try:
-                    await rt.ddb_write([ddbmod.put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
+                    await rt.writes.ddb_write([ddbmod.put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
                 except WriteFailed:
                     failed += 1
                 else:
@@ -311,7 +313,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
 
     async def DdbGet(self, request: cpb.DdbGetRequest, context: aio.ServicerContext) -> cpb.DdbGetReply:
         try:
-            node = self.rt._member_node()
+            node = self.rt.member_node()
         except NotMembershipMode as e:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
             raise
@@ -342,13 +344,11 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
     async def Mirror(self, request: cpb.MirrorRequest, context: aio.ServicerContext) -> AsyncIterator[cpb.MirrorEvent]:
         rt = self.rt
         try:
-            node = rt._member_node()
+            node = rt.member_node()
         except NotMembershipMode as e:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
             raise
-        sub = MirrorSub(request.views)
-        rt.mirrors.add(sub)
-        rt._ddb_ref = node.state.ddb
+        sub = rt.mirrors.subscribe(request.views, node.state.ddb)
         task = asyncio.current_task()
         if task is not None:
             rt.stream_tasks.add(task)
@@ -362,7 +362,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                 if item is None:
                     return
                 kind = item[0]
-                node = rt._member_node()
+                node = rt.member_node()
                 db = node.state.ddb
                 if kind == "batch":
                     _, seq, payload, gseq = item
@@ -384,15 +384,15 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                         snapshot=dpb.DdbSnapshot.FromString(db.snapshot()), ddb_hash=db.content_hash()
                     )
                 elif kind == "view":
-                    e = item[1]
-                    lead = e.members[0].name if e.members else ""
+                    v = item[1]
+                    lead = v.members[0].name if v.members else ""
                     yield cpb.MirrorEvent(
                         view=cpb.ViewEvent(
-                            view=e.view,
-                            global_seq=e.seq,
-                            members=[cpb.MemberInfo(name=m.name, incarnation=m.inc, address=m.addr) for m in e.members],
-                            removed=[m.name for m in e.removed],
-                            added=[m.name for m in e.added],
+                            view=v.view,
+                            global_seq=v.seq,
+                            members=[cpb.MemberInfo(name=m.name, incarnation=m.inc, address=m.addr) for m in v.members],
+                            removed=[m.name for m in v.removed],
+                            added=[m.name for m in v.added],
                             leader=lead,
                         )
                     )
@@ -400,7 +400,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             if not rt.stopping:
                 raise
         finally:
-            rt.mirrors.discard(sub)
+            rt.mirrors.unsubscribe(sub)
             if task is not None:
                 rt.stream_tasks.discard(task)
 
@@ -426,7 +426,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         try:
             if not request.wait:
                 txid = rt.propose_nowait(request.payload, parts)
-                return cpb.ProposeReply(id=_txid(txid), participants=rt.participants_of(txid))
+                return cpb.ProposeReply(id=_txid(txid), participants=rt.proposals.participants_of(txid))
             remaining = context.time_remaining()
             timeout = DEFAULT_WAIT if remaining is None else max(0.0, remaining - 0.05)
             res = await rt.propose(request.payload, parts, timeout=timeout)
@@ -465,18 +465,19 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             rt.stream_tasks.add(task)
         try:
             while True:
-                if i < rt.delivered_base:
+                log_ = rt.delivered
+                if i < log_.base:
                     await context.abort(
                         grpc.StatusCode.OUT_OF_RANGE,
-                        f"entries before {rt.delivered_base} are no longer kept (MAX_DELIVERED)",
+                        f"entries before {log_.base} are no longer kept (MAX_DELIVERED)",
                     )
-                while i < rt.delivered_count:
-                    e = rt.delivered[i - rt.delivered_base]
+                while i < log_.count:
+                    e = log_.get(i)
                     yield cpb.Delivery(
                         index=e.index, id=_txid(e.txid), order=e.order, payload=e.payload, chain_hash=e.chain_hash
                     )
                     i += 1
-                await rt.wait_delivered(i + 1)
+                await log_.wait(i + 1)
         except asyncio.CancelledError:
             if not rt.stopping:
                 raise
@@ -486,7 +487,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                 rt.stream_tasks.discard(task)
 
     async def Latencies(self, request: cpb.LatencyRequest, context: aio.ServicerContext) -> cpb.LatencyReply:
-        d2d, p2d = self.rt.take_latencies(request.reset)
+        d2d, p2d = self.rt.proposals.take_latencies(request.reset)
         return cpb.LatencyReply(decide_to_deliver=d2d, propose_to_decide=p2d)
 
 

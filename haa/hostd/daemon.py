@@ -22,7 +22,7 @@ bound exits with code 1.
 
 `--advertise` is the address the other hosts connect to; by default `--listen`, with a wildcard host
 replaced by this machine's host name. `--data-dir` keeps the JSON-lines log, the statistics sampler's time
-series (`stats.jsonl` and `config.json`, every `--stats-period` s, default 1, 0 = off: haa.stats.sampler,
+series (`stats.jsonl` and `config.json`, every `--stats-period` s, default 1, 0 = off: haa.hostd.sampler,
 docs/stats.md), the last incarnation and the hosts of the last view (`known_hosts.json`): a restarted host
 applies to them as well as to the core processes and never founds a group of its own (`--forget-group` drops
 them: needed only if every host of the group was lost).
@@ -56,6 +56,7 @@ import re
 import signal
 import sys
 from collections.abc import Coroutine
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, NoReturn
 
@@ -72,17 +73,22 @@ from pydantic import (
 
 from haa import files
 from haa import tls as tlsmod
+from haa.hostd.agentdriver import AgentDriver
 from haa.hostd.agentnode import AgentConfig
 from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY
+from haa.hostd.control import HostControlService
 from haa.hostd.core import CoreConfig
+from haa.hostd.logs import LOGGER_NAME, log_event
 from haa.hostd.membership import NodeConfig
+from haa.hostd.outcomes import WriteFailed
 from haa.hostd.qos import CLUSTER_QOS, QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
+from haa.hostd.sampler import StatsSampler
 from haa.hostd.transport import NAME_RE
 from haa.hostd.ufd import UfdConfig
-from haa.stats.sampler import StatsSampler
 
 PROG = "haa-hostd"
+log = logging.getLogger(LOGGER_NAME + ".daemon")
 _HOST_RE = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)$")
 DEFAULT_INITIAL_PERIOD = UfdConfig().initial_period
 #: at most this many entries in --core and in --peers: every one costs the event loop setup work at start
@@ -182,7 +188,7 @@ class HostSettings(BaseModel):
     #: an agent instance that dies within this long of its start is a start failure (backed off; docs/limits.md)
     agent_start_grace: float = Field(default=AgentConfig().start_grace, ge=0, le=3600, allow_inf_nan=False)
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
-    #: the statistics sampler's period (haa.stats.sampler: <data dir>/stats.jsonl), s; 0 = no sampling
+    #: the statistics sampler's period (haa.hostd.sampler: <data dir>/stats.jsonl), s; 0 = no sampling
     stats_period: float = Field(default=1.0, ge=0, le=3600, allow_inf_nan=False)
     #: Prometheus /metrics on this port, bound to --listen's host (haa.metrics, docs/metrics.md); 0 = none
     metrics_port: int = Field(default=0, ge=0, le=65535)
@@ -529,15 +535,70 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
     return settings
 
 
+@dataclass(frozen=True)
+class Host:
+    """One assembled haa-hostd (`build_host`): the runtime, its agent driver (None without agents) and the
+    control service it serves."""
+
+    runtime: HostRuntime
+    agents: AgentDriver | None
+    control: HostControlService
+
+
+def build_host(cfg: RuntimeConfig) -> Host:
+    """The composition root of one host: the runtime, the agent driver that runs its agent processes
+    (membership mode with agents on) and the control API, each given what it needs — the runtime gets the
+    driver as its agent backend (it hands the driver its `AgentOps` at start) and serves the control service;
+    the control service gets the runtime and the driver. The runtime imports neither (.importlinter)."""
+    agents = (AgentDriver(cfg.name, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout)
+              if cfg.membership and cfg.agents else None)
+    rt = HostRuntime(cfg, agents=agents)
+    control = HostControlService(rt, agents)
+    rt.add_service(control)
+    return Host(rt, agents, control)
+
+
+class GracefulShutdown:
+    """SIGTERM/SIGINT: in membership mode leave the group gracefully first (at most `leave_timeout` seconds,
+    plus the agents' `drain_timeout` to hand them over), then stop; a second signal stops at once."""
+
+    def __init__(self, rt: HostRuntime) -> None:
+        self.rt = rt
+        self.leaving = False
+
+    def __call__(self) -> None:
+        rt = self.rt
+        if not rt.membership or rt.left or self.leaving or rt.node is None:
+            rt.request_stop()
+            return
+        self.leaving = True
+        task = asyncio.get_running_loop().create_task(self._leave_then_stop())
+        rt.stream_tasks.add(task)
+        task.add_done_callback(rt.stream_tasks.discard)
+
+    async def _leave_then_stop(self) -> None:
+        rt = self.rt
+        try:
+            drain = rt.config.agent.drain_timeout if rt.agents is not None else 0.0
+            await rt.leave(timeout=rt.config.leave_timeout + drain)
+        except (TimeoutError, WriteFailed) as e:
+            log_event(log, logging.WARNING, "leave_incomplete", reason=str(e) or "timeout")
+        finally:
+            rt.request_stop()
+
+
 async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int = 0) -> None:
-    rt = HostRuntime(cfg)
-    metrics = await _start_metrics(rt, metrics_port) if metrics_port else None
+    host = build_host(cfg)
+    rt = host.runtime
+    metrics = await _start_metrics(rt, metrics_port, host.agents) if metrics_port else None
     loop = asyncio.get_running_loop()
+    shutdown = GracefulShutdown(rt)
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, rt.request_shutdown)
-    # the statistics sampler (haa.stats.sampler) only reads the runtime: its first sample comes after the
-    # runtime started, its last after it stopped
-    sampler = StatsSampler(rt, stats_period) if stats_period > 0 and cfg.data_dir is not None else None
+        loop.add_signal_handler(sig, shutdown)
+    # the statistics sampler (haa.hostd.sampler) only reads the runtime and the driver: its first sample comes
+    # after the runtime started, its last after it stopped
+    sampler = (StatsSampler(rt, stats_period, host.agents)
+               if stats_period > 0 and cfg.data_dir is not None else None)
     if sampler is not None:
         sampler.start()
     try:
@@ -549,15 +610,15 @@ async def serve(cfg: RuntimeConfig, stats_period: float = 0.0, metrics_port: int
             await asyncio.to_thread(metrics.stop)
 
 
-async def _start_metrics(rt: HostRuntime, port: int) -> Any:
+async def _start_metrics(rt: HostRuntime, port: int, agents: AgentDriver | None) -> Any:
     """Serve /metrics (haa.metrics) on the daemon's loop; a port that cannot be bound ends the process (code 1)."""
     from haa.hostd.metrics import host_registry
+    from haa.hostd.sampler import HIST_BOUNDS_MS, ddb_prefix
     from haa.metrics.http import MetricsServer, metrics_bind_host
-    from haa.stats.sampler import HIST_BOUNDS_MS, ddb_prefix
 
     # the statistics sampler's histogram bounds and DDB key prefixes: metrics and stats.jsonl bin alike
     reg = host_registry(rt, asyncio.get_running_loop(), bounds_s=tuple(b / 1000.0 for b in HIST_BOUNDS_MS),
-                        prefix_of=ddb_prefix)
+                        prefix_of=ddb_prefix, agents=agents)
     server = MetricsServer(reg, metrics_bind_host(rt.config.listen), port)
     try:
         server.start()

@@ -3,7 +3,7 @@
 `host_registry(rt, loop)` returns a fresh `CollectorRegistry` holding a `HostCollector` for `rt` (run on the
 daemon's loop by `haa.metrics.http.OnLoop`) and prometheus_client's `ProcessCollector`
 (`process_cpu_seconds_total`, `process_resident_memory_bytes`, ...). `HostCollector.collect()` only reads what the
-daemon already keeps; the sources are the statistics sampler's (haa.stats.sampler), and the daemon hands it the
+daemon already keeps; the sources are the statistics sampler's (haa.hostd.sampler), and the daemon hands it the
 sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.stats: .importlinter):
 
 * group — `haa_member`, `haa_view`, `haa_members`, `haa_leader` (this host is the leader), `haa_incarnation`;
@@ -13,7 +13,7 @@ sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.
   `haa_oac_decide_to_deliver_seconds` (every transaction delivered here) histograms, folded at each scrape from
   the runtime's latency samples (`HostRuntime.propose_to_decide` / `decide_to_deliver`, the same the sampler
   reads); `haa_oac_transactions_total{result}`, `haa_oac_delivered_total`;
-* DDB — `haa_ddb_objects`, `haa_ddb_bytes`, `haa_ddb_bytes_by_prefix{prefix}` (`haa.stats.sampler.ddb_prefix`),
+* DDB — `haa_ddb_objects`, `haa_ddb_bytes`, `haa_ddb_bytes_by_prefix{prefix}` (`haa.hostd.sampler.ddb_prefix`),
   `haa_ddb_seq`, recomputed only when the replica changed;
 * host messages — `haa_messages_sent_total{kind}` / `haa_message_bytes_sent_total{kind}` (and `_received_`),
   the transport's per-kind counters; `haa_link_messages_sent_total{peer}` and `haa_link_messages_received_total
@@ -50,10 +50,11 @@ from haa.metrics.latency import Histogram, SampleTail
 if TYPE_CHECKING:
     import asyncio
 
+    from haa.hostd.agentdriver import AgentDriver
     from haa.hostd.runtime import HostRuntime
 
 #: histogram bucket upper bounds, seconds, when the daemon gives none (it gives the statistics sampler's,
-#: haa.stats.sampler.HIST_BOUNDS_MS, so that metrics and stats.jsonl bin alike)
+#: haa.hostd.sampler.HIST_BOUNDS_MS, so that metrics and stats.jsonl bin alike)
 BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 #: counter-name prefixes exported with their own metric (not again in haa_host_events_total)
 _PER_KIND = ("tx_msgs.", "tx_bytes.", "rx_msgs.", "rx_bytes.")
@@ -64,8 +65,10 @@ class HostCollector:
     """The metrics of one haa-hostd (module docstring); register it in the daemon's own registry."""
 
     def __init__(self, rt: HostRuntime, bounds_s: tuple[float, ...] = BUCKETS_S,
-                 prefix_of: Callable[[str], str] = lambda key: key.split("/", 1)[0]) -> None:
+                 prefix_of: Callable[[str], str] = lambda key: key.split("/", 1)[0],
+                 agents: AgentDriver | None = None) -> None:
         self.rt = rt
+        self.agents = agents
         self.prefix_of = prefix_of
         self.p2d = Histogram(bounds_s)
         self.d2d = Histogram(bounds_s)
@@ -142,8 +145,8 @@ class HostCollector:
     def _oac(self) -> Iterator[Metric]:
         rt = self.rt
         c = rt.counters
-        self.d2d.add(self._d2d_tail.new_by_count(rt.decide_to_deliver, c.get("oac_delivered", 0)))
-        self.p2d.add(self._p2d_tail.new_by_identity(rt.propose_to_decide))
+        self.d2d.add(self._d2d_tail.new_by_count(rt.proposals.decide_to_deliver, c.get("oac_delivered", 0)))
+        self.p2d.add(self._p2d_tail.new_by_identity(rt.proposals.propose_to_decide))
         yield self.p2d.family("haa_oac_propose_to_decide_seconds",
                               "OAC latency from proposal to decision, transactions this host proposed (Alg. 1)")
         yield self.d2d.family("haa_oac_decide_to_deliver_seconds",
@@ -218,7 +221,7 @@ class HostCollector:
             yield CounterMetricFamily("haa_allocation_sessions",
                                       "allocation sessions committed in the group (the agent table's session id, "
                                       "Alg. 4)", value=table.ses_id)
-        drv = rt.agents
+        drv = self.agents
         if drv is None:
             return
         local = getattr(rt.node, "local", None)  # the agent layer's instances here (AgentNode.local)
@@ -305,11 +308,14 @@ class HostCollector:
 
 
 def host_registry(rt: HostRuntime, loop: asyncio.AbstractEventLoop, bounds_s: tuple[float, ...] = BUCKETS_S,
-                  prefix_of: Callable[[str], str] | None = None) -> CollectorRegistry:
+                  prefix_of: Callable[[str], str] | None = None,
+                  agents: AgentDriver | None = None) -> CollectorRegistry:
     """A fresh registry with the host's collector (run on `loop`, the daemon's) and the process collector.
     `bounds_s`, `prefix_of`: the histogram buckets and the DDB key-prefix rule (the daemon passes the statistics
-    sampler's)."""
+    sampler's); `agents`: the host's agent driver (the daemon's), None without agents."""
     reg = CollectorRegistry(auto_describe=False)
-    reg.register(OnLoop(loop, [HostCollector(rt, bounds_s, prefix_of) if prefix_of else HostCollector(rt, bounds_s)]))
+    collector = (HostCollector(rt, bounds_s, prefix_of, agents=agents) if prefix_of
+                 else HostCollector(rt, bounds_s, agents=agents))
+    reg.register(OnLoop(loop, [collector]))
     ProcessCollector(registry=reg)
     return reg

@@ -6,14 +6,14 @@ A bundle `DIR/<host>.tar.gz` holds, under `<host>/`:
                     their sizes, counts (samples, log records, events, views), time range, incarnations,
                     anything that could not be read (`errors`)
     log.jsonl       the host's JSON-lines log as persisted in its data dir (every line names the host)
-    stats.jsonl     the sampler's time series (haa.stats.sampler; the rotated stats.1.jsonl first)
+    stats.jsonl     the sampler's time series (haa.hostd.sampler; the rotated stats.1.jsonl first)
     config.json     the host's settings (the token left out), as the sampler wrote them at start
     views.jsonl     the host's view history: one line per view it installed (ts, host, view, members, added,
                     removed)
     events.jsonl    the agent events that happened on this host, from the merged timeline of every host's
                     log (haa.cluster.events): a crash the group recorded is here, on the host that ran the
                     agent, with `reporter` the host that logged it
-    latency.json    histograms (bounds in ms: haa.stats.sampler.HIST_BOUNDS_MS) and raw values (ms) of the
+    latency.json    histograms (bounds in ms: haa.hostd.sampler.HIST_BOUNDS_MS) and raw values (ms) of the
                     phases this host timed: spawn, freeze, thaw, recover, allocation (leader only), OAC
                     propose->decide and decide->deliver (from the samples)
     agents/<id>.log the agent processes' own logs (the last MAX_AGENT_LOG bytes of each)

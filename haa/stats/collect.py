@@ -34,6 +34,7 @@ from typing import Any
 
 from haa.cluster.backend import Backend, ClusterError, HostInfo
 from haa.cluster.events import Merger, TimelineEvent, parse_lines, timeline_events, view_events
+from haa.hostd.sampler import CONFIG_FILE, HIST_BOUNDS_MS, OLD_STATS_FILE, STATS_FILE
 from haa.stats import phases
 from haa.stats.bundle import (
     FORMAT,
@@ -45,7 +46,6 @@ from haa.stats.bundle import (
     load_bundles,
     write_bundle,
 )
-from haa.stats.sampler import CONFIG_FILE, HIST_BOUNDS_MS, OLD_STATS_FILE, STATS_FILE
 
 Progress = Callable[[str], None]
 

@@ -12,7 +12,7 @@ Cluster-wide (`cluster_phases`, the merged timeline of every host, haa.cluster.e
   recovery   crashed -> recovered or active again of the same agent (the crash as reported: after detection)
 
 Values are milliseconds. `summary(values)` gives n, mean, percentiles and the histogram over the sampler's
-bounds (haa.stats.sampler.HIST_BOUNDS_MS), so that a host's OAC histograms and these read alike.
+bounds (haa.hostd.sampler.HIST_BOUNDS_MS), so that a host's OAC histograms and these read alike.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from haa.cluster.events import TimelineEvent
-from haa.stats.sampler import HIST_BOUNDS_MS, histogram
+from haa.hostd.sampler import HIST_BOUNDS_MS, histogram
 
 #: (start event, end event) of each per-host phase, keyed by agent id (allocation: by nothing)
 HOST_PHASES = {

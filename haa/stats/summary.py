@@ -25,7 +25,7 @@ from haa.cluster.events import TimelineEvent
 from haa.stats import phases
 from haa.stats.bundle import FORMAT, Bundle
 
-#: DDB kinds of the thesis' Fig. 7.1-7, by key prefix (haa.stats.sampler.ddb_prefix); the rest is "other",
+#: DDB kinds of the thesis' Fig. 7.1-7, by key prefix (haa.hostd.sampler.ddb_prefix); the rest is "other",
 #: and the agent table's backups are "agents"
 DDB_KINDS = {
     "particle filters": ("slam/log", "slam/ckpt", "slam/est", "slam/estimates", "slam/anchor", "slam/landmarks"),

@@ -6,10 +6,11 @@ changed — also for hosts that crashed. So every host writes it down itself whi
 outlives the process; `haactl stats collect` later packs the file into the host's bundle (haa.stats.collect)
 and `haactl report` draws it (haa.stats.report). Nothing here talks to other hosts.
 
-How: `StatsSampler(rt, period)` is started by the daemon (haa.hostd.daemon.serve) next to its `HostRuntime`
-and, every `period` seconds (default 1 s, `haa-hostd --stats-period`, 0 = off), appends one JSON line to
-`<data dir>/stats.jsonl` (flushed at once: a SIGKILL loses at most the sample being built). It only *reads*
-what the runtime already keeps; it adds no bookkeeping to the hot paths:
+How: `StatsSampler(rt, period, agents)` is started by the daemon (haa.hostd.daemon.serve) next to its `HostRuntime`
+and agent driver (None without agents) and, every `period` seconds (default 1 s, `haa-hostd --stats-period`,
+0 = off), appends one JSON line to `<data dir>/stats.jsonl` (flushed at once: a SIGKILL loses at most the
+sample being built). It only *reads* what the runtime and the driver already keep; it adds no bookkeeping to
+the hot paths. It lives next to the daemon, its only user; `haa.stats` reads the files it writes.
 
 Each sample's keys, and where they are read:
 
@@ -62,6 +63,7 @@ import psutil
 from haa.hostd.logs import log_event
 
 if TYPE_CHECKING:
+    from haa.hostd.agentdriver import AgentDriver
     from haa.hostd.runtime import HostRuntime
 
 log = logging.getLogger("haa.hostd.stats")
@@ -111,11 +113,12 @@ def _plain(obj: Any) -> Any:
 class StatsSampler:
     """Samples one host's statistics every `period` s into `<data dir>/stats.jsonl` (module docstring)."""
 
-    def __init__(self, rt: HostRuntime, period: float = 1.0, path: Path | None = None,
-                 max_bytes: int = 64 << 20, ddb_every: int = 5) -> None:
+    def __init__(self, rt: HostRuntime, period: float = 1.0, agents: AgentDriver | None = None,
+                 path: Path | None = None, max_bytes: int = 64 << 20, ddb_every: int = 5) -> None:
         if not period > 0:
             raise ValueError(f"stats period must be > 0, got {period}")
         self.rt = rt
+        self.agents = agents
         self.period = period
         d = rt.config.data_dir
         self.path = path or (Path(d) / STATS_FILE if d is not None else None)
@@ -273,7 +276,7 @@ class StatsSampler:
             rec["ddb"] = self._ddb
 
     def _agents(self, rec: dict[str, Any]) -> None:
-        drv = self.rt.agents
+        drv = self.agents
         if drv is None:
             return
         agents: dict[str, Any] = {}
@@ -312,7 +315,7 @@ class StatsSampler:
     def _oac(self, rec: dict[str, Any]) -> None:
         rt = self.rt
         out: dict[str, list[int]] = {}
-        d2d = rt.decide_to_deliver
+        d2d = rt.proposals.decide_to_deliver
         delivered = rt.counters.get("oac_delivered", 0)
         new = min(len(d2d), max(0, delivered - self._last_delivered))
         self._last_delivered = delivered
@@ -320,7 +323,7 @@ class StatsSampler:
             out["d2d"] = histogram(itertools.islice(reversed(d2d), new))
         # propose->decide: one sample per decided transaction this host proposed; the deque's growth says how
         # many are new (once it is full, the decided count since the last sample bounds them)
-        p2d = rt.propose_to_decide
+        p2d = rt.proposals.propose_to_decide
         n = len(p2d)
         decided = rt.counters.get("oac_committed", 0) + rt.counters.get("oac_aborted", 0)
         if n < self._last_p2d_len:  # cleared (Latencies with reset): all of them are new
@@ -335,7 +338,7 @@ class StatsSampler:
             rec["oac"] = out
 
     def _timeline(self, rec: dict[str, Any]) -> None:
-        drv = self.rt.agents
+        drv = self.agents
         if drv is None or not drv.timeline:
             return
         kinds: Counter[str] = Counter()
