@@ -360,18 +360,18 @@ def raising_reaction() -> Undo:
 def joiner_default_capacity() -> Undo:
     """The agent layer as before the join fix: a member whose `HostInfo` is not in the agent table yet (a host
     that just joined) is read as one core without hardware and bids in the join's session."""
-    from haa.hostd import agentnode as node_mod
+    from haa.hostd import allocglue as glue_mod
     from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
 
-    def host_specs(self: node_mod.AgentNode) -> tuple[HostSpec, ...]:
+    def host_specs(self: glue_mod.AllocGlue) -> tuple[HostSpec, ...]:
         out = []
-        for n in self._member_names():
-            h = self.table.hosts.get(n)
+        for n in self.view.members():
+            h = self.view.table.hosts.get(n)
             cap = h.capacity if h is not None and MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
             out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
         return tuple(out)
 
-    return _patch(node_mod.AgentNode, "_host_specs", host_specs)
+    return _patch(glue_mod.AllocGlue, "host_specs", host_specs)
 
 
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
