@@ -35,9 +35,8 @@ from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, assert_never
 
-from google.protobuf.message import DecodeError
-
 from haa.hostd import agentops as ops
+from haa.hostd import agentplan as plan
 from haa.hostd import agenttable as at
 from haa.hostd import recovery as rc
 from haa.hostd import transfer as tr
@@ -45,19 +44,16 @@ from haa.hostd.agentio import (
     AgentOpDone,
     AgentTimeline,
     AnswerAgent,
-    BackupMade,
-    DeliverAgent,
-    Failed,
-    Frozen,
     KillAgent,
     OperatorReply,
     Sent,
-    ShellReady,
     SpawnChild,
     StartAgent,
     Stopped,
 )
+from haa.hostd.agentleave import Go, Leave, LeaveEffect, PublishHost
 from haa.hostd.agentops import AgentWrite
+from haa.hostd.agentroute import RouteEffect, Router
 from haa.hostd.agentstep import (
     Activate,
     AgentTimer,
@@ -73,7 +69,7 @@ from haa.hostd.agentstep import (
     SetPhase,
     Timeline,
 )
-from haa.hostd.allocglue import AllocGlue
+from haa.hostd.allocglue import AllocGlue, GlueEffect
 from haa.hostd.effects import Log, Send, SetTimer
 from haa.hostd.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
 from haa.hostd.messages import AgentHostMsg, Message
@@ -86,7 +82,8 @@ __all__ = ["AgentConfig", "AgentNode", "Local"]
 RETRY_AFTER = 0.1
 #: the agent layer's own writes whose outcome a machine waits for (retried: "do ... while not committed")
 _RETRIED = frozenset({"freeze", "release", "claim", "recovered", "failed", "host", "start", "finish"})
-Effect = tr.TransferEffect | rc.RecoveryEffect | Note  # what the machines ask the node to do
+#: what the machines ask the node to do
+Effect = tr.TransferEffect | rc.RecoveryEffect | GlueEffect | RouteEffect | ops.OpEffect | LeaveEffect
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,15 +125,13 @@ class AgentNode:
         self.transfer = tr.Transfer(self)
         self.recovery = rc.Recovery(self, rc.BackoffConfig(cfg.backoff_base, cfg.backoff_cap))
         self.alloc = AllocGlue(self, cfg.rebalance_period, cfg.min_session_gap, cfg.capacity, cfg.hardware)
+        self.router = Router(self, self.local, cfg.max_push, self.counters)
+        self.ops = ops.Operations(lambda: self.table)
         self._alloc_msgs = 0
-        self._pushes: dict[str, list[apb.RoutedMsg]] = {}
-        self._push_reqs: dict[int, tuple[str, list[apb.RoutedMsg]]] = {}
-        self._ops: dict[int, Hashable] = {}
         self._seq = 0
         self._now = 0.0
         self._poll_armed = self._retry_armed = False
-        self.draining = self._left_group = False
-        self._drain_deadline = 0.0
+        self.leaving = Leave(self, cfg.drain_timeout)
         self._retries: list[tuple[str, str, int]] = []
 
     def __getattr__(self, name: str) -> Any:
@@ -162,8 +157,16 @@ class AgentNode:
         return all(tx.state == DONE or not tx.content for tx in self.m.core.oac.txs.values())
 
     @property
+    def draining(self) -> bool:
+        return self.leaving.draining
+
+    @property
     def orphans(self) -> dict[str, list[apb.RoutedMsg]]:
         return self.recovery.orphans
+
+    @property
+    def _pushes(self) -> dict[str, list[apb.RoutedMsg]]:
+        return self.router.pushes
 
     @property
     def _backoff(self) -> dict[str, tuple[tuple[int, int], float]]:
@@ -207,6 +210,14 @@ class AgentNode:
                     self.out.append(SetTimer(e.key, e.at))
                 case tr.PassOn():
                     self._route(e.m, here=False)
+                case tr.Hold() | tr.Ack():
+                    self._tr(e)
+                case rc.Hold() | rc.Orphan():
+                    self._rc(e)
+                case OperatorReply() | AgentOpDone():
+                    self.out.append(e)
+                case AnswerAgent():
+                    self._cmd(e)
                 case tr.Lost():
                     self._rc(rc.InstanceFailed(e.agent, e.epoch, e.reason, e.early, e.msgs))
                 case tr.ClaimedWithoutShell():
@@ -215,8 +226,18 @@ class AgentNode:
                     if not self._poll_armed:
                         self._poll_armed = True
                         self.out.append(SetTimer(AgentTimer("poll"), self._now + self.config.poll))
+                case PublishHost():
+                    self._apply(self.alloc.publish_host(force=True))
+                case Go():
+                    for loc in list(self.local.values()):  # the deadline passed: these will be recovered elsewhere
+                        self._cmd(KillAgent(loc.id, loc.epoch, "host leaving"))
+                        self._forget(loc.id)
+                    self.m.leave(self._now)
                 case _:
                     assert_never(e)
+
+    def _route(self, m: apb.RoutedMsg, here: bool = True) -> None:
+        self._apply(self.router.route(m, here))
 
     def _forget(self, agent: str, removed: bool = False) -> Local | None:
         loc = self.local.pop(agent, None)
@@ -290,38 +311,20 @@ class AgentNode:
         elif k == "backoff" and key.agent:
             self._reconcile_one(key.agent)
         elif k == "drain":
-            self._drain_check(force=now >= self._drain_deadline)
+            self._drain_check(force=now >= self.leaving.deadline)
 
     def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
         self._now = now
         self.m.submit(now, payload, req, kind)
 
     def leave(self, now: float) -> None:
-        """Graceful leave (thesis AF-1): hand every agent over, then leave the group."""
+        """Graceful leave (thesis AF-1): hand every agent over, then leave the group (`haa.hostd.agentleave`)."""
         self._now = now
-        if self.draining:
-            return
-        self.draining = self.alloc.draining = True
-        self._drain_deadline = now + self.config.drain_timeout
-        self.out.append(Log("draining", {"agents": len(self.local)}))
-        if not self.m.is_member() or len(self.m.state.members) == 1 or not self.local:
-            self._drain_check(force=True)
-            return
-        self._apply(self.alloc.publish_host(force=True))
-        self.out.append(SetTimer(AgentTimer("drain"), self._drain_deadline))
+        self.alloc.draining = True
+        self._apply(self.leaving.begin(now, len(self.local), self.m.is_member()))
 
     def _drain_check(self, force: bool = False) -> None:
-        if not self.draining or self._left_group:
-            return
-        hosts = self.table.hosts
-        takers = [n for n in self.members() if n != self.name and not (n in hosts and hosts[n].draining)]
-        if self.local and not force and takers:
-            return  # wait until every agent is handed over (or the deadline); nobody to take them: go now
-        self._left_group = True
-        for loc in list(self.local.values()):  # the deadline passed: these will be recovered elsewhere
-            self._cmd(KillAgent(loc.id, loc.epoch, "host leaving"))
-            self._forget(loc.id)
-        self.m.leave(self._now)
+        self._apply(self.leaving.check(len(self.local), force))
 
     # ------------------------------------------------------------------ operator requests
 
@@ -329,44 +332,27 @@ class AgentNode:
                      cost: float = 0.1, hardware: Iterable[str] = (), transfer_penalty: float = 0.1,
                      recovery: str = "backup", max_per_host: int = 0, req: Hashable = None) -> None:
         self._now = now
-        tx = ops.create(agent_id, type_name, config, parent, self.name, cost, hardware, transfer_penalty, recovery,
-                        max_per_host)
-        why = ops.create_refused(tx)
-        if why:
-            self.out.append(AgentOpDone(req, False, agent_id, "", why))
-            return
-        self._propose(tx, "create", agent_id, self._op(req))
-
-    def _op(self, req: Hashable) -> int:
-        self._seq += 1
-        self._ops[self._seq] = req
-        return self._seq
-
-    def _op_tx(self, now: float, tx: apb.AgentTx, req: Hashable, agent: str = "") -> None:
-        self._now = now
-        self._propose(tx, "op", agent, self._op(req))
-
-    def _resolve(self, now: float, ref: str, req: Hashable) -> at.AgentRecord | None:
-        self._now = now
-        r = self.table.resolve(ref)
-        if r is None:
-            self.out.append(AgentOpDone(req, False, ref, "", "unknown agent"))
-        return r
+        self._apply(self.ops.create(ops.create(agent_id, type_name, config, parent, self.name, cost, hardware,
+                                               transfer_penalty, recovery, max_per_host), req))
 
     def remove_agent(self, now: float, ref: str, req: Hashable = None) -> None:
-        if (r := self._resolve(now, ref, req)) is not None:
-            self._op_tx(now, ops.remove(r.id, self.name), req, r.id)
+        self._now = now
+        r = self.table.resolve(ref)
+        self._apply(self.ops.refuse(req, ref, "unknown agent") if r is None
+                    else self.ops.propose(ops.remove(r.id, self.name), req, r.id))
 
     def move_agent(self, now: float, ref: str, host: str, req: Hashable = None) -> None:
-        if (r := self._resolve(now, ref, req)) is None:
+        self._now = now
+        r = self.table.resolve(ref)
+        if r is None or host not in self.members():
+            why = "unknown agent" if r is None else f"{host} is not a member of the group"
+            self._apply(self.ops.refuse(req, r.id if r else ref, why))
             return
-        if host not in self.members():
-            self.out.append(AgentOpDone(req, False, r.id, r.name, f"{host} is not a member of the group"))
-            return
-        self._op_tx(now, ops.move(r.id, host), req, r.id)
+        self._apply(self.ops.propose(ops.move(r.id, host), req, r.id))
 
     def set_paused(self, now: float, paused: bool, req: Hashable = None) -> None:
-        self._op_tx(now, ops.pause(paused), req)
+        self._now = now
+        self._apply(self.ops.propose(ops.pause(paused), req))
 
     def run_allocation(self, now: float) -> None:
         """An operator asks for an allocation session now: the leader starts one; another member passes the
@@ -407,31 +393,16 @@ class AgentNode:
         if loc is None or loc.epoch != ev.epoch:
             self.counters["stale_agent_events"] += 1  # an older instance (fenced): ignored
             return
-        t = type(ev)
-        if t is ShellReady:
-            if loc.phase in ("claiming", "thawing"):
-                self._tr(tr.ShellUp(loc.id))
-            elif loc.phase == "recovering":
-                self._rc(rc.ShellUp(loc.id))
-        elif t is Sent:
-            self._on_sent(loc, ev)
-        elif t is BackupMade:
-            if loc.phase in ("active", "freezing"):
-                self._rc(rc.Backup(loc.id, loc.epoch, ev.data))
-        elif t is Frozen:
-            if loc.phase == "freezing":
-                self._tr(tr.StateArrived(loc.id, ev.state))
-        elif t is Failed:
-            early = loc.phase != "active" or loc.started < 0 or now - loc.started < self.config.start_grace
-            if loc.phase == "recovering":
-                self._rc(rc.ShellDied(loc.id, ev.reason))
-            elif loc.phase == "active":
-                self._rc(rc.InstanceFailed(loc.id, loc.epoch, ev.reason, early))
-            else:
-                self._tr(tr.ShellDied(loc.id, ev.reason, early))
-        elif t is Stopped:
+        inp = plan.instance_input(loc, ev, now, self.config.start_grace)
+        if isinstance(inp, (tr.ShellUp, tr.StateArrived, tr.ShellDied)):
+            self._tr(inp)
+        elif inp is not None:
+            self._rc(inp)
+        elif type(ev) is Sent:
+            self._apply(self.router.sent(loc, ev))
+        elif type(ev) is Stopped:
             self._propose(ops.remove(loc.id, self.name, loc.epoch), "stopped", loc.id, loc.epoch)
-        elif t is SpawnChild:
+        elif type(ev) is SpawnChild:
             self.create_agent(now, ev.child_id, ev.type, ev.config, parent=loc.id,
                               max_per_host=ev.max_per_host, req=("child", loc.id, loc.epoch, ev.req))
 
@@ -446,92 +417,6 @@ class AgentNode:
                 return
         self._rc(rc.Orphan(agent, m))
 
-    def _on_sent(self, loc: Local, ev: Sent) -> None:
-        if loc.phase not in ("active", "freezing"):
-            self.counters["sent_by_inactive_instance"] += 1
-            return
-        if ev.dst.startswith("@"):  # a reply to an operator request made through host ev.dst[1:]
-            if ev.reply:
-                host = ev.dst[1:]
-                if host == self.name:
-                    self.out.append(OperatorReply(ev.conv, ev.payload, ev.error))
-                else:
-                    m = apb.RoutedMsg(src=loc.id, dst=ev.dst, payload=ev.payload, conv=ev.conv, reply=True,
-                                      error=ev.error)
-                    self._send_agent_host(host, "op_reply", loc.id, 0, m.SerializeToString())
-            return
-        dst = self.table.get(ev.dst) or self.table.resolve(ev.dst)
-        if dst is None:
-            self.counters["unknown_destination"] += 1
-            if ev.conv and not ev.reply:  # a request to nobody: answer with an error at once
-                self._route(apb.RoutedMsg(src="", dst=loc.id, conv=ev.conv, reply=True,
-                                          error=f"unknown agent {ev.dst[:64]}"))
-            return
-        seq = loc.outbox.stamp(dst.id)
-        self._route(apb.RoutedMsg(src=loc.id, src_life=loc.life, seq=seq, dst=dst.id, payload=ev.payload,
-                                  conv=ev.conv, reply=ev.reply, error=ev.error))
-
-    # ------------------------------------------------------------------ routing
-
-    def _route(self, m: apb.RoutedMsg, here: bool = True) -> None:
-        """Where a message addressed to agent a (m.a.a.) goes from this host, now (`here` False: not to an
-        instance of this host, which does not take it)."""
-        r = self.table.get(m.dst)
-        if r is None:
-            self.counters["routed_to_unknown"] += 1
-            return
-        loc = self.local.get(m.dst) if here else None
-        if loc is not None:
-            if loc.phase == "active":
-                assert loc.inbox is not None
-                for x in loc.inbox.offer(m):
-                    self._cmd(DeliverAgent(loc.id, loc.epoch, x))
-                return
-            if loc.phase in ("freezing", "claiming", "thawing"):  # Alg. 5 l. 4 (queue1), Alg. 6 l. 3
-                self._tr(tr.Hold(m))
-                return
-            if loc.phase == "recovering":
-                self._rc(rc.Hold(m))
-                return
-        if r.status == at.ACTIVE and r.owner and r.owner != self.name:
-            self._send_agent_host(r.owner, "msg", m.dst, r.epoch, m.SerializeToString())
-            return
-        if r.status == at.ACTIVE and r.owner == self.name:
-            # ours, but no instance here right now (its failure is being reported): hold until the table says
-            self._rc(rc.Orphan(m.dst, m))
-            return
-        # frozen / freezing elsewhere (Alg. 5 l. 23), new or crashed: into queue2 (Alg. 5 l. 11, 23)
-        self._pushes.setdefault(m.dst, []).append(m)
-
-    def _flush_pushes(self) -> None:
-        """Propose the messages held for queue2, one push transaction per agent at a time: while one is in
-        OAC, later messages wait and go out together in the next (a frozen agent receiving 200 messages/s
-        would otherwise cost 200 OACs/s, and the thaw waits for every one of them, Alg. 6 l. 9). Their
-        order does not depend on it: the stream numbers put them in place."""
-        if not self._pushes:
-            return
-        busy = {agent for agent, _msgs in self._push_reqs.values()}
-        for agent in [a for a in self._pushes if a not in busy]:
-            msgs = self._pushes.pop(agent)
-            part, rest = msgs[: self.config.max_push], msgs[self.config.max_push :]
-            if rest:
-                self._pushes[agent] = rest
-            tx = apb.AgentTx()
-            tx.push.id, tx.push.queue = agent, 2
-            tx.push.msgs.extend(part)
-            n = self._propose(tx, "push", agent, 0)
-            self._push_reqs[n] = (agent, part)
-
-    def _routed(self, data: bytes) -> apb.RoutedMsg | None:
-        """A RoutedMsg from a peer's bytes; malformed bytes are counted, never fatal."""
-        m = apb.RoutedMsg()
-        try:
-            m.ParseFromString(data)
-        except DecodeError:
-            self.counters["malformed_agent_msg"] += 1
-            return None
-        return m
-
     def _on_host_msg(self, src: str, src_inc: int, msg: Message) -> None:
         """An `AgentHostMsg` from another host (the core checked the sender's incarnation)."""
         if not isinstance(msg, AgentHostMsg):
@@ -539,22 +424,15 @@ class AgentNode:
         if not self.m.is_member() or not self.m.state.is_member((src, src_inc)):
             self.counters["agent_msg_from_non_member"] += 1
             return
-        k = msg.kind
-        if k in ("msg", "op_reply") and (m := self._routed(msg.data)) is not None:
-            if k == "op_reply":
-                self.out.append(OperatorReply(m.conv, m.payload, m.error))
-                return
-            self.counters["routed_in"] += 1
-            self._route(m)
-        elif k in ("freeze_ack", "claim_ack"):
-            self._tr(tr.Ack(src, msg.agent, claim=k == "claim_ack"))
-        elif k == "alloc":
-            if not self.alloc.on_update(src, msg.data):
+        if msg.kind == "alloc":  # a bid update (Alg. 4 l. 59), processed at the end of the batch (l. 77)
+            if self.alloc.on_update(src, msg.data):
+                self._alloc_msgs += 1
+            else:
                 self.counters["malformed_bid_update"] += 1
-                return
-            self._alloc_msgs += 1
-        elif k == "alloc_run":
+        elif msg.kind == "alloc_run":
             self.run_allocation(self._now)
+        else:
+            self._apply(self.router.from_host(src, msg))
 
     # ------------------------------------------------------------------ drain: membership effects + ours
 
@@ -565,7 +443,7 @@ class AgentNode:
             if self._alloc_msgs:  # Alg. 4 l. 77: every update received in this input has been processed
                 self._alloc_msgs = 0
                 self._apply(self.alloc.end_of_inbox(self._now))
-            self._flush_pushes()
+            self._apply(self.router.flush())
             if not effs and not self.out and not self.m.out:
                 break
             for e in effs:
@@ -580,7 +458,7 @@ class AgentNode:
                     elif type(e) is ViewChange:
                         self._on_view(e)
                     elif type(e) is Left:
-                        self._left_group = True
+                        self.leaving.left = True
                 except Exception as err:
                     # A bug in the agent layer's reaction to one committed transaction must not take the rest
                     # of this drain with it: the remaining effects (sends, timers, deliveries) would be lost and
@@ -599,21 +477,9 @@ class AgentNode:
 
     def _on_write_done(self, e: WriteDone, w: AgentWrite) -> None:
         if w.kind == "push":
-            _agent, msgs = self._push_reqs.pop(w.n, (w.agent, []))
-            if not e.ok and self.m.is_member() and not self._left_group:
-                for m in msgs:  # aborted or refused: the table may say something else now
-                    self._route(m)
-            elif not e.ok:
-                # not a member (any more): a push is refused at once, and routing the messages again pushed
-                # them again in the same drain, for ever (`haactl verify recovery` seed 238 once a joiner
-                # publishes its HostInfo). The group fences a removed host's messages anyway.
-                self.counters["push_dropped_not_member"] += len(msgs)
+            self._apply(self.router.push_done(w.arg, e.ok, self.m.is_member() and not self.leaving.left))
         elif w.kind in ("create", "op"):
-            req = self._ops.pop(w.arg, None)
-            if not e.ok:
-                self._op_answer(req, False, w.agent, e.reason or "not committed")
-            elif isinstance(e.result, at.AgentApplied):  # committed and applied here (WriteDone follows it)
-                self._op_answer(req, e.result.ok, e.result.agent or w.agent, e.result.reason)
+            self._apply(self.ops.done(w.arg, w.agent, e.ok, e.reason, e.result))
         elif w.kind in _RETRIED:
             if e.ok:
                 self._written(w.kind, w.agent, w.arg, True)
@@ -632,16 +498,8 @@ class AgentNode:
         elif kind in ("recovered", "failed"):
             self._rc(rc.Written(kind, agent, arg, ok, agent in self.local))
         else:  # host, start, finish
-            member = self.m.is_member() and not self._left_group
+            member = self.m.is_member() and not self.leaving.left
             self._apply(self.alloc.written(self._now, kind, arg, ok, member))
-
-    def _op_answer(self, req: Hashable, ok: bool, agent: str, reason: str = "") -> None:
-        if isinstance(req, tuple) and req and req[0] == "child":
-            _, parent, epoch, rid = req
-            self._cmd(AnswerAgent(parent, epoch, rid, ok, agent if ok else "", reason))
-            return
-        r = self.table.get(agent) if agent else None
-        self.out.append(AgentOpDone(req, ok, agent, r.name if r else "", reason))
 
     def _on_applied(self, e: AppliedTx) -> None:
         res = e.result
@@ -670,10 +528,10 @@ class AgentNode:
             self._apply(self.alloc.start_committed(self._now, e.payload))
         elif k == "finish" and res.ok:
             self._apply(self.alloc.finish_committed(self._now))
-        elif k in ("freeze", "release", "claim"):
-            self._tr(tr.Committed(res))
-        elif k in ("recovered", "failed"):
-            self._rc(rc.Committed(res))
+        elif isinstance(inp := plan.applied_input(res), tr.Committed):
+            self._tr(inp)
+        elif isinstance(inp, rc.Committed):
+            self._rc(inp)
         elif k == "push" and res.ok and res.reason == "deliver" and res.host == self.name:
             for m in res.msgs:
                 self._route(m)
@@ -695,7 +553,7 @@ class AgentNode:
     # ------------------------------------------------------------------ reconcile: table vs. local instances
 
     def _reconcile(self) -> None:
-        if not self.m.is_member() or self._left_group:
+        if not self.m.is_member() or self.leaving.left:
             return
         for agent in list(self.local):
             if self.table.get(agent) is None:
@@ -705,34 +563,21 @@ class AgentNode:
         for r in list(self.table):
             self._reconcile_one(r.id)
         self._rc(rc.Check())  # forget the backoffs of agents removed meanwhile
-        if self.draining:
+        if self.leaving.draining:
             self._drain_check()
 
     def _reconcile_one(self, agent: str) -> None:
         self._rc(rc.Check(agent))
         r = self.table.get(agent)
-        me = self.name
-        if r is None or not self.m.is_member() or self._left_group:
+        if r is None or not self.m.is_member() or self.leaving.left:
             return
         loc = self.local.get(agent)
-        if loc is None:
-            if r.owner == me and r.status in (at.ACTIVE, at.FREEZING):
-                # the table says we run it but we do not (a restarted host, a lost instance): it failed
-                self._rc(rc.ReportFailed(r.id, r.epoch, "not running on its owner"))
-            elif r.alloc == me and not self.draining:
-                if r.status == at.FROZEN:
-                    self._tr(tr.Thaw(r.id))
-                elif r.status == at.NEW or (r.status == at.CRASHED and r.spec.recovery != "none"):
-                    self._rc(rc.Recover(r.id))
-            return
-        if loc.phase == "active" and r.owner == me and r.status == at.ACTIVE:
-            target = r.alloc
-            h = self.table.hosts.get(target)
-            if (self.draining or (target and target != me and target in self.members() and not (h and h.draining))
-                    # issue 15: an agent of a type with a per-host limit that the allocation found no place for
-                    # (agenttable._tx_finish cleared its allocation): frozen, its state kept until a place frees
-                    or (not target and r.spec.max_per_host)):
-                loc.phase = "freezing"  # Alg. 5: we lost the bid for a (or we are leaving, thesis AF-1)
-                assert loc.inbox is not None
-                self._tr(tr.Freeze(loc.id, loc.epoch, loc.inbox, loc.outbox))
-
+        act = plan.reconcile(r, loc, self.name, self.leaving.draining, self.members, self.table.hosts)
+        if isinstance(act, plan.FreezeLocal):
+            assert loc is not None and loc.inbox is not None
+            loc.phase = "freezing"
+            self._tr(tr.Freeze(loc.id, loc.epoch, loc.inbox, loc.outbox))
+        elif isinstance(act, tr.Thaw):
+            self._tr(act)
+        elif act is not None:
+            self._rc(act)

@@ -6,6 +6,7 @@ transactions; this module builds those transactions. A request that cannot be va
 reason the table would give (`agenttable.check_create`), so an operator learns it at once instead of after an
 OAC. Whether a valid-looking request takes effect is still decided by the table, identically on every member.
 
+`Operations` keeps the requests in flight and answers each when its write's outcome comes back.
 `AgentWrite` is the request key of the agent layer's own writes (`MembershipNode.submit(..., req)`): its
 outcome comes back as a `WriteDone` carrying it.
 
@@ -14,10 +15,12 @@ Pure: no I/O, no clock, no randomness.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import dataclass
 
 from haa.hostd import agenttable as at
+from haa.hostd.agentio import AgentOpDone, AnswerAgent
+from haa.hostd.agentstep import Propose
 from haa.pb import agenttx_pb2 as apb
 
 
@@ -89,3 +92,48 @@ def costs(table: at.AgentTable, host: str, cpu: Mapping[str, float],
             tx.costs.affinity.add(a=key[0], b=key[1], rate=round(rate, 1))
             changed = True
     return tx if changed else None
+
+
+OpEffect = AgentOpDone | AnswerAgent | Propose
+
+
+class Operations:
+    """The operator requests (and agents' child requests) in flight: each is proposed as a write of kind
+    "create" or "op" carrying the request's number, and answered when its outcome comes back (`done`): an
+    `AgentOpDone` for the operator (keyed by the caller's `req`), an `AnswerAgent` command for an agent that
+    asked for a child (`req` ("child", parent, epoch, request id))."""
+
+    def __init__(self, table: Callable[[], at.AgentTable]) -> None:
+        self._table = table
+        self._reqs: dict[int, Hashable] = {}
+        self._n = 0
+
+    def propose(self, tx: apb.AgentTx, req: Hashable, agent: str = "", kind: str = "op") -> list[OpEffect]:
+        self._n += 1
+        self._reqs[self._n] = req
+        return [Propose(tx, kind, agent, self._n)]
+
+    def create(self, tx: apb.AgentTx, req: Hashable) -> list[OpEffect]:
+        why = create_refused(tx)
+        if why:
+            return [AgentOpDone(req, False, tx.create.id, "", why)]
+        return self.propose(tx, req, tx.create.id, "create")
+
+    def refuse(self, req: Hashable, agent: str, reason: str) -> list[OpEffect]:
+        r = self._table().get(agent) if agent else None
+        return [AgentOpDone(req, False, agent, r.name if r else "", reason)]
+
+    def done(self, n: int, agent: str, ok: bool, reason: str, result: object) -> list[OpEffect]:
+        """The write of request `n` committed (`ok`; `result` what the table made of it) or was given up."""
+        req = self._reqs.pop(n, None)
+        if not ok:
+            reason = reason or "not committed"
+        elif isinstance(result, at.AgentApplied):  # committed and applied here (WriteDone follows the apply)
+            ok, agent, reason = result.ok, result.agent or agent, result.reason
+        else:
+            return []
+        if isinstance(req, tuple) and req and req[0] == "child":
+            _, parent, epoch, rid = req
+            return [AnswerAgent(parent, epoch, rid, ok, agent if ok else "", reason)]
+        r = self._table().get(agent) if agent else None
+        return [AgentOpDone(req, ok, agent, r.name if r else "", reason)]
