@@ -345,16 +345,16 @@ def raising_reaction() -> Undo:
     """The agent layer raises while it reacts to a committed agent-list change (as the allocator did on a
     cost=+inf agent before issue 13): the host's safety net catches it and goes on. Breaks AG-No-Error (the
     verifiers must not let the net hide a bug)."""
-    from haa.hostd import agentnode as node_mod
+    from haa.hostd import allocglue as glue_mod
 
-    original = node_mod.AgentNode._maybe_session
+    original = glue_mod.AllocGlue.change
 
-    def maybe_session(self: node_mod.AgentNode, now: float, why: str, force: bool = False) -> None:
+    def change(self: glue_mod.AllocGlue, now: float, why: str, force: bool = False) -> list[glue_mod.GlueEffect]:
         if why == "agent list changed":
             raise ValueError("AgentSpec(x).cost: must be a finite number, got inf")
-        original(self, now, why, force)
+        return original(self, now, why, force)
 
-    return _patch(node_mod.AgentNode, "_maybe_session", maybe_session)
+    return _patch(glue_mod.AllocGlue, "change", change)
 
 
 def joiner_default_capacity() -> Undo:

@@ -15,7 +15,7 @@ Pure: no I/O, no clock, no randomness.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Iterable, Mapping
+from collections.abc import Callable, Collection, Hashable, Iterable, Mapping
 from dataclasses import dataclass
 
 from haa.hostd import agenttable as at
@@ -118,6 +118,22 @@ class Operations:
         if why:
             return [AgentOpDone(req, False, tx.create.id, "", why)]
         return self.propose(tx, req, tx.create.id, "create")
+
+    def remove(self, ref: str, host: str, req: Hashable) -> list[OpEffect]:
+        """The operator (through `host`) asks to remove agent `ref` (an id or a name)."""
+        r = self._table().resolve(ref)
+        if r is None:
+            return self.refuse(req, ref, "unknown agent")
+        return self.propose(remove(r.id, host), req, r.id)
+
+    def move(self, ref: str, host: str, members: Collection[str], req: Hashable) -> list[OpEffect]:
+        """The operator asks to move agent `ref` to `host`, a member (allocated there until the next session)."""
+        r = self._table().resolve(ref)
+        if r is None:
+            return self.refuse(req, ref, "unknown agent")
+        if host not in members:
+            return self.refuse(req, r.id, f"{host} is not a member of the group")
+        return self.propose(move(r.id, host), req, r.id)
 
     def refuse(self, req: Hashable, agent: str, reason: str) -> list[OpEffect]:
         r = self._table().get(agent) if agent else None

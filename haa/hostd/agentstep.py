@@ -194,3 +194,28 @@ def start_messages(inbox: Inbox, *queues: list[apb.RoutedMsg]) -> list[apb.Route
 def spawn(r: at.AgentRecord, epoch: int) -> Cmd:
     """SpawnShell for `r` at `epoch` (Alg. 6 l. 2, Alg. 8 l. 2)."""
     return Cmd(SpawnShell(r.id, epoch, r.type, r.name, r.spec.config, r.parent))
+
+
+class Retries:
+    """The agent layer's writes to retry ("do ... while not committed", Alg. 4-8): a write that the membership
+    node gave up (after its own re-proposals) or refused (not a member, group not formed) is handed back to its
+    machine as not committed after `after` seconds — at once, a refusal would loop — all due ones together on
+    one `AgentTimer("retry")`."""
+
+    def __init__(self, after: float) -> None:
+        self.after = after
+        self._due: list[tuple[str, str, int]] = []
+        self._armed = False
+
+    def add(self, now: float, kind: str, agent: str, arg: int) -> list[ArmTimer]:
+        self._due.append((kind, agent, arg))
+        if self._armed:
+            return []
+        self._armed = True
+        return [ArmTimer(AgentTimer("retry"), now + self.after)]
+
+    def fire(self) -> list[tuple[str, str, int]]:
+        """The retry timer fired: the writes to hand back, (kind, agent, arg) in the order they failed."""
+        self._armed = False
+        due, self._due = self._due, []
+        return due

@@ -155,6 +155,36 @@ class AllocGlue:
                 self._out.append(ArmTimer(AgentTimer("rebalance"), max(nxt, now)))
         return self._done()
 
+    def applied(self, now: float, res: at.AgentApplied, payload: bytes) -> list[GlueEffect]:
+        """A committed agent transaction that concerns the allocation (the node calls it while a member)."""
+        k = res.kind
+        if k == "start":  # expired starts too: their ids are used up (allocation.py)
+            return self.start_committed(now, payload)
+        if k == "finish" and res.ok:
+            return self.finish_committed(now)
+        if k in ("create", "remove") and res.ok:
+            return self.change(now, "agent list changed")
+        if k == "host" and res.ok:
+            return self.change(now, "host capabilities changed")
+        if k == "control":
+            return self.change(now, "rebalancing resumed")
+        return []
+
+    def view_changed(self, now: float, joined: bool) -> list[GlueEffect]:
+        """The member list changed (this host `joined` it, or not): publish this host's entry if the table may
+        not hold it, and record the change (a session if this host leads)."""
+        if joined or self.host_published is None:
+            self._publish(force=True)
+        return self._done() + self.change(now, "membership changed")
+
+    def run(self, now: float, member: bool) -> list[GlueEffect]:
+        """An operator asks for an allocation session now: the leader starts one; another member passes the
+        request on to the leader (`AgentHostMsg("alloc_run")`)."""
+        members = self.view.members()
+        if members and members[0] != self.view.name:
+            return [HostSend(members[0], "alloc_run", "", 0)]
+        return self.change(now, "operator", force=True) if member else []
+
     def on_update(self, src: str, data: bytes) -> bool:
         """A bid update from `src` (Alg. 4 l. 59); False if it does not decode. Its effects come with the
         `end_of_inbox` of the input batch."""
