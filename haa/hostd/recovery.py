@@ -5,7 +5,9 @@ machine.
 failures it has reported and not yet seen decided, the start-failure backoffs, the messages held for agents
 whose instance is gone — and is driven through `step(now, input) -> list[effect]`; it reads the agent table
 and the member list through an `AgentView`. `haa.hostd.agentnode.AgentNode` composes it (next to
-`haa.hostd.transfer.Transfer`); `tests/test_agent_machines.py` drives it alone.
+`haa.hostd.transfer.Transfer`); `tests/test_agent_machines.py` drives it alone. Line numbers are those of
+Alg. 7 and Alg. 8 as printed (the seed text of the thesis: Alg. 7 at its line 2923, Alg. 8 at 2931, the prose
+at 897-899, the AR-Recovery proof at 2951).
 
 * Backup (Alg. 7): an instance sends (backup, a, b) to its host (l. 3, `Backup`); the host commits it to
   the agent table (l. 5). Only the owner's current epoch may write a backup, so a fenced instance — or a backup

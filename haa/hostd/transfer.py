@@ -6,7 +6,8 @@ host, Alg. 5) and a thaw of an agent allocated to it (new host, Alg. 6) — and 
 and changes nothing else. `haa.hostd.agentnode.AgentNode` decides *when* (its reconcile: an agent it runs
 is allocated elsewhere -> `Freeze`; a frozen agent allocated to it -> `Thaw`), feeds it the events of the
 instance and the committed transactions, and carries out the effects. `tests/test_agent_machines.py`
-drives it alone. Line numbers are Alg. 5 (freeze) and Alg. 6 (thaw):
+drives it alone. Line numbers are those of Alg. 5 (freeze) and Alg. 6 (thaw) as printed (the seed text of the
+thesis: Alg. 5 at its line 2821, Alg. 6 at 2859, the prose at 877-879, the proofs at 2885-2915):
 
 * freeze (old host, `Freeze`): ask the instance to freeze (l. 2), from then on hold messages for it as
   queue1 (l. 4, `Hold`), commit OAC(freeze) (ll. 5-8, retried while the agent is still ours), wait for the
