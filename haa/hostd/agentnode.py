@@ -400,7 +400,7 @@ class AgentNode:
             if not effs and not self.out and not self.m.out:
                 break
             for e in effs:
-                mine = isinstance(e, WriteDone) and isinstance(e.req, AgentWrite)
+                mine = type(e) is WriteDone and type(e.req) is AgentWrite
                 if not mine:  # the agent layer's own writes stay here
                     res.append(e)
                 try:
@@ -496,7 +496,8 @@ class AgentNode:
             self._apply(self.leaving.check(len(self.local)))
 
     def _reconcile_one(self, agent: str) -> None:
-        self._rc(rc.Check(agent))
+        if self.recovery.backoff:  # (a read: most of the time there is no backoff to forget)
+            self._rc(rc.Check(agent))
         r = self.table.get(agent)
         if r is None or not self.m.is_member() or self.leaving.left:
             return
