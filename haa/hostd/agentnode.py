@@ -10,15 +10,16 @@ state) and composes what thesis Chapter 4 builds on it for agents; each part is 
   the leader starts a session (membership, agent list or capabilities changed, periodically, rate-limited);
 * transfer (Alg. 5-6, `haa.hostd.transfer.Transfer`) and backup / recovery (Alg. 7-8,
   `haa.hostd.recovery.Recovery`), each with its own state and one `step(now, input) -> effects`;
-* routing: every message between agents goes through the hosts (`_route`): to the local instance through
-  its `Inbox` (exactly once, sender order), to the owner host, held by the transfer or recovery in progress
-  here, or into the agent's queue in the table while it is frozen, new or crashed (`haa.hostd.routing`);
-* reconcile: after every change of the table each host compares what the table says with the instances it
-  runs (`_reconcile_one`) — an agent it runs but is no longer allocated is frozen, a frozen agent allocated
-  to it is thawed, a new or crashed agent allocated to it is recovered, an instance the table does not know
-  is killed;
-* graceful leave (thesis AF-1): `leave()` first marks the host draining (it gets no agents), waits until it
-  runs none, then leaves the group.
+* routing (`haa.hostd.agentroute.Router`): every message between agents goes through the hosts: to the local
+  instance through its `Inbox` (exactly once, sender order, `haa.hostd.routing`), to the owner host, held by
+  the transfer or recovery in progress here, or into the agent's queue in the table while it is frozen, new
+  or crashed;
+* reconcile (`_reconcile_one`, decided by `haa.hostd.agentplan.reconcile`): after every change of the table
+  each host compares what the table says with the instances it runs — an agent it runs but is no longer
+  allocated is frozen, a frozen agent allocated to it is thawed, a new or crashed agent allocated to it is
+  recovered, an instance the table does not know is killed;
+* graceful leave (thesis AF-1, `haa.hostd.agentleave.Leave`): `leave()` first marks the host draining (it gets
+  no agents), waits until it runs none, then leaves the group.
 
 The node keeps one record per instance (`local`: phase, epoch, streams; `haa.hostd.agentstep.Local`) and
 carries out the machines' effects in the order they come (`_apply`). Agent instances are not started here:

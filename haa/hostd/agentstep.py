@@ -96,7 +96,7 @@ class Cmd:
 @dataclass(frozen=True, slots=True)
 class Propose:
     """Commit `tx` to the agent table through OAC; its outcome comes back as a write of `kind` for
-    (`agent`, `epoch`) (`AgentNode._propose`)."""
+    (`agent`, `epoch`) (an `agentops.AgentWrite` request key)."""
 
     tx: apb.AgentTx
     kind: str
