@@ -349,13 +349,13 @@ class AgentNode:
         if loc is None or loc.epoch != ev.epoch:
             self.counters["stale_agent_events"] += 1  # an older instance (fenced): ignored
             return
-        inp = plan.instance_input(loc, ev, now, self.config.start_grace)
-        if isinstance(inp, (tr.ShellUp, tr.StateArrived, tr.ShellDied)):
+        if type(ev) is Sent:  # the most frequent event first
+            self._apply(self.router.sent(loc, ev))
+        elif isinstance(inp := plan.instance_input(loc, ev, now, self.config.start_grace),
+                        (tr.ShellUp, tr.StateArrived, tr.ShellDied)):
             self._tr(inp)
         elif inp is not None:
             self._rc(inp)
-        elif type(ev) is Sent:
-            self._apply(self.router.sent(loc, ev))
         elif type(ev) is Stopped:  # the agent ended itself: removed from the table
             self._apply([Propose(ops.remove(loc.id, self.name, loc.epoch), "stopped", loc.id, loc.epoch)])
         elif type(ev) is SpawnChild:
@@ -388,7 +388,7 @@ class AgentNode:
         else:
             self._apply(self.router.from_host(src, msg))
 
-    # ------------------------------------------------------------------ drain: membership effects + ours
+    # ------------------------------------------------------------------ drain: membership effects + ours, commits
 
     def drain(self) -> list[Any]:
         res: list[Any] = []
@@ -397,7 +397,8 @@ class AgentNode:
             if self._alloc_msgs:  # Alg. 4 l. 77: every update received in this input has been processed
                 self._alloc_msgs = 0
                 self._apply(self.alloc.end_of_inbox(self._now))
-            self._apply(self.router.flush())
+            if self.router.pushes:
+                self._apply(self.router.flush())
             if not effs and not self.out and not self.m.out:
                 break
             for e in effs:
@@ -425,8 +426,6 @@ class AgentNode:
             res.extend(self.out)
             self.out = []
         return res
-
-    # ------------------------------------------------------------------ committed transactions
 
     def _on_write_done(self, e: WriteDone) -> None:
         w = cast(AgentWrite, e.req)  # `drain` checked it
