@@ -151,11 +151,11 @@ def test_a_joiner_without_host_info_bids_for_nothing():
     name = node.name
     info = node.table.hosts.pop(name)
     try:
-        spec = {h.name: h for h in node._host_specs()}[name]
+        spec = {h.name: h for h in node.alloc.host_specs()}[name]
         assert spec.draining and not spec.hardware
     finally:
         node.table.hosts[name] = info
-    assert not {h.name: h for h in node._host_specs()}[name].draining
+    assert not {h.name: h for h in node.alloc.host_specs()}[name].draining
 
 
 def test_a_host_that_left_the_group_does_not_push_for_ever():

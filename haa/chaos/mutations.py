@@ -154,15 +154,15 @@ def _drop_message() -> None:
 
 def _no_recovery() -> None:
     from haa.hostd import agenttable as at
-    from haa.hostd.agentnode import AgentNode
+    from haa.hostd.recovery import Recovery
 
-    orig = AgentNode._recover
+    orig = Recovery._recover
 
-    def mutated(self: AgentNode, r: Any) -> None:
+    def mutated(self: Recovery, r: Any) -> None:
         if r.status == at.NEW:
             orig(self, r)
 
-    AgentNode._recover = mutated  # type: ignore[method-assign]
+    Recovery._recover = mutated  # type: ignore[method-assign]
 
 
 _APPLY: dict[str, Callable[[str], None]] = {

@@ -345,33 +345,33 @@ def raising_reaction() -> Undo:
     """The agent layer raises while it reacts to a committed agent-list change (as the allocator did on a
     cost=+inf agent before issue 13): the host's safety net catches it and goes on. Breaks AG-No-Error (the
     verifiers must not let the net hide a bug)."""
-    from haa.hostd import agentnode as node_mod
+    from haa.hostd import allocglue as glue_mod
 
-    original = node_mod.AgentNode._maybe_session
+    original = glue_mod.AllocGlue.change
 
-    def maybe_session(self: node_mod.AgentNode, now: float, why: str, force: bool = False) -> None:
+    def change(self: glue_mod.AllocGlue, now: float, why: str, force: bool = False) -> list[glue_mod.GlueEffect]:
         if why == "agent list changed":
             raise ValueError("AgentSpec(x).cost: must be a finite number, got inf")
-        original(self, now, why, force)
+        return original(self, now, why, force)
 
-    return _patch(node_mod.AgentNode, "_maybe_session", maybe_session)
+    return _patch(glue_mod.AllocGlue, "change", change)
 
 
 def joiner_default_capacity() -> Undo:
     """The agent layer as before the join fix: a member whose `HostInfo` is not in the agent table yet (a host
     that just joined) is read as one core without hardware and bids in the join's session."""
-    from haa.hostd import agentnode as node_mod
+    from haa.hostd import allocglue as glue_mod
     from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
 
-    def host_specs(self: node_mod.AgentNode) -> tuple[HostSpec, ...]:
+    def host_specs(self: glue_mod.AllocGlue) -> tuple[HostSpec, ...]:
         out = []
-        for n in self._member_names():
-            h = self.table.hosts.get(n)
+        for n in self.view.members():
+            h = self.view.table.hosts.get(n)
             cap = h.capacity if h is not None and MIN_CAPACITY <= h.capacity <= MAX_CAPACITY else 1.0
             out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
         return tuple(out)
 
-    return _patch(node_mod.AgentNode, "_host_specs", host_specs)
+    return _patch(glue_mod.AllocGlue, "host_specs", host_specs)
 
 
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
