@@ -19,6 +19,8 @@ CORE_MODULES = [
     "haa/hostd/ddb.py",
     "haa/hostd/globalstate.py",
     "haa/hostd/membership.py",
+    "haa/hostd/groupeffects.py",
+    "haa/hostd/sequencer.py",
     "haa/hostd/agenttable.py",
     "haa/hostd/agentio.py",
     "haa/hostd/routing.py",

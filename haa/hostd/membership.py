@@ -47,19 +47,17 @@ The class does no I/O, reads no clock and uses no randomness.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any, assert_never, cast
 
 from haa.hostd.core import CoreConfig, HostCore
-from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, Suspicion
+from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
 from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
     GroupTxError,
     SeqApplied,
-    SeqEntry,
     TxAgent,
     TxDdb,
     TxFormation,
@@ -70,6 +68,7 @@ from haa.hostd.globalstate import (
     decode_tx,
     encode_tx,
 )
+from haa.hostd.groupeffects import AppliedTx, Connect, Left, NodeEffect, NodeTimer, TimerWhat, ViewChange, WriteDone
 from haa.hostd.messages import (
     Apply,
     Connections,
@@ -86,74 +85,26 @@ from haa.hostd.messages import (
     TxId,
 )
 from haa.hostd.oac import UNDECIDED
+from haa.hostd.sequencer import (
+    BatchAborted,
+    BatchApplied,
+    Count,
+    Flush,
+    Forwarded,
+    ProposeBatch,
+    Proposed,
+    Retarget,
+    RetryDue,
+    SeqConfig,
+    SeqInput,
+    Sequencer,
+    Submit,
+)
 
 Proc = tuple[str, int]
 
-#: writes a sequencer queues at most (beyond it, forwarded writes are dropped: their origins forward them again)
-SEQ_MAX_QUEUE = 200_000
-
-
-# ------------------------------------------------------------------------------------------------ effects
-
-
-@dataclass(slots=True)
-class Connect:
-    """Open (or keep) a link to host `name` at `addr` (Alg. 3 "open connection to")."""
-
-    name: str
-    addr: str
-
-
-@dataclass(slots=True)
-class ViewChange:
-    """This host applied a change of the member list."""
-
-    view: int
-    seq: int
-    members: tuple[Member, ...]
-    removed: tuple[Member, ...]
-    added: tuple[Member, ...]
-    txid: TxId
-    group: str  # id of the group (the transaction that created it)
-    correct: bool  # the group is correct (more than c_f core processes have been members)
-
-
-@dataclass(slots=True)
-class AppliedTx:
-    """This host applied the `seq`-th global transaction; `state_hash` is its content hash afterwards
-    (only computed when `NodeConfig.hash_every_apply` is set: the simulator's prefix-consistency check);
-    `view` and `front` (the first member, None once the group dissolved) are the view right after it: the
-    node may apply more transactions before its effects are carried out."""
-
-    seq: int
-    txid: TxId
-    kind: str
-    payload: bytes
-    state_hash: str
-    result: object | None
-    view: int = 0
-    front: Proc | None = None
-
-
-@dataclass(slots=True)
-class WriteDone:
-    """A global-state change requested with `submit` was committed (`ok`) or given up (`reason`)."""
-
-    req: Hashable
-    ok: bool
-    txid: TxId | None
-    seq: int
-    reason: str
-    result: object | None = None
-
-
-@dataclass(slots=True)
-class Left:
-    """The voluntary leave of this host was committed (Alg. 3 l. 16): it stops taking part."""
-
-
-#: the effects the node adds to the core's (`haa.hostd.effects.Effect`)
-NodeEffect = Connect | ViewChange | AppliedTx | WriteDone | Left
+__all__ = ["AppliedTx", "Connect", "Left", "MembershipNode", "NodeConfig", "NodeEffect", "NodeTimer", "ViewChange",
+           "WriteDone"]
 
 
 # ------------------------------------------------------------------------------------------------ config
@@ -224,16 +175,6 @@ class _Write:
     payload: bytes
     attempts: int = 0
     seq: bool = False  # through the sequencer
-
-
-@dataclass(slots=True)
-class _SeqOut:
-    """A write this host forwarded to the sequencer and has not yet seen applied."""
-
-    req: Hashable
-    payload: bytes
-    first: float  # first forwarded
-    sent: float = 0.0  # last forwarded
 
 
 # ------------------------------------------------------------------------------------------------ node
@@ -313,15 +254,9 @@ class MembershipNode:
         self.direct_q: list[tuple[TxId, bytes]] = []
         self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
         self.state_requests: dict[TxId, list[Proc]] = {}
-        # the sequencer (docs/oac.md): as an origin ...
-        self.seq_next = 1  # cseq of the next write
-        self.seq_pending: dict[int, _SeqOut] = {}  # forwarded, not yet applied here (in cseq order)
-        self.seq_target: Proc | None = None  # where they were forwarded last
-        self.seq_timer = False
-        # ... and as the sequencer: forwarded writes waiting for a batch, and batches in OAC
-        self.seq_queue: deque[SeqEntry] = deque()
-        self.seq_known: set[tuple[Proc, int]] = set()  # (origin, cseq) queued or in a batch of ours
-        self.seq_inflight: dict[TxId, tuple[SeqEntry, ...]] = {}
+        # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
+        self.seq = Sequencer(self.me, self, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
+                                                      cfg.seq_retry, cfg.seq_abandon))
         if "seq-no-dedup" in mutations:
             self.state.dedup = False
         self.started = False
@@ -379,8 +314,8 @@ class MembershipNode:
             return
         self.out.append(Send(dst[0], dst[1], msg))
 
-    def _timer(self, key: str, at: float) -> None:
-        self.core._timer(("m", key), at)
+    def _timer(self, what: TimerWhat, at: float) -> None:
+        self.out.append(SetTimer(NodeTimer(what), at))
 
     def _log(self, event: str, **fields: Any) -> None:
         self.out.append(Log(event, fields))
@@ -461,11 +396,10 @@ class MembershipNode:
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now
-        tk = cast("tuple[str, str]", key)  # ("m", what) is ours (see _timer), the rest the core's
-        if tk[0] != "m":
+        if not isinstance(key, NodeTimer):  # the core's
             self.core.on_timer(now, key)
             return
-        k = tk[1]
+        k = key.what
         if self.left:
             return
         if k == "discovery":
@@ -492,8 +426,7 @@ class MembershipNode:
                 self.updating = False
                 self._update()
         elif k == "seqretry":
-            self.seq_timer = False
-            self._seq_retry()
+            self._seq(RetryDue())
 
     def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
         """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
@@ -631,8 +564,7 @@ class MembershipNode:
         w = self.writes.pop(txid, None)
         if w is not None:
             self._retry_write(w, "aborted")
-        if txid in self.seq_inflight:
-            self._seq_done(txid, False)
+        self._seq(BatchAborted(txid))
         a = self.attempt
         if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
             self.attempt = None
@@ -717,11 +649,11 @@ class MembershipNode:
         if w is not None:
             self.out.append(WriteDone(w.req, True, txid, res.seq, res.error, res.ddb_result))
         if type(tx) is TxSeq:
-            self._seq_applied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result))
-        elif txid in self.seq_inflight:  # (our batch, but it did not decode as one: cannot happen)
-            self._seq_done(txid, True)
+            self._seq(BatchApplied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result)))
+        elif txid in self.seq.inflight:  # (our batch, but it did not decode as one: cannot happen)
+            self._seq(BatchApplied(txid, res.seq, ()))
         if res.view_changed:
-            self._seq_retarget()
+            self._seq(Retarget())
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
         if res.stale:
@@ -957,10 +889,7 @@ class MembershipNode:
 
     def _propose_write(self, w: _Write) -> None:
         if w.seq:
-            cseq = self.seq_next
-            self.seq_next += 1
-            self.seq_pending[cseq] = _SeqOut(w.req, w.payload, self._now)
-            self._seq_forward([cseq])
+            self._seq(Submit(w.req, w.payload))
             return
         w.attempts += 1
         txid = self.core.propose_to(self._now, w.payload, self.state.procs())
@@ -989,11 +918,37 @@ class MembershipNode:
     def _unlock(self) -> None:
         self.locked = None
         self._propose_held()
-        self._seq_flush()
+        self._seq(Flush())
 
     # ------------------------------------------------------------------ the sequencer (docs/oac.md)
 
-    def _seq_target_now(self) -> Proc | None:
+    def _seq(self, inp: SeqInput) -> None:
+        """Step the sequencer and carry out its effects, in order."""
+        for e in self.seq.step(self._now, inp):
+            match e:
+                case Send():
+                    self.out.append(e)
+                case SetTimer():
+                    self.out.append(e)
+                case WriteDone():
+                    self.out.append(e)
+                case ProposeBatch(entries):
+                    txid = self.core.propose_to(self._now, encode_tx(TxSeq(entries)), self.state.procs())
+                    self._seq(Proposed(txid))
+                case Count(name, n):
+                    self.core.counters[name] += n
+                case _:
+                    assert_never(e)
+
+    # SeqHost: what the sequencer reads of this node
+
+    def has_left(self) -> bool:
+        return self.left
+
+    def may_batch(self) -> bool:
+        return self.locked is None and not self.direct_q and not self.left and self.is_member()
+
+    def sequencer(self) -> Proc | None:
         """The sequencer this host forwards to: the highest-ranked member it does not suspect (the leader of
         Alg. 3 l. 79 as this host sees it; every member agrees on it while nobody is suspected)."""
         for m in self.state.members:
@@ -1001,129 +956,9 @@ class MembershipNode:
                 return m.proc
         return None
 
-    def _seq_forward(self, cseqs: Sequence[int]) -> None:
-        """Forward these pending writes (in cseq order) to the sequencer of the moment."""
-        target = self._seq_target_now()
-        if target is None or not self.is_member():
-            self._seq_arm()  # nobody to forward to: the retry timer tries again
-            return
-        self.seq_target = target
-        pending = self.seq_pending
-        floor = next(iter(pending)) if pending else self.seq_next
-        most, most_bytes = self.config.seq_max_entries, self.config.seq_max_bytes
-        batch: list[tuple[int, bytes]] = []
-        size = 0
-        for c in cseqs:
-            w = pending.get(c)
-            if w is None:
-                continue
-            w.sent = self._now
-            if batch and (len(batch) >= most or size + len(w.payload) > most_bytes):
-                self._seq_send(target, floor, batch)
-                batch, size = [], 0
-            batch.append((c, w.payload))
-            size += len(w.payload)
-        if batch:
-            self._seq_send(target, floor, batch)
-        self._seq_arm()
-
-    def _seq_send(self, target: Proc, floor: int, batch: list[tuple[int, bytes]]) -> None:
-        self.core.counters["seq_forwarded"] += len(batch)
-        if target == self.me:
-            self._seq_accept(self.me, floor, tuple(batch))
-        else:
-            self._send(target, SeqWrite(floor, tuple(batch)))
-
-    def _seq_arm(self) -> None:
-        if self.seq_pending and not self.seq_timer:
-            self.seq_timer = True
-            self._timer("seqretry", self._now + self.config.seq_retry)
-
-    def _seq_retry(self) -> None:
-        """Forward again what has waited `seq_retry` (a forward lost with a sequencer that crashed, or one that
-        never got to propose it); give up what has waited `seq_abandon`."""
-        now = self._now
-        for c, w in list(self.seq_pending.items()):
-            if now - w.first >= self.config.seq_abandon:
-                del self.seq_pending[c]
-                self.out.append(WriteDone(w.req, False, None, 0,
-                                          f"not committed within {self.config.seq_abandon:g} s (it may still commit)"))
-        due = [c for c, w in self.seq_pending.items() if now - w.sent >= self.config.seq_retry]
-        if due:
-            self.core.counters["seq_reforwarded"] += len(due)
-            self._seq_forward(due)
-        self._seq_arm()
-
-    def _seq_retarget(self) -> None:
-        """The sequencer changed (a view change, a suspicion): forward every pending write to the new one."""
-        if self.seq_pending and self._seq_target_now() != self.seq_target:
-            self.core.counters["seq_retargeted"] += 1
-            self._seq_forward(list(self.seq_pending))
-
-    def _seq_accept(self, origin: Proc, floor: int, writes: tuple[tuple[int, bytes], ...]) -> None:
-        """Writes forwarded to us (we are, or were, or are about to be the sequencer): queue each one that is
-        neither queued here nor applied, and propose."""
-        # (an origin that is not a member yet here may be one we have not applied the addition of: its writes
-        # are queued all the same; applying a batch skips the writes of non-members, deterministically)
-        if self.left or len(self.seq_queue) + len(writes) > SEQ_MAX_QUEUE:
-            self.core.counters["seq_dropped"] += len(writes)
-            return
+    def settled(self, origin: Proc, cseq: int) -> bool:
         d = self.state.seq_origins.get(origin)
-        for cseq, payload in writes:
-            key = (origin, cseq)
-            if key in self.seq_known or (d is not None and (cseq < d.floor or cseq in d.done)):
-                continue
-            self.seq_known.add(key)
-            self.seq_queue.append(SeqEntry(origin, cseq, floor, payload))
-        self._seq_flush()
-
-    def _seq_flush(self) -> None:
-        """Propose the queued writes as batches, at most `seq_inflight` at a time; held while the global state
-        is locked (l. 129), like any global-state change."""
-        q = self.seq_queue
-        if self.locked is not None or self.direct_q or self.left or not self.is_member():
-            return
-        cfg = self.config
-        while q and len(self.seq_inflight) < cfg.seq_inflight:
-            entries: list[SeqEntry] = []
-            size = 0
-            while q and len(entries) < cfg.seq_max_entries and (
-                not entries or size + len(q[0].tx) <= cfg.seq_max_bytes
-            ):
-                e = q.popleft()
-                entries.append(e)
-                size += len(e.tx)
-            batch = tuple(entries)
-            txid = self.core.propose_to(self._now, encode_tx(TxSeq(batch)), self.state.procs())
-            self.seq_inflight[txid] = batch
-            self.core.counters["seq_batches"] += 1
-
-    def _seq_done(self, txid: TxId, commit: bool) -> None:
-        """One of our batches was applied (commit) or aborted: an aborted batch goes back to the queue's front."""
-        batch = self.seq_inflight.pop(txid, None)
-        if batch is None:
-            return
-        if commit:
-            for e in batch:
-                self.seq_known.discard((e.origin, e.cseq))
-        else:
-            self.core.counters["seq_batches_aborted"] += 1
-            self.seq_queue.extendleft(reversed(batch))
-        self._seq_flush()
-
-    def _seq_applied(self, txid: TxId, seq: int, results: tuple[SeqApplied, ...]) -> None:
-        """A sequencer batch was applied here: answer our own writes in it."""
-        for r in results:
-            if r.origin != self.me:
-                continue
-            w = self.seq_pending.pop(r.cseq, None)
-            if w is None:
-                continue
-            if r.applied:
-                self.out.append(WriteDone(w.req, True, txid, seq, r.error, r.result))
-            else:  # (a duplicate of an applied write was answered then; this is "origin is not a member")
-                self.out.append(WriteDone(w.req, False, None, 0, r.error))
-        self._seq_done(txid, True)
+        return d is not None and (cseq < d.floor or cseq in d.done)
 
     # ------------------------------------------------------------------ sponsoring and state transfer
 
@@ -1264,7 +1099,7 @@ class MembershipNode:
         elif isinstance(msg, StateRequest):
             self._on_state_request(q, msg.txid)
         elif isinstance(msg, SeqWrite):
-            self._seq_accept(q, msg.floor, msg.writes)
+            self._seq(Forwarded(q, msg.floor, msg.writes))
 
     def _on_apply(self, a: Proc, addr: str) -> None:
         """ll. 50-61."""
@@ -1362,7 +1197,7 @@ class MembershipNode:
         if self.state.is_member(p) or p in self.join_list:
             self._update()
         if self.state.is_member(p):
-            self._seq_retarget()
+            self._seq(Retarget())
 
     def _on_peer_dead(self, p: Proc) -> None:
         """ll. 32-34."""
@@ -1373,7 +1208,7 @@ class MembershipNode:
         if self.sponsor == p:
             self.sponsor = None
         self._update()
-        self._seq_retarget()
+        self._seq(Retarget())
 
     # ------------------------------------------------------------------ introspection
 
