@@ -21,6 +21,7 @@ CORE_MODULES = [
     "haa/hostd/membership.py",
     "haa/hostd/groupeffects.py",
     "haa/hostd/sequencer.py",
+    "haa/hostd/statetransfer.py",
     "haa/hostd/agenttable.py",
     "haa/hostd/agentio.py",
     "haa/hostd/routing.py",

@@ -100,6 +100,22 @@ from haa.hostd.sequencer import (
     Sequencer,
     Submit,
 )
+from haa.hostd.statetransfer import (
+    Applied,
+    ApplyTx,
+    CatchupDue,
+    CaughtUp,
+    Continue,
+    Delivered,
+    Forward,
+    Rejected,
+    Request,
+    Restore,
+    SendSnapshot,
+    Snapshot,
+    StateTransfer,
+    XferInput,
+)
 
 Proc = tuple[str, int]
 
@@ -249,11 +265,8 @@ class MembershipNode:
         self.leaving = False
         self.left = False
         self.formation_txid: TxId | None = None
-        # state transfer (docs/membership.md)
-        self.fwd_buffer: dict[int, tuple[TxId, bytes]] = {}
-        self.direct_q: list[tuple[TxId, bytes]] = []
-        self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
-        self.state_requests: dict[TxId, list[Proc]] = {}
+        # state transfer to a new member (docs/membership.md, `haa.hostd.statetransfer`)
+        self.xfer = StateTransfer(self.me, self, cfg.catchup_timeout)
         # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
         self.seq = Sequencer(self.me, self, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
                                                       cfg.seq_retry, cfg.seq_abandon))
@@ -420,7 +433,7 @@ class MembershipNode:
                         self._send(m.proc, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
                 self._timer("reapply", now + self.config.reapply)
         elif k == "catchup":
-            self._request_state()
+            self._xfer(CatchupDue())
         elif k == "retry":
             if self.attempt is None:
                 self.updating = False
@@ -582,15 +595,8 @@ class MembershipNode:
             self.formation_txid = None
         if e.txid in self.state.recent:
             return  # already applied from the sponsor's forwarded stream
-        if self.direct_q or (not self.is_member() and self._needs_state(e.payload)):
-            # a new member: buffer until the state has caught up with the transaction that added us
-            self.direct_q.append((e.txid, e.payload))
-            if self.direct_anchor:
-                self._drain_direct()
-            else:
-                self._timer("catchup", self._now + self.config.catchup_timeout)
-            return
-        self._apply(e.txid, e.payload, direct=True)
+        joining = not self.direct_q and not self.is_member() and self._needs_state(e.payload)
+        self._xfer(Delivered(e.txid, e.payload, joining))
 
     def _needs_state(self, payload: bytes) -> bool:
         """A non-member delivers a transaction: the one that adds it to an existing group (it must first
@@ -615,10 +621,7 @@ class MembershipNode:
         self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result, st.view, front))
         for a in sorted(self.sponsees):  # l. 61: forward to every applicant we sponsor (sorted: deterministic)
             self._send(a, StateForward(res.seq, txid, payload))
-        pending = self.state_requests.pop(txid, None)
-        if pending:
-            for q in pending:
-                self._send(q, StateSnapshot(self.state.seq, self.state.snapshot(), txid, res.seq))
+        self._xfer(Applied(txid, res.seq))
         try:
             tx = decode_tx(payload)
         except GroupTxError:
@@ -973,103 +976,63 @@ class MembershipNode:
             if a not in self.sponsees and not self._known_dead(a):
                 self._sponsor(a)
 
-    def _install(self, seq: int, data: bytes) -> bool:
-        """Install a snapshot that is ahead of our state in the same group, or that comes from a correct group
-        while ours is not (a provisional group of one that never became correct, docs/membership.md)."""
-        st = self.state
-        try:
-            seq, gid, correct = GlobalState.peek(data)
-        except GroupTxError as e:
-            self.counters["rejected_snapshot"] += 1
-            self._log("reject", reason=str(e))
-            return False
-        same = gid == st.genesis
-        if not ((same and seq > st.seq) or (not same and correct and not st.group_correct) or st.seq == 0):
-            return False
-        if not same:
-            self.fwd_buffer.clear()
+    def _xfer(self, inp: XferInput) -> None:
+        """Step the state transfer and carry out its effects, in order; after an `ApplyTx` or a `Restore`
+        step it with `Continue` (a loop, not recursion: a joiner may drain thousands of transactions)."""
+        effects = self.xfer.step(self._now, inp)
+        while effects:
+            more = False
+            for e in effects:
+                match e:
+                    case ApplyTx(txid, payload, direct):
+                        self._apply(txid, payload, direct)
+                        more = True
+                    case Restore(data):
+                        self._restore(data)
+                        more = True
+                    case SendSnapshot(to, anchor, anchor_seq):
+                        self._send(to, StateSnapshot(self.state.seq, self.state.snapshot(), anchor, anchor_seq))
+                    case Send(dst, dst_inc, msg):
+                        self._send((dst, dst_inc), msg)
+                    case SetTimer() | Log():
+                        self.out.append(e)
+                    case CaughtUp():
+                        self._propose_held()
+                    case Rejected(reason):
+                        self.counters["rejected_snapshot"] += 1
+                        self._log("reject", reason=reason)
+                    case _:
+                        assert_never(e)
+            effects = self.xfer.step(self._now, Continue()) if more else []
+
+    def _restore(self, data: bytes) -> None:
         try:
             self.state.restore(data)
         except GroupTxError as e:
             self.counters["rejected_snapshot"] += 1
             self._log("reject", reason=str(e))
-            return False
+            return
         for m in self.state.members:
             if m.proc != self.me:
                 self.addrs.setdefault(m.name, m.addr)
-        return True
 
-    def _on_forward(self, seq: int, txid: TxId, payload: bytes) -> None:
-        if self.is_member() and not self.direct_q:
-            return  # joined: the sponsor's stream has nothing more for us
-        if seq <= self.state.seq:
-            return
-        self.fwd_buffer[seq] = (txid, payload)
-        self._drain_forwarded()
+    # XferHost: what the state transfer reads of this node (`state`, `is_member`)
 
-    def _drain_forwarded(self) -> None:
-        while self.state.seq + 1 in self.fwd_buffer:
-            txid, payload = self.fwd_buffer.pop(self.state.seq + 1)
-            if self.direct_q and txid == self.direct_q[0][0]:
-                self.direct_anchor = self.state.seq + 1
-                self.fwd_buffer.clear()
-                self._drain_direct()
-                return
-            self._apply(txid, payload, direct=False)
-        for s in [s for s in self.fwd_buffer if s <= self.state.seq]:
-            del self.fwd_buffer[s]
-
-    def _drain_direct(self) -> None:
-        """Apply buffered deliveries once the state has reached the one before the first of them."""
-        if not self.direct_anchor or self.state.seq + 1 < self.direct_anchor:
-            return
-        q, self.direct_q = self.direct_q, []
-        first = self.direct_anchor
-        self.direct_anchor = 0
-        for i, (txid, payload) in enumerate(q):
-            if first + i <= self.state.seq or txid in self.state.recent:
-                continue
-            self._apply(txid, payload, direct=True)
-        self._log("caught_up", seq=self.state.seq)
-        self._propose_held()
-
-    def _request_state(self) -> None:
-        if not self.direct_q or self.direct_anchor:
-            return
-        txid = self.direct_q[0][0]
-        target = None
-        for m in self.state.members:  # the first unsuspected member that is not us
+    def request_target(self, txid: TxId) -> Proc:
+        """A catching-up member asks the first unsuspected member that is not itself, else its sponsor, else
+        the proposer of the transaction that added it."""
+        for m in self.state.members:
             if m.proc != self.me and not self._suspected(m.proc):
-                target = m.proc
-                break
-        if target is None and self.sponsor is not None:
-            target = self.sponsor
-        if target is None:
-            target = (txid.host, txid.inc)
-        self._send(target, StateRequest(txid))
-        self._log("state_request", to=target[0], tx=str(txid))
-        self._timer("catchup", self._now + self.config.catchup_timeout)
+                return m.proc
+        if self.sponsor is not None:
+            return self.sponsor
+        return (txid.host, txid.inc)
 
-    def _on_state_request(self, src: Proc, txid: TxId) -> None:
-        seq = self.state.recent.get(txid)
-        if seq is None:
-            self.state_requests.setdefault(txid, []).append(src)  # answer once it is applied here
-            return
-        self._send(src, StateSnapshot(self.state.seq, self.state.snapshot(), txid, seq))
-
-    def _on_snapshot(self, src: Proc, msg: StateSnapshot) -> None:
-        if msg.anchor is None:  # from our sponsor (ll. 60, 125, 176)
-            if self.is_member() and not self.direct_q:
-                return
-            self._install(msg.seq, msg.data)
-            self._drain_forwarded()
-            return
-        if not self.direct_q or msg.anchor != self.direct_q[0][0]:
-            return
-        self._install(msg.seq, msg.data)
-        self.direct_anchor = msg.anchor_seq
-        self.fwd_buffer.clear()
-        self._drain_direct()
+    @property
+    def direct_q(self) -> list[tuple[TxId, bytes]]:
+        """What a new member delivered and holds until its state has caught up (read by the agent layer and
+        the simulator)."""
+        return self.xfer.direct_q
 
     # ------------------------------------------------------------------ membership messages
 
@@ -1093,11 +1056,11 @@ class MembershipNode:
         elif isinstance(msg, Locked):
             self._on_locked(q, msg.key)
         elif isinstance(msg, StateForward):
-            self._on_forward(msg.seq, msg.txid, msg.payload)
+            self._xfer(Forward(msg.seq, msg.txid, msg.payload))
         elif isinstance(msg, StateSnapshot):
-            self._on_snapshot(q, msg)
+            self._xfer(Snapshot(msg.seq, msg.data, msg.anchor, msg.anchor_seq))
         elif isinstance(msg, StateRequest):
-            self._on_state_request(q, msg.txid)
+            self._xfer(Request(q, msg.txid))
         elif isinstance(msg, SeqWrite):
             self._seq(Forwarded(q, msg.floor, msg.writes))
 
