@@ -22,6 +22,7 @@ CORE_MODULES = [
     "haa/hostd/groupeffects.py",
     "haa/hostd/sequencer.py",
     "haa/hostd/statetransfer.py",
+    "haa/hostd/formation.py",
     "haa/hostd/agenttable.py",
     "haa/hostd/agentio.py",
     "haa/hostd/routing.py",

@@ -53,6 +53,19 @@ from typing import Any, assert_never, cast
 
 from haa.hostd.core import CoreConfig, HostCore
 from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
+from haa.hostd.formation import (
+    Aborted,
+    DiscoveryDue,
+    Formation,
+    FormationConfig,
+    FormationDue,
+    FormationInput,
+    FormGroupOfOne,
+    ProposeFallback,
+)
+from haa.hostd.formation import Delivered as FDelivered
+from haa.hostd.formation import Proposed as FProposed
+from haa.hostd.formation import Start as FStart
 from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
@@ -238,8 +251,8 @@ class MembershipNode:
         for n, a in self.known_hosts:
             self.addrs[n] = a
         self.addrs[name] = addr
-        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate)
-        self.core.group_handler = self._on_group
+        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate,
+                             accept_group=True)
         #: node effects go through the core's outbox, in order (so it holds both kinds)
         self.out = cast("list[Effect | NodeEffect]", self.core.out)
         self.state = GlobalState(self.core_names, self.c_f)
@@ -264,7 +277,9 @@ class MembershipNode:
         self.introduced: dict[Proc, tuple[str, int]] = {}  # applicant -> (group, view) when we introduced it
         self.leaving = False
         self.left = False
-        self.formation_txid: TxId | None = None
+        # formation (ll. 40-49, 158-179; `haa.hostd.formation`)
+        self.formation = Formation(self.me, addr, self.core_names, self.c_h, self,
+                                   FormationConfig(cfg.formation_timeout, cfg.formation_retry, cfg.discovery))
         # state transfer to a new member (docs/membership.md, `haa.hostd.statetransfer`)
         self.xfer = StateTransfer(self.me, self, cfg.catchup_timeout)
         # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
@@ -384,10 +399,7 @@ class MembershipNode:
             self.conn_to.add(q)
             self._send((q, self.core.peers[q].inc), Apply(self.addr))
         self._timer("reapply", now + self.config.reapply)
-        if self.name == self.core_names[0]:  # l. 41: the first core process
-            self._timer("discovery", now + self.config.discovery)
-        elif self.name in self.core_names[: self.c_h]:  # l. 44: the core head
-            self._timer("formation", now + self.config.formation_timeout)  # l. 45
+        self._form(FStart())  # ll. 40-45
 
     def _contacts(self) -> list[str]:
         """Where an applicant sends `apply`: every core process (l. 36), the hosts it knew before, and the hosts
@@ -397,7 +409,9 @@ class MembershipNode:
 
     def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
         self._now = now
-        self.core.on_message(now, src, src_inc, dst_inc, msg)
+        g = self.core.on_message(now, src, src_inc, dst_inc, msg)
+        if g is not None:  # a membership message, handled right where the core let it through
+            self._on_group(g.src, g.src_inc, g.msg)
 
     def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
         self._now = now
@@ -416,9 +430,9 @@ class MembershipNode:
         if self.left:
             return
         if k == "discovery":
-            self._form_group_of_one()
+            self._form(DiscoveryDue())
         elif k == "formation":
-            self._formation_fallback()
+            self._form(FormationDue())
         elif k == "reapply":
             # until a leader sponsors us, apply again: an `apply` sent before a core process was up is lost,
             # and one received by a core process that was not yet a member made no leader sponsor us
@@ -490,12 +504,23 @@ class MembershipNode:
 
     # ------------------------------------------------------------------ formation (ll. 40-49)
 
+    def _form(self, inp: FormationInput) -> None:
+        """Step the formation machine and carry out its effects, in order."""
+        for e in self.formation.step(self._now, inp):
+            match e:
+                case FormGroupOfOne():
+                    self._form_group_of_one()
+                case ProposeFallback(members):
+                    txid = self.core.propose_to(self._now, encode_tx(TxFormation(self.me, members)),
+                                                [m.proc for m in members])
+                    self._form(FProposed(txid, members))
+                case SetTimer() | Log():
+                    self.out.append(e)
+                case _:
+                    assert_never(e)
+
     def _form_group_of_one(self) -> None:
-        """ll. 41-43, after `discovery` (docs/membership.md, "restarts"). A host that was a member before (it
-        knows hosts from a previous incarnation) never forms a group: its group may still exist and only be
-        slow to answer; it applies until it is joined."""
-        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
-            return
+        """ll. 42-43 (docs/membership.md, "restarts"): a provisional group of one, locked with a new key."""
         self.key_seq += 1
         key = f"{self.name}.{self.inc}.{self.key_seq}"
         self.locked = key  # l. 42
@@ -504,29 +529,22 @@ class MembershipNode:
         self.group_txs.add(txid)
         self._log("group_of_one", tx=str(txid))
 
-    def _core_head_list(self) -> tuple[Member, ...]:
-        """coreHead − (coreHead ∩ ◇S_p) (l. 47, l. 162)."""
-        out = []
-        for q in self.core_names[: self.c_h]:
-            if q == self.name:
-                out.append(Member(q, self.inc, self.addr))
-                continue
-            p = self.core.peers.get(q)
-            if p is None or not p.inc or self.core.is_suspected(q, p.inc):
-                continue
-            out.append(Member(q, p.inc, self.addrs.get(q, "")))
-        return tuple(out)
+    # FormationHost: what the formation reads of this node
 
-    def _formation_fallback(self) -> None:
-        """ll. 45-49: while p ∉ memberList_p, propose OAC(formationFallback) to the unsuspected core head."""
-        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
-            return
-        if self.formation_txid is not None:
-            return  # l. 49: wait until decided
-        members = self._core_head_list()
-        tx = TxFormation(self.me, members)
-        self.formation_txid = self.core.propose_to(self._now, encode_tx(tx), [m.proc for m in members])
-        self._log("formation_fallback", tx=str(self.formation_txid), members=[m.name for m in members])
+    def may_form(self) -> bool:
+        """A host that was a member before (it knows hosts from a previous incarnation) never forms a group:
+        its group may still exist and only be slow to answer; it applies until it is joined."""
+        return not (self.state.members or self.group_seen or self.leaving or self.known_hosts)
+
+    def peer_incarnation(self, name: str) -> int:
+        p = self.core.peers.get(name)
+        return p.inc if p is not None else 0
+
+    def is_suspected(self, name: str, inc: int) -> bool:
+        return self.core.is_suspected(name, inc)
+
+    def address(self, name: str) -> str:
+        return self.addrs.get(name, "")
 
     # ------------------------------------------------------------------ OAC votes (ll. 110-116, 158-165)
 
@@ -552,10 +570,7 @@ class MembershipNode:
                 self.lock_keys[txid] = tx.key  # for l. 153 if it aborts
             return True
         if isinstance(tx, TxFormation):
-            if self.state.members:  # l. 160-161
-                return False
-            want = [m.proc for m in self._core_head_list()]
-            return [m.proc for m in tx.members] == want  # l. 162-163
+            return self.formation.vote(tx, bool(self.state.members))  # ll. 158-165
         return True
 
     # ------------------------------------------------------------------ OAC outcomes
@@ -565,10 +580,7 @@ class MembershipNode:
         if e.commit:
             return  # handled at delivery, in total order
         self.group_txs.discard(txid)
-        if txid == self.formation_txid:
-            self.formation_txid = None
-            if not self.state.members:
-                self._timer("formation", self._now + self.config.formation_retry)  # l. 46: repeat
+        self._form(Aborted(txid, bool(self.state.members)))  # l. 46: repeat
         key = self.lock_keys.pop(txid, None)
         if key is not None and self.locked == key and (self.attempt is None or self.attempt.key != key):
             # ll. 152-155 on every participant, not only the proposer: a member that stayed locked after the
@@ -591,8 +603,7 @@ class MembershipNode:
     def _on_deliver(self, e: Deliver) -> None:
         self.group_txs.discard(e.txid)
         self.lock_keys.pop(e.txid, None)
-        if e.txid == self.formation_txid:
-            self.formation_txid = None
+        self._form(FDelivered(e.txid))
         if e.txid in self.state.recent:
             return  # already applied from the sponsor's forwarded stream
         joining = not self.direct_q and not self.is_member() and self._needs_state(e.payload)
