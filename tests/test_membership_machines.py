@@ -13,12 +13,13 @@ from typing import Any
 
 import pytest
 
+from haa.hostd import formation as fm
 from haa.hostd import sequencer as sq
 from haa.hostd import statetransfer as xf
 from haa.hostd.effects import Log, Send, SetTimer
-from haa.hostd.globalstate import GlobalState, SeqApplied, SeqEntry
+from haa.hostd.globalstate import GlobalState, SeqApplied, SeqEntry, TxFormation
 from haa.hostd.groupeffects import NodeTimer, WriteDone
-from haa.hostd.messages import SeqWrite, StateRequest, TxId
+from haa.hostd.messages import Member, SeqWrite, StateRequest, TxId
 
 ME = ("h2", 1)
 LEADER = ("h1", 1)
@@ -331,3 +332,79 @@ def test_a_second_drain_while_one_waits_for_continue_is_refused() -> None:
     assert out == [xf.ApplyTx(tx(1), b"a", False)]
     with pytest.raises(RuntimeError):
         d.m.step(0.0, xf.Forward(3, tx(3), b"c"))
+
+
+# ------------------------------------------------------------------------------------------------ formation
+
+
+@dataclass
+class FakeFormationHost:
+    form: bool = True
+    incs: dict[str, int] = field(default_factory=dict)
+    suspected: set[tuple[str, int]] = field(default_factory=set)
+
+    def may_form(self) -> bool:
+        return self.form
+
+    def peer_incarnation(self, name: str) -> int:
+        return self.incs.get(name, 0)
+
+    def is_suspected(self, name: str, inc: int) -> bool:
+        return (name, inc) in self.suspected
+
+    def address(self, name: str) -> str:
+        return f"{name}:1"
+
+
+CORE = ("h1", "h2", "h3")
+FCFG = fm.FormationConfig(formation_timeout=5.0, formation_retry=1.0, discovery=0.5)
+
+
+def formation(me: tuple[str, int], host: FakeFormationHost, c_h: int = 2) -> fm.Formation:
+    return fm.Formation(me, f"{me[0]}:1", CORE, c_h, host, FCFG)
+
+
+def test_each_role_arms_its_own_timer() -> None:
+    assert formation(("h1", 1), FakeFormationHost()).step(1.0, fm.Start()) == [
+        SetTimer(fm.DISCOVERY_TIMER, 1.5)]  # l. 41: the first core process
+    assert formation(("h2", 1), FakeFormationHost()).step(1.0, fm.Start()) == [
+        SetTimer(fm.FORMATION_TIMER, 6.0)]  # ll. 44-45: the core head
+    assert formation(("h3", 1), FakeFormationHost()).step(1.0, fm.Start()) == []  # outside the core head
+
+
+def test_the_first_core_process_forms_a_group_of_one_unless_a_group_is_known() -> None:
+    host = FakeFormationHost()
+    m = formation(("h1", 1), host)
+    assert m.step(0.5, fm.DiscoveryDue()) == [fm.FormGroupOfOne()]
+    host.form = False
+    assert m.step(0.5, fm.DiscoveryDue()) == []
+
+
+def test_fallback_proposes_the_unsuspected_core_head_once_at_a_time_and_retries_after_an_abort() -> None:
+    host = FakeFormationHost(incs={"h1": 3, "h3": 1}, suspected={("h1", 3)})
+    m = formation(("h2", 1), host, c_h=3)
+    out = m.step(5.0, fm.FormationDue())
+    assert out == [fm.ProposeFallback((Member("h2", 1, "h2:1"), Member("h3", 1, "h3:1")))]  # h1 suspected (l. 47)
+    t = TxId("h2", 1, 1)
+    assert isinstance(out[0], fm.ProposeFallback)
+    assert m.step(5.0, fm.Proposed(t, out[0].members)) == [
+        Log("formation_fallback", {"tx": str(t), "members": ["h2", "h3"]})]
+    assert m.step(5.5, fm.FormationDue()) == []  # l. 49: wait until decided
+    assert m.step(5.6, fm.Aborted(TxId("h3", 1, 9), False)) == []  # not ours
+    assert m.step(5.7, fm.Aborted(t, False)) == [SetTimer(fm.FORMATION_TIMER, 6.7)]  # l. 46: repeat
+    assert m.txid is None
+    m.step(6.7, fm.FormationDue())
+    m.step(6.7, fm.Proposed(TxId("h2", 1, 2), ()))
+    assert m.step(7.0, fm.Delivered(TxId("h2", 1, 2))) == [] and m.txid is None
+    m.txid = TxId("h2", 1, 3)
+    assert m.step(7.5, fm.Aborted(TxId("h2", 1, 3), True)) == []  # aborted, but a group exists: no retry
+
+
+def test_formation_vote_is_yes_only_without_a_group_and_for_our_own_list() -> None:
+    host = FakeFormationHost(incs={"h1": 1})
+    m = formation(("h2", 1), host)
+    mine = TxFormation(("h1", 1), (Member("h1", 1, "h1:1"), Member("h2", 1, "h2:1")))
+    assert m.vote(mine, has_group=False)
+    assert not m.vote(mine, has_group=True)  # ll. 160-161
+    host.suspected.add(("h1", 1))
+    assert not m.vote(mine, has_group=False)  # ll. 162-163: our list is [h2] now

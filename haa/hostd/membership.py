@@ -1,11 +1,20 @@
-"""Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3), as one sans-I/O state machine.
+"""Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3, thesis L2358-2565), as a sans-I/O node.
 
 `MembershipNode` is everything one host incarnation decides once it takes part in a group: it owns a
 `HostCore` (failure detector + OAC, `haa.hostd.core`) and the group's `GlobalState` (member list, view, DDB,
-`haa.hostd.globalstate`), and runs Alg. 3 on top:
+`haa.hostd.globalstate`), and runs Alg. 3 on top. It is composed of machines that own their state and take
+one `step(now, input)` returning effects, which the node carries out in order (`_form`, `_xfer`, `_seq`):
 
-* formation by the first core process (ll. 41-43) and the FORMATION_TIMEOUT fallback with
-  OAC(formationFallback) by the core head (ll. 44-49, 158-179);
+* `haa.hostd.formation.Formation` — formation by the first core process (ll. 41-43) and the
+  FORMATION_TIMEOUT fallback with OAC(formationFallback) by the core head (ll. 44-49), and its vote
+  (ll. 158-165);
+* `haa.hostd.statetransfer.StateTransfer` — the joiner's side of "send global state to a" (ll. 58-61,
+  123-126, 174-177): the sponsor's snapshot and forwarded stream, catching up, state requests;
+* `haa.hostd.sequencer.Sequencer` — DDB and test writes forwarded to one sequencer and batched
+  (docs/oac.md), held while the global state is locked (ll. 127-132).
+
+The node itself routes inputs to them and runs the rest of Alg. 3:
+
 * apply / introduce / sponsor / connections (ll. 35-39, 50-75): an applicant contacts every core process,
   everyone who hears of it introduces it to everyone else, the leader sponsors it: sends it the global state
   and forwards every later change until it has joined;
@@ -13,10 +22,11 @@
   OAC(remove) — removing members that every remaining member suspects (l. 113, HM-Weak-Validity) and,
   when members join or leave, locking the global state — waits for every lock acknowledgement and for
   every OAC it knows to be decided, then commits OAC(membership) with the new list, which unlocks;
-* votes on remove and formation transactions (ll. 110-116, 158-165), global-state changes held while
-  locked (ll. 127-132, 144-145, 153-155), voluntary leave (ll. 14-21);
-* global-state changes: DDB batches and test payloads are proposed to every member by OAC, applied in
-  total order, acknowledged to the requester only once committed, and re-proposed after an abort.
+* votes on remove transactions (ll. 110-116), global-state changes held while locked (ll. 127-132,
+  144-145, 153-155), voluntary leave (ll. 14-21);
+* global-state changes: agent-table transactions (and, without the sequencer, DDB batches and test
+  payloads) are proposed to every member by OAC, applied in total order, acknowledged to the requester only
+  once committed, and re-proposed after an abort.
 
 Line numbers in comments refer to Alg. 3. Where the pseudo-code is silent or had to be completed, the
 choices are documented in docs/membership.md; in short:
