@@ -173,6 +173,10 @@ class Formation:
         out, self._out = self._out, []
         return out
 
+    def owns(self, txid: TxId) -> bool:
+        """`txid` is our OAC(formationFallback) in progress (the node steps `Aborted`/`Delivered` only then)."""
+        return txid == self.txid
+
     def head_list(self) -> tuple[Member, ...]:
         """coreHead − (coreHead ∩ ◇S_p) (l. 47, l. 162)."""
         out = []

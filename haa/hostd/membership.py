@@ -590,7 +590,8 @@ class MembershipNode:
         if e.commit:
             return  # handled at delivery, in total order
         self.group_txs.discard(txid)
-        self._form(Aborted(txid, bool(self.state.members)))  # l. 46: repeat
+        if self.formation.owns(txid):
+            self._form(Aborted(txid, bool(self.state.members)))  # l. 46: repeat
         key = self.lock_keys.pop(txid, None)
         if key is not None and self.locked == key and (self.attempt is None or self.attempt.key != key):
             # ll. 152-155 on every participant, not only the proposer: a member that stayed locked after the
@@ -613,11 +614,15 @@ class MembershipNode:
     def _on_deliver(self, e: Deliver) -> None:
         self.group_txs.discard(e.txid)
         self.lock_keys.pop(e.txid, None)
-        self._form(FDelivered(e.txid))
+        if self.formation.owns(e.txid):
+            self._form(FDelivered(e.txid))
         if e.txid in self.state.recent:
             return  # already applied from the sponsor's forwarded stream
         joining = not self.direct_q and not self.is_member() and self._needs_state(e.payload)
-        self._xfer(Delivered(e.txid, e.payload, joining))
+        if joining or self.xfer.catching_up():  # a new member: the state transfer buffers it
+            self._xfer(Delivered(e.txid, e.payload, joining))
+        else:
+            self._apply(e.txid, e.payload, direct=True)
 
     def _needs_state(self, payload: bytes) -> bool:
         """A non-member delivers a transaction: the one that adds it to an existing group (it must first
@@ -642,7 +647,8 @@ class MembershipNode:
         self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result, st.view, front))
         for a in sorted(self.sponsees):  # l. 61: forward to every applicant we sponsor (sorted: deterministic)
             self._send(a, StateForward(res.seq, txid, payload))
-        self._xfer(Applied(txid, res.seq))
+        if self.xfer.requests:  # state requests waiting for a transaction to be applied here
+            self._xfer(Applied(txid, res.seq))
         try:
             tx = decode_tx(payload)
         except GroupTxError:

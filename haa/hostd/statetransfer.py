@@ -209,6 +209,11 @@ class StateTransfer:
         self._now = now
         st = self.host.state
         match inp:
+            case Continue():
+                self._resume()
+            case Applied(txid, seq):
+                for q in self.requests.pop(txid, ()):
+                    self._out.append(SendSnapshot(q, txid, seq))
             case Forward(seq, txid, payload):
                 if not (self.host.is_member() and not self.direct_q) and seq > st.seq:
                     self.fwd_buffer[seq] = (txid, payload)
@@ -235,13 +240,8 @@ class StateTransfer:
                         self._out.append(SetTimer(CATCHUP_TIMER, now + self.catchup_timeout))
                 else:
                     self._out.append(ApplyTx(txid, payload, True))
-            case Applied(txid, seq):
-                for q in self.requests.pop(txid, ()):
-                    self._out.append(SendSnapshot(q, txid, seq))
             case CatchupDue():
                 self._request_state()
-            case Continue():
-                self._resume()
             case _:
                 assert_never(inp)
         out, self._out = self._out, []
