@@ -122,7 +122,7 @@ def test_every_members_writes_go_through_the_leader_in_batches() -> None:
     assert set(k for k, v in batches.items() if v) == {"h1"}, batches  # only the leader proposes writes
     assert batches["h1"] < 40 + 25  # the burst (25 writes at one instant) went out in a few batches
     assert sum(h.core.counters["seq_forwarded"] for h in hosts) >= 40 + 25
-    assert all(not h.core.seq_pending and not h.core.seq_queue and not h.core.seq_inflight for h in hosts)
+    assert all(not h.core.seq.busy() for h in hosts)  # nothing pending, queued or in OAC
 
 
 def test_writes_pending_at_a_crashed_leader_are_forwarded_to_the_next_and_applied_once() -> None:

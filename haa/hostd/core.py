@@ -14,6 +14,9 @@ It composes, for one host incarnation:
 Inputs (each with the current local time): `start`, `on_message`, `on_timer`, `on_suspicion` (external
 failure detector mode, used by the simulator's adversarial FD model), `on_peer_info` (the transport learned
 a peer's incarnation from a handshake), `propose`. Effects accumulate in `out`; the driver calls `drain()`.
+A membership message (Alg. 3, `GROUP_TYPES`) is not the core's to handle: with `accept_group` (the
+membership layer, `haa.hostd.membership`, runs on top) `on_message` returns it as a `GroupMessage` for the
+layer above to handle at once; without it, it is counted as an unknown message.
 The module performs no I/O, reads no clock and uses no randomness.
 """
 
@@ -68,6 +71,16 @@ class CoreConfig:
             raise ValueError("exclude_after must be positive")
 
 
+@dataclass(frozen=True, slots=True)
+class GroupMessage:
+    """A membership message (`GROUP_TYPES`) that passed the core's checks (known sender, current
+    incarnation, not excluded), returned by `HostCore.on_message` to the membership layer."""
+
+    src: str
+    src_inc: int
+    msg: Message
+
+
 class _Peer:
     __slots__ = ("inc", "last_notice", "name", "observer", "sender", "suspected")
 
@@ -91,6 +104,7 @@ class HostCore:
         config: CoreConfig | None = None,
         evaluate: Callable[[TxId, bytes], bool] | None = None,
         known_incs: dict[str, int] | None = None,
+        accept_group: bool = False,
     ) -> None:
         if inc <= 0:
             raise ValueError("incarnation numbers start at 1")
@@ -108,10 +122,10 @@ class HostCore:
         self.dead: set[tuple[str, int]] = set()
         self.counters: Counter[str] = Counter()
         self._unknown_logged: dict[str, float] = {}  # unknown sender -> when it was last logged
-        #: receives the membership messages of Alg. 3 (set by `haa.hostd.membership.MembershipNode`); when it
-        #: is set, a membership message from a host this core has never heard of adds that host as a peer
-        #: (an applicant, or a member introduced to us) instead of being rejected
-        self.group_handler: Callable[[str, int, Message], None] | None = None
+        #: a membership layer runs on top (`haa.hostd.membership.MembershipNode`): `on_message` returns the
+        #: membership messages of Alg. 3 to it, and one from a host this core has never heard of adds that host
+        #: as a peer (an applicant, or a member introduced to us) instead of being rejected
+        self.accept_group = accept_group
         #: the agent layer's handler for `APP_TYPES` messages (haa.hostd.agentnode); None: counted as unknown
         self.app_handler: Callable[[str, int, Message], None] | None = None
         self.started = False
@@ -224,10 +238,11 @@ class HostCore:
             if k[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:
                 self._exclude(now, p)
 
-    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> GroupMessage | None:
+        """A message from `src`; a membership message (with `accept_group`) is returned for the layer above."""
         self._now = now
         p = self.peers.get(src)
-        if p is None and self.group_handler is not None and type(msg) in GROUP_TYPES and src != self.name:
+        if p is None and self.accept_group and type(msg) in GROUP_TYPES and src != self.name:
             p = self.add_peer(now, src)
         if p is None:
             # (in membership mode an applicant's first heartbeats can precede its `apply` on the link: log
@@ -238,13 +253,13 @@ class HostCore:
                     self._unknown_logged.clear()
                 self._unknown_logged[src] = now
                 self._log("reject", reason="unknown sender", src=src)
-            return
+            return None
         if dst_inc and dst_inc != self.inc:
             self.counters["dropped_misaddressed"] += 1
-            return
+            return None
         if src_inc < p.inc:
             self.counters["dropped_stale_incarnation"] += 1
-            return
+            return None
         if src_inc > p.inc:
             self._new_incarnation(now, p, src_inc)
         if (src, src_inc) in self.dead:
@@ -252,12 +267,12 @@ class HostCore:
             if now - p.last_notice >= self.config.notice_interval:
                 p.last_notice = now
                 self._send(src, src_inc, Excluded(src_inc))
-            return
+            return None
         t = type(msg)
         if isinstance(msg, Heartbeat):
             obs = p.observer
             if obs is None:
-                return
+                return None
             became_trusted, new_period = obs.on_heartbeat(now, msg)
             self._timer(("fd", src), obs.freshness)
             if new_period is not None:
@@ -276,12 +291,13 @@ class HostCore:
             if msg.incarnation == self.inc:
                 self._log("excluded_by_peer", by=src)
                 self.out.append(Reincarnate(by=src))
-        elif self.group_handler is not None and t in GROUP_TYPES:
-            self.group_handler(src, src_inc, msg)
+        elif self.accept_group and t in GROUP_TYPES:
+            return GroupMessage(src, src_inc, msg)
         elif self.app_handler is not None and t in APP_TYPES:
             self.app_handler(src, src_inc, msg)
         else:
             self.counters["rejected_unknown_message"] += 1
+        return None
 
     def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
         """External failure detector output (fd_mode='external')."""

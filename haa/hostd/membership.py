@@ -1,11 +1,20 @@
-"""Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3), as one sans-I/O state machine.
+"""Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3, thesis L2358-2565), as a sans-I/O node.
 
 `MembershipNode` is everything one host incarnation decides once it takes part in a group: it owns a
 `HostCore` (failure detector + OAC, `haa.hostd.core`) and the group's `GlobalState` (member list, view, DDB,
-`haa.hostd.globalstate`), and runs Alg. 3 on top:
+`haa.hostd.globalstate`), and runs Alg. 3 on top. It is composed of machines that own their state and take
+one `step(now, input)` returning effects, which the node carries out in order (`_form`, `_xfer`, `_seq`):
 
-* formation by the first core process (ll. 41-43) and the FORMATION_TIMEOUT fallback with
-  OAC(formationFallback) by the core head (ll. 44-49, 158-179);
+* `haa.hostd.formation.Formation` — formation by the first core process (ll. 41-43) and the
+  FORMATION_TIMEOUT fallback with OAC(formationFallback) by the core head (ll. 44-49), and its vote
+  (ll. 158-165);
+* `haa.hostd.statetransfer.StateTransfer` — the joiner's side of "send global state to a" (ll. 58-61,
+  123-126, 174-177): the sponsor's snapshot and forwarded stream, catching up, state requests;
+* `haa.hostd.sequencer.Sequencer` — DDB and test writes forwarded to one sequencer and batched
+  (docs/oac.md), held while the global state is locked (ll. 127-132).
+
+The node itself routes inputs to them and runs the rest of Alg. 3:
+
 * apply / introduce / sponsor / connections (ll. 35-39, 50-75): an applicant contacts every core process,
   everyone who hears of it introduces it to everyone else, the leader sponsors it: sends it the global state
   and forwards every later change until it has joined;
@@ -13,10 +22,11 @@
   OAC(remove) — removing members that every remaining member suspects (l. 113, HM-Weak-Validity) and,
   when members join or leave, locking the global state — waits for every lock acknowledgement and for
   every OAC it knows to be decided, then commits OAC(membership) with the new list, which unlocks;
-* votes on remove and formation transactions (ll. 110-116, 158-165), global-state changes held while
-  locked (ll. 127-132, 144-145, 153-155), voluntary leave (ll. 14-21);
-* global-state changes: DDB batches and test payloads are proposed to every member by OAC, applied in
-  total order, acknowledged to the requester only once committed, and re-proposed after an abort.
+* votes on remove transactions (ll. 110-116), global-state changes held while locked (ll. 127-132,
+  144-145, 153-155), voluntary leave (ll. 14-21);
+* global-state changes: agent-table transactions (and, without the sequencer, DDB batches and test
+  payloads) are proposed to every member by OAC, applied in total order, acknowledged to the requester only
+  once committed, and re-proposed after an abort.
 
 Line numbers in comments refer to Alg. 3. Where the pseudo-code is silent or had to be completed, the
 choices are documented in docs/membership.md; in short:
@@ -47,19 +57,30 @@ The class does no I/O, reads no clock and uses no randomness.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any, assert_never, cast
 
 from haa.hostd.core import CoreConfig, HostCore
-from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, Suspicion
+from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
+from haa.hostd.formation import (
+    Aborted,
+    DiscoveryDue,
+    Formation,
+    FormationConfig,
+    FormationDue,
+    FormationInput,
+    FormGroupOfOne,
+    ProposeFallback,
+)
+from haa.hostd.formation import Delivered as FDelivered
+from haa.hostd.formation import Proposed as FProposed
+from haa.hostd.formation import Start as FStart
 from haa.hostd.globalstate import (
     GlobalState,
     GroupTx,
     GroupTxError,
     SeqApplied,
-    SeqEntry,
     TxAgent,
     TxDdb,
     TxFormation,
@@ -70,6 +91,7 @@ from haa.hostd.globalstate import (
     decode_tx,
     encode_tx,
 )
+from haa.hostd.groupeffects import AppliedTx, Connect, Left, NodeEffect, NodeTimer, TimerWhat, ViewChange, WriteDone
 from haa.hostd.messages import (
     Apply,
     Connections,
@@ -86,74 +108,42 @@ from haa.hostd.messages import (
     TxId,
 )
 from haa.hostd.oac import UNDECIDED
+from haa.hostd.sequencer import (
+    BatchAborted,
+    BatchApplied,
+    Count,
+    Flush,
+    Forwarded,
+    ProposeBatch,
+    Proposed,
+    Retarget,
+    RetryDue,
+    SeqConfig,
+    SeqInput,
+    Sequencer,
+    Submit,
+)
+from haa.hostd.statetransfer import (
+    Applied,
+    ApplyTx,
+    CatchupDue,
+    CaughtUp,
+    Continue,
+    Delivered,
+    Forward,
+    Rejected,
+    Request,
+    Restore,
+    SendSnapshot,
+    Snapshot,
+    StateTransfer,
+    XferInput,
+)
 
 Proc = tuple[str, int]
 
-#: writes a sequencer queues at most (beyond it, forwarded writes are dropped: their origins forward them again)
-SEQ_MAX_QUEUE = 200_000
-
-
-# ------------------------------------------------------------------------------------------------ effects
-
-
-@dataclass(slots=True)
-class Connect:
-    """Open (or keep) a link to host `name` at `addr` (Alg. 3 "open connection to")."""
-
-    name: str
-    addr: str
-
-
-@dataclass(slots=True)
-class ViewChange:
-    """This host applied a change of the member list."""
-
-    view: int
-    seq: int
-    members: tuple[Member, ...]
-    removed: tuple[Member, ...]
-    added: tuple[Member, ...]
-    txid: TxId
-    group: str  # id of the group (the transaction that created it)
-    correct: bool  # the group is correct (more than c_f core processes have been members)
-
-
-@dataclass(slots=True)
-class AppliedTx:
-    """This host applied the `seq`-th global transaction; `state_hash` is its content hash afterwards
-    (only computed when `NodeConfig.hash_every_apply` is set: the simulator's prefix-consistency check);
-    `view` and `front` (the first member, None once the group dissolved) are the view right after it: the
-    node may apply more transactions before its effects are carried out."""
-
-    seq: int
-    txid: TxId
-    kind: str
-    payload: bytes
-    state_hash: str
-    result: object | None
-    view: int = 0
-    front: Proc | None = None
-
-
-@dataclass(slots=True)
-class WriteDone:
-    """A global-state change requested with `submit` was committed (`ok`) or given up (`reason`)."""
-
-    req: Hashable
-    ok: bool
-    txid: TxId | None
-    seq: int
-    reason: str
-    result: object | None = None
-
-
-@dataclass(slots=True)
-class Left:
-    """The voluntary leave of this host was committed (Alg. 3 l. 16): it stops taking part."""
-
-
-#: the effects the node adds to the core's (`haa.hostd.effects.Effect`)
-NodeEffect = Connect | ViewChange | AppliedTx | WriteDone | Left
+__all__ = ["AppliedTx", "Connect", "Left", "MembershipNode", "NodeConfig", "NodeEffect", "NodeTimer", "ViewChange",
+           "WriteDone"]
 
 
 # ------------------------------------------------------------------------------------------------ config
@@ -226,16 +216,6 @@ class _Write:
     seq: bool = False  # through the sequencer
 
 
-@dataclass(slots=True)
-class _SeqOut:
-    """A write this host forwarded to the sequencer and has not yet seen applied."""
-
-    req: Hashable
-    payload: bytes
-    first: float  # first forwarded
-    sent: float = 0.0  # last forwarded
-
-
 # ------------------------------------------------------------------------------------------------ node
 
 
@@ -281,8 +261,8 @@ class MembershipNode:
         for n, a in self.known_hosts:
             self.addrs[n] = a
         self.addrs[name] = addr
-        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate)
-        self.core.group_handler = self._on_group
+        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate,
+                             accept_group=True)
         #: node effects go through the core's outbox, in order (so it holds both kinds)
         self.out = cast("list[Effect | NodeEffect]", self.core.out)
         self.state = GlobalState(self.core_names, self.c_f)
@@ -307,21 +287,14 @@ class MembershipNode:
         self.introduced: dict[Proc, tuple[str, int]] = {}  # applicant -> (group, view) when we introduced it
         self.leaving = False
         self.left = False
-        self.formation_txid: TxId | None = None
-        # state transfer (docs/membership.md)
-        self.fwd_buffer: dict[int, tuple[TxId, bytes]] = {}
-        self.direct_q: list[tuple[TxId, bytes]] = []
-        self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
-        self.state_requests: dict[TxId, list[Proc]] = {}
-        # the sequencer (docs/oac.md): as an origin ...
-        self.seq_next = 1  # cseq of the next write
-        self.seq_pending: dict[int, _SeqOut] = {}  # forwarded, not yet applied here (in cseq order)
-        self.seq_target: Proc | None = None  # where they were forwarded last
-        self.seq_timer = False
-        # ... and as the sequencer: forwarded writes waiting for a batch, and batches in OAC
-        self.seq_queue: deque[SeqEntry] = deque()
-        self.seq_known: set[tuple[Proc, int]] = set()  # (origin, cseq) queued or in a batch of ours
-        self.seq_inflight: dict[TxId, tuple[SeqEntry, ...]] = {}
+        # formation (ll. 40-49, 158-179; `haa.hostd.formation`)
+        self.formation = Formation(self.me, addr, self.core_names, self.c_h, self,
+                                   FormationConfig(cfg.formation_timeout, cfg.formation_retry, cfg.discovery))
+        # state transfer to a new member (docs/membership.md, `haa.hostd.statetransfer`)
+        self.xfer = StateTransfer(self.me, self, cfg.catchup_timeout)
+        # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
+        self.seq = Sequencer(self.me, self, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
+                                                      cfg.seq_retry, cfg.seq_abandon))
         if "seq-no-dedup" in mutations:
             self.state.dedup = False
         self.started = False
@@ -379,8 +352,8 @@ class MembershipNode:
             return
         self.out.append(Send(dst[0], dst[1], msg))
 
-    def _timer(self, key: str, at: float) -> None:
-        self.core._timer(("m", key), at)
+    def _timer(self, what: TimerWhat, at: float) -> None:
+        self.out.append(SetTimer(NodeTimer(what), at))
 
     def _log(self, event: str, **fields: Any) -> None:
         self.out.append(Log(event, fields))
@@ -436,10 +409,7 @@ class MembershipNode:
             self.conn_to.add(q)
             self._send((q, self.core.peers[q].inc), Apply(self.addr))
         self._timer("reapply", now + self.config.reapply)
-        if self.name == self.core_names[0]:  # l. 41: the first core process
-            self._timer("discovery", now + self.config.discovery)
-        elif self.name in self.core_names[: self.c_h]:  # l. 44: the core head
-            self._timer("formation", now + self.config.formation_timeout)  # l. 45
+        self._form(FStart())  # ll. 40-45
 
     def _contacts(self) -> list[str]:
         """Where an applicant sends `apply`: every core process (l. 36), the hosts it knew before, and the hosts
@@ -449,7 +419,9 @@ class MembershipNode:
 
     def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
         self._now = now
-        self.core.on_message(now, src, src_inc, dst_inc, msg)
+        g = self.core.on_message(now, src, src_inc, dst_inc, msg)
+        if g is not None:  # a membership message, handled right where the core let it through
+            self._on_group(g.src, g.src_inc, g.msg)
 
     def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
         self._now = now
@@ -461,17 +433,16 @@ class MembershipNode:
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now
-        tk = cast("tuple[str, str]", key)  # ("m", what) is ours (see _timer), the rest the core's
-        if tk[0] != "m":
+        if not isinstance(key, NodeTimer):  # the core's
             self.core.on_timer(now, key)
             return
-        k = tk[1]
+        k = key.what
         if self.left:
             return
         if k == "discovery":
-            self._form_group_of_one()
+            self._form(DiscoveryDue())
         elif k == "formation":
-            self._formation_fallback()
+            self._form(FormationDue())
         elif k == "reapply":
             # until a leader sponsors us, apply again: an `apply` sent before a core process was up is lost,
             # and one received by a core process that was not yet a member made no leader sponsor us
@@ -486,14 +457,13 @@ class MembershipNode:
                         self._send(m.proc, Introduce(self.name, self.inc, self.addr, self.state.group_id()))
                 self._timer("reapply", now + self.config.reapply)
         elif k == "catchup":
-            self._request_state()
+            self._xfer(CatchupDue())
         elif k == "retry":
             if self.attempt is None:
                 self.updating = False
                 self._update()
         elif k == "seqretry":
-            self.seq_timer = False
-            self._seq_retry()
+            self._seq(RetryDue())
 
     def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
         """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
@@ -544,12 +514,23 @@ class MembershipNode:
 
     # ------------------------------------------------------------------ formation (ll. 40-49)
 
+    def _form(self, inp: FormationInput) -> None:
+        """Step the formation machine and carry out its effects, in order."""
+        for e in self.formation.step(self._now, inp):
+            match e:
+                case FormGroupOfOne():
+                    self._form_group_of_one()
+                case ProposeFallback(members):
+                    txid = self.core.propose_to(self._now, encode_tx(TxFormation(self.me, members)),
+                                                [m.proc for m in members])
+                    self._form(FProposed(txid, members))
+                case SetTimer() | Log():
+                    self.out.append(e)
+                case _:
+                    assert_never(e)
+
     def _form_group_of_one(self) -> None:
-        """ll. 41-43, after `discovery` (docs/membership.md, "restarts"). A host that was a member before (it
-        knows hosts from a previous incarnation) never forms a group: its group may still exist and only be
-        slow to answer; it applies until it is joined."""
-        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
-            return
+        """ll. 42-43 (docs/membership.md, "restarts"): a provisional group of one, locked with a new key."""
         self.key_seq += 1
         key = f"{self.name}.{self.inc}.{self.key_seq}"
         self.locked = key  # l. 42
@@ -558,29 +539,22 @@ class MembershipNode:
         self.group_txs.add(txid)
         self._log("group_of_one", tx=str(txid))
 
-    def _core_head_list(self) -> tuple[Member, ...]:
-        """coreHead − (coreHead ∩ ◇S_p) (l. 47, l. 162)."""
-        out = []
-        for q in self.core_names[: self.c_h]:
-            if q == self.name:
-                out.append(Member(q, self.inc, self.addr))
-                continue
-            p = self.core.peers.get(q)
-            if p is None or not p.inc or self.core.is_suspected(q, p.inc):
-                continue
-            out.append(Member(q, p.inc, self.addrs.get(q, "")))
-        return tuple(out)
+    # FormationHost: what the formation reads of this node
 
-    def _formation_fallback(self) -> None:
-        """ll. 45-49: while p ∉ memberList_p, propose OAC(formationFallback) to the unsuspected core head."""
-        if self.state.members or self.group_seen or self.leaving or self.known_hosts:
-            return
-        if self.formation_txid is not None:
-            return  # l. 49: wait until decided
-        members = self._core_head_list()
-        tx = TxFormation(self.me, members)
-        self.formation_txid = self.core.propose_to(self._now, encode_tx(tx), [m.proc for m in members])
-        self._log("formation_fallback", tx=str(self.formation_txid), members=[m.name for m in members])
+    def may_form(self) -> bool:
+        """A host that was a member before (it knows hosts from a previous incarnation) never forms a group:
+        its group may still exist and only be slow to answer; it applies until it is joined."""
+        return not (self.state.members or self.group_seen or self.leaving or self.known_hosts)
+
+    def peer_incarnation(self, name: str) -> int:
+        p = self.core.peers.get(name)
+        return p.inc if p is not None else 0
+
+    def is_suspected(self, name: str, inc: int) -> bool:
+        return self.core.is_suspected(name, inc)
+
+    def address(self, name: str) -> str:
+        return self.addrs.get(name, "")
 
     # ------------------------------------------------------------------ OAC votes (ll. 110-116, 158-165)
 
@@ -606,10 +580,7 @@ class MembershipNode:
                 self.lock_keys[txid] = tx.key  # for l. 153 if it aborts
             return True
         if isinstance(tx, TxFormation):
-            if self.state.members:  # l. 160-161
-                return False
-            want = [m.proc for m in self._core_head_list()]
-            return [m.proc for m in tx.members] == want  # l. 162-163
+            return self.formation.vote(tx, bool(self.state.members))  # ll. 158-165
         return True
 
     # ------------------------------------------------------------------ OAC outcomes
@@ -619,10 +590,8 @@ class MembershipNode:
         if e.commit:
             return  # handled at delivery, in total order
         self.group_txs.discard(txid)
-        if txid == self.formation_txid:
-            self.formation_txid = None
-            if not self.state.members:
-                self._timer("formation", self._now + self.config.formation_retry)  # l. 46: repeat
+        if self.formation.owns(txid):
+            self._form(Aborted(txid, bool(self.state.members)))  # l. 46: repeat
         key = self.lock_keys.pop(txid, None)
         if key is not None and self.locked == key and (self.attempt is None or self.attempt.key != key):
             # ll. 152-155 on every participant, not only the proposer: a member that stayed locked after the
@@ -631,8 +600,7 @@ class MembershipNode:
         w = self.writes.pop(txid, None)
         if w is not None:
             self._retry_write(w, "aborted")
-        if txid in self.seq_inflight:
-            self._seq_done(txid, False)
+        self._seq(BatchAborted(txid))
         a = self.attempt
         if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
             self.attempt = None
@@ -646,19 +614,15 @@ class MembershipNode:
     def _on_deliver(self, e: Deliver) -> None:
         self.group_txs.discard(e.txid)
         self.lock_keys.pop(e.txid, None)
-        if e.txid == self.formation_txid:
-            self.formation_txid = None
+        if self.formation.owns(e.txid):
+            self._form(FDelivered(e.txid))
         if e.txid in self.state.recent:
             return  # already applied from the sponsor's forwarded stream
-        if self.direct_q or (not self.is_member() and self._needs_state(e.payload)):
-            # a new member: buffer until the state has caught up with the transaction that added us
-            self.direct_q.append((e.txid, e.payload))
-            if self.direct_anchor:
-                self._drain_direct()
-            else:
-                self._timer("catchup", self._now + self.config.catchup_timeout)
-            return
-        self._apply(e.txid, e.payload, direct=True)
+        joining = not self.direct_q and not self.is_member() and self._needs_state(e.payload)
+        if joining or self.xfer.catching_up():  # a new member: the state transfer buffers it
+            self._xfer(Delivered(e.txid, e.payload, joining))
+        else:
+            self._apply(e.txid, e.payload, direct=True)
 
     def _needs_state(self, payload: bytes) -> bool:
         """A non-member delivers a transaction: the one that adds it to an existing group (it must first
@@ -683,10 +647,8 @@ class MembershipNode:
         self.out.append(AppliedTx(res.seq, txid, res.kind, payload, h, res.ddb_result, st.view, front))
         for a in sorted(self.sponsees):  # l. 61: forward to every applicant we sponsor (sorted: deterministic)
             self._send(a, StateForward(res.seq, txid, payload))
-        pending = self.state_requests.pop(txid, None)
-        if pending:
-            for q in pending:
-                self._send(q, StateSnapshot(self.state.seq, self.state.snapshot(), txid, res.seq))
+        if self.xfer.requests:  # state requests waiting for a transaction to be applied here
+            self._xfer(Applied(txid, res.seq))
         try:
             tx = decode_tx(payload)
         except GroupTxError:
@@ -717,11 +679,11 @@ class MembershipNode:
         if w is not None:
             self.out.append(WriteDone(w.req, True, txid, res.seq, res.error, res.ddb_result))
         if type(tx) is TxSeq:
-            self._seq_applied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result))
-        elif txid in self.seq_inflight:  # (our batch, but it did not decode as one: cannot happen)
-            self._seq_done(txid, True)
+            self._seq(BatchApplied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result)))
+        elif txid in self.seq.inflight:  # (our batch, but it did not decode as one: cannot happen)
+            self._seq(BatchApplied(txid, res.seq, ()))
         if res.view_changed:
-            self._seq_retarget()
+            self._seq(Retarget())
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
         if res.stale:
@@ -957,10 +919,7 @@ class MembershipNode:
 
     def _propose_write(self, w: _Write) -> None:
         if w.seq:
-            cseq = self.seq_next
-            self.seq_next += 1
-            self.seq_pending[cseq] = _SeqOut(w.req, w.payload, self._now)
-            self._seq_forward([cseq])
+            self._seq(Submit(w.req, w.payload))
             return
         w.attempts += 1
         txid = self.core.propose_to(self._now, w.payload, self.state.procs())
@@ -989,11 +948,37 @@ class MembershipNode:
     def _unlock(self) -> None:
         self.locked = None
         self._propose_held()
-        self._seq_flush()
+        self._seq(Flush())
 
     # ------------------------------------------------------------------ the sequencer (docs/oac.md)
 
-    def _seq_target_now(self) -> Proc | None:
+    def _seq(self, inp: SeqInput) -> None:
+        """Step the sequencer and carry out its effects, in order."""
+        for e in self.seq.step(self._now, inp):
+            match e:
+                case Send():
+                    self.out.append(e)
+                case SetTimer():
+                    self.out.append(e)
+                case WriteDone():
+                    self.out.append(e)
+                case ProposeBatch(entries):
+                    txid = self.core.propose_to(self._now, encode_tx(TxSeq(entries)), self.state.procs())
+                    self._seq(Proposed(txid))
+                case Count(name, n):
+                    self.core.counters[name] += n
+                case _:
+                    assert_never(e)
+
+    # SeqHost: what the sequencer reads of this node
+
+    def has_left(self) -> bool:
+        return self.left
+
+    def may_batch(self) -> bool:
+        return self.locked is None and not self.direct_q and not self.left and self.is_member()
+
+    def sequencer(self) -> Proc | None:
         """The sequencer this host forwards to: the highest-ranked member it does not suspect (the leader of
         Alg. 3 l. 79 as this host sees it; every member agrees on it while nobody is suspected)."""
         for m in self.state.members:
@@ -1001,129 +986,9 @@ class MembershipNode:
                 return m.proc
         return None
 
-    def _seq_forward(self, cseqs: Sequence[int]) -> None:
-        """Forward these pending writes (in cseq order) to the sequencer of the moment."""
-        target = self._seq_target_now()
-        if target is None or not self.is_member():
-            self._seq_arm()  # nobody to forward to: the retry timer tries again
-            return
-        self.seq_target = target
-        pending = self.seq_pending
-        floor = next(iter(pending)) if pending else self.seq_next
-        most, most_bytes = self.config.seq_max_entries, self.config.seq_max_bytes
-        batch: list[tuple[int, bytes]] = []
-        size = 0
-        for c in cseqs:
-            w = pending.get(c)
-            if w is None:
-                continue
-            w.sent = self._now
-            if batch and (len(batch) >= most or size + len(w.payload) > most_bytes):
-                self._seq_send(target, floor, batch)
-                batch, size = [], 0
-            batch.append((c, w.payload))
-            size += len(w.payload)
-        if batch:
-            self._seq_send(target, floor, batch)
-        self._seq_arm()
-
-    def _seq_send(self, target: Proc, floor: int, batch: list[tuple[int, bytes]]) -> None:
-        self.core.counters["seq_forwarded"] += len(batch)
-        if target == self.me:
-            self._seq_accept(self.me, floor, tuple(batch))
-        else:
-            self._send(target, SeqWrite(floor, tuple(batch)))
-
-    def _seq_arm(self) -> None:
-        if self.seq_pending and not self.seq_timer:
-            self.seq_timer = True
-            self._timer("seqretry", self._now + self.config.seq_retry)
-
-    def _seq_retry(self) -> None:
-        """Forward again what has waited `seq_retry` (a forward lost with a sequencer that crashed, or one that
-        never got to propose it); give up what has waited `seq_abandon`."""
-        now = self._now
-        for c, w in list(self.seq_pending.items()):
-            if now - w.first >= self.config.seq_abandon:
-                del self.seq_pending[c]
-                self.out.append(WriteDone(w.req, False, None, 0,
-                                          f"not committed within {self.config.seq_abandon:g} s (it may still commit)"))
-        due = [c for c, w in self.seq_pending.items() if now - w.sent >= self.config.seq_retry]
-        if due:
-            self.core.counters["seq_reforwarded"] += len(due)
-            self._seq_forward(due)
-        self._seq_arm()
-
-    def _seq_retarget(self) -> None:
-        """The sequencer changed (a view change, a suspicion): forward every pending write to the new one."""
-        if self.seq_pending and self._seq_target_now() != self.seq_target:
-            self.core.counters["seq_retargeted"] += 1
-            self._seq_forward(list(self.seq_pending))
-
-    def _seq_accept(self, origin: Proc, floor: int, writes: tuple[tuple[int, bytes], ...]) -> None:
-        """Writes forwarded to us (we are, or were, or are about to be the sequencer): queue each one that is
-        neither queued here nor applied, and propose."""
-        # (an origin that is not a member yet here may be one we have not applied the addition of: its writes
-        # are queued all the same; applying a batch skips the writes of non-members, deterministically)
-        if self.left or len(self.seq_queue) + len(writes) > SEQ_MAX_QUEUE:
-            self.core.counters["seq_dropped"] += len(writes)
-            return
+    def settled(self, origin: Proc, cseq: int) -> bool:
         d = self.state.seq_origins.get(origin)
-        for cseq, payload in writes:
-            key = (origin, cseq)
-            if key in self.seq_known or (d is not None and (cseq < d.floor or cseq in d.done)):
-                continue
-            self.seq_known.add(key)
-            self.seq_queue.append(SeqEntry(origin, cseq, floor, payload))
-        self._seq_flush()
-
-    def _seq_flush(self) -> None:
-        """Propose the queued writes as batches, at most `seq_inflight` at a time; held while the global state
-        is locked (l. 129), like any global-state change."""
-        q = self.seq_queue
-        if self.locked is not None or self.direct_q or self.left or not self.is_member():
-            return
-        cfg = self.config
-        while q and len(self.seq_inflight) < cfg.seq_inflight:
-            entries: list[SeqEntry] = []
-            size = 0
-            while q and len(entries) < cfg.seq_max_entries and (
-                not entries or size + len(q[0].tx) <= cfg.seq_max_bytes
-            ):
-                e = q.popleft()
-                entries.append(e)
-                size += len(e.tx)
-            batch = tuple(entries)
-            txid = self.core.propose_to(self._now, encode_tx(TxSeq(batch)), self.state.procs())
-            self.seq_inflight[txid] = batch
-            self.core.counters["seq_batches"] += 1
-
-    def _seq_done(self, txid: TxId, commit: bool) -> None:
-        """One of our batches was applied (commit) or aborted: an aborted batch goes back to the queue's front."""
-        batch = self.seq_inflight.pop(txid, None)
-        if batch is None:
-            return
-        if commit:
-            for e in batch:
-                self.seq_known.discard((e.origin, e.cseq))
-        else:
-            self.core.counters["seq_batches_aborted"] += 1
-            self.seq_queue.extendleft(reversed(batch))
-        self._seq_flush()
-
-    def _seq_applied(self, txid: TxId, seq: int, results: tuple[SeqApplied, ...]) -> None:
-        """A sequencer batch was applied here: answer our own writes in it."""
-        for r in results:
-            if r.origin != self.me:
-                continue
-            w = self.seq_pending.pop(r.cseq, None)
-            if w is None:
-                continue
-            if r.applied:
-                self.out.append(WriteDone(w.req, True, txid, seq, r.error, r.result))
-            else:  # (a duplicate of an applied write was answered then; this is "origin is not a member")
-                self.out.append(WriteDone(w.req, False, None, 0, r.error))
-        self._seq_done(txid, True)
+        return d is not None and (cseq < d.floor or cseq in d.done)
 
     # ------------------------------------------------------------------ sponsoring and state transfer
 
@@ -1138,103 +1003,63 @@ class MembershipNode:
             if a not in self.sponsees and not self._known_dead(a):
                 self._sponsor(a)
 
-    def _install(self, seq: int, data: bytes) -> bool:
-        """Install a snapshot that is ahead of our state in the same group, or that comes from a correct group
-        while ours is not (a provisional group of one that never became correct, docs/membership.md)."""
-        st = self.state
-        try:
-            seq, gid, correct = GlobalState.peek(data)
-        except GroupTxError as e:
-            self.counters["rejected_snapshot"] += 1
-            self._log("reject", reason=str(e))
-            return False
-        same = gid == st.genesis
-        if not ((same and seq > st.seq) or (not same and correct and not st.group_correct) or st.seq == 0):
-            return False
-        if not same:
-            self.fwd_buffer.clear()
+    def _xfer(self, inp: XferInput) -> None:
+        """Step the state transfer and carry out its effects, in order; after an `ApplyTx` or a `Restore`
+        step it with `Continue` (a loop, not recursion: a joiner may drain thousands of transactions)."""
+        effects = self.xfer.step(self._now, inp)
+        while effects:
+            more = False
+            for e in effects:
+                match e:
+                    case ApplyTx(txid, payload, direct):
+                        self._apply(txid, payload, direct)
+                        more = True
+                    case Restore(data):
+                        self._restore(data)
+                        more = True
+                    case SendSnapshot(to, anchor, anchor_seq):
+                        self._send(to, StateSnapshot(self.state.seq, self.state.snapshot(), anchor, anchor_seq))
+                    case Send(dst, dst_inc, msg):
+                        self._send((dst, dst_inc), msg)
+                    case SetTimer() | Log():
+                        self.out.append(e)
+                    case CaughtUp():
+                        self._propose_held()
+                    case Rejected(reason):
+                        self.counters["rejected_snapshot"] += 1
+                        self._log("reject", reason=reason)
+                    case _:
+                        assert_never(e)
+            effects = self.xfer.step(self._now, Continue()) if more else []
+
+    def _restore(self, data: bytes) -> None:
         try:
             self.state.restore(data)
         except GroupTxError as e:
             self.counters["rejected_snapshot"] += 1
             self._log("reject", reason=str(e))
-            return False
+            return
         for m in self.state.members:
             if m.proc != self.me:
                 self.addrs.setdefault(m.name, m.addr)
-        return True
 
-    def _on_forward(self, seq: int, txid: TxId, payload: bytes) -> None:
-        if self.is_member() and not self.direct_q:
-            return  # joined: the sponsor's stream has nothing more for us
-        if seq <= self.state.seq:
-            return
-        self.fwd_buffer[seq] = (txid, payload)
-        self._drain_forwarded()
+    # XferHost: what the state transfer reads of this node (`state`, `is_member`)
 
-    def _drain_forwarded(self) -> None:
-        while self.state.seq + 1 in self.fwd_buffer:
-            txid, payload = self.fwd_buffer.pop(self.state.seq + 1)
-            if self.direct_q and txid == self.direct_q[0][0]:
-                self.direct_anchor = self.state.seq + 1
-                self.fwd_buffer.clear()
-                self._drain_direct()
-                return
-            self._apply(txid, payload, direct=False)
-        for s in [s for s in self.fwd_buffer if s <= self.state.seq]:
-            del self.fwd_buffer[s]
-
-    def _drain_direct(self) -> None:
-        """Apply buffered deliveries once the state has reached the one before the first of them."""
-        if not self.direct_anchor or self.state.seq + 1 < self.direct_anchor:
-            return
-        q, self.direct_q = self.direct_q, []
-        first = self.direct_anchor
-        self.direct_anchor = 0
-        for i, (txid, payload) in enumerate(q):
-            if first + i <= self.state.seq or txid in self.state.recent:
-                continue
-            self._apply(txid, payload, direct=True)
-        self._log("caught_up", seq=self.state.seq)
-        self._propose_held()
-
-    def _request_state(self) -> None:
-        if not self.direct_q or self.direct_anchor:
-            return
-        txid = self.direct_q[0][0]
-        target = None
-        for m in self.state.members:  # the first unsuspected member that is not us
+    def request_target(self, txid: TxId) -> Proc:
+        """A catching-up member asks the first unsuspected member that is not itself, else its sponsor, else
+        the proposer of the transaction that added it."""
+        for m in self.state.members:
             if m.proc != self.me and not self._suspected(m.proc):
-                target = m.proc
-                break
-        if target is None and self.sponsor is not None:
-            target = self.sponsor
-        if target is None:
-            target = (txid.host, txid.inc)
-        self._send(target, StateRequest(txid))
-        self._log("state_request", to=target[0], tx=str(txid))
-        self._timer("catchup", self._now + self.config.catchup_timeout)
+                return m.proc
+        if self.sponsor is not None:
+            return self.sponsor
+        return (txid.host, txid.inc)
 
-    def _on_state_request(self, src: Proc, txid: TxId) -> None:
-        seq = self.state.recent.get(txid)
-        if seq is None:
-            self.state_requests.setdefault(txid, []).append(src)  # answer once it is applied here
-            return
-        self._send(src, StateSnapshot(self.state.seq, self.state.snapshot(), txid, seq))
-
-    def _on_snapshot(self, src: Proc, msg: StateSnapshot) -> None:
-        if msg.anchor is None:  # from our sponsor (ll. 60, 125, 176)
-            if self.is_member() and not self.direct_q:
-                return
-            self._install(msg.seq, msg.data)
-            self._drain_forwarded()
-            return
-        if not self.direct_q or msg.anchor != self.direct_q[0][0]:
-            return
-        self._install(msg.seq, msg.data)
-        self.direct_anchor = msg.anchor_seq
-        self.fwd_buffer.clear()
-        self._drain_direct()
+    @property
+    def direct_q(self) -> list[tuple[TxId, bytes]]:
+        """What a new member delivered and holds until its state has caught up (read by the agent layer and
+        the simulator)."""
+        return self.xfer.direct_q
 
     # ------------------------------------------------------------------ membership messages
 
@@ -1258,13 +1083,13 @@ class MembershipNode:
         elif isinstance(msg, Locked):
             self._on_locked(q, msg.key)
         elif isinstance(msg, StateForward):
-            self._on_forward(msg.seq, msg.txid, msg.payload)
+            self._xfer(Forward(msg.seq, msg.txid, msg.payload))
         elif isinstance(msg, StateSnapshot):
-            self._on_snapshot(q, msg)
+            self._xfer(Snapshot(msg.seq, msg.data, msg.anchor, msg.anchor_seq))
         elif isinstance(msg, StateRequest):
-            self._on_state_request(q, msg.txid)
+            self._xfer(Request(q, msg.txid))
         elif isinstance(msg, SeqWrite):
-            self._seq_accept(q, msg.floor, msg.writes)
+            self._seq(Forwarded(q, msg.floor, msg.writes))
 
     def _on_apply(self, a: Proc, addr: str) -> None:
         """ll. 50-61."""
@@ -1362,7 +1187,7 @@ class MembershipNode:
         if self.state.is_member(p) or p in self.join_list:
             self._update()
         if self.state.is_member(p):
-            self._seq_retarget()
+            self._seq(Retarget())
 
     def _on_peer_dead(self, p: Proc) -> None:
         """ll. 32-34."""
@@ -1373,7 +1198,7 @@ class MembershipNode:
         if self.sponsor == p:
             self.sponsor = None
         self._update()
-        self._seq_retarget()
+        self._seq(Retarget())
 
     # ------------------------------------------------------------------ introspection
 
