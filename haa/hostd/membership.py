@@ -600,7 +600,8 @@ class MembershipNode:
         w = self.writes.pop(txid, None)
         if w is not None:
             self._retry_write(w, "aborted")
-        self._seq(BatchAborted(txid))
+        if txid in self.seq.inflight:  # (only our own batches concern the sequencer)
+            self._seq(BatchAborted(txid))
         a = self.attempt
         if a is not None and txid == a.txid:  # l. 134-135 / l. 103: remove aborted
             self.attempt = None
@@ -682,7 +683,7 @@ class MembershipNode:
             self._seq(BatchApplied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result)))
         elif txid in self.seq.inflight:  # (our batch, but it did not decode as one: cannot happen)
             self._seq(BatchApplied(txid, res.seq, ()))
-        if res.view_changed:
+        if res.view_changed and self.seq.pending:  # (Retarget does nothing without pending writes)
             self._seq(Retarget())
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
@@ -948,7 +949,8 @@ class MembershipNode:
     def _unlock(self) -> None:
         self.locked = None
         self._propose_held()
-        self._seq(Flush())
+        if self.seq.queue:  # (Flush proposes queued writes: nothing to do without them)
+            self._seq(Flush())
 
     # ------------------------------------------------------------------ the sequencer (docs/oac.md)
 
@@ -1186,7 +1188,7 @@ class MembershipNode:
         """ll. 22-31 (removeList_p itself is computed on demand)."""
         if self.state.is_member(p) or p in self.join_list:
             self._update()
-        if self.state.is_member(p):
+        if self.state.is_member(p) and self.seq.pending:
             self._seq(Retarget())
 
     def _on_peer_dead(self, p: Proc) -> None:
@@ -1198,7 +1200,8 @@ class MembershipNode:
         if self.sponsor == p:
             self.sponsor = None
         self._update()
-        self._seq(Retarget())
+        if self.seq.pending:
+            self._seq(Retarget())
 
     # ------------------------------------------------------------------ introspection
 
