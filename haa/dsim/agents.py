@@ -185,8 +185,8 @@ class AgentHistory:
 class AgentSim(GroupSim):
     """Runs one `AgentScenario` (see the module docstring)."""
 
-    def __init__(self, sc: AgentScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
-        super().__init__(sc.group, mutations, trace)
+    def __init__(self, sc: AgentScenario, trace: bool = False) -> None:
+        super().__init__(sc.group, trace)
         # the agent checks do not use the per-apply state hash of the DDB checks (HM-Agreement and the
         # membership properties are verified by `haactl verify membership|ddb`): skip its cost
         self.node_cfg = dataclasses.replace(self.node_cfg, hash_every_apply=False)
@@ -201,7 +201,7 @@ class AgentSim(GroupSim):
 
     def _make_node(self, h: SimHost, inc: int) -> AgentNode:  # type: ignore[override]
         node = super()._make_node(h, inc)
-        return AgentNode(node, SIM_AGENT, self.mutations)
+        return AgentNode(node, SIM_AGENT)
 
     def _on_effect(self, h: SimHost, e: Any) -> None:
         t = type(e)
@@ -616,10 +616,9 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
     return out
 
 
-def run_agents(seed: int, hosts: int = 7, mix: str = "transfer",
-               mutations: frozenset[str] | None = None) -> tuple[AgentSim, list[GroupViolation]]:
+def run_agents(seed: int, hosts: int = 7, mix: str = "transfer") -> tuple[AgentSim, list[GroupViolation]]:
     sc = draw_agents(seed, hosts, mix)
-    sim = AgentSim(sc, mutations)
+    sim = AgentSim(sc)
     sim.run()
     return sim, check_agents(sim)
 

@@ -257,18 +257,12 @@ class GroupHistory:
     dropped: list[Fault] = field(default_factory=list)  # faults the assumptions did not allow (`GroupSim._safe`)
 
 
-#: mutations every `GroupSim` passes to its nodes unless given others (`haa.dsim.mutations` sets it, before the
-#: verifier forks its workers)
-DEFAULT_MUTATIONS: frozenset[str] = frozenset()
-
-
 class GroupSim:
     """Runs one `GroupScenario` (see the module docstring)."""
 
-    def __init__(self, sc: GroupScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
+    def __init__(self, sc: GroupScenario, trace: bool = False) -> None:
         self.sc = sc
         self.rng = random.Random(sc.seed * 7919 + 1)
-        self.mutations = DEFAULT_MUTATIONS if mutations is None else mutations
         cfg = CoreConfig(ufd=GROUP_UFD, exclude_after=EXCLUDE_AFTER)
         self.node_cfg = NodeConfig(core=cfg, c_f=sc.c_f, sequencer=sc.sequencer, **SIM_NODE)
         self.cl = SimCluster(sc.names, self.rng, sc.delay, cfg, sc.offsets, sc.drifts, trace=trace)
@@ -294,7 +288,7 @@ class GroupSim:
         cl = self.cl
         # what the previous incarnation knew (the daemon keeps it in --data-dir)
         known = sorted(self.known.get(h.name, {}).items())
-        node = MembershipNode(h.name, inc, h.name, self.core_list, self.node_cfg, self.mutations, known)
+        node = MembershipNode(h.name, inc, h.name, self.core_list, self.node_cfg, known)
         proc = (h.name, inc)
         orig = node._evaluate
 
@@ -829,9 +823,9 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
 
 
 def run_group(
-    seed: int, hosts: int = 7, mutations: frozenset[str] | None = None, workload: str = "membership"
+    seed: int, hosts: int = 7, workload: str = "membership"
 ) -> tuple[GroupSim, list[GroupViolation]]:
     sc = draw_group(seed, hosts, workload)
-    sim = GroupSim(sc, mutations)
+    sim = GroupSim(sc)
     sim.run()
     return sim, check_group(sim)

@@ -109,8 +109,8 @@ def draw_join(seed: int, hosts: int = 7) -> JoinScenario:
 class JoinSim(AgentSim):
     """`AgentSim` with per-host capacities, the drawn costs and penalties, and the moves recorded."""
 
-    def __init__(self, js: JoinScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
-        super().__init__(js.agents, mutations, trace)
+    def __init__(self, js: JoinScenario, trace: bool = False) -> None:
+        super().__init__(js.agents, trace)
         self.js = js
         #: (time, agent name, from host, to host) of every transfer begun (a "freezing" timeline event)
         self.transfers: list[tuple[float, str, str, str]] = []
@@ -120,7 +120,7 @@ class JoinSim(AgentSim):
     def _make_node(self, h: SimHost, inc: int) -> AgentNode:  # type: ignore[override]
         node = super(AgentSim, self)._make_node(h, inc)
         cfg = dataclasses.replace(JOIN_AGENT, capacity=self.js.capacity[h.name])
-        return AgentNode(node, cfg, self.mutations)
+        return AgentNode(node, cfg)
 
     def _create(self, only: int | None = None) -> None:
         hs = self._members()
@@ -175,9 +175,8 @@ def join_windows(sim: JoinSim) -> list[tuple[str, float, float, list[tuple[float
     return out
 
 
-def run_join(seed: int, hosts: int = 7, mutations: frozenset[str] | None = None,
-             trace: bool = False) -> tuple[JoinSim, list[GroupViolation]]:
-    sim = JoinSim(draw_join(seed, hosts), mutations, trace)
+def run_join(seed: int, hosts: int = 7, trace: bool = False) -> tuple[JoinSim, list[GroupViolation]]:
+    sim = JoinSim(draw_join(seed, hosts), trace)
     sim.run()
     return sim, check_join(sim)
 

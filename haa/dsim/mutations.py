@@ -72,7 +72,6 @@ from collections.abc import Callable
 
 from google.protobuf.message import DecodeError
 
-from haa.dsim import group as group_mod
 from haa.hostd import allocation as alloc_mod
 from haa.hostd import ddb as ddb_mod
 from haa.hostd import globalstate as globalstate_mod
@@ -185,13 +184,32 @@ def deaf_detector() -> Undo:
     return _patch(ufd_mod.HeartbeatObserver, "on_deadline", lambda self, now: False)
 
 
-def _node_flag(flag: str) -> Callable[[], Undo]:
-    """A mutation built into `MembershipNode` (its `mutations` argument), switched on for every `GroupSim`."""
+def _always(cls: type, *methods: str) -> Callable[[], Undo]:
+    """A variant of `cls` whose `methods` (predicates) always answer True: a check the algorithm makes, left
+    out. The production class has no switch for it; the variant is patched in (and undone) here."""
 
     def apply() -> Undo:
-        return _patch(group_mod, "DEFAULT_MUTATIONS", group_mod.DEFAULT_MUTATIONS | {flag})
+        undos = [_patch(cls, m, lambda self, *args: True) for m in methods]
+
+        def undo() -> None:
+            for u in reversed(undos):
+                u()
+
+        return undo
 
     return apply
+
+
+def seq_no_dedup() -> Undo:
+    """Replicas apply a write forwarded twice twice: `GlobalState.dedup` off in every node's state."""
+    cls = membership_mod.MembershipNode
+    init = cls.__init__
+
+    def __init__(self: membership_mod.MembershipNode, *args: object, **kw: object) -> None:
+        init(self, *args, **kw)
+        self.state.dedup = False
+
+    return _patch(cls, "__init__", __init__)
 
 
 def stale_snapshot() -> Undo:
@@ -391,13 +409,14 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "commit-on-quorum": (commit_on_quorum, "oac", "AC-Uniform-Validity"),
     "never-precommit": (never_precommit, "oac", "AC-Non-Triviality"),
     "deaf-detector": (deaf_detector, "ufd", "UFD-Completeness"),
-    "no-weak-validity": (_node_flag("no-weak-validity"), "membership", "HM-Weak-Validity"),
-    "no-quorum": (_node_flag("no-quorum"), "membership", "HM-Agreement"),
-    "no-lock-wait": (_node_flag("no-lock-wait"), "ddb", "DDB-Durability"),
+    "no-weak-validity": (_always(membership_mod.MembershipNode, "_vote_remove"), "membership", "HM-Weak-Validity"),
+    "no-quorum": (_always(membership_mod.MembershipNode, "_quorum"), "membership", "HM-Agreement"),
+    "no-lock-wait": (_always(membership_mod.MembershipNode, "_lock_wait_over", "_all_locked"), "ddb",
+                     "DDB-Durability"),
     "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
     "no-dissolution": (no_dissolution, "membership", "HM-Termination"),
-    "seq-no-dedup": (_node_flag("seq-no-dedup"), "ddb", "DDB-Exactly-Once"),
+    "seq-no-dedup": (seq_no_dedup, "ddb", "DDB-Exactly-Once"),
     "thesis-accept": (thesis_accept, "allocation", "AA-Validity"),
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),

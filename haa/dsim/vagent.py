@@ -175,11 +175,11 @@ class RealHistory:
 class RealAgentSim(AgentSim):
     """`AgentSim` with ExecutiveMission running for real on virtual time (module docstring)."""
 
-    def __init__(self, sc: AgentScenario, mutations: frozenset[str] | None = None, trace: bool = False) -> None:
+    def __init__(self, sc: AgentScenario, trace: bool = False) -> None:
         # every move, kill and hang of the scenario aims at the executive (agent #0)
         sc = dataclasses.replace(sc, n_agents=1, moves=[(t, 0, hi) for t, _a, hi in sc.moves],
                                  kills=[(t, 0) for t, _a in sc.kills], hangs=[(t, 0) for t, _a in sc.hangs])
-        super().__init__(sc, mutations, trace)
+        super().__init__(sc, trace)
         self.rh = RealHistory()
         self.rrng = random.Random(sc.group.seed * 8191 + 11)  # child ids: the core draws no random numbers
         self.config = mission_config(sc.group.seed)

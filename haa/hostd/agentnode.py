@@ -116,8 +116,7 @@ class AgentConfig:
 class AgentNode:
     """See the module docstring."""
 
-    def __init__(self, node: MembershipNode, config: AgentConfig | None = None,
-                 mutations: frozenset[str] = frozenset()) -> None:  # mutations: the membership node's (unused)
+    def __init__(self, node: MembershipNode, config: AgentConfig | None = None) -> None:
         self.m = node
         self.config = cfg = config or AgentConfig()
         self.name = node.name

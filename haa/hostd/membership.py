@@ -235,7 +235,6 @@ class MembershipNode:
         addr: str,
         core_processes: Sequence[tuple[str, str]],
         config: NodeConfig | None = None,
-        mutations: frozenset[str] = frozenset(),
         known_hosts: Sequence[tuple[str, str]] = (),
     ) -> None:
         self.config = cfg = config or NodeConfig()
@@ -243,7 +242,6 @@ class MembershipNode:
         self.inc = inc
         self.me: Proc = (name, inc)
         self.addr = addr
-        self.mutations = mutations
         self.core_names = tuple(n for n, _ in core_processes)  # l. 1
         if len(set(self.core_names)) != len(self.core_names) or not self.core_names:
             raise ValueError("core process list must be non-empty and without duplicates")
@@ -295,8 +293,6 @@ class MembershipNode:
         # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
         self.seq = Sequencer(self.me, self, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
                                                       cfg.seq_retry, cfg.seq_abandon))
-        if "seq-no-dedup" in mutations:
-            self.state.dedup = False
         self.started = False
         self._now = 0.0
 
@@ -565,15 +561,7 @@ class MembershipNode:
             return True  # not ours to judge: it is applied as a no-op everywhere
         if isinstance(tx, TxRemove):
             self.group_txs.add(txid)
-            if "no-weak-validity" in self.mutations:
-                return True
-            rl = self._remove_list()
-            cand = [m.proc for m in self.state.members if m.proc not in rl]
-            if not cand or cand[0] != tx.proposer:
-                return False  # l. 111-112: not the accepted leader
-            if not set(tx.removal) <= rl:  # l. 113-114
-                return False
-            return self._quorum(tx.removal)
+            return self._vote_remove(tx)
         if isinstance(tx, TxMembership):
             self.group_txs.add(txid)
             if tx.key:
@@ -856,6 +844,18 @@ class MembershipNode:
         self.updating = True  # nothing new starts until the retry
         self._timer("retry", self._now + self.config.retry_backoff)
 
+    def _vote_remove(self, tx: TxRemove) -> bool:
+        """ll. 110-116: vote for a removal only from the accepted leader (the first member not to be removed),
+        removing only members this host suspects too (weak validity), and leaving a quorum (`_quorum`).
+        (`haactl verify --mutate no-weak-validity` replaces this method by one that always votes yes.)"""
+        rl = self._remove_list()
+        cand = [m.proc for m in self.state.members if m.proc not in rl]
+        if not cand or cand[0] != tx.proposer:
+            return False  # l. 111-112: not the accepted leader
+        if not set(tx.removal) <= rl:  # l. 113-114
+            return False
+        return self._quorum(tx.removal)
+
     def _quorum(self, removal: tuple[Proc, ...]) -> bool:
         """HAA's addition to l. 113 (docs/membership.md, "quorum"): a removal must leave more than half of
         the current members, or exactly half including the front of the list. Two disjoint sets of members
@@ -865,8 +865,6 @@ class MembershipNode:
         Members superseded by a newer incarnation of their host are certainly gone (a host runs one
         incarnation at a time): they are left out of the count, and removing them needs no quorum. Otherwise
         a group of two whose front crashed and restarted would wait for the old incarnation forever."""
-        if "no-quorum" in self.mutations:
-            return True
         procs = [p for p in self.state.procs() if not self._superseded(p)]
         gone = {p for p in removal if not self._superseded(p)}
         if not gone:
@@ -887,19 +885,27 @@ class MembershipNode:
         if a is not None and a.key == key and a.stage in ("remove", "locking"):
             a.locks.add(src)
 
+    def _lock_wait_over(self, a: _Attempt) -> bool:
+        """l. 103: every active member answered the lock or is suspected, and all active OACs are decided.
+        (`--mutate no-lock-wait` replaces this and `_all_locked` by methods that never wait.)"""
+        for q in a.active:
+            if q not in a.locks and not self._suspected(q):
+                return False
+        # "all active OACs are decided"
+        return all(not (tx.content and tx.state == UNDECIDED) for tx in self.core.oac.txs.values())
+
+    def _all_locked(self, a: _Attempt) -> bool:
+        """l. 104: every active member locked (otherwise the attempt fails)."""
+        return all(q in a.locks for q in a.active)
+
     def _poll(self) -> None:
         """Re-check the waits of l. 103 (and the new member's catch-up) after every input."""
         a = self.attempt
         if a is None or a.stage != "locking" or self.left:
             return
-        if "no-lock-wait" not in self.mutations:
-            for q in a.active:
-                if q not in a.locks and not self._suspected(q):
-                    return
-            for tx in self.core.oac.txs.values():  # "all active OACs are decided"
-                if tx.content and tx.state == UNDECIDED:
-                    return
-        if all(q in a.locks for q in a.active) or "no-lock-wait" in self.mutations:  # l. 104
+        if not self._lock_wait_over(a):
+            return
+        if self._all_locked(a):  # l. 104
             leave = self.leave_list
             new = [m for m in self.state.members if m.proc not in leave]  # l. 105
             have = {m.proc for m in new}
