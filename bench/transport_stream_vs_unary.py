@@ -43,8 +43,8 @@ from pathlib import Path
 import grpc
 from grpc import aio
 
-from haa.hostd import wire
-from haa.hostd.messages import Heartbeat
+from haa.core import wire
+from haa.core.messages import Heartbeat
 from haa.hostd.transport import Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
 

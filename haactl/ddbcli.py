@@ -16,7 +16,7 @@ from rich.markup import escape
 
 from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.cluster.values import plain_value, show_bytes
-from haa.hostd import ddb
+from haa.core import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 from haactl.cliopts import (

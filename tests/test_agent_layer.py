@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from haa.core import agenttable as at
+from haa.core.routing import Inbox, Outbox
 from haa.dsim.agents import draw_agents, run_agents
-from haa.hostd import agenttable as at
-from haa.hostd.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 MEMBERS = ("h1", "h2", "h3")

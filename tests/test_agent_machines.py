@@ -1,5 +1,5 @@
-"""The agent layer's machines driven alone: transfer (thesis Alg. 5-6, `haa.hostd.transfer.Transfer`) and
-backup/recovery (Alg. 7-8, `haa.hostd.recovery.Recovery`).
+"""The agent layer's machines driven alone: transfer (thesis Alg. 5-6, `haa.core.transfer.Transfer`) and
+backup/recovery (Alg. 7-8, `haa.core.recovery.Recovery`).
 
 No `AgentNode`, no membership, no runtime: each test builds a real replicated agent table, gives the machine a
 small view of it (`View`: this host's name, the member list, whether every OAC is decided), feeds inputs through
@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from haa.hostd import agenttable as at
-from haa.hostd import recovery as rc
-from haa.hostd import transfer as tr
-from haa.hostd.agentio import FreezeAgent, KillAgent, SpawnShell, StartAgent
-from haa.hostd.agentstep import (
+from haa.core import agenttable as at
+from haa.core import recovery as rc
+from haa.core import transfer as tr
+from haa.core.agentio import FreezeAgent, KillAgent, SpawnShell, StartAgent
+from haa.core.agentstep import (
     MAX_RESPAWNS,
     Activate,
     AgentTimer,
@@ -32,7 +32,7 @@ from haa.hostd.agentstep import (
     SetPhase,
     Timeline,
 )
-from haa.hostd.routing import Inbox, Outbox
+from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 AGENT = "agent-0001"

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haa.hostd import allocation as al
-from haa.hostd.allocation import (
+from haa.core import allocation as al
+from haa.core.allocation import (
     AgentSpec,
     Allocated,
     Allocator,
@@ -190,7 +190,7 @@ def test_bad_input_is_a_clear_one_line_error(make, words):
 
 def test_allocation_core_is_sans_io():
     forbidden = {"asyncio", "grpc", "time", "socket", "threading", "random", "os", "datetime", "subprocess"}
-    tree = ast.parse((ROOT / "haa/hostd/allocation.py").read_text())
+    tree = ast.parse((ROOT / "haa/core/allocation.py").read_text())
     names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     assert not names & forbidden

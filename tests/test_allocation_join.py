@@ -9,10 +9,10 @@ import random
 import pytest
 from test_allocation import Net
 
+from haa.core.allocation import AgentSpec, Allocator, HostSpec, bid_key
 from haa.dsim import mutations
 from haa.dsim.joins import draw_join, run_join
 from haa.dsim.sweep import run_seed
-from haa.hostd.allocation import AgentSpec, Allocator, HostSpec, bid_key
 
 
 class NoHysteresis(Allocator):

@@ -10,8 +10,8 @@ from collections import Counter
 import pytest
 from test_allocation import Net
 
-from haa.hostd import allocwire
-from haa.hostd.allocation import AgentSpec, Allocator, HostSpec, SessionStart, over_limit
+from haa.core import allocwire
+from haa.core.allocation import AgentSpec, Allocator, HostSpec, SessionStart, over_limit
 
 
 def sensor(i, kind="sonar", limit=1, cost=0.1, host=None, hw=frozenset()):
@@ -177,7 +177,7 @@ def _create(aid, type_="sonar", limit=1, hw=()):
 
 
 def test_the_table_refuses_bad_limits_and_disagreeing_creates_on_every_replica():
-    from haa.hostd import agenttable as at
+    from haa.core import agenttable as at
 
     t1, t2 = at.AgentTable(), at.AgentTable()
     for t in (t1, t2):
@@ -194,7 +194,7 @@ def test_the_table_refuses_bad_limits_and_disagreeing_creates_on_every_replica()
 
 
 def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_limit():
-    from haa.hostd import agenttable as at
+    from haa.core import agenttable as at
     from haa.pb import agenttx_pb2 as apb
 
     t = at.AgentTable()

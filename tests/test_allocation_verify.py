@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 from hashseed import trace_hashes
 
+from haa.core.allocation import AgentSpec, HostSpec
 from haa.dsim import allocation as sim_mod
 from haa.dsim import mutations
 from haa.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc, run_quality
 from haa.dsim.sweep import run_seed, sweep
-from haa.hostd.allocation import AgentSpec, HostSpec
 
 BIN = Path(sys.executable).parent / "haactl"
 
@@ -184,7 +184,7 @@ def test_bench_alloc_quality_smoke():
 def test_without_bid_warping_an_affinity_rich_instance_never_converges(monkeypatch):
     """Affinity bonuses make rewards grow along a bundle (no diminishing marginal gains): without warping, the
     two hosts of this instance outbid each other for ever; with it, the session ends."""
-    from haa.hostd.allocation import Allocator
+    from haa.core.allocation import Allocator
 
     sc = sim_mod.quality_instance(69, "roomy")
     sim = AllocSim(sc)

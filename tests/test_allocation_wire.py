@@ -1,4 +1,4 @@
-"""Allocation bytes on the wire (proto/haa/pb/alloc.proto via haa.hostd.allocwire): round trips, determinism,
+"""Allocation bytes on the wire (proto/haa/pb/alloc.proto via haa.core.allocwire): round trips, determinism,
 and clear one-line errors naming the field for malformed bytes."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haa.hostd.allocation import AgentSpec, Bid, BidUpdate, HostSpec, ProposeFinish, SessionStart, nil_bid
-from haa.hostd.allocwire import (
+from haa.core.allocation import AgentSpec, Bid, BidUpdate, HostSpec, ProposeFinish, SessionStart, nil_bid
+from haa.core.allocwire import (
     AllocWireError,
     SessionFinish,
     decode_finish,

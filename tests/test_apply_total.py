@@ -17,11 +17,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from haa.core import agenttable as at
+from haa.core.allocation import MAX_COST, AgentSpec, HostSpec
+from haa.core.globalstate import GlobalState, TxAgent, TxDdb, TxFormation, encode_tx
+from haa.core.messages import Member, TxId
 from haa.dsim import hostile
-from haa.hostd import agenttable as at
-from haa.hostd.allocation import MAX_COST, AgentSpec, HostSpec
-from haa.hostd.globalstate import GlobalState, TxAgent, TxDdb, TxFormation, encode_tx
-from haa.hostd.messages import Member, TxId
 from haa.pb import agenttx_pb2 as apb
 
 EXAMPLES = int(os.environ.get("HAA_FUZZ_EXAMPLES", "300"))

@@ -26,12 +26,12 @@ import aiohttp
 import numpy as np
 import pytest
 
+from haa.core import ddb as ddbops
+from haa.core.ddb import Ddb
 from haa.dashboard.browser import Chromium, find_chromium
 from haa.dashboard.model import DdbMirror, avatar_of, batch_keys, map_view
 from haa.dashboard.server import DashboardServer
 from haa.dashboard.sources import Hub
-from haa.hostd import ddb as ddbops
-from haa.hostd.ddb import Ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 

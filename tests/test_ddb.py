@@ -1,4 +1,4 @@
-"""The DDB replicated state machine (haa.hostd.ddb, docs/ddb.md): op semantics and failure reasons, atomic
+"""The DDB replicated state machine (haa.core.ddb, docs/ddb.md): op semantics and failure reasons, atomic
 batches, malformed payloads, limits, hashing, snapshots, watchers, the mirror ring, and replica agreement
 on random op sequences (hypothesis, against a small reference model)."""
 
@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import haa.pb.ddb_pb2 as pb
-from haa.hostd import ddb as D
-from haa.hostd.ddb import Ddb, DdbError, DdbEvent
+from haa.core import ddb as D
+from haa.core.ddb import Ddb, DdbError, DdbEvent
 
 ROOT = Path(__file__).resolve().parents[1]
 MiB = 1024 * 1024
@@ -756,7 +756,7 @@ def test_ddb_module_is_sans_io():
     spec = importlib.util.spec_from_file_location("_sans_io", ROOT / "tests/test_sans_io.py")
     sans_io = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(sans_io)
-    path = ROOT / "haa/hostd/ddb.py"
+    path = ROOT / "haa/core/ddb.py"
     assert not sans_io._imports(path) & sans_io.FORBIDDEN
     tree = ast.parse(path.read_text())
     haa = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names if a.name.startswith("haa")}

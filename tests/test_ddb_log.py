@@ -1,4 +1,4 @@
-"""The DDB's `log` type (haa.hostd.ddb, docs/ddb.md "Logs"): log_append / log_trim semantics and indexes, the
+"""The DDB's `log` type (haa.core.ddb, docs/ddb.md "Logs"): log_append / log_trim semantics and indexes, the
 bounds, type mismatches, watcher events with indexes, snapshots, the hash, identical rejection of malformed
 ops on every replica, the edge check `check_op`, and replica agreement on random op sequences that mix logs
 with the other types (hypothesis, against a reference model)."""
@@ -11,8 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import haa.pb.ddb_pb2 as pb
-from haa.hostd import ddb as D
-from haa.hostd.ddb import Ddb, DdbError, DdbEvent
+from haa.core import ddb as D
+from haa.core.ddb import Ddb, DdbError, DdbEvent
 
 KiB = 1024
 

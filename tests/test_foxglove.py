@@ -38,10 +38,10 @@ import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from typer.testing import CliRunner
 
+from haa.core import ddb as ddbops
+from haa.core.ddb import Ddb
 from haa.dashboard.sources import Hub
 from haa.foxglove import FoxgloveBridge
-from haa.hostd import ddb as ddbops
-from haa.hostd.ddb import Ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 from haactl.main import app

@@ -5,7 +5,7 @@ truncations, insertions, splices, huge and overlong varints, length prefixes tha
 
 Targets, and what may come out of them:
 
-(a) host links: `pb.Envelope` bytes through `haa.hostd.wire.decode` (only `DecodeError` / `WireError`);
+(a) host links: `pb.Envelope` bytes through `haa.core.wire.decode` (only `DecodeError` / `WireError`);
     `Frame`s through the transport's receive loop (only `LinkGap`); whole `HostLink.Open` streams with random
     metadata against a real in-process `Transport` server (a known status; the receive loop ends on nothing
     but a `LinkGap`; the server still serves a correct peer afterwards).
@@ -61,11 +61,11 @@ from haa.agents.base import AgentBase, AgentContext, new_agent_id
 from haa.agents.channel import DEFAULT_MAX_FRAME, HEADER, MAX_AGENT_MESSAGE, Channel, ChannelError
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.hostd import agenttable, wire
-from haa.hostd import ddb as ddbmod
+from haa.core import agenttable, wire
+from haa.core import ddb as ddbmod
+from haa.core.messages import Excluded
 from haa.hostd.control import MD_TOKEN
 from haa.hostd.logs import LOGGER_NAME
-from haa.hostd.messages import Excluded
 from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, _RxState, _varint, encode_frame
 from haa.hostd.transport import envelope_chunk as chunk
 from haa.pb import agent_pb2 as apb

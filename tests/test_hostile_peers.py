@@ -39,8 +39,8 @@ from waits import until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.hostd import wire
-from haa.hostd.messages import Heartbeat, Message
+from haa.core import wire
+from haa.core.messages import Heartbeat, Message
 from haa.hostd.transport import (
     MD_INC,
     MD_SENDER,
@@ -298,7 +298,7 @@ def test_hearsay_never_supersedes_a_peer_we_hear_from() -> None:
     (h1, 2**64 - 1) made every host treat the live h1 as restarted (its real incarnation dead, locked out for
     good: the transport refuses an incarnation that far ahead). Hearsay is believed only while no incarnation
     of the peer is trusted; a peer that really restarted is suspected first, then believed."""
-    from haa.hostd.core import HostCore
+    from haa.core.hostcore import HostCore
 
     core = HostCore("h2", 5, ["h1", "h2", "h3"])
     core.start(0.0)

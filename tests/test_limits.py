@@ -22,11 +22,11 @@ import pytest
 
 from haa.cluster.hostprocs import MemberHost
 from haa.cluster.hostprocs import wait_for as wait
+from haa.core import agenttable as at
+from haa.core import ddb
+from haa.core.messages import TxId
 from haa.experiments import memory as membench
-from haa.hostd import agenttable as at
-from haa.hostd import ddb
 from haa.hostd.delivered import DeliveredLog
-from haa.hostd.messages import TxId
 from haa.hostd.mirrors import MirrorSub
 from haa.hostd.resources import LoopWatch
 from haa.hostd.transport import MAX_MESSAGE, Transport

@@ -2,15 +2,15 @@
 
 import pytest
 
+from haa.core import ddb
+from haa.core.globalstate import GlobalState, TxDdb, TxFormation, TxMembership, TxRemove, decode_tx, encode_tx
+from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.messages import Excluded, Member, TxId
 from haa.dsim import mutations
 from haa.dsim.cluster import CRASHED
 from haa.dsim.group import GroupScenario, GroupSim, check_group, draw_group, run_group
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
-from haa.hostd import ddb
-from haa.hostd.globalstate import GlobalState, TxDdb, TxFormation, TxMembership, TxRemove, decode_tx, encode_tx
-from haa.hostd.membership import MembershipNode, NodeConfig
-from haa.hostd.messages import Excluded, Member, TxId
 
 SAFETY = {
     "HM-Agreement",

@@ -13,13 +13,13 @@ from typing import Any
 
 import pytest
 
-from haa.hostd import formation as fm
-from haa.hostd import sequencer as sq
-from haa.hostd import statetransfer as xf
-from haa.hostd.effects import Log, Send, SetTimer
-from haa.hostd.globalstate import GlobalState, SeqApplied, SeqEntry, TxFormation
-from haa.hostd.groupeffects import NodeTimer, WriteDone
-from haa.hostd.messages import Member, SeqWrite, StateRequest, TxId
+from haa.core import formation as fm
+from haa.core import sequencer as sq
+from haa.core import statetransfer as xf
+from haa.core.effects import Log, Send, SetTimer
+from haa.core.globalstate import GlobalState, SeqApplied, SeqEntry, TxFormation
+from haa.core.groupeffects import NodeTimer, WriteDone
+from haa.core.messages import Member, SeqWrite, StateRequest, TxId
 
 ME = ("h2", 1)
 LEADER = ("h1", 1)

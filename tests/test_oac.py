@@ -8,13 +8,13 @@ import random
 
 import pytest
 
+from haa.core.hostcore import FD_EXTERNAL, CoreConfig
+from haa.core.messages import OacTransaction
 from haa.dsim import mutations
 from haa.dsim.checks import check_oac
 from haa.dsim.cluster import SimCluster
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import SIM_UFD, Scenario
-from haa.hostd.core import FD_EXTERNAL, CoreConfig
-from haa.hostd.messages import OacTransaction
 
 CONST = DelayModel("const", 0.001, 0.0)
 
@@ -219,8 +219,8 @@ def test_unknown_participant_is_refused_at_propose():
 def test_restarted_peer_that_never_speaks_is_still_excluded():
     """A new incarnation learned from a handshake (or a participant list) that then dies without a single
     heartbeat must become permanently suspected, or transactions naming it never close (l. 41)."""
-    from haa.hostd.core import CoreConfig, HostCore
-    from haa.hostd.effects import PeerDead, SetTimer
+    from haa.core.effects import PeerDead, SetTimer
+    from haa.core.hostcore import CoreConfig, HostCore
 
     core = HostCore("h1", 1, ["h1", "h2"], CoreConfig(exclude_after=2.0))
     core.start(0.0)
@@ -262,7 +262,7 @@ def test_round_zero_lock_survives_a_later_round():
 
 def test_thesis_initial_timestamp_breaks_agreement():
     """The same schedule with ts_p initialised to 0 as printed (l. 20): h1 commits, h2 and h3 abort."""
-    from haa.hostd import oac as oac_mod
+    from haa.core import oac as oac_mod
 
     original = oac_mod.INITIAL_TS
     oac_mod.INITIAL_TS = 0
@@ -279,7 +279,7 @@ def _direct_group(n):
     """n OrderedAtomicCommit objects wired through one FIFO queue of (src, dst, msg, lazy), no failure detector."""
     from collections import deque
 
-    from haa.hostd.oac import OrderedAtomicCommit
+    from haa.core.oac import OrderedAtomicCommit
 
     names = [f"h{i + 1}" for i in range(n)]
     wire = deque()

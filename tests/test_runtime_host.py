@@ -12,15 +12,15 @@ import pytest
 from waits import until
 
 from haa.cluster.hostprocs import free_port
-from haa.hostd.core import CoreConfig
+from haa.core.effects import CancelTimer, SetTimer
+from haa.core.hostcore import CoreConfig
+from haa.core.messages import Excluded, TxId
+from haa.core.oac import OacError
+from haa.core.qos import QosTargets
+from haa.core.ufd import UfdConfig
 from haa.hostd.delivered import GENESIS_HASH, chain_hash
-from haa.hostd.effects import CancelTimer, SetTimer
-from haa.hostd.messages import Excluded, TxId
-from haa.hostd.oac import OacError
 from haa.hostd.outcomes import HostReincarnated, ProposeTimeout, TransactionAborted
-from haa.hostd.qos import QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
-from haa.hostd.ufd import UfdConfig
 
 FAST_CORE = CoreConfig(
     ufd=UfdConfig(qos=QosTargets(td_upper=0.3, tmr_lower=3600.0, tm_upper=1.0), initial_period=0.02),

@@ -24,7 +24,7 @@ from waits import until
 
 from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
 from haa.cluster.hostprocs import wait_for as wait
-from haa.hostd import ddb
+from haa.core import ddb
 from haa.hostd.control import ControlClient
 
 TOKEN = "membership-test-token"
@@ -268,8 +268,8 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
     request gets exactly its own ops' results, later ops see earlier ones, atomic requests travel alone."""
     import asyncio
 
+    from haa.core.membership import NodeConfig
     from haa.hostd.groupcommit import DDB_MAX_INFLIGHT
-    from haa.hostd.membership import NodeConfig
     from haa.hostd.runtime import HostRuntime, RuntimeConfig
 
     port = free_port()

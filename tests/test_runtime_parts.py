@@ -18,17 +18,17 @@ from typing import Any
 import pytest
 from waits import until
 
-from haa.hostd import agentio as io
-from haa.hostd import ddb
+from haa.core import agentio as io
+from haa.core import ddb
+from haa.core.effects import CancelTimer, Closed, Decided, Deliver, Log, Reincarnate, Send, SetTimer
+from haa.core.globalstate import TxDdb, encode_tx
+from haa.core.membership import AppliedTx, Connect, Left, WriteDone
+from haa.core.messages import Heartbeat, TxId
 from haa.hostd.agentops import AgentOps
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import GENESIS_HASH, DeliveredLog, chain_hash
 from haa.hostd.dispatch import EffectDispatcher
-from haa.hostd.effects import CancelTimer, Closed, Decided, Deliver, Log, Reincarnate, Send, SetTimer
-from haa.hostd.globalstate import TxDdb, encode_tx
 from haa.hostd.groupcommit import DDB_MAX_INFLIGHT, GroupCommit
-from haa.hostd.membership import AppliedTx, Connect, Left, WriteDone
-from haa.hostd.messages import Heartbeat, TxId
 from haa.hostd.mirrors import Mirrors
 from haa.hostd.outcomes import NotMembershipMode, TransactionAborted, WriteFailed
 from haa.hostd.proposals import Proposals

@@ -26,8 +26,9 @@ from grpc import aio
 from waits import until
 
 from haa.cluster.hostprocs import free_port
-from haa.hostd import tcplink, wire
-from haa.hostd.messages import Excluded, Heartbeat, Message
+from haa.core import wire
+from haa.core.messages import Excluded, Heartbeat, Message
+from haa.hostd import tcplink
 from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
 

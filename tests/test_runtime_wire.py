@@ -1,4 +1,4 @@
-"""The wire codec (haa.hostd.wire): every message type round-trips, every malformed envelope is rejected."""
+"""The wire codec (haa.core.wire): every message type round-trips, every malformed envelope is rejected."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haa.hostd import messages as m
-from haa.hostd import wire
+from haa.core import messages as m
+from haa.core import wire
 from haa.hostd.transport import encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
 
@@ -176,7 +176,7 @@ def test_decode_accepts_the_boundaries() -> None:
         m.OacDecide(T, -1, -1, False, P3, True),  # unilateral abort before any round (Alg. 2 l. 29)
         m.OacDecide(T, wire.MAX_ORDER, wire.MAX_ROUND, True, P3, False),
         m.OacEstimate(T, 0, 0, False, 0),
-        m.OacEstimate(T, 0, 0, False, -1),  # the initial timestamp (Alg. 2 l. 20, haa.hostd.oac.INITIAL_TS)
+        m.OacEstimate(T, 0, 0, False, -1),  # the initial timestamp (Alg. 2 l. 20, haa.core.oac.INITIAL_TS)
         m.OacTransaction(T, b"", (("h1", 5),), 1),  # a single-host transaction
     ]
     for msg in ok:

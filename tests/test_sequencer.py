@@ -2,12 +2,12 @@
 batches them into one OAC; replicas apply each write once per (origin, cseq). Deterministic group simulator
 and the replicated state; the real daemons are covered by tests/test_runtime_membership.py and bench ap1."""
 
+from haa.core import ddb
+from haa.core.globalstate import GlobalState, SeqEntry, TxDdb, TxMembership, TxSeq, TxTest, encode_tx
+from haa.core.messages import Member, TxId
 from haa.dsim.group import GroupScenario, GroupSim, check_group
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
-from haa.hostd import ddb
-from haa.hostd.globalstate import GlobalState, SeqEntry, TxDdb, TxMembership, TxSeq, TxTest, encode_tx
-from haa.hostd.messages import Member, TxId
 
 A = ("h1", 1)
 B = ("h2", 7)

@@ -4,9 +4,9 @@ import math
 
 import pytest
 
-from haa.hostd.messages import Heartbeat
-from haa.hostd.qos import QosTargets, configure
-from haa.hostd.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+from haa.core.messages import Heartbeat
+from haa.core.qos import QosTargets, configure
+from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
 
 QOS = QosTargets(td_upper=1.0, tmr_lower=3600.0, tm_upper=1.0)
 CFG = UfdConfig(qos=QOS, initial_period=0.05, reevaluate_every=10, window=50, min_delay_std=0.001)
@@ -116,8 +116,8 @@ def test_a_freshness_timer_that_fires_early_is_rearmed():
     """A driver whose clock conversion loses an ulp may fire the timer just before q_tau_{l+1}: the
     core must wait for the deadline again, or a crashed peer stays trusted forever (found by the
     100,000-schedule sweep, seed 7020)."""
-    from haa.hostd.core import CoreConfig, HostCore
-    from haa.hostd.effects import SetTimer, Suspicion
+    from haa.core.effects import SetTimer, Suspicion
+    from haa.core.hostcore import CoreConfig, HostCore
 
     core = HostCore("q", 1, ["q", "p"], CoreConfig(ufd=CFG))
     core.start(0.0)

@@ -5,15 +5,15 @@ of the liveness bugs they found (docs/membership.md, "verification")."""
 import pytest
 from hashseed import trace_hashes
 
+from haa.core.effects import Decided, Send
+from haa.core.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
+from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
 from haa.dsim import mutations
 from haa.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import Fault
 from haa.dsim.sweep import run_seed, sweep
-from haa.hostd.effects import Decided, Send
-from haa.hostd.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
-from haa.hostd.membership import MembershipNode, NodeConfig
-from haa.hostd.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
 
 CORE = [("h1", "h1"), ("h2", "h2"), ("h3", "h3")]
 

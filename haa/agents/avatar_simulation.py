@@ -59,7 +59,7 @@ import pydantic
 
 from haa.agents import team
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbops
+from haa.core import ddb as ddbops
 from haa.pb import sim_pb2 as spb
 from haa.slam import events as sev
 from haa.slam.motion import DRIFT, DriftSpec, odometry_prediction, wrap_angle

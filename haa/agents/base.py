@@ -13,9 +13,9 @@ host, over one channel (`haa.agents.channel`). What an agent gets:
 * timers: `call_later(delay, fn)`, `every(period, fn)` (cancelled when the agent freezes);
 * DDB: `await ddb_get(key)`, `await ddb_scan(prefix) -> {key: bytes}`, `await ddb_put(key, value, type_name)`,
   `await ddb_put_json(key, obj)`;
-  `await ddb_write(ops, atomic=False) -> [reason or "" per op]` (ops built with `haa.hostd.ddb`: put, delete,
+  `await ddb_write(ops, atomic=False) -> [reason or "" per op]` (ops built with `haa.core.ddb`: put, delete,
   append, cas, add, log_append, log_trim), `await ddb_log_append(key, items)`; `watch(prefix, callback)`,
-  `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.hostd.ddb.decode_log(ddb_get bytes)` reads a
+  `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.core.ddb.decode_log(ddb_get bytes)` reads a
   log as (first, items);
 * `backup()` (Alg. 7 ll. 1-3), `await spawn_child(type_name, config)`, `stop()`, `log(event, **fields)`.
 
@@ -80,7 +80,7 @@ from haa.agents.sched import WALL_CLOCK as WALL_CLOCK
 from haa.agents.sched import AgentScheduler, AsyncioScheduler
 from haa.agents.sched import Clock as Clock
 from haa.agents.sched import ScaledClock as ScaledClock
-from haa.hostd import ddb as ddbmod
+from haa.core import ddb as ddbmod
 from haa.pb import agent_pb2 as pb
 
 #: recovery strategies an agent type declares (docs/agents.md, "Recovery strategies")
@@ -385,7 +385,7 @@ class AgentBase:
         await self._ctx.ddb_put(key, json.dumps(value, separators=(",", ":")).encode(), "json", timeout)
 
     async def ddb_write(self, ops: Iterable[Any], atomic: bool = False, timeout: float = HOST_TIMEOUT) -> list[str]:
-        """Write several DDB ops (`haa.hostd.ddb.put`, `delete`, `append`, `cas`, `add`, `log_append`,
+        """Write several DDB ops (`haa.core.ddb.put`, `delete`, `append`, `cas`, `add`, `log_append`,
         `log_trim`) in one batch, committed through the group (this waits for the commit). Returns one entry
         per op, in order: "" if it succeeded, else its reason. With `atomic`, one failing op fails them all
         ("atomic batch aborted: op i failed: ...") and nothing is written. HostError if the host refused the
@@ -900,7 +900,7 @@ class AgentContext:
         try:
             body = pb.AgentToHost.DdbWrite(req_id=rid, ops=batch, atomic=bool(atomic))
         except TypeError:
-            raise TypeError("ddb_write: ops must be DdbOp messages (haa.hostd.ddb.put, log_append, ...)") from None
+            raise TypeError("ddb_write: ops must be DdbOp messages (haa.core.ddb.put, log_append, ...)") from None
         ans = await self._call(pb.AgentToHost(ddb_write=body), rid, timeout, f"ddb_write of {len(batch)} op(s)")
         errors = list(ans.op_errors)
         if len(errors) != len(batch):  # pragma: no cover - a host bug

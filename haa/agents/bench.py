@@ -7,7 +7,7 @@ and of a failure (kill -9 -> Failed).
 `measure_spawn(n)` is the function `haactl bench ap4` calls; it returns a dict of figures (seconds) and never
 fails on a timing. Everything runs on this machine with real processes: one AgentSupervisor driven directly
 for the spawn figures; `measure_throughput` routes one agent's messages to another through one supervisor
-(haa.agents.harness.LocalHosts: agent -> host -> agent, the local hop of every routed message).
+(haa.hostd.agentharness.LocalHosts: agent -> host -> agent, the local hop of every routed message).
 """
 
 from __future__ import annotations
@@ -146,7 +146,7 @@ def measure_spawn(n: int = 50, *, cold: bool = False, type_name: str = "probe", 
 
 async def ameasure_throughput(count: int = 20000, size: int = 100) -> dict[str, Any]:
     """Messages/s from one agent to another through their host (both on one supervisor)."""
-    from haa.agents.harness import LocalHosts
+    from haa.hostd.agentharness import LocalHosts
 
     async with LocalHosts(("h1",), heartbeat_period=0.5, hang_timeout=10.0) as hosts:
         a = await hosts.create("probe", {"record": False})

@@ -60,7 +60,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from haa.agents.base import AgentBase, AgentContext, RemoteError
 from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbmod
+from haa.core import ddb as ddbmod
 from haa.pb import agent_pb2 as apb
 
 #: counter message: magic, sender life (gen), sequence number (from 1), then `payload` padding bytes

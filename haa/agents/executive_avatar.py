@@ -26,7 +26,7 @@ import pydantic
 
 from haa.agents import team
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbops
+from haa.core import ddb as ddbops
 
 
 class ExecutiveAvatarConfig(team.TeamConfig):

@@ -46,7 +46,7 @@ import pydantic
 
 from haa.agents import team
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbops
+from haa.core import ddb as ddbops
 from haa.slam.replica import decode_map
 
 

@@ -78,7 +78,7 @@ import pydantic
 
 from haa.agents import team
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbops
+from haa.core import ddb as ddbops
 from haa.slam import events as sev
 from haa.slam.grid import GridSpec
 from haa.slam.replica import LogGap, SlamReplica

@@ -32,7 +32,7 @@ import numpy as np
 import pydantic
 
 from haa.agents.base import AgentBase, Clock
-from haa.hostd import ddb as ddbops
+from haa.core import ddb as ddbops
 
 T = TypeVar("T")
 

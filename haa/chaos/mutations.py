@@ -76,7 +76,7 @@ def _ack_before_commit() -> None:
 
 def _diverge_replica(host: str) -> None:
     from haa.chaos.workload import STOP_KEY
-    from haa.hostd.ddb import Ddb
+    from haa.core.ddb import Ddb
     from haa.pb import ddb_pb2 as pb
 
     if _own_name() != host:
@@ -135,7 +135,7 @@ def _late_commit() -> None:
 
 
 def _drop_message() -> None:
-    from haa.hostd import agentio as io
+    from haa.core import agentio as io
     from haa.hostd.agentdriver import AgentDriver
 
     orig = AgentDriver.command
@@ -153,8 +153,8 @@ def _drop_message() -> None:
 
 
 def _no_recovery() -> None:
-    from haa.hostd import agenttable as at
-    from haa.hostd.recovery import Recovery
+    from haa.core import agenttable as at
+    from haa.core.recovery import Recovery
 
     orig = Recovery._recover
 

@@ -42,7 +42,7 @@ from haa.chaos.workload import STOP_KEY, WORKLOAD_MODULE, WRITER_TYPE
 from haa.cluster.agents import AgentRow, active_row, wait_rows
 from haa.cluster.backend import Backend, ClusterError, wait_until
 from haa.cluster.local_backend import LocalBackend
-from haa.hostd import ddb as ddbmod
+from haa.core import ddb as ddbmod
 
 Progress = Callable[[str], None]
 

@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from haa.agents.base import AgentBase, HostError
 from haa.agents.registry import register
-from haa.hostd import ddb as ddbmod
+from haa.core import ddb as ddbmod
 
 #: module the hosts must load for the `ddb-writes` workload
 WORKLOAD_MODULE = "haa.chaos.workload"

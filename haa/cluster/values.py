@@ -1,5 +1,5 @@
 """DDB values as an operator reads them: `plain_value(type, bytes)` turns a record's canonical value bytes
-(haa.hostd.ddb's types: json, blob, counter, list, log, ...) into a JSON-able Python value — text where the
+(haa.core.ddb's types: json, blob, counter, list, log, ...) into a JSON-able Python value — text where the
 bytes are UTF-8, "base64:..." where they are not. Used by `haactl ddb` (get, ls, watch) and the demo
 (haa.experiments.demo reads the counters the agents publish).
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 import base64
 from typing import Any
 
-from haa.hostd import ddb
+from haa.core import ddb
 
 
 def show_bytes(b: bytes) -> str:

@@ -49,9 +49,9 @@ from haa.cluster.events import (
     timeline_events,
     view_events,
 )
+from haa.core.ddb import DdbError
 from haa.dashboard.model import OVERLAY_PREFIXES, DdbMirror
 from haa.hostd.control import ControlClient
-from haa.hostd.ddb import DdbError
 from haa.pb import control_pb2 as cpb
 
 log = logging.getLogger("haa.dashboard")

@@ -3,7 +3,7 @@
 `draw_agents(seed, hosts, mix)` turns one seed into a scenario: a host group as in `haa.dsim.group` (joins,
 leaves, crashes, restarts, pauses, delay spikes that make the failure detector suspect correct hosts), plus
 a team of simulated agents that exchange numbered messages, operator moves (transfers), agent kills and
-hangs. `AgentSim` runs it: every host is an `AgentNode` (haa.hostd.agentnode) over its `MembershipNode`, and
+hangs. `AgentSim` runs it: every host is an `AgentNode` (haa.core.agentnode) over its `MembershipNode`, and
 the agent instances are `SimAgent`s that execute the node's commands with a small, seeded latency, as agent
 processes would. `check_agents` then checks (`haactl verify transfer|recovery`; `mix` chooses the faults):
 
@@ -39,11 +39,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.dsim import hostile
-from haa.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
-from haa.dsim.group import GroupScenario, GroupSim, GroupViolation, draw_group
-from haa.hostd import agenttable as at
-from haa.hostd.agentio import (
+from haa.core import agenttable as at
+from haa.core.agentio import (
     AgentOpDone,
     AgentTimeline,
     AnswerAgent,
@@ -58,9 +55,12 @@ from haa.hostd.agentio import (
     SpawnShell,
     StartAgent,
 )
-from haa.hostd.agentnode import AgentConfig, AgentNode
-from haa.hostd.globalstate import TxAgent, decode_tx
-from haa.hostd.membership import AppliedTx, MembershipNode, ViewChange
+from haa.core.agentnode import AgentConfig, AgentNode
+from haa.core.globalstate import TxAgent, decode_tx
+from haa.core.membership import AppliedTx, MembershipNode, ViewChange
+from haa.dsim import hostile
+from haa.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
+from haa.dsim.group import GroupScenario, GroupSim, GroupViolation, draw_group
 
 Proc = tuple[str, int]
 

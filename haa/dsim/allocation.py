@@ -1,6 +1,6 @@
 """Deterministic simulation of agent allocation (Alg. 4) on N hosts: the verifier, AP-3 and the quality study.
 
-`AllocSim` drives one `haa.hostd.allocation.Allocator` (and one `RebalancePolicy`) per host:
+`AllocSim` drives one `haa.core.allocation.Allocator` (and one `RebalancePolicy`) per host:
 
 * bid updates travel over reliable FIFO channels with random delays (`haa.dsim.network.DelayModel`);
 * OAC is modelled as an ideal totally ordered atomic broadcast: a proposal is decided after a random delay,
@@ -55,9 +55,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.dsim.network import DelayModel
-from haa.dsim.scheduler import EventHeap
-from haa.hostd.allocation import (
+from haa.core.allocation import (
     AgentSpec,
     Allocated,
     Allocator,
@@ -70,7 +68,9 @@ from haa.hostd.allocation import (
     agent_reward,
     same_bid,
 )
-from haa.hostd.effects import Log
+from haa.core.effects import Log
+from haa.dsim.network import DelayModel
+from haa.dsim.scheduler import EventHeap
 
 PROPS = (
     "AA-Validity",
@@ -766,7 +766,7 @@ class AViolation:
 
 def _no_place(start: SessionStart | None, capable: dict[str, list[str]]) -> set[str]:
     """The agents of limited kinds an allocation of `start` must leave out (a reference implementation of
-    docs/allocation.md "per-host limits", independent of `haa.hostd.allocation.over_limit`): a kind has
+    docs/allocation.md "per-host limits", independent of `haa.core.allocation.over_limit`): a kind has
     max_per_host places on each capable member; agents running on a capable member keep theirs first (at most
     max_per_host per member), then the others in the start's order."""
     if start is None:

@@ -32,9 +32,9 @@ from __future__ import annotations
 from collections import defaultdict
 from dataclasses import dataclass, field
 
+from haa.core.messages import TxId
 from haa.dsim.cluster import History, Proc, SimCluster
 from haa.dsim.schedule import SIM_QOS, Scenario
-from haa.hostd.messages import TxId
 
 #: allowance for clock drift in the detection-time bound (|drift| <= 1e-4 over a ~20 s window)
 DRIFT_TOLERANCE = 0.005

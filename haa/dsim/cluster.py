@@ -21,10 +21,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.dsim.network import DelayModel
-from haa.dsim.scheduler import EventHeap
-from haa.hostd.core import FD_EXTERNAL, CoreConfig, HostCore
-from haa.hostd.effects import (
+from haa.core.effects import (
     CancelTimer,
     Closed,
     Decided,
@@ -36,7 +33,10 @@ from haa.hostd.effects import (
     SetTimer,
     Suspicion,
 )
-from haa.hostd.messages import OAC_TYPES, Heartbeat, TxId
+from haa.core.hostcore import FD_EXTERNAL, CoreConfig, HostCore
+from haa.core.messages import OAC_TYPES, Heartbeat, TxId
+from haa.dsim.network import DelayModel
+from haa.dsim.scheduler import EventHeap
 
 Proc = tuple[str, int]  # (host name, incarnation): one process life
 
@@ -49,7 +49,7 @@ PAUSED = 1
 CRASHED = 2
 
 
-#: core Log events that report a bug caught by a safety net (haa.hostd.agentnode): violations in every sweep
+#: core Log events that report a bug caught by a safety net (haa.core.agentnode): violations in every sweep
 ERROR_EVENTS = frozenset({"agent_layer_error"})
 
 @dataclass

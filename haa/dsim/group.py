@@ -50,14 +50,14 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
+from haa.core import ddb as ddbmod
+from haa.core.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
+from haa.core.hostcore import CoreConfig
+from haa.core.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
+from haa.core.messages import TxId
 from haa.dsim.cluster import ALIVE, CRASHED, PAUSED, SimCluster, SimHost
 from haa.dsim.network import DelayModel
 from haa.dsim.schedule import EXCLUDE_AFTER, SIM_UFD, Fault, _delay_model
-from haa.hostd import ddb as ddbmod
-from haa.hostd.core import CoreConfig
-from haa.hostd.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
-from haa.hostd.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
-from haa.hostd.messages import TxId
 
 Proc = tuple[str, int]
 

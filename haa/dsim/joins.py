@@ -29,13 +29,13 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
+from haa.core.agentio import AgentTimeline
+from haa.core.agentnode import AgentConfig, AgentNode
+from haa.core.membership import ViewChange
 from haa.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents
 from haa.dsim.cluster import SimHost
 from haa.dsim.group import GroupScenario, GroupViolation
 from haa.dsim.schedule import _delay_model
-from haa.hostd.agentio import AgentTimeline
-from haa.hostd.agentnode import AgentConfig, AgentNode
-from haa.hostd.membership import ViewChange
 
 PROPS = frozenset({"AA-Join-Stable"})
 #: the daemon's rate limit between sessions (AgentConfig's default); no periodic sessions

@@ -72,15 +72,15 @@ from collections.abc import Callable
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd import allocation as alloc_mod
-from haa.hostd import ddb as ddb_mod
-from haa.hostd import globalstate as globalstate_mod
-from haa.hostd import membership as membership_mod
-from haa.hostd import oac as oac_mod
-from haa.hostd import ufd as ufd_mod
-from haa.hostd.effects import Deliver
-from haa.hostd.globalstate import GlobalState
-from haa.hostd.messages import OacDecide
+from haa.core import allocation as alloc_mod
+from haa.core import ddb as ddb_mod
+from haa.core import globalstate as globalstate_mod
+from haa.core import membership as membership_mod
+from haa.core import oac as oac_mod
+from haa.core import ufd as ufd_mod
+from haa.core.effects import Deliver
+from haa.core.globalstate import GlobalState
+from haa.core.messages import OacDecide
 
 Undo = Callable[[], None]
 
@@ -307,9 +307,9 @@ def ignore_per_host_limit() -> Undo:
 
 def no_stream_order() -> Undo:
     """The receiver's host passes agent messages on as they arrive, without the sender-stream numbers
-    (haa.hostd.routing): a message that overtook an earlier one on another path is processed first, and one
+    (haa.core.routing): a message that overtook an earlier one on another path is processed first, and one
     that reached the agent twice is processed twice."""
-    from haa.hostd import routing as routing_mod
+    from haa.core import routing as routing_mod
 
     def offer(self: routing_mod.Inbox, m: object) -> list[object]:
         return [m]
@@ -320,7 +320,7 @@ def no_stream_order() -> Undo:
 def oldest_backup() -> Undo:
     """Recovery starts from the first backup an agent ever committed instead of the latest (Alg. 7 l. 5 keeps
     only the first)."""
-    from haa.hostd import agenttable as table_mod
+    from haa.core import agenttable as table_mod
 
     original = table_mod.AgentTable._tx_backup
 
@@ -336,7 +336,7 @@ def oldest_backup() -> Undo:
 def unchecked_claim() -> Undo:
     """OAC(claim) is accepted whatever the agent's state (Alg. 6 l. 13 without its test): a host that thaws an
     agent another host has already claimed runs a second instance."""
-    from haa.hostd import agenttable as table_mod
+    from haa.core import agenttable as table_mod
 
     def tx_claim(self: table_mod.AgentTable, m: object) -> object:
         r = self.records.get(m.id)  # type: ignore[attr-defined]
@@ -354,7 +354,7 @@ def unbounded_values() -> Undo:
     """The agent table's number checks as before issue 13: only `x >= lo` (NaN refused; inf, 1e308 and values
     above the upper bounds accepted). A create with cost=+inf, proposed by a member that skips the edge checks,
     enters every table. Breaks AG-Refuse-Invalid."""
-    from haa.hostd import agenttable as table_mod
+    from haa.core import agenttable as table_mod
 
     return _patch(table_mod, "_bad_number", lambda x, lo, hi: not x >= lo)
 
@@ -363,7 +363,7 @@ def raising_reaction() -> Undo:
     """The agent layer raises while it reacts to a committed agent-list change (as the allocator did on a
     cost=+inf agent before issue 13): the host's safety net catches it and goes on. Breaks AG-No-Error (the
     verifiers must not let the net hide a bug)."""
-    from haa.hostd import allocglue as glue_mod
+    from haa.core import allocglue as glue_mod
 
     original = glue_mod.AllocGlue.change
 
@@ -378,8 +378,8 @@ def raising_reaction() -> Undo:
 def joiner_default_capacity() -> Undo:
     """The agent layer as before the join fix: a member whose `HostInfo` is not in the agent table yet (a host
     that just joined) is read as one core without hardware and bids in the join's session."""
-    from haa.hostd import allocglue as glue_mod
-    from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
+    from haa.core import allocglue as glue_mod
+    from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
 
     def host_specs(self: glue_mod.AllocGlue) -> tuple[HostSpec, ...]:
         out = []

@@ -24,11 +24,11 @@ import random
 from dataclasses import dataclass, field
 from typing import Any
 
+from haa.core.hostcore import FD_EXTERNAL, FD_UFD, CoreConfig
+from haa.core.qos import QosTargets
+from haa.core.ufd import UfdConfig
 from haa.dsim.cluster import SimCluster
 from haa.dsim.network import DelayModel
-from haa.hostd.core import FD_EXTERNAL, FD_UFD, CoreConfig
-from haa.hostd.qos import QosTargets
-from haa.hostd.ufd import UfdConfig
 
 #: Failure-detector QoS used in simulation: time is scaled down so that one schedule stays short.
 SIM_QOS = QosTargets(td_upper=0.25, tmr_lower=600.0, tm_upper=0.25)

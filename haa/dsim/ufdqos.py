@@ -22,11 +22,11 @@ import math
 import random
 from dataclasses import asdict, dataclass
 
+from haa.core.messages import Heartbeat
+from haa.core.qos import QosTargets
+from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
 from haa.dsim.network import DelayModel
 from haa.dsim.scheduler import EventHeap
-from haa.hostd.messages import Heartbeat
-from haa.hostd.qos import QosTargets
-from haa.hostd.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
 
 
 @dataclass

@@ -16,7 +16,7 @@ own code, unchanged, on the simulator's clock (issue 17, item 4):
   into agent events and DDB operations, and they are turned into the same things here, on the simulated
   host that runs the instance, after a seeded latency and in order (one FIFO pipe per direction, as the
   channel between a host and an agent process): messages, backups, freezes, stops and errors become
-  `haa.hostd.agentio` events of that host's `AgentNode`; `spawn_child` is checked against the child
+  `haa.core.agentio` events of that host's `AgentNode`; `spawn_child` is checked against the child
   type's config model and becomes a `SpawnChild` (the child's id drawn from the schedule's seed); DDB
   reads and scans are served from the host's replica; writes are fenced by the instance's epoch (a stale
   instance writes nothing, as in the driver) and go through the group (`MembershipNode.submit`: the
@@ -68,21 +68,8 @@ from haa.agents.base import AgentContext
 from haa.agents.executive_mission import ExecutiveMission
 from haa.agents.sched import VirtualScheduler
 from haa.agents.team import K_EVENTS, K_STATUS
-from haa.dsim.agents import (
-    _NOISE,
-    CMD_DELAY,
-    SPAWN_DELAY,
-    AgentScenario,
-    AgentSim,
-    SimAgent,
-    check_agents,
-    draw_agents,
-)
-from haa.dsim.cluster import ALIVE, SimHost
-from haa.dsim.group import GroupViolation
-from haa.hostd import ddb as ddbmod
-from haa.hostd.agentdriver import SCAN_LIMIT, SCAN_MAX_BYTES
-from haa.hostd.agentio import (
+from haa.core import ddb as ddbmod
+from haa.core.agentio import (
     AnswerAgent,
     BackupMade,
     DeliverAgent,
@@ -97,8 +84,21 @@ from haa.hostd.agentio import (
     StartAgent,
     Stopped,
 )
-from haa.hostd.agentnode import AgentNode
-from haa.hostd.membership import AppliedTx, WriteDone
+from haa.core.agentnode import AgentNode
+from haa.core.membership import AppliedTx, WriteDone
+from haa.dsim.agents import (
+    _NOISE,
+    CMD_DELAY,
+    SPAWN_DELAY,
+    AgentScenario,
+    AgentSim,
+    SimAgent,
+    check_agents,
+    draw_agents,
+)
+from haa.dsim.cluster import ALIVE, SimHost
+from haa.dsim.group import GroupViolation
+from haa.hostd.agentdriver import SCAN_LIMIT, SCAN_MAX_BYTES
 from haa.pb import agent_pb2 as pb
 
 #: the real agent type run on virtual time, and the children it spawns (run as SimAgent shells)

@@ -1,7 +1,7 @@
 """Experiment AP-3 (thesis §7.2.3): time to allocation consensus and messages sent, 2..10 hosts x 5..60
 agents, and the allocation-quality study (`haactl bench ap3`, `haactl bench alloc-quality`).
 
-AP-3 runs one allocation session of the real `haa.hostd.allocation.Allocator`s in the deterministic simulator
+AP-3 runs one allocation session of the real `haa.core.allocation.Allocator`s in the deterministic simulator
 (`haa.dsim.allocation.AllocSim`) with:
 
 * bid updates delayed by a model of our loopback gRPC transport: a log-normal fitted to the one-way latency
@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from haa.core.allocation import AgentSpec, HostSpec
 from haa.dsim.allocation import REGIMES, AllocScenario, AllocSim, run_quality
 from haa.dsim.network import DelayModel
-from haa.hostd.allocation import AgentSpec, HostSpec
 
 HOSTS = (2, 3, 4, 5, 6, 7, 8, 9, 10)
 AGENTS = (5, 10, 20, 30, 45, 60)

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.core import ddb
 from haa.experiments.ap2 import CORE
-from haa.hostd import ddb
 
 
 def _pct(xs: list[float], q: float) -> float:

@@ -37,8 +37,8 @@ import psutil
 
 from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.cluster.hostprocs import MemberHost, free_port, wait_for
-from haa.hostd import agenttable as at
-from haa.hostd import ddb
+from haa.core import agenttable as at
+from haa.core import ddb
 
 NAMES = ["h1", "h2", "h3", "h4"]
 CORE = ["h1", "h2", "h3"]

@@ -2,7 +2,7 @@
 
 Two parts:
 
-* `heartbeat_rates()`: the heartbeat rate that the configuration procedure of §4.4 (haa.hostd.qos.configure:
+* `heartbeat_rates()`: the heartbeat rate that the configuration procedure of §4.4 (haa.core.qos.configure:
   eq. 4.4-2 solved for η and α) chooses for the thesis' QoS (T_D^U = 10 s, T_MR^L = 1 week, T_M^U = 30 s) and
   for the cluster default (1 s, 1 day, 1 s), over message loss probabilities p_L and delay deviations σ(D) —
   the cost of a monitored pair per minute.
@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from haa.core.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
 from haa.dsim.network import DelayModel
 from haa.dsim.ufdqos import QosMeasurement, measure
-from haa.hostd.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
 
 #: targets whose mistakes are frequent enough to count in hours of virtual time
 MEASURABLE_QOS = QosTargets(td_upper=0.5, tmr_lower=60.0, tm_upper=0.5)

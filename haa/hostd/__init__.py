@@ -1,3 +1,5 @@
-"""The host daemon `haa-hostd`: the distributed algorithms of thesis Appendix II as sans-I/O state machines
-(`ufd.py`, `oac.py`, composed in `core.py`) and the asyncio/gRPC runtime that drives them (`runtime.py`,
-`transport.py`, `daemon.py`). The deterministic cluster simulator in `haa.dsim` drives the same cores."""
+"""The host daemon `haa-hostd`: the asyncio/gRPC runtime that drives the sans-I/O core (`haa.core`) on a real
+host — the host link (`transport.py`, `tcplink.py`), effect dispatch and timers (`runtime.py`, `dispatch.py`,
+`timers.py`), the DDB group commit, files, the control API (`control.py`), and the agents' OS processes
+(`agentproc.py`, `agentcontrol.py`, `agentdriver.py`); `daemon.py` is the composition root. The deterministic
+cluster simulator in `haa.dsim` drives the same core."""

@@ -1,7 +1,7 @@
 """AgentDriver: carries out the agent layer's commands on real agent processes, and feeds their events back.
 
-The sans-I/O `AgentNode` (haa.hostd.agentnode) says what should happen to this host's agent instances
-(`haa.hostd.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver joins
+The sans-I/O `AgentNode` (haa.core.agentnode) says what should happen to this host's agent instances
+(`haa.core.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver joins
 the two. The daemon's composition root (haa.hostd.daemon.build_host) builds it and hands it to the
 `HostRuntime` as its agent backend (the `AgentBackend` protocol of haa.hostd.agentops); at `start` the runtime
 gives it an `AgentHost` — the runtime's `AgentOps` — which is everything the driver reaches of its host: node
@@ -36,11 +36,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, assert_never
 
-from haa.hostd import agentio as io
+from haa.core import agentio as io
+from haa.core import ddb as ddbmod
+from haa.core.agenttable import MAX_CONFIG, AgentTable
 from haa.hostd import agentproc as ap
-from haa.hostd import ddb as ddbmod
 from haa.hostd.agentops import AgentCommand
-from haa.hostd.agenttable import MAX_CONFIG, AgentTable
 from haa.hostd.logs import log_event
 from haa.hostd.outcomes import DdbWriteResult
 from haa.pb import agenttx_pb2 as apb

@@ -25,15 +25,15 @@ from collections import Counter
 from collections.abc import Awaitable, Callable, Hashable
 from typing import Any, Protocol
 
-from haa.hostd import agentio as io
-from haa.hostd.agentnode import AgentNode
-from haa.hostd.agenttable import AgentTable
-from haa.hostd.ddb import Ddb
-from haa.hostd.membership import MembershipNode
+from haa.core import agentio as io
+from haa.core.agentnode import AgentNode
+from haa.core.agenttable import AgentTable
+from haa.core.ddb import Ddb
+from haa.core.membership import MembershipNode
 from haa.hostd.outcomes import DdbWriteResult, NotMembershipMode
 from haa.pb import agenttx_pb2 as apb
 
-#: the commands `AgentNode` gives whatever runs its agent instances (haa.hostd.agentio)
+#: the commands `AgentNode` gives whatever runs its agent instances (haa.core.agentio)
 AgentCommand = io.SpawnShell | io.StartAgent | io.DeliverAgent | io.FreezeAgent | io.KillAgent | io.AnswerAgent
 
 

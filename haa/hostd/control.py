@@ -58,10 +58,10 @@ from grpc import aio
 
 from haa import rpcguard
 from haa import tls as tlsmod
-from haa.hostd import ddb as ddbmod
+from haa.core import ddb as ddbmod
+from haa.core.oac import OacError
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
-from haa.hostd.oac import OacError
 from haa.hostd.outcomes import (
     HostReincarnated,
     NotMembershipMode,
@@ -77,8 +77,8 @@ from haa.pb import hostlink_pb2 as pb
 from haa.tls import ClientTls
 
 if TYPE_CHECKING:
+    from haa.core.messages import TxId
     from haa.hostd.agentdriver import AgentDriver
-    from haa.hostd.messages import TxId
     from haa.hostd.runtime import HostRuntime
 
 log = logging.getLogger(LOGGER_NAME + ".control")
@@ -532,7 +532,7 @@ class ControlClient(AgentClientMixin):
         return self._stub.Latencies(cpb.LatencyRequest(reset=reset), metadata=self._md, timeout=self.timeout)
 
     def ddb_write(self, ops: Sequence[object], atomic: bool = False, timeout: float = 30.0) -> cpb.DdbWriteReply:
-        """Write a batch of DDB ops (`haa.hostd.ddb.put/delete/append/cas/add`) through this host; returns
+        """Write a batch of DDB ops (`haa.core.ddb.put/delete/append/cas/add`) through this host; returns
         once the batch is committed and applied here (`committed`), or given up (`reason`)."""
         req = cpb.DdbWriteRequest(ops=list(ops), atomic=atomic)  # type: ignore[arg-type]
         return self._stub.DdbWrite(req, metadata=self._md, timeout=timeout)

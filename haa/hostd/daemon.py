@@ -38,7 +38,7 @@ DIR (AgentPlayback: haa.playback, docs/playback.md); the agent processes inherit
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
-(default `haa.hostd.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
+(default `haa.core.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
 removes this host first, for at most `--leave-timeout` seconds), then a graceful shutdown (links closed, the
 final delivered count and hash logged); a second signal skips the wait. The event loop is uvloop; set
 HAA_EVENT_LOOP=asyncio for the standard library loop.
@@ -73,19 +73,19 @@ from pydantic import (
 
 from haa import files
 from haa import tls as tlsmod
+from haa.core.agentnode import AgentConfig
+from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY
+from haa.core.hostcore import CoreConfig
+from haa.core.membership import NodeConfig
+from haa.core.qos import CLUSTER_QOS, QosTargets
+from haa.core.ufd import UfdConfig
 from haa.hostd.agentdriver import AgentDriver
-from haa.hostd.agentnode import AgentConfig
-from haa.hostd.allocation import MAX_CAPACITY, MIN_CAPACITY
 from haa.hostd.control import HostControlService
-from haa.hostd.core import CoreConfig
 from haa.hostd.logs import LOGGER_NAME, log_event
-from haa.hostd.membership import NodeConfig
 from haa.hostd.outcomes import WriteFailed
-from haa.hostd.qos import CLUSTER_QOS, QosTargets
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.sampler import StatsSampler
 from haa.hostd.transport import NAME_RE
-from haa.hostd.ufd import UfdConfig
 
 PROG = "haa-hostd"
 log = logging.getLogger(LOGGER_NAME + ".daemon")
@@ -136,7 +136,7 @@ def parse_peers(text: str) -> list[tuple[str, str]]:
 
 
 class MembershipSettings(BaseModel):
-    """Alg. 3 tunables (`membership:` section of the YAML file; see `haa.hostd.membership.NodeConfig`)."""
+    """Alg. 3 tunables (`membership:` section of the YAML file; see `haa.core.membership.NodeConfig`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 

@@ -20,7 +20,7 @@ import asyncio
 import hashlib
 from dataclasses import dataclass
 
-from haa.hostd.messages import TxId
+from haa.core.messages import TxId
 
 GENESIS_HASH = "0" * 64
 #: the delivered log keeps at most this many entries in memory (the older half is dropped when it is full;

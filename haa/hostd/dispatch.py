@@ -2,8 +2,8 @@
 
 After every input the runtime drains its node (`AgentNode` -> `MembershipNode` -> `HostCore`, each layer
 consuming what is meant for it and passing the rest up) and gives the list to `run`. `HostEffect` is every
-effect that can reach it: the core's (`haa.hostd.effects.Effect`), the membership node's (`NodeEffect`) and
-the agent layer's (its commands, timeline entries and operator answers, haa.hostd.agentio). The `match`
+effect that can reach it: the core's (`haa.core.effects.Effect`), the membership node's (`NodeEffect`) and
+the agent layer's (its commands, timeline entries and operator answers, haa.core.agentio). The `match`
 ends in `assert_never`, so an effect added to one of those unions and not handled here is a type error
 (mypy), not a silent drop:
 
@@ -28,11 +28,8 @@ from collections import Counter
 from collections.abc import Callable
 from typing import assert_never
 
-from haa.hostd import agentio as io
-from haa.hostd.agentops import AgentBackend, AgentCommand, AgentOps
-from haa.hostd.datadir import HostDataDir
-from haa.hostd.delivered import DeliveredLog
-from haa.hostd.effects import (
+from haa.core import agentio as io
+from haa.core.effects import (
     CancelTimer,
     Closed,
     Decided,
@@ -45,9 +42,12 @@ from haa.hostd.effects import (
     SetTimer,
     Suspicion,
 )
+from haa.core.membership import AppliedTx, Connect, Left, NodeEffect, ViewChange, WriteDone
+from haa.hostd.agentops import AgentBackend, AgentCommand, AgentOps
+from haa.hostd.datadir import HostDataDir
+from haa.hostd.delivered import DeliveredLog
 from haa.hostd.groupcommit import GroupCommit
 from haa.hostd.logs import LOGGER_NAME, log_event
-from haa.hostd.membership import AppliedTx, Connect, Left, NodeEffect, ViewChange, WriteDone
 from haa.hostd.mirrors import Mirrors
 from haa.hostd.proposals import Proposals
 from haa.hostd.timers import TimerWheel

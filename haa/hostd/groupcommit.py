@@ -27,8 +27,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from haa.hostd import ddb as ddbmod
-from haa.hostd.membership import WriteDone
+from haa.core import ddb as ddbmod
+from haa.core.membership import WriteDone
 from haa.hostd.outcomes import DdbWriteResult, WriteFailed, WriteResult
 
 #: at most this many of this host's DDB batches are in OAC at a time (the rest wait and are merged)
@@ -90,7 +90,7 @@ class GroupCommit:
             self._writes.pop(req, None)
 
     async def ddb_write(self, ops: list[Any], atomic: bool = False, timeout: float = 30.0) -> DdbWriteResult:
-        """Write DDB ops (`haa.hostd.ddb.put/...`) to the group through the group commit (module docstring)
+        """Write DDB ops (`haa.core.ddb.put/...`) to the group through the group commit (module docstring)
         and wait until they are committed and applied here. Raises `WriteFailed` (see `submit`) or
         `NotMembershipMode`."""
         self._gate()

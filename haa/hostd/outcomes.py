@@ -15,8 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from haa.hostd.ddb import OpResult
-from haa.hostd.messages import TxId
+from haa.core.ddb import OpResult
+from haa.core.messages import TxId
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class WriteResult:
 
     txid: TxId
     global_seq: int
-    result: object | None  # haa.hostd.ddb.ApplyResult for DDB batches
+    result: object | None  # haa.core.ddb.ApplyResult for DDB batches
     reason: str  # non-empty if the payload was committed but could not be applied (malformed)
 
 

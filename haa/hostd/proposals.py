@@ -20,10 +20,10 @@ import asyncio
 from collections import deque
 from collections.abc import Callable
 
-from haa.hostd.core import HostCore
-from haa.hostd.effects import Decided, Deliver
-from haa.hostd.messages import TxId
-from haa.hostd.oac import OrderedAtomicCommit
+from haa.core.effects import Decided, Deliver
+from haa.core.hostcore import HostCore
+from haa.core.messages import TxId
+from haa.core.oac import OrderedAtomicCommit
 from haa.hostd.outcomes import ProposeResult, ProposeTimeout, TransactionAborted
 
 #: how many latency samples are kept (oldest dropped first)

@@ -43,16 +43,16 @@ from typing import Any, Protocol, cast
 import psutil
 from grpc import aio
 
-from haa.hostd.agentnode import AgentConfig, AgentNode
+from haa.core.agentnode import AgentConfig, AgentNode
+from haa.core.hostcore import CoreConfig, HostCore
+from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.messages import Message, TxId
 from haa.hostd.agentops import AgentBackend, AgentOps
-from haa.hostd.core import CoreConfig, HostCore
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.dispatch import EffectDispatcher, HostEffect
 from haa.hostd.groupcommit import GroupCommit
 from haa.hostd.logs import LOGGER_NAME, HostIdentity, log_event, setup_logging, teardown_logging
-from haa.hostd.membership import MembershipNode, NodeConfig
-from haa.hostd.messages import Message, TxId
 from haa.hostd.mirrors import Mirrors
 from haa.hostd.outcomes import (
     HostReincarnated,
@@ -102,7 +102,7 @@ class RuntimeConfig:
     #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s (with agents: after
     #: handing them over, which takes at most `agent.drain_timeout`)
     leave_timeout: float = 3.0
-    #: membership mode runs the agent layer (haa.hostd.agentnode) and supervises agent processes
+    #: membership mode runs the agent layer (haa.core.agentnode) and supervises agent processes
     agents: bool = True
     agent: AgentConfig = field(default_factory=AgentConfig)
     #: hang detection of agent processes (no heartbeat for this long), s

@@ -15,9 +15,9 @@ from typing import Any
 
 import psutil
 
-from haa.hostd.core import HostCore
+from haa.core.hostcore import HostCore
+from haa.core.membership import MembershipNode
 from haa.hostd.delivered import DeliveredLog
-from haa.hostd.membership import MembershipNode
 from haa.hostd.transport import Transport
 
 

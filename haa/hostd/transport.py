@@ -6,7 +6,7 @@ its own sequence numbers, built on one bidirectional stream `HostLink.Open(strea
 opened by the sender (proto/haa/pb/hostlink.proto):
 
 Sender (`OutLink`, one asyncio task per peer)
-  * `Transport.send` encodes the message at once (`haa.hostd.wire`) and appends it to the link's `pending`
+  * `Transport.send` encodes the message at once (`haa.core.wire`) and appends it to the link's `pending`
     queue; nothing blocks the caller.
   * The link task opens the stream with metadata `x-haa-token`, `x-haa-sender`, `x-haa-incarnation`, reads
     the receiver's handshake `LinkReply(receiver, receiver_incarnation, acked_seq)`, and then writes
@@ -86,7 +86,9 @@ from google.protobuf.message import DecodeError
 from grpc import aio
 
 from haa import tls as tlsmod
-from haa.hostd import tcplink, wire
+from haa.core import wire
+from haa.core.messages import Heartbeat, Message
+from haa.hostd import tcplink
 from haa.hostd.linkcommon import (
     MD_INC,
     MD_NEWER,
@@ -100,7 +102,6 @@ from haa.hostd.linkcommon import (
     split_address,
 )
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
-from haa.hostd.messages import Heartbeat, Message
 from haa.pb import hostlink_pb2 as pb
 
 log = logging.getLogger(LOGGER_NAME + ".transport")

@@ -22,7 +22,7 @@ import grpc
 import pytest
 from chaoslib import NAMES, Chaos
 
-from haa.hostd import ddb
+from haa.core import ddb
 
 pytestmark = pytest.mark.docker
 

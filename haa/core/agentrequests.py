@@ -1,6 +1,6 @@
 """The agent table transactions an operator (or an agent) asks for, built and checked before they are proposed.
 
-`haa.hostd.agentnode.AgentNode` takes operator requests (`haactl agent spawn|remove|move|pause`, the agents'
+`haa.core.agentnode.AgentNode` takes operator requests (`haactl agent spawn|remove|move|pause`, the agents'
 own `spawn_child` and `stop`, the measured costs of `AgentNode.report_costs`) and proposes them as `AgentTx`
 transactions; this module builds those transactions. A request that cannot be valid is refused here with the
 reason the table would give (`agenttable.check_create`), so an operator learns it at once instead of after an
@@ -18,9 +18,9 @@ from __future__ import annotations
 from collections.abc import Callable, Collection, Hashable, Iterable, Mapping
 from dataclasses import dataclass
 
-from haa.hostd import agenttable as at
-from haa.hostd.agentio import AgentOpDone, AnswerAgent
-from haa.hostd.agentstep import Propose
+from haa.core import agenttable as at
+from haa.core.agentio import AgentOpDone, AnswerAgent
+from haa.core.agentstep import Propose
 from haa.pb import agenttx_pb2 as apb
 
 

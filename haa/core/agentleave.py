@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from haa.hostd.agentstep import AgentTimer, AgentView, ArmTimer, Note
+from haa.core.agentstep import AgentTimer, AgentView, ArmTimer, Note
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,27 +3,27 @@
 `AgentNode` wraps a host's `MembershipNode` (Alg. 3, which owns the failure detector, OAC and the global
 state) and composes what thesis Chapter 4 builds on it for agents; each part is a machine of its own:
 
-* the agent table (`haa.hostd.agenttable`, part of the global state): every change is an `AgentTx` committed
-  through OAC (`haa.hostd.agentrequests` builds the operator's), so every member agrees on which agents exist, who
+* the agent table (`haa.core.agenttable`, part of the global state): every change is an `AgentTx` committed
+  through OAC (`haa.core.agentrequests` builds the operator's), so every member agrees on which agents exist, who
   owns each and what is queued for it;
-* allocation HAA-AA (Alg. 4): `haa.hostd.allocglue.AllocGlue` feeds the table to the `Allocator` and says when
+* allocation HAA-AA (Alg. 4): `haa.core.allocglue.AllocGlue` feeds the table to the `Allocator` and says when
   the leader starts a session (membership, agent list or capabilities changed, periodically, rate-limited);
-* transfer (Alg. 5-6, `haa.hostd.transfer.Transfer`) and backup / recovery (Alg. 7-8,
-  `haa.hostd.recovery.Recovery`), each with its own state and one `step(now, input) -> effects`;
-* routing (`haa.hostd.agentroute.Router`): every message between agents goes through the hosts: to the local
-  instance through its `Inbox` (exactly once, sender order, `haa.hostd.routing`), to the owner host, held by
+* transfer (Alg. 5-6, `haa.core.transfer.Transfer`) and backup / recovery (Alg. 7-8,
+  `haa.core.recovery.Recovery`), each with its own state and one `step(now, input) -> effects`;
+* routing (`haa.core.agentroute.Router`): every message between agents goes through the hosts: to the local
+  instance through its `Inbox` (exactly once, sender order, `haa.core.routing`), to the owner host, held by
   the transfer or recovery in progress here, or into the agent's queue in the table while it is frozen, new
   or crashed;
-* reconcile (`_reconcile_one`, decided by `haa.hostd.agentplan.reconcile`): after every change of the table
+* reconcile (`_reconcile_one`, decided by `haa.core.agentplan.reconcile`): after every change of the table
   each host compares what the table says with the instances it runs — an agent it runs but is no longer
   allocated is frozen, a frozen agent allocated to it is thawed, a new or crashed agent allocated to it is
   recovered, an instance the table does not know is killed;
-* graceful leave (thesis AF-1, `haa.hostd.agentleave.Leave`): `leave()` first marks the host draining (it gets
+* graceful leave (thesis AF-1, `haa.core.agentleave.Leave`): `leave()` first marks the host draining (it gets
   no agents), waits until it runs none, then leaves the group.
 
-The node keeps one record per instance (`local`: phase, epoch, streams; `haa.hostd.agentstep.Local`) and
+The node keeps one record per instance (`local`: phase, epoch, streams; `haa.core.agentstep.Local`) and
 carries out the machines' effects in the order they come (`_apply`). Agent instances are not started here:
-the node emits commands (`haa.hostd.agentio`: SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent,
+the node emits commands (`haa.core.agentio`: SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent,
 AnswerAgent) and takes events back through `on_agent_event`. The daemon runs OS processes
 (`haa.hostd.agentproc`); the simulator runs simulated agents (`haa.dsim.agents`). No I/O, no clock, no
 randomness: ids of new agents come from the caller.
@@ -36,12 +36,12 @@ from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, assert_never, cast
 
-from haa.hostd import agentplan as plan
-from haa.hostd import agentrequests as ops
-from haa.hostd import agenttable as at
-from haa.hostd import recovery as rc
-from haa.hostd import transfer as tr
-from haa.hostd.agentio import (
+from haa.core import agentplan as plan
+from haa.core import agentrequests as ops
+from haa.core import agenttable as at
+from haa.core import recovery as rc
+from haa.core import transfer as tr
+from haa.core.agentio import (
     AgentOpDone,
     AgentTimeline,
     AnswerAgent,
@@ -52,10 +52,10 @@ from haa.hostd.agentio import (
     StartAgent,
     Stopped,
 )
-from haa.hostd.agentleave import Go, Leave, LeaveEffect, PublishHost
-from haa.hostd.agentrequests import AgentWrite
-from haa.hostd.agentroute import RouteEffect, Router
-from haa.hostd.agentstep import (
+from haa.core.agentleave import Go, Leave, LeaveEffect, PublishHost
+from haa.core.agentrequests import AgentWrite
+from haa.core.agentroute import RouteEffect, Router
+from haa.core.agentstep import (
     Activate,
     AgentTimer,
     ArmTimer,
@@ -71,11 +71,11 @@ from haa.hostd.agentstep import (
     SetPhase,
     Timeline,
 )
-from haa.hostd.allocglue import AllocGlue, GlueEffect
-from haa.hostd.effects import Log, Send, SetTimer
-from haa.hostd.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
-from haa.hostd.messages import AgentHostMsg, Message
-from haa.hostd.oac import DONE
+from haa.core.allocglue import AllocGlue, GlueEffect
+from haa.core.effects import Log, Send, SetTimer
+from haa.core.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
+from haa.core.messages import AgentHostMsg, Message
+from haa.core.oac import DONE
 from haa.pb import agenttx_pb2 as apb
 
 __all__ = ["AgentConfig", "AgentNode", "Local"]
@@ -289,12 +289,12 @@ class AgentNode:
             self._apply(self.leaving.check(len(self.local), force=now >= self.leaving.deadline))
 
     def leave(self, now: float) -> None:
-        """Graceful leave (thesis AF-1): hand every agent over, then leave the group (`haa.hostd.agentleave`)."""
+        """Graceful leave (thesis AF-1): hand every agent over, then leave the group (`haa.core.agentleave`)."""
         self._now = now
         self.alloc.draining = True
         self._apply(self.leaving.begin(now, len(self.local), self.m.is_member()))
 
-    # ------------------------------------------------------------------ operator requests (`haa.hostd.agentrequests`)
+    # ------------------------------------------------------------------ operator requests (`haa.core.agentrequests`)
 
     def create_agent(self, now: float, agent_id: str, type_name: str, config: bytes = b"", *, parent: str = "",
                      cost: float = 0.1, hardware: Iterable[str] = (), transfer_penalty: float = 0.1,

@@ -5,9 +5,9 @@ agent. `Router` decides, from the replicated agent table and the instances this 
 (`AgentNode.local`), where a message addressed to agent a (m.a.a.) goes from here, now:
 
 * a's instance here is running -> to it, through its `Inbox` (exactly once, in sender order:
-  `haa.hostd.routing`), as `DeliverAgent` commands;
-* a is being frozen here before Alg. 5 l. 11, or thawed (Alg. 6 l. 3) -> held by `haa.hostd.transfer`
-  (`transfer.Hold`); being recovered -> held by `haa.hostd.recovery` (`recovery.Hold`);
+  `haa.core.routing`), as `DeliverAgent` commands;
+* a is being frozen here before Alg. 5 l. 11, or thawed (Alg. 6 l. 3) -> held by `haa.core.transfer`
+  (`transfer.Hold`); being recovered -> held by `haa.core.recovery` (`recovery.Hold`);
 * a is active on another host -> to that host (`HostSend` "msg");
 * a is ours by the table but no instance runs here (its failure is being reported) -> held by the recovery
   (`recovery.Orphan`) until the table says where it is;
@@ -27,12 +27,12 @@ from collections.abc import Mapping
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd import agenttable as at
-from haa.hostd import recovery as rc
-from haa.hostd import transfer as tr
-from haa.hostd.agentio import DeliverAgent, OperatorReply, Sent
-from haa.hostd.agentstep import AgentView, Cmd, HostSend, Local, Propose, Route
-from haa.hostd.messages import AgentHostMsg
+from haa.core import agenttable as at
+from haa.core import recovery as rc
+from haa.core import transfer as tr
+from haa.core.agentio import DeliverAgent, OperatorReply, Sent
+from haa.core.agentstep import AgentView, Cmd, HostSend, Local, Propose, Route
+from haa.core.messages import AgentHostMsg
 from haa.pb import agenttx_pb2 as apb
 
 RouteEffect = Cmd | HostSend | Propose | Route | OperatorReply | tr.Hold | tr.Ack | rc.Hold | rc.Orphan

@@ -1,6 +1,6 @@
 """Host-to-host messages as plain Python objects, the language of the sans-I/O cores.
 
-The cores never see protobuf: `haa.hostd.wire` converts these to and from the `haa.v1.Envelope` of
+The cores never see protobuf: `haa.core.wire` converts these to and from the `haa.v1.Envelope` of
 `proto/haa/pb/hostlink.proto`. The simulator passes them between cores without encoding (fast), and a
 property test round-trips every type through the wire codec.
 
@@ -226,9 +226,9 @@ AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc", "alloc_run", "op_
 
 @dataclass(slots=True)
 class AgentHostMsg:
-    """Host-to-host message of the agent layer (`haa.hostd.agentnode`): kind "msg" (a routed agent message,
+    """Host-to-host message of the agent layer (`haa.core.agentnode`): kind "msg" (a routed agent message,
     `data` = haa.v1.RoutedMsg), "freeze_ack" (Alg. 5 l. 24), "claim_ack" (Alg. 6 l. 16), "alloc" (a bid
-    update of Alg. 4 l. 84, `data` encoded by `haa.hostd.allocwire`) or "alloc_run" (an operator asked a
+    update of Alg. 4 l. 84, `data` encoded by `haa.core.allocwire`) or "alloc_run" (an operator asked a
     member that is not the leader for an allocation session: passed on to the leader) or "op_reply" (an
     agent's reply to an operator request, sent back to the host the operator asked; `data` = RoutedMsg)."""
 

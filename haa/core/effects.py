@@ -12,7 +12,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.hostd.messages import Message, TxId
+from haa.core.messages import Message, TxId
 
 
 @dataclass(slots=True)

@@ -1,4 +1,4 @@
-"""Bytes on the wire for agent allocation (proto/haa/pb/alloc.proto <-> haa.hostd.allocation objects).
+"""Bytes on the wire for agent allocation (proto/haa/pb/alloc.proto <-> haa.core.allocation objects).
 
 * `encode_update` / `decode_update`: the `BidUpdate` hosts send each other during a session (Alg. 4 l. 84);
 * `encode_start` / `decode_start`: the `SessionStart` payload of OAC(start) (l. 26);
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd.allocation import AgentSpec, Bid, BidUpdate, HostSpec, ProposeFinish, SessionStart
+from haa.core.allocation import AgentSpec, Bid, BidUpdate, HostSpec, ProposeFinish, SessionStart
 from haa.pb import alloc_pb2 as apb
 
 

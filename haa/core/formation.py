@@ -27,10 +27,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, assert_never
 
-from haa.hostd.effects import Log, SetTimer
-from haa.hostd.globalstate import TxFormation
-from haa.hostd.groupeffects import NodeTimer
-from haa.hostd.messages import Member, TxId
+from haa.core.effects import Log, SetTimer
+from haa.core.globalstate import TxFormation
+from haa.core.groupeffects import NodeTimer
+from haa.core.messages import Member, TxId
 
 Proc = tuple[str, int]
 
@@ -40,7 +40,7 @@ FORMATION_TIMER = NodeTimer("formation")
 
 @dataclass(frozen=True, slots=True)
 class FormationConfig:
-    """The formation's share of `haa.hostd.membership.NodeConfig` (same names, same meaning)."""
+    """The formation's share of `haa.core.membership.NodeConfig` (same names, same meaning)."""
 
     formation_timeout: float = 5.0
     formation_retry: float = 1.0

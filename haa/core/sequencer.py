@@ -35,10 +35,10 @@ from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import Protocol, assert_never
 
-from haa.hostd.effects import Send, SetTimer
-from haa.hostd.globalstate import SeqApplied, SeqEntry
-from haa.hostd.groupeffects import NodeTimer, WriteDone
-from haa.hostd.messages import SeqWrite, TxId
+from haa.core.effects import Send, SetTimer
+from haa.core.globalstate import SeqApplied, SeqEntry
+from haa.core.groupeffects import NodeTimer, WriteDone
+from haa.core.messages import SeqWrite, TxId
 
 Proc = tuple[str, int]
 
@@ -51,7 +51,7 @@ RETRY_TIMER = NodeTimer("seqretry")
 
 @dataclass(frozen=True, slots=True)
 class SeqConfig:
-    """The sequencer's share of `haa.hostd.membership.NodeConfig` (same names, same meaning)."""
+    """The sequencer's share of `haa.core.membership.NodeConfig` (same names, same meaning)."""
 
     seq_inflight: int = 2
     seq_max_entries: int = 1024

@@ -3,7 +3,7 @@
 `Transfer` owns the state of every transfer this host takes part in — a freeze of an agent it runs (old
 host, Alg. 5) and a thaw of an agent allocated to it (new host, Alg. 6) — and is driven through
 `step(now, input) -> list[effect]`; it reads the agent table and the member list through an `AgentView`
-and changes nothing else. `haa.hostd.agentnode.AgentNode` decides *when* (its reconcile: an agent it runs
+and changes nothing else. `haa.core.agentnode.AgentNode` decides *when* (its reconcile: an agent it runs
 is allocated elsewhere -> `Freeze`; a frozen agent allocated to it -> `Thaw`), feeds it the events of the
 instance and the committed transactions, and carries out the effects. `tests/test_agent_machines.py`
 drives it alone. Line numbers are those of Alg. 5 (freeze) and Alg. 6 (thaw) as printed (the seed text of the
@@ -23,7 +23,7 @@ thesis: Alg. 5 at its line 2821, Alg. 6 at 2859, the prose at 877-879, the proof
 * other hosts, on committing OAC(claim) (ll. 12-16): route to the new host and acknowledge.
 
 Failure paths: a freeze whose instance dies (`ShellDied`) ends with `Lost` (the node reports the failure
-through `haa.hostd.recovery`, with queue1); a thaw's shell that dies before it was started is replaced up to
+through `haa.core.recovery`, with queue1); a thaw's shell that dies before it was started is replaced up to
 `MAX_RESPAWNS` times (the frozen state is in the table, nothing is lost), then `Lost`; a claim that commits
 after others raised the epoch gets a shell for the real epoch; a claim refused (l. 18) or no longer possible
 is abandoned (shell killed, held messages routed again); a removed host counts as acknowledged (l. 10, l. 9).
@@ -31,7 +31,7 @@ is abandoned (shell killed, held messages routed again); a removed host counts a
 Choices where the pseudo-code is silent (docs/agents-host.md): queue1 stays with the old host and is
 committed with the release (nobody reads it earlier; one OAC instead of one per message); claim hands both
 queues to the new owner and clears them; messages carry sender-stream numbers, so the agent sees each
-message once and in sender order even when the sender moved too (`haa.hostd.routing`).
+message once and in sender order even when the sender moved too (`haa.core.routing`).
 
 Pure: no I/O, no clock, no randomness.
 """
@@ -41,9 +41,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import assert_never
 
-from haa.hostd import agenttable as at
-from haa.hostd.agentio import FreezeAgent, KillAgent, StartAgent
-from haa.hostd.agentstep import (
+from haa.core import agenttable as at
+from haa.core.agentio import FreezeAgent, KillAgent, StartAgent
+from haa.core.agentstep import (
     MAX_RESPAWNS,
     Activate,
     AgentView,
@@ -59,7 +59,7 @@ from haa.hostd.agentstep import (
     spawn,
     start_messages,
 )
-from haa.hostd.routing import Inbox, Outbox
+from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 # ----------------------------------------------------------------------------------------------- inputs
@@ -168,7 +168,7 @@ class PassOn:
 
 @dataclass(frozen=True, slots=True)
 class Lost:
-    """The instance of (`agent`, `epoch`) is gone mid-transfer: a failure for `haa.hostd.recovery`, with the
+    """The instance of (`agent`, `epoch`) is gone mid-transfer: a failure for `haa.core.recovery`, with the
     messages it held (`msgs`) and whether the failure was `early`."""
 
     agent: str
@@ -293,7 +293,7 @@ class Transfer:
         f = _Freeze(inp.epoch, inp.inbox, inp.outbox, self._carry.pop(inp.agent, set()))
         self.freezes[inp.agent] = f
         self._out.append(Cmd(FreezeAgent(inp.agent, inp.epoch)))  # l. 2
-        # l. 3 (clear the queues): they are empty while the agent is active (haa.hostd.agenttable)
+        # l. 3 (clear the queues): they are empty while the agent is active (haa.core.agenttable)
         # l. 4: from now on, messages for a are held as queue1 (`Hold`)
         me = self.view.name
         self._out.append(Timeline(inp.agent, "freezing", f"to {r.alloc}" if r.alloc and r.alloc != me else ""))

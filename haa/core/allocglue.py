@@ -1,14 +1,14 @@
 """Allocation glue (thesis Alg. 4 on the agent layer): the agent table in, `Allocator` sessions out.
 
-`haa.hostd.allocation.Allocator` is the HAA-AA algorithm itself (bids, consensus, sessions) and knows nothing
-of the agent table; `AllocGlue` connects it to the host's agent layer (`haa.hostd.agentnode.AgentNode`):
+`haa.core.allocation.Allocator` is the HAA-AA algorithm itself (bids, consensus, sessions) and knows nothing
+of the agent table; `AllocGlue` connects it to the host's agent layer (`haa.core.agentnode.AgentNode`):
 
 * it builds the allocator's inputs from the replicated table — `AgentSpec` per agent (cost, hardware, affinity
   on the scale of costs, current host, per-host limit) and `HostSpec` per member (K_h, H_h and draining flag
   as the members committed them; a member whose entry is not committed yet bids for nothing);
 * it decides when a session starts (Alg. 4 l. 17): every host records a change, the leader starts a session
   when its `RebalancePolicy` allows (rate limit, periodic rebalancing unless paused);
-* it turns the allocator's outputs into effects for the node (`haa.hostd.agentstep`): bid updates as
+* it turns the allocator's outputs into effects for the node (`haa.core.agentstep`): bid updates as
   `HostSend("alloc")`, OAC(start)/OAC(finish) as agent transactions (`Propose`), the rebalance timer;
 * it publishes this host's own K_h, H_h and draining flag (`publish_host`), again until the table holds them.
 
@@ -19,10 +19,10 @@ from __future__ import annotations
 
 from typing import cast
 
-from haa.hostd import agenttable as at
-from haa.hostd import allocwire
-from haa.hostd.agentstep import AgentTimer, AgentView, ArmTimer, HostSend, Note, Propose
-from haa.hostd.allocation import (
+from haa.core import agenttable as at
+from haa.core import allocwire
+from haa.core.agentstep import AgentTimer, AgentView, ArmTimer, HostSend, Note, Propose
+from haa.core.allocation import (
     MAX_CAPACITY,
     MAX_COST,
     MAX_PER_HOST,
@@ -37,8 +37,8 @@ from haa.hostd.allocation import (
     SendUpdate,
     SessionStart,
 )
-from haa.hostd.effects import Log
-from haa.hostd.globalstate import TxAgent, decode_tx
+from haa.core.effects import Log
+from haa.core.globalstate import TxAgent, decode_tx
 from haa.pb import agenttx_pb2 as apb
 
 #: bytes/s of messages between two agents that count as affinity 1.0 (the scale of an agent's CPU cost)

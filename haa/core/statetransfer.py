@@ -36,10 +36,10 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Protocol, assert_never
 
-from haa.hostd.effects import Log, Send, SetTimer
-from haa.hostd.globalstate import GlobalState, GroupTxError
-from haa.hostd.groupeffects import NodeTimer
-from haa.hostd.messages import StateRequest, TxId
+from haa.core.effects import Log, Send, SetTimer
+from haa.core.globalstate import GlobalState, GroupTxError
+from haa.core.groupeffects import NodeTimer
+from haa.core.messages import StateRequest, TxId
 
 Proc = tuple[str, int]
 

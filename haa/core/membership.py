@@ -1,16 +1,16 @@
 """Host membership service HAA-HM (thesis §4.6, Appendix II Alg. 3, thesis L2358-2565), as a sans-I/O node.
 
 `MembershipNode` is everything one host incarnation decides once it takes part in a group: it owns a
-`HostCore` (failure detector + OAC, `haa.hostd.core`) and the group's `GlobalState` (member list, view, DDB,
-`haa.hostd.globalstate`), and runs Alg. 3 on top. It is composed of machines that own their state and take
+`HostCore` (failure detector + OAC, `haa.core.hostcore`) and the group's `GlobalState` (member list, view, DDB,
+`haa.core.globalstate`), and runs Alg. 3 on top. It is composed of machines that own their state and take
 one `step(now, input)` returning effects, which the node carries out in order (`_form`, `_xfer`, `_seq`):
 
-* `haa.hostd.formation.Formation` — formation by the first core process (ll. 41-43) and the
+* `haa.core.formation.Formation` — formation by the first core process (ll. 41-43) and the
   FORMATION_TIMEOUT fallback with OAC(formationFallback) by the core head (ll. 44-49), and its vote
   (ll. 158-165);
-* `haa.hostd.statetransfer.StateTransfer` — the joiner's side of "send global state to a" (ll. 58-61,
+* `haa.core.statetransfer.StateTransfer` — the joiner's side of "send global state to a" (ll. 58-61,
   123-126, 174-177): the sponsor's snapshot and forwarded stream, catching up, state requests;
-* `haa.hostd.sequencer.Sequencer` — DDB and test writes forwarded to one sequencer and batched
+* `haa.core.sequencer.Sequencer` — DDB and test writes forwarded to one sequencer and batched
   (docs/oac.md), held while the global state is locked (ll. 127-132).
 
 The node itself routes inputs to them and runs the rest of Alg. 3:
@@ -61,9 +61,8 @@ from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, assert_never, cast
 
-from haa.hostd.core import CoreConfig, HostCore
-from haa.hostd.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
-from haa.hostd.formation import (
+from haa.core.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
+from haa.core.formation import (
     Aborted,
     DiscoveryDue,
     Formation,
@@ -73,10 +72,10 @@ from haa.hostd.formation import (
     FormGroupOfOne,
     ProposeFallback,
 )
-from haa.hostd.formation import Delivered as FDelivered
-from haa.hostd.formation import Proposed as FProposed
-from haa.hostd.formation import Start as FStart
-from haa.hostd.globalstate import (
+from haa.core.formation import Delivered as FDelivered
+from haa.core.formation import Proposed as FProposed
+from haa.core.formation import Start as FStart
+from haa.core.globalstate import (
     GlobalState,
     GroupTx,
     GroupTxError,
@@ -91,8 +90,9 @@ from haa.hostd.globalstate import (
     decode_tx,
     encode_tx,
 )
-from haa.hostd.groupeffects import AppliedTx, Connect, Left, NodeEffect, NodeTimer, TimerWhat, ViewChange, WriteDone
-from haa.hostd.messages import (
+from haa.core.groupeffects import AppliedTx, Connect, Left, NodeEffect, NodeTimer, TimerWhat, ViewChange, WriteDone
+from haa.core.hostcore import CoreConfig, HostCore
+from haa.core.messages import (
     Apply,
     Connections,
     Introduce,
@@ -107,8 +107,8 @@ from haa.hostd.messages import (
     StateSnapshot,
     TxId,
 )
-from haa.hostd.oac import UNDECIDED
-from haa.hostd.sequencer import (
+from haa.core.oac import UNDECIDED
+from haa.core.sequencer import (
     BatchAborted,
     BatchApplied,
     Count,
@@ -123,7 +123,7 @@ from haa.hostd.sequencer import (
     Sequencer,
     Submit,
 )
-from haa.hostd.statetransfer import (
+from haa.core.statetransfer import (
     Applied,
     ApplyTx,
     CatchupDue,
@@ -224,7 +224,7 @@ class MembershipNode:
 
     Inputs (each with the local time): `start`, `on_message`, `on_timer`, `on_suspicion`, `on_peer_info`,
     `submit` (a DDB batch or test payload), `leave`. The driver calls `drain()` after each input and carries
-    out the effects: those of `haa.hostd.effects` plus `Connect`, `ViewChange`, `AppliedTx`, `WriteDone`
+    out the effects: those of `haa.core.effects` plus `Connect`, `ViewChange`, `AppliedTx`, `WriteDone`
     and `Left`.
     """
 
@@ -285,12 +285,12 @@ class MembershipNode:
         self.introduced: dict[Proc, tuple[str, int]] = {}  # applicant -> (group, view) when we introduced it
         self.leaving = False
         self.left = False
-        # formation (ll. 40-49, 158-179; `haa.hostd.formation`)
+        # formation (ll. 40-49, 158-179; `haa.core.formation`)
         self.formation = Formation(self.me, addr, self.core_names, self.c_h, self,
                                    FormationConfig(cfg.formation_timeout, cfg.formation_retry, cfg.discovery))
-        # state transfer to a new member (docs/membership.md, `haa.hostd.statetransfer`)
+        # state transfer to a new member (docs/membership.md, `haa.core.statetransfer`)
         self.xfer = StateTransfer(self.me, self, cfg.catchup_timeout)
-        # the sequencer (docs/oac.md, `haa.hostd.sequencer`): this host as an origin and as the sequencer
+        # the sequencer (docs/oac.md, `haa.core.sequencer`): this host as an origin and as the sequencer
         self.seq = Sequencer(self.me, self, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
                                                       cfg.seq_retry, cfg.seq_abandon))
         self.started = False

@@ -2,20 +2,20 @@
 
 It composes, for one host incarnation:
 
-* the failure detector of Alg. 1 (`haa.hostd.ufd`): one `HeartbeatSender` and one `HeartbeatObserver`
+* the failure detector of Alg. 1 (`haa.core.ufd`): one `HeartbeatSender` and one `HeartbeatObserver`
   per peer, so every ordered host pair is monitored separately (full mesh);
 * incarnations and permanent suspicion: every host life has an incarnation number; a message from an older
   incarnation is dropped, a newer incarnation makes the older one permanently suspected, and a peer that
   stays suspected for `exclude_after` seconds is excluded — its incarnation is permanently suspected, its
   messages are dropped, and it is told so (`Excluded`) so that it restarts as a new incarnation
   (docs/ufd.md, "exclusion"; the membership service of Alg. 3 will own this decision);
-* the ordered atomic commit of Alg. 2 (`haa.hostd.oac`).
+* the ordered atomic commit of Alg. 2 (`haa.core.oac`).
 
 Inputs (each with the current local time): `start`, `on_message`, `on_timer`, `on_suspicion` (external
 failure detector mode, used by the simulator's adversarial FD model), `on_peer_info` (the transport learned
 a peer's incarnation from a handshake), `propose`. Effects accumulate in `out`; the driver calls `drain()`.
 A membership message (Alg. 3, `GROUP_TYPES`) is not the core's to handle: with `accept_group` (the
-membership layer, `haa.hostd.membership`, runs on top) `on_message` returns it as a `GroupMessage` for the
+membership layer, `haa.core.membership`, runs on top) `on_message` returns it as a `GroupMessage` for the
 layer above to handle at once; without it, it is counted as an unknown message.
 The module performs no I/O, reads no clock and uses no randomness.
 """
@@ -27,7 +27,7 @@ from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-from haa.hostd.effects import (
+from haa.core.effects import (
     CancelTimer,
     Effect,
     Log,
@@ -37,7 +37,7 @@ from haa.hostd.effects import (
     SetTimer,
     Suspicion,
 )
-from haa.hostd.messages import (
+from haa.core.messages import (
     APP_TYPES,
     GROUP_TYPES,
     OAC_TYPES,
@@ -48,8 +48,8 @@ from haa.hostd.messages import (
     SetPeriod,
     TxId,
 )
-from haa.hostd.oac import OacError, OrderedAtomicCommit
-from haa.hostd.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+from haa.core.oac import OacError, OrderedAtomicCommit
+from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
 
 FD_UFD = "ufd"
 FD_EXTERNAL = "external"
@@ -122,11 +122,11 @@ class HostCore:
         self.dead: set[tuple[str, int]] = set()
         self.counters: Counter[str] = Counter()
         self._unknown_logged: dict[str, float] = {}  # unknown sender -> when it was last logged
-        #: a membership layer runs on top (`haa.hostd.membership.MembershipNode`): `on_message` returns the
+        #: a membership layer runs on top (`haa.core.membership.MembershipNode`): `on_message` returns the
         #: membership messages of Alg. 3 to it, and one from a host this core has never heard of adds that host
         #: as a peer (an applicant, or a member introduced to us) instead of being rejected
         self.accept_group = accept_group
-        #: the agent layer's handler for `APP_TYPES` messages (haa.hostd.agentnode); None: counted as unknown
+        #: the agent layer's handler for `APP_TYPES` messages (haa.core.agentnode); None: counted as unknown
         self.app_handler: Callable[[str, int, Message], None] | None = None
         self.started = False
         self._now = 0.0

@@ -1,7 +1,7 @@
 """What the agent layer's machines share: the host's instance record, the read-only view, the common effects.
 
-`haa.hostd.agentnode.AgentNode` composes the machines of thesis Alg. 5-8 — `haa.hostd.transfer.Transfer`
-(freeze/thaw) and `haa.hostd.recovery.Recovery` (backup, failures, recovery) — with routing, allocation and
+`haa.core.agentnode.AgentNode` composes the machines of thesis Alg. 5-8 — `haa.core.transfer.Transfer`
+(freeze/thaw) and `haa.core.recovery.Recovery` (backup, failures, recovery) — with routing, allocation and
 the agent table. Each machine owns its state and is driven through one `step(now, input)` that returns
 effects; this module holds the pieces they have in common:
 
@@ -26,9 +26,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from haa.hostd import agenttable as at
-from haa.hostd.agentio import DeliverAgent, FreezeAgent, KillAgent, SpawnShell, StartAgent
-from haa.hostd.routing import Inbox, Outbox
+from haa.core import agenttable as at
+from haa.core.agentio import DeliverAgent, FreezeAgent, KillAgent, SpawnShell, StartAgent
+from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 #: a shell that dies before its agent was started is replaced this many times, then the attempt is abandoned
@@ -88,7 +88,7 @@ Command = SpawnShell | StartAgent | FreezeAgent | KillAgent | DeliverAgent
 
 @dataclass(frozen=True, slots=True)
 class Cmd:
-    """Give a command to whatever runs the instances (`haa.hostd.agentio`)."""
+    """Give a command to whatever runs the instances (`haa.core.agentio`)."""
 
     cmd: Command
 

@@ -4,14 +4,14 @@ machine.
 `Recovery` owns what this host knows about backups, failures and recoveries — the recoveries it runs, the
 failures it has reported and not yet seen decided, the start-failure backoffs, the messages held for agents
 whose instance is gone — and is driven through `step(now, input) -> list[effect]`; it reads the agent table
-and the member list through an `AgentView`. `haa.hostd.agentnode.AgentNode` composes it (next to
-`haa.hostd.transfer.Transfer`); `tests/test_agent_machines.py` drives it alone. Line numbers are those of
+and the member list through an `AgentView`. `haa.core.agentnode.AgentNode` composes it (next to
+`haa.core.transfer.Transfer`); `tests/test_agent_machines.py` drives it alone. Line numbers are those of
 Alg. 7 and Alg. 8 as printed (the seed text of the thesis: Alg. 7 at its line 2923, Alg. 8 at 2931, the prose
 at 897-899, the AR-Recovery proof at 2951).
 
 * Backup (Alg. 7): an instance sends (backup, a, b) to its host (l. 3, `Backup`); the host commits it to
   the agent table (l. 5). Only the owner's current epoch may write a backup, so a fenced instance — or a backup
-  from an older epoch — cannot overwrite a newer one (haa.hostd.agenttable).
+  from an older epoch — cannot overwrite a newer one (haa.core.agenttable).
 * Failure: an instance that dies or hangs (`InstanceFailed`) is reported with OAC(failed), retried while the
   agent is still this host's and no new instance runs; a host removed from the group takes its agents with
   it (the table marks them crashed when the removal commits: `Crashed`).
@@ -43,9 +43,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import assert_never
 
-from haa.hostd import agenttable as at
-from haa.hostd.agentio import KillAgent, StartAgent
-from haa.hostd.agentstep import (
+from haa.core import agenttable as at
+from haa.core.agentio import KillAgent, StartAgent
+from haa.core.agentstep import (
     MAX_RESPAWNS,
     Activate,
     AgentTimer,
@@ -62,7 +62,7 @@ from haa.hostd.agentstep import (
     spawn,
     start_messages,
 )
-from haa.hostd.routing import Inbox, Outbox
+from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 # ----------------------------------------------------------------------------------------------- inputs

@@ -1,7 +1,7 @@
 """The vocabulary the membership layer adds to the core's: its effects and its typed timer keys.
 
-`haa.hostd.membership.MembershipNode` (thesis Alg. 3, §4.6) and the machines it is composed of
-(`haa.hostd.sequencer`, `haa.hostd.formation`) produce, next to the core's effects of `haa.hostd.effects`:
+`haa.core.membership.MembershipNode` (thesis Alg. 3, §4.6) and the machines it is composed of
+(`haa.core.sequencer`, `haa.core.formation`) produce, next to the core's effects of `haa.core.effects`:
 
 * `Connect` — open a link to a host (Alg. 3 "open connection to", ll. 37, 53, 66);
 * `ViewChange` — the member list changed (ll. 136-151, 166-179 applied here);
@@ -25,7 +25,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Literal
 
-from haa.hostd.messages import Member, TxId
+from haa.core.messages import Member, TxId
 
 Proc = tuple[str, int]
 
@@ -103,5 +103,5 @@ class Left:
     """The voluntary leave of this host was committed (Alg. 3 l. 16): it stops taking part."""
 
 
-#: the effects the node adds to the core's (`haa.hostd.effects.Effect`)
+#: the effects the node adds to the core's (`haa.core.effects.Effect`)
 NodeEffect = Connect | ViewChange | AppliedTx | WriteDone | Left

@@ -9,7 +9,7 @@ checkable. The state is:
 * `seq`: how many transactions were applied; `chain`: a hash chain over their ids and payloads;
 * the member list (ordered by rank: insertion order, the leader first, Alg. 3 l. 3), the view id (one more
   for every committed change of the list), `group_correct` and `core_members` (Alg. 3 ll. 12-13, 146-149);
-* the replicated database (`haa.hostd.ddb.Ddb`);
+* the replicated database (`haa.core.ddb.Ddb`);
 * `recent`: the global sequence number of the last few thousand applied transactions, so that a new
   member can find where its first delivered transaction sits in the sequence (docs/membership.md).
 
@@ -32,9 +32,9 @@ from typing import TYPE_CHECKING
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd.agenttable import AgentTable, AgentTxError
-from haa.hostd.ddb import Ddb, DdbError
-from haa.hostd.messages import Member, TxId
+from haa.core.agenttable import AgentTable, AgentTxError
+from haa.core.ddb import Ddb, DdbError
+from haa.core.messages import Member, TxId
 from haa.pb import group_pb2 as gpb
 
 if TYPE_CHECKING:
@@ -97,7 +97,7 @@ class TxTest:
 
 @dataclass(frozen=True, slots=True)
 class TxAgent:
-    """A change of the agent table (`haa.hostd.agenttable`, proto haa.v1.AgentTx)."""
+    """A change of the agent table (`haa.core.agenttable`, proto haa.v1.AgentTx)."""
 
     data: bytes
 

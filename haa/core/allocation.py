@@ -59,7 +59,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, cast
 
-from haa.hostd.effects import Log
+from haa.core.effects import Log
 
 INF = math.inf
 
@@ -67,7 +67,7 @@ INF = math.inf
 #: one host's processor (K_h = 1.0 by default): no agent declares more than MAX_COST of them and no host more than
 #: MAX_CAPACITY, and a capacity is at least MIN_CAPACITY. Within these bounds every sum and ratio the bundle
 #: building computes (eq. 4.7-1 to 4.7-3, over at most a few thousand agents) stays finite, so comparisons of
-#: bids never meet inf or NaN; `haa.hostd.agenttable` refuses transactions outside them before they apply.
+#: bids never meet inf or NaN; `haa.core.agenttable` refuses transactions outside them before they apply.
 MAX_COST = 1000.0
 MAX_CAPACITY = 1000.0
 MIN_CAPACITY = 1e-3

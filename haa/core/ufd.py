@@ -9,7 +9,7 @@ NFD-U of Chen, Toueg & Aguilera [66] with the thesis' six changes (§4.4.2):
    (eta, alpha) from `worst_loss` and `worst_delay_std`.
 4. EA_{l+1} with unsynchronized clocks (eq. 4.4-1): EA_{l+1} = p_tau_l + period + mean(O_i), where
    O_i = (arrival time on q's clock) - p_tau_i is delay plus the constant clock offset.
-5. Every N heartbeats the observer re-evaluates (eta, alpha) with `haa.hostd.qos.configure` from the
+5. Every N heartbeats the observer re-evaluates (eta, alpha) with `haa.core.qos.configure` from the
    loss rate and V(O) = V(D) measured over the last M heartbeats (ll. 25-26). The loss rate is the
    add-one (Laplace) estimate (lost + 1) / (expected + 2) over that window, so that a window without a
    loss does not read as "loss is impossible" (which makes f(eta) infinite and eta far too long).
@@ -32,8 +32,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from haa.hostd.messages import Heartbeat
-from haa.hostd.qos import CLUSTER_QOS, FdParams, QosTargets, configure
+from haa.core.messages import Heartbeat
+from haa.core.qos import CLUSTER_QOS, FdParams, QosTargets, configure
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,6 +1,6 @@
 """The replicated agent table: which agents exist, who owns each, what is queued for it (thesis "DDB.agents").
 
-Part of the group's global state (`haa.hostd.globalstate`): every member applies the same `AgentTx`
+Part of the group's global state (`haa.core.globalstate`): every member applies the same `AgentTx`
 transactions (proto/haa/pb/agenttx.proto) in the OAC's total order, so every member holds the same table and
 every decision below is taken identically everywhere. The table is what Alg. 4-8 read and write:
 
@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 from google.protobuf.message import DecodeError
 
-from haa.hostd.allocation import MAX_CAPACITY, MAX_COST, MAX_NAME, MAX_PER_HOST, MIN_CAPACITY
+from haa.core.allocation import MAX_CAPACITY, MAX_COST, MAX_NAME, MAX_PER_HOST, MIN_CAPACITY
 from haa.pb import agenttx_pb2 as apb
 
 NEW = "new"
@@ -72,7 +72,7 @@ MAX_QUEUE = 10_000
 #: when the create applies (docs/limits.md, "Sizes and memory")
 MAX_CONFIG = 1024 * 1024
 #: bytes of one agent's state (frozen for a transfer) or backup: what one OAC transaction carries to every
-#: host, and every host keeps (the backup). Like a DDB batch (haa.hostd.ddb.MAX_BATCH_BYTES) it is copied and
+#: host, and every host keeps (the backup). Like a DDB batch (haa.core.ddb.MAX_BATCH_BYTES) it is copied and
 #: decoded many times within one event-loop callback on every host, at 50-140 ms per MiB measured on a loaded
 #: group: 2 MiB keeps the stall well below the failure detector's margin (bench-results/memory.json)
 MAX_STATE = 2 * 1024 * 1024
@@ -260,7 +260,7 @@ def check_create(c: apb.AgentCreate) -> str:
 
 
 def check_host(m: apb.HostInfo) -> str:
-    """'' when a HostInfo is well formed, else the reason (same bounds as `haa.hostd.allocation.HostSpec`)."""
+    """'' when a HostInfo is well formed, else the reason (same bounds as `haa.core.allocation.HostSpec`)."""
     if not m.name or len(m.name) > MAX_NAME:
         return f"host info: name must be 1-{MAX_NAME} characters"
     if _bad_number(m.capacity, MIN_CAPACITY, MAX_CAPACITY):
@@ -398,7 +398,7 @@ class AgentTable:
     def _limit_conflict(self, c: apb.AgentCreate) -> str:
         """Agents of a type with a per-host limit must all declare the same limit and hardware (issue 15), so that
         the allocator counts the places of a type instead of matching agents to hosts
-        (`haa.hostd.allocation.limit_conflict`, docs/allocation.md "per-host limits"). An agent type declares
+        (`haa.core.allocation.limit_conflict`, docs/allocation.md "per-host limits"). An agent type declares
         both, so only a hand-made spawn with other hardware or a different version of the type meets this."""
         for r in self.records.values():
             if r.spec.type != c.type or not (r.spec.max_per_host or c.max_per_host):
@@ -468,7 +468,7 @@ class AgentTable:
         for agent in sorted(self.records):
             # an agent of a type with a per-host limit that the allocation leaves out found no place (issue 15):
             # it is allocated nowhere, so that it is not recovered or kept on a host that now has another
-            # agent of its type (its owner freezes it: haa.hostd.agentnode). Other unallocatable agents keep
+            # agent of its type (its owner freezes it: haa.core.agentnode). Other unallocatable agents keep
             # their allocation, as before
             r = self.records[agent]
             if r.spec.max_per_host and r.alloc and agent not in f.allocation:

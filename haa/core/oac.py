@@ -39,8 +39,8 @@ import heapq
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from haa.hostd.effects import Closed, Decided, Deliver, Log
-from haa.hostd.messages import (
+from haa.core.effects import Closed, Decided, Deliver, Log
+from haa.core.messages import (
     OacAck,
     OacDecide,
     OacEstimate,

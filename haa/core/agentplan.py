@@ -1,15 +1,15 @@
 """The agent layer's decisions that need no state of their own: which machine an input goes to, and what the
 table asks of this host for one agent.
 
-`haa.hostd.agentnode.AgentNode` composes the machines (`haa.hostd.transfer.Transfer`,
-`haa.hostd.recovery.Recovery`, allocation glue, routing); what it does with an input is decided here, as pure
+`haa.core.agentnode.AgentNode` composes the machines (`haa.core.transfer.Transfer`,
+`haa.core.recovery.Recovery`, allocation glue, routing); what it does with an input is decided here, as pure
 functions of the input, the agent table and the node's record of the instance:
 
 * `reconcile` (thesis §4.8-4.9, run after every committed change): compare one agent's record in the
   replicated table with the instance this host runs — an agent it runs but is no longer allocated is frozen
   (Alg. 5), a frozen agent allocated to it is thawed (Alg. 6), a new or crashed agent allocated to it is
   recovered (Alg. 8), an agent it should run but does not is reported failed;
-* `instance_input`: an event of a local instance (`haa.hostd.agentio`) as the input of the machine that owns
+* `instance_input`: an event of a local instance (`haa.core.agentio`) as the input of the machine that owns
   the instance in its current phase;
 * `applied_input`: a committed agent transaction as the input of the machine it concerns.
 
@@ -21,11 +21,11 @@ from __future__ import annotations
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
-from haa.hostd import agenttable as at
-from haa.hostd import recovery as rc
-from haa.hostd import transfer as tr
-from haa.hostd.agentio import BackupMade, Failed, Frozen, ShellReady
-from haa.hostd.agentstep import Local
+from haa.core import agenttable as at
+from haa.core import recovery as rc
+from haa.core import transfer as tr
+from haa.core.agentio import BackupMade, Failed, Frozen, ShellReady
+from haa.core.agentstep import Local
 from haa.pb import agenttx_pb2 as apb
 
 
