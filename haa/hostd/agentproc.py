@@ -218,6 +218,8 @@ class SpawnChild:
     req_id: int
     type_name: str
     config: bytes
+    #: the spawn's idempotence key (docs/agents.md, "Idempotent spawn"; "" = always a new child)
+    key: str = ""
 
 
 @dataclass(frozen=True)
@@ -841,7 +843,7 @@ class AgentSupervisor:
             self._emit(Stopped(a))
         elif kind == "spawn_child":
             s = msg.spawn_child
-            self._emit(SpawnChild(a, s.req_id, s.type_name, bytes(s.config)))
+            self._emit(SpawnChild(a, s.req_id, s.type_name, bytes(s.config), s.key))
         elif kind == "ddb_get":
             self._emit(DdbGet(a, msg.ddb_get.req_id, msg.ddb_get.key))
         elif kind == "ddb_scan":
