@@ -906,9 +906,11 @@ class AgentSupervisor:
             self._retire(inst)
             await self._wait_gone(inst, 3.0)
             return
+        # close first: an agent that ended (a fatal error) half-closes and waits for us to close
+        # (haa.agents.runner._linger), so that our writes never break the pipe before we read its last frames
+        inst.chan.close()
         if inst.fail_reason is None and not await self._wait_exit(inst, 1.0):
             inst.fail_reason = "channel error: the agent closed its channel but did not exit"
-        inst.chan.close()
         if inst.fail_reason is not None:
             self._signal(inst, signal.SIGKILL)
         await self._wait_gone(inst, 5.0)
