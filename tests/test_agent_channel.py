@@ -135,3 +135,58 @@ def test_the_frozen_frame_survives_host_writes_after_the_freeze():
 
     kinds, code = run(main())
     assert kinds[-1] == "frozen" and code == 0, kinds
+
+
+def test_frames_buffered_before_a_reset_are_received_before_the_end():
+    """A peer that closes with unread input resets the connection; the frames it sent before are in our
+    reader's buffer and come out first (the stream reader raised the reset at once: 'connection reset in the
+    middle of a frame', the frames lost)."""
+
+    async def main():
+        host, agent = await pair()
+        agent.writer.transport.pause_reading()  # what the host writes stays unread in the agent's socket
+        for _ in range(20):
+            host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
+        await asyncio.sleep(0.05)
+        agent.send(pb.AgentToHost(log=pb.AgentToHost.Log(event="last words")))
+        agent.send(pb.AgentToHost(error=pb.AgentToHost.Error(message="boom")))
+        await agent.drain()
+        agent.close()
+        await agent.wait_closed()
+        await asyncio.sleep(0.05)
+        kinds = []
+        while (m := await host.recv()) is not None:
+            kinds.append(m.WhichOneof("msg"))
+        host.close()
+        return kinds
+
+    assert run(main()) == ["log", "error"]
+
+
+def test_the_error_of_an_agent_that_fails_at_start_survives_host_writes():
+    """An agent that fails at start (here: its state does not unpack) half-closes and waits for the host to close
+    (haa.agents.runner._linger) as after Frozen: had it closed at once, the host's next write broke the pipe
+    and its transport dropped the unread Error frame ('read failed: [Errno 32] Broken pipe', every time here)."""
+    from haa.agents import registry, runner
+
+    async def main():
+        registry.load_all()
+        a, b = socket.socketpair()
+        host = await Channel.open(a, pb.AgentToHost)
+        agent = asyncio.ensure_future(runner.serve(b))
+        host.send(pb.HostToAgent(init=pb.HostToAgent.Init(agent_id="x1", name="A1", type_name="counter", epoch=1)))
+        assert (await host.recv()).WhichOneof("msg") == "hello"
+        host.send(pb.HostToAgent(thaw=pb.HostToAgent.Thaw(state=b"not json")))
+        host.send(pb.HostToAgent(resume=pb.HostToAgent.Resume(how="thaw")))
+        await asyncio.sleep(0.2)  # the agent fails and reports it; the host has not read it yet
+        for _ in range(50):
+            host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
+            await asyncio.sleep(0.002)
+        kinds = []
+        while (m := await host.recv()) is not None:
+            kinds.append((m.WhichOneof("msg"), m.error.message if m.WhichOneof("msg") == "error" else ""))
+        host.close()
+        return kinds, await asyncio.wait_for(agent, 5)
+
+    kinds, code = run(main())
+    assert code == 1 and kinds[-1][0] == "error" and "unpack_state raised" in kinds[-1][1], kinds

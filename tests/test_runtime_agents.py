@@ -175,3 +175,27 @@ def test_kill_of_an_agent_still_starting_is_refused(hosts: dict[str, MemberHost]
             p.resume()
     wait(lambda: active_on(hosts, r.name), 20, f"{r.name} active once the fork servers run")
     assert table(hosts)[r.name].life == 1  # started once, never recovered
+
+
+def test_a_spawn_with_the_same_key_gets_the_same_child(hosts: dict[str, MemberHost]) -> None:
+    """Idempotent spawn (docs/agents.md): a second spawn_child with a key the parent already used answers the
+    child the first one created; key "" always creates one."""
+    c = live(hosts)[0].client
+    r = c.agent_spawn("probe", b"{}")
+    assert r.ok, r
+    wait(lambda: active_on(hosts, r.name), 20, f"{r.name} active")
+
+    def spawn(key: str | None) -> str:
+        cmd: dict[str, object] = {"op": "spawn_child", "type": "probe"}
+        if key is not None:
+            cmd["key"] = key
+        a = c.agent_request(r.name, json.dumps(cmd).encode(), timeout=20)
+        assert a.ok, a.error
+        return str(json.loads(a.payload))
+
+    first = spawn("k")
+    assert spawn("k") == first
+    others = {spawn(""), spawn(""), spawn("j")}
+    assert len(others) == 3 and first not in others
+    kids = [a for a in c.agent_list().agents if a.name.startswith(r.name + ".")]
+    assert len(kids) == 4, [a.name for a in kids]

@@ -158,7 +158,7 @@ class Ctx:
         self.scan_truncated = self.truncate
         return {o.key: o.data for o in self.bus.ddb.items(prefix)}
 
-    async def spawn_child(self, type_name: str, config: bytes, timeout: float) -> str:
+    async def spawn_child(self, type_name: str, config: bytes, timeout: float, key: str | None = None) -> str:
         aid = f"{type_name}-{len(self.bus.agents)}"
         agent = self.bus.start(registry.get(type_name), aid, json.loads(config))
         await agent.on_start()

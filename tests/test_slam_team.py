@@ -56,7 +56,7 @@ class FakeCtx:
             await self.release.wait()
         return [""] * len(ops)
 
-    async def spawn_child(self, type_name: str, config: bytes, timeout: float) -> str:
+    async def spawn_child(self, type_name: str, config: bytes, timeout: float, key: str | None = None) -> str:
         self.spawned.append((type_name, json.loads(config)))
         return f"{type_name}-{len(self.spawned)}"
 

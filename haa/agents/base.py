@@ -17,7 +17,9 @@ host, over one channel (`haa.agents.channel`). What an agent gets:
   append, cas, add, log_append, log_trim), `await ddb_log_append(key, items)`; `watch(prefix, callback)`,
   `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.core.ddb.decode_log(ddb_get bytes)` reads a
   log as (first, items);
-* `backup()` (Alg. 7 ll. 1-3), `await spawn_child(type_name, config)`, `stop()`, `log(event, **fields)`.
+* `backup()` (Alg. 7 ll. 1-3), `await spawn_child(type_name, config, key=...)` (idempotent: a retried spawn
+  gets the child its first request created, docs/agents.md "Idempotent spawn"), `stop()`,
+  `log(event, **fields)`.
 
 Hooks an agent implements (all optional): `on_start()` (a new agent), `on_message(src, payload)`,
 `on_request(src, payload) -> bytes`, `pack_state() -> bytes` / `unpack_state(data)` (transfer, Alg. 5 l. 18
@@ -61,6 +63,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import hashlib
 import inspect
 import json
 import random
@@ -94,6 +97,8 @@ DEFAULT_CPU_LIMIT = 0.9
 REQUEST_TIMEOUT = 5.0
 #: default timeout of the calls answered by the host (DDB, spawn_child), seconds
 HOST_TIMEOUT = 30.0
+#: longest spawn key (`spawn_child(key=)`; haa.core.agenttable.MAX_SPAWN_KEY)
+MAX_SPAWN_KEY = 256
 
 #: fault injection (haactl chaos, docs/chaos.md): an *operator* request (sender "@<host>") whose payload is this
 #: prefix followed by a number of seconds makes any agent answer b"hanging", then block its own event loop for
@@ -423,8 +428,22 @@ class AgentBase:
         self._ctx.backup(self.pack_backup())
 
     async def spawn_child(self, type_name: str, config: bytes | str | dict | list = b"",
-                          timeout: float = HOST_TIMEOUT) -> str:
-        """Ask the hosts for a new agent whose parent is this one; returns its id once it is allocated."""
+                          timeout: float = HOST_TIMEOUT, *, key: str | None = None) -> str:
+        """Ask the hosts for a new agent whose parent is this one; returns its id once it is allocated.
+
+        Idempotent (docs/agents.md, "Idempotent spawn"): if this agent already has a live child created with
+        the same `key`, that child's id is returned and nothing is created — so a spawn that a transferred or
+        recovered instance asks for again, after its first request had committed, does not make a second
+        child. `key=None` (the default) derives the key from the type, the config and how many spawns of that
+        type and config this instance asked for before ("<type>/<config digest>/<n>"): the code path a
+        recovered instance re-runs asks for the same keys. An agent that spawns identical children over its
+        life (not only at start) passes a key of its own, or `key=""`: always a new child."""
+        if key is not None:
+            if not isinstance(key, str):
+                raise TypeError(f"key: expected str or None, not {type(key).__name__}")
+            if len(key) > MAX_SPAWN_KEY:
+                raise ValueError(f"key: at most {MAX_SPAWN_KEY} characters, got {len(key)}")
+            return await self._ctx.spawn_child(type_name, _config_bytes(config), timeout, key=key)
         return await self._ctx.spawn_child(type_name, _config_bytes(config), timeout)
 
     def stop(self) -> None:
@@ -524,6 +543,8 @@ class AgentContext:
         self._next_conv = ((self.epoch & 0xFFFFFFFF) << 32) + 1
         self._next_call = 1
         self._next_watch = 1
+        #: default spawn keys: "<type>/<config digest>" -> spawns of it this instance asked for
+        self._spawn_counts: dict[str, int] = {}
         self.state = "shell"  # shell -> running -> freezing | stopping -> done
         self.exit_code: int | None = None
         self.handled = 0
@@ -907,11 +928,16 @@ class AgentContext:
             raise HostError(f"ddb_write: the host answered {len(errors)} results for {len(batch)} ops")
         return errors
 
-    async def spawn_child(self, type_name: str, config: bytes, timeout: float) -> str:
+    async def spawn_child(self, type_name: str, config: bytes, timeout: float, key: str | None = None) -> str:
         if not type_name:
             raise ValueError("type_name: must not be empty")
+        if key is None:  # the default key (AgentBase.spawn_child): type, config digest, n-th such request
+            base = f"{type_name}/{hashlib.sha256(config).hexdigest()[:16]}"
+            n = self._spawn_counts[base] = self._spawn_counts.get(base, 0) + 1
+            key = f"{base}/{n}"
         rid = self._new_call()
-        frame = pb.AgentToHost(spawn_child=pb.AgentToHost.SpawnChild(req_id=rid, type_name=type_name, config=config))
+        frame = pb.AgentToHost(spawn_child=pb.AgentToHost.SpawnChild(req_id=rid, type_name=type_name, config=config,
+                                                                     key=key))
         ans = await self._call(frame, rid, timeout, f"spawn_child {type_name!r}")
         return bytes(ans.value).decode()
 

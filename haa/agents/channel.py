@@ -136,7 +136,13 @@ class Channel(Generic[M]):
     # ------------------------------------------------------------------ receiving
 
     async def recv(self) -> M | None:
-        """The next message, or None at a clean end of stream (the peer closed between frames)."""
+        """The next message, or None at a clean end of stream (the peer closed between frames).
+
+        A peer that closes with unread input in its socket (a process that exits, or fails at start, while its
+        host still writes to it) resets the connection. The frames it had sent before are in our reader's
+        buffer already, but the stream reader raises the reset before it hands them out: they are returned
+        from the buffer first, then the end of stream (`_after_reset`). Without that, an agent's last frames
+        (its Error, the message before it) were lost."""
         try:
             header = await self.reader.readexactly(HEADER.size)
         except asyncio.IncompleteReadError as e:
@@ -146,10 +152,7 @@ class Channel(Generic[M]):
                 f"connection closed in the middle of a frame (got {len(e.partial)} of {HEADER.size} header bytes)"
             ) from None
         except ConnectionResetError:
-            # the peer died with unread input in its socket (the kernel resets it): an end of stream
-            if not getattr(self.reader, "_buffer", b""):
-                return None
-            raise ChannelError("connection reset in the middle of a frame") from None
+            return self._after_reset()
         except (ConnectionError, OSError) as e:
             raise ChannelError(f"read failed: {e}") from e
         (n,) = HEADER.unpack(header)
@@ -161,10 +164,38 @@ class Channel(Generic[M]):
             raise ChannelError(
                 f"connection closed in the middle of a frame (got {len(e.partial)} of {n} body bytes)"
             ) from None
+        except ConnectionResetError:
+            return self._after_reset(n)
         except (ConnectionError, OSError) as e:
             raise ChannelError(f"read failed: {e}") from e
         self.frames_in += 1
         self.bytes_in += HEADER.size + n
+        return self.decode(body)
+
+    def _after_reset(self, body_size: int | None = None) -> M | None:
+        """The connection was reset (`recv`): the next frame still in the reader's buffer, or None when it
+        holds nothing more (an end of stream); ChannelError if it ends inside a frame. `body_size`: the header
+        was read already and announced that many bytes."""
+        buf = getattr(self.reader, "_buffer", None)
+        if buf is None:
+            buf = bytearray()
+        if body_size is None:
+            if not buf:
+                return None
+            if len(buf) < HEADER.size:
+                raise ChannelError("connection reset in the middle of a frame")
+            (body_size,) = HEADER.unpack(bytes(buf[: HEADER.size]))
+            if body_size > self.max_frame:
+                raise ChannelError(f"frame of {body_size} bytes exceeds the limit of {self.max_frame} bytes")
+            if len(buf) < HEADER.size + body_size:
+                raise ChannelError("connection reset in the middle of a frame")
+            del buf[: HEADER.size]
+        if len(buf) < body_size:
+            raise ChannelError("connection reset in the middle of a frame")
+        body = bytes(buf[:body_size])
+        del buf[:body_size]
+        self.frames_in += 1
+        self.bytes_in += HEADER.size + body_size
         return self.decode(body)
 
     def decode(self, body: bytes) -> M:

@@ -35,8 +35,8 @@ measurement); request b"hang" blocks its event loop forever (to exercise hang de
 
 probe — a scriptable agent for tests and operators: every request is a JSON command {"op": ...} (echo,
 send (also "count" times, "size" bytes), request, sleep, ddb_get, ddb_put, ddb_write, ddb_log, watch,
-watch_log, unwatch, spawn_child, set, backup, state, timer, log, stop, raise, exit, hang, garbage, oversize,
-bigmsg); see `ProbeAgent.on_request`. It
+watch_log, unwatch, spawn_child (optional "key"), set, backup, state, timer, log, stop, raise, exit, hang, garbage,
+oversize, bigmsg); see `ProbeAgent.on_request`. It
 counts the plain messages it receives and keeps them (state "messages") unless its config says
 {"record": false}.
 
@@ -514,7 +514,7 @@ class ProbeAgent(AgentBase):
         elif op == "unwatch":
             self.unwatch(int(cmd["id"]))
         elif op == "spawn_child":
-            out = await self.spawn_child(cmd["type"], cmd.get("config", b""))
+            out = await self.spawn_child(cmd["type"], cmd.get("config", b""), key=cmd.get("key"))
         elif op == "set":
             self.value = str(cmd["value"])
         elif op == "backup":

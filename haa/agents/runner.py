@@ -78,7 +78,7 @@ async def serve(sock: socket.socket) -> int:
     finally:
         with contextlib.suppress(Exception):
             await asyncio.wait_for(chan.drain(), 5.0)
-        if code == EXIT_OK:
+        if code not in (EXIT_HOST_CLOSED, EXIT_CHANNEL_ERROR):  # also after a failure: its Error frame must arrive
             await _linger(chan)
         chan.close()
         with contextlib.suppress(Exception):
@@ -90,7 +90,9 @@ async def _linger(chan: Channel[pb.HostToAgent]) -> None:
     write to us (a watch event, the answer to a call made beside the mailbox); had we closed, its write would
     fail (EPIPE) and its transport, failing, would drop what it had not read yet — the Frozen frame, turning a
     transfer into a crash (seen: SupervisorSLAM as its host left the group). So: half-close (the host reads
-    our frames, then the end of the stream) and read, discarding, until the host closes or LINGER_S."""
+    our frames, then the end of the stream) and read, discarding, until the host closes or LINGER_S. The same
+    after a fatal error: an agent that failed at start, its host still writing to it, lost its Error frame
+    (and the frames before it) to the host's broken pipe (tests/test_agent_channel.py)."""
     with contextlib.suppress(Exception):
         chan.writer.write_eof()
     loop = asyncio.get_running_loop()

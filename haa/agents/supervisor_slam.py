@@ -489,7 +489,10 @@ class SupervisorSLAM(team.TeamAgent):
             aid: str | None = None
             why = ""
             try:
-                aid = await self.spawn_child(type_name, cfg, timeout=20.0)
+                # a shared agent is one more of identical ones (growth): always a new child (key ""); a
+                # dedicated one is keyed by its type and config (the avatar) by default: asked again after a
+                # recovery, it is the one already running (docs/agents.md, "Idempotent spawn")
+                aid = await self.spawn_child(type_name, cfg, timeout=20.0, key=None if avatar else "")
             except Exception as e:
                 why = f"{type(e).__name__}: {e}"
             self.call_later(0, lambda: self._spawned(p, aid, why, avatar))

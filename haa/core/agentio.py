@@ -185,6 +185,8 @@ class SpawnChild:
     child_id: str
     #: the child type's per-host limit (AgentTypeInfo.max_per_host; issue 15)
     max_per_host: int = 0
+    #: the spawn's idempotence key ("" = always a new child; docs/agents.md, "Idempotent spawn")
+    key: str = ""
 
 
 AgentEvent = ShellReady | Sent | BackupMade | Frozen | Failed | Stopped | SpawnChild

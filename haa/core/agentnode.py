@@ -298,10 +298,11 @@ class AgentNode:
 
     def create_agent(self, now: float, agent_id: str, type_name: str, config: bytes = b"", *, parent: str = "",
                      cost: float = 0.1, hardware: Iterable[str] = (), transfer_penalty: float = 0.1,
-                     recovery: str = "backup", max_per_host: int = 0, req: Hashable = None) -> None:
+                     recovery: str = "backup", max_per_host: int = 0, req: Hashable = None,
+                     key: str = "") -> None:
         self._now = now
         self._apply(self.ops.create(ops.create(agent_id, type_name, config, parent, self.name, cost, hardware,
-                                               transfer_penalty, recovery, max_per_host), req))
+                                               transfer_penalty, recovery, max_per_host, key), req))
 
     def remove_agent(self, now: float, ref: str, req: Hashable = None) -> None:
         self._now = now
@@ -359,7 +360,7 @@ class AgentNode:
             self._apply([Propose(ops.remove(loc.id, self.name, loc.epoch), "stopped", loc.id, loc.epoch)])
         elif type(ev) is SpawnChild:
             self.create_agent(now, ev.child_id, ev.type, ev.config, parent=loc.id,
-                              max_per_host=ev.max_per_host, req=("child", loc.id, loc.epoch, ev.req))
+                              max_per_host=ev.max_per_host, req=("child", loc.id, loc.epoch, ev.req), key=ev.key)
 
     def undeliverable(self, now: float, agent: str, epoch: int, m: apb.RoutedMsg) -> None:
         """The driver could not hand `m` to the instance (its process is ending): hold the message until the
@@ -454,7 +455,13 @@ class AgentNode:
                 if r is not None and r.status == at.CRASHED:
                     self._rc(rc.Crashed(agent))
         elif isinstance(res, at.AgentApplied) and self.m.is_member():
-            if res.kind == "create" and res.ok:
+            if res.kind == "create" and res.ok and res.existing:
+                # a retried spawn answered with the child its first request created (docs/agents.md)
+                if res.host == self.name:
+                    r = self.table.records[res.agent]
+                    self._apply([Note("spawn_repeated", {"agent": r.id, "name": r.name, "parent": r.parent,
+                                                         "key": r.spec.key})])
+            elif res.kind == "create" and res.ok:
                 self._apply([Timeline(res.agent, "created", self.table.records[res.agent].type)])
             elif res.kind == "remove" and res.ok:
                 self._forget(res.agent, kill="removed", removed=True)

@@ -37,10 +37,11 @@ class AgentWrite:
 
 
 def create(agent_id: str, type_name: str, config: bytes, parent: str, host: str, cost: float,
-           hardware: Iterable[str], transfer_penalty: float, recovery: str, max_per_host: int) -> apb.AgentTx:
+           hardware: Iterable[str], transfer_penalty: float, recovery: str, max_per_host: int,
+           key: str = "") -> apb.AgentTx:
     tx = apb.AgentTx()
     c = tx.create
-    c.id, c.type, c.config, c.parent = agent_id, type_name, config, parent
+    c.id, c.type, c.config, c.parent, c.key = agent_id, type_name, config, parent, key
     c.max_per_host = max(0, min(int(max_per_host), 2**32 - 1))  # check_create refuses > MAX_PER_HOST
     c.cost, c.transfer_penalty, c.recovery, c.host = cost, transfer_penalty, recovery, host
     c.hardware.extend(sorted(set(hardware)))

@@ -31,6 +31,10 @@ Validity rules, applied identically everywhere (an invalid transaction is a no-o
   an early failure (`AgentFailed.early`: the instance was not up yet, or died within its host's start grace)
   adds one to `failures`, any other failure resets it; at MAX_START_FAILURES consecutive early failures the
   agent is "failed" (terminal: not recovered; `fail_reason` says why) until an operator move retries it;
+* create with a key (`AgentCreate.key`, a parent's `spawn_child(key=)`): when the parent already has a live
+  child (any status but failed) with that key, the create applies as that child (`AgentApplied.existing`) and
+  creates nothing: a spawn retried after a transfer or a recovery of the parent, whose first request had
+  already committed, gets the first child instead of a second one (docs/agents.md, "Idempotent spawn");
 * move: allocates the agent to a host; a failed agent becomes crashed again with failures 0 (a retry);
 * claim and recovered hand queue1 + queue2 to the new owner (`AgentApplied.msgs`) and clear them;
 * push: appends to queue2 (bounded: MAX_QUEUE messages, then counted as dropped); a push that finds the
@@ -81,6 +85,8 @@ MAX_BLOB = MAX_STATE
 #: payload bytes kept per queue of one agent (messages for it while it is frozen or crashed); more are
 #: counted as dropped, like messages beyond MAX_QUEUE
 MAX_QUEUE_BYTES = 4 * 1024 * 1024
+#: characters of a spawn key (AgentCreate.key)
+MAX_SPAWN_KEY = 256
 #: hardware names one agent may require or one host may offer
 MAX_HARDWARE = 64
 #: measured message rate between two agents (bytes/s) a host may report; beyond it the value is refused
@@ -197,6 +203,9 @@ class AgentApplied:
     touched: tuple[str, ...] = ()
     #: messages appended to a queue by this push
     msgs: tuple[apb.RoutedMsg, ...] = ()
+    #: create: the parent already had a live child with the create's key; `agent` is that child, nothing was
+    #: created (docs/agents.md, "Idempotent spawn")
+    existing: bool = False
 
 
 def encode(tx: apb.AgentTx) -> bytes:
@@ -254,6 +263,10 @@ def check_create(c: apb.AgentCreate) -> str:
         return f"create: recovery must be one of {', '.join(RECOVERY_MODES)}"
     if c.max_per_host > MAX_PER_HOST:  # uint32 on the wire: never negative
         return f"create: max_per_host must be an integer in [0, {MAX_PER_HOST}], got {c.max_per_host}"
+    if len(c.key) > MAX_SPAWN_KEY:
+        return f"create: key must be at most {MAX_SPAWN_KEY} characters"
+    if c.key and not c.parent:
+        return "create: a key needs a parent (it names one of the parent's children)"
     if len(c.config) > MAX_CONFIG:
         return f"create: config of {len(c.config)} bytes exceeds the limit of {MAX_CONFIG} bytes (MAX_CONFIG)"
     return ""
@@ -309,6 +322,15 @@ class AgentTable:
             if r.name == name:
                 return r
         return None
+
+    def child_by_key(self, parent: str, key: str) -> AgentRecord | None:
+        """The live child (any status but failed) of `parent` created with spawn key `key`, or None ('' has
+        none). Should two match (not by this table's creates), the one with the lowest id: the same everywhere."""
+        if not key:
+            return None
+        hits = [r for r in self.records.values() if r.spec.key == key and r.spec.parent == parent
+                and r.status != FAILED]
+        return min(hits, key=lambda r: r.id) if hits else None
 
     def resolve(self, ref: str) -> AgentRecord | None:
         """An agent by id, display name or unique id prefix (>= 4 characters)."""
@@ -382,6 +404,9 @@ class AgentTable:
         parent = self.records.get(c.parent) if c.parent else None
         if not why and c.parent and parent is None:
             why = "create: unknown parent"
+        if not why and (old := self.child_by_key(c.parent, c.key)) is not None:
+            # a retried spawn (docs/agents.md, "Idempotent spawn"): the child its first request created
+            return AgentApplied("create", old.id, True, "", c.host, c.req, existing=True)
         if not why:
             why = self._limit_conflict(c)
         if why:

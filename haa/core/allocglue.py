@@ -162,7 +162,7 @@ class AllocGlue:
             return self.start_committed(now, payload)
         if k == "finish" and res.ok:
             return self.finish_committed(now)
-        if k in ("create", "remove") and res.ok:
+        if k in ("create", "remove") and res.ok and not res.existing:
             return self.change(now, "agent list changed")
         if k == "host" and res.ok:
             return self.change(now, "host capabilities changed")

@@ -62,6 +62,12 @@ Allocation after a host joins, checked by `haactl verify join` (`haa.dsim.joins`
 * `joiner-default-capacity` a member whose capacity is not in the agent table yet (it just joined) bids as if it
                      had one core: the join's session gives it agents that the session its real capacity
                      triggers a second later moves again. Breaks AA-Join-Stable.
+
+A real agent on virtual time, checked by `haactl verify executive` (`haa.dsim.vagent`):
+
+* `no-spawn-key`     spawning as before idempotent spawn: the agent table ignores a create's key
+                     (`AgentTable.child_by_key` finds nothing), so a spawn that a recovered ExecutiveMission asks
+                     for again after its first request had committed makes a second child. Breaks EX-Once.
 """
 
 from __future__ import annotations
@@ -392,6 +398,16 @@ def joiner_default_capacity() -> Undo:
     return _patch(glue_mod.AllocGlue, "host_specs", host_specs)
 
 
+def no_spawn_key() -> Undo:
+    """The agent table as before idempotent spawn: a create's key names no existing child, every create makes one."""
+    from haa.core import agenttable as table_mod
+
+    def child_by_key(self: table_mod.AgentTable, parent: str, key: str) -> None:
+        return None
+
+    return _patch(table_mod.AgentTable, "child_by_key", child_by_key)
+
+
 MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     # name: (apply, algorithm to verify with, property the verifier must report)
     "skip-order-gate": (skip_order_gate, "oac", "AC-Total-Order"),
@@ -419,6 +435,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "unbounded-values": (unbounded_values, "recovery", "AG-Refuse-Invalid"),
     "raising-reaction": (raising_reaction, "transfer", "AG-No-Error"),
     "joiner-default-capacity": (joiner_default_capacity, "join", "AA-Join-Stable"),
+    "no-spawn-key": (no_spawn_key, "executive", "EX-Once"),
 }
 
 

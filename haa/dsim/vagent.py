@@ -41,10 +41,12 @@ layer's properties (`haa.dsim.agents.check_agents`) plus the executive's (EX-*):
 * EX-Once: the mission starts once ("Mission started" at most once in the transcript `mission/events`: a
   crash between the first status and that line leaves it out), whatever the transfers and recoveries; no
   instance spawns a child type twice, nor a child the state it was thawed or recovered from records (the
-  executive backs up a child's id right after its spawn commits). A crash
-  after a spawn committed and before the backup recording it did commit spawns that child again: a window
-  ExecutiveMission documents (the child's id is drawn by the host, so it cannot be backed up before); it is
-  counted (`duplicate_children`), not a violation.
+  executive backs up a child's id right after its spawn commits), and the agent table never holds two
+  children of one type under the executive. A crash after a spawn committed and before the backup recording
+  it makes the recovered instance ask for that child again (the child's id is drawn by the host, so it
+  cannot be backed up before): the spawn is idempotent (`spawn_child`'s key, docs/agents.md "Idempotent
+  spawn"), so the retry gets the first child back; without the key (mutation `no-spawn-key`) it made a
+  second child (14 duplicate children in 200 schedules), now a violation (`duplicate_children` counts them).
 * EX-Resume: every `mission/status` the executive writes carries the start time of the mission's first
   start (a thawed or recovered instance resumes the mission, it does not begin another), and no status
   goes back from `complete`/`stopped` to `running`.
@@ -375,7 +377,7 @@ class RealAgentSim(AgentSim):
             return
         child = str(uuid.UUID(int=self.rrng.getrandbits(128), version=4))
         self._event(h, SpawnChild(a.agent, a.epoch, s.req_id, s.type_name, bytes(s.config), child,
-                                  int(cls.MAX_PER_HOST)))
+                                  int(cls.MAX_PER_HOST), s.key))
 
     def _scan(self, h: SimHost, a: RealInstance, s: pb.AgentToHost.DdbScan) -> None:
         """As `AgentDriver._ddb_scan`: key order, at most SCAN_LIMIT keys and SCAN_MAX_BYTES of values."""
@@ -510,6 +512,10 @@ def check_real(sim: RealAgentSim) -> list[GroupViolation]:
         if typ in recorded:
             bad("EX-Once", f"t={t:.3f} epoch {epoch} ({mode}) spawned a {typ} again, its state records "
                 f"{recorded[typ][:8]}")
+    dups = duplicate_children(sim)
+    if dups:
+        kinds = sorted(r.type for r in children)
+        bad("EX-Once", f"the agent table holds {dups} duplicate child(ren) under the executive: {kinds}")
     ddb = members[0].m.state.ddb if members else None
     started = 0
     events = ddb.get(K_EVENTS) if ddb is not None else None

@@ -188,7 +188,8 @@ class AgentDriver:
             why = f"unknown agent type {ev.type_name[:64]!r} (registered: {known})"
             self.sup.answer(agent, ev.req_id, False, b"", why)
             return
-        child = io.SpawnChild(agent, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4()), info.max_per_host)
+        child = io.SpawnChild(agent, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4()), info.max_per_host,
+                              ev.key)
         if not info.has_config or len(ev.config) > MAX_CONFIG:  # too large: the node refuses it (check_create)
             self._feed_event(child)
             return

@@ -218,6 +218,8 @@ class SpawnChild:
     req_id: int
     type_name: str
     config: bytes
+    #: the spawn's idempotence key (docs/agents.md, "Idempotent spawn"; "" = always a new child)
+    key: str = ""
 
 
 @dataclass(frozen=True)
@@ -841,7 +843,7 @@ class AgentSupervisor:
             self._emit(Stopped(a))
         elif kind == "spawn_child":
             s = msg.spawn_child
-            self._emit(SpawnChild(a, s.req_id, s.type_name, bytes(s.config)))
+            self._emit(SpawnChild(a, s.req_id, s.type_name, bytes(s.config), s.key))
         elif kind == "ddb_get":
             self._emit(DdbGet(a, msg.ddb_get.req_id, msg.ddb_get.key))
         elif kind == "ddb_scan":
@@ -904,9 +906,11 @@ class AgentSupervisor:
             self._retire(inst)
             await self._wait_gone(inst, 3.0)
             return
+        # close first: an agent that ended (a fatal error) half-closes and waits for us to close
+        # (haa.agents.runner._linger), so that our writes never break the pipe before we read its last frames
+        inst.chan.close()
         if inst.fail_reason is None and not await self._wait_exit(inst, 1.0):
             inst.fail_reason = "channel error: the agent closed its channel but did not exit"
-        inst.chan.close()
         if inst.fail_reason is not None:
             self._signal(inst, signal.SIGKILL)
         await self._wait_gone(inst, 5.0)

@@ -162,14 +162,16 @@ class AgentToHost(_message.Message):
         state: bytes
         def __init__(self, state: _Optional[bytes] = ...) -> None: ...
     class SpawnChild(_message.Message):
-        __slots__ = ("req_id", "type_name", "config")
+        __slots__ = ("req_id", "type_name", "config", "key")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
         TYPE_NAME_FIELD_NUMBER: _ClassVar[int]
         CONFIG_FIELD_NUMBER: _ClassVar[int]
+        KEY_FIELD_NUMBER: _ClassVar[int]
         req_id: int
         type_name: str
         config: bytes
-        def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., config: _Optional[bytes] = ...) -> None: ...
+        key: str
+        def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., config: _Optional[bytes] = ..., key: _Optional[str] = ...) -> None: ...
     class DdbGet(_message.Message):
         __slots__ = ("req_id", "key")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]

@@ -45,7 +45,7 @@ class SendPos(_message.Message):
     def __init__(self, dst: _Optional[str] = ..., next: _Optional[int] = ...) -> None: ...
 
 class AgentCreate(_message.Message):
-    __slots__ = ("id", "type", "config", "parent", "cost", "hardware", "transfer_penalty", "recovery", "host", "req", "max_per_host")
+    __slots__ = ("id", "type", "config", "parent", "cost", "hardware", "transfer_penalty", "recovery", "host", "req", "max_per_host", "key")
     ID_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     CONFIG_FIELD_NUMBER: _ClassVar[int]
@@ -57,6 +57,7 @@ class AgentCreate(_message.Message):
     HOST_FIELD_NUMBER: _ClassVar[int]
     REQ_FIELD_NUMBER: _ClassVar[int]
     MAX_PER_HOST_FIELD_NUMBER: _ClassVar[int]
+    KEY_FIELD_NUMBER: _ClassVar[int]
     id: str
     type: str
     config: bytes
@@ -68,7 +69,8 @@ class AgentCreate(_message.Message):
     host: str
     req: int
     max_per_host: int
-    def __init__(self, id: _Optional[str] = ..., type: _Optional[str] = ..., config: _Optional[bytes] = ..., parent: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., host: _Optional[str] = ..., req: _Optional[int] = ..., max_per_host: _Optional[int] = ...) -> None: ...
+    key: str
+    def __init__(self, id: _Optional[str] = ..., type: _Optional[str] = ..., config: _Optional[bytes] = ..., parent: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., transfer_penalty: _Optional[float] = ..., recovery: _Optional[str] = ..., host: _Optional[str] = ..., req: _Optional[int] = ..., max_per_host: _Optional[int] = ..., key: _Optional[str] = ...) -> None: ...
 
 class AgentRemove(_message.Message):
     __slots__ = ("id", "host", "epoch")
