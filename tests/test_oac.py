@@ -361,7 +361,7 @@ def test_a_partner_the_group_removed_before_it_voted_leaves_an_abort():
     """verify recovery seed 1229: the front of a group of two removed its partner; a transaction of just
     those two never decided (quorum 2, the removed incarnation never votes) and held the survivor's l. 37
     gate for good. The survivor now decides alone, with its own estimate: here pre-abort."""
-    oacs, wires, emitted, removed, deliver = _pair_with_removal()
+    oacs, wires, emitted, removed, _deliver = _pair_with_removal()
     oacs["h1"].propose(b"x", [("h2", 1)])
     wires["h2"].clear()  # h2 never gets the transaction (removed, then restarted)
     assert _outcomes(emitted["h1"]) == ([], [])
