@@ -119,6 +119,10 @@ def test_a_second_session_on_the_same_group_moves_nothing():
 #: seeds of `haactl verify join` on which the agent layer as it was moved agents twice after one join
 #: (AA-Join-Stable), at 7 hosts: HEAD before the fix failed 24 of seeds 0..39, these among them
 FLAPPED = (0, 1, 3, 6)
+#: and with that fix, seed 189 still moved two agents between old hosts in the join's session (the joiner bid
+#: for nothing, but CBBA re-ran over the same agents and hosts) and again to the joiner a session later: the
+#: join's session is now skipped while no joiner has its entry (AllocGlue.view_changed, only_new_hosts)
+FLAPPED += (189,)
 
 
 @pytest.mark.parametrize("seed", FLAPPED)

@@ -318,3 +318,84 @@ def test_lazy_marks_exactly_the_messages_nobody_waits_for(n):
     assert sum(1 for _s, k in lazy if k == "OacEstimate") == n - 2
     assert all(s != "h1" for s, _k in lazy)  # the coordinator's own messages are all on the critical path
     assert len(eager) == 5 * (n - 1)
+
+
+def _pair_with_removal():
+    """h1 and h2 wired through per-destination FIFO queues that the test releases by hand; `removed` is what
+    h1's group removed (`HostCore.removed`): such an incarnation is also permanently suspected."""
+    from collections import deque
+
+    from haa.core.oac import OrderedAtomicCommit
+
+    removed: set = set()
+    wires = {"h1": deque(), "h2": deque()}
+    emitted = {"h1": [], "h2": []}
+    oacs = {}
+    for q in ("h1", "h2"):
+
+        def send(dst, _dst_inc, msg, _lazy, q=q):
+            wires[dst].append((q, msg))
+
+        def dead(h, i, q=q):
+            return q == "h1" and (h, i) in removed
+
+        oacs[q] = OrderedAtomicCommit(q, 1, send, emitted[q].append, dead, dead, is_removed=dead)
+
+    def deliver(dst, count=None):
+        k = 0
+        while wires[dst] and (count is None or k < count):
+            src, msg = wires[dst].popleft()
+            oacs[dst].on_message(src, 1, msg)
+            k += 1
+
+    return oacs, wires, emitted, removed, deliver
+
+
+def _outcomes(effects):
+    from haa.core.effects import Decided, Deliver
+
+    return [e.commit for e in effects if type(e) is Decided], [e.payload for e in effects if type(e) is Deliver]
+
+
+def test_a_partner_the_group_removed_before_it_voted_leaves_an_abort():
+    """verify recovery seed 1229: the front of a group of two removed its partner; a transaction of just
+    those two never decided (quorum 2, the removed incarnation never votes) and held the survivor's l. 37
+    gate for good. The survivor now decides alone, with its own estimate: here pre-abort."""
+    oacs, wires, emitted, removed, _deliver = _pair_with_removal()
+    oacs["h1"].propose(b"x", [("h2", 1)])
+    wires["h2"].clear()  # h2 never gets the transaction (removed, then restarted)
+    assert _outcomes(emitted["h1"]) == ([], [])
+    removed.add(("h2", 1))
+    oacs["h1"].on_peer_change("h2")
+    assert _outcomes(emitted["h1"]) == ([False], [])
+    assert oacs["h1"].active_count == 0 and not oacs["h1"].txs  # decided and closed (l. 41: h2 is dead)
+
+
+def test_a_partner_the_group_removed_after_it_decided_commit_agrees():
+    """h2 proposes and coordinates round 0; h1 adopts its pre-commit and acks; h2 decides commit and
+    delivers, and is removed before its decision reaches h1. h1 decides alone — commit, the same outcome
+    (AC-Uniform-Agreement): h2's decision needed h1's ack, whose value h1's estimate holds."""
+    oacs, wires, emitted, removed, deliver = _pair_with_removal()
+    oacs["h2"].propose(b"y", [("h1", 1)])
+    deliver("h1")  # the transaction: h1 votes yes, sends its round-0 estimate
+    deliver("h2")  # h2 has both estimates: proposes pre-commit
+    deliver("h1")  # h1 adopts it, acks, and sends its round-1 estimate (h1 coordinates round 1)
+    deliver("h2")  # h2 has both acks: decides commit and delivers
+    assert _outcomes(emitted["h2"]) == ([True], [b"y"])
+    wires["h1"].clear()  # h2's decision is lost with its removal
+    assert _outcomes(emitted["h1"]) == ([], [])
+    removed.add(("h2", 1))
+    oacs["h1"].on_peer_change("h2")
+    assert _outcomes(emitted["h1"]) == ([True], [b"y"])
+
+
+def test_a_merely_suspected_partner_still_blocks_a_two_participant_transaction():
+    """Only the group's removal lets a participant decide alone: with n = 2 a suspicion (or an exclusion that
+    is not a removal) is a crash Alg. 2 does not tolerate (f < n/2 = 1), and the transaction waits."""
+    from haa.core.oac import OrderedAtomicCommit
+
+    out: list = []
+    oac = OrderedAtomicCommit("h1", 1, lambda *_a: None, out.append, lambda *_a: True, lambda *_a: True)
+    oac.propose(b"z", [("h2", 1)])
+    oac.on_peer_change("h2")
+    assert _outcomes(out) == ([], []) and oac.active_count == 1

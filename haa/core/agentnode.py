@@ -481,7 +481,8 @@ class AgentNode:
     def _on_view(self, e: ViewChange) -> None:
         if not self.m.is_member():
             return
-        self._apply(self.alloc.view_changed(self._now, any(m.name == self.name for m in e.added)))
+        new = bool(e.added) and not e.removed and all(self.table.hosts.get(m.name) is None for m in e.added)
+        self._apply(self.alloc.view_changed(self._now, any(m.name == self.name for m in e.added), new))
         for loc in list(self.local.values()):  # Alg. 5 l. 10 / Alg. 6 l. 9: "or h is removed"
             if loc.phase in ("freezing", "thawing"):
                 self._tr(tr.Progress(loc.id))

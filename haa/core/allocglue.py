@@ -170,11 +170,23 @@ class AllocGlue:
             return self.change(now, "rebalancing resumed")
         return []
 
-    def view_changed(self, now: float, joined: bool) -> list[GlueEffect]:
+    def view_changed(self, now: float, joined: bool, only_new_hosts: bool = False) -> list[GlueEffect]:
         """The member list changed (this host `joined` it, or not): publish this host's entry if the table may
-        not hold it, and record the change (a session if this host leads)."""
+        not hold it, and record the change (a session if this host leads).
+
+        `only_new_hosts`: nobody left and none of the hosts that joined has its entry in the agent table yet.
+        They would bid for nothing (`host_specs`), so a session now could only re-run the same agents over the
+        same hosts — and CBBA's outcome depends on the order bids arrive in, so it sometimes moves agents
+        between the old hosts for nothing (`haactl verify join` seed 189: two agents moved between old hosts,
+        then again to the joiner one session later, AA-Join-Stable). The change is recorded without a
+        session; each joiner's entry, one OAC after its join, starts the session that gives it agents
+        (docs/allocation.md, "Joins and hysteresis")."""
         if joined or self.host_published is None:
             self._publish(force=True)
+        if only_new_hosts:
+            self.allocator.on_change(tuple(self.view.members()), self.agent_specs(), self.host_specs(), start=False)
+            self._alloc_effects(now)
+            return self._done()
         return self._done() + self.change(now, "membership changed")
 
     def run(self, now: float, member: bool) -> list[GlueEffect]:

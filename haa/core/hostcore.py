@@ -120,6 +120,9 @@ class HostCore:
             if q in self.peers:
                 self.peers[q].inc = qi
         self.dead: set[tuple[str, int]] = set()
+        #: the incarnations the group removed (`mark_dead(..., "removed")`, Alg. 3 l. 118), a subset of `dead`:
+        #: OAC decides a two-participant transaction alone when its partner is one of them (docs/oac.md)
+        self.removed: set[tuple[str, int]] = set()
         self.counters: Counter[str] = Counter()
         self._unknown_logged: dict[str, float] = {}  # unknown sender -> when it was last logged
         #: a membership layer runs on top (`haa.core.membership.MembershipNode`): `on_message` returns the
@@ -139,6 +142,7 @@ class HostCore:
             self.is_dead,
             evaluate,
             learn=self._learn_participants,
+            is_removed=self.is_removed,
         )
 
     # ------------------------------------------------------------------ queries used by OAC
@@ -148,6 +152,9 @@ class HostCore:
             return True
         p = self.peers.get(q)
         return p is None or p.inc > qi
+
+    def is_removed(self, q: str, qi: int) -> bool:
+        return (q, qi) in self.removed
 
     def is_suspected(self, q: str, qi: int) -> bool:
         if (q, qi) in self.dead:
@@ -344,7 +351,13 @@ class HostCore:
         tell it, so that a correct host removed by mistake comes back as a new incarnation."""
         self._now = now
         p = self.peers.get(name)
-        if p is None or (name, inc) in self.dead or inc <= 0:
+        if p is None or inc <= 0:
+            return
+        if reason == "removed" and (name, inc) not in self.removed:
+            self.removed.add((name, inc))
+            if (name, inc) in self.dead:  # already excluded or superseded: OAC learns that it was removed
+                self.oac.on_peer_change(name)
+        if (name, inc) in self.dead:
             return
         self._mark_dead(p, inc, reason)
         if p.inc == inc:

@@ -31,6 +31,11 @@ Where the pseudo-code is silent or needs completing for liveness, the choices ar
   neither the transaction nor an outcome is dropped once everyone who mentioned it is permanently
   suspected: no correct process can then be waiting on it, and if the transaction reaches it later it is
   simply learned afresh (rule 1 of §4.5.2 gives it an order above everything open).
+* Decide alone: a transaction of exactly two participants whose other participant the group removed
+  (`is_removed`, Alg. 3 l. 118) is decided by the survivor with its own estimate (`_decide_alone`). Its
+  quorum is both participants, so it could never decide otherwise (the removed incarnation's messages are
+  dropped), and every decision the removed host could have taken needed this host's ack, whose value this
+  host's estimate still holds (docs/oac.md, "A partner the group removed").
 """
 
 from __future__ import annotations
@@ -159,6 +164,8 @@ class OrderedAtomicCommit:
         evaluate: (txid, payload) -> vote (l. 27); False is a unilateral abort.
         learn: called with every participant list this host learns, so that the host can learn of peer
             incarnations it has not heard from itself (and start suspecting them).
+        is_removed: (host, inc) -> bool, the group removed this incarnation (Alg. 3 l. 118): it is permanently
+            suspected and its messages are dropped for good. Used only by `_decide_alone`.
     """
 
     def __init__(
@@ -171,6 +178,7 @@ class OrderedAtomicCommit:
         is_dead: Callable[[str, int], bool],
         evaluate: Callable[[TxId, bytes], bool] | None = None,
         learn: Callable[[tuple[Participant, ...]], None] | None = None,
+        is_removed: Callable[[str, int], bool] | None = None,
     ) -> None:
         self.name = name
         self._learn = learn or (lambda _parts: None)
@@ -180,6 +188,7 @@ class OrderedAtomicCommit:
         self._is_suspected = is_suspected
         self._is_dead = is_dead
         self._evaluate = evaluate or (lambda _txid, _payload: True)
+        self._is_removed = is_removed or (lambda _q, _qi: False)
         self.txs: dict[TxId, _Tx] = {}  # activeTransactions_p ∪ decidedTransactions_p (ll. 1-2)
         self._gate: list[tuple[int, TxId]] = []  # min-heap over active (order, id), lazily invalidated
         self._seq = 0
@@ -421,8 +430,31 @@ class OrderedAtomicCommit:
             self._send_fn(cname, cinc, OacEstimate(tx.id, order, r, tx.est, tx.ts), lazy)  # l. 47 (P1)
             tx.phase = P2
 
+    def _partner_removed(self, tx: _Tx) -> bool:
+        """A transaction of two participants whose other participant the group removed."""
+        if tx.n != 2:
+            return False
+        q, qi = tx.parts[1] if tx.parts[0][0] == self.name else tx.parts[0]
+        return q != self.name and self._is_removed(q, qi)
+
+    def _decide_alone(self, tx: _Tx) -> None:
+        """Decide a two-participant transaction whose partner the group removed, with this host's estimate
+        (docs/oac.md, "A partner the group removed"). With n = 2 the quorum is 2 (f = 0): every decision,
+        at either participant, needed this host's positive ack of the value it decided, and this host's
+        estimate still holds that value (a later round could only propose it again, l. 54-55); the partner's
+        unilateral abort (l. 29) leaves this host with its initial pre-abort, since a pre-commit needs every
+        estimate (l. 51-52). The removed incarnation's messages are dropped, so it can decide nothing new."""
+        self._log("oac_decide_alone", tx=str(tx.id), commit=tx.est, round=tx.r)
+        if tx.est:
+            self._decide(tx, commit=True, order=tx.order, rnd=tx.r)
+        else:
+            self._decide(tx, commit=False, order=-1, rnd=tx.r)
+
     def _progress(self, tx: _Tx) -> None:
         """Advance Task 2 as far as the messages and suspicions at hand allow."""
+        if tx.state == UNDECIDED and tx.phase != IDLE and self._partner_removed(tx):
+            self._decide_alone(tx)
+            return
         while tx.state == UNDECIDED and tx.phase != IDLE:
             key = (tx.order, tx.r)
             if tx.phase == C1:  # ll. 48-56

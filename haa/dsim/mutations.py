@@ -382,8 +382,8 @@ def raising_reaction() -> Undo:
 
 
 def joiner_default_capacity() -> Undo:
-    """The agent layer as before the join fix: a member whose `HostInfo` is not in the agent table yet (a host
-    that just joined) is read as one core without hardware and bids in the join's session."""
+    """The agent layer as before the join fixes: a member whose `HostInfo` is not in the agent table yet (a host
+    that just joined) is read as one core without hardware, and the join's session runs, so it bids in it."""
     from haa.core import allocglue as glue_mod
     from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
 
@@ -395,7 +395,16 @@ def joiner_default_capacity() -> Undo:
             out.append(HostSpec(n, cap, frozenset(h.hardware) if h else frozenset(), bool(h and h.draining)))
         return tuple(out)
 
-    return _patch(glue_mod.AllocGlue, "host_specs", host_specs)
+    view_changed = glue_mod.AllocGlue.view_changed
+
+    def every_view_a_session(
+        self: glue_mod.AllocGlue, now: float, joined: bool, only_new_hosts: bool = False
+    ) -> list[glue_mod.GlueEffect]:
+        return view_changed(self, now, joined)  # and the join's session runs (no `only_new_hosts` skip)
+
+    undo_specs = _patch(glue_mod.AllocGlue, "host_specs", host_specs)
+    undo_view = _patch(glue_mod.AllocGlue, "view_changed", every_view_a_session)
+    return lambda: (undo_view(), undo_specs())[-1]
 
 
 def no_spawn_key() -> Undo:
