@@ -16,3 +16,14 @@ def test_measure_spawn_smoke():
     assert "| fork server | 3 | spawn -> Ready |" in table
     assert "| mode | fork server start ms | RSS MiB/agent | USS MiB/agent (private) |" in table
     print("\n" + table)
+
+
+def test_haactl_bench_agents_prints_the_tables():
+    from typer.testing import CliRunner
+
+    from haactl.main import app
+
+    res = CliRunner().invoke(app, ["bench", "agents", "-n", "2", "--cold-n", "0", "--messages", "200", "--no-json"])
+    assert res.exit_code == 0, res.output
+    assert "| fork server | 2 | spawn -> Ready |" in res.output
+    assert "| one supervisor | 200 | 100 |" in res.output and "| one supervisor | 200 | 10000 |" in res.output
