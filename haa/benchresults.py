@@ -1,7 +1,7 @@
 """Where benchmarks put their figures: one JSON file per benchmark under `bench-results/` (relative to the
 working directory, the repository root when run through `make` or `haactl bench`).
 
-Library code (e.g. `haa.agents.bench`) and the CLI (`haactl bench ...`) both write through `write_json`, so the
+Library code (e.g. `haa.experiments`) and the CLI (`haactl bench ...`) both write through `write_json`, so the
 library never imports `haactl` (the import contract in `.importlinter`, docs/architecture.md). Each result file
 describes the machine it was measured on with `machine(...)`: the facts a benchmark names, under the keys its
 JSON has always used (they differ between benchmarks, and the JSON keys are a public interface).

@@ -325,6 +325,27 @@ def bench_ap4(
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 
+@bench_app.command("agents")
+def bench_agents(
+    n: int = typer.Option(50, "-n", min=1, help="agents spawned through the fork server"),
+    cold_n: int = typer.Option(10, "--cold-n", min=0, help="agents spawned by exec (0 = skip)"),
+    messages: int = typer.Option(20000, "--messages", min=1, help="messages for the throughput figure"),
+    no_json: bool = typer.Option(False, "--no-json", help="do not write bench-results/agents.json"),
+) -> None:
+    """The agent runtime on this machine: spawn latency (fork server, exec), transfer and failure steps, memory
+    per agent, agent -> host -> agent throughput (haa.experiments.agents)."""
+    from haa.experiments.agents import run_agents_bench
+
+    t0 = time.perf_counter()
+    res = run_agents_bench(n, cold_n, messages)
+    print(benchtables.agents(res["rows"]))
+    print()
+    print(benchtables.agents_throughput(res["throughput"]))
+    if not no_json:
+        path = write_json("agents", res)
+        print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
 @bench_app.command("memory")
 def bench_memory(
     seconds: float = typer.Option(600.0, "--seconds", min=1.0, help="duration of the maximum-size traffic"),

@@ -255,6 +255,41 @@ def ap4_compact(rows: list[dict[str, Any]]) -> str:
     return _md(["hosts", *(label for _k, label in cols)], out)
 
 
+# ----- agents (the agent runtime on this machine) -------------------------------------------------------------
+
+_AGENT_STEPS = [("spawn -> Hello", "spawn_to_hello_s"), ("spawn -> Ready", "spawn_to_ready_s"),
+                ("freeze -> Frozen", "freeze_to_frozen_s"), ("spawn + thaw -> Ready", "spawn_thaw_to_ready_s"),
+                ("kill -9 -> Failed", "kill9_to_failed_s")]
+
+
+def agents(rows: list[dict[str, Any]]) -> str:
+    """The rows of haa.experiments.agents.measure_spawn: each step's delays, then start time and memory."""
+
+    def ms(s: dict[str, float], k: str) -> str:
+        return f"{s[k] * 1e3:.1f}" if s.get("n") else "-"
+
+    steps: list[list[Cell]] = []
+    for r in rows:
+        for label, key in _AGENT_STEPS:
+            s = r[key]
+            if s.get("n"):
+                steps.append([r["mode"], r["agents"], label, ms(s, "median"), ms(s, "p90"), ms(s, "max")])
+    mem: list[list[Cell]] = []
+    for r in rows:
+        rss = f"{r['rss_mib_mean']:.1f}" if r["rss_mib_mean"] else "-"
+        uss = f"{r['uss_mib_mean']:.1f}" if r["uss_mib_mean"] else "-"
+        mem.append([r["mode"], f"{r['forkserver_start_s'] * 1e3:.0f}", rss, uss])
+    return (_md(["mode", "agents", "step", "median ms", "p90 ms", "max ms"], steps) + "\n\n"
+            + _md(["mode", "fork server start ms", "RSS MiB/agent", "USS MiB/agent (private)"], mem))
+
+
+def agents_throughput(tput: list[dict[str, Any]]) -> str:
+    """haa.experiments.agents.measure_throughput's figures: agent -> host -> agent on one supervisor."""
+    return _md(["agent -> host -> agent", "messages", "bytes each", "msgs/s", "MiB/s"],
+               [["one supervisor", t["count"], t["size"], f"{t['msgs_per_s']:.0f}", f"{t['mib_per_s']:.1f}"]
+                for t in tput])
+
+
 # ----- memory -------------------------------------------------------------------------------------------------
 
 

@@ -1,4 +1,4 @@
-"""AgentSupervisor with real agent processes, wired by a fake two-host agent layer (haa.hostd.agentharness).
+"""AgentSupervisor with real agent processes, wired by a fake two-host agent layer (haa.experiments.localhosts).
 
 Transfer with no loss, duplicate or reordering; recovery from a backup; kill -9, hang, exit codes,
 malformed/oversized frames and unknown types as clear Failed events or SpawnErrors (the host unharmed);
@@ -19,7 +19,7 @@ import pytest
 from waits import until
 
 from haa.agents.base import new_agent_id
-from haa.hostd.agentharness import LocalHosts
+from haa.experiments.localhosts import LocalHosts
 from haa.hostd.agentproc import (
     AgentSupervisor,
     Envelope,

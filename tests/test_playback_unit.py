@@ -156,6 +156,27 @@ def test_haa_hostd_record_dir_option(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert load_settings(base).record_dir == tmp_path / "env"
 
 
+def test_the_host_injects_the_recorder_as_the_agents_tap(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """haa.agents never imports haa.playback: the runner opens the tap the host names in HAA_AGENT_TAP."""
+    from haa.agents.tap import TAP_ENV, load_factory, open_tap
+    from haa.hostd.daemon import RECORDER_TAP
+    from haa.playback import recorder
+
+    monkeypatch.delenv(TAP_ENV, raising=False)
+    monkeypatch.setenv("HAA_RECORD_DIR", str(tmp_path / "rec"))
+    assert open_tap(INIT) is None  # no factory named: nothing recorded, whatever HAA_RECORD_DIR says
+    assert load_factory(RECORDER_TAP) is recorder.from_env
+    monkeypatch.setenv(TAP_ENV, RECORDER_TAP)
+    tap = open_tap(INIT)
+    assert isinstance(tap, Recorder) and tap.dir == tmp_path / "rec" / "A7.2"
+    tap.close()
+    for bad in ("haa.playback.recorder", "haa.playback.recorder:nothing", "haa.no_such_module:f"):
+        monkeypatch.setenv(TAP_ENV, bad)
+        assert open_tap(INIT) is None  # a broken name stops the recording, never the agent
+        assert "agent A7.2: no recording (HAA_AGENT_TAP=" in capsys.readouterr().err
+
+
 def test_where_a_mission_records(tmp_path: Path) -> None:
     from haa.mission.runner import record_folder
 

@@ -21,11 +21,11 @@ from haa.slam.events import (
     Request,
     decode,
     encode,
-    recording_events,
 )
 from haa.slam.explorer import record
 from haa.slam.grid import GridSpec
 from haa.slam.motion import DRIFT, Prediction
+from haa.slam.recording import recording_events
 from haa.slam.replay import calibrate, config_for
 from haa.slam.replica import (
     BLOB_LIMIT,

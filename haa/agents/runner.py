@@ -30,11 +30,11 @@ from collections.abc import Coroutine
 from typing import Any, TypeVar
 
 from haa.agents import registry
+from haa.agents import tap as agent_tap
 from haa.agents.base import AgentContext, AgentFatal
 from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError
 from haa.agents.sched import AsyncioScheduler
 from haa.pb import agent_pb2 as pb
-from haa.playback import recorder
 
 #: how long a new process waits for its Init frame
 INIT_TIMEOUT = 30.0
@@ -48,6 +48,10 @@ EXIT_FATAL = 1
 EXIT_BAD_INIT = 2
 EXIT_HOST_CLOSED = 3
 EXIT_CHANNEL_ERROR = 4
+
+# the fork server imports this module before it forks: the host's tap (haa.agents.tap; the recorder when
+# haa-hostd records) is imported once there, not in every agent process
+agent_tap.preload()
 
 
 def run_loop(coro: Coroutine[Any, Any, T]) -> T:
@@ -127,8 +131,9 @@ async def _serve(chan: Channel[pb.HostToAgent]) -> int:
     except (LookupError, TypeError, ValueError) as e:
         _error(chan, str(e))
         return EXIT_BAD_INIT
-    # AgentPlayback (docs/playback.md): with HAA_RECORD_DIR set every input and output is recorded here
-    tap = recorder.from_env(init)
+    # AgentPlayback (docs/playback.md): the tap the host injects (HAA_AGENT_TAP, haa.agents.tap) records every
+    # input and output here
+    tap = agent_tap.open_tap(init)
     try:
         # the process's asyncio loop and wall clock (haa.agents.sched; the simulator injects a VirtualScheduler)
         ctx = AgentContext(init, cls, chan.send, drain=chan.drain, send_raw=chan.send_raw, tap=tap,

@@ -10,8 +10,8 @@ named after it (executive_mission.py, avatar_simulation.py, ...).
   `now()` and random numbers follow the simulator's clock"): `sim0` simulated seconds at wall time `wall0`
   (time.time(), so that every process on every machine with a synchronised clock agrees), running `speed`
   times faster. `use_mission_clock(agent, cfg)` installs it with the mission seed.
-* `SimLink` — an asyncio gRPC channel to haa-sim's AvatarSim service carrying the token and the caller's
-  name (metadata `x-haa-caller`, which haa-sim uses to count calls per caller: the agents must make no
+* `SimLink` (haa.agents.simlink) — an asyncio gRPC channel to haa-sim's AvatarSim service carrying the token
+  and the caller's name (metadata `x-haa-caller`, which haa-sim uses to count calls per caller: the agents must make no
   ground-truth or Detect calls, a mission test checks it).
 * `transcript(agent, text)` — one line of the mission transcript (Fig. 7.1-3) in the DDB log `mission/events`.
 * `get_json`, `put_json`, `counter_add` — small DDB helpers.
@@ -24,7 +24,6 @@ import concurrent.futures
 import json
 import time
 from collections.abc import Callable
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, ClassVar, TypeVar
 
@@ -32,6 +31,7 @@ import numpy as np
 import pydantic
 
 from haa.agents.base import AgentBase, Clock
+from haa.agents.simlink import SimLink as SimLink  # the channel to haa-sim (re-exported: team.SimLink)
 from haa.core import ddb as ddbops
 
 T = TypeVar("T")
@@ -104,42 +104,6 @@ def team_config(agent: AgentBase, **extra: Any) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------- haa-sim
-
-
-class SimLink:
-    """An asyncio gRPC channel to haa-sim (AvatarSim only: the hardware a robot driver talks to).
-
-    `tap`: the agent's AgentPlayback tap (`agent._ctx.tap`, docs/playback.md): recording, every call and reply
-    is recorded (haa-sim's replies bypass the host); replaying offline, the recording answers and nothing is
-    connected."""
-
-    def __init__(self, address: str, token_file: str, caller: str, tap: Any = None) -> None:
-        from grpc import aio
-
-        from haa.pb import sim_pb2_grpc as pbg
-        from haa.playback.external import sim_service
-
-        self.channel: Any = None
-        if tap is not None and getattr(tap, "offline", False):
-            self.metadata: tuple[tuple[str, str], ...] = (("x-haa-caller", caller),)
-            self.avatar = tap.wrap_stub("haa-sim", sim_service(), None)
-            return
-        if not address:
-            raise ValueError("config.sim: the haa-sim address is required")
-        md = [("x-haa-caller", caller)]
-        if token_file:
-            md.append(("x-haa-token", Path(token_file).read_text().strip()))
-        self.metadata = tuple(md)
-        self.channel = aio.insecure_channel(
-            address, options=[("grpc.max_receive_message_length", 32 * 1024 * 1024)]
-        )
-        self.avatar = pbg.AvatarSimStub(self.channel)
-        if tap is not None:
-            self.avatar = tap.wrap_stub("haa-sim", sim_service(), self.avatar)
-
-    async def close(self) -> None:
-        if self.channel is not None:
-            await self.channel.close(grace=None)
 
 
 def frame_from_pb(m: Any, avatar: str) -> SimpleNamespace:

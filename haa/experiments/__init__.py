@@ -14,6 +14,7 @@ One module per experiment, named after it:
 | `ap3` | `ap3`, `alloc-quality` | allocation time and messages (simulated), allocation quality | §7.2.3 |
 | `ap3real` | `ap3 --real` | AP-3 on real hosts and agent processes | §7.2.3 |
 | `ap4` | `ap4` | spawn, freeze, transfer and recovery delays vs. hosts | §7.2.4 |
+| `agents` | `agents` | the agent runtime alone: spawn, freeze/thaw, kill -9, memory, throughput (`localhosts`) | |
 | `slam` | `slam`, `ap5.1`, `ap5.2` | JC-SLAM speed; strategies at constrained capacity; delayed updates | §7.2.5 |
 | `replica` | `replica` | the SLAM state in the DDB: apply cost, checkpoints, published map | §5.2.3, §6.2 |
 | `ddb` | `ddb` | DDB writes through OAC: client loads, all hosts writing, the sequencer | §4.7 |
@@ -22,7 +23,8 @@ One module per experiment, named after it:
 | `sim` | `sim` | the robot simulator's stepping, camera and sonar speed | |
 | `demo` | (`haactl demo`) | agents while hosts join, retire, crash: nothing lost, reordered, run twice | §7.1 |
 
-Experiments that start hosts use haa.cluster.hostprocs (real haa-hostd processes on loopback). The package
-sits above haa.cluster, haa.dsim, haa.agents and haa.slam in the import layers (.importlinter) and is imported
-by haactl only.
+Experiments that start hosts use haa.cluster.hostprocs (real haa-hostd processes on loopback); the agent
+runtime's benchmark drives AgentSupervisor directly (`agents`, with `localhosts.LocalHosts`). The package sits
+above haa.cluster, haa.dsim, haa.hostd, haa.agents and haa.slam in the import layers (.importlinter) and is
+imported by haactl (and the tests) only.
 """

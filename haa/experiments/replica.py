@@ -15,9 +15,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from haa.slam.events import Observe, Predict, SlamEvent, encode, recording_events
+from haa.slam.events import Observe, Predict, SlamEvent, encode
 from haa.slam.explorer import record
 from haa.slam.explorer import scenario as get_scenario
+from haa.slam.recording import recording_events
 from haa.slam.replay import config_for
 from haa.slam.replica import SlamReplica
 from haa.slam.sensors import FloorReading, LandmarkReading

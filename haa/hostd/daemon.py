@@ -34,7 +34,8 @@ host's `host.pem` / `host.key` (made by `haactl cluster up --tls`); the certific
 the key not readable by others. Links and the control API then need a certificate of that CA.
 
 `--record-dir DIR` (env HAA_RECORD_DIR) makes every agent this host runs record its inputs and outputs into
-DIR (AgentPlayback: haa.playback, docs/playback.md); the agent processes inherit it as HAA_RECORD_DIR.
+DIR (AgentPlayback: haa.playback, docs/playback.md); the agent processes inherit it as HAA_RECORD_DIR, and the
+recorder as their tap (HAA_AGENT_TAP=haa.playback.recorder:from_env, loaded by name: haa.agents.tap).
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
@@ -73,6 +74,7 @@ from pydantic import (
 
 from haa import files
 from haa import tls as tlsmod
+from haa.agents.tap import TAP_ENV
 from haa.core.agentnode import AgentConfig
 from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY
 from haa.core.hostcore import CoreConfig
@@ -86,6 +88,10 @@ from haa.hostd.outcomes import WriteFailed
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.sampler import StatsSampler
 from haa.hostd.transport import NAME_RE
+
+#: the tap factory of the agent processes when the host records (haa.agents.tap: named, imported at run time
+#: in the agent process; haa.playback sits above the host's runtime)
+RECORDER_TAP = "haa.playback.recorder:from_env"
 
 PROG = "haa-hostd"
 log = logging.getLogger(LOGGER_NAME + ".daemon")
@@ -657,8 +663,9 @@ def lock_data_dir(path: Path) -> int:
 def main(argv: list[str] | None = None) -> None:
     settings = load_settings(argv)
     cfg = settings.runtime_config()
-    if settings.record_dir is not None:  # the fork server and every agent process inherit it (haa.playback.recorder)
+    if settings.record_dir is not None:  # the fork server and every agent process inherit both (haa.agents.tap)
         os.environ["HAA_RECORD_DIR"] = str(settings.record_dir.absolute())
+        os.environ[TAP_ENV] = RECORDER_TAP
     try:
         lock_data_dir(settings.data_dir)
     except OSError as e:

@@ -2,7 +2,8 @@
 and re-running one agent offline from its recording.
 
 * `haa.playback.recorder` — `Recorder`, the tap an agent process installs on its `AgentContext` when
-  `HAA_RECORD_DIR` is set (haa-hostd `--record DIR`, `haactl mission run --record DIR`): MCAP segments of
+  `HAA_RECORD_DIR` is set (haa-hostd `--record DIR`, `haactl mission run --record DIR`; the host names
+  `recorder.from_env` in HAA_AGENT_TAP, haa.agents.tap, so the agents never import this package): MCAP segments of
   protobuf messages (proto/haa/pb/playback.proto), one folder per agent, rotated by size, flushed every second.
 * `haa.playback.external` — inputs that bypass the host (haa-sim's replies to an avatar agent): a recording
   proxy of a gRPC stub and its offline stand-in.

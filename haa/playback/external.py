@@ -25,12 +25,6 @@ def methods(service: ServiceDescriptor) -> dict[str, tuple[bool, Any]]:
             for m in service.methods}
 
 
-def sim_service() -> ServiceDescriptor:
-    from haa.pb import sim_pb2
-
-    return sim_pb2.DESCRIPTOR.services_by_name["AvatarSim"]
-
-
 class RecordingStub:
     """The stub `inner` with every call recorded through `tap` (a `haa.playback.recorder.Recorder`)."""
 

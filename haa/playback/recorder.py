@@ -1,13 +1,14 @@
 """The AgentPlayback recorder (thesis §6.1.4; docs/playback.md): runs inside the agent process.
 
 `from_env(init)` gives a `Recorder` when `HAA_RECORD_DIR` is set (haa-hostd `--record DIR` sets it for the
-host's agent processes), else None; `haa.agents.runner` installs it as the tap of the agent's `AgentContext`
-(haa.agents.base), which reports every input where the agent consumes it, in that order — mailbox items
-(messages and requests with their sender, timer firings, DDB watch notifications and log items, the
-start/thaw/recover, resume, freeze and stop steps with their blobs), the host's answers to DDB reads, writes
-and spawn requests, replies to the agent's requests and timeouts of either, every `now()` and every random
-number — and every frame the agent sends its host (the outputs the replay compares). `wrap_stub` records an
-agent's calls to haa-sim and their replies (haa.playback.external).
+host's agent processes), else None; it is the tap factory haa-hostd names for them (HAA_AGENT_TAP, loaded by
+name: haa.agents.tap), so `haa.agents.runner` installs the recorder as the tap of the agent's `AgentContext`
+(haa.agents.base) without importing haa.playback. The context reports every input where the agent consumes
+it, in that order — mailbox items (messages and requests with their sender, timer firings, DDB watch
+notifications and log items, the start/thaw/recover, resume, freeze and stop steps with their blobs), the
+host's answers to DDB reads, writes and spawn requests, replies to the agent's requests and timeouts of either,
+every `now()` and every random number — and every frame the agent sends its host (the outputs the replay
+compares). `wrap_stub` records an agent's calls to haa-sim and their replies (haa.playback.external).
 
 Files: `<dir>/<agent name>/<instance>-<segment>.mcap`, instance = "e<epoch>-<host>-<start ns>" (a transferred
 or recovered agent goes on in a new instance on its new host, in the same folder). Each segment starts with a

@@ -16,12 +16,38 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from haa.sim.geometry import wrap_angle
 
 if TYPE_CHECKING:
-    from haa.sim.world import AvatarState, World
+    from haa.sim.avatars import AvatarSpec, Odometry
+    from haa.sim.camera import CameraFrame
+
+
+class ActionWorld(Protocol):
+    """What an action needs of the world that runs it (haa.sim.world.World): its time, and the three
+    operations of the non-moving actions."""
+
+    time: float
+
+    def capture(self, aid: str, labels: bool = False) -> CameraFrame: ...
+
+    def pick_up(self, aid: str, cid: str | None = None) -> tuple[bool, str]: ...
+
+    def drop(self, aid: str, cid: str | None = None) -> tuple[bool, str, str | None]: ...
+
+
+class ActionAvatar(Protocol):
+    """What an action needs of the avatar it steers (haa.sim.world.AvatarState): its id, type figures, odometry
+    (the controllers steer with what the robot believes), the commanded velocities and the measured speed."""
+
+    id: str
+    spec: AvatarSpec
+    odo: Odometry
+    cmd_v: float
+    cmd_w: float
+    last_speed: float
 
 RUNNING, SUCCEEDED, FAILED, CANCELLED = "running", "succeeded", "failed", "cancelled"
 BLOCKED_AFTER = 0.5  # s
@@ -47,13 +73,13 @@ class Action:
     def done(self) -> bool:
         return self.status != RUNNING
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         pass
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         pass
 
-    def finish(self, world: World, av: AvatarState, status: str, reason: str = "") -> None:
+    def finish(self, world: ActionWorld, av: ActionAvatar, status: str, reason: str = "") -> None:
         if self.done:
             return
         self.status = status
@@ -74,7 +100,7 @@ class _Motion(Action):
     _stall: float = 0.0
     _deadline: float = math.inf
 
-    def check_stall(self, world: World, av: AvatarState, h: float) -> bool:
+    def check_stall(self, world: ActionWorld, av: ActionAvatar, h: float) -> bool:
         want = abs(av.cmd_v)
         if want > 0.05 and av.last_speed < 0.25 * want:
             self._stall += h
@@ -96,12 +122,12 @@ class Wait(_Motion):
     def __post_init__(self) -> None:
         self.kind = "wait"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         av.cmd_v = av.cmd_w = 0.0
         if self.duration <= 0:
             self.finish(world, av, SUCCEEDED)
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         av.cmd_v = av.cmd_w = 0.0
         el = world.time - self.started
         self.progress = min(1.0, el / self.duration)
@@ -120,11 +146,11 @@ class Velocity(_Motion):
     def __post_init__(self) -> None:
         self.kind = "velocity"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         if self.duration <= 0:
             self.finish(world, av, SUCCEEDED)
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         av.cmd_v = _clip(self.v, av.spec.max_speed)
         av.cmd_w = _clip(self.omega, av.spec.max_turn)
         el = world.time - self.started
@@ -148,7 +174,7 @@ class Rotate(_Motion):
     def __post_init__(self) -> None:
         self.kind = "rotate"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         th = av.odo.theta
         self._unwrapped = 0.0  # rotation done so far (odometry), rad
         self._last = th
@@ -158,7 +184,7 @@ class Rotate(_Motion):
         if abs(self._total) < ANG_TOL:
             self.finish(world, av, SUCCEEDED)
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         th = av.odo.theta
         self._unwrapped += wrap_angle(th - self._last)
         self._last = th
@@ -191,13 +217,13 @@ class MoveTo(_Motion):
     def __post_init__(self) -> None:
         self.kind = "move_to"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         ox, oy, _ = av.odo.pose
         self._d0 = math.hypot(self.x - ox, self.y - oy)
         vmax = min(self.speed or av.spec.max_speed, av.spec.max_speed)
         self._deadline = world.time + (self._d0 / vmax + 2 * math.pi / av.spec.max_turn) * 3 + 5.0
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         if self._turning is not None:
             self._turning.update(world, av, h)
             if self._turning.done:
@@ -237,14 +263,14 @@ class MoveBy(_Motion):
     def __post_init__(self) -> None:
         self.kind = "move_by"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         self._x0, self._y0, self._th0 = av.odo.pose
         vmax = min(self.speed or av.spec.max_speed, av.spec.max_speed)
         self._deadline = world.time + abs(self.distance) / vmax * 3 + 5.0
         if abs(self.distance) < POS_TOL / 5:
             self.finish(world, av, SUCCEEDED)
 
-    def update(self, world: World, av: AvatarState, h: float) -> None:
+    def update(self, world: ActionWorld, av: ActionAvatar, h: float) -> None:
         ox, oy, oth = av.odo.pose
         c, s = math.cos(self._th0), math.sin(self._th0)
         along = (ox - self._x0) * c + (oy - self._y0) * s
@@ -266,7 +292,7 @@ class Capture(Action):
     def __post_init__(self) -> None:
         self.kind = "capture"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         self.result["frame"] = world.capture(av.id)
         self.finish(world, av, SUCCEEDED)
 
@@ -280,7 +306,7 @@ class PickUp(Action):
     def __post_init__(self) -> None:
         self.kind = "pick_up"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         ok, what = world.pick_up(av.id, self.collectable)
         if ok:
             self.result["collectable"] = what
@@ -298,7 +324,7 @@ class Drop(Action):
     def __post_init__(self) -> None:
         self.kind = "drop"
 
-    def start(self, world: World, av: AvatarState) -> None:
+    def start(self, world: ActionWorld, av: ActionAvatar) -> None:
         ok, what, region = world.drop(av.id, self.collectable)
         if ok:
             self.result["collectable"] = what

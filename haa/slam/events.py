@@ -332,25 +332,3 @@ def decode(data: bytes) -> SlamEvent:
         raise
     except (ValueError, TypeError, OverflowError) as e:  # the library's own validation (Prediction, readings)
         raise EventError(str(e).splitlines()[0] if str(e) else type(e).__name__) from None
-
-
-# ----- a recording as an event stream -----------------------------------------------------------------
-
-
-def recording_events(rec: object, request_period: float = 1.0, processor: str = "replay") -> list[SlamEvent]:
-    """A recording (haa.slam.recording.Recording) as the log a Baseline run would write: every avatar's
-    AddAvatar at t=0, then its time-ordered stream (`Recording.events`): predictions, each reading processed
-    as it arrives, weight requests."""
-    from haa.slam.recording import Recording
-    from haa.slam.strategies import PREDICTION, READING, REQUEST
-
-    assert isinstance(rec, Recording)
-    out: list[SlamEvent] = [AddAvatar(a.name, a.kind, a.start, 0.0, a.drift, a.radius) for a in rec.avatars]
-    for ev in rec.events(request_period):
-        if ev.kind == PREDICTION:
-            out.append(Predict(ev.avatar, ev.payload))
-        elif ev.kind == READING:
-            out.append(Observe(ev.payload, processor))
-        elif ev.kind == REQUEST:
-            out.append(Request(ev.avatar))
-    return out

@@ -13,7 +13,8 @@ is logged at its simulated time. Topics:
     /slam/floor (SlamFloor)  /slam/ideal_grid (SlamGrid, optional)
 
 `save(rec, path)` / `load(path)` round-trip exactly (tests/test_slam_recording.py). `Recording.events()`
-turns it into the time-ordered stream haa.slam.strategies replays, adding each avatar's weight requests.
+turns it into the time-ordered stream haa.slam.strategies replays, adding each avatar's weight requests;
+`recording_events(rec)` into the SLAM event log a Baseline run would write (haa.slam.events).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from haa.pb import slam_pb2 as pb
-from haa.slam.events import reading_message
+from haa.slam.events import AddAvatar, Observe, Predict, Request, SlamEvent, reading_message
 from haa.slam.grid import GridSpec
 from haa.slam.motion import DriftSpec, Prediction
 from haa.slam.sensors import (
@@ -302,3 +303,21 @@ def _info_to_recording(m: pb.SlamRunInfo) -> Recording:
         landmark_sigma_bearing=m.landmark_sigma_bearing,
         sonar_mount_radius=m.sonar_mount_radius,
     )
+
+
+# ----- a recording as an event stream -----------------------------------------------------------------
+
+
+def recording_events(rec: Recording, request_period: float = 1.0, processor: str = "replay") -> list[SlamEvent]:
+    """A recording as the log a Baseline run would write (haa.slam.events): every avatar's AddAvatar at t=0,
+    then its time-ordered stream (`Recording.events`): predictions, each reading processed as it arrives,
+    weight requests."""
+    out: list[SlamEvent] = [AddAvatar(a.name, a.kind, a.start, 0.0, a.drift, a.radius) for a in rec.avatars]
+    for ev in rec.events(request_period):
+        if ev.kind == PREDICTION:
+            out.append(Predict(ev.avatar, ev.payload))
+        elif ev.kind == READING:
+            out.append(Observe(ev.payload, processor))
+        elif ev.kind == REQUEST:
+            out.append(Request(ev.avatar))
+    return out

@@ -1,2 +1,2 @@
 """Statistics of a cluster: each host's sampler (sampler), bundles (bundle, collect), the cluster summary
-(summary, phases) and the HTML report (report, figures). docs/stats.md."""
+(summary, phases), one run directory read (run) and the HTML report (report, figures). docs/stats.md."""

@@ -1,6 +1,6 @@
 """The report's figures (matplotlib, Agg backend: no display needed), one PNG each.
 
-Each function takes the run's data (haa.stats.report.RunData) and a path, draws, saves and returns the path;
+Each function takes the run's data (haa.stats.run.RunData) and a path, draws, saves and returns the path;
 `xlim`/`ylim` let a comparison draw two runs on the same scales. Time is seconds since the run's first
 record (cluster time), except for the mission figure (mission time, as the mission's results use).
 
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 from haa.stats.summary import removals
 
 if TYPE_CHECKING:
-    from haa.stats.report import RunData
+    from haa.stats.run import RunData
 
 STATE_COLOURS = {
     "spawning": "#f2c12e",

@@ -2,19 +2,21 @@
 comparison, memory per agent, and the local steps of a transfer (freeze -> Frozen, spawn + thaw -> Ready)
 and of a failure (kill -9 -> Failed).
 
-    python -m haa.agents.bench [-n 50] [--cold-n 10]     # prints markdown tables, writes bench-results/agents.json
+    haactl bench agents [-n 50] [--cold-n 10]     # prints markdown tables, writes bench-results/agents.json
 
-`measure_spawn(n)` is the function `haactl bench ap4` calls; it returns a dict of figures (seconds) and never
-fails on a timing. Everything runs on this machine with real processes: one AgentSupervisor driven directly
-for the spawn figures; `measure_throughput` routes one agent's messages to another through one supervisor
-(haa.hostd.agentharness.LocalHosts: agent -> host -> agent, the local hop of every routed message).
+`run_agents_bench(n, cold_n, messages)` is what `haactl bench agents` calls; `measure_spawn(n)` returns a dict
+of figures (seconds) and never fails on a timing. Everything runs on this machine with real processes: one
+AgentSupervisor driven directly for the spawn figures; `measure_throughput` routes one agent's messages to
+another through one supervisor (haa.experiments.localhosts.LocalHosts: agent -> host -> agent, the local hop
+of every routed message). The agent runtime sits below the host's (haa.hostd.agentproc), so the benchmark that
+drives both lives here, above the runtime.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
+import logging
 import os
 import platform
 import signal
@@ -25,7 +27,6 @@ from typing import Any
 import psutil
 
 from haa.agents.base import new_agent_id
-from haa.benchresults import write_json
 from haa.hostd.agentproc import AgentEvent, AgentSupervisor, Failed, Frozen, InstanceSpec, Ready
 
 
@@ -146,7 +147,7 @@ def measure_spawn(n: int = 50, *, cold: bool = False, type_name: str = "probe", 
 
 async def ameasure_throughput(count: int = 20000, size: int = 100) -> dict[str, Any]:
     """Messages/s from one agent to another through their host (both on one supervisor)."""
-    from haa.hostd.agentharness import LocalHosts
+    from haa.experiments.localhosts import LocalHosts
 
     async with LocalHosts(("h1",), heartbeat_period=0.5, hang_timeout=10.0) as hosts:
         a = await hosts.create("probe", {"record": False})
@@ -166,63 +167,18 @@ def measure_throughput(count: int = 20000, size: int = 100) -> dict[str, Any]:
     return run_loop(ameasure_throughput(count, size))
 
 
-def markdown_table(rows: list[dict[str, Any]]) -> str:
-    def ms(s: dict[str, float], k: str) -> str:
-        return f"{s[k] * 1e3:.1f}" if s.get("n") else "-"
-
-    lines = [
-        "| mode | agents | step | median ms | p90 ms | max ms |",
-        "|---|---|---|---|---|---|",
-    ]
-    steps = [("spawn -> Hello", "spawn_to_hello_s"), ("spawn -> Ready", "spawn_to_ready_s"),
-             ("freeze -> Frozen", "freeze_to_frozen_s"), ("spawn + thaw -> Ready", "spawn_thaw_to_ready_s"),
-             ("kill -9 -> Failed", "kill9_to_failed_s")]
-    for r in rows:
-        for label, key in steps:
-            s = r[key]
-            if s.get("n"):
-                lines.append(f"| {r['mode']} | {r['agents']} | {label} | {ms(s, 'median')} | {ms(s, 'p90')} | "
-                             f"{ms(s, 'max')} |")
-    lines.append("")
-    lines.append("| mode | fork server start ms | RSS MiB/agent | USS MiB/agent (private) |")
-    lines.append("|---|---|---|---|")
-    for r in rows:
-        rss = f"{r['rss_mib_mean']:.1f}" if r["rss_mib_mean"] else "-"
-        uss = f"{r['uss_mib_mean']:.1f}" if r["uss_mib_mean"] else "-"
-        lines.append(f"| {r['mode']} | {r['forkserver_start_s'] * 1e3:.0f} | {rss} | {uss} |")
-    return "\n".join(lines)
-
-
 def machine() -> dict[str, Any]:
     return {"cpus": os.cpu_count(), "python": platform.python_version(), "load_1min": os.getloadavg()[0],
             "event_loop": os.environ.get("HAA_EVENT_LOOP", "uvloop")}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="agent runtime benchmark (spawn latency, transfer steps, memory)")
-    ap.add_argument("-n", type=int, default=50, help="agents spawned through the fork server")
-    ap.add_argument("--cold-n", type=int, default=10, help="agents spawned by exec (0 = skip)")
-    ap.add_argument("--messages", type=int, default=20000, help="messages for the throughput figure")
-    ap.add_argument("--no-json", action="store_true", help="do not write bench-results/agents.json")
-    args = ap.parse_args(argv)
-    import logging
-
+def run_agents_bench(n: int = 50, cold_n: int = 10, messages: int = 20000) -> dict[str, Any]:
+    """The whole benchmark (`haactl bench agents`): `n` spawns through the fork server, `cold_n` by exec (0 =
+    skip), and the throughput of `messages` messages of 100 and 10 000 bytes. Returns {"machine", "rows",
+    "throughput"}, what bench-results/agents.json holds."""
     logging.getLogger("haa.hostd.agents").setLevel(logging.ERROR)  # the kills are on purpose
-    t0 = time.perf_counter()
-    rows = [measure_spawn(args.n)]
-    if args.cold_n:
-        rows.append(measure_spawn(args.cold_n, cold=True, transfers=min(5, args.cold_n), kills=0))
-    print(markdown_table(rows))
-    tput = [measure_throughput(args.messages, size) for size in (100, 10_000)]
-    print("\n| agent -> host -> agent | messages | bytes each | msgs/s | MiB/s |")
-    print("|---|---|---|---|---|")
-    for t in tput:
-        print(f"| one supervisor | {t['count']} | {t['size']} | {t['msgs_per_s']:.0f} | {t['mib_per_s']:.1f} |")
-    if not args.no_json:
-        path = write_json("agents", {"machine": machine(), "rows": rows, "throughput": tput})
-        print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    rows = [measure_spawn(n)]
+    if cold_n:
+        rows.append(measure_spawn(cold_n, cold=True, transfers=min(5, cold_n), kills=0))
+    tput = [measure_throughput(messages, size) for size in (100, 10_000)]
+    return {"machine": machine(), "rows": rows, "throughput": tput}

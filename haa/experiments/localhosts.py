@@ -1,9 +1,9 @@
 """LocalHosts: a stand-in for the hosts' agent layer, wiring several AgentSupervisors in one process.
 
-It is what the tests, `haa.agents.bench` and quick experiments use to run real agent processes without a
-cluster: each "host" is an `AgentSupervisor`; routing is a dict (agent id -> host) and a direct `deliver`
-(so it is trivially FIFO); the DDB is a dict with prefix watchers; spawn_child, backups, transfers and
-recoveries are done the simplest correct way on one machine. It shows the calls the real agent layer
+It is what the tests, the agent benchmark (haa.experiments.agents) and quick experiments use to run real
+agent processes without a cluster: each "host" is an `AgentSupervisor`; routing is a dict (agent id -> host) and a
+direct `deliver` (so it is trivially FIFO); the DDB is a dict with prefix watchers; spawn_child, backups,
+transfers and recoveries are done the simplest correct way on one machine. It shows the calls the real agent layer
 (haa-hostd) makes, in the order it makes them:
 
 * new agent: `spawn(spec)`, `start_fresh(id)`, wait Ready;
