@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import random
 from collections import Counter
@@ -393,45 +394,46 @@ class SimCluster:
         proc = (h.name, h.inc)
         hist = self.history
         for e in effects:
-            t = type(e)
-            if t is Send:
-                if sends_allowed is not None:
-                    if sends_allowed <= 0:
-                        continue
-                    sends_allowed -= 1
-                self._transmit(h, e)
-            elif t is SetTimer:
-                gen = self.heap.new_id()  # the timer's generation (haa.dsim.scheduler)
-                h.timers[e.key] = gen
-                at = h.virtual(e.at)
-                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, gen, e.at))
-            elif t is CancelTimer:
-                h.timers.pop(e.key, None)
-            elif t is Deliver:
-                hist.delivered[proc].append((e.txid, e.order, e.payload, now))
-                self._note(f"deliver {e.txid} order={e.order} at {h.name}#{h.inc}")
-            elif t is Decided:
-                hist.decided[proc].setdefault(e.txid, (e.commit, now))
-                self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
-            elif t is Closed:
-                hist.closed[proc].add(e.txid)
-            elif t is Suspicion:
-                hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
-                self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")
-            elif t is PeerDead:
-                hist.dead_marks.append((now, proc, (e.peer, e.inc), e.reason))
-                if e.reason == "excluded":
-                    hist.excluded.setdefault((e.peer, e.inc), now)
-                self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
-            elif t is Reincarnate:
-                self.at(now, lambda name=h.name, inc=h.inc: self._reincarnate(name, inc))
-            elif t is Log:
-                if e.event in ERROR_EVENTS:
-                    hist.core_errors.append((now, proc, e.event, str(e.fields)))
-                if self.trace is not None:
-                    self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
-            elif self.on_effect is not None:
-                self.on_effect(h, e)
+            match e:
+                case Send():
+                    if sends_allowed is not None:
+                        if sends_allowed <= 0:
+                            continue
+                        sends_allowed -= 1
+                    self._transmit(h, e)
+                case SetTimer():
+                    gen = self.heap.new_id()  # the timer's generation (haa.dsim.scheduler)
+                    h.timers[e.key] = gen
+                    at = h.virtual(e.at)
+                    self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, gen, e.at))
+                case CancelTimer():
+                    h.timers.pop(e.key, None)
+                case Deliver():
+                    hist.delivered[proc].append((e.txid, e.order, e.payload, now))
+                    self._note(f"deliver {e.txid} order={e.order} at {h.name}#{h.inc}")
+                case Decided():
+                    hist.decided[proc].setdefault(e.txid, (e.commit, now))
+                    self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
+                case Closed():
+                    hist.closed[proc].add(e.txid)
+                case Suspicion():
+                    hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
+                    self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")
+                case PeerDead():
+                    hist.dead_marks.append((now, proc, (e.peer, e.inc), e.reason))
+                    if e.reason == "excluded":
+                        hist.excluded.setdefault((e.peer, e.inc), now)
+                    self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
+                case Reincarnate():
+                    self.at(now, functools.partial(self._reincarnate, h.name, h.inc))
+                case Log():
+                    if e.event in ERROR_EVENTS:
+                        hist.core_errors.append((now, proc, e.event, str(e.fields)))
+                    if self.trace is not None:
+                        self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
+                case _:
+                    if self.on_effect is not None:
+                        self.on_effect(h, e)
         if crash_after:
             self._crash_now(h)
 

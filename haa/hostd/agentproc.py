@@ -805,7 +805,7 @@ class AgentSupervisor:
             self.events(ev)
         except Exception as e:
             self.event_errors += 1
-            log_event(self.log, logging.ERROR, "agent_event_callback_error", event=type(ev).__name__,
+            log_event(self.log, logging.ERROR, "agent_event_callback_error", kind=type(ev).__name__,
                       agent=ev.agent_id, error=f"{type(e).__name__}: {e}")
 
     def _on_frame(self, inst: _Instance, msg: pb.AgentToHost) -> None:
