@@ -18,9 +18,9 @@ import functools
 import hashlib
 import random
 from collections import Counter
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from haa.core.effects import (
     CancelTimer,
@@ -40,6 +40,25 @@ from haa.dsim.network import DelayModel
 from haa.dsim.scheduler import EventHeap
 
 Proc = tuple[str, int]  # (host name, incarnation): one process life
+
+
+class SimCore(Protocol):
+    """What a simulated host's core must offer the cluster: a `HostCore` (the default), a `MembershipNode`
+    (haa.dsim.group) or an `AgentNode` (haa.dsim.agents) — inputs in, effects drained out. The cluster handles
+    the `HostCore` effects itself and hands any other effect to `SimCluster.on_effect`."""
+
+    def start(self, now: float) -> None: ...
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Any) -> object: ...
+    def on_timer(self, now: float, key: Hashable) -> None: ...
+    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None: ...
+    def on_peer_info(self, now: float, peer: str, inc: int) -> None: ...
+    def drain(self) -> Sequence[object]: ...
+
+    @property
+    def peers(self) -> Mapping[str, Any]: ...
+
+    @property
+    def oac(self) -> Any: ...
 
 EV_MSG = 0
 EV_TIMER = 1
@@ -116,12 +135,20 @@ class SimHost:
         self.offset = offset
         self.drift = drift
         self.inc = 0
-        self.core: HostCore | None = None
+        self.core: SimCore | None = None
         self.state = ALIVE
         self.timers: dict[Hashable, int] = {}
         self.backlog: list[tuple[int, Any]] = []
         self.crash_pending: float | None = None
         self.pause_started = 0.0
+
+    @property
+    def live_core(self) -> SimCore:
+        """The core of a host that has one (alive or paused); a crashed host has none."""
+        core = self.core
+        if core is None:
+            raise RuntimeError(f"{self.name}#{self.inc} has no core (crashed)")
+        return core
 
     def local(self, t: float) -> float:
         return self.offset + (1.0 + self.drift) * t
@@ -172,7 +199,7 @@ class SimCluster:
         self.on_restart: Callable[[str, int], None] | None = None
         #: builds the state machine a host boots (default: a `HostCore` over the static host list); it must
         #: offer HostCore's inputs, `drain()`, `peers` and `oac`, and record its votes in `history.votes`
-        self.make_core: Callable[[SimHost, int], Any] | None = None
+        self.make_core: Callable[[SimHost, int], SimCore] | None = None
         #: receives effects this class does not know (those of a `MembershipNode`)
         self.on_effect: Callable[[SimHost, Any], None] | None = None
 
@@ -197,17 +224,19 @@ class SimCluster:
             self.history.votes.setdefault(txid, {})[(_name, _inc)] = vote
             return vote
 
+        core: SimCore
         if self.make_core is not None:
-            h.core = self.make_core(h, inc)
+            core = self.make_core(h, inc)
         else:
             known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
-            h.core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+            core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+        h.core = core
         proc = (name, inc)
         self.history.started[proc] = self.now
         self.history.decided[proc] = {}
         self.history.delivered[proc] = []
         self.history.closed[proc] = set()
-        h.core.start(h.local(self.now))
+        core.start(h.local(self.now))
         self._apply(h)
         self._note(f"boot {name}#{inc}")
 
@@ -317,6 +346,8 @@ class SimCluster:
                 h.backlog.append((EV_CALL, lambda: self.propose(name, payload, participants)))
             return None
         core = h.core
+        if not isinstance(core, HostCore):
+            raise TypeError(f"propose: {name}'s core is a {type(core).__name__}, not a HostCore")
         try:
             txid = core.propose(h.local(self.now), payload, participants)
         except ValueError:
@@ -351,7 +382,7 @@ class SimCluster:
                 elif kind == EV_MSG and type(data[3]) in OAC_TYPES:
                     self.oac_in_flight -= 1
                 continue
-            core = h.core
+            core = h.live_core  # alive
             if kind == EV_MSG:
                 src, src_inc, dst_inc, msg = data
                 if type(msg) in OAC_TYPES:
