@@ -245,7 +245,7 @@ class SimCluster:
     def _push(self, t: float, kind: int, idx: int, data: Any) -> None:
         self.heap.push(t, (kind, idx, data))
 
-    def at(self, t: float, fn: Callable[[], None]) -> None:
+    def at(self, t: float, fn: Callable[[], object]) -> None:
         self._push(max(t, self.now), EV_CALL, -1, fn)
 
     # ------------------------------------------------------------------ faults and inputs

@@ -45,6 +45,7 @@ fault is injected only while every view and every open transaction keeps a corre
 from __future__ import annotations
 
 import dataclasses
+import functools
 import random
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -410,7 +411,7 @@ class GroupSim:
         cl = self.cl
         sc = self.sc
         for nm, t in sc.starts.items():
-            cl.at(t, lambda nm=nm: self._start(nm))
+            cl.at(t, functools.partial(self._start, nm))
         restarts: dict[int, float] = {}  # index of a crash fault -> delay of the restart drawn for it
         for i, f in enumerate(sc.faults):
             if f.kind in ("crash", "crash_mid"):
@@ -419,15 +420,15 @@ class GroupSim:
                     restarts[i] = nxt.time - f.time
         for i, f in enumerate(sc.faults):
             if f.kind in ("crash", "crash_mid"):
-                cl.at(f.time, lambda f=f, i=i: self._gated(f, lambda: self._crash(f, restarts.get(i))))
+                cl.at(f.time, functools.partial(self._gated, f, functools.partial(self._crash, f, restarts.get(i))))
             elif f.kind == "pause":
-                cl.at(f.time, lambda f=f: self._gated(f, lambda: self._pause(f)))
+                cl.at(f.time, functools.partial(self._gated, f, functools.partial(self._pause, f)))
             elif f.kind == "spike":
-                cl.at(f.time, lambda f=f: self._gated(f, lambda: self._spike(f)))
+                cl.at(f.time, functools.partial(self._gated, f, functools.partial(self._spike, f)))
         for t, nm in sc.writes:
-            cl.at(t, lambda nm=nm: self._write(nm))
+            cl.at(t, functools.partial(self._write, nm))
         for t, nm in sc.leaves:
-            cl.at(t, lambda nm=nm: self._leave(nm))
+            cl.at(t, functools.partial(self._leave, nm))
         cl.run(sc.fault_end)
         for h in cl.by_idx:  # heal
             if h.state == PAUSED:
@@ -537,7 +538,7 @@ class GroupSim:
         self.dissolved = True
         rd = random.Random(self.sc.seed * 7907 + 29)
         for nm in self.sc.names:
-            self.cl.at(self.cl.now + rd.uniform(0.0, 0.05), lambda nm=nm: self._leave(nm))
+            self.cl.at(self.cl.now + rd.uniform(0.0, 0.05), functools.partial(self._leave, nm))
 
     def _pause(self, f: Fault) -> None:
         cl = self.cl
