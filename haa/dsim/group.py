@@ -324,7 +324,7 @@ class GroupSim:
                 gh.group_txs[proc].append((st.genesis, e.seq, e.txid, decode_tx(e.payload)))
             elif e.kind == "seq":
                 gh.seq_applied.setdefault(
-                    (st.genesis, e.seq), tuple((r.origin, r.cseq) for r in e.result if r.applied)  # type: ignore[attr-defined]
+                    (st.genesis, e.seq), tuple((r.origin, r.cseq) for r in e.result if r.applied)
                 )
         elif t is ViewChange:
             gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))

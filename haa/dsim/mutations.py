@@ -136,7 +136,7 @@ def no_order_confirm() -> Undo:
     def highest(self: oac_mod.OrderedAtomicCommit, exclude: object = None) -> object:
         if exclude is not None:  # the l. 22 confirmation in atomicCommit sees no conflict
             return None
-        return original(self, exclude)  # type: ignore[arg-type]
+        return original(self, exclude)
 
     return _patch(cls, "_highest", highest)
 

@@ -404,8 +404,8 @@ def ddb_read(backend: Any, keys: Sequence[str] = (), prefix: str = "", prefer: s
     """{key: decoded value} from the replica of one alive host (`prefer` first); None if no host answers."""
     names = alive_hosts(backend)
     if prefer in names:
-        names.remove(prefer)  # type: ignore[arg-type]
-        names.insert(0, prefer)  # type: ignore[arg-type]
+        names.remove(prefer)
+        names.insert(0, prefer)
     for n in names:
         c = _client(backend, n, timeout)
         try:

@@ -273,9 +273,9 @@ def load(path: Path | str) -> Recording:
             rec.readings.append(FloorReading(m.avatar, m.t, tuple(zip(m.xs, m.ys, strict=True))))  # type: ignore[attr-defined]
     if grid_msg is not None:
         g = grid_msg
-        rec.ideal_grid = np.asarray(g.p, dtype=np.float64).reshape(g.rows, g.cols)  # type: ignore[attr-defined]
-        if len(g.region):  # type: ignore[attr-defined]
-            rec.region = np.asarray(g.region, dtype=bool).reshape(g.rows, g.cols)  # type: ignore[attr-defined]
+        rec.ideal_grid = np.asarray(g.p, dtype=np.float64).reshape(g.rows, g.cols)
+        if len(g.region):
+            rec.region = np.asarray(g.region, dtype=bool).reshape(g.rows, g.cols)
     return rec
 
 
