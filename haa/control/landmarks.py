@@ -98,9 +98,10 @@ class LandmarkDetector:
             r = math.hypot(X, Y)
             if not (0 < r <= max_range):
                 continue
-            d = Detection(int(i), r, math.atan2(Y, X), pts, (X, Y))
-            if i not in best or r < best[i].range:
-                best[i] = d
+            mid = int(i)
+            d = Detection(mid, r, math.atan2(Y, X), pts, (X, Y))
+            if mid not in best or r < best[mid].range:
+                best[mid] = d
         return [best[i] for i in sorted(best)]
 
     def reading(self, frame: object, avatar: str | None = None) -> LandmarkReading:

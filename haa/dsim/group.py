@@ -66,7 +66,7 @@ Proc = tuple[str, int]
 #: recomputed every 50 heartbeats (the thesis' N) instead of 20, which is most of the cost of a schedule
 GROUP_UFD = dataclasses.replace(SIM_UFD, reevaluate_every=50)
 
-SIM_NODE = dict(
+SIM_NODE: dict[str, Any] = dict(
     formation_timeout=1.0,
     formation_retry=0.3,
     discovery=0.2,

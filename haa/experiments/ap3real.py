@@ -36,6 +36,7 @@ Results go into bench-results/ap3.json under the key "real", next to the simulat
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -58,6 +59,10 @@ HOSTS = (2, 4, 6, 8, 10)
 AGENTS = (5, 10, 20, 30, 45, 60)
 #: a session that has not committed everywhere within this long is counted as failed
 SESSION_TIMEOUT = 60.0
+
+
+def _active_is(c: BenchCluster, a: int) -> bool:
+    return sum(1 for x in c.agents().values() if x.status == "active") == a
 
 
 def oac_messages(n: int) -> int:
@@ -197,7 +202,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                 while have < a:
                     spawn_idle(c, rng, n, c.names[have % n])
                     have += 1
-                wait_for(lambda a=a: sum(1 for x in c.agents().values() if x.status == "active") == a, 120,
+                wait_for(functools.partial(_active_is, c, a), 120,
                          f"{a} active agents")
                 c.wait_quiet(timeout=120.0)
             except (grpc.RpcError, AssertionError, RuntimeError) as e:

@@ -623,7 +623,7 @@ class AgentSupervisor:
                 raise SpawnError(f"agent {spec.name} (pid {pid}): channel error before hello: {e}") from None
             kind = msg.WhichOneof("msg") if msg is not None else None
             if kind != "hello":
-                if kind == "error":
+                if msg is not None and kind == "error":
                     why = msg.error.message
                 elif msg is None:
                     await self._wait_exit(inst, 1.0)
