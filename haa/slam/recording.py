@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from google.protobuf.message import Message
 
 from haa.pb import slam_pb2 as pb
 from haa.slam.events import reading_message
@@ -224,7 +225,7 @@ def load(path: Path | str) -> Recording:
     from mcap.reader import make_reader
 
     path = Path(path)
-    classes = {
+    classes: dict[str, type[Message]] = {
         "/slam/info": pb.SlamRunInfo,
         "/slam/prediction": pb.SlamPrediction,
         "/slam/truth": pb.SlamPose,
