@@ -216,7 +216,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                 except (grpc.RpcError, AssertionError) as e:
                     log(f"n={n} agents={a}: a session sample failed: {e}")
                     runs.append({"ok": False})
-            row = {
+            row: dict[str, Any] = {
                 "hosts": n, "agents": a, "reps": reps, "load_avg_1min": os.getloadavg()[0],
                 "view_changes": sum(1 for r in runs if r.get("view_changed")),
                 "consensus_ms": _agg(r.get("consensus_s", math.nan) * 1e3 for r in runs),
