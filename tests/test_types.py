@@ -24,7 +24,7 @@ MYPY = Path(sys.executable).with_name("mypy")
 IGNORE_BUDGET = 10
 #: `# type: ignore` comments outside the core (each with its error code): third-party stubs that are wrong or
 #: missing (protobuf's Any base class, numpy, grpc). Lower it when one goes; do not raise it to silence mypy.
-OUTSIDE_IGNORE_BUDGET = 58
+OUTSIDE_IGNORE_BUDGET = 47
 #: the core package (strict) and what `files` lists
 CORE = "haa/core"
 CHECKED = ["haa", "haactl"]

@@ -754,7 +754,7 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
     if not gh.correct_groups:
         bad("HM-Formation", "no correct group was formed")
         return out
-    nodes: dict[Proc, MembershipNode] = {(h.name, h.inc): h.core for h in live}  # type: ignore[misc]
+    nodes = {(h.name, h.inc): h.core for h in live if isinstance(h.core, MembershipNode)}  # `live` is these
     members = {p: n for p, n in nodes.items() if n.is_member()}
     if not members:
         bad("HM-Non-Triviality-Join", f"no live host is a member: {sorted(_p(p) for p in nodes)}", *nodes)
