@@ -38,7 +38,7 @@ import yaml
 try:
     from yaml import CSafeLoader as _BaseLoader
 except ImportError:  # pragma: no cover - PyYAML built without libyaml
-    from yaml import SafeLoader as _BaseLoader  # type: ignore[assignment]
+    from yaml import SafeLoader as _BaseLoader
 
 #: default limits of `load_yaml` / `load_json` (a caller may pass others for its kind of file)
 MAX_BYTES = 1 << 20
@@ -209,7 +209,7 @@ def _check_events(loader: Any, max_depth: int, max_nodes: int) -> None:
             raise _Refused(f"more than {max_nodes} nodes (counting aliases expanded){_mark(ev.start_mark)}")
 
 
-class _Loader(_BaseLoader):  # type: ignore[misc,valid-type]
+class _Loader(_BaseLoader):
     """The safe loader, refusing duplicate mapping keys."""
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:

@@ -144,7 +144,7 @@ def cluster_up(
             before,
         )
     except StartError:
-        backend.down(grace=1.0)  # type: ignore[attr-defined]  # nothing stays up after a bad start
+        backend.down(grace=1.0)  # nothing stays up after a bad start
         raise
     total = time.monotonic() - t0
     if json_out:

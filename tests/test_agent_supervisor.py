@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import signal
 import statistics
@@ -539,3 +540,19 @@ def test_agent_log_lines_reach_the_host_log(caplog):
                                   "agent_type": "probe"}
 
     run(main())
+
+
+def test_a_raising_event_callback_is_counted_and_logged_not_raised(caplog):
+    """The host's event callback raising is the host's bug: the supervisor counts it, logs it (the event's kind,
+    the agent, the error) and goes on. The log call once passed `event=` twice (a TypeError on this path)."""
+    def callback(ev):
+        raise RuntimeError("boom")
+
+    sup = AgentSupervisor("h1", callback)
+    agent = new_agent_id()
+    with caplog.at_level(logging.ERROR, logger=sup.log.name):
+        sup._emit(Stopped(agent))
+    assert sup.event_errors == 1
+    rec = [r for r in caplog.records if getattr(r, "event", None) == "agent_event_callback_error"]
+    assert len(rec) == 1
+    assert rec[0].fields == {"kind": "Stopped", "agent": agent, "error": "RuntimeError: boom"}

@@ -289,7 +289,7 @@ class AvatarSimulation(team.TeamAgent):
         """The committed anchor (time, odometry pose, last reading number) into `anchor` / `n_readings`."""
         anchor = await team.get_json(self, f"slam/anchor/{self.name_}")
         if anchor:
-            self.anchor = (float(anchor["t"]), tuple(anchor["pose"]))  # type: ignore[assignment]
+            self.anchor = (float(anchor["t"]), tuple(anchor["pose"]))
             self.n_readings = max(self.n_readings, int(anchor.get("n", 0)))
         return anchor
 

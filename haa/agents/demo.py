@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import os
 import struct
@@ -435,6 +436,9 @@ class ProbeAgent(AgentBase):
             self.value = str(cfg.value)
         self.record = cfg.record is not False  # keep the messages received
 
+    def _log_item(self, key: str, index: int, item: bytes) -> None:
+        self._record(self.events, ["log", key, index, item.decode("utf-8", "replace")])
+
     def _record(self, lst: list[Any], item: Any) -> None:
         lst.append(item)
         del lst[: -self.MAX_RECORDED]
@@ -505,8 +509,7 @@ class ProbeAgent(AgentBase):
             else:
                 out = None
         elif op == "watch_log":
-            out = self.watch_log(cmd["key"], lambda index, item, key=cmd["key"]: self._record(
-                self.events, ["log", key, index, item.decode("utf-8", "replace")]))
+            out = self.watch_log(cmd["key"], functools.partial(self._log_item, cmd["key"]))
         elif op == "watch":
             prefix = cmd["prefix"]
             out = self.watch(prefix, lambda ev, key, val: self._record(

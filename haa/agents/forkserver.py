@@ -52,8 +52,12 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from haa.pb import agent_pb2 as pb
+
+if TYPE_CHECKING:
+    from haa.agents.base import AgentBase
 
 PR_SET_PDEATHSIG = 1
 #: largest packet on the control socket (the ready message with the type table is the big one)
@@ -172,7 +176,7 @@ def serve(fd: int, preload: Sequence[str] = ()) -> int:
 
 
 def _fork_one(sock: socket.socket, data: bytes, fds: list[int], children: set[int],
-              private: tuple[int, int, selectors.BaseSelector]) -> int:
+              private: tuple[int, int, selectors.DefaultSelector]) -> int:
     """Handle one request: check the type, fork, answer. Returns the child's pid (0 if none)."""
     from haa.agents import registry
 
@@ -243,7 +247,7 @@ def _fork_one(sock: socket.socket, data: bytes, fds: list[int], children: set[in
     return pid
 
 
-def _validate_one(sock: socket.socket, req: pb.ForkServerRequest, fd: int, cls: type) -> None:
+def _validate_one(sock: socket.socket, req: pb.ForkServerRequest, fd: int, cls: type[AgentBase]) -> None:
     """Answer a validate request: read the config from the memfd `fd` and check it (no fork)."""
     try:
         size = req.config_size

@@ -31,6 +31,7 @@ class AgentSensorLandmark(team.SensorBase):
     TYPE = "sensor_landmark"
     CONFIG = LandmarkSensorConfig
     COST = 0.2
+    cfg: LandmarkSensorConfig
 
     def __init__(self, ctx: Any) -> None:
         super().__init__(ctx)

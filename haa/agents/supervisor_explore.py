@@ -176,7 +176,7 @@ class SupervisorExplore(team.SupervisorBase):
             if not near:
                 break
             for a in near:
-                tx, ty = targets[a]  # type: ignore[misc]
+                tx, ty = targets[a]
                 self._add_block(tx, ty, now)
                 self._block(p, spec, tx, ty)
             targets = self._split(p, spec, pos)

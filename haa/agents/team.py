@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import json
 import time
 from collections.abc import Callable
@@ -367,6 +368,8 @@ class SensorBase(TeamAgent):
     keys in flight}: the messages are FIFO per sender, so every processing the supervisor sent before it
     has been seen by then, and those neither done nor busy were lost with the agent's previous life."""
 
+    cfg: SensorConfig
+
     CONFIG: ClassVar[type[pydantic.BaseModel] | None] = SensorConfig
     #: the processing type it serves (the supervisor's name for it); "" = its TYPE. A dedicated agent
     #: (`dedicated_type`) is a type of its own that serves its base type's processings
@@ -430,7 +433,7 @@ class SensorBase(TeamAgent):
         if first is None:
             task = asyncio.ensure_future(self._process_one(src, msg))
             self.inflight[key] = task
-            task.add_done_callback(lambda t, k=key: self.inflight.pop(k) if self.inflight.get(k) is t else None)
+            task.add_done_callback(functools.partial(self._done, key))
         else:  # handed out again while this agent has it: after the first copy, the marker answers
             task = asyncio.ensure_future(self._after(first, src, msg))
         self.jobs.add(task)
@@ -439,6 +442,10 @@ class SensorBase(TeamAgent):
     async def _after(self, first: asyncio.Task[Any], src: str, msg: dict[str, Any]) -> None:
         await asyncio.wait([first])
         await self._process_one(src, msg)
+
+    def _done(self, key: str, task: asyncio.Task[Any]) -> None:
+        if self.inflight.get(key) is task:
+            self.inflight.pop(key)
 
     async def _process_one(self, src: str, msg: dict[str, Any]) -> None:
         from haa.slam import events as sev

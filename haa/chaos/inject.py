@@ -86,7 +86,7 @@ class Injector:
     """Runs a plan's faults against `backend` (module docstring)."""
 
     def __init__(self, plan: Plan, backend: Backend, on_fault: Callable[[Injected], None] | None = None,
-                 clock: Callable[[], float] = time.time, sleep: Callable[[float], None] = time.sleep,
+                 clock: Callable[[], float] = time.time, sleep: Callable[[float], object] = time.sleep,
                  duration: float | None = None, wall_per_s: float = 1.0) -> None:
         """`clock` gives the plan's seconds (a mission's simulated time inside a mission), `sleep` waits that
         many of them; `duration` overrides the plan's `duration_s` (a mission's time limit); a `hang_s` is

@@ -43,7 +43,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from haa.sim.camera import floor_homography
+from haa.sim.camera import CameraFrame, floor_homography
 from haa.slam.sensors import FloorReading
 
 #: accepted patches before a learnt colour is shared with the team (`FloorFinder.confident`)
@@ -211,21 +211,21 @@ class FloorFinder:
                 self.accepted, self.refused, self.refused_run = 0, 0, 0
         return self.mean, self.std
 
-    def find(self, frame: object) -> FloorResult | None:
+    def find(self, frame: CameraFrame) -> FloorResult | None:
         f = frame
-        ref = self.reference(f.image)  # type: ignore[attr-defined]
+        ref = self.reference(f.image)
         if ref is None:
             return None
-        return find_floor(f.image, f.K, f.mount, f.max_range, self.cfg, ref)  # type: ignore[attr-defined]
+        return find_floor(f.image, f.K, f.mount, f.max_range, self.cfg, ref)
 
-    def reading(self, frame: object, avatar: str | None = None) -> FloorReading | None:
+    def reading(self, frame: CameraFrame, avatar: str | None = None) -> FloorReading | None:
         """The FloorReading of a haa.sim CameraFrame (image, K, mount, max_range, time, avatar); None when no
         floor is seen (the polygon would have no area)."""
         res = self.find(frame)
-        if res is None or float(np.max(res.ranges)) <= 0 or bool((res.boundary >= frame.image.shape[0]).all()):  # type: ignore[attr-defined]
+        if res is None or float(np.max(res.ranges)) <= 0 or bool((res.boundary >= frame.image.shape[0]).all()):
             return None
         return FloorReading(
-            avatar if avatar is not None else frame.avatar,  # type: ignore[attr-defined]
-            float(frame.time),  # type: ignore[attr-defined]
+            avatar if avatar is not None else frame.avatar,
+            float(frame.time),
             tuple(res.polygon),
         )

@@ -28,11 +28,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from haa.slam.sensors import LandmarkReading, Sighting
+
+if TYPE_CHECKING:
+    from haa.sim.arena import Arena
+    from haa.sim.camera import CameraFrame
 
 
 @dataclass(frozen=True)
@@ -65,10 +70,10 @@ class LandmarkDetector:
         self._obj = np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]], dtype=np.float64)
 
     @classmethod
-    def for_arena(cls, arena: object) -> LandmarkDetector:
+    def for_arena(cls, arena: Arena) -> LandmarkDetector:
         """A detector for a haa.sim Arena (its dictionary, marker size and landmark ids)."""
-        ids = set(arena.landmarks)  # type: ignore[attr-defined]
-        return cls(arena.marker_dictionary, arena.marker_size, ids)  # type: ignore[attr-defined]
+        ids = set(arena.landmarks)
+        return cls(arena.marker_dictionary, arena.marker_size, ids)
 
     def detect(
         self,
@@ -98,17 +103,18 @@ class LandmarkDetector:
             r = math.hypot(X, Y)
             if not (0 < r <= max_range):
                 continue
-            d = Detection(int(i), r, math.atan2(Y, X), pts, (X, Y))
-            if i not in best or r < best[i].range:
-                best[i] = d
+            mid = int(i)
+            d = Detection(mid, r, math.atan2(Y, X), pts, (X, Y))
+            if mid not in best or r < best[mid].range:
+                best[mid] = d
         return [best[i] for i in sorted(best)]
 
-    def reading(self, frame: object, avatar: str | None = None) -> LandmarkReading:
+    def reading(self, frame: CameraFrame, avatar: str | None = None) -> LandmarkReading:
         """The LandmarkReading of a haa.sim CameraFrame (image, K, mount, max_range, time, avatar)."""
         f = frame
-        dets = self.detect(f.image, f.K, f.mount, f.max_range)  # type: ignore[attr-defined]
+        dets = self.detect(f.image, f.K, f.mount, f.max_range)
         return LandmarkReading(
-            avatar if avatar is not None else f.avatar,  # type: ignore[attr-defined]
-            float(f.time),  # type: ignore[attr-defined]
+            avatar if avatar is not None else f.avatar,
+            float(f.time),
             tuple(Sighting(d.landmark_id, d.range, d.bearing) for d in dets),
         )

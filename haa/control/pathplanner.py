@@ -217,7 +217,7 @@ class CostMap:
         total = float(cum[gs])
         if not math.isfinite(total):
             return done(False, "unreachable")
-        path = [tuple(map(int, p)) for p in mcp.traceback(gs)]
+        path = [(int(p[0]), int(p[1])) for p in mcp.traceback(gs)]
         tgt = target if gs == g else self.centre(*gs)
         pts = self._simplify(path, costs)
         wps = [self.centre(*rc) for rc in pts[1:-1]] + [(float(tgt[0]), float(tgt[1]))]

@@ -149,7 +149,7 @@ class Chromium:
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self.pending[i] = fut
         await self.ws.send_str(json.dumps({"id": i, "method": method, "params": params}))
-        return await asyncio.wait_for(fut, timeout)  # type: ignore[no-any-return]
+        return await asyncio.wait_for(fut, timeout)
 
     async def navigate(self, url: str) -> None:
         await self.send("Page.navigate", url=url)

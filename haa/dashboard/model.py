@@ -260,7 +260,9 @@ def checkpoint_particles(blobs: dict[str, bytes], limit: int = MAX_PARTICLES) ->
 def _mission_summary(params: Any) -> dict[str, Any] | None:
     if not isinstance(params, dict):
         return None
-    m = params.get("mission") if isinstance(params.get("mission"), dict) else {}
+    m = params.get("mission")
+    if not isinstance(m, dict):
+        m = {}
     return {"name": m.get("name"), "scenario": m.get("scenario"), "arena": m.get("arena"),
             "speed": params.get("speed"), "sim": params.get("sim"), "map_resolution": m.get("map_resolution")}
 

@@ -32,6 +32,7 @@ open OAC). Every schedule is reproducible from its seed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import json
 import random
@@ -72,6 +73,20 @@ SPAWN_DELAY = (0.005, 0.03)
 CMD_DELAY = (0.0002, 0.003)
 SEND_PERIOD = (0.05, 0.2)
 BACKUP_EVERY = 20  # processed messages between two backups
+
+
+def node_of(h: SimHost) -> AgentNode | None:
+    """The `AgentNode` an `AgentSim` host runs as its core (haa.dsim.cluster.SimCore), None while crashed."""
+    core = h.core
+    return core if isinstance(core, AgentNode) else None
+
+
+def live_node(h: SimHost) -> AgentNode:
+    """The `AgentNode` of a host that has one (alive or paused)."""
+    core = h.live_core
+    if not isinstance(core, AgentNode):
+        raise TypeError(f"{h.name}'s core is a {type(core).__name__}, not an AgentNode")
+    return core
 
 
 @dataclass
@@ -291,7 +306,7 @@ class AgentSim(GroupSim):
         cl.at(when, run)
 
     def _event(self, h: SimHost, ev: Any) -> None:
-        node = h.core
+        node = node_of(h)
         if node is not None:
             node.on_agent_event(h.local(self.cl.now), ev)
 
@@ -373,7 +388,8 @@ class AgentSim(GroupSim):
         def tick() -> None:
             if not a.running or a.hung:
                 return
-            table = h.core.table if h.core is not None else None
+            node = node_of(h)
+            table = node.table if node is not None else None
             for dst in self.ah.ids:
                 if dst == a.agent or table is None or table.get(dst) is None:
                     continue  # a real agent sends to the agents it knows of
@@ -389,7 +405,7 @@ class AgentSim(GroupSim):
     # ------------------------------------------------------------------ the scenario
 
     def _members(self) -> list[SimHost]:
-        return [h for h in self.cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
+        return [h for h in self.cl.by_idx if h.state == ALIVE and (nd := node_of(h)) is not None and nd.m.is_member()]
 
     def _create(self, only: int | None = None) -> None:
         hs = self._members()
@@ -400,7 +416,7 @@ class AgentSim(GroupSim):
         for i, agent in enumerate(self.ah.ids):
             if only is not None and i != only:
                 continue
-            h.core.create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3),
+            live_node(h).create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3),
                                 transfer_penalty=0.1, recovery="backup", req=("create", i))
         self.cl._apply(h)
 
@@ -408,7 +424,7 @@ class AgentSim(GroupSim):
         """An operator whose request died with its host asks again (until the end of the fault window)."""
         hs = self._members()
         if hs:
-            table = hs[0].core.table
+            table = live_node(hs[0]).table
             for i, agent in enumerate(self.ah.ids):
                 if table.get(agent) is None:
                     self._create(only=i)
@@ -420,9 +436,10 @@ class AgentSim(GroupSim):
         if not hs:
             return
         h = self.arng.choice(hs)
-        names = [m.name for m in h.core.m.state.members]
+        node = live_node(h)
+        names = [m.name for m in node.m.state.members]
         target = names[hi % len(names)]
-        h.core.move_agent(h.local(self.cl.now), self.ah.ids[ai], target)
+        node.move_agent(h.local(self.cl.now), self.ah.ids[ai], target)
         self.cl._apply(h)
 
     def _kill(self, ai: int, hang: bool) -> None:
@@ -444,13 +461,13 @@ class AgentSim(GroupSim):
         self.cl.at(sc.create_at, self._create)
         self.cl.at(sc.create_at + 0.5, self._ensure_created)
         for t, ai, hi in sc.moves:
-            self.cl.at(t, lambda ai=ai, hi=hi: self._move(ai, hi))
+            self.cl.at(t, functools.partial(self._move, ai, hi))
         for t, ai in sc.kills:
-            self.cl.at(t, lambda ai=ai: self._kill(ai, False))
+            self.cl.at(t, functools.partial(self._kill, ai, False))
         for t, ai in sc.hangs:
-            self.cl.at(t, lambda ai=ai: self._kill(ai, True))
+            self.cl.at(t, functools.partial(self._kill, ai, True))
         for t, hs in sc.hostile:
-            self.cl.at(t, lambda hs=hs: self._hostile(hs))
+            self.cl.at(t, functools.partial(self._hostile, hs))
         self.cl.on_restart = lambda name, inc: None
         super().run()
 
@@ -460,9 +477,10 @@ class AgentSim(GroupSim):
             return
         rng = random.Random(seed)
         h = rng.choice(hs)
-        kind, data = hostile.refusable_agent_tx(rng, self.ah.ids, [m.name for m in h.core.m.state.members])
+        node = live_node(h)
+        kind, data = hostile.refusable_agent_tx(rng, self.ah.ids, [m.name for m in node.m.state.members])
         self.ah.hostile[data] = kind
-        h.core.m.submit(h.local(self.cl.now), data, ("hostile", seed), kind="agent")
+        node.m.submit(h.local(self.cl.now), data, ("hostile", seed), kind="agent")
         self.cl._apply(h)
 
     def _crash(self, f: Any, restart_after: float | None) -> None:
@@ -476,7 +494,7 @@ class AgentSim(GroupSim):
         if not super()._quiet():
             return False
         for h in self.cl.by_idx:
-            node = h.core
+            node = node_of(h)
             if node is None:
                 continue
             for loc in node.local.values():
@@ -586,17 +604,18 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
     for d in ah.hostile_accepted:
         bad("AG-Refuse-Invalid", f"a hostile transaction was applied: {d}")
     for h in cl.by_idx:
-        if h.state == ALIVE and h.core is not None:
-            for d in h.core.table.invalid_values():
+        node = node_of(h)
+        if h.state == ALIVE and node is not None:
+            for d in node.table.invalid_values():
                 bad("AG-Refuse-Invalid", f"{h.name}'s table holds {d}", h.name)
     # AA-Allocation and AG-Liveness after healing
     if not sim.quiescent:
         bad("AG-Liveness", "the run did not get quiet after healing")
         return out
-    members = [h for h in cl.by_idx if h.state == ALIVE and h.core is not None and h.core.m.is_member()]
+    members = [h for h in cl.by_idx if h.state == ALIVE and (nd := node_of(h)) is not None and nd.m.is_member()]
     if not members:
         return out
-    table = members[0].core.table
+    table = live_node(members[0]).table
     names = {h.name for h in members}
     for r in table:
         if r.status != at.ACTIVE or r.owner not in names:
@@ -604,11 +623,11 @@ def check_agents(sim: AgentSim) -> list[GroupViolation]:
             continue
         if r.alloc and r.alloc != r.owner and r.alloc in names:
             bad("AA-Allocation", f"agent {r.name} runs on {r.owner} but is allocated to {r.alloc}")
-        runners = [h.name for h in members if r.id in h.core.local]
+        runners = [h.name for h in members if r.id in live_node(h).local]
         if runners != [r.owner]:
             bad("AA-Allocation", f"agent {r.name} owned by {r.owner} runs on {runners}", *runners)
     for h in members:
-        for agent in h.core.local:
+        for agent in live_node(h).local:
             if table.get(agent) is None:
                 bad("AA-Allocation", f"{h.name} runs unknown agent {agent}", h.name)
     if len(table) != len(ah.ids) and sim.cl.now > sim.asc.create_at + 1:

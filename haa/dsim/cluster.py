@@ -14,12 +14,13 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import random
 from collections import Counter
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from haa.core.effects import (
     CancelTimer,
@@ -39,6 +40,25 @@ from haa.dsim.network import DelayModel
 from haa.dsim.scheduler import EventHeap
 
 Proc = tuple[str, int]  # (host name, incarnation): one process life
+
+
+class SimCore(Protocol):
+    """What a simulated host's core must offer the cluster: a `HostCore` (the default), a `MembershipNode`
+    (haa.dsim.group) or an `AgentNode` (haa.dsim.agents) — inputs in, effects drained out. The cluster handles
+    the `HostCore` effects itself and hands any other effect to `SimCluster.on_effect`."""
+
+    def start(self, now: float) -> None: ...
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Any) -> object: ...
+    def on_timer(self, now: float, key: Hashable) -> None: ...
+    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None: ...
+    def on_peer_info(self, now: float, peer: str, inc: int) -> None: ...
+    def drain(self) -> Sequence[object]: ...
+
+    @property
+    def peers(self) -> Mapping[str, Any]: ...
+
+    @property
+    def oac(self) -> Any: ...
 
 EV_MSG = 0
 EV_TIMER = 1
@@ -115,12 +135,20 @@ class SimHost:
         self.offset = offset
         self.drift = drift
         self.inc = 0
-        self.core: HostCore | None = None
+        self.core: SimCore | None = None
         self.state = ALIVE
         self.timers: dict[Hashable, int] = {}
         self.backlog: list[tuple[int, Any]] = []
         self.crash_pending: float | None = None
         self.pause_started = 0.0
+
+    @property
+    def live_core(self) -> SimCore:
+        """The core of a host that has one (alive or paused); a crashed host has none."""
+        core = self.core
+        if core is None:
+            raise RuntimeError(f"{self.name}#{self.inc} has no core (crashed)")
+        return core
 
     def local(self, t: float) -> float:
         return self.offset + (1.0 + self.drift) * t
@@ -171,7 +199,7 @@ class SimCluster:
         self.on_restart: Callable[[str, int], None] | None = None
         #: builds the state machine a host boots (default: a `HostCore` over the static host list); it must
         #: offer HostCore's inputs, `drain()`, `peers` and `oac`, and record its votes in `history.votes`
-        self.make_core: Callable[[SimHost, int], Any] | None = None
+        self.make_core: Callable[[SimHost, int], SimCore] | None = None
         #: receives effects this class does not know (those of a `MembershipNode`)
         self.on_effect: Callable[[SimHost, Any], None] | None = None
 
@@ -196,17 +224,19 @@ class SimCluster:
             self.history.votes.setdefault(txid, {})[(_name, _inc)] = vote
             return vote
 
+        core: SimCore
         if self.make_core is not None:
-            h.core = self.make_core(h, inc)
+            core = self.make_core(h, inc)
         else:
             known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
-            h.core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+            core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+        h.core = core
         proc = (name, inc)
         self.history.started[proc] = self.now
         self.history.decided[proc] = {}
         self.history.delivered[proc] = []
         self.history.closed[proc] = set()
-        h.core.start(h.local(self.now))
+        core.start(h.local(self.now))
         self._apply(h)
         self._note(f"boot {name}#{inc}")
 
@@ -215,7 +245,7 @@ class SimCluster:
     def _push(self, t: float, kind: int, idx: int, data: Any) -> None:
         self.heap.push(t, (kind, idx, data))
 
-    def at(self, t: float, fn: Callable[[], None]) -> None:
+    def at(self, t: float, fn: Callable[[], object]) -> None:
         self._push(max(t, self.now), EV_CALL, -1, fn)
 
     # ------------------------------------------------------------------ faults and inputs
@@ -316,6 +346,8 @@ class SimCluster:
                 h.backlog.append((EV_CALL, lambda: self.propose(name, payload, participants)))
             return None
         core = h.core
+        if not isinstance(core, HostCore):
+            raise TypeError(f"propose: {name}'s core is a {type(core).__name__}, not a HostCore")
         try:
             txid = core.propose(h.local(self.now), payload, participants)
         except ValueError:
@@ -350,7 +382,7 @@ class SimCluster:
                 elif kind == EV_MSG and type(data[3]) in OAC_TYPES:
                     self.oac_in_flight -= 1
                 continue
-            core = h.core
+            core = h.live_core  # alive
             if kind == EV_MSG:
                 src, src_inc, dst_inc, msg = data
                 if type(msg) in OAC_TYPES:
@@ -393,45 +425,46 @@ class SimCluster:
         proc = (h.name, h.inc)
         hist = self.history
         for e in effects:
-            t = type(e)
-            if t is Send:
-                if sends_allowed is not None:
-                    if sends_allowed <= 0:
-                        continue
-                    sends_allowed -= 1
-                self._transmit(h, e)
-            elif t is SetTimer:
-                gen = self.heap.new_id()  # the timer's generation (haa.dsim.scheduler)
-                h.timers[e.key] = gen
-                at = h.virtual(e.at)
-                self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, gen, e.at))
-            elif t is CancelTimer:
-                h.timers.pop(e.key, None)
-            elif t is Deliver:
-                hist.delivered[proc].append((e.txid, e.order, e.payload, now))
-                self._note(f"deliver {e.txid} order={e.order} at {h.name}#{h.inc}")
-            elif t is Decided:
-                hist.decided[proc].setdefault(e.txid, (e.commit, now))
-                self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
-            elif t is Closed:
-                hist.closed[proc].add(e.txid)
-            elif t is Suspicion:
-                hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
-                self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")
-            elif t is PeerDead:
-                hist.dead_marks.append((now, proc, (e.peer, e.inc), e.reason))
-                if e.reason == "excluded":
-                    hist.excluded.setdefault((e.peer, e.inc), now)
-                self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
-            elif t is Reincarnate:
-                self.at(now, lambda name=h.name, inc=h.inc: self._reincarnate(name, inc))
-            elif t is Log:
-                if e.event in ERROR_EVENTS:
-                    hist.core_errors.append((now, proc, e.event, str(e.fields)))
-                if self.trace is not None:
-                    self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
-            elif self.on_effect is not None:
-                self.on_effect(h, e)
+            match e:
+                case Send():
+                    if sends_allowed is not None:
+                        if sends_allowed <= 0:
+                            continue
+                        sends_allowed -= 1
+                    self._transmit(h, e)
+                case SetTimer():
+                    gen = self.heap.new_id()  # the timer's generation (haa.dsim.scheduler)
+                    h.timers[e.key] = gen
+                    at = h.virtual(e.at)
+                    self._push(at if at > now else now, EV_TIMER, h.idx, (h.inc, e.key, gen, e.at))
+                case CancelTimer():
+                    h.timers.pop(e.key, None)
+                case Deliver():
+                    hist.delivered[proc].append((e.txid, e.order, e.payload, now))
+                    self._note(f"deliver {e.txid} order={e.order} at {h.name}#{h.inc}")
+                case Decided():
+                    hist.decided[proc].setdefault(e.txid, (e.commit, now))
+                    self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
+                case Closed():
+                    hist.closed[proc].add(e.txid)
+                case Suspicion():
+                    hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
+                    self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")
+                case PeerDead():
+                    hist.dead_marks.append((now, proc, (e.peer, e.inc), e.reason))
+                    if e.reason == "excluded":
+                        hist.excluded.setdefault((e.peer, e.inc), now)
+                    self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
+                case Reincarnate():
+                    self.at(now, functools.partial(self._reincarnate, h.name, h.inc))
+                case Log():
+                    if e.event in ERROR_EVENTS:
+                        hist.core_errors.append((now, proc, e.event, str(e.fields)))
+                    if self.trace is not None:
+                        self._note(f"log {h.name}#{h.inc} {e.event} {e.fields}")
+                case _:
+                    if self.on_effect is not None:
+                        self.on_effect(h, e)
         if crash_after:
             self._crash_now(h)
 

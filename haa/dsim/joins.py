@@ -32,7 +32,7 @@ from typing import Any
 from haa.core.agentio import AgentTimeline
 from haa.core.agentnode import AgentConfig, AgentNode
 from haa.core.membership import ViewChange
-from haa.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents
+from haa.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents, live_node
 from haa.dsim.cluster import SimHost
 from haa.dsim.group import GroupScenario, GroupViolation
 from haa.dsim.schedule import _delay_model
@@ -131,7 +131,7 @@ class JoinSim(AgentSim):
         for i, agent in enumerate(self.ah.ids):
             if only is not None and i != only:
                 continue
-            h.core.create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.js.costs[i],
+            live_node(h).create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.js.costs[i],
                                 transfer_penalty=self.js.penalties[i], recovery="backup", req=("create", i))
         self.cl._apply(h)
 

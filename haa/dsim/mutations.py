@@ -75,9 +75,11 @@ from __future__ import annotations
 import heapq
 import weakref
 from collections.abc import Callable
+from typing import Any
 
 from google.protobuf.message import DecodeError
 
+import haa.pb.ddb_pb2 as ddb_pb
 from haa.core import allocation as alloc_mod
 from haa.core import ddb as ddb_mod
 from haa.core import globalstate as globalstate_mod
@@ -86,7 +88,7 @@ from haa.core import oac as oac_mod
 from haa.core import ufd as ufd_mod
 from haa.core.effects import Deliver
 from haa.core.globalstate import GlobalState
-from haa.core.messages import OacDecide
+from haa.core.messages import OacDecide, OacProposal, Sponsor, StateSnapshot
 
 Undo = Callable[[], None]
 
@@ -142,7 +144,7 @@ def no_order_confirm() -> Undo:
     def highest(self: oac_mod.OrderedAtomicCommit, exclude: object = None) -> object:
         if exclude is not None:  # the l. 22 confirmation in atomicCommit sees no conflict
             return None
-        return original(self, exclude)  # type: ignore[arg-type]
+        return original(self, exclude)
 
     return _patch(cls, "_highest", highest)
 
@@ -175,7 +177,7 @@ def never_precommit() -> Undo:
                 try:
                     if all(q2 in got or self._suspected(q2, qi) for q2, qi in tx.parts if q2 != q):
                         tx.est = False
-                        prop = oac_mod.OacProposal(tx.id, tx.order, tx.r, False)
+                        prop = OacProposal(tx.id, tx.order, tx.r, False)
                         self._send_all(tx, prop)
                         tx.props[(tx.order, tx.r)] = False
                         tx.phase = oac_mod.P2
@@ -211,7 +213,7 @@ def seq_no_dedup() -> Undo:
     cls = membership_mod.MembershipNode
     init = cls.__init__
 
-    def __init__(self: membership_mod.MembershipNode, *args: object, **kw: object) -> None:
+    def __init__(self: membership_mod.MembershipNode, *args: Any, **kw: Any) -> None:
         init(self, *args, **kw)
         self.state.dedup = False
 
@@ -224,7 +226,7 @@ def stale_snapshot() -> Undo:
 
     def sponsor(self: membership_mod.MembershipNode, a: tuple[str, int]) -> None:
         self.sponsees.add(a)
-        self._send(a, membership_mod.Sponsor())
+        self._send(a, Sponsor())
         now = self.state.snapshot()
         old = cache.setdefault(id(self), now)
         if old is not now:
@@ -233,7 +235,7 @@ def stale_snapshot() -> Undo:
             cur.restore(now)
             cur.ddb = stale.ddb  # the DDB of back then, under today's sequence number
             now = cur.snapshot()
-        self._send(a, membership_mod.StateSnapshot(self.state.seq, now, None, 0))
+        self._send(a, StateSnapshot(self.state.seq, now, None, 0))
 
     return _patch(cls, "_sponsor", sponsor)
 
@@ -257,7 +259,7 @@ def reorder_restored() -> Undo:
     def apply_reordered(self: ddb_mod.Ddb, payload: bytes, meta: object = None) -> ddb_mod.ApplyResult:
         if self in restored:
             try:
-                batch = ddb_mod.pb.DdbBatch.FromString(bytes(payload))
+                batch = ddb_pb.DdbBatch.FromString(bytes(payload))
             except DecodeError:
                 pass
             else:  # the ops of a batch in an order of this replica's own

@@ -20,6 +20,7 @@ falsely at any time during the fault phase, and never after healing (eventual ac
 
 from __future__ import annotations
 
+import functools
 import random
 from dataclasses import dataclass, field
 from typing import Any
@@ -272,7 +273,7 @@ class ExternalFd:
         for p in self.sc.names:
             if p != q:
                 d = self.rng.uniform(0.001, self.sc.detect_max)
-                self.cl.at(self.cl.now + d, lambda p=p: self._set(p, q, True))
+                self.cl.at(self.cl.now + d, functools.partial(self._set, p, q, True))
 
     def on_pause(self, q: str, duration: float) -> None:
         for p in self.sc.names:
@@ -280,9 +281,9 @@ class ExternalFd:
                 continue
             d = self.rng.uniform(0.001, self.sc.detect_max)
             if d < duration:
-                self.cl.at(self.cl.now + d, lambda p=p: self._set(p, q, True))
+                self.cl.at(self.cl.now + d, functools.partial(self._set, p, q, True))
                 back = self.rng.uniform(0.001, 0.05)
-                self.cl.at(self.cl.now + duration + back, lambda p=p: self._set(p, q, False))
+                self.cl.at(self.cl.now + duration + back, functools.partial(self._set, p, q, False))
 
     def on_restart(self, q: str, inc: int) -> None:
         self.crashed.discard(q)
@@ -290,7 +291,7 @@ class ExternalFd:
         # follow the order of a set of names, which changes with PYTHONHASHSEED)
         for x in sorted(self.crashed):
             d = self.rng.uniform(0.001, self.sc.detect_max)
-            self.cl.at(self.cl.now + d, lambda x=x: self._set(q, x, True))
+            self.cl.at(self.cl.now + d, functools.partial(self._set, q, x, True))
         for p in self.sc.names:
             if p == q:
                 continue
@@ -371,7 +372,7 @@ def build(sc: Scenario, trace: bool = False) -> tuple[SimCluster, ExternalFd | N
 
     cl.at(sc.fault_end, heal)
     for t, proposer, parts, payload in sc.proposals:
-        cl.at(t, lambda p=proposer, ps=parts, pl=payload: cl.propose(p, pl, ps))
+        cl.at(t, functools.partial(cl.propose, proposer, payload, parts))
     return cl, fd
 
 

@@ -22,6 +22,7 @@ that every participant delivered exactly the step's committed transactions, in o
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import math
 import statistics
@@ -129,7 +130,7 @@ def run_step(
         jobs: list[Callable[[], None]] = []
         for proposer in names:
             for i in range(per):
-                jobs.append(lambda p=proposer, i=i: one(p, i))
+                jobs.append(functools.partial(one, proposer, i))
         in_flight = 1 if mode == "all-proposing" else concurrency  # per participant
         with ThreadPoolExecutor(max_workers=in_flight * len(names)) as pool:
             for f in [pool.submit(j) for j in jobs]:

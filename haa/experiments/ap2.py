@@ -86,9 +86,10 @@ class Ap2Run:
 
         at_leader = _view_at(leader, ts, adds)
         at_all = [_view_at(x, ts, adds) for x in others]
-        if at_leader is None or any(a is None for a in at_all):
+        found = [a for a in at_all if a is not None]
+        if at_leader is None or len(found) != len(at_all):
             raise RuntimeError(f"{h.name}: join not found in every member's log")
-        return {"join": at_leader - ts, "join_all": max(at_all) - ts}  # type: ignore[type-var]
+        return {"join": at_leader - ts, "join_all": max(found) - ts}
 
     def leave(self, h: MemberHost, others: list[MemberHost]) -> float:
         t0 = time.time()
@@ -101,9 +102,10 @@ class Ap2Run:
         req = h.events(t0, {"leave_requested"})
         ts = float(req[-1]["ts"])
         ends = [_view_at(x, ts, lambda f: h.name in f.get("removed", [])) for x in others]
-        if any(e is None for e in ends):
+        found = [e for e in ends if e is not None]
+        if len(found) != len(ends):
             raise RuntimeError(f"{h.name}: leave not found in every member's log")
-        return max(ends) - ts  # type: ignore[type-var]
+        return max(found) - ts
 
     def crash(self, h: MemberHost, others: list[MemberHost]) -> dict[str, float]:
         time.sleep(0.3)  # let the failure detectors settle after the join
@@ -118,9 +120,10 @@ class Ap2Run:
             if e["fields"].get("peer") == h.name and e["fields"].get("suspected")
         ]
         ends = [_view_at(x, t_kill, lambda f: h.name in f.get("removed", [])) for x in others]
-        if not susp or any(e is None for e in ends):
+        found = [e for e in ends if e is not None]
+        if not susp or len(found) != len(ends):
             raise RuntimeError(f"{h.name}: suspicion or removal not found in the survivors' logs")
-        end = max(ends)  # type: ignore[type-var]
+        end = max(found)
         return {"remove": end - min(susp), "crash_to_removal": end - t_kill}
 
 
@@ -162,7 +165,7 @@ def run_ap2(root: Path, max_hosts: int = 10, reps: int = 3, log: Callable[[str],
                 samples["remove"].append(c["remove"])
                 samples["c2r"].append(c["crash_to_removal"])
                 add_join(run.join(h, others))
-            row = {
+            row: dict[str, Any] = {
                 "hosts": n,
                 "join": _stats(samples["join"]),
                 "join_all": _stats(samples["join_all"]),

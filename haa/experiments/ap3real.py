@@ -36,6 +36,7 @@ Results go into bench-results/ap3.json under the key "real", next to the simulat
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -58,6 +59,10 @@ HOSTS = (2, 4, 6, 8, 10)
 AGENTS = (5, 10, 20, 30, 45, 60)
 #: a session that has not committed everywhere within this long is counted as failed
 SESSION_TIMEOUT = 60.0
+
+
+def _active_is(c: BenchCluster, a: int) -> bool:
+    return sum(1 for x in c.agents().values() if x.status == "active") == a
 
 
 def oac_messages(n: int) -> int:
@@ -197,7 +202,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                 while have < a:
                     spawn_idle(c, rng, n, c.names[have % n])
                     have += 1
-                wait_for(lambda a=a: sum(1 for x in c.agents().values() if x.status == "active") == a, 120,
+                wait_for(functools.partial(_active_is, c, a), 120,
                          f"{a} active agents")
                 c.wait_quiet(timeout=120.0)
             except (grpc.RpcError, AssertionError, RuntimeError) as e:
@@ -211,7 +216,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
                 except (grpc.RpcError, AssertionError) as e:
                     log(f"n={n} agents={a}: a session sample failed: {e}")
                     runs.append({"ok": False})
-            row = {
+            row: dict[str, Any] = {
                 "hosts": n, "agents": a, "reps": reps, "load_avg_1min": os.getloadavg()[0],
                 "view_changes": sum(1 for r in runs if r.get("view_changed")),
                 "consensus_ms": _agg(r.get("consensus_s", math.nan) * 1e3 for r in runs),

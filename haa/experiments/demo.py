@@ -337,7 +337,11 @@ class Demo:
         self.say("h4 starts and joins the group (the allocation rebalances)")
         session = self.session()
         b.add("h4")
-        self.wait(lambda: (b.check_started(), b.rejoined("h4").done)[1], 60, "h4 to join")
+        def h4_joined() -> bool:
+            b.check_started()
+            return b.rejoined("h4").done
+
+        self.wait(h4_joined, 60, "h4 to join")
         # the membership change starts an allocation session (Alg. 4 l. 17); wait until it has finished
         with contextlib.suppress(ClusterError):
             self.wait(lambda: (s := self.session(full=True))[0] > session and s[1] >= s[0], 10, "a session")

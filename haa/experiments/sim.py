@@ -16,6 +16,7 @@ returns the dict of bench-results/sim.json ("stepping", "camera", "sensors", "qu
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -79,7 +80,7 @@ def bench_stepping(seconds: float, sensors: bool, seed: int = 1) -> dict[str, An
 
 def _random_poses(w: Any, n: int, radius: float, seed: int) -> list[tuple[float, float, float]]:
     rng = np.random.default_rng(seed)
-    out = []
+    out: list[tuple[float, float, float]] = []
     while len(out) < n:
         x = float(rng.uniform(0.3, w.arena.width - 0.3))
         y = float(rng.uniform(0.3, w.arena.height - 0.3))
@@ -101,7 +102,10 @@ def bench_camera(arena: str, kind: str, frames: int, seed: int = 2) -> dict[str,
     aid = w.add_avatar(kind)
     w.capture(aid)  # builds the renderer
     poses = _random_poses(w, frames, w.avatars[aid].spec.radius, seed)
-    render_w, render_c, png_c, det_c = [], [], [], []
+    render_w: list[float] = []
+    render_c: list[float] = []
+    png_c: list[float] = []
+    det_c: list[float] = []
     expected = found = 0
     for p in poses:
         w.retire(aid)
@@ -117,7 +121,7 @@ def bench_camera(arena: str, kind: str, frames: int, seed: int = 2) -> dict[str,
         render_c.append(cpu)
         assert frame is not None
         bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
-        png_c.append(_timed(lambda b=bgr: cv2.imencode(".png", b, [cv2.IMWRITE_PNG_COMPRESSION, 1]))[1])
+        png_c.append(_timed(functools.partial(cv2.imencode, ".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1]))[1])
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
         ids = None
 

@@ -46,6 +46,7 @@ import foxglove
 import numpy as np
 from foxglove import channels as fch
 from foxglove import messages as fm
+from foxglove.websocket import ServerListener
 
 from haa.dashboard.sources import Changes, Hub
 from haa.mission.transcript import Line, mission_lines
@@ -103,7 +104,7 @@ def point_cloud(points: list[list[float]], stamp: fm.Timestamp) -> fm.PointCloud
                          data=arr.tobytes())
 
 
-class FoxgloveBridge:
+class FoxgloveBridge(ServerListener):
     """Publishes a `Hub`'s state on a Foxglove WebSocket server (module docstring). `start()`, then call
     `step()` in a loop (or `run_forever()`), `stop()` at the end."""
 

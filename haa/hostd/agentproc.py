@@ -625,7 +625,7 @@ class AgentSupervisor:
                 raise SpawnError(f"agent {spec.name} (pid {pid}): channel error before hello: {e}") from None
             kind = msg.WhichOneof("msg") if msg is not None else None
             if kind != "hello":
-                if kind == "error":
+                if msg is not None and kind == "error":
                     why = msg.error.message
                 elif msg is None:
                     await self._wait_exit(inst, 1.0)
@@ -807,7 +807,7 @@ class AgentSupervisor:
             self.events(ev)
         except Exception as e:
             self.event_errors += 1
-            log_event(self.log, logging.ERROR, "agent_event_callback_error", event=type(ev).__name__,
+            log_event(self.log, logging.ERROR, "agent_event_callback_error", kind=type(ev).__name__,
                       agent=ev.agent_id, error=f"{type(e).__name__}: {e}")
 
     def _on_frame(self, inst: _Instance, msg: pb.AgentToHost) -> None:

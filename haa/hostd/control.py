@@ -51,7 +51,7 @@ import asyncio
 import logging
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import grpc
 from grpc import aio
@@ -491,6 +491,17 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         return cpb.LatencyReply(decide_to_deliver=d2d, propose_to_decide=p2d)
 
 
+_T_co = TypeVar("_T_co", covariant=True)
+
+
+class Stream(Protocol[_T_co]):
+    """A server stream as grpc returns it: an iterator of the messages that can be cancelled."""
+
+    def __iter__(self) -> Iterator[_T_co]: ...
+    def __next__(self) -> _T_co: ...
+    def cancel(self) -> bool: ...
+
+
 class ControlClient(AgentClientMixin):
     """Blocking client of one host's control API (the agent calls come from `AgentClientMixin`)."""
 
@@ -524,7 +535,7 @@ class ControlClient(AgentClientMixin):
         req = cpb.ProposeRequest(payload=payload, participants=list(participants), wait=wait)
         return self._stub.Propose(req, metadata=self._md, timeout=timeout)
 
-    def deliveries(self, from_index: int = 0, timeout: float | None = None) -> Iterator[cpb.Delivery]:
+    def deliveries(self, from_index: int = 0, timeout: float | None = None) -> Stream[cpb.Delivery]:
         """Stream deliveries from `from_index` (the iterator follows new ones; cancel it to stop)."""
         return self._stub.Deliveries(cpb.DeliveriesRequest(from_index=from_index), metadata=self._md, timeout=timeout)
 
@@ -553,7 +564,7 @@ class ControlClient(AgentClientMixin):
         req = cpb.DdbGetRequest(keys=list(keys), prefix=prefix, keys_only=keys_only, limit=limit)
         return self._stub.DdbGet(req, metadata=self._md, timeout=self.timeout)
 
-    def mirror(self, views: bool = True, timeout: float | None = None) -> Iterator[cpb.MirrorEvent]:
+    def mirror(self, views: bool = True, timeout: float | None = None) -> Stream[cpb.MirrorEvent]:
         """The mirror stream: a snapshot, then every applied DDB batch (and view change); cancel to stop."""
         return self._stub.Mirror(cpb.MirrorRequest(views=views), metadata=self._md, timeout=timeout)
 

@@ -254,7 +254,7 @@ class HostCollector:
                     p = pairs.setdefault((st.name, names.get(peer, peer[:8]), d), [0, 0])
                     p[0] += n
                     p[1] += byts.get(peer, 0)
-        fams = [
+        fams: list[GaugeMetricFamily | CounterMetricFamily] = [
             GaugeMetricFamily("haa_agent_cpu_ratio", "share of one core the agent process used lately",
                               labels=["agent", "type"]),
             GaugeMetricFamily("haa_agent_rss_bytes", "resident memory of the agent process", labels=["agent", "type"]),

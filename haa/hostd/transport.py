@@ -786,7 +786,7 @@ class Transport:
             self.counters["hb_socket_failed"] += 1
             log_event(log, logging.WARNING, "heartbeat_socket_failed", address=f"{host}:{port}", reason=str(e))
             return 0
-        self._udp = transport  # type: ignore[assignment]
+        self._udp = transport
         self._udp_family = family
         self.heartbeat_port = port
         return port
@@ -847,7 +847,7 @@ class Transport:
         c["rx_datagrams"] += 1
         st.confirmed = True
         st.heard = asyncio.get_running_loop().time() if now is None else now
-        st.period = min(msg.period, 10.0)  # type: ignore[attr-defined]
+        st.period = min(msg.period, 10.0)
         self.on_envelopes(src, src_inc, [(dst_inc, msg)])
 
     # ------------------------------------------------------------------ sending

@@ -404,8 +404,8 @@ def ddb_read(backend: Any, keys: Sequence[str] = (), prefix: str = "", prefer: s
     """{key: decoded value} from the replica of one alive host (`prefer` first); None if no host answers."""
     names = alive_hosts(backend)
     if prefer in names:
-        names.remove(prefer)  # type: ignore[arg-type]
-        names.insert(0, prefer)  # type: ignore[arg-type]
+        names.remove(prefer)
+        names.insert(0, prefer)
     for n in names:
         c = _client(backend, n, timeout)
         try:
@@ -1291,7 +1291,8 @@ class MissionRun:
             self.files["timeline_png"] = str(plot_timeline(self, out / "allocation.png"))
         except ImportError as e:  # matplotlib missing
             self.errors.append(f"no PNGs: {e}")
-        if self.map_prob is not None:  # the final map beside the ideal one, for offline scoring and plots
+        # the final map beside the ideal one, for offline scoring and plots (a map implies the ideal one)
+        if self.map_prob is not None and self.occ is not None and self.explorable is not None:
             np.savez_compressed(out / "map.npz", prob=self.map_prob, ideal=self.occ, explorable=self.explorable,
                                 ideal_half_cells=self.occ_half if self.occ_half is not None else self.occ,
                                 resolution=self.grid_res)
@@ -1545,7 +1546,9 @@ def snapshot(run: MissionRun) -> dict[str, Any]:
     avatars = []
     for a in run.spec.avatars:
         agent = run.avatar_agents.get(a.name)
-        asg = run.assign.get(a.name) if isinstance(run.assign.get(a.name), dict) else {}
+        asg = run.assign.get(a.name)
+        if not isinstance(asg, dict):
+            asg = {}
         sup = str(asg.get("supervisor", "")) if asg else ""
         sup_name = f"{names[sup][0]} ({tr.class_name(names[sup][1])})" if sup in names else sup[:8]
         tgt = run.targets.get(a.name)

@@ -168,7 +168,7 @@ def host_agent_events(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]
     `{"time", "agent", "name", "event", "host", "detail"}` (the `agent_<event>` lines of the timeline)."""
     kinds = {"created", "spawning", "active", "freezing", "frozen", "thawing", "thawed", "crashed", "backoff",
              "failed", "recovering", "recovered", "removed"}
-    out = []
+    out: list[dict[str, Any]] = []
     for r in records:
         ev = str(r.get("event", ""))
         if not ev.startswith("agent_") or ev[6:] not in kinds:

@@ -135,7 +135,7 @@ def avatar_info(av: AvatarState) -> pb.AvatarInfo:
     )
 
 
-def encode_frame(f: CameraFrame, encoding: int) -> pb.CameraFrame:
+def encode_frame(f: CameraFrame, encoding: pb.ImageEncoding) -> pb.CameraFrame:
     if encoding == pb.IMAGE_ENCODING_RAW_RGB:
         data = np.ascontiguousarray(f.image).tobytes()
     else:
@@ -218,7 +218,7 @@ class _Watch:
     queue: asyncio.Queue[Any]
     period: float
     due: float
-    encoding: int = pb.IMAGE_ENCODING_RAW_RGB
+    encoding: pb.ImageEncoding = pb.IMAGE_ENCODING_RAW_RGB
 
 
 class SimCore:
@@ -1027,7 +1027,7 @@ class SimClient:
     def sonar(self, avatar_id: str, timeout: float | None = None) -> Any:
         return self._stream(self.avatars.Sonar, pb.StreamRequest(avatar_id=avatar_id), timeout)
 
-    def capture(self, avatar_id: str, encoding: int = pb.IMAGE_ENCODING_RAW_RGB) -> pb.CameraFrame:
+    def capture(self, avatar_id: str, encoding: pb.ImageEncoding = pb.IMAGE_ENCODING_RAW_RGB) -> pb.CameraFrame:
         return self._call(self.avatars.Capture, pb.CaptureRequest(avatar_id=avatar_id, encoding=encoding))
 
     def detect(self, avatar_id: str) -> pb.Detections:

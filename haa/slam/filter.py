@@ -84,7 +84,7 @@ class Block:
         self.n = states0.shape[0]
         cap = 16
         self.times = np.empty(cap, dtype=np.float64)
-        self.states = np.empty((cap, self.n, 3), dtype=dtype)
+        self.states: np.ndarray = np.empty((cap, self.n, 3), dtype=dtype)
         self.times[0] = t0
         self.states[0] = states0
         self.length = 1

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from google.protobuf.message import Message
 
 from haa.pb import slam_pb2 as pb
 from haa.slam.events import AddAvatar, Observe, Predict, Request, SlamEvent, reading_message
@@ -225,7 +226,7 @@ def load(path: Path | str) -> Recording:
     from mcap.reader import make_reader
 
     path = Path(path)
-    classes = {
+    classes: dict[str, type[Message]] = {
         "/slam/info": pb.SlamRunInfo,
         "/slam/prediction": pb.SlamPrediction,
         "/slam/truth": pb.SlamPose,
@@ -274,9 +275,9 @@ def load(path: Path | str) -> Recording:
             rec.readings.append(FloorReading(m.avatar, m.t, tuple(zip(m.xs, m.ys, strict=True))))  # type: ignore[attr-defined]
     if grid_msg is not None:
         g = grid_msg
-        rec.ideal_grid = np.asarray(g.p, dtype=np.float64).reshape(g.rows, g.cols)  # type: ignore[attr-defined]
-        if len(g.region):  # type: ignore[attr-defined]
-            rec.region = np.asarray(g.region, dtype=bool).reshape(g.rows, g.cols)  # type: ignore[attr-defined]
+        rec.ideal_grid = np.asarray(g.p, dtype=np.float64).reshape(g.rows, g.cols)
+        if len(g.region):
+            rec.region = np.asarray(g.region, dtype=bool).reshape(g.rows, g.cols)
     return rec
 
 

@@ -272,7 +272,7 @@ def _avatar_json(ev: AddAvatar) -> dict[str, Any]:
 
 
 def _avatar_from_json(d: Mapping[str, Any]) -> AddAvatar:
-    return AddAvatar(d["name"], d["kind"], tuple(d["pose"]), d["t0"], DriftSpec(*d["drift"]), d["radius"])  # type: ignore[arg-type]
+    return AddAvatar(d["name"], d["kind"], tuple(d["pose"]), d["t0"], DriftSpec(*d["drift"]), d["radius"])
 
 
 # the attributes each checkpoint knows; `checkpoint()` refuses an object with others (a field added to the

@@ -262,10 +262,14 @@ class SonarModel:
             if d_free_end > 0:
                 d, a = _cone_points(0.0, d_free_end, half, res)
                 fall = 1.0 - 0.5 * (a / half) ** 2
-                pts_d.append(d), pts_a.append(a), pts_p.append(0.5 - (0.5 - self.p_free) * fall)
+                pts_d.append(d)
+                pts_a.append(a)
+                pts_p.append(0.5 - (0.5 - self.p_free) * fall)
             d, a = _cone_points(d_free_end, min(rng + self.arc_width / 2, max_range + self.arc_width / 2), half, res)
             fall = 1.0 - 0.5 * (a / half) ** 2
-            pts_d.append(d), pts_a.append(a), pts_p.append(0.5 + (self.p_occ - 0.5) * fall)
+            pts_d.append(d)
+            pts_a.append(a)
+            pts_p.append(0.5 + (self.p_occ - 0.5) * fall)
             d, a, p = np.concatenate(pts_d), np.concatenate(pts_a), np.concatenate(pts_p)
         ang = e.bearing + a
         mx, my = self.mount_radius * math.cos(e.bearing), self.mount_radius * math.sin(e.bearing)

@@ -22,6 +22,7 @@ then: its data dirs remain).
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import re
@@ -69,6 +70,14 @@ class CollectResult:
 
 
 # ---------------------------------------------------------------------------------------------- reading
+
+
+def _read_file(path: Path, limit: int | None) -> bytes:
+    return path.read_bytes() if limit is None else _tail(path, limit)
+
+
+def _read_bytes(data: bytes, limit: int | None) -> bytes:
+    return data if limit is None else data[-limit:]
 
 
 def _tail(path: Path, limit: int) -> bytes:
@@ -130,7 +139,7 @@ def read_local(d: Path, name: str) -> dict[str, bytes]:
     for p in [*d.iterdir(), *((d / "agents").iterdir() if (d / "agents").is_dir() else [])]:
         if p.is_file():
             rel = p.relative_to(d).as_posix()
-            listing[rel] = lambda limit, p=p: p.read_bytes() if limit is None else _tail(p, limit)
+            listing[rel] = functools.partial(_read_file, p)
     return _from_dir_listing(name, listing)
 
 
@@ -162,7 +171,7 @@ def read_container(container: Any, data_dir: str, name: str) -> dict[str, bytes]
             if f is None or not rel:
                 continue
             data = f.read()
-            listing[rel] = lambda limit, data=data: data if limit is None else data[-limit:]
+            listing[rel] = functools.partial(_read_bytes, data)
     return _from_dir_listing(name, listing)
 
 

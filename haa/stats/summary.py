@@ -220,7 +220,7 @@ def summarize(bundles: Sequence[Bundle], cluster: str = "") -> dict[str, Any]:
         by_kind["agents"] += int((d.get("table") or {}).get("backup_bytes") or 0)
         ddb = {"objects": d.get("objects"), "bytes": d.get("bytes"), "by_prefix": d.get("by_prefix"),
                "by_kind": dict(by_kind), "agent_backups_bytes": (d.get("table") or {}).get("backup_bytes")}
-    timeline = [{"ts": round(e.time, 3), "t": round(e.time - t0, 3), "host": e.host or e.reporter,
+    timeline: list[dict[str, Any]] = [{"ts": round(e.time, 3), "t": round(e.time - t0, 3), "host": e.host or e.reporter,
                  "agent": e.agent, "name": e.name, "type": e.type, "event": e.event, "detail": e.detail,
                  **({"reporter": e.reporter} if e.reporter else {})} for e in evs]
     timeline += [{"ts": v.get("ts"), "t": round(float(v.get("ts") or t0) - t0, 3), "host": v.get("host"),
@@ -316,13 +316,14 @@ def series(bundles: Sequence[Bundle], t0: float | None = None) -> Series:
         s.hosts_up.append(len(current))
         s.members.append(max((int(r.get("members") or 0) for r in current), default=0))
         s.agents.append(sum(len(r.get("agents") or {}) for r in current))
-        tc: Counter[str] = Counter()
+        tc: dict[str, float] = {}
         for r in current:
             for a in (r.get("agents") or {}).values():
                 if isinstance(a, dict):
-                    tc[str(a.get("type", "?"))] += 100 * float(a.get("cpu") or 0)
+                    k = str(a.get("type", "?"))
+                    tc[k] = tc.get(k, 0) + 100 * float(a.get("cpu") or 0)
         for t in types:
-            s.type_cpu[t].append(tc[t])
+            s.type_cpu[t].append(tc.get(t, 0))
         with_ddb = [r for r in current if isinstance(r.get("ddb"), dict)]
         if with_ddb:  # every replica holds the same: the most advanced one
             r = max(with_ddb, key=lambda r: int(r["ddb"].get("seq") or 0))
