@@ -122,7 +122,7 @@ def test_a_leaving_applicant_withdraws_its_application():
     seen: dict[str, set[str]] = {}
 
     def applicants(label):
-        seen[label] = {h.name for h in sim.cl.by_idx if h.core is not None and ("h4", 1) in h.core.join_list}
+        seen[label] = {h.name for h in sim.cl.by_idx if h.core is not None and ("h4", 1) in h.core.join.join_list}
 
     def leave_once_h1_sponsors(t: float) -> None:
         # h4 leaves as soon as h1 holds its application (the moment depends on the schedule's message timing)

@@ -156,9 +156,9 @@ def test_leader_sponsors_again_an_applicant_that_applies_again():
 def test_removing_a_superseded_incarnation_needs_no_quorum():
     """A group of two whose front crashed: the survivor may remove it once it restarted (it is gone for sure)."""
     node = _node("h2", [("h1", 1), ("h2", 1)])
-    assert not node._quorum((("h1", 1),))  # half of the group, without the front: could be a partition
+    assert not node.upd._quorum((("h1", 1),))  # half of the group, without the front: could be a partition
     node.core.add_peer(1.0, "h1", 2)  # h1 came back as incarnation 2
-    assert node._quorum((("h1", 1),))
+    assert node.upd._quorum((("h1", 1),))
 
 
 def test_applicant_applies_to_members_that_introduce_themselves():
@@ -171,7 +171,7 @@ def test_applicant_applies_to_members_that_introduce_themselves():
 
 def test_member_answers_the_first_introduction_of_a_new_incarnation():
     member = _node("h3", [("h1", 1), ("h3", 1)])
-    member.conn_to.add("h4")  # a link opened to h4's previous incarnation
+    member.join.conn_to.add("h4")  # a link opened to h4's previous incarnation
     member._on_group("h4", 2, Introduce("h4", 2, "h4", ""))
     assert ("h4", "Introduce") in _sent(member)
 
@@ -188,12 +188,12 @@ def test_applicant_reports_a_new_two_way_link_to_its_sponsor():
 def test_member_unlocks_when_the_membership_transaction_aborts():
     """Alg. 3 ll. 152-155 run on every participant, not only on the proposer."""
     node = _node("h2", [("h1", 1), ("h2", 1)])
-    node.locked = "k1"
+    node.upd.locked = "k1"
     txid = TxId("h1", 1, 9)
     tx = TxMembership("k1", ("h1", 1), (Member("h1", 1, "h1"), Member("h2", 1, "h2"), Member("h4", 1, "h4")))
     assert node._evaluate(txid, encode_tx(tx))
     node._on_decided(Decided(txid, False))
-    assert node.locked is None
+    assert node.upd.locked is None
 
 
 def test_an_applicant_is_introduced_again_once_the_host_it_applied_to_has_joined():
@@ -225,4 +225,4 @@ def test_a_former_leaders_transaction_ordered_after_its_replacement_is_a_no_op()
     assert r.stale and st.procs() == [("h2", 1), ("h3", 1)] and st.seq == 4
     node = _node("h3", [("h2", 1), ("h3", 1)])
     node._apply(TxId("h1", 1, 5), encode_tx(TxRemove("h1.1.3", ("h1", 1), ())), direct=True)
-    assert node.locked is None
+    assert node.upd.locked is None

@@ -569,7 +569,8 @@ class GroupSim:
             node = h.core
             if node is None:
                 continue
-            if node.oac.txs or node.updating or node.direct_q or node.held or node.writes:  # type: ignore[attr-defined]
+            # (an AgentNode hands these on to its MembershipNode)
+            if node.oac.txs or node.upd.updating or node.direct_q or node.wr.held or node.wr.writes:  # type: ignore[attr-defined]
                 return False
         return True
 
@@ -781,8 +782,8 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 ref_p,
             )
     for p, n in members.items():
-        if n.locked is not None:  # quiet, yet holding the global state for a membership change
-            bad("HM-Termination", f"{_p(p)} is still locked ({n.locked}) at the end", p)
+        if n.upd.locked is not None:  # quiet, yet holding the global state for a membership change
+            bad("HM-Termination", f"{_p(p)} is still locked ({n.upd.locked}) at the end", p)
     for p in sorted(set(nodes) - final):
         bad("HM-Non-Triviality-Join", f"live {_p(p)} is not in the final view {ref.view} {sorted(final)}", p)
     for p in sorted(final - set(nodes)):

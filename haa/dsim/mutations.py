@@ -86,9 +86,10 @@ from haa.core import globalstate as globalstate_mod
 from haa.core import membership as membership_mod
 from haa.core import oac as oac_mod
 from haa.core import ufd as ufd_mod
+from haa.core import update as update_mod
 from haa.core.effects import Deliver
 from haa.core.globalstate import GlobalState
-from haa.core.messages import OacDecide, OacProposal, Sponsor, StateSnapshot
+from haa.core.messages import OacDecide, OacProposal, StateSnapshot
 
 Undo = Callable[[], None]
 
@@ -224,9 +225,7 @@ def stale_snapshot() -> Undo:
     cls = membership_mod.MembershipNode
     cache: dict[int, bytes] = {}
 
-    def sponsor(self: membership_mod.MembershipNode, a: tuple[str, int]) -> None:
-        self.sponsees.add(a)
-        self._send(a, Sponsor())
+    def send_state(self: membership_mod.MembershipNode, a: tuple[str, int]) -> None:
         now = self.state.snapshot()
         old = cache.setdefault(id(self), now)
         if old is not now:
@@ -237,7 +236,7 @@ def stale_snapshot() -> Undo:
             now = cur.snapshot()
         self._send(a, StateSnapshot(self.state.seq, now, None, 0))
 
-    return _patch(cls, "_sponsor", sponsor)
+    return _patch(cls, "_send_state", send_state)
 
 
 def no_dissolution() -> Undo:
@@ -427,9 +426,9 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "commit-on-quorum": (commit_on_quorum, "oac", "AC-Uniform-Validity"),
     "never-precommit": (never_precommit, "oac", "AC-Non-Triviality"),
     "deaf-detector": (deaf_detector, "ufd", "UFD-Completeness"),
-    "no-weak-validity": (_always(membership_mod.MembershipNode, "_vote_remove"), "membership", "HM-Weak-Validity"),
-    "no-quorum": (_always(membership_mod.MembershipNode, "_quorum"), "membership", "HM-Agreement"),
-    "no-lock-wait": (_always(membership_mod.MembershipNode, "_lock_wait_over", "_all_locked"), "ddb",
+    "no-weak-validity": (_always(update_mod.MembershipUpdate, "_vote_remove"), "membership", "HM-Weak-Validity"),
+    "no-quorum": (_always(update_mod.MembershipUpdate, "_quorum"), "membership", "HM-Agreement"),
+    "no-lock-wait": (_always(update_mod.MembershipUpdate, "_lock_wait_over", "_all_locked"), "ddb",
                      "DDB-Durability"),
     "stale-snapshot": (stale_snapshot, "ddb", "DDB-Joiner-Consistency"),
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),

@@ -480,7 +480,7 @@ class HostRuntime:
 
     def _check_writable(self) -> None:
         node = self.member_node()
-        if self.left or node.leaving:
+        if self.left or node.lv.leaving:
             raise WriteFailed("this host is leaving the group")
 
     async def leave(self, timeout: float = 10.0) -> None:

@@ -30,7 +30,7 @@ def group_status(node: MembershipNode) -> dict[str, Any]:
         "member": ns["member"],
         "members": ns["members"],
         "member_info": [
-            {"name": m.name, "incarnation": m.inc, "address": m.addr, "suspected": node._suspected(m.proc)}
+            {"name": m.name, "incarnation": m.inc, "address": m.addr, "suspected": node.view.suspected(m.proc)}
             for m in st.members
         ],
         "leader": ns["leader"],
@@ -46,7 +46,7 @@ def group_status(node: MembershipNode) -> dict[str, Any]:
         "group_correct": st.group_correct,
         "locked": ns["locked"],
         "applicants": ns["applicants"],
-        "leaving": node.leaving,
+        "leaving": node.lv.leaving,
     }
 
 
