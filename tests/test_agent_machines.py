@@ -23,13 +23,16 @@ from haa.core.agentstep import (
     AgentTimer,
     ArmTimer,
     Cmd,
+    Committed,
     Forget,
+    Hold,
     HostSend,
     Note,
     Propose,
     Reconcile,
     Route,
     SetPhase,
+    ShellUp,
     Timeline,
 )
 from haa.core.routing import Inbox, Outbox
@@ -136,18 +139,18 @@ def test_freeze_asks_the_instance_holds_queue1_and_releases_after_state_and_ever
     res = g.commit(proposal(effs, "freeze").tx)  # ll. 5-8
     assert res.ok and g.record().status == at.FREEZING
     m1 = msg("other", 1)
-    assert t.step(1.1, tr.Hold(m1)) == []  # l. 4: held as queue1
-    assert t.step(1.2, tr.Committed(res)) == []  # l. 9: waits for the state and the acks of h2, h3
+    assert t.step(1.1, Hold(m1)) == []  # l. 4: held as queue1
+    assert t.step(1.2, Committed(res)) == []  # l. 9: waits for the state and the acks of h2, h3
     assert t.step(1.3, tr.StateArrived(AGENT, b"STATE")) == []  # l. 19
     assert t.step(1.4, tr.Ack("h2", AGENT, claim=False)) == []
     effs = t.step(1.5, tr.Ack("h3", AGENT, claim=False))  # l. 10 holds: l. 11, then OAC(release)
     rel = proposal(effs, "release").tx.release
     assert rel.state == b"STATE" and list(rel.pending) == [m1]  # queue1 goes with the release
     m2 = msg("other", 2)
-    assert t.step(1.6, tr.Hold(m2)) == [tr.PassOn(m2)]  # after l. 11: to queue2, by the table
+    assert t.step(1.6, Hold(m2)) == [tr.PassOn(m2)]  # after l. 11: to queue2, by the table
     res = g.commit(proposal(effs, "release").tx)
     assert res.ok and g.record().status == at.FROZEN and g.record().queue1 == [m1]
-    assert t.step(1.7, tr.Committed(res)) == [Forget(AGENT), Timeline(AGENT, "frozen")]
+    assert t.step(1.7, Committed(res)) == [Forget(AGENT), Timeline(AGENT, "frozen")]
     assert t.freezes == {}
 
 
@@ -157,7 +160,7 @@ def test_freeze_acks_before_the_local_commit_count_and_a_removed_host_counts_as_
     res = g.commit(proposal(effs, "freeze").tx)
     t.step(1.1, tr.Ack("h3", AGENT, claim=False))  # h3 applied OAC(freeze) before h1 did
     t.step(1.2, tr.StateArrived(AGENT, b"S"))
-    assert t.step(1.3, tr.Committed(res)) == []  # h2 has not acknowledged
+    assert t.step(1.3, Committed(res)) == []  # h2 has not acknowledged
     g.members.remove("h2")  # the target crashed mid-transfer and was removed from the group
     effs = t.step(1.4, tr.Progress(AGENT))  # l. 10: "or h is removed"
     assert proposal(effs, "release").tx.release.state == b"S"
@@ -167,7 +170,7 @@ def test_other_hosts_acknowledge_a_committed_freeze_and_claim():
     g = Group()
     _t, effs = freezing(g)
     res = g.commit(proposal(effs, "freeze").tx)
-    assert tr.Transfer(View("h3", g)).step(2.0, tr.Committed(res)) == [HostSend("h1", "freeze_ack", AGENT, 1)]
+    assert tr.Transfer(View("h3", g)).step(2.0, Committed(res)) == [HostSend("h1", "freeze_ack", AGENT, 1)]
 
 
 def test_a_freeze_given_up_is_proposed_again_while_the_agent_is_still_ours():
@@ -176,14 +179,14 @@ def test_a_freeze_given_up_is_proposed_again_while_the_agent_is_still_ours():
     again = t.step(1.1, tr.Written("freeze", AGENT, 1, False))  # l. 8: do ... while not committed
     assert proposal(again, "freeze").tx == proposal(effs, "freeze").tx
     assert t.step(1.2, tr.Written("freeze", AGENT, 0, False)) == []  # another epoch's: not ours
-    t.step(1.3, tr.Committed(g.commit(proposal(effs, "freeze").tx)))
+    t.step(1.3, Committed(g.commit(proposal(effs, "freeze").tx)))
     assert t.step(1.4, tr.Written("freeze", AGENT, 1, False)) == []  # committed meanwhile
 
 
 def test_a_release_given_up_is_retried_only_while_the_table_says_freezing_on_this_host():
     g = Group()
     t, effs = freezing(g)
-    t.step(1.1, tr.Committed(g.commit(proposal(effs, "freeze").tx)))
+    t.step(1.1, Committed(g.commit(proposal(effs, "freeze").tx)))
     t.step(1.2, tr.StateArrived(AGENT, b"S"))
     t.step(1.3, tr.Ack("h2", AGENT, claim=False))
     effs = t.step(1.4, tr.Ack("h3", AGENT, claim=False))
@@ -196,7 +199,7 @@ def test_an_instance_that_dies_while_freezing_is_lost_with_its_queue1():
     g = Group()
     t, _effs = freezing(g)
     m1 = msg("other", 1)
-    t.step(1.1, tr.Hold(m1))
+    t.step(1.1, Hold(m1))
     assert t.step(1.2, tr.ShellDied(AGENT, "killed", early=False)) == [tr.Lost(AGENT, 1, "killed", False, (m1,))]
     assert t.freezes == {}
 
@@ -219,11 +222,11 @@ def test_thaw_claims_then_starts_the_shell_with_queue1_queue2_and_the_local_queu
     q2 = msg("a", 2)
     g.record().queue2.append(q2)  # pushed by another host while the agent was frozen (Alg. 5 l. 23)
     local = msg("a", 3)
-    assert t.step(2.1, tr.Hold(local)) == []  # l. 3: the local queue
+    assert t.step(2.1, Hold(local)) == []  # l. 3: the local queue
     res = g.commit(proposal(effs, "claim").tx)  # ll. 4-7
     assert res.ok and g.record().owner == "h2" and g.record().epoch == 2
-    assert t.step(2.2, tr.Committed(res)) == [SetPhase(AGENT, 2, "thawing")]  # the shell is not up yet
-    assert t.step(2.3, tr.ShellUp(AGENT)) == []  # l. 9: every claimAck
+    assert t.step(2.2, Committed(res)) == [SetPhase(AGENT, 2, "thawing")]  # the shell is not up yet
+    assert t.step(2.3, ShellUp(AGENT)) == []  # l. 9: every claimAck
     t.step(2.4, tr.Ack("h1", AGENT, claim=True))
     view = t.view
     assert isinstance(view, View)
@@ -242,11 +245,11 @@ def test_a_claim_refused_by_the_table_is_abandoned_and_its_held_messages_routed_
     g = Group()
     t, effs = thawing(g)
     held = msg("a", 1)
-    t.step(2.1, tr.Hold(held))
+    t.step(2.1, Hold(held))
     assert g.commit(tx(move=apb.AgentMove(id=AGENT, host="h3"))).ok  # the allocation moved on
     res = g.commit(proposal(effs, "claim").tx)
     assert not res.ok
-    effs = t.step(2.2, tr.Committed(res))  # Alg. 6 l. 18
+    effs = t.step(2.2, Committed(res))  # Alg. 6 l. 18
     assert effs[:2] == [Forget(AGENT), Cmd(KillAgent(AGENT, 2, f"abandoned: {res.reason}"))]
     assert effs[-1] == Route((held,))
 
@@ -266,7 +269,7 @@ def test_a_claim_committed_at_a_later_epoch_gets_a_shell_for_that_epoch():
     t, effs = thawing(g)
     g.record().epoch += 1  # another claim and freeze came back to us before ours committed
     res = g.commit(proposal(effs, "claim").tx)
-    effs = t.step(2.2, tr.Committed(res))
+    effs = t.step(2.2, Committed(res))
     assert effs[:3] == [Cmd(KillAgent(AGENT, 2, "stale shell (epoch 2, now 3)")), SetPhase(AGENT, 3, "claiming"),
                         Cmd(SpawnShell(AGENT, 3, "counter", "A1", b"", ""))]
 
@@ -278,7 +281,7 @@ def test_a_thaw_shell_that_dies_is_replaced_then_given_up():
         effs = t.step(2.0 + i, tr.ShellDied(AGENT, "died", early=True))
         assert Cmd(SpawnShell(AGENT, 2, "counter", "A1", b"", "")) in effs
     held = msg("a", 1)
-    t.step(3.0, tr.Hold(held))
+    t.step(3.0, Hold(held))
     assert t.step(4.0, tr.ShellDied(AGENT, "died", early=True)) == [tr.Lost(AGENT, 2, "died", True, (held,))]
 
 
@@ -286,7 +289,7 @@ def test_a_claim_committed_without_a_shell_is_reported():
     g = Group()
     frozen_for(g, "h2")
     res = g.commit(tx(claim=apb.AgentClaim(id=AGENT, host="h2")))
-    assert tr.Transfer(View("h2", g)).step(2.0, tr.Committed(res)) == [tr.ClaimedWithoutShell(AGENT, 2)]
+    assert tr.Transfer(View("h2", g)).step(2.0, Committed(res)) == [tr.ClaimedWithoutShell(AGENT, 2)]
 
 
 # ------------------------------------------------------------------------------------------- Alg. 7: backup
@@ -343,12 +346,12 @@ def test_recovery_when_the_host_that_ran_the_agent_is_gone_claims_first_then_sta
     assert effs[:3] == [SetPhase(AGENT, 2, "recovering"), Cmd(SpawnShell(AGENT, 2, "counter", "A1", b"", "")),
                         Timeline(AGENT, "recovering")]  # Alg. 8 l. 2
     held = msg("b", 1)  # another sender's stream (one stream keeps its order: a gap holds the rest back)
-    r.step(3.3, rc.Hold(held))
-    assert r.step(3.4, rc.ShellUp(AGENT)) == []  # the backup only once OAC(recovered) committed
+    r.step(3.3, Hold(held))
+    assert r.step(3.4, ShellUp(AGENT)) == []  # the backup only once OAC(recovered) committed
     queued = msg("a", 4)
     g.record().queue1.append(queued)
     res = g.commit(proposal(effs, "recovered").tx)  # ll. 6-9
-    effs = r.step(3.5, rc.Committed(res))
+    effs = r.step(3.5, Committed(res))
     assert isinstance(effs[0], Activate) and effs[0].life == 2
     assert effs[1] == Cmd(StartAgent(AGENT, 2, "recover", b"LATEST", [queued, held]))  # l. 4, the latest backup
     assert effs[2:] == [Timeline(AGENT, "recovered", "from backup"), Reconcile(AGENT)]
@@ -364,8 +367,8 @@ def test_recovery_strategy(strategy: str, state: bytes | None):
     assert g.commit(tx(failed=apb.AgentFailed(id=AGENT, host="h1", epoch=1, reason="x"))).ok
     r = rc.Recovery(View("h1", g))
     effs = r.step(5.0, rc.Recover(AGENT))
-    r.step(5.1, rc.ShellUp(AGENT))
-    effs = r.step(5.2, rc.Committed(g.commit(proposal(effs, "recovered").tx)))
+    r.step(5.1, ShellUp(AGENT))
+    effs = r.step(5.2, Committed(g.commit(proposal(effs, "recovered").tx)))
     assert effs[1] == Cmd(StartAgent(AGENT, 2, "recover", state, []))
 
 
@@ -376,8 +379,8 @@ def test_a_new_agent_starts_fresh():
     r = rc.Recovery(View("h1", g))
     effs = r.step(1.0, rc.Recover(AGENT))
     assert Timeline(AGENT, "spawning") in effs
-    r.step(1.1, rc.Committed(g.commit(proposal(effs, "recovered").tx)))
-    effs = r.step(1.2, rc.ShellUp(AGENT))
+    r.step(1.1, Committed(g.commit(proposal(effs, "recovered").tx)))
+    effs = r.step(1.2, ShellUp(AGENT))
     assert effs[1] == Cmd(StartAgent(AGENT, 1, "fresh", None, []))
     assert effs[2] == Timeline(AGENT, "active", "fresh state")
 
@@ -392,7 +395,7 @@ def test_a_recovery_another_host_won_is_abandoned():
     assert g.commit(tx(recovered=apb.AgentRecovered(id=AGENT, host="h3"))).ok
     res = g.commit(mine)
     assert not res.ok
-    effs = r2.step(1.1, rc.Committed(res))
+    effs = r2.step(1.1, Committed(res))
     assert effs[:2] == [Forget(AGENT), Cmd(KillAgent(AGENT, 2, f"abandoned: {res.reason}"))]
     assert r2.recoveries == {}
 
@@ -412,7 +415,7 @@ def test_a_failed_instance_is_reported_once_and_again_only_while_no_instance_run
     r.step(1.3, rc.ReportFailed(AGENT, 1, "x"))
     assert r.step(1.4, rc.Written("failed", AGENT, 1, False, running=True)) == []
     res = g.commit(tx(failed=apb.AgentFailed(id=AGENT, host="h1", epoch=1, reason="died", early=True)))
-    assert r.step(1.5, rc.Committed(res)) == [Timeline(AGENT, "crashed", ""), Route((held,))]
+    assert r.step(1.5, Committed(res)) == [Timeline(AGENT, "crashed", ""), Route((held,))]
 
 
 def test_start_failures_back_off_before_the_next_recovery():
@@ -455,7 +458,7 @@ def test_a_recovery_shell_is_replaced_but_a_failed_spawn_is_a_start_failure():
     effs2 = r.step(1.2, rc.ShellDied(AGENT, "spawn failed: bad config"))
     assert effs2 == [Forget(AGENT), Timeline(AGENT, "crashed", "spawn failed: bad config")]
     res = g.commit(proposal(effs, "recovered").tx)  # it commits after all: reported with the spawn's reason
-    f = proposal(r.step(1.3, rc.Committed(res)), "failed").tx.failed
+    f = proposal(r.step(1.3, Committed(res)), "failed").tx.failed
     assert (f.reason, f.early) == ("spawn failed: bad config", True)
 
 

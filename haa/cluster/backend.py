@@ -5,7 +5,8 @@ is alive, paused or gone) and how to start, kill, pause, resume and restart them
 `haa.cluster.local_backend.LocalBackend` (haa-hostd processes on loopback, recorded in a state file) and
 `haa.cluster.compose_backend.ComposeBackend` (the docker compose cluster of compose/compose.yaml, through the
 docker SDK). Everything that only talks to the hosts' control API — status fan-out, waiting for the group
-to form, for a host to leave the view or to rejoin, a graceful leave — is written once here.
+to form, for a host to leave the view or to rejoin, a graceful leave — is written once here, and so is what
+the container backends (compose, swarm) share: their docker SDK client (`docker_client`), their log followers.
 
 A cluster made with `--tls` (mutual TLS, docs/deploy.md) gives the backend haactl's client certificate
 (`tls`); `connect` is the one place a control channel is made, over TLS when the cluster has it.
@@ -16,6 +17,7 @@ and exits with code 1.
 
 from __future__ import annotations
 
+import os
 import queue
 import re
 import threading
@@ -75,6 +77,23 @@ def merged_follow(names: Sequence[str], follow: Callable[[str, queue.Queue[tuple
             yield q.get()
     finally:
         stop.set()
+
+
+def docker_client() -> Any:
+    """The docker SDK client of the container backends (compose, swarm), or `ClusterError` with what to do."""
+    try:
+        import docker
+    except ImportError:
+        raise ClusterError("the docker SDK is not installed in this environment (pip install docker)") from None
+    try:
+        client = docker.from_env(version="auto", timeout=60)
+        client.ping()
+    except Exception as e:  # docker.errors.DockerException, requests errors
+        where = os.environ.get("DOCKER_HOST", "the local docker socket")
+        raise ClusterError(
+            f"no docker engine reachable at {where} ({e.__class__.__name__}): `make docker-setup`"
+        ) from None
+    return client
 
 
 @dataclass

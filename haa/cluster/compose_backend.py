@@ -46,6 +46,7 @@ from haa.cluster.backend import (
     Backend,
     ClusterError,
     HostInfo,
+    docker_client,
     merged_follow,
     natural_key,
     state_phrase,
@@ -82,23 +83,6 @@ def compose_command() -> list[str]:
     if shutil.which("docker-compose"):
         return ["docker-compose"]
     raise ClusterError("neither `docker compose` (v2) nor `docker-compose` (v1) is installed: `make docker-setup`")
-
-
-def docker_client() -> Any:
-    """The docker SDK client, or `ClusterError` with what to do."""
-    try:
-        import docker
-    except ImportError:
-        raise ClusterError("the docker SDK is not installed in this environment (pip install docker)") from None
-    try:
-        client = docker.from_env(version="auto", timeout=60)
-        client.ping()
-    except Exception as e:  # docker.errors.DockerException, requests errors
-        where = os.environ.get("DOCKER_HOST", "the local docker socket")
-        raise ClusterError(
-            f"no docker engine reachable at {where} ({e.__class__.__name__}): `make docker-setup`"
-        ) from None
-    return client
 
 
 def host_service(name: str, svc: Any) -> bool:

@@ -58,6 +58,7 @@ from haa.cluster.backend import (
     Backend,
     ClusterError,
     HostInfo,
+    docker_client,
     merged_follow,
     natural_key,
     state_phrase,
@@ -83,22 +84,6 @@ def default_stack_file() -> Path:
         return Path(env)
     here = Path.cwd() / "compose" / "stack.yaml"
     return here if here.exists() else REPO / "compose" / "stack.yaml"
-
-
-def docker_client() -> Any:
-    """The docker SDK client, or `ClusterError` with what to do."""
-    try:
-        import docker
-    except ImportError:
-        raise ClusterError("the docker SDK is not installed in this environment (pip install docker)") from None
-    try:
-        client = docker.from_env(version="auto", timeout=60)
-        client.ping()
-    except Exception as e:  # docker.errors.DockerException, requests errors
-        where = os.environ.get("DOCKER_HOST", "the local docker socket")
-        raise ClusterError(f"no docker engine reachable at {where} ({e.__class__.__name__}): `make docker-setup`") \
-            from None
-    return client
 
 
 def _env_of(svc: Any) -> dict[str, str]:

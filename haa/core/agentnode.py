@@ -61,6 +61,7 @@ from haa.core.agentstep import (
     ArmTimer,
     Cmd,
     Forget,
+    Hold,
     HostSend,
     Local,
     Note,
@@ -211,10 +212,10 @@ class AgentNode:
                     self._forget(e.agent)
                 case Reconcile():
                     self._reconcile_one(e.agent)
-                case tr.Hold() | tr.Ack():
-                    self._tr(e)
-                case rc.Hold() | rc.Orphan():
-                    self._rc(e)
+                case plan.ToTransfer():
+                    self._tr(e.inp)
+                case plan.ToRecovery():
+                    self._rc(e.inp)
                 case tr.Lost():
                     self._rc(rc.InstanceFailed(e.agent, e.epoch, e.reason, e.early, e.msgs))
                 case tr.ClaimedWithoutShell():
@@ -351,11 +352,10 @@ class AgentNode:
             return
         if type(ev) is Sent:  # the most frequent event first
             self._apply(self.router.sent(loc, ev))
-        elif isinstance(inp := plan.instance_input(loc, ev, now, self.config.start_grace),
-                        (tr.ShellUp, tr.StateArrived, tr.ShellDied)):
-            self._tr(inp)
-        elif inp is not None:
-            self._rc(inp)
+        elif isinstance(to := plan.instance_input(loc, ev, now, self.config.start_grace), plan.ToTransfer):
+            self._tr(to.inp)
+        elif to is not None:
+            self._rc(to.inp)
         elif type(ev) is Stopped:  # the agent ended itself: removed from the table
             self._apply([Propose(ops.remove(loc.id, self.name, loc.epoch), "stopped", loc.id, loc.epoch)])
         elif type(ev) is SpawnChild:
@@ -368,7 +368,7 @@ class AgentNode:
         self._now = now
         loc = self.local.get(agent)
         if loc is not None and loc.epoch == epoch and loc.phase == "freezing":
-            if not self.transfer.step(now, tr.Hold(m)):  # queue1 before Alg. 5 l. 11; after it, an orphan
+            if not self.transfer.step(now, Hold(m)):  # queue1 before Alg. 5 l. 11; after it, an orphan
                 return
         self._rc(rc.Orphan(agent, m))
 
@@ -466,10 +466,10 @@ class AgentNode:
             elif res.kind == "remove" and res.ok:
                 self._forget(res.agent, kill="removed", removed=True)
                 self.out.append(AgentTimeline(res.agent, res.agent[:8], "removed", self.name))
-            elif isinstance(inp := plan.applied_input(res), tr.Committed):
-                self._tr(inp)
-            elif isinstance(inp, rc.Committed):
-                self._rc(inp)
+            elif isinstance(to := plan.applied_input(res), plan.ToTransfer):
+                self._tr(to.inp)
+            elif to is not None:
+                self._rc(to.inp)
             elif res.kind == "push" and res.ok and res.reason == "deliver" and res.host == self.name:
                 for m in res.msgs:
                     self._route(m)

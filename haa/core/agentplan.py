@@ -13,6 +13,10 @@ functions of the input, the agent table and the node's record of the instance:
   the instance in its current phase;
 * `applied_input`: a committed agent transaction as the input of the machine it concerns.
 
+Both return the input addressed to its machine (`ToTransfer`, `ToRecovery`; `haa.core.agentroute.Router` hands
+the messages it holds and the acknowledgements on the same way): some inputs are of the same class for either
+machine (`haa.core.agentstep.Hold`, `ShellUp`, `Committed`), so the class cannot say where an input goes.
+
 Pure: no I/O, no clock, no randomness.
 """
 
@@ -25,8 +29,22 @@ from haa.core import agenttable as at
 from haa.core import recovery as rc
 from haa.core import transfer as tr
 from haa.core.agentio import BackupMade, Failed, Frozen, ShellReady
-from haa.core.agentstep import Local
+from haa.core.agentstep import Committed, Local, ShellUp
 from haa.pb import agenttx_pb2 as apb
+
+
+@dataclass(frozen=True, slots=True)
+class ToTransfer:
+    """Step the transfer machine (`haa.core.transfer.Transfer`) with `inp`."""
+
+    inp: tr.TransferInput
+
+
+@dataclass(frozen=True, slots=True)
+class ToRecovery:
+    """Step the recovery machine (`haa.core.recovery.Recovery`) with `inp`."""
+
+    inp: rc.RecoveryInput
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,35 +84,32 @@ def reconcile(r: at.AgentRecord, loc: Local | None, me: str, draining: bool,
     return None
 
 
-InstanceInput = tr.ShellUp | tr.StateArrived | tr.ShellDied | rc.ShellUp | rc.Backup | rc.ShellDied | rc.InstanceFailed
-
-
-def instance_input(loc: Local, ev: object, now: float, start_grace: float) -> InstanceInput | None:
+def instance_input(loc: Local, ev: object, now: float, start_grace: float) -> ToTransfer | ToRecovery | None:
     """The machine input of an event of instance `loc` (the node checked its epoch); None: not a machine's."""
     phase = loc.phase
     if isinstance(ev, ShellReady):
         if phase in ("claiming", "thawing"):
-            return tr.ShellUp(loc.id)
-        return rc.ShellUp(loc.id) if phase == "recovering" else None
+            return ToTransfer(ShellUp(loc.id))
+        return ToRecovery(ShellUp(loc.id)) if phase == "recovering" else None
     if isinstance(ev, BackupMade):  # Alg. 7 l. 3
-        return rc.Backup(loc.id, loc.epoch, ev.data) if phase in ("active", "freezing") else None
+        return ToRecovery(rc.Backup(loc.id, loc.epoch, ev.data)) if phase in ("active", "freezing") else None
     if isinstance(ev, Frozen):  # Alg. 5 l. 19
-        return tr.StateArrived(loc.id, ev.state) if phase == "freezing" else None
+        return ToTransfer(tr.StateArrived(loc.id, ev.state)) if phase == "freezing" else None
     if isinstance(ev, Failed):
         # early: not up yet, or within its start grace (a start failure: counted, backed off)
         early = phase != "active" or loc.started < 0 or now - loc.started < start_grace
         if phase == "recovering":
-            return rc.ShellDied(loc.id, ev.reason)
+            return ToRecovery(rc.ShellDied(loc.id, ev.reason))
         if phase == "active":
-            return rc.InstanceFailed(loc.id, loc.epoch, ev.reason, early)
-        return tr.ShellDied(loc.id, ev.reason, early)  # freezing, claiming, thawing
+            return ToRecovery(rc.InstanceFailed(loc.id, loc.epoch, ev.reason, early))
+        return ToTransfer(tr.ShellDied(loc.id, ev.reason, early))  # freezing, claiming, thawing
     return None
 
 
-def applied_input(res: at.AgentApplied) -> tr.Committed | rc.Committed | None:
+def applied_input(res: at.AgentApplied) -> ToTransfer | ToRecovery | None:
     """The machine input of a committed transfer or recovery transaction (None for the other kinds)."""
     if res.kind in ("freeze", "release", "claim"):
-        return tr.Committed(res)
+        return ToTransfer(Committed(res))
     if res.kind in ("recovered", "failed"):
-        return rc.Committed(res)
+        return ToRecovery(Committed(res))
     return None

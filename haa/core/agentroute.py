@@ -7,10 +7,11 @@ agent. `Router` decides, from the replicated agent table and the instances this 
 * a's instance here is running -> to it, through its `Inbox` (exactly once, in sender order:
   `haa.core.routing`), as `DeliverAgent` commands;
 * a is being frozen here before Alg. 5 l. 11, or thawed (Alg. 6 l. 3) -> held by `haa.core.transfer`
-  (`transfer.Hold`); being recovered -> held by `haa.core.recovery` (`recovery.Hold`);
+  (`agentstep.Hold`, addressed `agentplan.ToTransfer`); being recovered -> held by `haa.core.recovery`
+  (`ToRecovery(Hold)`);
 * a is active on another host -> to that host (`HostSend` "msg");
 * a is ours by the table but no instance runs here (its failure is being reported) -> held by the recovery
-  (`recovery.Orphan`) until the table says where it is;
+  (`ToRecovery(recovery.Orphan)`) until the table says where it is;
 * a is frozen or freezing elsewhere, new or crashed -> pushed to its queue2 in the table (Alg. 5 ll. 11, 23),
   batched: one push transaction per agent in OAC at a time (`flush`).
 
@@ -31,11 +32,12 @@ from haa.core import agenttable as at
 from haa.core import recovery as rc
 from haa.core import transfer as tr
 from haa.core.agentio import DeliverAgent, OperatorReply, Sent
-from haa.core.agentstep import AgentView, Cmd, HostSend, Local, Propose, Route
+from haa.core.agentplan import ToRecovery, ToTransfer
+from haa.core.agentstep import AgentView, Cmd, Hold, HostSend, Local, Propose, Route
 from haa.core.messages import AgentHostMsg
 from haa.pb import agenttx_pb2 as apb
 
-RouteEffect = Cmd | HostSend | Propose | Route | OperatorReply | tr.Hold | tr.Ack | rc.Hold | rc.Orphan
+RouteEffect = Cmd | HostSend | Propose | Route | OperatorReply | ToTransfer | ToRecovery
 
 
 class Router:
@@ -65,15 +67,15 @@ class Router:
                 assert loc.inbox is not None
                 return [Cmd(DeliverAgent(loc.id, loc.epoch, x)) for x in loc.inbox.offer(m)]
             if loc.phase in ("freezing", "claiming", "thawing"):  # Alg. 5 l. 4 (queue1), Alg. 6 l. 3
-                return [tr.Hold(m)]
+                return [ToTransfer(Hold(m))]
             if loc.phase == "recovering":
-                return [rc.Hold(m)]
+                return [ToRecovery(Hold(m))]
         me = self.view.name
         if r.status == at.ACTIVE and r.owner and r.owner != me:
             return [HostSend(r.owner, "msg", m.dst, r.epoch, m.SerializeToString())]
         if r.status == at.ACTIVE and r.owner == me:
             # ours, but no instance here right now (its failure is being reported): hold until the table says
-            return [rc.Orphan(m.dst, m)]
+            return [ToRecovery(rc.Orphan(m.dst, m))]
         # frozen / freezing elsewhere (Alg. 5 l. 23), new or crashed: into queue2 (Alg. 5 l. 11, 23)
         self.pushes.setdefault(m.dst, []).append(m)
         return []
@@ -111,7 +113,7 @@ class Router:
         l. 16) for the transfer."""
         k = msg.kind
         if k in ("freeze_ack", "claim_ack"):
-            return [tr.Ack(src, msg.agent, claim=k == "claim_ack")]
+            return [ToTransfer(tr.Ack(src, msg.agent, claim=k == "claim_ack"))]
         if k not in ("msg", "op_reply") or (m := self.parse(msg.data)) is None:
             return []
         if k == "op_reply":

@@ -15,6 +15,9 @@ effects; this module holds the pieces they have in common:
   `Activate`, `Forget`, `Reconcile`, `ArmTimer`), frozen dataclasses; each machine's effect union is a
   subset of them plus its own (`transfer.Lost`, `recovery.Recovered`...). `AgentNode` carries them out in
   the order they come, which is the order in which the code before the split performed them.
+* the inputs both machines take (`Hold`, `ShellUp`, `Committed`); each machine's input union names them next
+  to its own. Their class does not say which machine an input is for: whoever makes one says it
+  (`haa.core.agentplan.ToTransfer`, `ToRecovery`).
 * `AgentTimer`: the typed timer keys of the agent layer. Printed as the tuples they replaced
   (`('a', 'backoff', '<agent>')`), so the simulator's trace hash is unchanged.
 
@@ -79,6 +82,33 @@ class AgentTimer:
 
     def __str__(self) -> str:  # the printed form of the tuple keys before (the simulator hashes it)
         return str(("a", self.what, self.agent) if self.agent else ("a", self.what))
+
+
+# ----------------------------------------------------------------------------------------------- inputs
+
+
+@dataclass(frozen=True, slots=True)
+class Hold:
+    """A message for `m.dst`, which this host is freezing, thawing or recovering: the transfer holds it (queue1,
+    Alg. 5 l. 4; a thaw's local queue, Alg. 6 l. 3) or answers `transfer.PassOn`; the recovery holds it for the
+    shell (its local queue)."""
+
+    m: apb.RoutedMsg
+
+
+@dataclass(frozen=True, slots=True)
+class ShellUp:
+    """The shell of a thaw (transfer) or of a recovery said hello."""
+
+    agent: str
+
+
+@dataclass(frozen=True, slots=True)
+class Committed:
+    """A transaction of the machine's was applied here (`res.kind`: OAC(freeze|release|claim) for the transfer,
+    OAC(recovered|failed) for the recovery), by any host."""
+
+    res: at.AgentApplied
 
 
 # ----------------------------------------------------------------------------------------------- effects

@@ -52,12 +52,15 @@ from haa.core.agentstep import (
     AgentView,
     ArmTimer,
     Cmd,
+    Committed,
     Forget,
+    Hold,
     Note,
     Propose,
     Reconcile,
     Route,
     SetPhase,
+    ShellUp,
     Timeline,
     spawn,
     start_messages,
@@ -66,6 +69,7 @@ from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 # ----------------------------------------------------------------------------------------------- inputs
+# (and `Hold`, `ShellUp`, `Committed`, which both machines take: `haa.core.agentstep`)
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,25 +90,11 @@ class Backup:
 
 
 @dataclass(frozen=True, slots=True)
-class Hold:
-    """A message for `m.dst`, which this host is recovering: held for the shell (its local queue)."""
-
-    m: apb.RoutedMsg
-
-
-@dataclass(frozen=True, slots=True)
 class Orphan:
     """A message for `agent`, whose instance here is gone: held until the table says where the agent is."""
 
     agent: str
     m: apb.RoutedMsg
-
-
-@dataclass(frozen=True, slots=True)
-class ShellUp:
-    """The shell of a recovery said hello."""
-
-    agent: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -134,13 +124,6 @@ class ReportFailed:
     agent: str
     epoch: int
     reason: str
-
-
-@dataclass(frozen=True, slots=True)
-class Committed:
-    """OAC(recovered|failed) was applied here (`res.kind`), by any host."""
-
-    res: at.AgentApplied
 
 
 @dataclass(frozen=True, slots=True)

@@ -48,13 +48,16 @@ from haa.core.agentstep import (
     Activate,
     AgentView,
     Cmd,
+    Committed,
     Forget,
+    Hold,
     HostSend,
     Note,
     Propose,
     Reconcile,
     Route,
     SetPhase,
+    ShellUp,
     Timeline,
     spawn,
     start_messages,
@@ -63,6 +66,7 @@ from haa.core.routing import Inbox, Outbox
 from haa.pb import agenttx_pb2 as apb
 
 # ----------------------------------------------------------------------------------------------- inputs
+# (and `Hold`, `ShellUp`, `Committed`, which both machines take: `haa.core.agentstep`)
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,25 +88,11 @@ class Thaw:
 
 
 @dataclass(frozen=True, slots=True)
-class Hold:
-    """A message for `m.dst`, which this host is freezing or thawing: held (queue1 / local queue) or `PassOn`."""
-
-    m: apb.RoutedMsg
-
-
-@dataclass(frozen=True, slots=True)
 class StateArrived:
     """Alg. 5 l. 19: (state) from the instance being frozen."""
 
     agent: str
     state: bytes
-
-
-@dataclass(frozen=True, slots=True)
-class ShellUp:
-    """The shell of a thaw said hello."""
-
-    agent: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,13 +111,6 @@ class Ack:
     src: str
     agent: str
     claim: bool
-
-
-@dataclass(frozen=True, slots=True)
-class Committed:
-    """OAC(freeze|release|claim) was applied here (`res.kind`), by any host."""
-
-    res: at.AgentApplied
 
 
 @dataclass(frozen=True, slots=True)

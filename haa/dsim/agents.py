@@ -408,17 +408,23 @@ class AgentSim(GroupSim):
         return [h for h in self.cl.by_idx if h.state == ALIVE and (nd := node_of(h)) is not None and nd.m.is_member()]
 
     def _create(self, only: int | None = None) -> None:
+        """The operator creates the scenario's agents (`only`: agent #only) through a member drawn at random, as
+        soon as there is one; `_create_agent` says what each agent is."""
         hs = self._members()
         if not hs:
             self.cl.at(self.cl.now + 0.1, lambda: self._create(only))
             return
         h = self.arng.choice(hs)
+        node, now = live_node(h), h.local(self.cl.now)
         for i, agent in enumerate(self.ah.ids):
-            if only is not None and i != only:
-                continue
-            live_node(h).create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3),
-                                transfer_penalty=0.1, recovery="backup", req=("create", i))
+            if only is None or i == only:
+                self._create_agent(node, now, i, agent)
         self.cl._apply(h)
+
+    def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
+        """Ask `node` to create agent #`i` (id `agent`): a counter of a random cost."""
+        node.create_agent(now, agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3), transfer_penalty=0.1,
+                          recovery="backup", req=("create", i))
 
     def _ensure_created(self) -> None:
         """An operator whose request died with its host asks again (until the end of the fault window)."""
@@ -651,12 +657,11 @@ def is_member_node(node: Any) -> MembershipNode | None:
 # ------------------------------------------------------------------------------------------------ the verifier
 
 
-def seed_result(seed: int, hosts: int, mix: str) -> dict[str, Any]:
-    """The fields of `haa.dsim.sweep.SeedResult` for one seed (`haactl verify transfer|recovery`)."""
-    sim, vs = run_agents(seed, hosts, mix)
-    ah = sim.ah
-    transfers = sum(1 for _t, _h, _n, ev in ah.timeline if ev == "thawed")
-    recoveries = sum(1 for _a, _e, mode, _s in ah.recovered_starts if mode == "recover")
+def seed_fields(seed: int, sim: AgentSim, vs: list[GroupViolation], stats: dict[str, float],
+                scenario: list[str]) -> dict[str, Any]:
+    """The fields of `haa.dsim.sweep.SeedResult` for one seed run by an `AgentSim` (this module's verifier,
+    `haa.dsim.joins`, `haa.dsim.vagent`): its violations `vs`, the run's counts, the verifier's own `stats` and
+    the first lines of the `scenario`'s description."""
     return {
         "seed": seed,
         "violations": [str(v) for v in vs],
@@ -664,15 +669,24 @@ def seed_result(seed: int, hosts: int, mix: str) -> dict[str, Any]:
         "trace_hash": sim.cl.trace_hash(),
         "events": sim.cl.events,
         "messages": sum(sim.cl.msg_counts.values()),
-        "stats": {
-            "transfers": float(transfers),
-            "recoveries": float(recoveries),
-            "processed": float(sum(len(v) for v in ah.processed.values())),
-            "faults_dropped": float(len(sim.gh.dropped)),
-        },
+        "stats": stats,
         "hosts": [h for v in vs for h in v.hosts],
-        "description": " | ".join(sim.asc.describe()[:3]),
+        "description": " | ".join(scenario[:3]),
     }
+
+
+def seed_result(seed: int, hosts: int, mix: str) -> dict[str, Any]:
+    """The fields of `haa.dsim.sweep.SeedResult` for one seed (`haactl verify transfer|recovery`)."""
+    sim, vs = run_agents(seed, hosts, mix)
+    ah = sim.ah
+    transfers = sum(1 for _t, _h, _n, ev in ah.timeline if ev == "thawed")
+    recoveries = sum(1 for _a, _e, mode, _s in ah.recovered_starts if mode == "recover")
+    return seed_fields(seed, sim, vs, {
+        "transfers": float(transfers),
+        "recoveries": float(recoveries),
+        "processed": float(sum(len(v) for v in ah.processed.values())),
+        "faults_dropped": float(len(sim.gh.dropped)),
+    }, sim.asc.describe())
 
 
 _NOISE = ("Heartbeat(", "SetPeriod(", "StateSnapshot(", "StateForward(")

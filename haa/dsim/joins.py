@@ -32,7 +32,7 @@ from typing import Any
 from haa.core.agentio import AgentTimeline
 from haa.core.agentnode import AgentConfig, AgentNode
 from haa.core.membership import ViewChange
-from haa.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents, live_node
+from haa.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents, seed_fields
 from haa.dsim.cluster import SimHost
 from haa.dsim.group import GroupScenario, GroupViolation
 from haa.dsim.schedule import _delay_model
@@ -122,18 +122,10 @@ class JoinSim(AgentSim):
         cfg = dataclasses.replace(JOIN_AGENT, capacity=self.js.capacity[h.name])
         return AgentNode(node, cfg)
 
-    def _create(self, only: int | None = None) -> None:
-        hs = self._members()
-        if not hs:
-            self.cl.at(self.cl.now + 0.1, lambda: self._create(only))
-            return
-        h = self.arng.choice(hs)
-        for i, agent in enumerate(self.ah.ids):
-            if only is not None and i != only:
-                continue
-            live_node(h).create_agent(h.local(self.cl.now), agent, "counter", b"", cost=self.js.costs[i],
-                                transfer_penalty=self.js.penalties[i], recovery="backup", req=("create", i))
-        self.cl._apply(h)
+    def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
+        """A counter of the drawn cost and transfer penalty."""
+        node.create_agent(now, agent, "counter", b"", cost=self.js.costs[i], transfer_penalty=self.js.penalties[i],
+                          recovery="backup", req=("create", i))
 
     def _on_effect(self, h: SimHost, e: Any) -> None:
         t = type(e)
@@ -190,22 +182,12 @@ def seed_result(seed: int, hosts: int) -> dict[str, Any]:
     windows = join_windows(sim)
     after = [mv for _j, _t0, _t1, mvs in windows for mv in mvs]
     to_joiner = sum(1 for j, _t0, _t1, mvs in windows for mv in mvs if mv[3] == j)
-    return {
-        "seed": seed,
-        "violations": [str(v) for v in vs],
-        "liveness_checked": sim.quiescent,
-        "trace_hash": sim.cl.trace_hash(),
-        "events": sim.cl.events,
-        "messages": sum(sim.cl.msg_counts.values()),
-        "stats": {
-            "joins": float(len(windows)),
-            "transfers_after_joins": float(len(after)),
-            "transfers_to_joiners": float(to_joiner),
-            "agents_moved_twice": float(sum(1 for v in vs if v.prop == "AA-Join-Stable")),
-        },
-        "hosts": [h for v in vs for h in v.hosts],
-        "description": " | ".join(sim.js.describe()[:3]),
-    }
+    return seed_fields(seed, sim, vs, {
+        "joins": float(len(windows)),
+        "transfers_after_joins": float(len(after)),
+        "transfers_to_joiners": float(to_joiner),
+        "agents_moved_twice": float(sum(1 for v in vs if v.prop == "AA-Join-Stable")),
+    }, sim.js.describe())
 
 
 def full_trace(seed: int, hosts: int) -> list[str]:

@@ -97,6 +97,7 @@ from haa.dsim.agents import (
     SimAgent,
     check_agents,
     draw_agents,
+    seed_fields,
 )
 from haa.dsim.cluster import ALIVE, SimHost
 from haa.dsim.group import GroupViolation
@@ -190,16 +191,11 @@ class RealAgentSim(AgentSim):
 
     # ------------------------------------------------------------------ the scenario
 
-    def _create(self, only: int | None = None) -> None:
-        hs = self._members()
-        if not hs:
-            self.cl.at(self.cl.now + 0.1, lambda: self._create(only))
-            return
-        h = self.arng.choice(hs)
+    def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
+        """The executive (the scenario's one agent, #0)."""
         cls = ExecutiveMission
-        _node(h).create_agent(h.local(self.cl.now), self.ah.ids[0], REAL_TYPE, self.config, cost=cls.COST,
-                            transfer_penalty=cls.TRANSFER_PENALTY, recovery=cls.RECOVERY, req=("create", 0))
-        self.cl._apply(h)
+        node.create_agent(now, agent, REAL_TYPE, self.config, cost=cls.COST, transfer_penalty=cls.TRANSFER_PENALTY,
+                          recovery=cls.RECOVERY, req=("create", i))
 
     def _schedule_send(self, h: SimHost, a: SimAgent) -> None:
         """The children are shells: they send nothing (module docstring)."""
@@ -578,22 +574,12 @@ def seed_result(seed: int, hosts: int) -> dict[str, Any]:
     sim, vs = run_real(seed, hosts, VERIFY_MIX)
     ah = sim.ah
     exec_id = ah.ids[0]
-    return {
-        "seed": seed,
-        "violations": [str(v) for v in vs],
-        "liveness_checked": sim.quiescent,
-        "trace_hash": sim.cl.trace_hash(),
-        "events": sim.cl.events,
-        "messages": sum(sim.cl.msg_counts.values()),
-        "stats": {
-            "transfers": float(sum(1 for _t, _h, _n, ev in ah.timeline if ev == "thawed")),
-            "recoveries": float(sum(1 for a, _e, m, _s in ah.recovered_starts if a == exec_id and m == "recover")),
-            "duplicate_children": float(duplicate_children(sim)),
-            "faults_dropped": float(len(sim.gh.dropped)),
-        },
-        "hosts": [h for v in vs for h in v.hosts],
-        "description": " | ".join(sim.asc.describe()[:3]),
-    }
+    return seed_fields(seed, sim, vs, {
+        "transfers": float(sum(1 for _t, _h, _n, ev in ah.timeline if ev == "thawed")),
+        "recoveries": float(sum(1 for a, _e, m, _s in ah.recovered_starts if a == exec_id and m == "recover")),
+        "duplicate_children": float(duplicate_children(sim)),
+        "faults_dropped": float(len(sim.gh.dropped)),
+    }, sim.asc.describe())
 
 
 def full_trace(seed: int, hosts: int) -> list[str]:
