@@ -155,12 +155,6 @@ class AgentNode:
         """Alg. 6 l. 9 / Alg. 8 l. 3: every OAC this host knows of is decided and delivered."""
         return not self.m.direct_q and all(tx.state == DONE or not tx.content for tx in self.m.core.oac.txs.values())
 
-    # what the simulator's quiescence check reads
-    draining = property(lambda self: self.leaving.draining)
-    orphans = property(lambda self: self.recovery.orphans)
-    _pushes = property(lambda self: self.router.pushes)
-    _backoff = property(lambda self: self.recovery.backoff)
-
     # ------------------------------------------------------------------ carrying out the machines' effects
 
     def _tr(self, inp: tr.TransferInput) -> None:

@@ -506,7 +506,7 @@ class AgentSim(GroupSim):
             for loc in node.local.values():
                 if loc.phase != "active":
                     return False
-            if node.orphans or node._pushes or node._backoff:  # a recovery waiting out a start-failure backoff
+            if node.recovery.orphans or node.router.pushes or node.recovery.backoff:  # e.g. a start-failure backoff
                 return False
         return True
 
