@@ -74,8 +74,9 @@ from haa.core.agentstep import (
 )
 from haa.core.allocglue import AllocGlue, GlueEffect
 from haa.core.effects import Log, Send, SetTimer
+from haa.core.inputs import FdReport, LeaveGroup, NodeInput, PeerInfo, Receive, Start, Submit, TimerFired
 from haa.core.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
-from haa.core.messages import AgentHostMsg, Message
+from haa.core.messages import AgentHostMsg
 from haa.core.oac import DONE
 from haa.pb import agenttx_pb2 as apb
 
@@ -87,6 +88,9 @@ RETRY_AFTER = 0.1
 _TRANSFER_WRITES = frozenset({"freeze", "release", "claim"})
 _RECOVERY_WRITES = frozenset({"recovered", "failed"})
 _ALLOC_WRITES = frozenset({"host", "start", "finish"})
+#: not handed on to the membership node by `AgentNode.__getattr__`: its own parts, and the membership node's
+#: inputs, which go through `AgentNode.step` (handed on, they would bypass the agent layer's clock)
+_NOT_HANDED_ON = frozenset({"m", "start", "on_message", "on_suspicion", "on_peer_info", "submit"})
 #: what the machines ask the node to do
 Effect = tr.TransferEffect | rc.RecoveryEffect | GlueEffect | RouteEffect | ops.OpEffect | LeaveEffect
 
@@ -121,7 +125,6 @@ class AgentNode:
         self.m = node
         self.config = cfg = config or AgentConfig()
         self.name = node.name
-        node.core.app_handler = self._on_host_msg
         self.local: dict[str, Local] = {}  # the instances this host runs or prepares
         self.out: list[Any] = []
         self.counters: Counter[str] = Counter()
@@ -138,7 +141,7 @@ class AgentNode:
 
     def __getattr__(self, name: str) -> Any:
         # the rest is the membership node's (state, oac, is_member, ...): drivers drive either the same way
-        if name == "m":
+        if name in _NOT_HANDED_ON:
             raise AttributeError(name)
         return getattr(self.m, name)
 
@@ -244,25 +247,21 @@ class AgentNode:
 
     # ------------------------------------------------------------------ inputs (wrapping the membership node)
 
-    def start(self, now: float) -> None:
+    def step(self, now: float, inp: NodeInput) -> None:
+        """One input (`haa.core.inputs`); effects accumulate for `drain()`."""
         self._now = now
-        self.m.start(now)
-
-    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
-        self._now = now
-        self.m.on_message(now, src, src_inc, dst_inc, msg)
-
-    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
-        self._now = now
-        self.m.on_suspicion(now, peer, suspected)
-
-    def on_peer_info(self, now: float, peer: str, inc: int) -> None:
-        self._now = now
-        self.m.on_peer_info(now, peer, inc)
-
-    def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
-        self._now = now
-        self.m.submit(now, payload, req, kind)
+        match inp:
+            case Receive():
+                if (up := self.m.step(now, inp)) is not None:  # an AgentHostMsg the core let through
+                    self._on_host_msg(up.src, up.src_inc, up.msg)
+            case TimerFired(key):
+                self.on_timer(now, key)
+            case LeaveGroup():
+                self.leave(now)
+            case Start() | FdReport() | PeerInfo() | Submit():
+                self.m.step(now, inp)
+            case _:
+                assert_never(inp)
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now
@@ -366,10 +365,8 @@ class AgentNode:
                 return
         self._rc(rc.Orphan(agent, m))
 
-    def _on_host_msg(self, src: str, src_inc: int, msg: Message) -> None:
+    def _on_host_msg(self, src: str, src_inc: int, msg: AgentHostMsg) -> None:
         """An `AgentHostMsg` from another host (the core checked the sender's incarnation)."""
-        if not isinstance(msg, AgentHostMsg):
-            return
         if not self.m.is_member() or not self.m.state.is_member((src, src_inc)):
             self.counters["agent_msg_from_non_member"] += 1
         elif msg.kind == "alloc":  # a bid update (Alg. 4 l. 59), processed at the end of the batch (l. 77)

@@ -16,7 +16,8 @@ failure detector mode, used by the simulator's adversarial FD model), `on_peer_i
 a peer's incarnation from a handshake), `propose`. Effects accumulate in `out`; the driver calls `drain()`.
 A membership message (Alg. 3, `GROUP_TYPES`) is not the core's to handle: with `accept_group` (the
 membership layer, `haa.core.membership`, runs on top) `on_message` returns it as a `GroupMessage` for the
-layer above to handle at once; without it, it is counted as an unknown message.
+layer above to handle at once, and an agent-layer message (`APP_TYPES`) as an `AppMessage`, which the
+membership layer hands up in turn; without it, both are counted as unknown messages.
 The module performs no I/O, reads no clock and uses no randomness.
 """
 
@@ -25,7 +26,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any, assert_never, cast
 
 from haa.core.effects import (
     CancelTimer,
@@ -37,10 +38,11 @@ from haa.core.effects import (
     SetTimer,
     Suspicion,
 )
+from haa.core.inputs import CoreInput, FdReport, PeerInfo, Receive, Start, TimerFired
 from haa.core.messages import (
-    APP_TYPES,
     GROUP_TYPES,
     OAC_TYPES,
+    AgentHostMsg,
     Excluded,
     Heartbeat,
     Message,
@@ -79,6 +81,16 @@ class GroupMessage:
     src: str
     src_inc: int
     msg: Message
+
+
+@dataclass(frozen=True, slots=True)
+class AppMessage:
+    """An agent-layer message (`APP_TYPES`) that passed the core's checks, returned by `HostCore.on_message`
+    and handed up by the membership layer to the agent layer (`haa.core.agentnode`)."""
+
+    src: str
+    src_inc: int
+    msg: AgentHostMsg
 
 
 class _Peer:
@@ -129,8 +141,6 @@ class HostCore:
         #: membership messages of Alg. 3 to it, and one from a host this core has never heard of adds that host
         #: as a peer (an applicant, or a member introduced to us) instead of being rejected
         self.accept_group = accept_group
-        #: the agent layer's handler for `APP_TYPES` messages (haa.core.agentnode); None: counted as unknown
-        self.app_handler: Callable[[str, int, Message], None] | None = None
         self.started = False
         self._now = 0.0
         self.oac = OrderedAtomicCommit(
@@ -198,6 +208,24 @@ class HostCore:
 
     # ------------------------------------------------------------------ inputs
 
+    def step(self, now: float, inp: CoreInput) -> GroupMessage | AppMessage | None:
+        """One input (`haa.core.inputs`); its effects accumulate for `drain()`. A message for the layer above
+        (membership or agent layer) that passed the core's checks is returned."""
+        match inp:
+            case Receive(src, src_inc, dst_inc, msg):
+                return self.on_message(now, src, src_inc, dst_inc, msg)
+            case TimerFired(key):
+                self.on_timer(now, key)
+            case Start():
+                self.start(now)
+            case FdReport(peer, suspected):
+                self.on_suspicion(now, peer, suspected)
+            case PeerInfo(peer, inc):
+                self.on_peer_info(now, peer, inc)
+            case _:
+                assert_never(inp)
+        return None
+
     def start(self, now: float) -> None:
         """Begin heartbeating every peer (Alg. 1 ll. 1-5 and 13-16)."""
         self._now = now
@@ -245,7 +273,9 @@ class HostCore:
             if k[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:
                 self._exclude(now, p)
 
-    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> GroupMessage | None:
+    def on_message(
+        self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message
+    ) -> GroupMessage | AppMessage | None:
         """A message from `src`; a membership message (with `accept_group`) is returned for the layer above."""
         self._now = now
         p = self.peers.get(src)
@@ -300,8 +330,8 @@ class HostCore:
                 self.out.append(Reincarnate(by=src))
         elif self.accept_group and t in GROUP_TYPES:
             return GroupMessage(src, src_inc, msg)
-        elif self.app_handler is not None and t in APP_TYPES:
-            self.app_handler(src, src_inc, msg)
+        elif self.accept_group and isinstance(msg, AgentHostMsg):  # (APP_TYPES)
+            return AppMessage(src, src_inc, msg)
         else:
             self.counters["rejected_unknown_message"] += 1
         return None

@@ -99,7 +99,10 @@ from haa.core.groupwrites import GroupWrites, ProposeWrite, ToSequencer, WritesE
 from haa.core.groupwrites import Proposed as WProposed
 from haa.core.groupwrites import Release as WRelease
 from haa.core.groupwrites import Request as WRequest
-from haa.core.hostcore import CoreConfig, HostCore
+from haa.core.hostcore import AppMessage, CoreConfig, GroupMessage, HostCore
+from haa.core.inputs import FdReport, LeaveGroup, NodeInput, PeerInfo, Receive, TimerFired
+from haa.core.inputs import Start as NStart
+from haa.core.inputs import Submit as NSubmit
 from haa.core.join import (
     Abandon,
     Admitted,
@@ -270,9 +273,9 @@ class NodeConfig:
 
 
 class MembershipNode:
-    """One host incarnation running Alg. 3 over its `HostCore` (see the module docstring). Inputs, with the local
-    time: `start`, `on_message`, `on_timer`, `on_suspicion`, `on_peer_info`, `submit`, `leave`; after each the
-    driver calls `drain()` and carries out the effects (`haa.core.effects` and `haa.core.groupeffects`)."""
+    """One host incarnation running Alg. 3 over its `HostCore` (see the module docstring). Inputs go through
+    `step(now, input)` (`haa.core.inputs`); after each the driver calls `drain()` and carries out the effects
+    (`haa.core.effects` and `haa.core.groupeffects`)."""
 
     def __init__(
         self,
@@ -393,6 +396,27 @@ class MembershipNode:
 
     # ------------------------------------------------------------------ inputs
 
+    def step(self, now: float, inp: NodeInput) -> AppMessage | None:
+        """One input (`haa.core.inputs`); effects accumulate for `drain()`. An agent-layer message that passed
+        the core's checks is returned (for the agent layer on top, if any)."""
+        match inp:
+            case Receive(src, src_inc, dst_inc, msg):
+                return self.on_message(now, src, src_inc, dst_inc, msg)
+            case TimerFired(key):
+                self.on_timer(now, key)
+            case NStart():
+                self.start(now)
+            case FdReport() | PeerInfo():  # the core's alone
+                self._now = now
+                self.core.step(now, inp)
+            case NSubmit(payload, req, kind):
+                self.submit(now, payload, req, kind)
+            case LeaveGroup():
+                self.leave(now)
+            case _:
+                assert_never(inp)
+        return None
+
     def start(self, now: float) -> None:
         """groupJoin() (ll. 35-49)."""
         self._now = now
@@ -403,11 +427,12 @@ class MembershipNode:
         self._join(JStart())  # ll. 36-39
         self._form(FStart())  # ll. 40-45
 
-    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> None:
+    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message) -> AppMessage | None:
         self._now = now
         g = self.core.on_message(now, src, src_inc, dst_inc, msg)
-        if g is not None:  # a membership message, handled right where the core let it through
+        if isinstance(g, GroupMessage):  # a membership message, handled right where the core let it through
             self._on_group(g.src, g.src_inc, g.msg)
+        return g if isinstance(g, AppMessage) else None
 
     def _on_group(self, src: str, src_inc: int, msg: Message) -> None:
         q = (src, src_inc)
@@ -429,13 +454,6 @@ class MembershipNode:
             case SeqWrite(floor, writes):
                 self._seq(Forwarded(q, floor, writes))
 
-    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
-        self._now = now
-        self.core.on_suspicion(now, peer, suspected)
-
-    def on_peer_info(self, now: float, peer: str, inc: int) -> None:
-        self._now = now
-        self.core.on_peer_info(now, peer, inc)
 
     def on_timer(self, now: float, key: Hashable) -> None:
         self._now = now

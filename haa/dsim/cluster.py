@@ -35,6 +35,7 @@ from haa.core.effects import (
     Suspicion,
 )
 from haa.core.hostcore import FD_EXTERNAL, CoreConfig, HostCore
+from haa.core.inputs import FdReport, PeerInfo, Receive, Start, TimerFired
 from haa.core.messages import OAC_TYPES, Heartbeat, TxId
 from haa.dsim.network import DelayModel
 from haa.dsim.scheduler import EventHeap
@@ -44,14 +45,11 @@ Proc = tuple[str, int]  # (host name, incarnation): one process life
 
 class SimCore(Protocol):
     """What a simulated host's core must offer the cluster: a `HostCore` (the default), a `MembershipNode`
-    (haa.dsim.group) or an `AgentNode` (haa.dsim.agents) — inputs in, effects drained out. The cluster handles
-    the `HostCore` effects itself and hands any other effect to `SimCluster.on_effect`."""
+    (haa.dsim.group) or an `AgentNode` (haa.dsim.agents) — inputs in by `step` (`haa.core.inputs`), effects
+    drained out. The cluster handles the `HostCore` effects itself and hands any other effect to
+    `SimCluster.on_effect`."""
 
-    def start(self, now: float) -> None: ...
-    def on_message(self, now: float, src: str, src_inc: int, dst_inc: int, msg: Any) -> object: ...
-    def on_timer(self, now: float, key: Hashable) -> None: ...
-    def on_suspicion(self, now: float, peer: str, suspected: bool) -> None: ...
-    def on_peer_info(self, now: float, peer: str, inc: int) -> None: ...
+    def step(self, now: float, inp: Any) -> object: ...
     def drain(self) -> Sequence[object]: ...
 
     @property
@@ -236,7 +234,7 @@ class SimCluster:
         self.history.decided[proc] = {}
         self.history.delivered[proc] = []
         self.history.closed[proc] = set()
-        core.start(h.local(self.now))
+        core.step(h.local(self.now), Start())
         self._apply(h)
         self._note(f"boot {name}#{inc}")
 
@@ -327,7 +325,7 @@ class SimCluster:
             if h.state == PAUSED:
                 h.backlog.append((EV_CALL, lambda: self.suspect(observer, target, suspected)))
             return
-        h.core.on_suspicion(h.local(self.now), target, suspected)
+        h.core.step(h.local(self.now), FdReport(target, suspected))
         self._apply(h)
 
     def peer_info(self, observer: str, target: str, inc: int) -> None:
@@ -336,7 +334,7 @@ class SimCluster:
             if h.state == PAUSED:
                 h.backlog.append((EV_CALL, lambda: self.peer_info(observer, target, inc)))
             return
-        h.core.on_peer_info(h.local(self.now), target, inc)
+        h.core.step(h.local(self.now), PeerInfo(target, inc))
         self._apply(h)
 
     def propose(self, name: str, payload: bytes, participants: list[str] | None) -> TxId | None:
@@ -390,7 +388,7 @@ class SimCluster:
                 upd(f"{t:.9f}m{idx}{src}{type(msg).__name__}".encode())
                 if self.trace is not None:
                     self.trace.append(f"{t:.6f} {h.name}#{h.inc} <- {src}#{src_inc} {msg}")
-                core.on_message(h.local(t), src, src_inc, dst_inc, msg)
+                core.step(h.local(t), Receive(src, src_inc, dst_inc, msg))
                 if type(msg) is Heartbeat and (src, src_inc) in self.history.crash_time:
                     self._record_ed_hat(h, src, src_inc)
             else:
@@ -401,7 +399,7 @@ class SimCluster:
                 upd(f"{t:.9f}t{idx}{key}".encode())
                 local = h.local(t)
                 # local -> virtual -> local may lose an ulp: never report a timer before its deadline
-                core.on_timer(local if local >= deadline else deadline, key)
+                core.step(local if local >= deadline else deadline, TimerFired(key))
             self._apply(h)
         self.now = max(self.now, until)
 

@@ -54,6 +54,7 @@ from typing import Any
 from haa.core import ddb as ddbmod
 from haa.core.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
 from haa.core.hostcore import CoreConfig
+from haa.core.inputs import LeaveGroup, Submit
 from haa.core.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.core.messages import TxId
 from haa.dsim.cluster import ALIVE, CRASHED, PAUSED, SimCluster, SimHost
@@ -392,7 +393,7 @@ class GroupSim:
         atomic = n_ops > 1 and r.random() < 0.3
         self.req += 1
         payload = ddbmod.encode_batch(ops, origin=name, client_seq=self.req, atomic=atomic)
-        node.submit(h.local(self.cl.now), payload, (name, self.req))
+        node.step(h.local(self.cl.now), Submit(payload, (name, self.req)))
         self.cl._apply(h)
 
     def _leave(self, name: str) -> None:
@@ -404,7 +405,7 @@ class GroupSim:
         if h.state != ALIVE or node is None:
             return
         self.gh.leave_requested[(name, h.inc)] = self.cl.now
-        node.leave(h.local(self.cl.now))  # type: ignore[attr-defined]
+        node.step(h.local(self.cl.now), LeaveGroup())
         self.cl._apply(h)
 
     def run(self) -> None:

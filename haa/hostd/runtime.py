@@ -45,6 +45,7 @@ from grpc import aio
 
 from haa.core.agentnode import AgentConfig, AgentNode
 from haa.core.hostcore import CoreConfig, HostCore
+from haa.core.inputs import LeaveGroup, PeerInfo, Receive, Start, Submit, TimerFired
 from haa.core.membership import MembershipNode, NodeConfig
 from haa.core.messages import Message, TxId
 from haa.hostd.agentops import AgentBackend, AgentOps
@@ -261,7 +262,7 @@ class HostRuntime:
         self.loopwatch.start()
         node = self.node
         assert node is not None
-        self.feed(node.start)
+        self.feed(node.step, Start())
 
     def _tls_refused(self, reason: str) -> None:
         """gRPC refused a TLS handshake (no client certificate, another CA's, expired): count and log it."""
@@ -321,7 +322,7 @@ class HostRuntime:
         try:
             res = fn(time.monotonic(), *args)
         except Exception:
-            self._core_error("core input failed", input=fn.__name__)
+            self._core_error("core input failed", input=type(args[0]).__name__ if fn.__name__ == "step" and args else fn.__name__)
             self._apply()
             return None
         self._apply()
@@ -332,10 +333,11 @@ class HostRuntime:
         if node is None:
             return
         now = time.monotonic()
-        on_message = node.on_message
+        step = node.step
         for dst_inc, msg in items:
             try:
-                on_message(now, sender, sender_inc, dst_inc, msg)
+                if step(now, Receive(sender, sender_inc, dst_inc, msg)) is not None:  # for an agent layer not run here
+                    node.counters["rejected_unknown_message"] += 1
             except Exception:
                 self._core_error("core failed on a message", src=sender, msg=type(msg).__name__)
         self._apply()
@@ -348,7 +350,7 @@ class HostRuntime:
 
     def _on_peer_incarnation(self, peer: str, inc: int) -> None:
         if self.node is not None:
-            self.feed(self.node.on_peer_info, peer, inc)
+            self.feed(self.node.step, PeerInfo(peer, inc))
 
     def _fire(self, key: Hashable, at: float) -> None:
         node = self.node
@@ -358,7 +360,7 @@ class HostRuntime:
         if now < at:  # the loop may run a timer a hair early; the core must see its deadline reached
             now = at
         try:
-            node.on_timer(now, key)
+            node.step(now, TimerFired(key))
         except Exception:
             self._core_error("core failed on a timer", key=repr(key))
         self._apply()
@@ -367,7 +369,7 @@ class HostRuntime:
         """The group commit's way into the node (`MembershipNode.submit`, through the agent layer if any)."""
         node = self.node
         assert isinstance(node, (AgentNode, MembershipNode))
-        self.feed(node.submit, payload, req, kind)
+        self.feed(node.step, Submit(payload, req, kind))
 
     # ------------------------------------------------------------------ effects
 
@@ -423,11 +425,11 @@ class HostRuntime:
         now = time.monotonic()
         node = self.node
         assert node is not None
-        node.start(now)
+        node.step(now, Start())
         # the links already know the peers' incarnations; tell the new core (it arms their exclusion timers)
         for peer, link in self.transport.links.items():
             if link.receiver_inc:
-                node.on_peer_info(now, peer, link.receiver_inc)
+                node.step(now, PeerInfo(peer, link.receiver_inc))
         self._apply()
 
     def _on_left(self) -> None:
@@ -493,7 +495,7 @@ class HostRuntime:
         assert isinstance(node, (AgentNode, MembershipNode))
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._left_waiters.append(fut)
-        self.feed(node.leave)  # the agent layer hands its agents over first
+        self.feed(node.step, LeaveGroup())  # the agent layer hands its agents over first
         await asyncio.wait_for(fut, timeout)
 
     # ------------------------------------------------------------------ queries
