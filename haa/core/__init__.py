@@ -12,9 +12,12 @@ Where each thesis algorithm lives:
 * `ufd.py` (+ `qos.py`): the unreliable failure detector, Alg. 1.
 * `oac.py`: ordered atomic commit, Alg. 2.
 * `hostcore.py`: `HostCore`, the UFD and OAC composed for one host incarnation.
-* `membership.py`: `MembershipNode`, Alg. 3-4, composed of `formation.py`, `statetransfer.py`, `sequencer.py`
-  (the DDB's global sequencer) and `groupeffects.py` (typed timers and effects); `globalstate.py` is the
-  replicated state (view, DDB) and `ddb.py` the distributed database's operations.
+* `inputs.py`: the host-level inputs every node takes through `step(now, input)`.
+* `membership.py`: `MembershipNode`, Alg. 3, composed of `formation.py` (ll. 40-49, 158-165), `join.py`
+  (ll. 35-39, 50-75), `update.py` (updateMembership and votes, ll. 76-157, 166-179), `groupwrites.py`
+  (global-state changes, ll. 127-132), `groupleave.py` (ll. 14-21), `statetransfer.py`, `sequencer.py` (the
+  DDB's global sequencer), read through `nodeview.py`, with `groupeffects.py` (typed timers and effects);
+  `globalstate.py` is the replicated state (view, DDB) and `ddb.py` the distributed database's operations.
 * `agentnode.py`: `AgentNode`, the agent layer of Alg. 5-8, composed of `transfer.py` (Alg. 5-6),
   `recovery.py` (Alg. 7-8), `allocation.py` (CBBA, Alg. 9-11) via `allocglue.py`, `agenttable.py`,
   `agentstep.py`, `agentroute.py`, `routing.py`, `agentleave.py`, `agentrequests.py`, `agentplan.py` and
