@@ -93,7 +93,7 @@ def one_run(carrier: str, inflight: int, hosts: int, writers: list[int], seconds
                     profile.mkdir(parents=True, exist_ok=True)
                     cmd = [str(Path(sys.executable).parent / "py-spy"), "record", "--pid", str(leader.proc.pid),
                            "--format", "raw", "--rate", "200", "--duration", str(int(seconds) - 1), "--nonblocking",
-                           *(["--native"] if native else []),
+                           *(["--native"] if native else []), *(["--gil"] if os.environ.get("SEQ_AB_GIL") else []),
                            "-o", str(profile / f"{tag}-{carrier}-{inflight}-w{w}.txt")]
                     # the load starts 1 s after the call (DdbLoad's start_at) and lasts `seconds`: sample inside it
                     timer = threading.Timer(1.5, lambda cmd=cmd, spy=spy: spy.append(subprocess.Popen(
