@@ -176,10 +176,8 @@ class NodeConfig:
     #: other members' writes, applied once per (origin, cseq) (docs/oac.md, "The sequencer"); False: every
     #: member proposes its own writes (Alg. 3 as printed: concurrent proposers, order conflicts)
     sequencer: bool = True
-    #: sequencer batches of one host in OAC at a time (writes forwarded meanwhile wait and go out together).
-    #: 1 (issue 14, seventh session): one batch at a time gave more writes/s at a lower p50 than 2 at 5 and
-    #: 10 hosts, on both host-link carriers (README, "the sequencer leader profiled")
-    seq_inflight: int = 1
+    #: sequencer batches of one host in OAC at a time (writes forwarded meanwhile wait and go out together)
+    seq_inflight: int = 2
     #: at most this many writes / payload bytes in one sequencer batch
     seq_max_entries: int = 1024
     seq_max_bytes: int = 4 << 20
