@@ -30,8 +30,10 @@ DDB (`haactl verify ddb`, `DDB_PROPS`, plus HM-Agreement which they rest on):
 * DDB-Atomicity: a write whose proposer crashed (in particular in the middle of its broadcast) is in every
   final replica or in none.
 * DDB-Joiner-Consistency: a joiner's replica, when it becomes a member, equals the others' at that point.
-* DDB-Exactly-Once: no write a sequencer batched is applied twice (retried and re-forwarded writes are
-  deduplicated by origin and client sequence; docs/oac.md, "The sequencer").
+* DDB-Exactly-Once: no write a sequencer batched is applied by two batches (retried and re-forwarded writes
+  are deduplicated by origin and client sequence; docs/oac.md, "The sequencer"). Batches are told apart by
+  their transaction id, not by the global seq they were applied at: a member removed while it was running
+  (and crashed before it learnt so) numbers what it still delivers differently from the group.
 
 Schedules run with the sequencer (writes forwarded to the leader, batched) except SEQUENCER_OFF_SHARE of them
 (every member proposes its own writes, Alg. 3 as printed); BURST_SHARE of the DDB schedules have bursts in
@@ -247,8 +249,8 @@ class GroupHistory:
     votes: list[tuple[float, Proc, TxId, bool, Any, dict[Proc, bool]]] = field(default_factory=list)
     acked: dict[Any, tuple[Proc, TxId, int]] = field(default_factory=dict)
     write_proposer: dict[TxId, Proc] = field(default_factory=dict)  # every DDB write transaction seen
-    #: (group, global seq) -> the (origin, cseq) writes a sequencer batch applied there (DDB-Exactly-Once)
-    seq_applied: dict[tuple[str, int], tuple[tuple[Proc, int], ...]] = field(default_factory=dict)
+    #: (group, batch txid) -> (global seq where first applied, the (origin, cseq) writes it applied) (DDB-Exactly-Once)
+    seq_applied: dict[tuple[str, TxId], tuple[int, tuple[tuple[Proc, int], ...]]] = field(default_factory=dict)
     # per process: (group, seq, txid, decoded remove/membership transaction)
     group_txs: dict[Proc, list[tuple[str, int, TxId, Any]]] = field(default_factory=lambda: defaultdict(list))
     joins: dict[Proc, tuple[str, int, str]] = field(default_factory=dict)  # (group, seq, state hash) at join
@@ -325,7 +327,7 @@ class GroupSim:
                 gh.group_txs[proc].append((st.genesis, e.seq, e.txid, decode_tx(e.payload)))
             elif e.kind == "seq":
                 gh.seq_applied.setdefault(
-                    (st.genesis, e.seq), tuple((r.origin, r.cseq) for r in e.result if r.applied)
+                    (st.genesis, e.txid), (e.seq, tuple((r.origin, r.cseq) for r in e.result if r.applied))
                 )
         elif t is ViewChange:
             gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))
@@ -803,12 +805,14 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 *missing,
             )
     # DDB-Exactly-Once: a write the sequencer batched twice (a retry, a new sequencer) is applied once
-    once: dict[tuple[str, Proc, int], int] = {}
-    for (g, s), writes in sorted(gh.seq_applied.items()):
+    once: dict[tuple[str, Proc, int], tuple[int, TxId]] = {}
+    for (g, txid), (s, writes) in sorted(gh.seq_applied.items(), key=lambda kv: (kv[0][0], kv[1][0], str(kv[0][1]))):
         for origin, cseq in writes:
-            first = once.setdefault((g, origin, cseq), s)
-            if first != s:
-                bad("DDB-Exactly-Once", f"write {cseq} of {_p(origin)} applied at seq {first} and again at {s}", origin)
+            first = once.setdefault((g, origin, cseq), (s, txid))
+            if first[1] != txid:
+                bad("DDB-Exactly-Once",
+                    f"write {cseq} of {_p(origin)} applied at seq {first[0]} ({first[1]}) and again at {s} ({txid})",
+                    origin)
     for txid, proc in gh.write_proposer.items():
         if proc not in hist.crash_time:
             continue
