@@ -35,11 +35,12 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import grpc
-from cryptography import x509
-from cryptography.hazmat.primitives import serialization
+
+if TYPE_CHECKING:  # `cryptography` is imported where a certificate is read: ~13 MiB a host pays only with TLS on
+    from cryptography import x509
 
 #: file names inside a host's TLS directory and haactl's
 CA_FILE = "ca.pem"
@@ -73,6 +74,8 @@ def parse_identity(uri: str) -> tuple[str, str] | None:
 
 def cert_identity(cert: x509.Certificate) -> tuple[str, str] | None:
     """The (role, name) a certificate of ours names in its subjectAltName URI, or None."""
+    from cryptography import x509
+
     try:
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     except x509.ExtensionNotFound:
@@ -104,6 +107,8 @@ def _read(path: Path, what: str, secret: bool) -> bytes:
 
 
 def _load_cert(data: bytes, path: Path, what: str) -> x509.Certificate:
+    from cryptography import x509
+
     try:
         return x509.load_pem_x509_certificate(data)
     except ValueError:
@@ -112,6 +117,8 @@ def _load_cert(data: bytes, path: Path, what: str) -> x509.Certificate:
 
 def _check_pair(directory: Path, cert_name: str, key_name: str, role: str, name: str | None) -> tuple[bytes, ...]:
     """(ca, cert, key) PEM bytes of `directory`, checked (see the module docstring)."""
+    from cryptography.hazmat.primitives import serialization
+
     if not directory.is_dir():
         raise TlsError(f"TLS directory {directory}: {'not a directory' if directory.exists() else 'no such directory'}")
     ca_pem = _read(directory / CA_FILE, "CA certificate", False)
