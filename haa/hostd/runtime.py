@@ -322,7 +322,8 @@ class HostRuntime:
         try:
             res = fn(time.monotonic(), *args)
         except Exception:
-            self._core_error("core input failed", input=type(args[0]).__name__ if fn.__name__ == "step" and args else fn.__name__)
+            what = type(args[0]).__name__ if fn.__name__ == "step" and args else fn.__name__
+            self._core_error("core input failed", input=what)
             self._apply()
             return None
         self._apply()
