@@ -28,8 +28,18 @@ FORBIDDEN = {
 }
 
 
+def _parse(path: Path) -> ast.Module:
+    try:
+        return ast.parse(path.read_text(), filename=str(path))
+    except SystemError:
+        # CPython 3.11.7's "AST constructor recursion depth mismatch" (python/cpython#106905, fixed in 3.11.8):
+        # a failed parse elsewhere leaves the depth counter off and the next parse raises spuriously (seen once
+        # in a loaded CI run); a second parse of the same file is exact
+        return ast.parse(path.read_text(), filename=str(path))
+
+
 def _imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text(), filename=str(path))
+    tree = _parse(path)
     names: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
