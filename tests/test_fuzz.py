@@ -753,7 +753,11 @@ def test_agent_send_and_request_over_max_agent_message_are_refused_up_front(host
     assert r.ok, r
     wait(lambda: any(a.name == r.name and a.local_phase == "active" for a in c.agent_list().agents), 20, "active")
     before = counters(host).get("control_oversized", 0)
-    big = c._stub.AgentSend(cpb.AgentSendRequest(ref=r.name, payload=b"x" * (50 << 20)), metadata=c._md, timeout=30)
+    # (a 50 MB one is now refused by gRPC unread, above the server's MAX_REQUEST: docs/transport.md "Large frames")
+    with pytest.raises(grpc.RpcError) as e:
+        c._stub.AgentSend(cpb.AgentSendRequest(ref=r.name, payload=b"x" * (50 << 20)), metadata=c._md, timeout=30)
+    assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    big = c._stub.AgentSend(cpb.AgentSendRequest(ref=r.name, payload=b"x" * (6 << 20)), metadata=c._md, timeout=30)
     assert not big.ok and "exceeds the limit of 4194304 bytes (MAX_AGENT_MESSAGE)" in big.reason, big
     assert not c.agent_send(r.name, b"x" * (MAX_AGENT_MESSAGE + 1)).ok
     rq = c.agent_request(r.name, b"x" * (MAX_AGENT_MESSAGE + 1))

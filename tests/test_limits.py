@@ -20,6 +20,7 @@ import grpc
 import psutil
 import pytest
 
+from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.cluster.hostprocs import MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import agenttable as at
@@ -29,7 +30,7 @@ from haa.experiments import memory as membench
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.mirrors import MirrorSub
 from haa.hostd.resources import LoopWatch
-from haa.hostd.transport import MAX_MESSAGE, Transport
+from haa.hostd.transport import LINK_PIECE, MAX_MESSAGE, MAX_REQUEST, Transport
 from haa.pb import agenttx_pb2 as apb
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
@@ -145,10 +146,14 @@ def test_loop_watch_counts_stalls() -> None:
 
 def test_grpc_limits_are_set_on_purpose() -> None:
     opts = dict(Transport.server_options())
-    assert opts["grpc.max_receive_message_length"] == MAX_MESSAGE
+    assert opts["grpc.max_receive_message_length"] == MAX_REQUEST < MAX_MESSAGE
+    assert opts["grpc.max_send_message_length"] == MAX_MESSAGE  # a joiner's snapshot, a large reply
     assert opts["grpc.max_concurrent_streams"] > 0
-    # every request a client may send is far below the gRPC limit, so the handlers' checks refuse it cleanly
-    assert max(ddb.MAX_BATCH_BYTES, at.MAX_CONFIG, at.MAX_STATE) * 8 <= MAX_MESSAGE
+    # every request a client may send is below the server's limit, so the handlers' checks refuse it cleanly
+    assert max(ddb.MAX_BATCH_BYTES, at.MAX_CONFIG, at.MAX_STATE) * 4 <= MAX_REQUEST
+    assert MAX_AGENT_MESSAGE + 64 * 1024 <= MAX_REQUEST
+    # a host-link frame above it goes in pieces that fit
+    assert LINK_PIECE + 64 <= MAX_REQUEST
 
 
 # ----------------------------------------------------------------------------------------- real processes
@@ -182,8 +187,14 @@ def test_over_limit_requests_are_refused_cleanly_and_expel_nobody(group: dict[st
     before = _views(group)
     stub, md, ch = _stub(group["h2"])
     try:
-        # a 50 MB config (the one that got h2 expelled): decoded by gRPC, refused before anything is proposed
-        r = stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (50 * 1000 * 1000)), metadata=md,
+        # a 50 MB config (the one that got h2 expelled: gRPC read it whole on the event loop, 1-5 s): above
+        # MAX_REQUEST, refused by gRPC unread
+        with pytest.raises(grpc.RpcError) as e:
+            stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (50 * 1000 * 1000)), metadata=md,
+                            timeout=30)
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        # over MAX_CONFIG but within MAX_REQUEST: decoded, refused by the handler before anything is proposed
+        r = stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (MAX_REQUEST - 4096)), metadata=md,
                             timeout=30)
         assert not r.ok and "MAX_CONFIG" in r.reason, r
         r = stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (at.MAX_CONFIG + 1)), metadata=md,
@@ -191,7 +202,7 @@ def test_over_limit_requests_are_refused_cleanly_and_expel_nobody(group: dict[st
         assert not r.ok and "MAX_CONFIG" in r.reason, r
         # beyond the gRPC limit: refused by gRPC before it is decoded
         with pytest.raises(grpc.RpcError) as e:
-            stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (MAX_MESSAGE + 1)), metadata=md,
+            stub.AgentSpawn(cpb.AgentSpawnRequest(type="probe", config=b"x" * (MAX_REQUEST + 1)), metadata=md,
                             timeout=30)
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
         # DDB: a batch over MAX_BATCH_BYTES, and JSON over its bound

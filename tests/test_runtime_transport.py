@@ -29,7 +29,16 @@ from haa.cluster.hostprocs import free_port
 from haa.core import wire
 from haa.core.messages import Excluded, Heartbeat, Message
 from haa.hostd import tcplink
-from haa.hostd.transport import MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD, Transport, encode_frame, envelope_chunk
+from haa.hostd.transport import (
+    MAX_MESSAGE,
+    MD_INC,
+    MD_SENDER,
+    MD_TOKEN,
+    OPEN_METHOD,
+    Transport,
+    encode_frame,
+    envelope_chunk,
+)
 from haa.pb import hostlink_pb2 as pb
 
 TOKEN = "test-token"
@@ -95,6 +104,101 @@ def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
 
 def hb(i: int) -> Heartbeat:
     return Heartbeat(i, 0.1, float(i))
+
+
+def test_a_frame_larger_than_what_a_server_accepts_arrives_in_pieces(carrier: str) -> None:
+    """A joiner's state snapshot of 20 MB (above the server's MAX_REQUEST, below MAX_MESSAGE) arrives whole and
+    in order with small messages around it; on the gRPC carrier it went as pieces of at most LINK_PIECE."""
+    from haa.core.messages import StateSnapshot
+    from haa.hostd.transport import LINK_PIECE, MAX_REQUEST
+
+    big = bytes(range(256)) * (20_000_000 // 256)
+    assert MAX_REQUEST < len(big) < MAX_MESSAGE
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="first connection")
+        a.t.send("b", 22, hb(1))
+        a.t.send("b", 22, StateSnapshot(7, big, None, 0))
+        a.t.send("b", 22, hb(2))
+        await until(lambda: len(b.got) == 3, timeout=20, what="the snapshot and the heartbeats around it")
+        kinds = [type(m).__name__ for _s, _i, _d, m in b.got]
+        assert kinds == ["Heartbeat", "StateSnapshot", "Heartbeat"], kinds
+        snap = b.got[1][3]
+        assert isinstance(snap, StateSnapshot) and snap.seq == 7 and snap.data == big
+        assert b.t.counters["link_receive_errors"] == 0 and b.t.counters["rejected_malformed"] == 0
+        if carrier == "grpc":
+            assert b.t.counters["rx_frames"] <= 3 and len(big) // LINK_PIECE >= 4
+        await a.close()
+        await b.close()
+
+    run(main)
+
+
+def test_frame_pieces_join_to_the_frame_and_nothing_else_is_taken_for_a_piece() -> None:
+    from haa.hostd.transport import FramePieces, frame_pieces
+
+    frame = encode_frame(5, [envelope_chunk(b"e" * 1000) for _ in range(10)])
+    pieces = frame_pieces(frame, piece=3000)
+    assert len(pieces) == 4 and all(len(p) <= 3000 + 8 for p in pieces)
+    assert [pb.Frame.FromString(p).more for p in pieces] == [True, True, True, False]
+    rx = FramePieces()
+    assert [rx.add(p) for p in pieces] == [None, None, None, frame]
+    assert rx.add(frame) is frame  # a whole frame passes untouched
+    assert rx.add(b"\xff\xff garbage") == b"\xff\xff garbage"  # not a piece: on_frame rejects it
+    bounded = FramePieces(limit=5000)
+    assert bounded.add(pieces[0]) is None
+    with pytest.raises(ValueError, match="more than 5000 bytes"):
+        bounded.add(pieces[1])
+
+
+def test_the_server_refuses_a_message_above_max_request_unread() -> None:
+    """What got a host expelled: gRPC read a 50 MB control request whole on the event loop (1-5 s). The server
+    now takes at most MAX_REQUEST; above it gRPC answers RESOURCE_EXHAUSTED and the loop barely notices."""
+    from haa.hostd.transport import MAX_REQUEST
+    from haa.pb import control_pb2 as cpb
+    from haa.pb import control_pb2_grpc
+
+    class Ctl(control_pb2_grpc.HostControlServicer):
+        async def AgentSpawn(self, request: Any, context: Any) -> Any:
+            return cpb.AgentOpReply(ok=True, reason=str(len(request.config)))
+
+    async def main() -> None:
+        server = aio.server(options=Transport.server_options())
+        control_pb2_grpc.add_HostControlServicer_to_server(Ctl(), server)
+        port = server.add_insecure_port("127.0.0.1:0")
+        await server.start()
+        lags: list[float] = []
+
+        async def probe() -> None:
+            while True:
+                t0 = time.perf_counter()
+                await asyncio.sleep(0.01)
+                lags.append(time.perf_counter() - t0 - 0.01)
+
+        watch = asyncio.create_task(probe())
+
+        def call(n: int) -> Any:
+            with grpc.insecure_channel(f"127.0.0.1:{port}", options=[("grpc.max_send_message_length", -1)]) as ch:
+                stub = control_pb2_grpc.HostControlStub(ch)
+                try:
+                    return stub.AgentSpawn(cpb.AgentSpawnRequest(type="x", config=b"x" * n), timeout=20)
+                except grpc.RpcError as e:
+                    return e.code()
+
+        ok = await asyncio.to_thread(call, MAX_REQUEST - 1000)
+        assert ok.ok and ok.reason == str(MAX_REQUEST - 1000)
+        lags.clear()
+        assert await asyncio.to_thread(call, 50_000_000) == grpc.StatusCode.RESOURCE_EXHAUSTED
+        watch.cancel()
+        await server.stop(0)
+        assert max(lags, default=0.0) < 0.5, max(lags)
+
+    run(main)
 
 
 # ------------------------------------------------------------------------------------------------ (f)

@@ -133,12 +133,19 @@ MAX_INCARNATION_AHEAD = 60.0
 LIVE_WINDOW = 1.0
 
 
-#: the largest gRPC message a host sends or accepts, host-link frames and control requests alike (one server
-#: serves both, and gRPC's limits are per server): a larger one is refused by gRPC itself before it is decoded
-#: (RESOURCE_EXHAUSTED). It is this large because one host-link message carries a joiner's whole state
-#: (`StateSnapshot`: the DDB and the agent table with every backup); the requests a client may send are bounded
-#: much lower, by their handlers, before any work (docs/limits.md, "Sizes and memory")
+#: the largest host-link message, a frame (one carries a joiner's whole state, `StateSnapshot`: the DDB and the
+#: agent table with every backup), and the largest gRPC message a host sends or a client of it receives
 MAX_MESSAGE = 64 << 20
+#: the largest gRPC message a host's server accepts, control requests and host-link stream messages alike (one
+#: server serves both, and gRPC's limits are per server): a larger one is refused by gRPC itself, unread
+#: (RESOURCE_EXHAUSTED). gRPC reads a message whole, on the event loop: 50 MB took 1-5 s on this 2-core machine
+#: and got the host suspected and removed (T_D^U = 1 s), 8 MiB takes 15-40 ms. The control API's largest legal
+#: request is an agent message of 4 MiB (`MAX_AGENT_MESSAGE`); the handlers bound the others much lower, before
+#: any work (docs/limits.md, "Sizes and memory"). A larger host-link frame goes in pieces (`LINK_PIECE`).
+MAX_REQUEST = 8 << 20
+#: on the gRPC carrier a serialized `Frame` larger than this goes as several stream messages, `Frame(part, more)`
+#: each, joined by the receiver before decoding (docs/transport.md, "Large frames")
+LINK_PIECE = 4 << 20
 #: concurrent streams (RPCs) per client connection: a host link is one stream on a connection of its own, a
 #: control client needs a few (a watch, an event stream, a request); more are queued by the client's gRPC
 MAX_CONCURRENT_STREAMS = 64
@@ -222,15 +229,62 @@ class LinkCall(Protocol):
     def cancel(self) -> bool | None: ...
 
 
-class _GrpcCall:
-    """A `HostLink.Open` stream call as a `LinkCall`."""
+def frame_pieces(data: bytes, piece: int = LINK_PIECE) -> list[bytes]:
+    """A serialized `Frame` larger than `piece` as the gRPC carrier sends it: serialized `Frame(part, more)`s of
+    at most `piece` bytes of it each, `more` on all but the last (`FramePieces` joins them)."""
+    view = memoryview(data)
+    return [pb.Frame(part=bytes(view[i:i + piece]), more=i + piece < len(data)).SerializeToString()
+            for i in range(0, len(data), piece)]
 
-    __slots__ = ("call", "cancel", "write")
+
+class FramePieces:
+    """The receiving end of `frame_pieces` on one stream: `add` takes each stream message and returns the
+    serialized `Frame` to decode, or None while pieces are still coming. A frame (first byte 0x08: `first_seq`,
+    always set) passes through untouched; a piece is decoded and kept, at most `limit` bytes in all. Whatever is
+    neither is passed on for `Transport.on_frame` to reject."""
+
+    __slots__ = ("limit", "parts", "size")
+
+    def __init__(self, limit: int = MAX_MESSAGE) -> None:
+        self.limit = limit
+        self.parts: list[bytes] = []
+        self.size = 0
+
+    def add(self, data: bytes) -> bytes | None:
+        if data[:1] == b"\x08" or not data:
+            return data
+        try:
+            msg = pb.Frame.FromString(data)
+        except DecodeError:
+            return data
+        if msg.first_seq or msg.envelopes or not msg.part:
+            return data  # no piece: on_frame rejects it
+        self.size += len(msg.part)
+        if self.size > self.limit:
+            raise ValueError(f"a frame in pieces of more than {self.limit} bytes")
+        self.parts.append(msg.part)
+        if msg.more:
+            return None
+        out = b"".join(self.parts)
+        self.parts, self.size = [], 0
+        return out
+
+
+class _GrpcCall:
+    """A `HostLink.Open` stream call as a `LinkCall` (a frame above `LINK_PIECE` goes in pieces)."""
+
+    __slots__ = ("call", "cancel")
 
     def __init__(self, call: aio.StreamStreamCall) -> None:
         self.call = call
-        self.write = call.write
         self.cancel = call.cancel
+
+    async def write(self, data: bytes) -> None:
+        if len(data) <= LINK_PIECE:
+            await self.call.write(data)
+            return
+        for piece in frame_pieces(data):
+            await self.call.write(piece)
 
     async def read(self) -> bytes | None:
         data = await self.call.read()
@@ -1008,7 +1062,7 @@ class Transport:
         return [
             # never share the port with another server (two hosts on one port would split the links)
             ("grpc.so_reuseport", 0),
-            ("grpc.max_receive_message_length", MAX_MESSAGE),
+            ("grpc.max_receive_message_length", MAX_REQUEST),
             ("grpc.max_send_message_length", MAX_MESSAGE),
             ("grpc.max_concurrent_streams", MAX_CONCURRENT_STREAMS),
             ("grpc.http2.min_ping_interval_without_data_ms", 1000),
@@ -1213,8 +1267,12 @@ class Transport:
         acker: _Acker,
     ) -> None:
         on_frame = self.on_frame
+        pieces = FramePieces()
         async for data in request_iterator:
-            if not on_frame(data, sender, inc, st):
+            frame = pieces.add(data)
+            if frame is None:
+                continue
+            if not on_frame(frame, sender, inc, st):
                 return
             acker.frame()
 

@@ -265,12 +265,16 @@ class Envelope(_message.Message):
     def __init__(self, sender: _Optional[str] = ..., sender_incarnation: _Optional[int] = ..., dest_incarnation: _Optional[int] = ..., heartbeat: _Optional[_Union[Heartbeat, _Mapping]] = ..., set_period: _Optional[_Union[SetPeriod, _Mapping]] = ..., oac_transaction: _Optional[_Union[OacTransaction, _Mapping]] = ..., oac_order: _Optional[_Union[OacOrder, _Mapping]] = ..., oac_estimate: _Optional[_Union[OacEstimate, _Mapping]] = ..., oac_proposal: _Optional[_Union[OacProposal, _Mapping]] = ..., oac_ack: _Optional[_Union[OacAck, _Mapping]] = ..., oac_decide: _Optional[_Union[OacDecide, _Mapping]] = ..., excluded: _Optional[_Union[Excluded, _Mapping]] = ..., apply: _Optional[_Union[Apply, _Mapping]] = ..., introduce: _Optional[_Union[Introduce, _Mapping]] = ..., sponsor: _Optional[_Union[Sponsor, _Mapping]] = ..., connections: _Optional[_Union[Connections, _Mapping]] = ..., leave: _Optional[_Union[Leave, _Mapping]] = ..., locked: _Optional[_Union[Locked, _Mapping]] = ..., state_snapshot: _Optional[_Union[StateSnapshot, _Mapping]] = ..., state_forward: _Optional[_Union[StateForward, _Mapping]] = ..., state_request: _Optional[_Union[StateRequest, _Mapping]] = ..., agent_host: _Optional[_Union[AgentHost, _Mapping]] = ..., seq_write: _Optional[_Union[SeqWrite, _Mapping]] = ...) -> None: ...
 
 class Frame(_message.Message):
-    __slots__ = ("first_seq", "envelopes")
+    __slots__ = ("first_seq", "envelopes", "more", "part")
     FIRST_SEQ_FIELD_NUMBER: _ClassVar[int]
     ENVELOPES_FIELD_NUMBER: _ClassVar[int]
+    MORE_FIELD_NUMBER: _ClassVar[int]
+    PART_FIELD_NUMBER: _ClassVar[int]
     first_seq: int
     envelopes: _containers.RepeatedCompositeFieldContainer[Envelope]
-    def __init__(self, first_seq: _Optional[int] = ..., envelopes: _Optional[_Iterable[_Union[Envelope, _Mapping]]] = ...) -> None: ...
+    more: bool
+    part: bytes
+    def __init__(self, first_seq: _Optional[int] = ..., envelopes: _Optional[_Iterable[_Union[Envelope, _Mapping]]] = ..., more: _Optional[bool] = ..., part: _Optional[bytes] = ...) -> None: ...
 
 class LinkReply(_message.Message):
     __slots__ = ("receiver", "receiver_incarnation", "acked_seq", "heartbeat_port")
