@@ -238,7 +238,7 @@ class NodeConfig:
     #: member proposes its own writes (Alg. 3 as printed: concurrent proposers, order conflicts)
     sequencer: bool = True
     #: sequencer batches of one host in OAC at a time (writes forwarded meanwhile wait and go out together)
-    seq_inflight: int = 2
+    seq_inflight: int = 1
     #: at most this many writes / payload bytes in one sequencer batch
     seq_max_entries: int = 1024
     seq_max_bytes: int = 4 << 20

@@ -53,7 +53,7 @@ RETRY_TIMER = NodeTimer("seqretry")
 class SeqConfig:
     """The sequencer's share of `haa.core.membership.NodeConfig` (same names, same meaning)."""
 
-    seq_inflight: int = 2
+    seq_inflight: int = 1
     seq_max_entries: int = 1024
     seq_max_bytes: int = 4 << 20
     seq_retry: float = 2.0
