@@ -29,7 +29,7 @@ from typing import Any
 
 import psutil
 
-from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberHost, member_group, wait_for
 from haa.experiments import ddb as ddbx
 from haa.experiments.ap2 import CORE
 
@@ -65,14 +65,9 @@ def one_run(carrier: str, inflight: int, hosts: int, writers: list[int], seconds
                            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "rows": []}
     with tempfile.TemporaryDirectory(prefix="haa-seqab-") as tmp:
         base = Path(tmp)
-        token = "seq-ab-" + str(time.time_ns())
-        (base / "token").write_text(token + "\n")
-        conf = base / "hostd.yaml"
-        conf.write_text(f"membership:\n  sequencer: true\n  seq_inflight: {inflight}\n")
-        names = [f"h{i + 1}" for i in range(hosts)]
-        ports = {n: free_port() for n in names}
-        core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
-        group = [MemberHost(n, ports[n], core, base, token, ["--no-agents", "--config", str(conf)]) for n in names]
+        group = member_group(base, hosts, f"membership:\n  sequencer: true\n  seq_inflight: {inflight}\n", CORE,
+                             "seq-ab")
+        names = [h.name for h in group]
         try:
             for h in group:
                 h.start()

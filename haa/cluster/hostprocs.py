@@ -182,6 +182,21 @@ class LocalCluster:
         self.close()
 
 
+def member_group(base: Path, hosts: int, hostd_yaml: str, core_size: int = 3, tag: str = "group") -> list[MemberHost]:
+    """`hosts` membership-mode hosts h1..hN under `base`, not started: a fresh cluster token in `base/token`, the
+    first `core_size` as the core process list, each without agents and with `hostd_yaml` (the text of a
+    hostd.yaml, written to `base/hostd.yaml`) as its configuration. The benchmarks' group (haa.experiments.ddb,
+    bench/seq_ab.py)."""
+    token = f"{tag}-{time.time_ns()}"
+    (base / "token").write_text(token + "\n")
+    conf = base / "hostd.yaml"
+    conf.write_text(hostd_yaml)
+    names = [f"h{i + 1}" for i in range(hosts)]
+    ports = {n: free_port() for n in names}
+    core = {n: f"127.0.0.1:{ports[n]}" for n in names[:core_size]}
+    return [MemberHost(n, ports[n], core, base, token, ["--no-agents", "--config", str(conf)]) for n in names]
+
+
 class MemberHost:
     """One membership-mode haa-hostd process on loopback, its data dir `<root>/<name>` and the cluster token
     file `<root>/token` (restartable: each start is a new incarnation). Used by benchmarks and tests."""

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberHost, member_group, wait_for
 from haa.core import ddb
 from haa.experiments.ap2 import CORE
 
@@ -72,14 +72,9 @@ def _run_group(
     with tempfile.TemporaryDirectory(prefix="haa-ddb-") as tmp:
         base = (root / ("seq" if sequencer else "noseq")) if root else Path(tmp)
         base.mkdir(parents=True, exist_ok=True)
-        token = "ddb-bench-" + str(time.time_ns())
-        (base / "token").write_text(token + "\n")
-        conf = base / "hostd.yaml"
-        conf.write_text(f"membership:\n  sequencer: {'true' if sequencer else 'false'}\n")
-        names = [f"h{i + 1}" for i in range(hosts)]
-        ports = {n: free_port() for n in names}
-        core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
-        group = [MemberHost(n, ports[n], core, base, token, ["--no-agents", "--config", str(conf)]) for n in names]
+        group = member_group(base, hosts, f"membership:\n  sequencer: {'true' if sequencer else 'false'}\n", CORE,
+                             "ddb-bench")
+        names = [h.name for h in group]
         rows: list[dict[str, Any]] = []
         try:
             for h in group:
