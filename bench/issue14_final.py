@@ -54,20 +54,35 @@ def _ap4_summary(row: dict[str, Any]) -> dict[str, float | None]:
     return {k: (s[k]["median"] if isinstance(s.get(k), dict) and s[k].get("n") else None) for k in keys}
 
 
+def _retry(out: dict[str, Any], part: str, fn: Any, tries: int = 3) -> Any:
+    """`fn()`, again with a fresh group if it could not be formed or broke (a host that failed to start: its
+    port taken between `free_port` and its bind); the failures are kept in the run's `retries`."""
+    for i in range(tries):
+        try:
+            return fn()
+        except (AssertionError, RuntimeError, OSError) as e:
+            out.setdefault("retries", []).append(f"{part}: {type(e).__name__}: {str(e)[:300]}")
+            print(f"  {part} failed ({type(e).__name__}), try {i + 2} of {tries}", flush=True)
+            if i == tries - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
 def one_run(carrier: str, hosts: int, transactions: int, writers: list[int], seconds: float, reps: int,
             idle_s: float) -> dict[str, Any]:
     os.environ["HAA_HOST_LINK"] = carrier
     out: dict[str, Any] = {"carrier": carrier, "seq_inflight": NodeConfig().seq_inflight,
                            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load": {}}
     out["load"]["ap1"] = os.getloadavg()[0]
-    out["ap1"] = _bench("hostlink_ab").one_run(carrier, hosts, transactions)["rows"]
+    out["ap1"] = _retry(out, "ap1", lambda: _bench("hostlink_ab").one_run(carrier, hosts, transactions)["rows"])
     out["load"]["ddb"] = os.getloadavg()[0]
-    ddb = _bench("seq_ab").one_run(carrier, NodeConfig().seq_inflight, hosts, writers, seconds, None, "final")
+    ddb = _retry(out, "ddb", lambda: _bench("seq_ab").one_run(carrier, NodeConfig().seq_inflight, hosts, writers,
+                                                             seconds, None, "final"))
     out["ddb"] = [{k: r[k] for k in ("writers_per_host", "writes_per_s", "p50_ms", "p99_ms", "oac_p50_ms",
                                      "writes_per_oac", "failed", "cluster_cores_in_load")}
                   | {"cpu_ms_per_write": 1e3 * r["cluster_cpu_s"] / max(1, r["requests"])} for r in ddb["rows"]]
     out["load"]["idle"] = os.getloadavg()[0]
-    idle = measure_local(hosts, idle_s, 10.0, log=lambda s: None)
+    idle = _retry(out, "idle", lambda: measure_local(hosts, idle_s, 10.0, log=lambda s: None))
     out["idle"] = {k: idle[k] for k in ("cpu_percent_total", "tx_frames_per_s_per_host", "rss_mib_mean")}
     out["load"]["ap4"] = os.getloadavg()[0]
     rows = run_ap4([hosts], reps=reps, log=lambda s: None)
