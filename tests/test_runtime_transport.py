@@ -98,6 +98,17 @@ class Node:
             await self.stop_server()
 
 
+async def connected_pair(carrier: str) -> tuple[Node, Node]:
+    """Sender a#11 linked to a serving receiver b#22, the link up."""
+    pa, pb_ = free_port(), free_port()
+    a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+    b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
+    await b.serve()
+    a.t.start()
+    await until(lambda: a.t.connected("b"), what="first connection")
+    return a, b
+
+
 def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
     asyncio.run(asyncio.wait_for(coro_fn(), 30))
 
@@ -116,12 +127,7 @@ def test_a_frame_larger_than_what_a_server_accepts_arrives_in_pieces(carrier: st
     assert MAX_REQUEST < len(big) < MAX_MESSAGE
 
     async def main() -> None:
-        pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
-        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
-        await b.serve()
-        a.t.start()
-        await until(lambda: a.t.connected("b"), what="first connection")
+        a, b = await connected_pair(carrier)
         a.t.send("b", 22, hb(1))
         a.t.send("b", 22, StateSnapshot(7, big, None, 0))
         a.t.send("b", 22, hb(2))
@@ -209,12 +215,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
     every message arrives exactly once and in order."""
 
     async def main() -> None:
-        pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
-        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
-        await b.serve()
-        a.t.start()
-        await until(lambda: a.t.connected("b"), what="first connection")
+        a, b = await connected_pair(carrier)
         sent = 0
         stop = asyncio.Event()
         queued_while_down: list[int] = []
@@ -639,12 +640,7 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) 
     message arrives once, in order, and the receiver never sees a gap."""
 
     async def main() -> None:
-        pa, pb_ = free_port(), free_port()
-        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
-        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier)
-        await b.serve()
-        a.t.start()
-        await until(lambda: a.t.connected("b"), what="first connection")
+        a, b = await connected_pair(carrier)
         link = a.t.links["b"]
         sent = 0
         for i in range(300):
