@@ -356,6 +356,34 @@ def test_markers_of_unlisted_readings_stay_when_the_scan_was_cut() -> None:
     assert bus.keys(team.K_SLAM_DONE) == [stray]
 
 
+def test_a_reading_written_and_processed_between_the_scans_keeps_its_marker() -> None:
+    """The reading list is two scans. A reading written and processed (its marker committed) between them is
+    not an orphan's: its marker must stay, or the processing would be applied again when handed out."""
+    bus = Bus()
+    sup = bus.start(SupervisorSLAM, "sup", {"mode": "jc-slam", "particles": 5})
+    scan = sup._ctx.ddb_scan
+    late: list[str] = []
+
+    async def scan_then_write(prefix: str, limit: int, timeout: float) -> dict[str, bytes]:
+        got = await scan(prefix, limit, timeout)
+        if not late:
+            key, _ = bus.put_raw("s1", 7)
+            bus.ddb.apply(ddbops.encode_batch([ddbops.put(team.done_key(key, COOC), "json", {"n": 1})]))
+            late.append(key)
+        return got
+
+    sup._ctx.ddb_scan = scan_then_write
+
+    async def go() -> None:
+        sup.recover(None)
+        await sup._list_readings()
+        await asyncio.gather(*sup.tasks)
+
+    asyncio.run(go())
+    assert bus.keys(team.K_SLAM_DONE) == [team.done_key(late[0], COOC)]
+    assert "orphan_markers" not in {e for _, e, _ in bus.logs}
+
+
 @pytest.mark.parametrize("mode", ["jc-slam", "discard", "delay"])
 def test_markers_are_deleted_with_the_raw_entry(mode: str) -> None:
     """The whole round, in each mode (delay: the avatars' dedicated agents): readings in, each processing
@@ -387,6 +415,36 @@ def test_markers_are_deleted_with_the_raw_entry(mode: str) -> None:
     assert ("sup", "late_processing") in {(a, e) for a, e, _ in bus.logs}
     # (the late one is the one duplicate: committed after its reading was finished, see docs/team.md)
     assert len(bus.log_items()) == bus.counter("processings") == 8 - bus.counter("readings_discarded") + 1
+
+
+def test_a_reading_finished_by_two_lives_of_the_supervisor_is_counted_once() -> None:
+    """A moved (or recovered) SupervisorSLAM lists a reading whose processings are all marked and finishes it,
+    while its predecessor's finish of the same reading is still uncommitted (frozen with the write in flight).
+    Both batches commit; the reading is counted once — the count is in the atomic batch whose delete of the
+    raw entry fails if it is gone (CI: `readings_processed` 237 of 234 generated after a graceful leave)."""
+    bus = Bus()
+    key, _ = bus.put_raw("s1", 1, "camera")
+    marks = [team.done_key(key, p) for p in ("sensor_landmark", "sensor_floorfinder")]
+    bus.ddb.apply(ddbops.encode_batch([ddbops.put(m, "json", {"n": 1}) for m in marks]))
+    old = bus.start(SupervisorSLAM, "sup", {"mode": "jc-slam", "particles": 5})
+    new = bus.start(SupervisorSLAM, "sup2", {"mode": "jc-slam", "particles": 5})
+
+    async def go() -> None:
+        bus.hold = asyncio.Event()
+        r = {"todo": set(), "discarded": 0, "n": 2, "procs": ("sensor_landmark", "sensor_floorfinder")}
+        first = asyncio.ensure_future(old._finish(key, r))
+        await asyncio.sleep(0)  # its write is out, not committed
+        new.recover(None)
+        await new._list_readings()  # sees the raw entry and both markers: finishes it at once
+        await asyncio.sleep(0)
+        assert key in new.finishing
+        bus.hold.set()
+        await asyncio.gather(first, *new.tasks)
+
+    asyncio.run(go())
+    assert bus.counter("readings_processed") == 1
+    assert bus.keys(team.K_SLAM_RAW) == [] and bus.keys(team.K_SLAM_DONE) == []
+    assert ("sup2", "finished_already") in {(a, e) for a, e, _ in bus.logs}
 
 
 def test_a_restarted_sensor_agent_does_not_get_its_queued_processings_twice() -> None:

@@ -6,12 +6,50 @@ the experiments' and tests' host processes (haa.cluster.hostprocs).
 
 from __future__ import annotations
 
+import random
 import socket
 import sys
 from pathlib import Path
 
+#: ports this process handed out already (not handed out twice, even when the first taker has not bound yet)
+_picked: set[int] = set()
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = (int(x) for x in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
+def _bindable(port: int) -> bool:
+    """Free on loopback for TCP and UDP (haa-hostd takes heartbeat datagrams on its gRPC port number)."""
+    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                return False
+    return True
+
 
 def free_port() -> int:
+    """A loopback port free now, for a daemon started next. Taken below the kernel's ephemeral range: a port
+    from bind(0) is an ephemeral one, which the kernel may give to any outgoing connection (a client socket of
+    another host) before the daemon binds it — a benchmark's host once failed to start that way, its port
+    taken. Falls back to bind(0) if the range leaves no room below it."""
+    low, _ = _ephemeral_range()
+    start = max(1024, low // 2)
+    rng = random.SystemRandom()
+    if len(_picked) > 4096:  # a long sweep: ports handed out long ago are taken or free again by now
+        _picked.clear()
+    if low - start >= 1000:
+        for _ in range(200):
+            port = rng.randrange(start, low)
+            if port not in _picked and _bindable(port):
+                _picked.add(port)
+                return port
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
