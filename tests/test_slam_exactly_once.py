@@ -423,23 +423,23 @@ def test_a_reading_finished_by_two_lives_of_the_supervisor_is_counted_once() -> 
     Both batches commit; the reading is counted once — the count is in the atomic batch whose delete of the
     raw entry fails if it is gone (CI: `readings_processed` 237 of 234 generated after a graceful leave)."""
     bus = Bus()
-    key, _ = bus.put_raw("s1", 1, "camera")
-    marks = [team.done_key(key, p) for p in ("sensor_landmark", "sensor_floorfinder")]
-    bus.ddb.apply(ddbops.encode_batch([ddbops.put(m, "json", {"n": 1}) for m in marks]))
+    key, raw = bus.put_raw("s1", 1, "camera")
+    procs = {"sensor_landmark", "sensor_floorfinder"}
+    bus.ddb.apply(ddbops.encode_batch([ddbops.put(team.done_key(key, p), "json", {"n": 1}) for p in procs]))
     old = bus.start(SupervisorSLAM, "sup", {"mode": "jc-slam", "particles": 5})
     new = bus.start(SupervisorSLAM, "sup2", {"mode": "jc-slam", "particles": 5})
 
     async def go() -> None:
         bus.hold = asyncio.Event()
-        r = {"todo": set(), "discarded": 0, "n": 2, "procs": ("sensor_landmark", "sensor_floorfinder")}
-        first = asyncio.ensure_future(old._finish(key, r))
+        old._add_reading(key, raw, procs)  # both processings applied: it finishes the reading
         await asyncio.sleep(0)  # its write is out, not committed
+        assert key in old.finishing
         new.recover(None)
         await new._list_readings()  # sees the raw entry and both markers: finishes it at once
         await asyncio.sleep(0)
         assert key in new.finishing
         bus.hold.set()
-        await asyncio.gather(first, *new.tasks)
+        await asyncio.gather(*old.tasks, *new.tasks)
 
     asyncio.run(go())
     assert bus.counter("readings_processed") == 1

@@ -15,12 +15,12 @@ from pathlib import Path
 _picked: set[int] = set()
 
 
-def _ephemeral_range() -> tuple[int, int]:
+def _ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (the ports bind(0) and outgoing connections get)."""
     try:
-        low, high = (int(x) for x in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
-        return low, high
-    except (OSError, ValueError):
-        return 32768, 60999  # Linux's default
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default
 
 
 def _bindable(port: int) -> bool:
@@ -39,7 +39,7 @@ def free_port() -> int:
     from bind(0) is an ephemeral one, which the kernel may give to any outgoing connection (a client socket of
     another host) before the daemon binds it — a benchmark's host once failed to start that way, its port
     taken. Falls back to bind(0) if the range leaves no room below it."""
-    low, _ = _ephemeral_range()
+    low = _ephemeral_low()
     start = max(1024, low // 2)
     rng = random.SystemRandom()
     if len(_picked) > 4096:  # a long sweep: ports handed out long ago are taken or free again by now
