@@ -3,8 +3,8 @@ host link and on the TCP one, run by run alternating, with the cluster's CPU and
 
 Each run starts a fresh static group of `--hosts` `haa-hostd` processes (`haa.cluster.hostprocs.LocalCluster`; the
 carrier comes from `HAA_HOST_LINK`, which the hosts inherit), warms up with 50 back-to-back transactions, then
-runs `haa.experiments.ap1.run_step` for each load (paced, back-to-back, all-proposing, concurrent with 2 in flight per
-host) and adds, per row: the CPU time (user + system) of every haa-hostd process over the row, per committed
+runs `haa.lab.experiments.ap1.run_step` for each load (paced, back-to-back, all-proposing, concurrent with 2 in
+flight per host) and adds, per row: the CPU time (user + system) of every haa-hostd process over the row, per committed
 transaction, and the frames every host wrote (`tx_frames`) per transaction. Runs alternate grpc, tcp, grpc, ...
 so that a neighbour's load falls on both alike; the 1-minute load average is recorded before each run.
 
@@ -25,7 +25,7 @@ from typing import Any
 import psutil
 
 from haa.cluster.hostprocs import LocalCluster
-from haa.experiments.ap1 import MODES, run_step
+from haa.lab.experiments.ap1 import MODES, run_step
 
 
 def _cpu(cluster: LocalCluster) -> float:

@@ -7,8 +7,8 @@ Each run, for one carrier (`HAA_HOST_LINK`, which the hosts inherit), measures i
   transaction included);
 * the DDB all-writing load through the sequencer with the tree's default `seq_inflight` (a fresh membership
   group; `bench/seq_ab.py`'s `one_run`: writes/s, write p50, OAC p50, writes per OAC, cluster CPU per write);
-* `bench idle` (`haa.experiments.idle.measure_local`: CPU of an idle membership-mode cluster, % of one core);
-* `bench ap4` at `--hosts` (`haa.experiments.ap4.run_ap4`: transfer idle / under ping, host recovery, crash
+* `bench idle` (`haa.lab.experiments.idle.measure_local`: CPU of an idle membership-mode cluster, % of one core);
+* `bench ap4` at `--hosts` (`haa.lab.experiments.ap4.run_ap4`: transfer idle / under ping, host recovery, crash
   detection).
 
 Runs alternate grpc, tcp, grpc, ... so that a neighbour's load falls on both alike; the 1-minute load is
@@ -32,8 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from haa.core.membership import NodeConfig
-from haa.experiments.ap4 import run_ap4
-from haa.experiments.idle import measure_local
+from haa.lab.experiments.ap4 import run_ap4
+from haa.lab.experiments.idle import measure_local
 
 CARRIERS = ("grpc", "tcp")
 

@@ -1,9 +1,9 @@
 """A/B of the DDB all-writing load through the sequencer (issue 14, seventh session): host-link carrier x
 `membership: seq_inflight`, run by run alternating, optionally with a py-spy profile of the sequencer leader.
 
-Each run starts a fresh group of `--hosts` membership-mode `haa-hostd` processes (`haa.experiments.ddb`'s
+Each run starts a fresh group of `--hosts` membership-mode `haa-hostd` processes (`haa.lab.experiments.ddb`'s
 `MemberHost`s; the carrier comes from `HAA_HOST_LINK`, which the hosts inherit; `sequencer` and `seq_inflight`
-go into the hosts' hostd.yaml), then runs `haa.experiments.ddb._all_writing` for each `--writers` and adds, per
+go into the hosts' hostd.yaml), then runs `haa.lab.experiments.ddb._all_writing` for each `--writers` and adds, per
 row, the CPU time (user + system) of the leader and of the whole cluster over the row. The variants given with
 `--variant CARRIER:INFLIGHT` (repeat) alternate run by run (A B A B ...); the 1-minute load average is recorded
 before and after each run. `--profile DIR` records the leader with py-spy (`--native`-less, `--idle` off) during
@@ -30,8 +30,8 @@ from typing import Any
 import psutil
 
 from haa.cluster.hostprocs import MemberHost, member_group, wait_for
-from haa.experiments import ddb as ddbx
-from haa.experiments.ap2 import CORE
+from haa.lab.experiments import ddb as ddbx
+from haa.lab.experiments.ap2 import CORE
 
 
 def _cpu(h: MemberHost) -> float:

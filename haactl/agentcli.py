@@ -34,7 +34,6 @@ from rich.markup import escape
 from rich.table import Table
 from rich.tree import Tree
 
-from haa.agents.base import RECOVERY_STRATEGIES
 from haa.cluster.agents import (
     AgentRow,
     active_row,
@@ -47,6 +46,7 @@ from haa.cluster.backend import Backend, ClusterError, agreed_group, natural_key
 from haa.cluster.events import TimelineEvent
 from haa.cluster.feed import EventFeed
 from haa.pb import control_pb2 as cpb
+from haa.sdk.base import RECOVERY_STRATEGIES
 from haactl.cliopts import (
     ComposeFileOpt,
     ComposeOpt,

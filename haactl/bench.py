@@ -1,9 +1,9 @@
-"""`haactl bench ...`: run an experiment of haa.experiments, print its tables, write bench-results/<name>.json.
+"""`haactl bench ...`: run an experiment of haa.lab.experiments, print its tables, write bench-results/<name>.json.
 
 Benchmarks measure; they never fail on a timing. Each command parses its options, calls the experiment's
-library function (haa.experiments.<module>: the thesis' experiments AP-1..AP-5 and our own measurements),
+library function (haa.lab.experiments.<module>: the thesis' experiments AP-1..AP-5 and our own measurements),
 prints the results as markdown tables (haactl.benchtables, through the one table helper haactl.tables) and
-writes the JSON with the machine description (haa.benchresults). The JSON keys are a public interface: the
+writes the JSON with the machine description (haa.lab.benchresults). The JSON keys are a public interface: the
 docs, the README and later comparisons read them.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import typer
 
-from haa.benchresults import RESULTS, machine, write_json
+from haa.lab.benchresults import RESULTS, machine, write_json
 from haactl import benchtables
 from haactl.cliopts import BenchRootOpt
 
@@ -29,7 +29,7 @@ def bench_ufd(
     seed: int = typer.Option(1, "--seed"),
 ) -> None:
     """Failure detector (Alg. 1): heartbeat cost for the thesis' QoS and ours, and measured QoS."""
-    from haa.experiments.ufd import heartbeat_rates, measured_qos
+    from haa.lab.experiments.ufd import heartbeat_rates, measured_qos
 
     t0 = time.perf_counter()
     rates = heartbeat_rates()
@@ -61,7 +61,7 @@ def bench_ap1(
     tls: bool = typer.Option(False, "--tls", help="the hosts talk over mutual TLS (docs/deploy.md)"),
 ) -> None:
     """Experiment AP-1 (thesis §7.2.1): OAC latency and messages vs. participants, real haa-hostd processes."""
-    from haa.experiments.ap1 import MODES, run_ap1
+    from haa.lab.experiments.ap1 import MODES, run_ap1
 
     bad = [m for m in mode if m not in MODES]
     if bad:
@@ -89,7 +89,7 @@ def bench_idle(
     compose: bool = typer.Option(False, "--compose", help="measure the docker compose cluster instead"),
 ) -> None:
     """Idle cost: CPU and memory of an idle membership-mode cluster -> bench-results/idle.json."""
-    from haa.experiments.idle import measure_compose, measure_local
+    from haa.lab.experiments.idle import measure_compose, measure_local
 
     kind = "compose" if compose else "local"
     r = (measure_compose if compose else measure_local)(hosts, duration, settle)
@@ -124,7 +124,7 @@ def bench_ap2(
     """Experiment AP-2 (thesis §7.2.2): join, leave and removal delays vs. group size, real haa-hostd."""
     import tempfile
 
-    from haa.experiments.ap2 import run_ap2
+    from haa.lab.experiments.ap2 import run_ap2
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="haa-ap2-") as tmp:
@@ -146,7 +146,7 @@ def bench_ddb(
 ) -> None:
     """DDB writes through OAC: client loads (does batching pay?) and every host writing at once, with and
     without the sequencer."""
-    from haa.experiments.ddb import run_ddb_bench
+    from haa.lab.experiments.ddb import run_ddb_bench
 
     modes = {"on": (True,), "off": (False,), "both": (True, False)}
     if sequencer not in modes:
@@ -170,7 +170,7 @@ def bench_sim(
     quick: bool = typer.Option(False, "--quick", help="short runs (a smoke run, not a measurement)"),
 ) -> None:
     """The simulator (haa.sim): stepping 10 avatars vs real time, camera frames, sonar readings."""
-    from haa.experiments.sim import run_sim_bench
+    from haa.lab.experiments.sim import run_sim_bench
 
     t0 = time.perf_counter()
     r = run_sim_bench(quick=quick)
@@ -190,13 +190,13 @@ def bench_ap3(
 ) -> None:
     """Experiment AP-3 (thesis §7.2.3): allocation time and messages, 2..10 hosts x 5..60 agents (simulated:
     loopback gRPC delay model, bench ap1's OAC latency, real CPU time of the Allocator calls)."""
-    from haa.experiments.ap3 import AGENTS, HOSTS, run_ap3
-    from haa.experiments.ap3real import existing, merge_json
+    from haa.lab.experiments.ap3 import AGENTS, HOSTS, run_ap3
+    from haa.lab.experiments.ap3real import existing, merge_json
 
     t0 = time.perf_counter()
     if real:
-        from haa.experiments.ap3real import HOSTS as REAL_HOSTS
-        from haa.experiments.ap3real import run_ap3_real
+        from haa.lab.experiments.ap3real import HOSTS as REAL_HOSTS
+        from haa.lab.experiments.ap3real import run_ap3_real
 
         rows = run_ap3_real(tuple(h for h in REAL_HOSTS if h <= max_hosts),
                             tuple(a for a in AGENTS if a <= max_agents), reps=reps, seed=seed)
@@ -222,7 +222,7 @@ def bench_alloc_quality(
 ) -> None:
     """Allocation quality: total reward (eq. 4.7-1) of the committed allocation vs the exhaustive optimum on
     random instances of up to 8 agents and 4 hosts."""
-    from haa.experiments.ap3 import run_quality_study
+    from haa.lab.experiments.ap3 import run_quality_study
 
     t0 = time.perf_counter()
     study = run_quality_study(instances, seed)
@@ -235,8 +235,9 @@ def bench_alloc_quality(
 def bench_slam(
     duration: float = typer.Option(60.0, "--duration", min=5, help="seconds of the 8-sweeper recording replayed"),
 ) -> None:
-    """JC-SLAM library speed: readings per CPU-second at 100..1000 particles, history memory (haa.experiments.slam)."""
-    from haa.experiments.slam import run_bench_slam
+    """JC-SLAM library speed: readings per CPU-second at 100..1000 particles, history memory
+    (haa.lab.experiments.slam)."""
+    from haa.lab.experiments.slam import run_bench_slam
 
     t0 = time.perf_counter()
     data = run_bench_slam(duration=duration)
@@ -252,7 +253,7 @@ def bench_ap52(
     quick: bool = typer.Option(False, "--quick", help="short recordings"),
 ) -> None:
     """Experiment AP-5.2 (thesis §7.2.5.2): operations saved by delayed weight updates."""
-    from haa.experiments.slam import run_ap52
+    from haa.lab.experiments.slam import run_ap52
 
     t0 = time.perf_counter()
     rows = run_ap52(particles, quick=quick)
@@ -273,8 +274,8 @@ def bench_ap51(
     merge: bool = typer.Option(False, "--merge", help="keep the other scenarios of the existing JSON"),
 ) -> None:
     """Experiment AP-5.1 (thesis §7.2.5.1): SLAM strategies at nominal and constrained capacity
-    (haa.experiments.slam)."""
-    from haa.experiments.slam import STRATEGY_ORDER, merge_ap51, run_ap51
+    (haa.lab.experiments.slam)."""
+    from haa.lab.experiments.slam import STRATEGY_ORDER, merge_ap51, run_ap51
 
     t0 = time.perf_counter()
     ps = tuple(int(p) for p in particles.split(",") if p.strip()) or None
@@ -306,8 +307,9 @@ def bench_ap4(
     state_kb: float = typer.Option(111.0, "--state-kb", min=0, help="agent state, kB (thesis average: 111)"),
     root: BenchRootOpt = None,
 ) -> None:
-    """Experiment AP-4 (thesis §7.2.4): spawn, freeze, transfer and recovery delays vs. hosts (haa.experiments.ap4)."""
-    from haa.experiments.ap4 import parse_hosts, run_ap4
+    """Experiment AP-4 (thesis §7.2.4): spawn, freeze, transfer and recovery delays vs. hosts
+    (haa.lab.experiments.ap4)."""
+    from haa.lab.experiments.ap4 import parse_hosts, run_ap4
 
     t0 = time.perf_counter()
     try:
@@ -333,8 +335,8 @@ def bench_agents(
     no_json: bool = typer.Option(False, "--no-json", help="do not write bench-results/agents.json"),
 ) -> None:
     """The agent runtime on this machine: spawn latency (fork server, exec), transfer and failure steps, memory
-    per agent, agent -> host -> agent throughput (haa.experiments.agents)."""
-    from haa.experiments.agents import run_agents_bench
+    per agent, agent -> host -> agent throughput (haa.lab.experiments.agents)."""
+    from haa.lab.experiments.agents import run_agents_bench
 
     t0 = time.perf_counter()
     res = run_agents_bench(n, cold_n, messages)
@@ -354,8 +356,8 @@ def bench_memory(
     root: BenchRootOpt = None,
     out: str = typer.Option("memory", "--out", help="result name: bench-results/<out>.json"),
 ) -> None:
-    """RSS per host and event-loop stalls of a 4-host group under maximum-size requests (haa.experiments.memory)."""
-    from haa.experiments.memory import run_memory_bench
+    """RSS per host and event-loop stalls of a 4-host group under maximum-size requests (haa.lab.experiments.memory)."""
+    from haa.lab.experiments.memory import run_memory_bench
 
     t0 = time.perf_counter()
     res = run_memory_bench(seconds=seconds, interval=interval, settle=settle, root=root)
@@ -374,12 +376,12 @@ def bench_replica(
     seed: int = typer.Option(0, "--seed"),
     floor: bool = typer.Option(False, "--floor", help="add a floor region per camera image"),
 ) -> None:
-    """The SLAM replica: apply cost per event kind, checkpoints, the published map (haa.experiments.replica).
+    """The SLAM replica: apply cost per event kind, checkpoints, the published map (haa.lab.experiments.replica).
 
     A recorded run (haa.slam.explorer) applied to a replica through the DDB log (docs/slam.md "The SLAM state in
     the DDB"), a checkpoint and a restore every 10 s of the run. Prints the figures as JSON on stdout and writes
     bench-results/replica.json."""
-    from haa.experiments.replica import run_replica_bench
+    from haa.lab.experiments.replica import run_replica_bench
 
     t0 = time.perf_counter()
     res = run_replica_bench(scenario, duration, particles, seed, floor)

@@ -1,5 +1,5 @@
 """How `haactl bench` shows each experiment's results: the markdown tables printed after a run (and pasted
-into the docs and the README), laid out from the row dicts that the experiments of haa.experiments return
+into the docs and the README), laid out from the row dicts that the experiments of haa.lab.experiments return
 (the same dicts `bench-results/<name>.json` holds). Every table is built with haactl.tables (one helper);
 this module only chooses the columns and formats the numbers.
 """
@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 from haactl.tables import Cell, markdown, table
 
 if TYPE_CHECKING:  # the experiments are imported by the table that needs them: `haactl --help` stays quick
-    from haa.dsim.ufdqos import QosMeasurement
+    from haa.lab.dsim.ufdqos import QosMeasurement
 
 
 def _md(headers: list[str], rows: list[list[Cell]], title: str | None = None) -> str:
@@ -223,7 +223,7 @@ def _ms(x: float | None) -> str:
 
 
 def ap4(rows: list[dict[str, Any]]) -> str:
-    from haa.experiments.ap4 import METRICS
+    from haa.lab.experiments.ap4 import METRICS
 
     out: list[list[Cell]] = []
     for key, (_kind, _field, label, thesis, target) in METRICS.items():
@@ -263,7 +263,7 @@ _AGENT_STEPS = [("spawn -> Hello", "spawn_to_hello_s"), ("spawn -> Ready", "spaw
 
 
 def agents(rows: list[dict[str, Any]]) -> str:
-    """The rows of haa.experiments.agents.measure_spawn: each step's delays, then start time and memory."""
+    """The rows of haa.lab.experiments.agents.measure_spawn: each step's delays, then start time and memory."""
 
     def ms(s: dict[str, float], k: str) -> str:
         return f"{s[k] * 1e3:.1f}" if s.get("n") else "-"
@@ -284,7 +284,7 @@ def agents(rows: list[dict[str, Any]]) -> str:
 
 
 def agents_throughput(tput: list[dict[str, Any]]) -> str:
-    """haa.experiments.agents.measure_throughput's figures: agent -> host -> agent on one supervisor."""
+    """haa.lab.experiments.agents.measure_throughput's figures: agent -> host -> agent on one supervisor."""
     return _md(["agent -> host -> agent", "messages", "bytes each", "msgs/s", "MiB/s"],
                [["one supervisor", t["count"], t["size"], f"{t['msgs_per_s']:.0f}", f"{t['mib_per_s']:.1f}"]
                 for t in tput])
@@ -340,7 +340,7 @@ def ap52(rows: list[dict[str, Any]]) -> str:
 
 
 def ap51(data: dict[str, Any]) -> str:
-    from haa.experiments.slam import mean_sd, variants
+    from haa.lab.experiments.slam import mean_sd, variants
 
     rows = data["rows"]
     parts = []

@@ -1,6 +1,6 @@
 """`haactl chaos run PLAN` and `haactl chaos check DIR`: chaos experiments (docs/chaos.md).
 
-Argument parsing and printing only; the work is in haa.chaos (plan, inject, collect, checks, timeline, run).
+Argument parsing and printing only; the work is in haa.lab.chaos (plan, inject, collect, checks, timeline, run).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from haa.chaos.checks import Check, run_checks
-from haa.chaos.inject import Injected
-from haa.chaos.plan import PlanError, load_plan, parse_plan
-from haa.chaos.run import ChaosCluster, LocalChaosCluster, run_on
-from haa.chaos.timeline import Entry, build, clock
+from haa.lab.chaos.checks import Check, run_checks
+from haa.lab.chaos.inject import Injected
+from haa.lab.chaos.plan import PlanError, load_plan, parse_plan
+from haa.lab.chaos.run import ChaosCluster, LocalChaosCluster, run_on
+from haa.lab.chaos.timeline import Entry, build, clock
 from haactl.cliopts import cli_errors, err, out
 from haactl.tables import table
 
@@ -73,7 +73,7 @@ def chaos_run(
                                                       "$HAA_COMPOSE_FILE, else compose/compose.yaml)")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result (faults, checks, timeline) "
                                                   "as JSON to this file ('-': stdout)")] = None,
-    out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="run directory (default .haa/chaos/<plan "
+    out_dir: Annotated[Path | None, typer.Option("--out", "-o", help="run directory (default .haa/lab/chaos/<plan "
                                                  "name>); given, the hosts' stats bundles are collected into it "
                                                  "at the end (haactl report DIR)", show_default=False)] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="only the checks table")] = False,
@@ -95,7 +95,7 @@ def chaos_run(
     cluster: ChaosCluster
     try:
         if compose:
-            from haa.chaos.compose import ComposeChaosCluster
+            from haa.lab.chaos.compose import ComposeChaosCluster
 
             cluster = ComposeChaosCluster(compose_file, bundles_to=run.absolute() if out_dir is not None else None)
         else:
@@ -127,7 +127,7 @@ def chaos_run(
 def _bundles(run: Path, show: bool) -> None:
     """The hosts' stats bundles into the run directory (its cluster is down; the data dirs remain)."""
     from haa.cluster.local_backend import LocalBackend
-    from haa.stats.collect import collect_quietly
+    from haa.lab.stats.collect import collect_quietly
 
     res = collect_quietly(LocalBackend(run / "cluster", last=True), run)
     if isinstance(res, str):

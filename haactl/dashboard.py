@@ -1,4 +1,4 @@
-"""`haactl dashboard`: serve the monitoring dashboard (haa.dashboard, docs/dashboard.md) of the local cluster
+"""`haactl dashboard`: serve the monitoring dashboard (haa.lab.dashboard, docs/dashboard.md) of the local cluster
 (default, or `--local`) or, with `--compose`, of the docker compose cluster. Only parses arguments and prints."""
 
 from __future__ import annotations
@@ -28,8 +28,9 @@ def dashboard(
 ) -> None:
     """Serve the monitoring dashboard: the map, the agent distribution timeline, the agent hierarchy and the DDB
     browser of a running cluster, updated live in the browser."""
-    from haa import dashboard, files
-    from haa.dashboard.sources import SimTarget
+    from haa import files
+    from haa.lab import dashboard
+    from haa.lab.dashboard.sources import SimTarget
     from haactl.cliopts import open_backend
 
     if local and compose:

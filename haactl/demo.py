@@ -1,6 +1,6 @@
 """`haactl demo` (`make demo`): counter agents live on a local cluster while hosts join, retire and crash.
 
-The scenario and its checks are haa.experiments.demo (its docstring says what happens and what is checked);
+The scenario and its checks are haa.lab.experiments.demo (its docstring says what happens and what is checked);
 this command prints its timeline as it happens in the style of the thesis' transcript (Fig. 7.1-3, lines
 formatted by haactl.agentcli.event_line), then the counters of every agent as a table and the verdict
 
@@ -22,7 +22,7 @@ from rich.markup import escape
 
 from haa.cluster.backend import ClusterError
 from haa.cluster.events import TimelineEvent
-from haa.experiments.demo import COUNTS, HEADERS, Demo, DemoResult
+from haa.lab.experiments.demo import COUNTS, HEADERS, Demo, DemoResult
 from haactl.agentcli import event_line
 from haactl.tables import table
 

@@ -1,5 +1,5 @@
 """`haactl foxglove`: bridge the local cluster (default, or `--local`) or, with `--compose`, the docker compose
-cluster to Foxglove / Lichtblick over the Foxglove WebSocket protocol (haa.foxglove, docs/metrics.md). Only
+cluster to Foxglove / Lichtblick over the Foxglove WebSocket protocol (haa.lab.foxglove, docs/metrics.md). Only
 parses arguments and prints."""
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ def foxglove(
     """Serve a running cluster to Foxglove: the map as a Grid, estimated and true poses, particles as point clouds,
     landmarks, paths and targets, the mission transcript and the agent timeline as logs, live."""
     from haa import files
-    from haa import foxglove as bridge
-    from haa.dashboard.sources import SimTarget
+    from haa.lab import foxglove as bridge
+    from haa.lab.dashboard.sources import SimTarget
     from haactl.cliopts import open_backend
 
     if local and compose:

@@ -304,7 +304,7 @@ def experiment(
 ) -> None:
     """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
     the thesis' Table 7.1-1 / 7.1-2. R-1 (§7.3.1): N missions per failure level, Table 7.3-1 and eq. 7.3-1's k."""
-    from haa.mission.experiment import EXPERIMENTS, mission_for, run_experiment, table_rows
+    from haa.lab.experiments.af import EXPERIMENTS, mission_for, run_experiment, table_rows
     from haa.mission.runner import MissionRunError
 
     if name == "r1":
@@ -343,7 +343,7 @@ def experiment(
 
 def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_dir: Path | None,
                    mission_file: Path | None, levels: str | None) -> None:
-    from haa.mission import r1
+    from haa.lab.experiments import r1
     from haa.mission.runner import MissionRunError
 
     try:

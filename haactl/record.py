@@ -1,6 +1,6 @@
 """`haactl record ls DIR`: what an AgentPlayback recording holds (docs/playback.md).
 
-Argument parsing and printing only; reading is haa.playback.reader.
+Argument parsing and printing only; reading is haa.lab.playback.reader.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def record_ls(
 ) -> None:
     """Agents recorded: type, instances (lives: a transfer or recovery starts a new one), segments, inputs,
     outputs, the time span, bytes on disk, hosts."""
-    from haa.playback.reader import RecordingError, summarize
+    from haa.lab.playback.reader import RecordingError, summarize
 
     try:
         rows = summarize(folder, agent)

@@ -1,7 +1,7 @@
 """`haactl replay DIR --agent NAME [--instance K] [--break-at N]`: re-run one agent offline from its
 AgentPlayback recording and compare everything it does with what it did live (docs/playback.md).
 
-Argument parsing and printing only; the replay is haa.playback.replay.
+Argument parsing and printing only; the replay is haa.lab.playback.replay.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ def replay(
                                                  "before input N of the first replayed instance")] = None,
 ) -> None:
     """Replay an agent offline; prints `replay identical: N inputs, M outputs` or the first divergence (exit 1)."""
-    from haa.playback.reader import RecordingError
-    from haa.playback.replay import replay_agent
+    from haa.lab.playback.reader import RecordingError
+    from haa.lab.playback.replay import replay_agent
 
     try:
         results = replay_agent(recording, agent, instance, break_at)

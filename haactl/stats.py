@@ -1,6 +1,6 @@
 """`haactl stats collect -o DIR` and `haactl report DIR [B]` (docs/stats.md).
 
-Argument parsing and printing only; the work is in haa.stats (collect, summary, report).
+Argument parsing and printing only; the work is in haa.lab.stats (collect, summary, report).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from haa.cluster.backend import ClusterError
-from haa.stats.bundle import BundleError
+from haa.lab.stats.bundle import BundleError
 from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, err, open_backend, out
 from haactl.tables import table
 
@@ -57,7 +57,7 @@ def collect(
 ) -> None:
     """One bundle per host (log, stats time series, config, view history, agent events, latencies) and a
     cluster summary; works while the cluster runs, for hosts that crashed, and after `cluster down`."""
-    from haa.stats.collect import collect_bundles
+    from haa.lab.stats.collect import collect_bundles
 
     if local and compose:
         raise ClusterError("--local and --compose exclude each other")
@@ -86,7 +86,7 @@ def report(
 ) -> None:
     """Render DIR/report.html with PNG figures from a run's bundles (and its mission results, if any);
     with a second run B, both side by side."""
-    from haa.stats.report import build_compare, build_report
+    from haa.lab.stats.report import build_compare, build_report
 
     try:
         path = build_report(run, out_dir) if other is None else build_compare(run, other, out_dir)

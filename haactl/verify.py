@@ -1,7 +1,7 @@
 """`haactl verify ufd|oac|membership|ddb|allocation|transfer|recovery|join`: run seeded fault schedules in the
-deterministic simulator and check the thesis' properties (`haa.dsim.checks` for UFD and OAC, `haa.dsim.group`
-for host membership and the replicated DDB, `haa.dsim.allocation` for Alg. 4, `haa.dsim.agents` for the whole
-agent layer: transfer Alg. 5-6, backup and recovery Alg. 7-8; `haa.dsim.joins` for the allocation after hosts
+deterministic simulator and check the thesis' properties (`haa.lab.dsim.checks` for UFD and OAC, `haa.lab.dsim.group`
+for host membership and the replicated DDB, `haa.lab.dsim.allocation` for Alg. 4, `haa.lab.dsim.agents` for the whole
+agent layer: transfer Alg. 5-6, backup and recovery Alg. 7-8; `haa.lab.dsim.joins` for the allocation after hosts
 join).
 
 Output contract: one `VIOLATION seed=S <property>: <detail>` line per violation, a trace excerpt and a
@@ -18,7 +18,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from haa.dsim import mutations, sweep
+from haa.lab.dsim import mutations, sweep
 
 console = Console(stderr=True)
 

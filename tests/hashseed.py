@@ -15,7 +15,7 @@ from collections.abc import Iterable
 
 CODE = (
     "import json, sys\n"
-    "from haa.dsim.sweep import run_seed\n"
+    "from haa.lab.dsim.sweep import run_seed\n"
     "print(' '.join(run_seed(a, s, h).trace_hash for a, s, h in json.loads(sys.argv[1])))"
 )
 

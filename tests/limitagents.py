@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import time
 
-from haa.agents.base import AgentBase
-from haa.agents.registry import register
+from haa.sdk.base import AgentBase
+from haa.sdk.registry import register
 
 
 @register

@@ -3,15 +3,18 @@ errors; and the registry's validation and naming helpers."""
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import json
+import subprocess
+import sys
 
 import pytest
 from waits import until
 
-from haa.agents import registry
-from haa.agents.base import AgentBase, AgentContext, RemoteError, child_name, new_agent_id, root_name
 from haa.pb import agent_pb2 as pb
+from haa.sdk import registry
+from haa.sdk.base import AgentBase, AgentContext, RemoteError, child_name, new_agent_id, root_name
 
 
 def run(coro):
@@ -404,8 +407,51 @@ def test_registry_register_get_and_conflicts():
 def test_load_all_finds_demo_types_and_reports_bad_modules(monkeypatch):
     monkeypatch.setenv(registry.ENV_MODULES, "haa.agents.no_such_module")
     errors = registry.load_all()
-    assert {"counter", "spawner", "busy", "probe"} <= set(registry.REGISTRY)
+    assert {"counter", "spawner", "busy", "probe", "executive_mission", "supervisor_slam"} <= set(registry.known())
     assert any("haa.agents.no_such_module" in e and "ModuleNotFoundError" in e for e in errors)
+    assert registry.get("counter").__module__ == "haa.lab.demoagents"
+
+
+_LAZY_PROBE = """
+import sys
+from haa.sdk import registry
+import haa.hostd.daemon, haa.sdk.base, haa.sdk.runner, haa.sdk.forkserver, haa.sdk.recorder
+assert registry.load_all() == []
+{extra}
+team = ("haa.agents.", "haa.control", "haa.slam", "haa.sim", "haa.mission", "haa.lab")
+print(sorted(m for m in sys.modules if m.startswith(team)))
+"""
+
+
+def _imported_after(extra: str = "") -> list[str]:
+    r = subprocess.run([sys.executable, "-c", _LAZY_PROBE.format(extra=extra)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    return ast.literal_eval(r.stdout.strip().splitlines()[-1])
+
+
+def test_the_sdk_and_the_daemon_import_no_team_or_lab_module_until_a_type_is_asked_for():
+    """Every built-in type is known by name (entry points) without importing its module; asking for one imports
+    its module only (the demo agents are the lab's, the supervisor the team's)."""
+    assert _imported_after() == []
+    after = _imported_after("registry.get('counter')")
+    assert after == ["haa.lab", "haa.lab.demoagents"]
+    after = _imported_after("registry.get('supervisor_explore')")
+    assert "haa.agents.supervisor_explore" in after and not any(m.startswith("haa.lab") for m in after)
+
+
+def test_a_lazy_type_whose_class_does_not_match_its_entry_point_is_refused(monkeypatch):
+    import importlib.metadata as md
+
+    ep = md.EntryPoint(name="t-lazy-wrong", value="haa.lab.demoagents:CounterAgent", group=registry.ENTRY_POINT_GROUP)
+    monkeypatch.setitem(registry.LAZY, "t-lazy-wrong", ep)
+    with pytest.raises(registry.TypeLoadError, match="TYPE is 'counter', not the entry point's name"):
+        registry.get("t-lazy-wrong")
+    ep = md.EntryPoint(name="t-lazy-gone", value="haa.lab.no_such:Thing", group=registry.ENTRY_POINT_GROUP)
+    monkeypatch.setitem(registry.LAZY, "t-lazy-gone", ep)
+    with pytest.raises(registry.TypeLoadError, match=r"t-lazy-gone.*ModuleNotFoundError"):
+        registry.get("t-lazy-gone")
+    assert "t-lazy-gone" not in registry.REGISTRY
 
 
 def test_names_follow_parentage():
@@ -455,7 +501,7 @@ def test_a_long_backlog_of_sync_handlers_lets_other_tasks_run():
 
 
 # ------------------------------------------------------------------ the agent's clock and random source
-from haa.agents.base import Clock, ScaledClock, agent_random  # noqa: E402
+from haa.sdk.base import Clock, ScaledClock, agent_random  # noqa: E402
 
 
 class Clocked(AgentBase):

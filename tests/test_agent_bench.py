@@ -1,8 +1,8 @@
-"""Smoke run of the agent runtime benchmark (haa.experiments.agents): it measures, it does not judge."""
+"""Smoke run of the agent runtime benchmark (haa.lab.experiments.agents): it measures, it does not judge."""
 
 from __future__ import annotations
 
-from haa.experiments.agents import measure_spawn
+from haa.lab.experiments.agents import measure_spawn
 from haactl.benchtables import agents
 
 

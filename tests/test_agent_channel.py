@@ -1,4 +1,4 @@
-"""haa.agents.channel: length-prefixed protobuf frames over a unix socketpair, and its errors."""
+"""haa.sdk.channel: length-prefixed protobuf frames over a unix socketpair, and its errors."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import struct
 
 import pytest
 
-from haa.agents.channel import Channel, ChannelError, FrameTooLarge
 from haa.pb import agent_pb2 as pb
+from haa.sdk.channel import Channel, ChannelError, FrameTooLarge
 
 
 def run(coro):
@@ -103,11 +103,11 @@ def test_max_frame_is_validated():
 
 
 def test_the_frozen_frame_survives_host_writes_after_the_freeze():
-    """An agent that has sent Frozen waits for the host to close the channel (haa.agents.runner._linger): a
+    """An agent that has sent Frozen waits for the host to close the channel (haa.sdk.runner._linger): a
     busy host may still write to it (watch events, answers) before it reads Frozen, and a write to a closed
     socket (EPIPE) made the host's transport drop the unread Frozen frame: 'channel error: read failed: [Errno
     32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group, issue 15 §5)."""
-    from haa.agents import registry, runner
+    from haa.sdk import registry, runner
 
     async def main():
         registry.load_all()
@@ -165,9 +165,9 @@ def test_frames_buffered_before_a_reset_are_received_before_the_end():
 
 def test_the_error_of_an_agent_that_fails_at_start_survives_host_writes():
     """An agent that fails at start (here: its state does not unpack) half-closes and waits for the host to close
-    (haa.agents.runner._linger) as after Frozen: had it closed at once, the host's next write broke the pipe
+    (haa.sdk.runner._linger) as after Frozen: had it closed at once, the host's next write broke the pipe
     and its transport dropped the unread Error frame ('read failed: [Errno 32] Broken pipe', every time here)."""
-    from haa.agents import registry, runner
+    from haa.sdk import registry, runner
 
     async def main():
         registry.load_all()

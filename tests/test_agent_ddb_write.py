@@ -17,7 +17,6 @@ from typing import Any
 import pytest
 from waits import until
 
-from haa.agents.base import AgentBase, AgentContext, HostError, new_agent_id
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import ddb
@@ -25,6 +24,7 @@ from haa.hostd import agentproc as ap
 from haa.hostd.agentdriver import AgentDriver
 from haa.pb import agent_pb2 as pb
 from haa.pb import ddb_pb2
+from haa.sdk.base import AgentBase, AgentContext, HostError, new_agent_id
 
 # ============================================================================ the agent's side (in-process)
 

@@ -87,7 +87,7 @@ def test_parser_and_merge_put_the_crash_where_the_agent_ran() -> None:
 
 
 def test_chaos_timeline_uses_the_same_parser_and_attribution(tmp_path: Path) -> None:
-    from haa.chaos.timeline import build
+    from haa.lab.chaos.timeline import build
 
     (tmp_path / "hosts").mkdir()
     for host, recs in scenario().items():

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from haa.core import agenttable as at
 from haa.core.routing import Inbox, Outbox
-from haa.dsim.agents import draw_agents, run_agents
+from haa.lab.dsim.agents import draw_agents, run_agents
 from haa.pb import agenttx_pb2 as apb
 
 MEMBERS = ("h1", "h2", "h3")

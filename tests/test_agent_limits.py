@@ -19,13 +19,13 @@ from pathlib import Path
 
 import pytest
 
-from haa.agents.base import new_agent_id
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import agenttable as at
 from haa.core import ddb
 from haa.hostd.agentproc import AgentSupervisor, Envelope, Failed, InstanceSpec
 from haa.pb import agenttx_pb2 as apb
+from haa.sdk.base import new_agent_id
 
 TESTS = Path(__file__).resolve().parent
 TOKEN = "limits-test-token"
@@ -160,8 +160,10 @@ def test_an_agent_over_its_cpu_limit_is_killed_with_the_reason(agent_modules: No
                               cpu_limit_window=2.0)
         await sup.start()
         try:
-            assert sup.types["limits-spin"].cpu_limit == pytest.approx(0.1)
-            assert sup.types["counter"].has_config and not sup.types["limits-spin"].has_config
+            spin_info = sup.imported_type("limits-spin")  # HAA_AGENT_MODULES: imported at the fork server's start
+            assert spin_info is not None and spin_info.cpu_limit == pytest.approx(0.1)
+            counter = await sup.type_info("counter")
+            assert counter is not None and counter.has_config and not spin_info.has_config
             spin, idle = (InstanceSpec(new_agent_id(), n, "limits-spin", b"", 1) for n in ("A1", "A2"))
             for spec in (spin, idle):
                 await sup.spawn(spec)

@@ -10,11 +10,11 @@ import json
 
 import pytest
 
-from haa.agents.base import MAX_SPAWN_KEY, AgentBase, AgentContext, new_agent_id
 from haa.core import agentrequests as ops
 from haa.core import agenttable as at
 from haa.core.agentio import AnswerAgent
 from haa.pb import agent_pb2 as pb
+from haa.sdk.base import MAX_SPAWN_KEY, AgentBase, AgentContext, new_agent_id
 
 
 def create(t: at.AgentTable, agent: str, parent: str = "", key: str = "", type_name: str = "probe") -> at.AgentApplied:

@@ -1,4 +1,4 @@
-"""AgentSupervisor with real agent processes, wired by a fake two-host agent layer (haa.experiments.localhosts).
+"""AgentSupervisor with real agent processes, wired by a fake two-host agent layer (haa.lab.experiments.localhosts).
 
 Transfer with no loss, duplicate or reordering; recovery from a backup; kill -9, hang, exit codes,
 malformed/oversized frames and unknown types as clear Failed events or SpawnErrors (the host unharmed);
@@ -19,8 +19,6 @@ import psutil
 import pytest
 from waits import until
 
-from haa.agents.base import new_agent_id
-from haa.experiments.localhosts import LocalHosts
 from haa.hostd.agentproc import (
     AgentSupervisor,
     Envelope,
@@ -31,6 +29,8 @@ from haa.hostd.agentproc import (
     SpawnError,
     Stopped,
 )
+from haa.lab.experiments.localhosts import LocalHosts
+from haa.sdk.base import new_agent_id
 
 HB = 0.2
 HANG = 1.0
@@ -284,8 +284,12 @@ def test_unknown_type_is_a_clear_spawn_error():
         sup = AgentSupervisor("h1", events.append, heartbeat_period=HB, hang_timeout=HANG)
         await sup.start()
         try:
-            assert {"counter", "spawner", "busy", "probe"} <= set(sup.types)
-            assert sup.types["busy"].recovery == "restart" and sup.types["busy"].cost == pytest.approx(0.3)
+            assert {"counter", "spawner", "busy", "probe", "supervisor_slam"} <= set(sup.known_types())
+            assert sup.imported_type("busy") is None  # known by name, not imported until asked for
+            busy = await sup.type_info("busy")
+            assert busy.recovery == "restart" and busy.cost == pytest.approx(0.3)
+            assert sup.imported_type("busy") == busy
+            assert await sup.type_info("no-such-type") is None
             spec = InstanceSpec(new_agent_id(), "A1", "no-such-type")
             with pytest.raises(SpawnError, match=r"unknown agent type 'no-such-type' \(registered: .*counter"):
                 await sup.spawn(spec)

@@ -1,6 +1,6 @@
 """A host joins: the allocation moves agents once, and only for a gain (docs/allocation.md, "Joins and
 hysteresis"). Sans-I/O sessions on the `Allocator` (the hysteresis) and the agent layer in the deterministic
-simulator (`haa.dsim.joins`, `haactl verify join`: the joiner's capacity, the move-and-back)."""
+simulator (`haa.lab.dsim.joins`, `haactl verify join`: the joiner's capacity, the move-and-back)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from test_allocation import Net
 
 from haa.core.allocation import AgentSpec, Allocator, HostSpec, bid_key
-from haa.dsim import mutations
-from haa.dsim.joins import draw_join, run_join
-from haa.dsim.sweep import run_seed
+from haa.lab.dsim import mutations
+from haa.lab.dsim.joins import draw_join, run_join
+from haa.lab.dsim.sweep import run_seed
 
 
 class NoHysteresis(Allocator):
@@ -147,7 +147,7 @@ def test_a_joiner_read_as_one_core_moves_agents_twice():
 
 
 def test_a_joiner_without_host_info_bids_for_nothing():
-    from haa.dsim.joins import JoinSim
+    from haa.lab.dsim.joins import JoinSim
 
     sim = JoinSim(draw_join(0, 7))
     sim.run()

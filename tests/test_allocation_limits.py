@@ -234,8 +234,8 @@ def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_
 
 
 def test_the_verifier_checks_the_limit_in_schedules_with_faults():
-    from haa.dsim.allocation import PROPS, draw_alloc
-    from haa.dsim.sweep import run_seed
+    from haa.lab.dsim.allocation import PROPS, draw_alloc
+    from haa.lab.dsim.sweep import run_seed
 
     assert "AA-Per-Host-Limit" in PROPS
     limited = [s for s in range(40) if any(a.max_per_host for a in draw_alloc(s, 5).agents)]
@@ -245,7 +245,7 @@ def test_the_verifier_checks_the_limit_in_schedules_with_faults():
 
 
 def test_an_unallocatable_limited_agent_gets_a_place_when_a_host_joins():
-    from haa.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc
+    from haa.lab.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc
 
     names = ["h1", "h2"]
     agents = tuple(sensor(i) for i in range(3))

@@ -12,10 +12,10 @@ import pytest
 from hashseed import trace_hashes
 
 from haa.core.allocation import AgentSpec, HostSpec
-from haa.dsim import allocation as sim_mod
-from haa.dsim import mutations
-from haa.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc, run_quality
-from haa.dsim.sweep import run_seed, sweep
+from haa.lab.dsim import allocation as sim_mod
+from haa.lab.dsim import mutations
+from haa.lab.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc, run_quality
+from haa.lab.dsim.sweep import run_seed, sweep
 
 BIN = Path(sys.executable).parent / "haactl"
 
@@ -160,7 +160,7 @@ def test_the_optimum_is_exhaustive_on_a_tiny_case():
 
 
 def test_bench_ap3_smoke(tmp_path, monkeypatch):
-    from haa.experiments.ap3 import run_ap3
+    from haa.lab.experiments.ap3 import run_ap3
     from haactl import benchtables
 
     monkeypatch.chdir(tmp_path)
@@ -172,7 +172,7 @@ def test_bench_ap3_smoke(tmp_path, monkeypatch):
 
 
 def test_bench_alloc_quality_smoke():
-    from haa.experiments.ap3 import run_quality_study
+    from haa.lab.experiments.ap3 import run_quality_study
     from haactl import benchtables
 
     study = run_quality_study(instances=20)

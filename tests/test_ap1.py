@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from haa.cluster.hostprocs import LocalCluster
-from haa.experiments.ap1 import run_step, step_deliveries
+from haa.lab.experiments.ap1 import run_step, step_deliveries
 
 
 def test_step_hash_compares_the_steps_deliveries_of_every_participant(tmp_path: Path) -> None:

@@ -2,7 +2,7 @@
 
 One `AgentSpawn` with cost=+inf once wedged a live group: the agent table accepted it and the allocator raised
 while the host reacted to the committed transaction. These tests feed two replicas of the group's global state
-arbitrary transactions of every kind — hostile values from `haa.dsim.hostile` and raw mutated bytes — and check
+arbitrary transactions of every kind — hostile values from `haa.lab.dsim.hostile` and raw mutated bytes — and check
 that no exception escapes, the replicas stay equal (content hash and hash chain), and everything the table
 holds is something the allocator accepts (so the host's reaction cannot raise either).
 """
@@ -21,7 +21,7 @@ from haa.core import agenttable as at
 from haa.core.allocation import MAX_COST, AgentSpec, HostSpec
 from haa.core.globalstate import GlobalState, TxAgent, TxDdb, TxFormation, encode_tx
 from haa.core.messages import Member, TxId
-from haa.dsim import hostile
+from haa.lab.dsim import hostile
 from haa.pb import agenttx_pb2 as apb
 
 EXAMPLES = int(os.environ.get("HAA_FUZZ_EXAMPLES", "300"))

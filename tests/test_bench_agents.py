@@ -9,10 +9,10 @@ import zlib
 
 import pytest
 
-from haa.agents.base import AgentContext
-from haa.agents.benchagents import STATE_HEAD, BallastAgent, PingerAgent
-from haa.agents.registry import REGISTRY, load_builtin
+from haa.lab.experiments.benchagents import STATE_HEAD, BallastAgent, PingerAgent
 from haa.pb import agent_pb2 as pb
+from haa.sdk.base import AgentContext
+from haa.sdk.registry import REGISTRY, load_builtin
 
 
 def _agent(cls: type, config: dict, epoch: int = 1) -> object:
@@ -87,7 +87,7 @@ def test_pinger_report_finds_the_longest_reply_gap_in_the_window() -> None:
 
 @pytest.mark.slow
 def test_bench_ap4_smoke_two_hosts(tmp_path) -> None:
-    from haa.experiments.ap4 import METRICS, run_ap4
+    from haa.lab.experiments.ap4 import METRICS, run_ap4
     from haactl import benchtables
 
     rows = run_ap4((2,), reps=2, root=tmp_path, log=lambda _s: None)
@@ -119,7 +119,7 @@ def test_bench_ap4_smoke_two_hosts(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_bench_ap3_real_smoke_two_hosts(tmp_path) -> None:
-    from haa.experiments.ap3real import merge_json, run_ap3_real
+    from haa.lab.experiments.ap3real import merge_json, run_ap3_real
     from haactl import benchtables
 
     rows = run_ap3_real((2,), (5,), reps=2, root=tmp_path, log=lambda _s: None)

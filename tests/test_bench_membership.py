@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from haa.experiments.ap2 import run_ap2
-from haa.experiments.ddb import run_ddb_bench
+from haa.lab.experiments.ap2 import run_ap2
+from haa.lab.experiments.ddb import run_ddb_bench
 from haactl import benchtables
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from haa.chaos.compose import ComposeChaosCluster
-from haa.chaos.plan import parse_plan
-from haa.chaos.run import LocalChaosCluster
+from haa.lab.chaos.compose import ComposeChaosCluster
+from haa.lab.chaos.plan import parse_plan
+from haa.lab.chaos.run import LocalChaosCluster
 from haactl.main import app
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,5 +1,5 @@
 """Every chaos check can fail on real hosts (issue 18 §2): one short local chaos run per mutation of
-haa.chaos.mutations — every haa-hostd of the run a deliberately broken variant — must fail exactly the check
+haa.lab.chaos.mutations — every haa-hostd of the run a deliberately broken variant — must fail exactly the check
 that mutation targets and pass the others. Plans of 3 hosts and 3-16 s; the settle wait is cut short where
 the broken group cannot settle (a diverged replica, an agent never recovered)."""
 
@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from haa.chaos.mutations import MUTATIONS
-from haa.chaos.plan import PlanError, parse_plan
-from haa.chaos.run import run_local
+from haa.lab.chaos.mutations import MUTATIONS
+from haa.lab.chaos.plan import PlanError, parse_plan
+from haa.lab.chaos.run import run_local
 
 WRITES = {"hosts": 3, "workload": "ddb-writes", "agents": 3, "period_s": 0.1}
 PLANS = {
@@ -50,7 +50,7 @@ def test_a_mutation_is_refused_inside_a_mission_and_unknown_names_are_errors() -
 def test_a_pair_that_never_crashed_may_lose_nothing_at_all() -> None:
     """Per-sender order across transfers (issue 18 §2): `lost_after_recovery` is allowed only where the counter
     or its peer crashed (a recovery from an older backup, Alg. 8)."""
-    from haa.chaos.checks import check_counter_streams
+    from haa.lab.chaos.checks import check_counter_streams
 
     def reps(lost_after_recovery: int) -> dict:
         stats = {"A1": {"id": "a1", "peer": "b1", "received": 50, "lost_after_recovery": lost_after_recovery,
@@ -70,8 +70,8 @@ def test_a_pair_that_never_crashed_may_lose_nothing_at_all() -> None:
 def test_a_run_never_stops_a_cluster_it_did_not_start(tmp_path: Path) -> None:
     """`chaos run --compose` while the compose project already runs: refused with one line, and the running
     cluster is left alone (run_on stops only what its start brought up)."""
-    from haa.chaos.run import run_on
     from haa.cluster.backend import ClusterError
+    from haa.lab.chaos.run import run_on
 
     calls: list[str] = []
 

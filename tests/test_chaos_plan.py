@@ -1,4 +1,4 @@
-"""haa.chaos without a cluster: the plan schema (one error line naming the field), the refusal of a local
+"""haa.lab.chaos without a cluster: the plan schema (one error line naming the field), the refusal of a local
 partition, the injector's schedule against a fake backend (at_s, every_s, pauses ended, life_s draws per
 agent instance, the live-majority guard, the seed), and the CHAOS_HANG hook of AgentBase in-process."""
 
@@ -12,13 +12,13 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from haa.agents.base import CHAOS_HANG, AgentBase, AgentContext, new_agent_id
-from haa.chaos import inject
-from haa.chaos.inject import Injector, local_problems
-from haa.chaos.plan import PlanError, load_plan, parse_plan
 from haa.cluster.agents import AgentRow
 from haa.cluster.backend import ALIVE, KILLED, PAUSED, HostInfo
+from haa.lab.chaos import inject
+from haa.lab.chaos.inject import Injector, local_problems
+from haa.lab.chaos.plan import PlanError, load_plan, parse_plan
 from haa.pb import agent_pb2 as pb
+from haa.sdk.base import CHAOS_HANG, AgentBase, AgentContext, new_agent_id
 from haactl.main import app
 
 ISSUE_PLAN = """
@@ -334,7 +334,7 @@ def counters_run(tmp_path: Path, **changes) -> Path:
     ({"duplicate": 4}, {"counter_streams"}),
 ])
 def test_counters_checks_fail_on_exactly_their_fault(tmp_path: Path, changes, failing):
-    from haa.chaos.checks import run_checks
+    from haa.lab.chaos.checks import run_checks
 
     checks = run_checks(counters_run(tmp_path, **changes), "counters")
     assert set(checks) == {"replicas_agree", "single_instance", "counter_streams", "crashed_agents_recovered"}
@@ -344,7 +344,7 @@ def test_counters_checks_fail_on_exactly_their_fault(tmp_path: Path, changes, fa
 def test_crashes_logged_after_the_run_ended_are_not_the_runs() -> None:
     """`cluster down` stops the hosts after the replicas were read (t_end): an agent frozen and crashed
     then is not a crash of the run (it flaked test_chaos_run once); one before t_end still counts."""
-    from haa.chaos.checks import check_crashed_recovered
+    from haa.lab.chaos.checks import check_crashed_recovered
 
     def rec(ts: float, ev: str) -> dict:
         return {"ts": ts, "event": ev, "fields": {"agent": "a-1", "name": "A1", "detail": "x"}}
@@ -358,7 +358,7 @@ def test_crashes_logged_after_the_run_ended_are_not_the_runs() -> None:
 def test_a_plan_without_duration_is_for_missions_only(tmp_path):
     """duration_s may be left out of a plan a mission names (it lasts until the mission ends); `chaos run`
     refuses such a plan before it starts anything."""
-    from haa.chaos.run import run_local
+    from haa.lab.chaos.run import run_local
 
     plan = parse_plan({"name": "m", "faults": [{"life_s": [30, 90], "action": "hang", "target": "agents",
                                                 "hang_s": 30}]}, "p.yaml")

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from haa.chaos.checks import agent_events, run_checks
-from haa.chaos.collect import host_logs, replicas
+from haa.lab.chaos.checks import agent_events, run_checks
+from haa.lab.chaos.collect import host_logs, replicas
 from haactl.main import app
 
 PLAN = """

@@ -28,10 +28,10 @@ import pytest
 
 from haa.core import ddb as ddbops
 from haa.core.ddb import Ddb
-from haa.dashboard.browser import Chromium, find_chromium
-from haa.dashboard.model import DdbMirror, avatar_of, batch_keys, map_view
-from haa.dashboard.server import DashboardServer
-from haa.dashboard.sources import Hub
+from haa.lab.dashboard.browser import Chromium, find_chromium
+from haa.lab.dashboard.model import DdbMirror, avatar_of, batch_keys, map_view
+from haa.lab.dashboard.server import DashboardServer
+from haa.lab.dashboard.sources import Hub
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 

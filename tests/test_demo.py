@@ -16,7 +16,7 @@ from pathlib import Path
 
 from haa.cluster.events import TimelineEvent
 from haa.cluster.feed import EventFeed, operator_event
-from haa.experiments.demo import Demo
+from haa.lab.experiments.demo import Demo
 from haa.pb import control_pb2 as cpb
 from haactl.agentcli import event_line
 

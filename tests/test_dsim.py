@@ -3,8 +3,8 @@
 import pytest
 from hashseed import trace_hashes
 
-from haa.dsim import schedule as sched
-from haa.dsim.sweep import run_seed, sweep
+from haa.lab.dsim import schedule as sched
+from haa.lab.dsim.sweep import run_seed, sweep
 
 
 @pytest.mark.parametrize("algorithm", ["oac", "ufd"])

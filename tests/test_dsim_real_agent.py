@@ -1,8 +1,8 @@
 """A real control-system agent on virtual time (issue 17, item 4): ExecutiveMission in the deterministic simulator.
 
-The agent's own code runs unchanged on `haa.agents.sched.VirtualScheduler`; its DDB reads and writes, spawns,
-backups and messages go through the simulated hosts (haa.dsim.vagent), which crash, pause, kill, hang and move
-it. Also: the virtual scheduler alone, and the event heap every simulator shares (haa.dsim.scheduler).
+The agent's own code runs unchanged on `haa.sdk.sched.VirtualScheduler`; its DDB reads and writes, spawns,
+backups and messages go through the simulated hosts (haa.lab.dsim.vagent), which crash, pause, kill, hang and move
+it. Also: the virtual scheduler alone, and the event heap every simulator shares (haa.lab.dsim.scheduler).
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import json
 import pytest
 
 from haa.agents.executive_mission import ExecutiveMission
-from haa.agents.sched import VirtualScheduler
-from haa.dsim import vagent
-from haa.dsim.scheduler import EventHeap
-from haa.dsim.sweep import run_seed
+from haa.lab.dsim import vagent
+from haa.lab.dsim.scheduler import EventHeap
+from haa.lab.dsim.sweep import run_seed
+from haa.sdk.sched import VirtualScheduler
 
 # ------------------------------------------------------------------------------------------------ the event heap
 

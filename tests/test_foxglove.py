@@ -1,4 +1,4 @@
-"""The Foxglove bridge (haa.foxglove, `haactl foxglove`; issue 19 §4).
+"""The Foxglove bridge (haa.lab.foxglove, `haactl foxglove`; issue 19 §4).
 
 A WebSocket client speaking the Foxglove WebSocket protocol (aiohttp; the SDK names the subprotocol
 `foxglove.sdk.v1`, the same protocol as `foxglove.websocket.v1`, which it refuses by name) connects to the
@@ -40,8 +40,8 @@ from typer.testing import CliRunner
 
 from haa.core import ddb as ddbops
 from haa.core.ddb import Ddb
-from haa.dashboard.sources import Hub
-from haa.foxglove import FoxgloveBridge
+from haa.lab.dashboard.sources import Hub
+from haa.lab.foxglove import FoxgloveBridge
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 from haactl.main import app

@@ -9,7 +9,7 @@ Targets, and what may come out of them:
     `Frame`s through the transport's receive loop (only `LinkGap`); whole `HostLink.Open` streams with random
     metadata against a real in-process `Transport` server (a known status; the receive loop ends on nothing
     but a `LinkGap`; the server still serves a correct peer afterwards).
-(b) agent channel frames over a real socketpair (`haa.agents.channel`): the reader yields messages and then
+(b) agent channel frames over a real socketpair (`haa.sdk.channel`): the reader yields messages and then
     ends cleanly or raises `ChannelError`, within a second, without allocating what a length prefix claims.
 (c) the control API of a real haa-hostd (membership mode, agent layer on) and the simulator's API of a real
     haa-sim: every RPC, with and without the token, gets a status that is neither UNKNOWN nor INTERNAL (a
@@ -57,8 +57,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_sim_service import SimProcess
 
-from haa.agents.base import AgentBase, AgentContext, new_agent_id
-from haa.agents.channel import DEFAULT_MAX_FRAME, HEADER, MAX_AGENT_MESSAGE, Channel, ChannelError
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import agenttable, wire
@@ -74,6 +72,8 @@ from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2 as dpb
 from haa.pb import hostlink_pb2 as pb
 from haa.pb import sim_pb2 as spb
+from haa.sdk.base import AgentBase, AgentContext, new_agent_id
+from haa.sdk.channel import DEFAULT_MAX_FRAME, HEADER, MAX_AGENT_MESSAGE, Channel, ChannelError
 
 # ------------------------------------------------------------------------------------------------ budget
 

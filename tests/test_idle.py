@@ -5,7 +5,7 @@ import subprocess
 import sys
 import time
 
-from haa.experiments.idle import _proc_cpu, _tree_cpu
+from haa.lab.experiments.idle import _proc_cpu, _tree_cpu
 
 BURN = (
     "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.4: pass\n"

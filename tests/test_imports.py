@@ -1,7 +1,8 @@
 """The import contract (`.importlinter`, explained in docs/architecture.md) holds, and it would catch a breach.
 
 The contract: the core (the sans-I/O state machines, their messages, effects and wire codecs) imports no
-runtime; `haa` never imports `haactl`; packages import only lower layers; no import cycles. It is checked with
+runtime; `haa` never imports `haactl`; the three products import downwards only (lab -> team -> framework) and
+packages inside them only lower layers; agents use the SDK, not the host runtime; no import cycles. It is checked with
 import-linter on the real import graph (grimp; imports inside functions and under TYPE_CHECKING count). The
 breach tests add one import to that same graph and check that the contract guarding against it breaks — so
 a contract that silently matched nothing would fail here.
@@ -35,7 +36,7 @@ def test_import_contract_is_kept():
 
 
 def test_no_contract_has_exceptions():
-    """Issue 17: no arrow of the code is excused — no `ignore_imports` in any contract."""
+    """No arrow of the code is excused — no `ignore_imports` in any contract."""
     ini = configparser.ConfigParser()
     ini.read(CONFIG)
     excused = {name: ini[name]["ignore_imports"] for name in ini.sections() if "ignore_imports" in ini[name]}
@@ -47,6 +48,7 @@ def test_every_package_has_a_layer_and_is_forbidden_to_the_core():
     import pkgutil
 
     import haa
+    import haa.lab
 
     ini = configparser.ConfigParser()
     ini.read(CONFIG)
@@ -56,6 +58,10 @@ def test_every_package_has_a_layer_and_is_forbidden_to_the_core():
     children = {f"haa.{m.name}" for m in pkgutil.iter_modules(haa.__path__)}
     assert children - placed == set(), "packages without a layer in .importlinter"
     assert children - {"haa.core", "haa.pb"} - forbidden == set(), "packages the core could import"
+    lab = ini["importlinter:contract:lab-layers"]["layers"]
+    placed = {m.strip() for line in lab.split("\n") for m in line.split("|") if m.strip()}
+    children = {m.name for m in pkgutil.iter_modules(haa.lab.__path__)}
+    assert children - placed == set(), "lab packages without a layer in .importlinter"
 
 
 _GRAPHS: dict[tuple[tuple[str, ...], bool, bool], grimp.ImportGraph] = {}
@@ -103,22 +109,31 @@ def _broken_contracts(importer: str, imported: str) -> set[str]:
         ("haa.core.wire", "haa.pb.hostlink_pb2_grpc", "The core imports no runtime"),
         ("haa.core.ddb", "haa.files", "The core imports no runtime"),
         # the library reaching up into the CLI
-        ("haa.experiments.agents", "haactl.bench", "haa never imports haactl"),
+        ("haa.lab.experiments.agents", "haactl.bench", "haa never imports haactl"),
         # a back-arrow between packages, and a cycle between two modules of one package
         ("haa.hostd.transport", "haa.cluster.backend", "Packages import only lower layers"),
         # an agent reaching into the host's runtime (the agents use the core's op builders, never the runtime)
-        ("haa.agents.base", "haa.hostd.runtime", "Packages import only lower layers"),
+        ("haa.sdk.base", "haa.hostd.runtime", "Packages import only lower layers"),
+        ("haa.agents.team", "haa.hostd.agentproc", "Agents are written with the SDK"),
+        ("haa.slam.filter", "haa.cluster.backend", "Agents are written with the SDK"),
+        # the products: the framework reaching into the team or the lab, the team into the lab
+        ("haa.hostd.daemon", "haa.agents.team", "Packages import only lower layers"),
+        ("haa.sdk.registry", "haa.lab.demoagents", "Packages import only lower layers"),
+        ("haa.cluster.backend", "haa.mission.runner", "Packages import only lower layers"),
+        ("haa.mission.runner", "haa.lab.chaos.inject", "Packages import only lower layers"),
+        ("haa.agents.executive_mission", "haa.lab.stats.collect", "Packages import only lower layers"),
+        # inside the lab
+        ("haa.lab.dsim.cluster", "haa.lab.experiments.ap1", "Lab packages import only lower lab layers"),
+        ("haa.lab.stats.collect", "haa.lab.chaos.plan", "Lab packages import only lower lab layers"),
         # the core reaching up into the agents
-        ("haa.core.ddb", "haa.agents.base", "The core imports no runtime"),
+        ("haa.core.ddb", "haa.sdk.base", "The core imports no runtime"),
         ("haa.core.qos", "haa.core.ufd", "No import cycles"),
         # the arrows that were named exceptions until issue 17 removed them: each would break a contract again
-        ("haa.agents.runner", "haa.playback.recorder", "Packages import only lower layers"),
-        ("haa.agents.team", "haa.playback.external", "Packages import only lower layers"),
-        ("haa.agents.runner", "haa.hostd.agentproc", "Packages import only lower layers"),
-        ("haa.agents.tap", "haa.experiments.localhosts", "Packages import only lower layers"),
+        ("haa.sdk.runner", "haa.hostd.agentproc", "Packages import only lower layers"),
+        ("haa.sdk.tap", "haa.lab.experiments.localhosts", "Packages import only lower layers"),
         ("haa.sim.actions", "haa.sim.world", "No import cycles"),
-        ("haa.stats.figures", "haa.stats.report", "No import cycles"),
-        ("haa.stats.run", "haa.stats.report", "No import cycles"),
+        ("haa.lab.stats.figures", "haa.lab.stats.report", "No import cycles"),
+        ("haa.lab.stats.run", "haa.lab.stats.report", "No import cycles"),
         ("haa.slam.events", "haa.slam.recording", "No import cycles"),
     ],
 )

@@ -20,20 +20,20 @@ import grpc
 import psutil
 import pytest
 
-from haa.agents.channel import MAX_AGENT_MESSAGE
 from haa.cluster.hostprocs import MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import agenttable as at
 from haa.core import ddb
 from haa.core.messages import TxId
-from haa.experiments import memory as membench
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.mirrors import MirrorSub
 from haa.hostd.resources import LoopWatch
 from haa.hostd.transport import LINK_PIECE, MAX_MESSAGE, MAX_REQUEST, Transport
+from haa.lab.experiments import memory as membench
 from haa.pb import agenttx_pb2 as apb
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
+from haa.sdk.channel import MAX_AGENT_MESSAGE
 
 MiB = 1 << 20
 #: what the memory budget of a host allows each of the byte-bounded buffers to hold (docs/limits.md)

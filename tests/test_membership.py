@@ -6,11 +6,11 @@ from haa.core import ddb
 from haa.core.globalstate import GlobalState, TxDdb, TxFormation, TxMembership, TxRemove, decode_tx, encode_tx
 from haa.core.membership import MembershipNode, NodeConfig
 from haa.core.messages import Excluded, Member, TxId
-from haa.dsim import mutations
-from haa.dsim.cluster import CRASHED
-from haa.dsim.group import GroupScenario, GroupSim, check_group, draw_group, run_group
-from haa.dsim.network import DelayModel
-from haa.dsim.schedule import Fault
+from haa.lab.dsim import mutations
+from haa.lab.dsim.cluster import CRASHED
+from haa.lab.dsim.group import GroupScenario, GroupSim, check_group, draw_group, run_group
+from haa.lab.dsim.network import DelayModel
+from haa.lab.dsim.schedule import Fault
 
 SAFETY = {
     "HM-Agreement",

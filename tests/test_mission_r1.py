@@ -1,4 +1,4 @@
-"""Experiment R-1 (haa/mission/r1.py): the chaos plan of each failure level, eq. 7.3-1's fit, the table beside
+"""Experiment R-1 (haa/lab/experiments/r1.py): the chaos plan of each failure level, eq. 7.3-1's fit, the table beside
 Table 7.3-1 and the JSON — with a stand-in for the mission run (the real missions are a benchmark:
 `haactl experiment r1`)."""
 
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from haa.chaos.plan import load_plan
-from haa.mission import r1
+from haa.lab.chaos.plan import load_plan
+from haa.lab.experiments import r1
 from haa.mission.schema import load_mission
 
 

@@ -20,7 +20,7 @@ import psutil
 import pytest
 from test_mission_runner_fakes import EST_OFFSET_M, FAKE_AVATAR, FAKE_DURATION_S, FAKE_EXEC
 
-from haa.mission import experiment as ex
+from haa.lab.experiments import af as ex
 from haa.mission import load_mission
 from haa.mission import runner as rn
 from haa.mission import transcript as tr

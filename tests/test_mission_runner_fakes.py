@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from haa.agents.base import AgentBase
-from haa.agents.registry import register
+from haa.sdk.base import AgentBase
+from haa.sdk.registry import register
 
 FAKE_EXEC = "fake_executive_mission"
 FAKE_AVATAR = "fake_avatar_simulation"

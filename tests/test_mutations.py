@@ -2,8 +2,8 @@
 
 import pytest
 
-from haa.dsim import mutations
-from haa.dsim.sweep import run_seed
+from haa.lab.dsim import mutations
+from haa.lab.dsim.sweep import run_seed
 
 CASES = [(name, alg, prop) for name, (_fn, alg, prop) in mutations.MUTATIONS.items() if name != "thesis-close"]
 

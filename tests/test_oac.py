@@ -10,11 +10,11 @@ import pytest
 
 from haa.core.hostcore import FD_EXTERNAL, CoreConfig
 from haa.core.messages import OacTransaction
-from haa.dsim import mutations
-from haa.dsim.checks import check_oac
-from haa.dsim.cluster import SimCluster
-from haa.dsim.network import DelayModel
-from haa.dsim.schedule import SIM_UFD, Scenario
+from haa.lab.dsim import mutations
+from haa.lab.dsim.checks import check_oac
+from haa.lab.dsim.cluster import SimCluster
+from haa.lab.dsim.network import DelayModel
+from haa.lab.dsim.schedule import SIM_UFD, Scenario
 
 CONST = DelayModel("const", 0.001, 0.0)
 

@@ -18,10 +18,10 @@ import pytest
 from test_mission_runner import our_processes
 from typer.testing import CliRunner
 
+from haa.lab.playback import reader
+from haa.lab.playback.replay import replay_agent, replay_instance
 from haa.mission import load_mission
 from haa.mission import runner as rn
-from haa.playback import reader
-from haa.playback.replay import replay_agent, replay_instance
 from haactl.main import app
 
 MISSION = """\

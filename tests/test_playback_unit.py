@@ -16,12 +16,12 @@ from google.protobuf import descriptor_pb2
 from mcap.reader import make_reader
 from typer.testing import CliRunner
 
-from haa.agents.base import WALL_CLOCK
+from haa.lab.playback import reader
+from haa.lab.playback.replay import ReplayFeed, ReplayStopped
 from haa.pb import agent_pb2 as pb
 from haa.pb import playback_pb2 as ppb
-from haa.playback import reader
-from haa.playback.recorder import Recorder
-from haa.playback.replay import ReplayFeed, ReplayStopped
+from haa.sdk.base import WALL_CLOCK
+from haa.sdk.recorder import Recorder
 from haactl.main import app
 
 INIT = pb.HostToAgent.Init(agent_id="0f0e0d0c-aaaa-bbbb-cccc-000000000001", name="A7.2", type_name="probe",
@@ -158,10 +158,11 @@ def test_haa_hostd_record_dir_option(tmp_path: Path, monkeypatch: pytest.MonkeyP
 
 def test_the_host_injects_the_recorder_as_the_agents_tap(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                          capsys: pytest.CaptureFixture[str]) -> None:
-    """haa.agents never imports haa.playback: the runner opens the tap the host names in HAA_AGENT_TAP."""
-    from haa.agents.tap import TAP_ENV, load_factory, open_tap
+    """An agent process that does not record never imports the recorder (or mcap): the runner opens the tap the
+    host names in HAA_AGENT_TAP."""
     from haa.hostd.daemon import RECORDER_TAP
-    from haa.playback import recorder
+    from haa.sdk import recorder
+    from haa.sdk.tap import TAP_ENV, load_factory, open_tap
 
     monkeypatch.delenv(TAP_ENV, raising=False)
     monkeypatch.setenv("HAA_RECORD_DIR", str(tmp_path / "rec"))
@@ -171,7 +172,7 @@ def test_the_host_injects_the_recorder_as_the_agents_tap(tmp_path: Path, monkeyp
     tap = open_tap(INIT)
     assert isinstance(tap, Recorder) and tap.dir == tmp_path / "rec" / "A7.2"
     tap.close()
-    for bad in ("haa.playback.recorder", "haa.playback.recorder:nothing", "haa.no_such_module:f"):
+    for bad in ("haa.sdk.recorder", "haa.sdk.recorder:nothing", "haa.no_such_module:f"):
         monkeypatch.setenv(TAP_ENV, bad)
         assert open_tap(INIT) is None  # a broken name stops the recording, never the agent
         assert "agent A7.2: no recording (HAA_AGENT_TAP=" in capsys.readouterr().err

@@ -5,9 +5,9 @@ and the replicated state; the real daemons are covered by tests/test_runtime_mem
 from haa.core import ddb
 from haa.core.globalstate import GlobalState, SeqEntry, TxDdb, TxMembership, TxSeq, TxTest, encode_tx
 from haa.core.messages import Member, TxId
-from haa.dsim.group import GroupScenario, GroupSim, check_group
-from haa.dsim.network import DelayModel
-from haa.dsim.schedule import Fault
+from haa.lab.dsim.group import GroupScenario, GroupSim, check_group
+from haa.lab.dsim.network import DelayModel
+from haa.lab.dsim.schedule import Fault
 
 A = ("h1", 1)
 B = ("h2", 7)

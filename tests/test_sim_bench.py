@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from haa.experiments import sim as simbench
+from haa.lab.experiments import sim as simbench
 from haactl import benchtables
 
 

@@ -41,7 +41,7 @@ def test_recording_from_the_simulator_is_consistent():
 
 @pytest.fixture
 def tiny(monkeypatch, tmp_path):
-    import haa.experiments.slam as sb
+    import haa.lab.experiments.slam as sb
 
     monkeypatch.setattr(sb, "CACHE", tmp_path)
     monkeypatch.setattr(sb, "QUICK_DURATIONS", {"basic": 8.0, "advanced_a": 5.0, "advanced_b": 4.0})
@@ -105,9 +105,9 @@ def test_driver_keeps_clear_so_odometry_only_drifts(monkeypatch):
 
 
 def test_replica_bench_smoke():
-    """`haactl bench replica` (haa.experiments.replica, formerly `python -m haa.slam.replica`): a short recorded
+    """`haactl bench replica` (haa.lab.experiments.replica, formerly `python -m haa.slam.replica`): a short recorded
     run through the log into a replica, with one checkpoint and restore at 10 s of the run."""
-    from haa.experiments.replica import run_replica_bench
+    from haa.lab.experiments.replica import run_replica_bench
 
     r = run_replica_bench("basic", duration=12.0, n_particles=20)
     assert r["scenario"] == "Basic" and r["n_particles"] == 20 and r["items"] == sum(r["count"].values())

@@ -18,11 +18,12 @@ from typing import Any
 
 import pytest
 
-from haa.agents import registry, team
+from haa.agents import team
 from haa.agents.sensor_cooccupancy import AgentSensorCooccupancy
 from haa.agents.sensor_sonar import AgentSensorSonar
 from haa.agents.supervisor_slam import SupervisorSLAM
 from haa.core import ddb as ddbops
+from haa.sdk import registry
 from haa.slam import events as sev
 
 COOC = "sensor_cooccupancy"

@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from haa.agents import registry, team
+from haa.agents import team
 from haa.agents.sensor_cooccupancy import AgentSensorCooccupancy
 from haa.agents.sensor_floorfinder import floor_reading
 from haa.agents.supervisor_slam import SupervisorSLAM
+from haa.sdk import registry
 
 
 class FakeCtx:

@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 from haa.cluster.agents import wait_rows
 from haa.cluster.backend import wait_until
 from haa.cluster.local_backend import LocalBackend
-from haa.stats.bundle import BundleError, load_bundles, read_bundle
-from haa.stats.collect import collect_bundles
-from haa.stats.report import build_report
+from haa.lab.stats.bundle import BundleError, load_bundles, read_bundle
+from haa.lab.stats.collect import collect_bundles
+from haa.lab.stats.report import build_report
 from haactl.main import app
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -11,7 +11,7 @@ import pytest
 from rich.console import Console
 from rich.text import Text
 
-from haa.benchresults import MACHINE_FACTS, machine
+from haa.lab.benchresults import MACHINE_FACTS, machine
 from haactl import benchtables
 from haactl.tables import add_row, markdown, table
 

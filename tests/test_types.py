@@ -64,14 +64,15 @@ def test_mypy_passes_strict_on_the_core_and_normal_elsewhere():
 def test_normal_mode_reports_a_type_error_outside_the_core(tmp_path):
     """The same configuration on a module outside the core with a type error fails (and without it passes):
     the normal-mode check can fail."""
-    pkg = tmp_path / "haa" / "stats"
+    pkg = tmp_path / "haa" / "lab" / "stats"
     pkg.mkdir(parents=True)
     (tmp_path / "haa" / "__init__.py").write_text("")
+    (tmp_path / "haa" / "lab" / "__init__.py").write_text("")
     (pkg / "__init__.py").write_text("")
     mod = pkg / "broken.py"
     mod.write_text("def half(n: int) -> float:\n    return n / 2\n\n\ndef untyped(x):\n    return x\n")
     args = ("--config-file", str(ROOT / "pyproject.toml"), "--cache-dir", str(tmp_path / "cache"),
-            "haa/stats/broken.py")
+            "haa/lab/stats/broken.py")
     r = _mypy(*args, cwd=tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr  # normal mode: an unannotated function is fine outside the core
     with mod.open("a") as f:

@@ -3,8 +3,8 @@
 import pytest
 
 from haa.core.qos import THESIS_QOS, QosTargets
-from haa.dsim.network import DelayModel
-from haa.dsim.ufdqos import measure
+from haa.lab.dsim.network import DelayModel
+from haa.lab.dsim.ufdqos import measure
 
 QOS = QosTargets(td_upper=0.5, tmr_lower=60.0, tm_upper=0.5)
 

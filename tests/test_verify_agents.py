@@ -1,10 +1,10 @@
-"""`haactl verify transfer|recovery`: the agent-layer verifier (haa.dsim.agents) over seeded fault schedules."""
+"""`haactl verify transfer|recovery`: the agent-layer verifier (haa.lab.dsim.agents) over seeded fault schedules."""
 
 
 import pytest
 from hashseed import trace_hashes
 
-from haa.dsim.sweep import sweep
+from haa.lab.dsim.sweep import sweep
 
 
 @pytest.mark.parametrize("algorithm", ["transfer", "recovery"])
@@ -40,7 +40,7 @@ def test_a_backoff_left_behind_by_a_host_the_agent_moved_away_from_is_forgotten(
     """Seed 1313 (recovery, 5 hosts): an agent killed soon after each start backed off on h3, was then
     allocated to h5 and recovered there; h3 kept its backoff entry for good (the run was not quiet once the
     verifier counted pending backoffs). A host forgets a backoff for an agent it no longer has to recover."""
-    from haa.dsim.sweep import run_seed
+    from haa.lab.dsim.sweep import run_seed
 
     assert run_seed("recovery", 1313, 5).violations == []
 
@@ -51,6 +51,6 @@ def test_a_group_of_two_that_removes_its_partner_is_not_wedged():
     and h2 were still open; with two participants the quorum is both, the removed incarnation never votes
     again, so they never decided and held h3's l. 37 gate for good (not quiet after healing). A participant
     now decides such a transaction alone (haa.core.oac, `_decide_alone`; docs/oac.md)."""
-    from haa.dsim.sweep import run_seed
+    from haa.lab.dsim.sweep import run_seed
 
     assert run_seed("recovery", 1229, 5).violations == []

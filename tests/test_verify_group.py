@@ -9,11 +9,11 @@ from haa.core.effects import Decided, Send
 from haa.core.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
 from haa.core.membership import MembershipNode, NodeConfig
 from haa.core.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
-from haa.dsim import mutations
-from haa.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group
-from haa.dsim.network import DelayModel
-from haa.dsim.schedule import Fault
-from haa.dsim.sweep import run_seed, sweep
+from haa.lab.dsim import mutations
+from haa.lab.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group
+from haa.lab.dsim.network import DelayModel
+from haa.lab.dsim.schedule import Fault
+from haa.lab.dsim.sweep import run_seed, sweep
 
 CORE = [("h1", "h1"), ("h2", "h2"), ("h3", "h3")]
 
@@ -75,7 +75,7 @@ def test_a_removed_member_that_crashed_before_it_learnt_so_is_no_exactly_once_vi
     delivers as its seq 28 before it crashes. The same batch applied at two seq numbers by two processes is one
     application: DDB-Exactly-Once tells batches apart by transaction id (it reported writes 3-5 of h1#1
     "applied at seq 28 and again at 29")."""
-    from haa.dsim import group
+    from haa.lab.dsim import group
 
     monkeypatch.setattr(group, "SIM_NODE", {**group.SIM_NODE, "seq_inflight": 1})
     assert run_seed("ddb", 1701, 7).violations == []

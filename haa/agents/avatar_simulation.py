@@ -58,9 +58,9 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.core import ddb as ddbops
 from haa.pb import sim_pb2 as spb
+from haa.sdk.registry import register
 from haa.slam import events as sev
 from haa.slam.motion import DRIFT, DriftSpec, odometry_prediction, wrap_angle
 

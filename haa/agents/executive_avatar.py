@@ -25,8 +25,8 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.core import ddb as ddbops
+from haa.sdk.registry import register
 
 
 class ExecutiveAvatarConfig(team.TeamConfig):

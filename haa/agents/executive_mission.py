@@ -47,8 +47,8 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.core import ddb as ddbops
+from haa.sdk.registry import register
 from haa.slam.replica import decode_map
 
 
@@ -148,7 +148,7 @@ class ExecutiveMission(team.TeamAgent):
 
     async def _resume_from_status(self) -> str:
         """The mission state of `mission/status` (its start time, state, children): "recover" if there was
-        one, "start" if the mission had not begun (found by running this agent in the simulator, haa.dsim.vagent:
+        one, "start" if the mission had not begun (found by running this agent in the simulator, haa.lab.dsim.vagent:
         a recovered instance without a backup had no start time, so its time limit never ended the mission, and
         one whose first instance died before writing anything never said "Mission started")."""
         st = await team.get_json(self, team.K_STATUS)

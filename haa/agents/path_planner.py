@@ -32,8 +32,8 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.control.pathplanner import PlannerConfig, plan_path
+from haa.sdk.registry import register
 from haa.slam.replica import decode_map
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from haa.agents import team
-from haa.agents.registry import register
+from haa.sdk.registry import register
 from haa.slam.sensors import CooccupancyReading
 
 

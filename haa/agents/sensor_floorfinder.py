@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.control.floorfinder import FloorFinder
+from haa.sdk.registry import register
 from haa.slam.sensors import FloorReading
 
 #: the team's floor colour (FloorFinder.learnt(): {"mean": [b, g, r], "std": [...]})

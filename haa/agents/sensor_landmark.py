@@ -16,8 +16,8 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.control.landmarks import LandmarkDetector
+from haa.sdk.registry import register
 
 
 class LandmarkSensorConfig(team.SensorConfig):

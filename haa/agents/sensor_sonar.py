@@ -14,7 +14,7 @@ import math
 from typing import Any
 
 from haa.agents import team
-from haa.agents.registry import register
+from haa.sdk.registry import register
 from haa.slam.sensors import SonarEcho, SonarReading
 
 

@@ -1,8 +1,8 @@
 """`SimLink`: an avatar agent's channel to haa-sim (the AvatarSim service: the hardware a robot driver talks to).
 
-AgentPlayback (docs/playback.md): haa-sim's replies bypass the host, so with a tap (haa.agents.tap) the stub is
+AgentPlayback (docs/playback.md): haa-sim's replies bypass the host, so with a tap (haa.sdk.tap) the stub is
 wrapped and every call and reply recorded in the agent process; replaying offline, the recording answers
-(haa.playback.external builds both wrappers from `sim_service()`, the service's protobuf descriptor).
+(haa.sdk.external builds both wrappers from `sim_service()`, the service's protobuf descriptor).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from google.protobuf.descriptor import ServiceDescriptor
 
-    from haa.agents.tap import Tap
+    from haa.sdk.tap import Tap
 
 
 def sim_service() -> ServiceDescriptor:

@@ -35,8 +35,8 @@ import pydantic
 from scipy.optimize import linear_sum_assignment
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.control.pathplanner import CostMap, PlannerConfig
+from haa.sdk.registry import register
 from haa.slam.replica import decode_map
 
 

@@ -44,10 +44,10 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.control.explore import ExploreConfig, split_unexplored
 from haa.control.frontier import FrontierConfig, assign_frontiers
 from haa.control.pathplanner import PlannerConfig
+from haa.sdk.registry import register
 from haa.slam.replica import decode_map
 
 #: spots remembered for the back-off of blocked targets (oldest forgotten first)

@@ -78,8 +78,8 @@ from typing import Any, Literal
 import pydantic
 
 from haa.agents import team
-from haa.agents.registry import register
 from haa.core import ddb as ddbops
+from haa.sdk.registry import register
 from haa.slam import events as sev
 from haa.slam.grid import GridSpec
 from haa.slam.replica import LogGap, SlamReplica

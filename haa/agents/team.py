@@ -31,9 +31,9 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import pydantic
 
-from haa.agents.base import AgentBase, Clock
 from haa.agents.simlink import SimLink as SimLink  # the channel to haa-sim (re-exported: team.SimLink)
 from haa.core import ddb as ddbops
+from haa.sdk.base import AgentBase, Clock
 
 T = TypeVar("T")
 

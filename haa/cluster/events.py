@@ -11,7 +11,7 @@ restarted host has lost. So the timeline of a cluster is built from them:
 * `persisted_logs(backend)` — the JSON records of every host the backend knows, in every state (alive,
   killed, left, stopped), through `Backend.log_records` (local: the data dirs' files; compose: the docker SDK's
   container logs, which stopped containers keep);
-* `log_event` — the one parser of a timeline record (also used by haa.chaos.timeline);
+* `log_event` — the one parser of a timeline record (also used by haa.lab.chaos.timeline);
   `timeline_events(logs)` all of them, time ordered, agents named by display name (a removed agent is logged
   under its id prefix); `view_events(logs)` the membership changes (`hN removed`, `hN joined`), once per view;
 * `Merger` — de-duplication and attribution over the time-ordered events of all hosts. Events every member

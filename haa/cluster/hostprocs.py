@@ -1,6 +1,6 @@
 """Host processes for experiments and tests: real `haa-hostd` processes on free loopback ports, one data dir each.
 
-Used by the experiments (haa.experiments: AP-1..AP-4, ddb, memory) and the tests (moved here from
+Used by the experiments (haa.lab.experiments: AP-1..AP-4, ddb, memory) and the tests (moved here from
 haactl/local.py: haa must not import haactl). Each host gets its own folder under the cluster
 root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
 file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
@@ -185,7 +185,7 @@ class LocalCluster:
 def member_group(base: Path, hosts: int, hostd_yaml: str, core_size: int = 3, tag: str = "group") -> list[MemberHost]:
     """`hosts` membership-mode hosts h1..hN under `base`, not started: a fresh cluster token in `base/token`, the
     first `core_size` as the core process list, each without agents and with `hostd_yaml` (the text of a
-    hostd.yaml, written to `base/hostd.yaml`) as its configuration. The benchmarks' group (haa.experiments.ddb,
+    hostd.yaml, written to `base/hostd.yaml`) as its configuration. The benchmarks' group (haa.lab.experiments.ddb,
     bench/seq_ab.py)."""
     token = f"{tag}-{time.time_ns()}"
     (base / "token").write_text(token + "\n")

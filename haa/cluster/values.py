@@ -1,7 +1,7 @@
 """DDB values as an operator reads them: `plain_value(type, bytes)` turns a record's canonical value bytes
 (haa.core.ddb's types: json, blob, counter, list, log, ...) into a JSON-able Python value — text where the
 bytes are UTF-8, "base64:..." where they are not. Used by `haactl ddb` (get, ls, watch) and the demo
-(haa.experiments.demo reads the counters the agents publish).
+(haa.lab.experiments.demo reads the counters the agents publish).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Every module here is pure: no I/O, no clock, no tasks, no processes, no other HAA package (only the generated
 protobuf message classes, `haa.pb`). Inputs come in through `step(now, input)` / `on_*` calls with the time
 passed in, decisions come out as returned effects that a driver carries out. Two drivers run the same code:
-the host daemon `haa.hostd` (asyncio + gRPC, real processes) and the deterministic simulator `haa.dsim`
+the host daemon `haa.hostd` (asyncio + gRPC, real processes) and the deterministic simulator `haa.lab.dsim`
 (seeded fault schedules, virtual time). `.importlinter` (contract 1) and tests/test_sans_io.py enforce the
 rule; mypy checks this package strictly (pyproject [tool.mypy]).
 

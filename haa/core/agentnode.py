@@ -25,7 +25,7 @@ The node keeps one record per instance (`local`: phase, epoch, streams; `haa.cor
 carries out the machines' effects in the order they come (`_apply`). Agent instances are not started here:
 the node emits commands (`haa.core.agentio`: SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent,
 AnswerAgent) and takes events back through `on_agent_event`. The daemon runs OS processes
-(`haa.hostd.agentproc`); the simulator runs simulated agents (`haa.dsim.agents`). No I/O, no clock, no
+(`haa.hostd.agentproc`); the simulator runs simulated agents (`haa.lab.dsim.agents`). No I/O, no clock, no
 randomness: ids of new agents come from the caller.
 """
 

@@ -718,7 +718,7 @@ class AgentTable:
 
 
 #: `AgentTx.body` case -> the name of its apply method (a closed table: a kind missing here is refused as
-#: unknown; looked up by name so that haa.dsim.mutations can patch a method)
+#: unknown; looked up by name so that haa.lab.dsim.mutations can patch a method)
 _HANDLERS = {kind: f"_tx_{kind}" for kind in (
     "create", "remove", "start", "finish", "move", "freeze", "release", "claim", "recovered", "backup", "failed",
     "push", "costs", "host", "control",

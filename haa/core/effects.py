@@ -2,7 +2,7 @@
 
 A core never performs I/O, reads a clock or starts a task. Each input (a message, a timer, a suspicion
 change, a local request) carries the current local time; the core appends effects to its outbox and the
-driver (`haa.hostd.runtime` on asyncio/gRPC, `haa.dsim.cluster` in simulation) drains and carries them out.
+driver (`haa.hostd.runtime` on asyncio/gRPC, `haa.lab.dsim.cluster` in simulation) drains and carries them out.
 Timers are keyed: setting a key again replaces the earlier deadline.
 """
 

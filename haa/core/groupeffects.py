@@ -9,12 +9,12 @@
 * `WriteDone` — a global-state change requested with `MembershipNode.submit` committed or failed;
 * `Left` — this host's voluntary leave committed (l. 16).
 
-`NodeEffect` is their closed union. The drivers (`haa.hostd.runtime`, `haa.dsim`) carry them out.
+`NodeEffect` is their closed union. The drivers (`haa.hostd.runtime`, `haa.lab.dsim`) carry them out.
 
 `NodeTimer` is the key of every timer the membership layer sets (the core's own keys are `("hb"|"fd", peer)`
 and `("excl", peer, inc)`). It is a frozen dataclass, hashable and ordered, whose printed form is the
 tuple `('m', what)` the node used before typed keys: the simulator feeds `str(key)` of every fired timer into
-its trace hash (`haa.dsim.cluster`), so the traces stay byte-identical.
+its trace hash (`haa.lab.dsim.cluster`), so the traces stay byte-identical.
 
 This module does no I/O; it imports only the host messages.
 """

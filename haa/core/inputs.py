@@ -4,7 +4,7 @@ A host's state machine is a `HostCore` (static peer list), a `MembershipNode` ov
 an `AgentNode` over that (agents on). Each takes these inputs through `step(now, input)` — the model is
 etcd-io/raft's `Step(msg)`; its `Ready` is `drain()`, which returns the effects accumulated since — and
 dispatches them with one `match` ending in `assert_never`, so an input added here and forgotten by a node is
-a mypy error. The real runtime (`haa.hostd.runtime`) and the simulator (`haa.dsim.cluster`) feed every
+a mypy error. The real runtime (`haa.hostd.runtime`) and the simulator (`haa.lab.dsim.cluster`) feed every
 host-level input this way. (The agent layer's own requests — create, move, an agent's events — are
 `AgentNode` methods: `haa.core.agentrequests`.)
 

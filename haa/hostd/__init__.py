@@ -2,4 +2,4 @@
 host — the host link (`transport.py`, `tcplink.py`), effect dispatch and timers (`runtime.py`, `dispatch.py`,
 `timers.py`), the DDB group commit, files, the control API (`control.py`), and the agents' OS processes
 (`agentproc.py`, `agentcontrol.py`, `agentdriver.py`); `daemon.py` is the composition root. The deterministic
-cluster simulator in `haa.dsim` drives the same core."""
+cluster simulator in `haa.lab.dsim` drives the same core."""

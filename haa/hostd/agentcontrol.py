@@ -16,7 +16,7 @@ cluster token like the rest of the API. The service reaches the agent layer thro
 * `AgentRemove`: end an agent for good. `AgentMove`: allocate it to a host until the next session.
 * `AgentSend`: an operator message to an agent (no sender agent). `AgentRequest`: an operator request (the
   agent's `on_request`), answered through the host that was asked, wherever the agent runs. A payload over
-  `haa.agents.channel.MAX_AGENT_MESSAGE` (4 MiB) is refused up front (ok=false and the reason; counted as
+  `haa.sdk.channel.MAX_AGENT_MESSAGE` (4 MiB) is refused up front (ok=false and the reason; counted as
   `control_oversized`) instead of being accepted and then dropped by the agent's owner.
 * `Alloc`: status | pause | resume | run (pause/resume the periodic rebalancing; run starts a session).
 * `AgentEvents`: the allocation timeline of this host (spawning, active, freezing, frozen, thawing, thawed,
@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING, Any
 import grpc
 from grpc import aio
 
-from haa.agents.channel import message_too_large
 from haa.core.agentnode import AgentNode
 from haa.core.agenttable import MAX_CONFIG
 from haa.hostd.outcomes import NotMembershipMode
 from haa.pb import control_pb2 as cpb
+from haa.sdk.channel import message_too_large
 
 if TYPE_CHECKING:
     from haa.hostd.agentdriver import AgentDriver
@@ -85,7 +85,7 @@ class AgentControl:
                     bytes_out=sum(st.bytes_out.values()) if st is not None else 0,
                 )
             )
-        types = sorted(drv.sup.types) if drv is not None else []
+        types = drv.sup.known_types() if drv is not None else []
         return cpb.AgentListReply(host=self.rt.name, agents=out, session=t.ses_id, finished_session=t.finished_ses,
                                   paused=t.paused, agent_types=types)
 
@@ -100,10 +100,10 @@ class AgentControl:
     async def AgentSpawn(self, request: cpb.AgentSpawnRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
         drv = self.agents
-        info = drv.sup.types.get(request.type) if drv is not None else None
+        info = await drv.sup.type_info(request.type) if drv is not None else None
         if info is None:
-            known = ", ".join(sorted(drv.sup.types)) if drv is not None else ""
-            return cpb.AgentOpReply(ok=False, reason=f"unknown agent type {request.type!r} (registered: {known})")
+            return cpb.AgentOpReply(ok=False, reason=drv.unknown_type(request.type) if drv is not None
+                                    else f"unknown agent type {request.type!r} (this host runs no agents)")
         parent = ""
         if request.parent:
             r = node.table.resolve(request.parent)

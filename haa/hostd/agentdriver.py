@@ -32,7 +32,7 @@ import logging
 import time
 import uuid
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine, Sequence
 from pathlib import Path
 from typing import Any, Protocol, assert_never
 
@@ -43,6 +43,7 @@ from haa.hostd import agentproc as ap
 from haa.hostd.agentops import AgentCommand
 from haa.hostd.logs import log_event
 from haa.hostd.outcomes import DdbWriteResult
+from haa.pb import agent_pb2
 from haa.pb import agenttx_pb2 as apb
 
 #: most keys one DdbScan answers, and most value bytes (the answer must fit one channel frame, 16 MiB)
@@ -86,9 +87,11 @@ class AgentDriver:
 
     host: AgentHost
 
-    def __init__(self, name: str, workdir: Path | None, stats_period: float = 2.0, hang_timeout: float = 3.0) -> None:
+    def __init__(self, name: str, workdir: Path | None, stats_period: float = 2.0, hang_timeout: float = 3.0,
+                 preload_types: Sequence[str] = ()) -> None:
         self.name = name
-        self.sup = ap.AgentSupervisor(name, self._on_event, workdir=workdir, hang_timeout=hang_timeout)
+        self.sup = ap.AgentSupervisor(name, self._on_event, workdir=workdir, hang_timeout=hang_timeout,
+                                      preload_types=preload_types)
         self.epochs: dict[str, int] = {}  # agent id -> epoch of the instance the supervisor runs here
         self.stats_period = stats_period
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -176,18 +179,35 @@ class AgentDriver:
                 return
             self._feed_event(io.ShellReady(c.agent, c.epoch))
 
-        task = asyncio.create_task(run(), name=f"spawn-{c.name}")
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._task(run(), f"spawn-{c.name}")
+
+    def unknown_type(self, type_name: str) -> str:
+        """The refusal of a spawn of a type this host cannot start."""
+        known = ", ".join(self.sup.known_types())
+        for e in self.sup.load_errors:
+            if repr(type_name) in e:
+                return f"agent type {type_name[:64]!r} failed to load: {e}"
+        return f"unknown agent type {type_name[:64]!r} (registered: {known})"
 
     def _spawn_child(self, agent: str, epoch: int, ev: ap.SpawnChild) -> None:
-        """Check the child's type and config (module docstring), then pass the request to the node."""
-        info = self.sup.types.get(ev.type_name)
-        if info is None:
-            known = ", ".join(sorted(self.sup.types))
-            why = f"unknown agent type {ev.type_name[:64]!r} (registered: {known})"
-            self.sup.answer(agent, ev.req_id, False, b"", why)
+        """Check the child's type and config (module docstring), then pass the request to the node. A type the
+        fork server has imported is checked at once (the request keeps its place among the agent's events); one
+        it knows by name only is imported first."""
+        info = self.sup.imported_type(ev.type_name)
+        if info is not None:
+            self._checked_child(agent, epoch, ev, info)
             return
+
+        async def describe() -> None:
+            info = await self.sup.type_info(ev.type_name)
+            if info is None:
+                self.sup.answer(agent, ev.req_id, False, b"", self.unknown_type(ev.type_name))
+            else:
+                self._checked_child(agent, epoch, ev, info)
+
+        self._task(describe(), "agent-spawn-child-type")
+
+    def _checked_child(self, agent: str, epoch: int, ev: ap.SpawnChild, info: agent_pb2.AgentTypeInfo) -> None:
         child = io.SpawnChild(agent, epoch, ev.req_id, ev.type_name, ev.config, str(uuid.uuid4()), info.max_per_host,
                               ev.key)
         if not info.has_config or len(ev.config) > MAX_CONFIG:  # too large: the node refuses it (check_create)
@@ -201,7 +221,10 @@ class AgentDriver:
                 return
             self._feed_event(child)
 
-        task = asyncio.create_task(run(), name="agent-spawn-child-check")
+        self._task(run(), "agent-spawn-child-check")
+
+    def _task(self, coro: Coroutine[Any, Any, None], name: str) -> None:
+        task = asyncio.create_task(coro, name=name)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
@@ -308,9 +331,7 @@ class AgentDriver:
             except Exception as e:
                 self.sup.answer(ev.agent_id, ev.req_id, False, b"", f"{type(e).__name__}: {e}")
 
-        task = asyncio.create_task(run(), name="agent-ddb-put")
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._task(run(), "agent-ddb-put")
 
     def _ddb_write(self, ev: ap.DdbWrite) -> None:
         """Like `_ddb_put` (fencing, group commit), for a batch of ops; every op is checked first (bad key,
@@ -340,9 +361,7 @@ class AgentDriver:
             except Exception as e:
                 self.sup.answer(ev.agent_id, ev.req_id, False, b"", f"{type(e).__name__}: {e}")
 
-        task = asyncio.create_task(run(), name="agent-ddb-write")
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._task(run(), "agent-ddb-write")
 
     def _ensure_ddb_watch(self) -> None:
         ddb = self._replica()

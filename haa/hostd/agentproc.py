@@ -1,7 +1,7 @@
 """AgentSupervisor: the host's side of its agent processes — start, feed, freeze, kill, watch, measure.
 
 Each agent runs in an OS process of its own, started by this host through a fork server
-(`haa.agents.forkserver`) and connected to it by one unix socket (`haa.agents.channel`, frames of
+(`haa.sdk.forkserver`) and connected to it by one unix socket (`haa.sdk.channel`, frames of
 proto/haa/pb/agent.proto). The supervisor lives in haa-hostd's event loop and does no routing and no
 distributed algorithm: the daemon's agent layer calls it (spawn, start/thaw/recover, deliver, freeze, kill,
 answer) and reacts to the events it reports (`events(ev)`, called from the loop). docs/agents.md has the
@@ -75,10 +75,10 @@ from pathlib import Path
 
 import psutil
 
-from haa.agents.channel import DEFAULT_MAX_FRAME, Channel, ChannelError, message_too_large
-from haa.agents.forkserver import ForkServer, SpawnError
 from haa.hostd.logs import log_event
 from haa.pb import agent_pb2 as pb
+from haa.sdk.channel import DEFAULT_MAX_FRAME, Channel, ChannelError, message_too_large
+from haa.sdk.forkserver import ForkServer, SpawnError
 
 __all__ = [
     "AgentEvent",
@@ -401,6 +401,7 @@ class AgentSupervisor:
         mem_period: float = MEM_PERIOD,
         cold_start: bool = False,
         preload: Sequence[str] = (),
+        preload_types: Sequence[str] = (),
         logger: logging.Logger | None = None,
     ) -> None:
         if heartbeat_period is None:  # a hang is at least four missed heartbeats (0.5 s at the 3 s default)
@@ -429,6 +430,7 @@ class AgentSupervisor:
         self.mem_period = mem_period
         self.cold_start = cold_start
         self.preload = list(preload)
+        self.preload_types = list(preload_types)
         self.log = logger or LOGGER
         self._agents: dict[str, _Instance] = {}
         self._by_pid: dict[int, _Instance] = {}
@@ -450,7 +452,8 @@ class AgentSupervisor:
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
-        """Start the fork server (preloads every agent type) and the monitor."""
+        """Start the fork server (it knows every agent type by name and imports each at its first use) and the
+        monitor."""
         if self._started:
             return
         self._started = True
@@ -467,12 +470,12 @@ class AgentSupervisor:
                 await self._fork.close()
                 self.forkserver_restarts += 1
             fs = ForkServer(self._on_exit, on_dead=self._on_forkserver_dead, workdir=self.workdir,
-                            preload=self.preload)
+                            preload=self.preload, preload_types=self.preload_types)
             await fs.start()
             for e in fs.load_errors:
                 log_event(self.log, logging.WARNING, "agent_type_load_error", error=e)
-            log_event(self.log, logging.INFO, "agent_forkserver_started", pid=fs.pid, types=sorted(fs.types),
-                      seconds=round(fs.start_seconds, 3))
+            log_event(self.log, logging.INFO, "agent_forkserver_started", pid=fs.pid, types=fs.known(),
+                      imported=sorted(fs.types), seconds=round(fs.start_seconds, 3))
             self._fork = fs
             return fs
 
@@ -499,10 +502,26 @@ class AgentSupervisor:
 
     # ------------------------------------------------------------------ information
 
-    @property
-    def types(self) -> dict[str, pb.AgentTypeInfo]:
-        """Registered agent types (cost, hardware, transfer penalty, recovery) as the fork server loaded them."""
-        return dict(self._fork.types) if self._fork is not None else {}
+    def known_types(self) -> list[str]:
+        """The names of every agent type this host can start, imported or not."""
+        return self._fork.known() if self._fork is not None else []
+
+    def imported_type(self, type_name: str) -> pb.AgentTypeInfo | None:
+        """The type's info if the fork server has imported it already (no request needed), else None."""
+        return self._fork.types.get(type_name) if self._fork is not None else None
+
+    async def type_info(self, type_name: str) -> pb.AgentTypeInfo | None:
+        """The type's cost, hardware, transfer penalty, recovery, config model and limits; the fork server imports
+        a type registered by name only at this first request. None if the type is unknown here or its module fails
+        to import (logged once as `agent_type_load_error`, and in `load_errors`)."""
+        fs = self._fork
+        if fs is None or (type_name not in fs.types and type_name not in fs.lazy):
+            return None
+        try:
+            return await fs.describe(type_name)
+        except SpawnError as e:
+            log_event(self.log, logging.WARNING, "agent_type_load_error", type=type_name, error=str(e))
+            return None
 
     @property
     def load_errors(self) -> list[str]:
@@ -563,7 +582,7 @@ class AgentSupervisor:
         config passes unchecked, logged as `agent_config_unchecked` and counted: the spawn is not held up by a
         fork server that could not start the agent anyway, and a config that then fails to start ends with
         the agent `failed` after agenttable.MAX_START_FAILURES tries (docs/agents-host.md)."""
-        info = self.types.get(type_name)
+        info = await self.type_info(type_name)
         if info is None or not info.has_config:
             return ""
         try:
@@ -595,6 +614,8 @@ class AgentSupervisor:
         host_sock, agent_sock = socket.socketpair()
         try:
             fs = await self._ensure_forkserver()
+            if spec.type_name in fs.lazy:  # imported in the zygote now, and its limits known before the fork
+                await fs.describe(spec.type_name)
             inst.chan = await Channel.open(host_sock, pb.AgentToHost, max_frame=self.max_frame)
             init = pb.HostToAgent.Init(
                 agent_id=spec.agent_id, name=spec.name, type_name=spec.type_name, config=spec.config,
@@ -907,7 +928,7 @@ class AgentSupervisor:
             await self._wait_gone(inst, 3.0)
             return
         # close first: an agent that ended (a fatal error) half-closes and waits for us to close
-        # (haa.agents.runner._linger), so that our writes never break the pipe before we read its last frames
+        # (haa.sdk.runner._linger), so that our writes never break the pipe before we read its last frames
         inst.chan.close()
         if inst.fail_reason is None and not await self._wait_exit(inst, 1.0):
             inst.fail_reason = "channel error: the agent closed its channel but did not exit"

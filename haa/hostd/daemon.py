@@ -34,8 +34,8 @@ host's `host.pem` / `host.key` (made by `haactl cluster up --tls`); the certific
 the key not readable by others. Links and the control API then need a certificate of that CA.
 
 `--record-dir DIR` (env HAA_RECORD_DIR) makes every agent this host runs record its inputs and outputs into
-DIR (AgentPlayback: haa.playback, docs/playback.md); the agent processes inherit it as HAA_RECORD_DIR, and the
-recorder as their tap (HAA_AGENT_TAP=haa.playback.recorder:from_env, loaded by name: haa.agents.tap).
+DIR (AgentPlayback: haa.lab.playback, docs/playback.md); the agent processes inherit it as HAA_RECORD_DIR, and the
+recorder as their tap (HAA_AGENT_TAP=haa.sdk.recorder:from_env, loaded by name: haa.sdk.tap).
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
@@ -74,7 +74,6 @@ from pydantic import (
 
 from haa import files
 from haa import tls as tlsmod
-from haa.agents.tap import TAP_ENV
 from haa.core.agentnode import AgentConfig
 from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY
 from haa.core.hostcore import CoreConfig
@@ -88,10 +87,11 @@ from haa.hostd.outcomes import WriteFailed
 from haa.hostd.runtime import HostRuntime, RuntimeConfig
 from haa.hostd.sampler import StatsSampler
 from haa.hostd.transport import NAME_RE
+from haa.sdk.tap import TAP_ENV
 
-#: the tap factory of the agent processes when the host records (haa.agents.tap: named, imported at run time
-#: in the agent process; haa.playback sits above the host's runtime)
-RECORDER_TAP = "haa.playback.recorder:from_env"
+#: the tap factory of the agent processes when the host records (haa.sdk.tap: named, imported at run time
+#: in the agent process; haa.lab.playback sits above the host's runtime)
+RECORDER_TAP = "haa.sdk.recorder:from_env"
 
 PROG = "haa-hostd"
 log = logging.getLogger(LOGGER_NAME + ".daemon")
@@ -194,13 +194,15 @@ class HostSettings(BaseModel):
     #: an agent instance that dies within this long of its start is a start failure (backed off; docs/limits.md)
     agent_start_grace: float = Field(default=AgentConfig().start_grace, ge=0, le=3600, allow_inf_nan=False)
     agent_hang_timeout: float = Field(default=3.0, gt=0.5, allow_inf_nan=False)
+    #: agent types whose modules the fork server imports at start rather than at their first spawn
+    preload_agents: list[str] = Field(default_factory=list, max_length=256)
     #: the statistics sampler's period (haa.hostd.sampler: <data dir>/stats.jsonl), s; 0 = no sampling
     stats_period: float = Field(default=1.0, ge=0, le=3600, allow_inf_nan=False)
     #: Prometheus /metrics on this port, bound to --listen's host (haa.metrics, docs/metrics.md); 0 = none
     metrics_port: int = Field(default=0, ge=0, le=65535)
     #: mutual TLS: this host's ca.pem, host.pem, host.key (haa.tls); None = token only
     tls_dir: Path | None = None
-    #: AgentPlayback: every agent of this host records into this folder (haa.playback, docs/playback.md)
+    #: AgentPlayback: every agent of this host records into this folder (haa.lab.playback, docs/playback.md)
     record_dir: Path | None = None
     membership: MembershipSettings = Field(default_factory=MembershipSettings)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
@@ -316,6 +318,7 @@ class HostSettings(BaseModel):
                 start_grace=self.agent_start_grace,
             ),
             agent_hang_timeout=self.agent_hang_timeout,
+            preload_agents=list(self.preload_agents),
             tls=tlsmod.load_host(self.tls_dir, self.name) if self.tls_dir is not None else None,
         )
 
@@ -363,6 +366,7 @@ _OPTIONS = (
     "drain_timeout",
     "agent_start_grace",
     "agent_hang_timeout",
+    "preload_agents",
     "stats_period",
     "tls_dir",
     "metrics_port",
@@ -416,6 +420,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agent-start-grace", type=float,
                    help="an agent instance dying within this long of its start is a start failure (backed off), s (10)")
     p.add_argument("--agent-hang-timeout", type=float, help="an agent silent this long is hung, s (3)")
+    p.add_argument("--preload-agents", help="comma-separated agent types imported when the agent runtime starts "
+                   "instead of at their first spawn (none: every type is imported when first needed)")
     p.add_argument("--stats-period", type=float,
                    help="sample this host's statistics into <data dir>/stats.jsonl every this many s (1; 0 = off)")
     p.add_argument("--metrics-port", type=int,
@@ -514,9 +520,10 @@ def load_settings(argv: list[str] | None = None) -> HostSettings:
             fail(f"--{opt.replace('_', '-')} (or HAA_{opt.upper()}) is required")
     for opt in ("peers", "core"):
         merged[opt] = _host_list(merged.get(opt) or "", opt)
-    hw = merged.get("hardware")
-    if isinstance(hw, str):
-        merged["hardware"] = [x.strip() for x in hw.split(",") if x.strip()]
+    for opt in ("hardware", "preload_agents"):
+        v = merged.get(opt)
+        if isinstance(v, str):
+            merged[opt] = [x.strip() for x in v.split(",") if x.strip()]
     try:
         token = read_token(str(merged.pop("token_file")))
     except ValueError as e:
@@ -556,7 +563,8 @@ def build_host(cfg: RuntimeConfig) -> Host:
     (membership mode with agents on) and the control API, each given what it needs — the runtime gets the
     driver as its agent backend (it hands the driver its `AgentOps` at start) and serves the control service;
     the control service gets the runtime and the driver. The runtime imports neither (.importlinter)."""
-    agents = (AgentDriver(cfg.name, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout)
+    agents = (AgentDriver(cfg.name, cfg.data_dir, hang_timeout=cfg.agent_hang_timeout,
+                          preload_types=cfg.preload_agents)
               if cfg.membership and cfg.agents else None)
     rt = HostRuntime(cfg, agents=agents)
     control = HostControlService(rt, agents)
@@ -663,7 +671,7 @@ def lock_data_dir(path: Path) -> int:
 def main(argv: list[str] | None = None) -> None:
     settings = load_settings(argv)
     cfg = settings.runtime_config()
-    if settings.record_dir is not None:  # the fork server and every agent process inherit both (haa.agents.tap)
+    if settings.record_dir is not None:  # the fork server and every agent process inherit both (haa.sdk.tap)
         os.environ["HAA_RECORD_DIR"] = str(settings.record_dir.absolute())
         os.environ[TAP_ENV] = RECORDER_TAP
     try:

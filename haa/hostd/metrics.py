@@ -4,7 +4,7 @@
 daemon's loop by `haa.metrics.http.OnLoop`) and prometheus_client's `ProcessCollector`
 (`process_cpu_seconds_total`, `process_resident_memory_bytes`, ...). `HostCollector.collect()` only reads what the
 daemon already keeps; the sources are the statistics sampler's (haa.hostd.sampler), and the daemon hands it the
-sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.stats: .importlinter):
+sampler's histogram bounds and DDB key-prefix rule (this module stays below haa.lab.stats: .importlinter):
 
 * group — `haa_member`, `haa_view`, `haa_members`, `haa_leader` (this host is the leader), `haa_incarnation`;
 * failure detector — `haa_suspected{peer}` (1 while this host's UFD suspects it, thesis §4.4), `haa_suspicions`

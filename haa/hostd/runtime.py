@@ -1,6 +1,6 @@
 """HostRuntime: drives the host's sans-I/O state machines with asyncio, the gRPC transport and the wall clock.
 
-The deterministic simulator (`haa.dsim.cluster`) and this runtime drive the *same* machines — an `AgentNode`
+The deterministic simulator (`haa.lab.dsim.cluster`) and this runtime drive the *same* machines — an `AgentNode`
 over a `MembershipNode` over a `HostCore` (membership mode), or a bare `HostCore` (static mode); this one does
 it for real (docs/architecture.md, "How an input travels"):
 
@@ -108,6 +108,7 @@ class RuntimeConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
     #: hang detection of agent processes (no heartbeat for this long), s
     agent_hang_timeout: float = 3.0
+    preload_agents: list[str] = field(default_factory=list)
     #: mutual TLS (haa.tls, `--tls-dir`): links and control API over TLS with this host's certificate
     tls: HostTls | None = None
 

@@ -3,14 +3,14 @@
 Why: after a run (a mission, a chaos plan, a crash) you want to know what every host saw — how busy it and
 each of its agents were, who talked to whom, how long commits took, how big the DDB grew, when the view
 changed — also for hosts that crashed. So every host writes it down itself while it runs, to a file that
-outlives the process; `haactl stats collect` later packs the file into the host's bundle (haa.stats.collect)
-and `haactl report` draws it (haa.stats.report). Nothing here talks to other hosts.
+outlives the process; `haactl stats collect` later packs the file into the host's bundle (haa.lab.stats.collect)
+and `haactl report` draws it (haa.lab.stats.report). Nothing here talks to other hosts.
 
 How: `StatsSampler(rt, period, agents)` is started by the daemon (haa.hostd.daemon.serve) next to its `HostRuntime`
 and agent driver (None without agents) and, every `period` seconds (default 1 s, `haa-hostd --stats-period`,
 0 = off), appends one JSON line to `<data dir>/stats.jsonl` (flushed at once: a SIGKILL loses at most the
 sample being built). It only *reads* what the runtime and the driver already keep; it adds no bookkeeping to
-the hot paths. It lives next to the daemon, its only user; `haa.stats` reads the files it writes.
+the hot paths. It lives next to the daemon, its only user; `haa.lab.stats` reads the files it writes.
 
 Each sample's keys, and where they are read:
 

@@ -51,8 +51,9 @@ import psutil
 from haa.cluster import procs
 from haa.mission import metrics as mm
 from haa.mission import transcript as tr
+from haa.mission.extensions import ExtensionMissing, extension
 from haa.mission.schema import Mission, resolve
-from haa.stats.collect import collect_quietly
+from haa.sdk import registry
 
 #: top-level agent types the runner spawns (docs/team.md "Starting a mission")
 EXECUTIVE = "executive_mission"
@@ -715,10 +716,10 @@ class MissionRun:
         self.files: dict[str, str] = {}
         #: the chaos plan the mission file names (`chaos: FILE`, checked by the schema), run by `start_chaos`
         self.chaos_plan: Any = None
+        self.chaos: Any = None  # the lab's chaos extension (haa.mission.extensions), loaded for a plan only
         if self.spec.chaos is not None:
-            from haa.chaos.plan import load_plan
-
-            self.chaos_plan = load_plan(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
+            self.chaos = extension("chaos")
+            self.chaos_plan = self.chaos.load(resolve(mission.path.parent if mission.path else None, self.spec.chaos))
         #: AgentPlayback (docs/playback.md): every agent of our own cluster records into this folder
         self.record_dir = record_folder(self.spec.record, self.out_dir, record)
         self.chaos_thread: threading.Thread | None = None
@@ -760,7 +761,8 @@ class MissionRun:
             n = self.spec.hosts.start
             self.backend = LocalBackend(self.root)
             self.say(f"starting {n} hosts (local cluster in {self.root})")
-            names = self.backend.up(n, min(3, n), hostd_args=[*self.spec.hostd_args, *self.record_args()])
+            names = self.backend.up(n, min(3, n), hostd_args=[*self.spec.hostd_args, *self.record_args(),
+                                                              *self.preload_args()])
             self.actions_backend = LocalBackend(self.root)
 
             def formed() -> Any:
@@ -959,8 +961,6 @@ class MissionRun:
     def start_chaos(self) -> None:
         """The mission's chaos plan, on a thread of its own from mission time 0 until the mission ends (or the
         plan's `duration_s`): its times and `hang_s` are simulated seconds (docs/chaos.md, "Inside a mission")."""
-        from haa.chaos.inject import Injector
-
         if self.chaos_plan is None or self.chaos_thread is not None:
             return
         backend = self.backend
@@ -969,10 +969,10 @@ class MissionRun:
 
             backend = LocalBackend(self.root)  # a backend object of its own for its thread
         plan = self.chaos_plan
-        self.injector = Injector(plan, backend, on_fault=self.chaos_line, clock=self.mission_time,
-                                 sleep=lambda s: self.chaos_done.wait(max(0.0, s) / self.speed),
-                                 duration=plan.duration_s or self.spec.complete.time_limit_s,
-                                 wall_per_s=1.0 / self.speed)
+        self.injector = self.chaos.injector(plan, backend, on_fault=self.chaos_line, clock=self.mission_time,
+                                            sleep=lambda s: self.chaos_done.wait(max(0.0, s) / self.speed),
+                                            duration=plan.duration_s or self.spec.complete.time_limit_s,
+                                            wall_per_s=1.0 / self.speed)
         self.line(f"chaos plan {plan.name}: {len(plan.faults)} fault lines (seed {plan.seed})", "fault")
 
         def chaos() -> None:
@@ -1342,9 +1342,17 @@ class MissionRun:
         self.agent_pool.shutdown(wait=True)
 
     # ------------------------------------------------------------------ AgentPlayback recording
+    def preload_args(self) -> list[str]:
+        """The thesis' team is imported when each host starts, not at the first spawn of a type during the mission
+        (an import of the SLAM and vision stack would cost the mission simulated seconds)."""
+        if (self.exec_type, self.avatar_type) != (EXECUTIVE, AVATAR) or any(
+                a.startswith("--preload-agents") for a in self.spec.hostd_args):
+            return []
+        return ["--preload-agents", ",".join(registry.types_of("haa.agents"))]
+
     def record_args(self) -> list[str]:
         """haa-hostd's `--record-dir` for our hosts (the ones restarted later too): their agent processes
-        record (haa.playback.recorder)."""
+        record (haa.sdk.recorder)."""
         if self.record_dir is None:
             return []
         self.record_dir.mkdir(parents=True, exist_ok=True)
@@ -1362,7 +1370,8 @@ class MissionRun:
         finally:
             self.teardown()
         if self._tmp is None and self.owns_cluster and self.backend is not None:  # -o DIR: the hosts' stats
-            collect_quietly(self.backend, self.out_dir)  # bundles beside the results (haactl report DIR)
+            with contextlib.suppress(ExtensionMissing):  # bundles beside the results (haactl report DIR)
+                extension("bundles")(self.backend, self.out_dir)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
             json_out.write_text(json.dumps(results, indent=2, default=str) + "\n")

@@ -420,16 +420,17 @@ def check_mission(spec: MissionSpec, label: str, base: Path | None = None) -> An
             if opt in own:
                 fail(f"hostd_args[{k}]", f"{opt} is set by the mission runner itself")
     if spec.chaos is not None:
-        from haa.chaos.plan import PlanError, load_plan, mission_problems
+        from haa.mission.extensions import ExtensionMissing, extension
 
         p = resolve(base, spec.chaos)
         if not p.is_file():
             fail("chaos", f"no such file {str(p)!r}")
         try:
-            plan = load_plan(p)
-        except PlanError as e:
+            chaos = extension("chaos")
+            plan = chaos.load(p)
+        except (ExtensionMissing, ValueError) as e:
             fail("chaos", str(e))
-        problems = mission_problems(plan, ever)
+        problems = chaos.problems(plan, ever)
         if problems:
             fail("chaos", f"{p}: {problems[0]}")
     return arena

@@ -272,7 +272,7 @@ class AgentToHost(_message.Message):
     def __init__(self, hello: _Optional[_Union[AgentToHost.Hello, _Mapping]] = ..., ready: _Optional[_Union[AgentToHost.Ready, _Mapping]] = ..., heartbeat: _Optional[_Union[AgentToHost.Heartbeat, _Mapping]] = ..., sent: _Optional[_Union[AgentMsg, _Mapping]] = ..., backup: _Optional[_Union[AgentToHost.Backup, _Mapping]] = ..., frozen: _Optional[_Union[AgentToHost.Frozen, _Mapping]] = ..., spawn_child: _Optional[_Union[AgentToHost.SpawnChild, _Mapping]] = ..., ddb_get: _Optional[_Union[AgentToHost.DdbGet, _Mapping]] = ..., ddb_put: _Optional[_Union[AgentToHost.DdbPut, _Mapping]] = ..., ddb_watch: _Optional[_Union[AgentToHost.DdbWatch, _Mapping]] = ..., ddb_unwatch: _Optional[_Union[AgentToHost.DdbUnwatch, _Mapping]] = ..., log: _Optional[_Union[AgentToHost.Log, _Mapping]] = ..., stopped: _Optional[_Union[AgentToHost.Stopped, _Mapping]] = ..., error: _Optional[_Union[AgentToHost.Error, _Mapping]] = ..., ddb_write: _Optional[_Union[AgentToHost.DdbWrite, _Mapping]] = ..., ddb_scan: _Optional[_Union[AgentToHost.DdbScan, _Mapping]] = ...) -> None: ...
 
 class ForkServerRequest(_message.Message):
-    __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec", "validate", "config_size")
+    __slots__ = ("req_id", "type_name", "agent_id", "log_path", "exec", "validate", "config_size", "describe")
     REQ_ID_FIELD_NUMBER: _ClassVar[int]
     TYPE_NAME_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
@@ -280,6 +280,7 @@ class ForkServerRequest(_message.Message):
     EXEC_FIELD_NUMBER: _ClassVar[int]
     VALIDATE_FIELD_NUMBER: _ClassVar[int]
     CONFIG_SIZE_FIELD_NUMBER: _ClassVar[int]
+    DESCRIBE_FIELD_NUMBER: _ClassVar[int]
     req_id: int
     type_name: str
     agent_id: str
@@ -287,7 +288,8 @@ class ForkServerRequest(_message.Message):
     exec: bool
     validate: bool
     config_size: int
-    def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., agent_id: _Optional[str] = ..., log_path: _Optional[str] = ..., exec: _Optional[bool] = ..., validate: _Optional[bool] = ..., config_size: _Optional[int] = ...) -> None: ...
+    describe: bool
+    def __init__(self, req_id: _Optional[int] = ..., type_name: _Optional[str] = ..., agent_id: _Optional[str] = ..., log_path: _Optional[str] = ..., exec: _Optional[bool] = ..., validate: _Optional[bool] = ..., config_size: _Optional[int] = ..., describe: _Optional[bool] = ...) -> None: ...
 
 class AgentTypeInfo(_message.Message):
     __slots__ = ("type_name", "cost", "hardware", "transfer_penalty", "recovery", "module", "has_config", "memory_limit_mb", "cpu_limit", "max_per_host")
@@ -316,27 +318,31 @@ class AgentTypeInfo(_message.Message):
 class ForkServerEvent(_message.Message):
     __slots__ = ("ready", "reply", "exit")
     class Ready(_message.Message):
-        __slots__ = ("pid", "types", "load_errors", "preload_seconds")
+        __slots__ = ("pid", "types", "load_errors", "preload_seconds", "lazy_types")
         PID_FIELD_NUMBER: _ClassVar[int]
         TYPES_FIELD_NUMBER: _ClassVar[int]
         LOAD_ERRORS_FIELD_NUMBER: _ClassVar[int]
         PRELOAD_SECONDS_FIELD_NUMBER: _ClassVar[int]
+        LAZY_TYPES_FIELD_NUMBER: _ClassVar[int]
         pid: int
         types: _containers.RepeatedCompositeFieldContainer[AgentTypeInfo]
         load_errors: _containers.RepeatedScalarFieldContainer[str]
         preload_seconds: float
-        def __init__(self, pid: _Optional[int] = ..., types: _Optional[_Iterable[_Union[AgentTypeInfo, _Mapping]]] = ..., load_errors: _Optional[_Iterable[str]] = ..., preload_seconds: _Optional[float] = ...) -> None: ...
+        lazy_types: _containers.RepeatedScalarFieldContainer[str]
+        def __init__(self, pid: _Optional[int] = ..., types: _Optional[_Iterable[_Union[AgentTypeInfo, _Mapping]]] = ..., load_errors: _Optional[_Iterable[str]] = ..., preload_seconds: _Optional[float] = ..., lazy_types: _Optional[_Iterable[str]] = ...) -> None: ...
     class Reply(_message.Message):
-        __slots__ = ("req_id", "pid", "error", "config_error")
+        __slots__ = ("req_id", "pid", "error", "config_error", "info")
         REQ_ID_FIELD_NUMBER: _ClassVar[int]
         PID_FIELD_NUMBER: _ClassVar[int]
         ERROR_FIELD_NUMBER: _ClassVar[int]
         CONFIG_ERROR_FIELD_NUMBER: _ClassVar[int]
+        INFO_FIELD_NUMBER: _ClassVar[int]
         req_id: int
         pid: int
         error: str
         config_error: str
-        def __init__(self, req_id: _Optional[int] = ..., pid: _Optional[int] = ..., error: _Optional[str] = ..., config_error: _Optional[str] = ...) -> None: ...
+        info: AgentTypeInfo
+        def __init__(self, req_id: _Optional[int] = ..., pid: _Optional[int] = ..., error: _Optional[str] = ..., config_error: _Optional[str] = ..., info: _Optional[_Union[AgentTypeInfo, _Mapping]] = ...) -> None: ...
     class ChildExit(_message.Message):
         __slots__ = ("pid", "exit_code", "signal")
         PID_FIELD_NUMBER: _ClassVar[int]

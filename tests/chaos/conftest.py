@@ -5,7 +5,7 @@ tests are skipped with the reason — or fail, when HAA_REQUIRE_DOCKER=1 (as in 
 pass by skipping them). The cluster is brought up with `haactl cluster up --compose --hosts 10` and taken
 down at the end; a compose cluster already running under project `haa` is taken down first. Every random
 choice comes from one seed (HAA_CHAOS_SEED, else the time), printed at the start. The containers' logs of
-each run are saved as JSON lines in .haa/chaos/ (the five newest runs).
+each run are saved as JSON lines in .haa/lab/chaos/ (the five newest runs).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def chaos() -> Iterator[Chaos]:
     try:
         yield Chaos(backend, seed)
     finally:
-        # Kept under .haa/chaos/ (gitignored; the 5 newest runs), where pytest's tmp cleanup cannot reach them.
+        # Kept under .haa/lab/chaos/ (gitignored; the 5 newest runs), where pytest's tmp cleanup cannot reach them.
         keep = REPO / ".haa" / "chaos"
         keep.mkdir(parents=True, exist_ok=True)
         logs = keep / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{seed}.jsonl"

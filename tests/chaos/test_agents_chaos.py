@@ -2,7 +2,7 @@
 paused and stopped and agent processes are SIGKILLed.
 
 A compose cluster of `HAA_AGENT_CHAOS_HOSTS` (default 6; 10 collapsed at the host layer on the loaded 2-core
-machine, docs/containers.md) `haa-hostd` containers runs three `counter` pairs (haa/agents/demo.py: numbered
+machine, docs/containers.md) `haa-hostd` containers runs three `counter` pairs (haa/lab/demoagents.py: numbered
 pings both ways, loss / order / duplicate accounting, stats in the DDB under `demo/<name>`). For
 `HAA_AGENT_CHAOS_SECONDS` (default 40) a seeded schedule then, in a random order and with random extras:
 

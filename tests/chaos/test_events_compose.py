@@ -118,7 +118,7 @@ def test_stats_bundles_of_the_compose_cluster(compose: Compose, tmp_path: Path) 
     container, read through the docker SDK — the killed, stopped VICTIM's too — with its samples, its log and
     the events that happened on it (A1 thawed there, its crash reported by a survivor). Runs on the cluster of
     the test above (it leaves VICTIM stopped); ≈5 s."""
-    from haa.stats.bundle import load_bundles
+    from haa.lab.stats.bundle import load_bundles
 
     compose("stats", "collect", "-o", str(tmp_path / "b"), "-q")
     bundles = {b.host: b for b in load_bundles(tmp_path / "b")}

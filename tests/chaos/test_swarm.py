@@ -6,7 +6,7 @@ One stack of its own (`haaswarm<pid>`, so a user's `haa` stack is never touched)
 `haactl cluster up --swarm --tls --hosts 6` (core1..core3 and host1..host3; mutual TLS, every task enrolled for
 a certificate of its own: haa.cluster.enroll): the six form one group. A client with the token but without a
 certificate is refused, and a task asking for another host's certificate is refused. A counter pair
-(haa/agents/demo.py) is spawned. `docker service scale <stack>_host=5` adds host4 and host5: the group grows to
+(haa/lab/demoagents.py) is spawned. `docker service scale <stack>_host=5` adds host4 and host5: the group grows to
 eight. A1 is moved to host2, and host2's task container is killed (`docker kill`, SIGKILL): the group removes
 host2, the agent is recovered on a survivor, and the swarm's replacement task of slot 2 (same name, same data
 volume) joins as a new incarnation. A rolling update of the core service (`docker service update --force`: one

@@ -1,8 +1,0 @@
-"""Chaos experiments on a running HAA cluster (`haactl chaos run PLAN`, docs/chaos.md).
-
-A plan (YAML, `haa.chaos.plan`) schedules host and agent faults; a workload of its own
-(`haa.chaos.workload`) gives the cluster something to lose; `haa.chaos.inject` carries the faults out;
-`haa.chaos.collect` gathers what every host persisted (its JSON-lines log in its data dir) and what every
-live replica holds; `haa.chaos.checks` judges the run Jepsen-style from that material alone, and
-`haa.chaos.timeline` puts faults and their effects on one time line. `haa.chaos.run` ties them together.
-"""
