@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test test-fast lint proto verify bench clean docker-setup image chaos compose-up compose-down \
-	compose-status idle fuzz
+	compose-status idle fuzz results
 
 # The venv, and Debian's chromium for the dashboard's browser test (scripts/browser-setup.sh: never fails setup).
 setup: $(STAMP)
@@ -52,6 +52,10 @@ verify: setup
 
 bench: setup
 	$(BIN)/haactl bench ap1
+
+# docs/results.md from bench-results/*.json (tests/test_results_doc.py fails when the page is stale).
+results: setup
+	$(BIN)/python -m haa.lab.results
 
 # Container engine (Debian's docker.io + docker-compose v1; starts dockerd if needed) and the haa-hostd image,
 # built offline from a debootstrap base and a host-filled wheelhouse. See docs/containers.md.
