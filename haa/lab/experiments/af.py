@@ -26,7 +26,7 @@ from typing import Any
 from haa.mission.metrics import TABLE_ROWS, fmt, scaled
 from haa.mission.schema import Mission, load_mission
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 MISSIONS = REPO / "missions"
 RESULTS_DIR = REPO / "bench-results"
 
