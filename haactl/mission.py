@@ -64,7 +64,7 @@ def _compose_backend() -> Any:
 def _state_dir(compose: bool, root: Path | None) -> Path:
     """Where the mission's state lives: <root>/mission, or the compose cluster's (haa.mission.compose)."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import mission_dir
+    from haa.mission.attached import mission_dir
 
     if compose:
         from haa.mission.compose import state_dir
@@ -114,7 +114,8 @@ def mission_run(
                                                 "docs/playback.md)")] = None,
 ) -> None:
     """Run a mission end to end on its own local cluster and haa-sim; exit 0 iff it completed."""
-    from haa.mission.runner import MissionRunError, ProgressInfo, run_mission
+    from haa.mission.plan import MissionRunError
+    from haa.mission.runner import ProgressInfo, run_mission
 
     mission = _load(file)
     spec = mission.spec
@@ -159,7 +160,8 @@ def mission_start(
     """Start a mission on the running cluster (haa-sim is started unless one runs); it goes on in the
     background: `haactl mission status|logs|stop`."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import MissionRunError, start_attached
+    from haa.mission.attached import start_attached
+    from haa.mission.plan import MissionRunError
 
     if local and compose:
         _fail("--local and --compose exclude each other")
@@ -190,7 +192,7 @@ def mission_status(
     json_out: Annotated[bool, typer.Option("--json", help="JSON output")] = False,
 ) -> None:
     """Explored share, coverage, accuracy, each avatar's supervisor and target, agents per host."""
-    from haa.mission.runner import STATE_FILE, conductor_alive, read_json
+    from haa.mission.attached import STATE_FILE, conductor_alive, read_json
 
     st = read_json(_state_dir(compose, root) / STATE_FILE)
     if not st:
@@ -230,7 +232,7 @@ def mission_logs(
     root: RootOpt = None,
 ) -> None:
     """The mission transcript (Fig. 7.1-3 style): mission, agent, host and avatar events in simulated mm:ss."""
-    from haa.mission.runner import STATE_FILE, conductor_alive, live_transcript, read_json
+    from haa.mission.attached import STATE_FILE, conductor_alive, live_transcript, read_json
 
     md = _state_dir(compose, root)
     if read_json(md / STATE_FILE) is None:
@@ -263,7 +265,7 @@ def mission_stop(
 ) -> None:
     """Stop the mission: its agents are removed, the haa-sim `start` started is stopped; prints its results."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import stop_attached
+    from haa.mission.attached import stop_attached
 
     if compose:
         from haa.cluster.backend import ClusterError
@@ -305,7 +307,7 @@ def experiment(
     """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
     the thesis' Table 7.1-1 / 7.1-2. R-1 (§7.3.1): N missions per failure level, Table 7.3-1 and eq. 7.3-1's k."""
     from haa.lab.experiments.af import EXPERIMENTS, mission_for, run_experiment, table_rows
-    from haa.mission.runner import MissionRunError
+    from haa.mission.plan import MissionRunError
 
     if name == "r1":
         _experiment_r1(runs, speed, json_out, out_dir, mission_file, levels)
@@ -344,7 +346,7 @@ def experiment(
 def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_dir: Path | None,
                    mission_file: Path | None, levels: str | None) -> None:
     from haa.lab.experiments import r1
-    from haa.mission.runner import MissionRunError
+    from haa.mission.plan import MissionRunError
 
     try:
         mission = load_mission(mission_file) if mission_file else None
