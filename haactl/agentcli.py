@@ -284,10 +284,10 @@ def agent_kill(
         raise ClusterError(f"{r.name} runs nowhere now (state {r.state}): nothing to kill")
     t0 = time.monotonic()
     reply: cpb.AgentOpReply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
-    if not reply.ok and "its owner is " in reply.reason:  # it moved meanwhile: ask the new owner once
-        owner = reply.reason.rsplit("its owner is ", 1)[1].strip()
-        if owner not in {h.name for h in backend.hosts()}:
+    if not reply.ok and reply.owner and reply.owner != owner:  # it moved meanwhile: ask its owner once
+        if reply.owner not in {h.name for h in backend.hosts()}:
             raise ClusterError(f"kill {r.name}: {reply.reason}")
+        owner = reply.owner
         reply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
     if not reply.ok:
         raise ClusterError(f"kill {r.name} on {owner}: {reply.reason}")
