@@ -136,7 +136,7 @@ def test_kill_asks_the_owner_the_host_names(monkeypatch: pytest.MonkeyPatch, own
     row = AgentRow(name="A1", id="a1", type="counter", state="active", host="h1", cpu=0.0, parent="",
                    parent_id="", epoch=1, backup=True, status="active", owner="h1", alloc="h1",
                    phases={"h1": "active"})
-    monkeypatch.setattr(ac, "open_backend", lambda *a, **k: cluster)
+    monkeypatch.setattr(ac.ClusterOpts, "backend", lambda self, last=False: cluster)
     monkeypatch.setattr(ac, "load_rows", lambda backend: ({}, [row]))
     r = runner.invoke(app, ["agent", "kill", "A1", "--no-wait"])
     assert r.exit_code == (0 if owner else 1), r.output
