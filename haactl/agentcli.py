@@ -1,7 +1,7 @@
 """`haactl agent list|tree|spawn|kill|move|remove|events` and `haactl alloc status|pause|resume|run`.
 
 The operator commands of the agent layer (issue 4 §5), written like `haactl ddb`: the cluster is the local
-one (`--root`) or, with `--compose`, the docker compose cluster (`haactl.cliopts.open_backend`), and
+one (`--root`) or, with `--compose`, the docker compose cluster (`haactl.cliopts.ClusterOpts`), and
 commands that change something go through one alive member (`--host`, default the first one).
 
 What each host can tell (haa.hostd.agentcontrol): the replicated agent table (the same on every member, up
@@ -48,15 +48,13 @@ from haa.cluster.feed import EventFeed
 from haa.pb import control_pb2 as cpb
 from haa.sdk.base import RECOVERY_STRATEGIES
 from haactl.cliopts import (
-    ComposeFileOpt,
-    ComposeOpt,
+    LOCAL,
+    ClusterOpts,
     HostOpt,
     JsonOpt,
-    RootOpt,
-    SwarmOpt,
     cli_errors,
+    cluster_options,
     err,
-    open_backend,
     out,
 )
 from haactl.tables import table
@@ -129,15 +127,13 @@ def warn_unanswered(replies: dict[str, Any]) -> None:
 
 @agent_app.command("list")
 @cli_errors
+@cluster_options()
 def agent_list(
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     json_out: JsonOpt = False,
 ) -> None:
     """Every agent: name, id prefix, type, state, host, CPU, parent, epoch, backup (merged from every host)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     replies = agent_lists(backend)
     ok = answering(backend, replies)
     rows = merge_agents(ok)
@@ -156,14 +152,12 @@ def agent_list(
 
 @agent_app.command("tree")
 @cli_errors
+@cluster_options()
 def agent_tree(
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """The parentage tree (A1 -> A1.1 -> A1.1.1), each agent with its type, state and host."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     replies = agent_lists(backend)
     rows = merge_agents(answering(backend, replies))
     warn_unanswered(replies)
@@ -216,6 +210,7 @@ def parse_config(text: str) -> bytes:
 
 @agent_app.command("spawn")
 @cli_errors
+@cluster_options()
 def agent_spawn(
     type_name: Annotated[str, typer.Argument(metavar="TYPE", help="a registered agent type (counter, probe, ...)")],
     config: Annotated[str, typer.Option("--config", "-c", help="the agent's config, JSON")] = "",
@@ -223,10 +218,7 @@ def agent_spawn(
     recovery: Annotated[str, typer.Option("--recovery", help="backup | restart | none (default: the type's)")] = "",
     hardware: Annotated[str, typer.Option("--hardware", help="required hardware, comma separated")] = "",
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active on some host")] = True,
     timeout: WaitTimeoutOpt = 30.0,
     json_out: JsonOpt = False,
@@ -236,7 +228,7 @@ def agent_spawn(
         raise ClusterError(f"--recovery must be one of {', '.join(sorted(RECOVERY_STRATEGIES))}, not {recovery!r}")
     hw = tuple(h.strip() for h in hardware.split(",") if h.strip())
     cfg = parse_config(config)
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     t0 = time.monotonic()
     reply: cpb.AgentOpReply = backend.call(
@@ -266,17 +258,15 @@ def agent_spawn(
 
 @agent_app.command("kill")
 @cli_errors
+@cluster_options()
 def agent_kill(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the group has recovered it")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """SIGKILL the agent's process on the host running it: an agent failure that the group recovers (Alg. 8)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     _, rows = load_rows(backend)
     r = resolve(rows, ref)
     owner = next((h for h, p in r.phases.items() if p == "active"), r.owner)
@@ -284,10 +274,10 @@ def agent_kill(
         raise ClusterError(f"{r.name} runs nowhere now (state {r.state}): nothing to kill")
     t0 = time.monotonic()
     reply: cpb.AgentOpReply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
-    if not reply.ok and "its owner is " in reply.reason:  # it moved meanwhile: ask the new owner once
-        owner = reply.reason.rsplit("its owner is ", 1)[1].strip()
-        if owner not in {h.name for h in backend.hosts()}:
+    if not reply.ok and reply.owner and reply.owner != owner:  # it moved meanwhile: ask its owner once
+        if reply.owner not in {h.name for h in backend.hosts()}:
             raise ClusterError(f"kill {r.name}: {reply.reason}")
+        owner = reply.owner
         reply = backend.call(owner, lambda c: c.agent_kill(r.id), "AgentKill")
     if not reply.ok:
         raise ClusterError(f"kill {r.name} on {owner}: {reply.reason}")
@@ -304,19 +294,17 @@ def agent_kill(
 
 @agent_app.command("move")
 @cli_errors
+@cluster_options()
 def agent_move(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
     to: Annotated[str, typer.Argument(metavar="HOST", help="destination host (a member)")],
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is active there")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """Allocate an agent to HOST (until the next allocation session): frozen where it runs, thawed there."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     backend.host(to)  # unknown host names get the list of hosts
     h = backend.pick_host(host)
     t0 = time.monotonic()
@@ -336,17 +324,15 @@ def agent_move(
 
 @agent_app.command("remove")
 @cli_errors
+@cluster_options()
 def agent_remove(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """End an agent for good (its process is stopped; its children stay)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply: cpb.AgentOpReply = backend.call(h, lambda c: c.agent_remove(ref, timeout=timeout), "AgentRemove",
                                            timeout=timeout)
@@ -360,19 +346,17 @@ def agent_remove(
 
 @agent_app.command("request")
 @cli_errors
+@cluster_options()
 def agent_request(
     ref: Annotated[str, typer.Argument(help="agent name (A1.2), id or id prefix")],
     payload: Annotated[str, typer.Argument(help="the request (text, given to the agent's on_request)")],
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     timeout: WaitTimeoutOpt = 10.0,
 ) -> None:
     """Send an operator request to an agent and print its reply (e.g. `agent request A1 stats` for a counter).
     The reply comes back through the host asked, wherever the agent runs."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply: cpb.AgentRequestReply = backend.call(
         h, lambda c: c.agent_request(ref, payload.encode(), timeout=timeout), "AgentRequest", timeout=timeout + 5
@@ -411,12 +395,10 @@ def event_json(e: TimelineEvent, t0: float) -> dict[str, Any]:
 
 @agent_app.command("events")
 @cli_errors
+@cluster_options()
 def agent_events(
     follow: Annotated[bool, typer.Option("--follow", "-f", help="keep following new events until Ctrl-C")] = False,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     absolute: Annotated[bool, typer.Option("--clock", help="wall-clock times instead of mm:ss")] = False,
     count: Annotated[int, typer.Option("--count", min=0, help="stop after this many lines (0 = no limit)")] = 0,
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object per event")] = False,
@@ -428,7 +410,7 @@ def agent_events(
     happened (a crash that another host reported says which). Times are mm:ss since the first line. With -f,
     new events follow as they happen (the alive hosts' AgentEvents streams), with hosts joining and leaving
     the group. Without -f it also works on the cluster that `cluster down` stopped (its logs are kept)."""
-    backend = open_backend(compose, root, compose_file, last=not follow, swarm=swarm)
+    backend = where.backend(last=not follow)
     backend.require_hosts()
     feed = EventFeed(backend, views=True)
     feed.load_persisted()
@@ -505,9 +487,8 @@ def leader_of(backend: Backend) -> str:
     return leader
 
 
-def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file: Any,
-           timeout: float, swarm: bool = False) -> tuple[Backend, cpb.AgentListReply]:
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+def _alloc(action: str, host: str | None, where: ClusterOpts, timeout: float) -> tuple[Backend, cpb.AgentListReply]:
+    backend = where.backend()
     h = backend.pick_host(host)
     reply = backend.call(h, lambda c: c.alloc(action, timeout=timeout), f"Alloc({action})", timeout=timeout)
     return backend, reply
@@ -515,16 +496,14 @@ def _alloc(action: str, host: str | None, compose: bool, root: Any, compose_file
 
 @alloc_app.command("status")
 @cli_errors
+@cluster_options()
 def alloc_status(
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     json_out: JsonOpt = False,
 ) -> None:
     """Session ids, paused or not, load per host and every agent's host, state, CPU and parent."""
-    backend, reply = _alloc("status", host, compose, root, compose_file, 10.0, swarm=swarm)
+    backend, reply = _alloc("status", host, where, 10.0)
     rows = merge_agents(answering(backend, agent_lists(backend)))
     s = alloc_summary(reply, rows)
     if json_out:
@@ -535,46 +514,40 @@ def alloc_status(
 
 @alloc_app.command("pause")
 @cli_errors
+@cluster_options()
 def alloc_pause(
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """Pause the periodic rebalancing (membership and agent-list changes still start sessions)."""
-    _, reply = _alloc("pause", host, compose, root, compose_file, 15.0, swarm=swarm)
+    _, reply = _alloc("pause", host, where, 15.0)
     out.print(f"allocation paused (committed via {reply.host}; last session {reply.session})")
 
 
 @alloc_app.command("resume")
 @cli_errors
+@cluster_options()
 def alloc_resume(
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """Resume the periodic rebalancing."""
-    _, reply = _alloc("resume", host, compose, root, compose_file, 15.0, swarm=swarm)
+    _, reply = _alloc("resume", host, where, 15.0)
     out.print(f"allocation resumed (committed via {reply.host}; last session {reply.session})")
 
 
 @alloc_app.command("run")
 @cli_errors
+@cluster_options()
 def alloc_run(
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until the session has finished")] = True,
     timeout: WaitTimeoutOpt = 30.0,
 ) -> None:
     """Start an allocation session now (Alg. 4; the group's leader starts sessions, so it is asked unless --host
     says otherwise); with --wait report the agents it moved."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = host or leader_of(backend)
     before = backend.call(h, lambda c: c.alloc("status", timeout=timeout), "Alloc(status)", timeout=timeout)
     rows0 = {r.id: r for r in merge_agents(answering(backend, agent_lists(backend)))}

@@ -1,17 +1,20 @@
-"""What the commands of haactl share: the typer options that say which cluster a command works on (local,
-compose or swarm: `ComposeOpt`, `SwarmOpt`, `RootOpt`, `ComposeFileOpt`, `HostOpt`; defined once here and used
-as parameter annotations by every command of `cluster`, `host`, `agent`, `alloc`, `ddb`, `logs`, `stats`,
-`dashboard`, `foxglove`), `open_backend` (those options -> the haa.cluster backend), `JsonOpt`, the benchmarks'
+"""What the commands of haactl share: the options that say which cluster a command works on, declared once —
+`ClusterOpts` and the decorator `cluster_options` give a command --compose, --swarm, --root and --compose-file
+(the annotations `ComposeOpt`, `SwarmOpt`, `RootOpt`, `ComposeFileOpt`) as one value, `where.backend()` the
+haa.cluster backend they name (`open_backend`); every command of `cluster`, `host`, `agent`, `alloc`, `ddb`,
+`logs`, `stats`, `mission`, `dashboard` and `foxglove` takes them so. Also `HostOpt`, `JsonOpt`, the benchmarks'
 `BenchRootOpt`, the consoles `out`/`err`, and `cli_errors` (a ClusterError as one red line, exit code 1).
 Tables are drawn with haactl.tables."""
 
 from __future__ import annotations
 
 import functools
+import inspect
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, cast
 
 import typer
 from rich.console import Console
@@ -108,6 +111,55 @@ def open_backend(
     from haa.cluster.local_backend import LocalBackend
 
     return LocalBackend(root, last=last)
+
+
+@dataclass(frozen=True)
+class ClusterOpts:
+    """Which cluster a command works on: its cluster-selection options, as `cluster_options` passes them."""
+
+    compose: bool = False
+    swarm: bool = False
+    root: Path | None = None
+    compose_file: Path | None = None
+
+    def backend(self, last: bool = False) -> Backend:
+        """The cluster they name (`open_backend`; `last`: a stopped local cluster will do)."""
+        return open_backend(self.compose, self.root, self.compose_file, last=last, swarm=self.swarm)
+
+
+#: the placeholder default of a command's ClusterOpts parameter (the local cluster at its default root)
+LOCAL = ClusterOpts()
+
+#: ClusterOpts' fields as command options, in the order --help shows them
+_CLUSTER_OPTIONS = {"compose": ComposeOpt, "swarm": SwarmOpt, "root": RootOpt, "compose_file": ComposeFileOpt}
+
+
+def cluster_options(*, without: tuple[str, ...] = ()) -> Callable[[F], F]:
+    """Give a command the cluster-selection options: its one parameter annotated `ClusterOpts` (default `LOCAL`)
+    becomes --compose, --swarm, --root and --compose-file in its place (`without`: fields left out, e.g.
+    ("swarm",) for a command that runs on local and compose clusters only), and the command is called with
+    their values as that one ClusterOpts. Put it below `@cli_errors`, next to the function."""
+
+    def deco(fn: F) -> F:
+        sig = inspect.signature(fn, eval_str=True)
+        params = list(sig.parameters.values())
+        (where,) = (p for p in params if p.annotation is ClusterOpts)
+        names = [f.name for f in fields(ClusterOpts) if f.name not in without]
+        options = [inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=_CLUSTER_OPTIONS[n],
+                                     default=getattr(LOCAL, n)) for n in names]
+        k = params.index(where)
+        params[k:k + 1] = options
+
+        @functools.wraps(fn)
+        def command(*args: Any, **kwargs: Any) -> Any:
+            kwargs[where.name] = ClusterOpts(**{n: kwargs.pop(n) for n in names if n in kwargs})
+            return fn(*args, **kwargs)
+
+        cast(Any, command).__signature__ = sig.replace(parameters=params)  # what typer reads (inspect.signature)
+        command.__annotations__ = {p.name: p.annotation for p in params} | {"return": sig.return_annotation}
+        return cast(F, command)
+
+    return deco
 
 
 def fail(message: str) -> None:

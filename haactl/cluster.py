@@ -19,7 +19,14 @@ from rich.table import Table
 
 from haa.cluster.backend import ALIVE, Backend, ClusterError, Formation, StartError, wait_until
 from haa.cluster.status import gather_status
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, err, open_backend, out
+from haactl.cliopts import (
+    LOCAL,
+    ClusterOpts,
+    cli_errors,
+    cluster_options,
+    err,
+    out,
+)
 from haactl.tables import table
 
 cluster_app = typer.Typer(help="Bring a cluster of haa-hostd hosts up, inspect it, take it down.", no_args_is_help=True)
@@ -64,16 +71,14 @@ def wait_with_progress(
 
 @cluster_app.command("up")
 @cli_errors
+@cluster_options()
 def cluster_up(
     local: Annotated[bool, typer.Option("--local", help="real haa-hostd processes on loopback (the default)")] = False,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
+    where: ClusterOpts = LOCAL,
     hosts: Annotated[int, typer.Option("--hosts", "-n", min=1, max=64, help="number of hosts h1..hN")] = 3,
     core: Annotated[
         int | None, typer.Option("--core", min=1, help="core hosts: the first K (default 3, or N if N < 3)")
     ] = None,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
     config: Annotated[
         Path | None, typer.Option("--config", help="YAML config file given to every haa-hostd (local)")
     ] = None,
@@ -98,13 +103,13 @@ def cluster_up(
     json_out: Annotated[bool, typer.Option("--json", help="print the formed group as JSON")] = False,
 ) -> None:
     """Start hosts h1..hN and wait until they have formed one group with all N members."""
-    if local and (compose or swarm):
-        raise ClusterError(f"--local and --{'compose' if compose else 'swarm'} exclude each other")
+    if local and (where.compose or where.swarm):
+        raise ClusterError(f"--local and --{'compose' if where.compose else 'swarm'} exclude each other")
     if core is not None and core > hosts:
         raise ClusterError(f"--core {core} is more than --hosts {hosts}")
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     t0 = time.monotonic()
-    if swarm:
+    if where.swarm:
         from haa.cluster.swarm_backend import SwarmBackend
 
         assert isinstance(backend, SwarmBackend)
@@ -113,7 +118,7 @@ def cluster_up(
         with err.status(f"docker stack deploy of {hosts} hosts ..."):
             names = backend.up(hosts, core, log=err.print, capacity=capacity, tls=tls)
         before = None
-    elif compose:
+    elif where.compose:
         from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
@@ -169,17 +174,15 @@ def cluster_up(
 
 @cluster_app.command("down")
 @cli_errors
+@cluster_options()
 def cluster_down(
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     grace: Annotated[float, typer.Option("--grace", min=0, help="seconds for a graceful leave before SIGKILL")] = 5.0,
     purge: Annotated[bool, typer.Option("--purge", help="also delete the local cluster's logs and data")] = False,
 ) -> None:
     """Stop every host (SIGTERM = graceful leave, SIGKILL after --grace) and forget the cluster."""
-    backend = open_backend(compose, root, compose_file, last=purge, swarm=swarm)
-    if swarm:
+    backend = where.backend(last=purge)
+    if where.swarm:
         from haa.cluster.swarm_backend import SwarmBackend
 
         assert isinstance(backend, SwarmBackend)
@@ -187,7 +190,7 @@ def cluster_down(
             done = backend.down(grace)
         out.print(f"{backend.describe()}: down ({done})")
         return
-    if compose:
+    if where.compose:
         from haa.cluster.compose_backend import ComposeBackend
 
         assert isinstance(backend, ComposeBackend)
@@ -245,16 +248,14 @@ def status_table(st: dict[str, Any]) -> Table:
 
 @cluster_app.command("status")
 @cli_errors
+@cluster_options()
 def cluster_status(
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object (members, leader, view, hosts)")] = False,
     sample: Annotated[float, typer.Option("--sample", min=0, help="seconds over which CPU use is measured")] = 1.0,
 ) -> None:
     """Members in rank order, leader, view, and per host its state, view, rank, suspicions, DDB, CPU, RSS."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     st = gather_status(backend, sample)
     if json_out:
         print(json.dumps(st, indent=2))
@@ -311,17 +312,15 @@ def _wait_joined(backend: Backend, name: str, timeout: float) -> None:
 
 @host_app.command("add")
 @cli_errors
+@cluster_options()
 def host_add(
     name: Annotated[str | None, typer.Argument(help="new host name (default: the next free hN)")] = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is a member")] = True,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """Start a new non-core host; it finds the group through the core list and joins."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     backend.require_hosts()
     name = name or backend.next_name()
     h = backend.add(name)
@@ -332,17 +331,15 @@ def host_add(
 
 @host_app.command("restart")
 @cli_errors
+@cluster_options()
 def host_restart(
     name: Annotated[str, typer.Argument(help="a killed or departed host")],
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until it is a member again")] = True,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """Start a killed (or departed) host again: a new incarnation that re-applies to the group."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.restart(name)
     out.print(f"restarted {name} at {h.address}")
     if wait:
@@ -351,17 +348,15 @@ def host_restart(
 
 @host_app.command("leave")
 @cli_errors
+@cluster_options()
 def host_leave(
     name: Annotated[str, typer.Argument(help="host to retire")],
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     use_signal: Annotated[bool, typer.Option("--signal", help="send SIGTERM instead of calling Leave")] = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """Retire a host gracefully (Alg. 3 voluntary leave): the Leave RPC, or SIGTERM with --signal."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     t0 = time.monotonic()
     if use_signal:
         backend.host(name)
@@ -391,49 +386,43 @@ def _break_hosts(
 
 @host_app.command("kill")
 @cli_errors
+@cluster_options()
 def host_kill(
     names: NamesArg,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: WaitOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """SIGKILL host(s): a crash (connections refused from then on)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     _break_hosts(backend, names, backend.kill, "killed", wait, timeout)
 
 
 @host_app.command("pause")
 @cli_errors
+@cluster_options()
 def host_pause(
     names: NamesArg,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: WaitOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
     """SIGSTOP / freeze host(s): a hung host whose TCP connections stay open."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     _break_hosts(backend, names, backend.pause, "paused", wait, timeout)
 
 
 @host_app.command("resume")
 @cli_errors
+@cluster_options()
 def host_resume(
     names: NamesArg,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="wait until each is a member again")] = False,
     timeout: TimeoutOpt = 60.0,
 ) -> None:
     """SIGCONT / unfreeze host(s). A host the group removed meanwhile comes back as a new incarnation."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     _check_names(backend, names)
     for n in names:
         backend.resume(n)

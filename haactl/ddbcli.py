@@ -20,14 +20,12 @@ from haa.core import ddb
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 from haactl.cliopts import (
-    ComposeFileOpt,
-    ComposeOpt,
+    LOCAL,
+    ClusterOpts,
     HostOpt,
     JsonOpt,
-    RootOpt,
-    SwarmOpt,
     cli_errors,
-    open_backend,
+    cluster_options,
     out,
 )
 from haactl.tables import table
@@ -99,15 +97,13 @@ def _write(backend: Any, host: str, ops: list[Any], timeout: float) -> cpb.DdbWr
 
 @ddb_app.command("put")
 @cli_errors
+@cluster_options()
 def ddb_put(
     key: Annotated[str, typer.Argument(help="object key")],
     value: Annotated[str, typer.Argument(help="value: JSON (default), text (blob), integer (counter), JSON array")],
     type_name: Annotated[str, typer.Option("--type", "-t", help="json | blob | counter | list")] = "json",
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     timeout: Annotated[float, typer.Option("--timeout", min=0.1)] = 30.0,
     json_out: JsonOpt = False,
 ) -> None:
@@ -118,7 +114,7 @@ def ddb_put(
         op = ddb.put(key, type_name, parse_value(type_name, value))
     except ddb.DdbError as e:
         raise ClusterError(str(e)) from None
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply = _write(backend, h, [op], timeout)
     res = reply.results[0] if reply.results else None
@@ -145,17 +141,15 @@ def ddb_put(
 
 @ddb_app.command("del")
 @cli_errors
+@cluster_options()
 def ddb_del(
     keys: Annotated[list[str], typer.Argument(help="object keys")],
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     timeout: Annotated[float, typer.Option("--timeout", min=0.1)] = 30.0,
 ) -> None:
     """Delete objects (one batch; each key succeeds or fails on its own)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply = _write(backend, h, [ddb.delete(k) for k in keys], timeout)
     failed = [f"{r.key}: {r.reason}" for r in reply.results if not r.ok]
@@ -168,17 +162,15 @@ def ddb_del(
 
 @ddb_app.command("get")
 @cli_errors
+@cluster_options()
 def ddb_get(
     keys: Annotated[list[str], typer.Argument(help="object keys")],
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     json_out: JsonOpt = False,
 ) -> None:
     """Read objects from one host's replica (exit code 1 if a key is missing)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply: cpb.DdbGetReply = backend.call(h, lambda c: c.ddb_get(keys=keys), "DdbGet")
     found = {r.key: r for r in reply.objects}
@@ -210,19 +202,17 @@ def ddb_get(
 
 @ddb_app.command("ls")
 @cli_errors
+@cluster_options()
 def ddb_ls(
     prefix: Annotated[str, typer.Argument(help="key prefix")] = "",
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     limit: Annotated[int, typer.Option("--limit", min=0, help="at most this many (0 = all)")] = 0,
     values: Annotated[bool, typer.Option("--values", "-v", help="show values too")] = False,
     json_out: JsonOpt = False,
 ) -> None:
     """List the keys under a prefix (type, version; values with -v)."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     reply: cpb.DdbGetReply = backend.call(
         h, lambda c: c.ddb_get(prefix=prefix, keys_only=not values, limit=limit), "DdbGet"
@@ -341,19 +331,17 @@ def show_event(e: dict[str, Any]) -> str:
 
 @ddb_app.command("watch")
 @cli_errors
+@cluster_options()
 def ddb_watch(
     prefix: Annotated[str, typer.Argument(help="only keys with this prefix")] = "",
     host: HostOpt = None,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     views: Annotated[bool, typer.Option("--views/--no-views", help="also show view changes")] = True,
     count: Annotated[int, typer.Option("--count", min=0, help="stop after this many events (0 = Ctrl-C)")] = 0,
     json_out: Annotated[bool, typer.Option("--json", help="one JSON object per event")] = False,
 ) -> None:
     """Follow the mirror stream of one host: a snapshot, then every write (and view change) until Ctrl-C."""
-    backend = open_backend(compose, root, compose_file, swarm=swarm)
+    backend = where.backend()
     h = backend.pick_host(host)
     c = backend.client(h, timeout=None)
     stream = c.mirror(views=views)

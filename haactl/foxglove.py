@@ -10,18 +10,25 @@ from typing import Annotated
 import typer
 
 from haa.cluster.backend import ClusterError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, HostOpt, RootOpt, cli_errors, out, stop_on_signals
+from haactl.cliopts import (
+    LOCAL,
+    ClusterOpts,
+    HostOpt,
+    cli_errors,
+    cluster_options,
+    out,
+    stop_on_signals,
+)
 
 
 @cli_errors
+@cluster_options(without=("swarm",))
 def foxglove(
     port: Annotated[int, typer.Option("--port", "-p", min=0, max=65535,
                                       help="WebSocket port (0: any free port)")] = 8765,
     bind: Annotated[str, typer.Option("--bind", help="address to listen on (loopback by default)")] = "127.0.0.1",
     local: Annotated[bool, typer.Option("--local", help="the local cluster (the default)")] = False,
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     host: HostOpt = None,
     sim: Annotated[str | None, typer.Option(
         "--sim", help="haa-sim HOST:PORT for the true poses and landmarks (default: the local cluster's mission, else "
@@ -34,11 +41,10 @@ def foxglove(
     from haa import files
     from haa.lab import foxglove as bridge
     from haa.lab.dashboard.sources import SimTarget
-    from haactl.cliopts import open_backend
 
-    if local and compose:
+    if local and where.compose:
         raise ClusterError("--local and --compose exclude each other")
-    backend = open_backend(compose, root, compose_file)
+    backend = where.backend()
     backend.require_hosts()
     target = None
     if sim:

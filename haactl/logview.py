@@ -21,7 +21,13 @@ import typer
 from rich.markup import escape
 
 from haa.cluster.backend import ClusterError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, SwarmOpt, cli_errors, open_backend, out
+from haactl.cliopts import (
+    LOCAL,
+    ClusterOpts,
+    cli_errors,
+    cluster_options,
+    out,
+)
 
 PALETTE = (
     "cyan",
@@ -92,19 +98,17 @@ def emit(rec: dict[str, Any], json_out: bool) -> None:
 
 
 @cli_errors
+@cluster_options()
 def logs(
     follow: Annotated[bool, typer.Option("--follow", "-f", help="keep printing new lines until Ctrl-C")] = False,
     host: Annotated[list[str] | None, typer.Option("--host", "-H", help="only these hosts (repeatable)")] = None,
     tail: Annotated[int, typer.Option("--tail", "-n", min=0, help="only the last N lines of the history")] = 0,
     event: Annotated[list[str] | None, typer.Option("--event", "-e", help="only these events (repeatable)")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="print the JSON lines as they are")] = False,
-    compose: ComposeOpt = False,
-    swarm: SwarmOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """Show the hosts' JSON-lines logs merged by time (rich-formatted; -f follows)."""
-    backend = open_backend(compose, root, compose_file, last=True, swarm=swarm)
+    backend = where.backend(last=True)
     hosts = backend.require_hosts()
     names = [h.name for h in hosts]
     for n in host or []:

@@ -26,7 +26,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from haa.mission.schema import MissionError, load_mission
-from haactl.cliopts import ComposeOpt, RootOpt, err, out
+from haactl.cliopts import LOCAL, ClusterOpts, cluster_options, err, out
 from haactl.tables import table
 
 mission_app = typer.Typer(help="Run robot-team missions: run one end to end, or start/status/logs/stop one on a "
@@ -64,7 +64,7 @@ def _compose_backend() -> Any:
 def _state_dir(compose: bool, root: Path | None) -> Path:
     """Where the mission's state lives: <root>/mission, or the compose cluster's (haa.mission.compose)."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import mission_dir
+    from haa.mission.attached import mission_dir
 
     if compose:
         from haa.mission.compose import state_dir
@@ -114,7 +114,8 @@ def mission_run(
                                                 "docs/playback.md)")] = None,
 ) -> None:
     """Run a mission end to end on its own local cluster and haa-sim; exit 0 iff it completed."""
-    from haa.mission.runner import MissionRunError, ProgressInfo, run_mission
+    from haa.mission.plan import MissionRunError
+    from haa.mission.runner import ProgressInfo, run_mission
 
     mission = _load(file)
     spec = mission.spec
@@ -147,36 +148,37 @@ def mission_run(
 
 
 @mission_app.command("start")
+@cluster_options(without=("swarm", "compose_file"))
 def mission_start(
     file: FileArg,
     speed: SpeedOpt = None,
     local: Annotated[bool, typer.Option("--local", help="the local cluster (the default)")] = False,
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
+    where: ClusterOpts = LOCAL,
     sim: Annotated[str | None, typer.Option("--sim", help="a running haa-sim HOST:PORT to use")] = None,
     sim_token_file: Annotated[Path | None, typer.Option("--sim-token-file", help="its token file")] = None,
 ) -> None:
     """Start a mission on the running cluster (haa-sim is started unless one runs); it goes on in the
     background: `haactl mission status|logs|stop`."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import MissionRunError, start_attached
+    from haa.mission.attached import start_attached
+    from haa.mission.plan import MissionRunError
 
-    if local and compose:
+    if local and where.compose:
         _fail("--local and --compose exclude each other")
     mission = _load(file)
     try:
-        if compose:
+        if where.compose:
             from haa.cluster.backend import ClusterError
             from haa.mission import compose as mission_compose
 
-            if root is not None or sim is not None:
+            if where.root is not None or sim is not None:
                 _fail("--root and --sim are for local clusters (the compose cluster's haa-sim is its `sim` service)")
             try:
                 st = mission_compose.start(_compose_backend(), mission, speed)
             except ClusterError as e:
                 _fail(str(e))
         else:
-            st = start_attached(root or default_root(), mission, speed, sim, str(sim_token_file or ""))
+            st = start_attached(where.root or default_root(), mission, speed, sim, str(sim_token_file or ""))
     except MissionRunError as e:
         _fail(str(e))
     out.print(f"mission {mission.spec.name} started (conductor pid {st.get('pid')}, haa-sim {st.get('sim', '?')}): "
@@ -184,15 +186,15 @@ def mission_start(
 
 
 @mission_app.command("status")
+@cluster_options(without=("swarm", "compose_file"))
 def mission_status(
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
+    where: ClusterOpts = LOCAL,
     json_out: Annotated[bool, typer.Option("--json", help="JSON output")] = False,
 ) -> None:
     """Explored share, coverage, accuracy, each avatar's supervisor and target, agents per host."""
-    from haa.mission.runner import STATE_FILE, conductor_alive, read_json
+    from haa.mission.attached import STATE_FILE, conductor_alive, read_json
 
-    st = read_json(_state_dir(compose, root) / STATE_FILE)
+    st = read_json(_state_dir(where.compose, where.root) / STATE_FILE)
     if not st:
         _fail("no mission on this cluster (haactl mission start FILE)")
     assert st is not None
@@ -224,15 +226,15 @@ def mission_status(
 
 
 @mission_app.command("logs")
+@cluster_options(without=("swarm", "compose_file"))
 def mission_logs(
     follow: Annotated[bool, typer.Option("--follow", "-f", help="keep printing new lines until it finishes")] = False,
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """The mission transcript (Fig. 7.1-3 style): mission, agent, host and avatar events in simulated mm:ss."""
-    from haa.mission.runner import STATE_FILE, conductor_alive, live_transcript, read_json
+    from haa.mission.attached import STATE_FILE, conductor_alive, live_transcript, read_json
 
-    md = _state_dir(compose, root)
+    md = _state_dir(where.compose, where.root)
     if read_json(md / STATE_FILE) is None:
         _fail("no mission on this cluster (haactl mission start FILE)")
     shown: set[tuple[str, str]] = set()
@@ -257,19 +259,19 @@ def mission_logs(
 
 
 @mission_app.command("stop")
+@cluster_options(without=("swarm", "compose_file"))
 def mission_stop(
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
+    where: ClusterOpts = LOCAL,
 ) -> None:
     """Stop the mission: its agents are removed, the haa-sim `start` started is stopped; prints its results."""
     from haa.cluster.local_backend import default_root
-    from haa.mission.runner import stop_attached
+    from haa.mission.attached import stop_attached
 
-    if compose:
+    if where.compose:
         from haa.cluster.backend import ClusterError
         from haa.mission import compose as mission_compose
 
-        if root is not None:
+        if where.root is not None:
             _fail("--root is for local clusters; not with --compose")
         try:
             res = mission_compose.stop(_compose_backend())
@@ -277,7 +279,7 @@ def mission_stop(
             _fail(str(e))
             return
     else:
-        res = stop_attached(root or default_root())
+        res = stop_attached(where.root or default_root())
     if not res["was_running"] and not res["sim"] and not res["removed"]:
         out.print("no mission running" + (" (the last one's results follow)" if res["results"] else ""))
     if res["removed"]:
@@ -305,7 +307,7 @@ def experiment(
     """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
     the thesis' Table 7.1-1 / 7.1-2. R-1 (§7.3.1): N missions per failure level, Table 7.3-1 and eq. 7.3-1's k."""
     from haa.lab.experiments.af import EXPERIMENTS, mission_for, run_experiment, table_rows
-    from haa.mission.runner import MissionRunError
+    from haa.mission.plan import MissionRunError
 
     if name == "r1":
         _experiment_r1(runs, speed, json_out, out_dir, mission_file, levels)
@@ -344,7 +346,7 @@ def experiment(
 def _experiment_r1(runs: int, speed: float | None, json_out: Path | None, out_dir: Path | None,
                    mission_file: Path | None, levels: str | None) -> None:
     from haa.lab.experiments import r1
-    from haa.mission.runner import MissionRunError
+    from haa.mission.plan import MissionRunError
 
     try:
         mission = load_mission(mission_file) if mission_file else None

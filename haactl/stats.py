@@ -14,7 +14,14 @@ from rich.table import Table
 
 from haa.cluster.backend import ClusterError
 from haa.lab.stats.bundle import BundleError
-from haactl.cliopts import ComposeFileOpt, ComposeOpt, RootOpt, cli_errors, err, open_backend, out
+from haactl.cliopts import (
+    LOCAL,
+    ClusterOpts,
+    cli_errors,
+    cluster_options,
+    err,
+    out,
+)
 from haactl.tables import table
 
 stats_app = typer.Typer(help="Per-host statistics bundles (docs/stats.md).", no_args_is_help=True)
@@ -46,12 +53,11 @@ def summary_tables(s: dict[str, Any]) -> list[Table]:
 
 @stats_app.command("collect")
 @cli_errors
+@cluster_options(without=("swarm",))
 def collect(
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="write DIR/<host>.tar.gz and DIR/summary.json")],
     local: Annotated[bool, typer.Option("--local", help="the local cluster (the default)")] = False,
-    compose: ComposeOpt = False,
-    root: RootOpt = None,
-    compose_file: ComposeFileOpt = None,
+    where: ClusterOpts = LOCAL,
     hosts: Annotated[list[str] | None, typer.Option("--host", "-H", help="only this host (repeatable)")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="only the paths written")] = False,
 ) -> None:
@@ -59,9 +65,9 @@ def collect(
     cluster summary; works while the cluster runs, for hosts that crashed, and after `cluster down`."""
     from haa.lab.stats.collect import collect_bundles
 
-    if local and compose:
+    if local and where.compose:
         raise ClusterError("--local and --compose exclude each other")
-    backend = open_backend(compose, root, compose_file, last=True)
+    backend = where.backend(last=True)
     say = None if quiet else (lambda s: err.print(f"[dim]{escape(s)}[/dim]"))
     res = collect_bundles(backend, out_dir, names=hosts or None, progress=say)
     if not quiet:

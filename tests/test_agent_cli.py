@@ -15,12 +15,13 @@ import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 from typer.testing import CliRunner
 
-from haa.cluster.agents import merge_agents
+from haa.cluster.agents import AgentRow, merge_agents
 from haa.cluster.events import TimelineEvent
 from haa.cluster.feed import EventFeed
 from haa.pb import control_pb2 as cpb
@@ -98,6 +99,48 @@ def test_no_cluster_is_a_clear_error(tmp_path: Path) -> None:
     r = runner.invoke(app, ["agent", "list", "--root", str(tmp_path)])
     assert r.exit_code == 1
     assert "no cluster running" in r.output and "haactl cluster up" in r.output
+
+
+class MovedAgentCluster:
+    """A cluster where agent A1 was listed on h1 but has moved by the time of the kill: h1 answers AgentKill
+    with the typed owner of the agent table (`owner`), the host that runs it now kills it."""
+
+    def __init__(self, owner: str, reason: str) -> None:
+        self.asked: list[str] = []
+        self.replies = {
+            "h1": cpb.AgentOpReply(ok=False, id="a1", name="A1", owner=owner, reason=reason),
+            "h2": cpb.AgentOpReply(ok=True, id="a1", name="A1"),
+        }
+
+    def hosts(self) -> list[Any]:
+        return [SimpleNamespace(name=n) for n in ("h1", "h2", "h3")]
+
+    def call(self, name: str, fn: Any, what: str, timeout: float | None = None) -> Any:
+        self.asked.append(name)
+        return fn(SimpleNamespace(agent_kill=lambda ref: self.replies[name]))
+
+
+@pytest.mark.parametrize(("owner", "reason", "asked", "said"), [
+    # it moved: asked once more, on the owner the reply names (its reason's words are for people only)
+    ("h2", "not running here; its owner is h2", ["h1", "h2"], "killed A1 on h2"),
+    ("h2", "not running here (moved to h2)", ["h1", "h2"], "killed A1 on h2"),
+    # no owner: nobody to ask
+    ("", "not running here; its owner is nobody", ["h1"],
+     "error: kill A1 on h1: not running here; its owner is nobody"),
+])
+def test_kill_asks_the_owner_the_host_names(monkeypatch: pytest.MonkeyPatch, owner: str, reason: str,
+                                            asked: list[str], said: str) -> None:
+    import haactl.agentcli as ac
+
+    cluster = MovedAgentCluster(owner, reason)
+    row = AgentRow(name="A1", id="a1", type="counter", state="active", host="h1", cpu=0.0, parent="",
+                   parent_id="", epoch=1, backup=True, status="active", owner="h1", alloc="h1",
+                   phases={"h1": "active"})
+    monkeypatch.setattr(ac.ClusterOpts, "backend", lambda self, last=False: cluster)
+    monkeypatch.setattr(ac, "load_rows", lambda backend: ({}, [row]))
+    r = runner.invoke(app, ["agent", "kill", "A1", "--no-wait"])
+    assert r.exit_code == (0 if owner else 1), r.output
+    assert said in " ".join(r.output.split()) and cluster.asked == asked
 
 
 # ---------------------------------------------------------------------------------------------- a cluster

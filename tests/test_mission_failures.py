@@ -41,7 +41,8 @@ import numpy as np
 import pytest
 from test_mission_runner import our_processes
 
-from haa.mission import load_mission
+from haa.cluster import queries
+from haa.mission import load_mission, plan
 from haa.mission import runner as rn
 
 HERE = Path(__file__).resolve().parent
@@ -89,11 +90,11 @@ class Mirror(threading.Thread):
         from haa.core.ddb import Ddb
 
         while not self.stop.is_set():
-            hosts = rn.alive_hosts(self.run_.backend)
+            hosts = queries.alive_hosts(self.run_.backend)
             if not hosts:
                 self.stop.wait(0.2)
                 continue
-            c = rn._client(self.run_.backend, hosts[0], 3.0)
+            c = queries.host_client(self.run_.backend, hosts[0], 3.0)
             try:
                 db = None
                 for m in c.mirror(views=False, timeout=None):
@@ -144,7 +145,7 @@ class Tap:
         if self.act is not None:
             self.act(run, self)
         self.polls += 1
-        got = rn.ddb_read(run.backend, prefix="", prefer=run.reader)
+        got = queries.ddb_read(run.backend, prefix="", prefer=run.reader)
         if got is None:
             return
         keep = ("avatars/", "assign/", "targets/", "bids/", "slam/estimates", "mission/status", "stats/")
@@ -246,7 +247,7 @@ def run_mission_file(path: Path, out: Path, act: Callable[[rn.MissionRun, Tap], 
             tap.mirror.join(10)
     time.sleep(0.5)
     text = (out / "transcript.txt").read_text()
-    return Run(results, tap, text, list(run.samples.explored), out)
+    return Run(results, tap, text, list(run.tally.samples.explored), out)
 
 
 def recoveries(r: Run, type_name: str, kind: str) -> list[tuple[str, float, float]]:
@@ -305,17 +306,17 @@ def test_a_host_kill_the_group_cannot_survive_is_refused_before_anything_starts(
     two.write_text("name: two\nscenario: explore\narena: small\nspeed: 4\nhosts:\n  start: 2\n  schedule:\n"
                    "    - {at_s: 10, kill: h2}\n    - {at_s: 30, restart: h2}\navatars:" + text)
     mission = load_mission(two)
-    (problem,) = rn.host_kill_problems(mission)
+    (problem,) = plan.host_kill_problems(mission)
     assert "kill h2 at 10 s leaves 1 of 2 hosts" in problem
-    with pytest.raises(rn.MissionRunError, match="kill h2 at 10 s leaves 1 of 2"):
+    with pytest.raises(plan.MissionRunError, match="kill h2 at 10 s leaves 1 of 2"):
         rn.run_mission(mission, None, tmp_path / "out")
     assert not (tmp_path / "out" / "cluster").exists(), "nothing may start"
     three = tmp_path / "three.yaml"
     three.write_text(two.read_text().replace("start: 2", "start: 3"))
-    assert rn.host_kill_problems(load_mission(three)) == []
+    assert plan.host_kill_problems(load_mission(three)) == []
     again = tmp_path / "again.yaml"  # two kills in a row: the second finds a group of two
     again.write_text(three.read_text().replace("{at_s: 30, restart: h2}", "{at_s: 30, kill: h3}"))
-    assert [p.split(" leaves")[0] for p in rn.host_kill_problems(load_mission(again))] == [
+    assert [p.split(" leaves")[0] for p in plan.host_kill_problems(load_mission(again))] == [
         "hosts.schedule: kill h3 at 30 s"]
 
 

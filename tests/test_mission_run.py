@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from test_mission_runner import our_processes
 
-from haa.mission import load_mission
+from haa.mission import load_mission, results
 from haa.mission import runner as rn
 
 HERE = Path(__file__).resolve().parent
@@ -27,7 +27,7 @@ def ci_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
 
 def test_the_mission_completes_with_every_result_key(ci_run: tuple[dict, Path]) -> None:
     r, tmp = ci_run
-    assert set(rn.REQUIRED_KEYS) <= set(r)
+    assert set(results.REQUIRED_KEYS) <= set(r)
     assert r["completed"] is True, (r["reason"], r.get("errors"))
     assert not r.get("errors"), r["errors"]
     assert 0 < r["coverage"] <= 1 and 0 < r["accuracy"] <= 1 and r["position_error_m"] is not None

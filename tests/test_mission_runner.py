@@ -21,7 +21,7 @@ import pytest
 from test_mission_runner_fakes import EST_OFFSET_M, FAKE_AVATAR, FAKE_DURATION_S, FAKE_EXEC
 
 from haa.lab.experiments import af as ex
-from haa.mission import load_mission
+from haa.mission import attached, load_mission, plan, results
 from haa.mission import runner as rn
 from haa.mission import transcript as tr
 from haa.sim.schedule import load_schedule
@@ -86,22 +86,22 @@ def our_processes(marker: str) -> list[str]:
 
 def test_due_applies_entries_in_order_at_their_time():
     times = [0.0, 60.0, 60.0, 120.0]
-    assert rn.due(times, 0, 0.0) == 1
-    assert rn.due(times, 1, 59.9) == 1
-    assert rn.due(times, 1, 60.0) == 3  # entries at the same time together, in file order
-    assert rn.due(times, 3, 1e9) == 4 and rn.due([], 0, 5.0) == 0
+    assert plan.due(times, 0, 0.0) == 1
+    assert plan.due(times, 1, 59.9) == 1
+    assert plan.due(times, 1, 60.0) == 3  # entries at the same time together, in file order
+    assert plan.due(times, 3, 1e9) == 4 and plan.due([], 0, 5.0) == 0
 
 
 def test_host_and_avatar_plans_follow_the_mission(tmp_path):
     m = load_mission(REPO / "missions" / "af1.yaml")
-    hp = rn.host_plan(m)
+    hp = plan.host_plan(m)
     assert hp[:3] == [(60.0, "leave", "h4"), (120.0, "join", "h5"), (180.0, "leave", "h5")]
-    ap = rn.avatar_plan(m)
+    ap = plan.avatar_plan(m)
     assert ap[:3] == [(0.0, "join", "s1"), (0.0, "join", "s2"), (0.0, "join", "s3")]
     assert (120.0, "retire", "s1") in ap and ap[-1][0] == 150.0
     # the --schedule file haa-sim gets says the same
     f = tmp_path / "sched.yaml"
-    f.write_text(rn.schedule_yaml(m))
+    f.write_text(plan.schedule_yaml(m))
     entries = load_schedule(f, len(m.arena.start_poses))
     assert [(e.at, e.kind) for e in entries] == [(0.0, "join")] * 3 + [(120.0, "retire"), (150.0, "join"),
                                                                         (150.0, "join")]
@@ -109,19 +109,13 @@ def test_host_and_avatar_plans_follow_the_mission(tmp_path):
 
 
 def test_the_end_of_a_mission():
-    assert rn.status_outcome(None) is None and rn.status_outcome({"state": "running"}) is None
-    assert rn.status_outcome({"state": "complete", "reason": "95.1 % explored"}) == (True, "95.1 % explored")
-    assert rn.status_outcome({"state": "stopped"}) == (False, "stopped")
-    assert not rn.time_limit_reached(900.0, 900.0) and rn.time_limit_reached(902.0, 900.0)
-    assert rn.mission_duration({"started_t": 10.0, "finished_t": 238.0}, 300.0) == 228.0
-    assert rn.mission_duration({"started_t": 10.0, "finished_t": None}, 300.0) == 290.0
-    assert rn.mission_duration(None, 42.0) == 42.0
-
-
-def test_ddb_values_are_decoded():
-    assert rn.decode_value("json", b'{"a":1}') == {"a": 1}
-    assert rn.decode_value("counter", (-5).to_bytes(8, "big", signed=True)) == -5
-    assert rn.decode_value("blob", b"xy") == b"xy"
+    assert plan.status_outcome(None) is None and plan.status_outcome({"state": "running"}) is None
+    assert plan.status_outcome({"state": "complete", "reason": "95.1 % explored"}) == (True, "95.1 % explored")
+    assert plan.status_outcome({"state": "stopped"}) == (False, "stopped")
+    assert not plan.time_limit_reached(900.0, 900.0) and plan.time_limit_reached(902.0, 900.0)
+    assert plan.mission_duration({"started_t": 10.0, "finished_t": 238.0}, 300.0) == 228.0
+    assert plan.mission_duration({"started_t": 10.0, "finished_t": None}, 300.0) == 290.0
+    assert plan.mission_duration(None, 42.0) == 42.0
 
 
 # ---------------------------------------------------------------------------------------------- transcript
@@ -281,7 +275,7 @@ def test_without_the_team_agents_the_runner_says_so_before_starting_anything(tmp
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
                         lambda name, *a: None if name == "haa.agents.executive_mission" else real(name, *a))
-    with pytest.raises(rn.MissionRunError, match="executive_mission"):
+    with pytest.raises(plan.MissionRunError, match="executive_mission"):
         run(mission_file(tmp_path), tmp_path)
     assert not (tmp_path / "out" / "cluster").exists()
 
@@ -295,7 +289,7 @@ def test_a_mission_with_stand_in_agents_runs_end_to_end(tmp_path, monkeypatch):
     types = fake_team(monkeypatch)
     t0 = time.time()
     r = run(mission_file(tmp_path), tmp_path, agent_types=types)
-    assert set(rn.REQUIRED_KEYS) <= set(r)
+    assert set(results.REQUIRED_KEYS) <= set(r)
     assert r["completed"] is True, r["reason"]
     assert r["duration_s"] == pytest.approx(FAKE_DURATION_S, abs=2.0) and r["wall_s"] < time.time() - t0 + 1
     assert r["position_error_m"] == pytest.approx(EST_OFFSET_M, abs=1e-6)
@@ -336,29 +330,29 @@ def test_start_status_stop_on_a_running_cluster(tmp_path, monkeypatch):
             assert time.monotonic() < deadline
             time.sleep(0.2)
         m = load_mission(mission_file(tmp_path, FAKE_MISSION.replace("speed: 4", "speed: 2")))
-        st = rn.start_attached(root, m, agent_types=types)
+        st = attached.start_attached(root, m, agent_types=types)
         assert st["pid"] and st["mission"] == "fake"
-        with pytest.raises(rn.MissionRunError, match="is running"):
-            rn.start_attached(root, m, agent_types=types)
+        with pytest.raises(plan.MissionRunError, match="is running"):
+            attached.start_attached(root, m, agent_types=types)
         deadline = time.monotonic() + 60
         while True:
-            st = rn.read_json(rn.mission_dir(root) / rn.STATE_FILE)
+            st = attached.read_json(attached.mission_dir(root) / attached.STATE_FILE)
             if (st and st.get("state") == "running" and st.get("avatars") and st["avatars"][0]["agent"]
                     and sum(len(v) for v in st["agents_per_host"].values()) >= 2):
                 break
             assert time.monotonic() < deadline, st
             time.sleep(0.3)
         assert st["hosts"] == ["h1", "h2"]  # the host schedule is not applied to the operator's cluster
-        time.sleep(rn.TRANSCRIPT_PERIOD + 1.5)
-        assert any("requested by the operator" in ln["text"] for ln in rn.live_transcript(root))
-        res = rn.stop_attached(root)
+        time.sleep(attached.TRANSCRIPT_PERIOD + 1.5)
+        assert any("requested by the operator" in ln["text"] for ln in attached.live_transcript(root))
+        res = attached.stop_attached(root)
         assert res["was_running"] and res["sim"] == "stopped"
         assert res["results"]["completed"] is False and res["results"]["reason"] == "stopped by the operator"
         agents = [a for a in LocalBackend(root).hosts()]
-        assert agents and not our_processes(str(rn.mission_dir(root)))
-        assert not rn.conductor_alive(rn.read_json(rn.mission_dir(root) / rn.STATE_FILE))
+        assert agents and not our_processes(str(attached.mission_dir(root)))
+        assert not attached.conductor_alive(attached.read_json(attached.mission_dir(root) / attached.STATE_FILE))
     finally:
-        rn.stop_attached(root)
+        attached.stop_attached(root)
         b.down(grace=1.0)
     assert not our_processes(str(tmp_path))
 
@@ -369,7 +363,7 @@ def test_the_quick_mission_of_the_robot_team(tmp_path):
     agents made no ground-truth or Detect call, nothing is left running. (Further checks of a shared short
     mission — an agent kill, a host leave — can go here; issue 15 §5.)"""
     r = run(REPO / "missions" / "quick.yaml", tmp_path, speed=2.0)
-    assert set(rn.REQUIRED_KEYS) <= set(r)
+    assert set(results.REQUIRED_KEYS) <= set(r)
     assert r["completed"] is True, (r["reason"], r["errors"])
     assert r["sim_truth_calls"] == {}, r["sim_truth_calls"]
     assert r["readings_generated"] > 0 and r["readings_processed"] > 0

@@ -12,15 +12,16 @@ from pathlib import Path
 from test_mission_runner import FAKE_MISSION, fake_team, mission_file, our_processes
 from test_mission_runner_fakes import FAKE_DURATION_S
 
+from haa.cluster import queries
 from haa.cluster.local_backend import LocalBackend
-from haa.mission import load_mission
+from haa.mission import attached, load_mission
 from haa.mission import runner as rn
 
 
 def wait_state(root: Path, pred, timeout: float, what: str) -> dict:
     deadline = time.monotonic() + timeout
     while True:
-        st = rn.read_json(rn.mission_dir(root) / rn.STATE_FILE) or {}
+        st = attached.read_json(attached.mission_dir(root) / attached.STATE_FILE) or {}
         if pred(st):
             return st
         assert time.monotonic() < deadline, f"timed out waiting for {what}: {st}"
@@ -40,19 +41,19 @@ def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
         m = load_mission(mission_file(tmp_path, FAKE_MISSION))
         durations = []
         for _ in range(2):
-            st = rn.start_attached(root, m, agent_types=types)
+            st = attached.start_attached(root, m, agent_types=types)
             assert st["mission"] == "fake"
             st = wait_state(root, lambda s: s.get("state") == "running", 30, "the mission to run")
             st = wait_state(root, lambda s: s.get("state") in ("finished", "failed"), 60, "the mission to end")
             res = st["results"]
             assert res["completed"] is True, res
             durations.append(float(res["duration_s"]))
-            rn.stop_attached(root)  # stops the haa-sim `start` started
+            attached.stop_attached(root)  # stops the haa-sim `start` started
         # each mission ran its own FAKE_DURATION_S: the second did not inherit the first's `complete`
         assert all(d >= 0.8 * FAKE_DURATION_S for d in durations), durations
-        values = rn.ddb_read(b, keys=[rn.K_STATUS])
+        values = queries.ddb_read(b, keys=[rn.K_STATUS])
         assert values is not None and values[1][rn.K_STATUS]["state"] == "complete"
     finally:
-        rn.stop_attached(root)
+        attached.stop_attached(root)
         b.down(grace=1.0)
     assert not our_processes(str(tmp_path))

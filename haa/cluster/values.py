@@ -1,6 +1,7 @@
 """DDB values as an operator reads them: `plain_value(type, bytes)` turns a record's canonical value bytes
 (haa.core.ddb's types: json, blob, counter, list, log, ...) into a JSON-able Python value — text where the
-bytes are UTF-8, "base64:..." where they are not. Used by `haactl ddb` (get, ls, watch) and the demo
+bytes are UTF-8, "base64:..." where they are not. Decoded by haa.core.ddb.decode_value (the one decoder);
+bytes it cannot decode are shown as they are. Used by `haactl ddb` (get, ls, watch) and the demo
 (haa.lab.experiments.demo reads the counters the agents publish).
 """
 
@@ -21,15 +22,12 @@ def show_bytes(b: bytes) -> str:
 
 
 def plain_value(type_name: str, data: bytes) -> Any:
-    """A record's canonical value bytes -> a JSON-able Python value."""
-    t = ddb.TYPES.get(type_name)
-    if t is None:
-        return show_bytes(data)
+    """A record's canonical value bytes -> a JSON-able Python value (an unknown type or malformed bytes: the
+    bytes, shown)."""
     try:
-        raw, _ = t.decode(data)
-    except Exception:
+        value = ddb.decode_value(type_name, data)
+    except ddb.DdbError:
         return show_bytes(data)
-    value = t.public(raw)
     if isinstance(value, bytes):
         return show_bytes(value)
     if isinstance(value, tuple):

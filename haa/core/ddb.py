@@ -1056,6 +1056,20 @@ def log_trim(key: str, upto: int) -> pb.DdbOp:
     return _op(log_trim=body)
 
 
+def decode_value(type_name: str, data: bytes) -> Any:
+    """A record's canonical value bytes (what `DdbGet`, a watch event or a snapshot record carries) -> the value
+    a reader of the replica sees (`DdbObject.value`): json parsed, counter an int, list a tuple of bytes items,
+    log {"first": index, "items": tuple of bytes}, blob bytes. Raises `DdbError` for an unknown type or
+    malformed bytes. The one decoder of DDB values: haa.cluster.values.plain_value (the operator's JSON-able
+    form) and haa.cluster.queries.ddb_read build on it."""
+    try:
+        t = _type(type_name)
+        raw, _ = t.decode(data)
+    except _OpFailed as e:
+        raise DdbError(e.args[0]) from None
+    return t.public(raw)
+
+
 def decode_log(data: bytes) -> LogValue:
     """A log's stored bytes (its canonical value: what `DdbGet` and an agent's `ddb_get` return, a snapshot
     record's value) -> `(first, items)`: item k has index first + k. Raises `DdbError` if malformed."""

@@ -135,7 +135,7 @@ class AgentControl:
             return cpb.AgentOpReply(ok=False, reason=f"unknown agent {request.ref!r}")
         drv = self.agents
         if drv is None or r.id not in drv.sup.agents():
-            return cpb.AgentOpReply(ok=False, id=r.id, name=r.name,
+            return cpb.AgentOpReply(ok=False, id=r.id, name=r.name, owner=r.owner,
                                     reason=f"not running here; its owner is {r.owner or 'nobody'}")
         loc = node.local.get(r.id)
         if loc is not None and loc.phase in ("claiming", "thawing", "recovering"):

@@ -4,12 +4,12 @@ The agents run in the host containers; haa-sim is the compose file's `sim` servi
 image): agents reach it as `sim:7100` in the cluster network with the token the containers mount
 (/run/haa/token), this machine as its published port (127.0.0.1:17100) with compose/token. `start`:
 
-* uses the `sim` container if it runs (its arena and seed must be the mission's: haa.mission.runner
+* uses the `sim` container if it runs (its arena and seed must be the mission's: haa.mission.simproc
   refuses another), else starts it with the mission's arena (the built-in `small` or `large`: the service
   cannot read an arena file of this machine), seed and speed (HAA_SIM_ARENA/SEED/SPEED of compose.yaml) and
   remembers that it did, so that `stop` stops it again; the avatars then join through SimControl at their
   times (haa-sim's own `--schedule` is not used);
-* runs the mission conductor of haa.mission.runner (`python -m haa.mission.compose conduct ...`: the
+* runs the mission conductor of haa.mission.attached (`python -m haa.mission.compose conduct ...`: the
   conductor with a ComposeBackend) in the background, with its state in `.haa/compose-<project>/mission/`
   under the current directory (state.json, transcript.jsonl, the run's results and PNGs in run/).
 
@@ -25,7 +25,8 @@ from typing import Any
 
 from haa.cluster.backend import ClusterError
 from haa.cluster.compose_backend import LABEL_PROJECT, LABEL_SERVICE, ComposeBackend
-from haa.mission.runner import MissionRunError, read_json, start_attached, stop_attached, write_json
+from haa.mission.attached import read_json, start_attached, stop_attached, write_json
+from haa.mission.plan import MissionRunError
 from haa.mission.schema import Mission
 
 SIM_SERVICE = "sim"
@@ -131,10 +132,10 @@ def stop(backend: ComposeBackend) -> dict[str, Any]:
 
 
 def conduct_main(argv: list[str]) -> int:
-    """`python -m haa.mission.compose conduct --compose-file F --project P <runner conduct args>`."""
+    """`python -m haa.mission.compose conduct --compose-file F --project P <attached conduct args>`."""
     import argparse
 
-    from haa.mission.runner import conduct
+    from haa.mission.attached import conduct
 
     p = argparse.ArgumentParser(prog="python -m haa.mission.compose conduct")
     p.add_argument("--compose-file", type=Path, required=True)

@@ -21,8 +21,8 @@ Localization. `PoseHistory` keeps the true poses polled from haa-sim; an estimat
 `t` is compared with the true pose interpolated at `t` (`pose_samples`), and `position_error` is the mean over
 avatars of each avatar's mean error.
 
-Time averages. `time_average` weights each polled value by the simulated time until the next sample
-(step function), over [start, end].
+Time averages. `Samples` holds what the runner polled over mission time; `time_average` weights each polled
+value by the simulated time until the next sample (step function), over [start, end].
 """
 
 from __future__ import annotations
@@ -215,6 +215,18 @@ def mean_of_means(values: dict[str, Sequence[float]]) -> float | None:
 
 
 # ---------------------------------------------------------------------------------------------- time averages
+
+
+@dataclass
+class Samples:
+    """What the mission runner's polling collected, as (simulated mission time, value) series: the group size,
+    the active agents, the machine's CPU, the active agents per host, the explored share."""
+
+    hosts: list[tuple[float, float]] = field(default_factory=list)
+    agents: list[tuple[float, float]] = field(default_factory=list)
+    cpu: list[tuple[float, float]] = field(default_factory=list)
+    per_host: list[tuple[float, dict[str, int]]] = field(default_factory=list)
+    explored: list[tuple[float, float]] = field(default_factory=list)
 
 
 def time_average(samples: Iterable[tuple[float, float]], start: float, end: float) -> float | None:

@@ -8,7 +8,7 @@ mm:ss of simulated mission time.
     01:00 h4 retires (graceful leave)
     03:58 Mission finished: 95.1 % explored
 
-Sources, merged by `merge`:
+Sources, merged by `merge` (`mission_transcript` makes a mission's from all three):
 
 * the team's own lines, DDB log `mission/events` (docs/team.md: `{"t": sim s, "agent": name, "type": type,
   "text": str}`) — `mission_lines`;
@@ -267,3 +267,27 @@ def host_agent_lines(events: list[dict[str, Any]], clock_map: ClockMap, t0: floa
         t = clock_map.to_sim(e["time"]) - t0 if clock_map else 0.0
         out.append(Line(t, text, "host", e["event"], e["name"], e["host"], e["time"]))
     return out
+
+
+def mission_transcript(runner_lines: Iterable[Line], events: Iterable[Any], records: Iterable[dict[str, Any]],
+                       clock_map: ClockMap, t0: float = 0.0, status: dict[str, Any] | None = None,
+                       since: float | None = None) -> tuple[list[Line], list[dict[str, Any]]]:
+    """A mission's transcript (module docstring) and the agent timeline events it was made from: the runner's
+    own lines, the team's `mission/events` entries, and the agent events among the hosts' log `records` (those
+    from wall time `since` on, when given: a cluster the operator runs has older ones), on the mission clock
+    (`clock_map`'s simulated time minus `t0`). "Mission started" and "Mission finished" come from the last
+    `mission/status` when the team's own lines do not say so."""
+    agent_events = host_agent_events(records)
+    if since is not None:
+        agent_events = [e for e in agent_events if e["time"] >= since]
+    host_lines = host_agent_lines(agent_events, clock_map, t0) if clock_map else []
+    team = mission_lines(events)
+    own = list(runner_lines)
+    texts = " ".join(ln.text.lower() for ln in team)
+    st = status if isinstance(status, dict) else {}
+    if "mission started" not in texts and isinstance(st.get("started_t"), int | float):
+        own.append(Line(float(st["started_t"]) - t0, "Mission started", "runner", "mission"))
+    if "mission finished" not in texts and isinstance(st.get("finished_t"), int | float):
+        reason = f": {st['reason']}" if st.get("reason") else ""
+        own.append(Line(float(st["finished_t"]) - t0, f"Mission finished{reason}", "runner", "mission"))
+    return merge(own, team, host_lines), agent_events

@@ -404,16 +404,18 @@ class AgentMoveRequest(_message.Message):
     def __init__(self, ref: _Optional[str] = ..., host: _Optional[str] = ...) -> None: ...
 
 class AgentOpReply(_message.Message):
-    __slots__ = ("ok", "id", "name", "reason")
+    __slots__ = ("ok", "id", "name", "reason", "owner")
     OK_FIELD_NUMBER: _ClassVar[int]
     ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     REASON_FIELD_NUMBER: _ClassVar[int]
+    OWNER_FIELD_NUMBER: _ClassVar[int]
     ok: bool
     id: str
     name: str
     reason: str
-    def __init__(self, ok: _Optional[bool] = ..., id: _Optional[str] = ..., name: _Optional[str] = ..., reason: _Optional[str] = ...) -> None: ...
+    owner: str
+    def __init__(self, ok: _Optional[bool] = ..., id: _Optional[str] = ..., name: _Optional[str] = ..., reason: _Optional[str] = ..., owner: _Optional[str] = ...) -> None: ...
 
 class AllocRequest(_message.Message):
     __slots__ = ("action",)

@@ -199,7 +199,7 @@ def _write(name: str, m: Mission, runs: int, speed: float | None, t0: float, res
            json_out: Path | None, partial: bool) -> dict[str, Any]:
     """The summary of the runs so far as JSON (`partial`: fewer than `runs` done; the file name gets
     `-partial`)."""
-    from haa.mission.runner import provenance
+    from haa.mission.results import provenance
 
     doc = {
         **summarize(name, results),

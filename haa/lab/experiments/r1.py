@@ -185,7 +185,7 @@ def run_r1(
 
 def _write(path: Path, m: Mission, runs: int, speed: float | None, t0: float,
            by_level: dict[str, list[dict[str, Any]]], chosen: list[str]) -> dict[str, Any]:
-    from haa.mission.runner import provenance
+    from haa.mission.results import provenance
 
     done = sum(len(v) for v in by_level.values())
     doc = {
