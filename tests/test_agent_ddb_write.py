@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
@@ -27,10 +27,6 @@ from haa.pb import ddb_pb2
 from haa.sdk.base import AgentBase, AgentContext, HostError, new_agent_id
 
 # ============================================================================ the agent's side (in-process)
-
-
-def run(coro: Any) -> Any:
-    return asyncio.run(asyncio.wait_for(coro, 20))
 
 
 class Writer(AgentBase):

@@ -23,6 +23,7 @@ import grpc
 import psutil
 import pytest
 from grpc import aio
+from helpers import until
 from hostilecluster import (
     AGENTS,
     TOKEN,
@@ -35,7 +36,6 @@ from hostilecluster import (
     start_cluster,
     view,
 )
-from waits import until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait

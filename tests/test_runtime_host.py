@@ -9,7 +9,7 @@ import time
 from collections.abc import Awaitable, Callable, Hashable
 
 import pytest
-from waits import until
+from helpers import until
 
 from haa.cluster.hostprocs import free_port
 from haa.core.effects import CancelTimer, SetTimer

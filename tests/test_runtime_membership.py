@@ -20,7 +20,7 @@ from typing import Any
 
 import grpc
 import pytest
-from waits import until
+from helpers import until
 
 from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
 from haa.cluster.hostprocs import wait_for as wait

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from waits import until
+from helpers import until
 
 from haa.core import agentio as io
 from haa.core import ddb

@@ -23,7 +23,7 @@ from typing import Any
 import grpc
 import pytest
 from grpc import aio
-from waits import until
+from helpers import until
 
 from haa.cluster.hostprocs import free_port
 from haa.core import wire
