@@ -53,6 +53,7 @@ from google.protobuf import message_factory
 from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 from grpc import aio
+from helpers import run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_sim_service import SimProcess
@@ -271,12 +272,8 @@ def inputs(desc: Descriptor, n: int = BATCH, max_random: int = 200) -> st.Search
 
 @functools.cache
 def _loop() -> asyncio.AbstractEventLoop:
+    """This module's event loop: one for all examples, cheap per example (`run(coro, loop=_loop())`)."""
     return asyncio.new_event_loop()
-
-
-def run(coro: Any, timeout: float = 10.0) -> Any:
-    """Run `coro` on this module's event loop (one loop for all examples: cheap per example)."""
-    return _loop().run_until_complete(asyncio.wait_for(coro, timeout))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -385,7 +382,7 @@ def test_fuzz_link_frames_receive_loop(seed: int) -> None:
         rx = _RxState(inc)
         t._rx["a"] = rx
         try:
-            run(t._receive(_aiter(frames), "a", inc, rx, _Acks()))  # type: ignore[arg-type]
+            run(t._receive(_aiter(frames), "a", inc, rx, _Acks()), loop=_loop())  # type: ignore[arg-type]
         except LinkGap:
             pass
         except Exception as e:
@@ -420,7 +417,7 @@ class _LinkServer:
         """Open a stream, send `frames` once the handshake came (as a real peer does), read to the end. The
         status: the server's refusal, or (accepted) OK - a write racing with the server ending the stream
         (a LinkGap) fails on the client side as INTERNAL, which says nothing about the server."""
-        hello, ended = asyncio.Event(), asyncio.Event()
+        hello, taken, ended = asyncio.Event(), asyncio.Event(), asyncio.Event()
         accepted = False
 
         async def send() -> AsyncIterator[bytes]:
@@ -428,6 +425,7 @@ class _LinkServer:
             if accepted:
                 for f in frames:
                     yield f
+            taken.set()  # gRPC asked for what follows the last frame: it has written them all
             await ended.wait()  # half-closing at once would end the server's stream before it read the frames
 
         call = self.channel.stream_stream(OPEN_METHOD)(send(), metadata=md, timeout=5.0)
@@ -436,7 +434,11 @@ class _LinkServer:
                 async for _ in call:
                     accepted = True
                     hello.set()
-                    await asyncio.sleep(0.01)  # let the frames go out
+                    # the frames go out, unless the server ends the stream first (a LinkGap)
+                    waits = [asyncio.ensure_future(taken.wait()), asyncio.ensure_future(call.code())]
+                    await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+                    for w in waits:
+                        w.cancel()
                     break
         finally:
             hello.set()
@@ -465,7 +467,7 @@ class _Capture(logging.Handler):
 @pytest.fixture(scope="module")
 def link_server() -> Iterator[_LinkServer]:
     s = _LinkServer()
-    run(s.start())
+    run(s.start(), loop=_loop())
     logger = logging.getLogger(LOGGER_NAME + ".transport")
     handler, old = _Capture(s.records), logger.level
     logger.addHandler(handler)
@@ -475,7 +477,7 @@ def link_server() -> Iterator[_LinkServer]:
     finally:
         logger.removeHandler(handler)
         logger.setLevel(old)
-        run(s.stop())
+        run(s.stop(), loop=_loop())
 
 
 LINK_CODES = {
@@ -507,7 +509,7 @@ def test_fuzz_link_streams_on_a_real_server(link_server: _LinkServer, seed: int)
         )
         frames = make_frames(rng, rng.randint(0, 4), "a", 11)
         n = len(link_server.records)
-        code = run(link_server.open(md, frames))
+        code = run(link_server.open(md, frames), loop=_loop())
         assert code in LINK_CODES, (code, md)
         for r in link_server.records[n:]:
             if getattr(r, "event", "") == "link_receive_ended":
@@ -517,7 +519,7 @@ def test_fuzz_link_streams_on_a_real_server(link_server: _LinkServer, seed: int)
 def test_link_server_still_serves_after_the_fuzzing(link_server: _LinkServer) -> None:
     before = link_server.got
     code = run(link_server.open((("x-haa-token", "tok"), (MD_SENDER, "zz"), (MD_INC, "3")), [
-        encode_frame(1, [chunk(wire.encode("zz", 3, 7, Excluded(5)).SerializeToString())])]))
+        encode_frame(1, [chunk(wire.encode("zz", 3, 7, Excluded(5)).SerializeToString())])]), loop=_loop())
     assert code == grpc.StatusCode.OK and link_server.got == before + 1
 
 
@@ -576,7 +578,7 @@ def test_fuzz_agent_channel_frames(in_type: type[Message]) -> None:
         for _ in range(10):
             data = make_channel_stream(rng, in_type)
             try:
-                got, how = run(_read_all(in_type, data))
+                got, how = run(_read_all(in_type, data), loop=_loop())
             except Exception as e:  # a hang (TimeoutError) or another exception type
                 raise AssertionError(f"{e!r} reading {_show(data)}") from e
             assert all(m.WhichOneof("msg") is not None for m in got)
@@ -612,7 +614,7 @@ def test_channel_refuses_a_huge_length_prefix_at_once_and_allocates_nothing_for_
         chan.close()
         b.close()
 
-    run(main())
+    run(main(), loop=_loop())
 
 
 class _Sender(AgentBase):
