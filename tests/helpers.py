@@ -112,6 +112,19 @@ def wait_sync(cond: Callable[[], T], timeout: float = DEFAULT_TIMEOUT, what: str
         time.sleep(interval)
 
 
+def wait_value(get: Callable[[], T], pred: Callable[[T], object], timeout: float = DEFAULT_TIMEOUT,
+               what: str = "condition", interval: float = 0.1, ignore: tuple[type[BaseException], ...] = (),
+               show: Callable[[T], str] = repr) -> T:
+    """`get()` as soon as `pred` holds for it (a falsy value may be the one waited for); the timeout message
+    ends with the last value, as `show` writes it (its first 3000 characters)."""
+
+    def check() -> tuple[T] | NotYet:
+        v = get()
+        return (v,) if pred(v) else NotYet(show(v)[:3000])
+
+    return wait_sync(check, timeout, what, interval, ignore)[0]
+
+
 def run(coro: Coroutine[Any, Any, T], timeout: float = 30.0, loop: asyncio.AbstractEventLoop | None = None) -> T:
     """Run `coro` on a fresh event loop (or on `loop`, kept by the caller), failing it after `timeout` seconds:
     a hung test fails, it does not hang."""
