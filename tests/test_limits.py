@@ -238,7 +238,7 @@ def test_largest_accepted_requests_commit_without_a_view_change(group: dict[str,
         assert rem.ok, rem
     finally:
         ch.close()
-    time.sleep(1.5)
+    time.sleep(1.5)  # a host expelled by a stall would be removed within ~1-2 s
     assert _views(group) == before
 
 

@@ -30,7 +30,6 @@ import json
 import math
 import re
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -39,7 +38,7 @@ from typing import Any
 import grpc
 import numpy as np
 import pytest
-from test_mission_runner import our_processes
+from test_mission_runner import no_processes_left
 
 from haa.mission import load_mission
 from haa.mission import runner as rn
@@ -244,7 +243,6 @@ def run_mission_file(path: Path, out: Path, act: Callable[[rn.MissionRun, Tap], 
         if tap.mirror is not None:
             tap.mirror.stop.set()
             tap.mirror.join(10)
-    time.sleep(0.5)
     text = (out / "transcript.txt").read_text()
     return Run(results, tap, text, list(run.samples.explored), out)
 
@@ -268,7 +266,7 @@ def assert_completed(r: Run) -> None:
     assert res["completed"] is True, (res["reason"], res.get("errors"), r.text[-3000:])
     assert not res.get("errors"), res["errors"]
     assert "Mission finished" in r.text
-    assert not our_processes(str(r.out)), "processes left behind"
+    no_processes_left(str(r.out))
 
 
 def assert_nothing_lost(r: Run, min_checks: int = 3, spanning: dict[str, float] | None = None) -> None:

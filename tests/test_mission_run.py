@@ -5,11 +5,10 @@ key; the agents made no ground-truth or Detect call; readings were processed; no
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import pytest
-from test_mission_runner import our_processes
+from test_mission_runner import no_processes_left, our_processes
 
 from haa.mission import load_mission
 from haa.mission import runner as rn
@@ -21,7 +20,7 @@ HERE = Path(__file__).resolve().parent
 def ci_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     tmp = tmp_path_factory.mktemp("mission")
     r = rn.run_mission(load_mission(HERE / "missions" / "ci.yaml"), None, tmp / "out")
-    time.sleep(0.5)
+    no_processes_left(str(tmp))
     return r, tmp
 
 
