@@ -55,7 +55,7 @@ class Slow(AgentBase):
     async def on_message(self, src, payload):
         self.active += 1
         self.max_active = max(self.max_active, self.active)
-        await asyncio.sleep(0.002)
+        await asyncio.sleep(0.002)  # a handler that takes a while: handlers would overlap if run concurrently
         self.seen.append(payload)
         self.send(src, b"ack:" + payload)
         self.active -= 1

@@ -246,7 +246,7 @@ def test_dashboard_in_a_browser_against_a_running_mission(tmp_path):
                 await b.evaluate("document.querySelector('[data-dtw=\"/slam\"]').click()")
                 await b.evaluate("document.querySelector('#tree [data-agent]').click()")
                 await b.wait_for("document.getElementById('detail').textContent.includes('type')", 10)
-                await asyncio.sleep(0.3)
+                await asyncio.sleep(0.3)  # the page paints the selection before the screenshot is taken
                 await b.screenshot(shot)
                 return {
                     "listed": len(listed), "shown": shown,

@@ -135,9 +135,9 @@ def test_loop_watch_counts_stalls() -> None:
     async def main() -> None:
         w = LoopWatch(c, tick=0.01)
         w.start()
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # the watch ticks on an idle loop ...
         time.sleep(0.3)  # a callback that keeps the loop busy
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # ... and after the stall, when it measures it
         w.stop()
 
     asyncio.run(main())

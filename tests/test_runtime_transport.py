@@ -222,7 +222,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
                 sent += 1
                 a.t.send("b", 22, hb(sent))
                 if sent % 20 == 0:
-                    await asyncio.sleep(0.001)
+                    await asyncio.sleep(0.001)  # a producer's pace: the links run between bursts
 
         producer = asyncio.create_task(produce())
         for _ in range(2):
@@ -648,7 +648,7 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) 
                 link.restart()
             else:
                 link.kick()
-            await asyncio.sleep(0.001 if i % 2 else 0)
+            await asyncio.sleep(0.001 if i % 2 else 0)  # restarts at varied points of the links' work
         await until(lambda: len(b.got) >= sent, timeout=20, what="all messages")
         await asyncio.sleep(0.05)  # a quiet period: a duplicate would arrive now
         assert b.seqs() == list(range(1, sent + 1))
