@@ -116,7 +116,7 @@ def test_the_frozen_frame_survives_host_writes_after_the_freeze():
     """An agent that has sent Frozen waits for the host to close the channel (haa.sdk.runner._linger): a
     busy host may still write to it (watch events, answers) before it reads Frozen, and a write to a closed
     socket (EPIPE) made the host's transport drop the unread Frozen frame: 'channel error: read failed: [Errno
-    32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group, issue 15 §5)."""
+    32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group)."""
     from haa.sdk import registry, runner
 
     async def main():

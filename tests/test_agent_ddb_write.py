@@ -1,4 +1,4 @@
-"""Agents' batched DDB writes and log watches (issue 15): `AgentBase.ddb_write`, `ddb_log_append` and `watch_log`.
+"""Agents' batched DDB writes and log watches: `AgentBase.ddb_write`, `ddb_log_append` and `watch_log`.
 
 Three levels: the agent's side in-process (AgentContext and its frames); the host's side (AgentDriver's checks
 before anything is proposed, fencing, the per-op results, log events with their indexes) with a fake runtime;

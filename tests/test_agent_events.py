@@ -1,8 +1,8 @@
-"""`haactl agent events` from what the hosts persisted (issue 18 §3: "the merged timeline must be true first").
+"""`haactl agent events` from what the hosts persisted: the merged timeline must be true first.
 
-The defect: an agent active on h10, `host kill h10`, `host restart h10`, then `agent events` printed "A1 (counter)
+Regression guard: an agent active on h10, `host kill h10`, `host restart h10`, then `agent events` printed "A1 (counter)
 crashed on h1" with no line of A1 thawing on h10 — the restarted host's in-memory history had lost it, and the
-crash every member reports was put on the wrong host. Now the timeline is read from every host's log (its data
+crash every member reports was put on the wrong host. The timeline is read from every host's log (its data
 dir; a container's log), and a crash the table recorded is shown where the agent ran, "reported by" the member
 that logged it.
 

@@ -1,4 +1,4 @@
-"""Issue 13, defect 3 and the agent resource limits: an agent config is checked before its spawn commits; an
+"""Agent configs and resource limits: an agent config is checked before its spawn commits; an
 agent that cannot start backs off and ends `failed` (not recovered until an operator moves it); an agent over
 its type's memory or CPU limit is killed by its host and recovered, the host staying responsive.
 
@@ -320,7 +320,7 @@ def test_an_agent_over_its_memory_limit_is_killed_and_recovered_while_writes_com
 
 
 def test_a_ddb_write_from_a_stale_instance_is_fenced() -> None:
-    """Issue 13 (defect 5, "two instances' outputs"): a DDB write an agent instance asks for is taken only while
+    """Two instances' outputs: a DDB write an agent instance asks for is taken only while
     the table gives this host the agent at that instance's epoch; an instance displaced by a newer one (another
     host recovered the agent) gets an error instead."""
     from types import SimpleNamespace

@@ -288,7 +288,7 @@ def test_malformed_and_oversized_frames_fail_the_agent_not_the_host():
 
 
 def test_a_message_over_the_agent_limit_fails_the_agent_that_bypassed_its_check():
-    """Issue 13: AgentContext.send refuses a payload over MAX_AGENT_MESSAGE; an agent that writes such a frame
+    """AgentContext.send refuses a payload over MAX_AGENT_MESSAGE; an agent that writes such a frame
     on its channel itself (within the frame limit) is stopped by its host as a protocol error, not routed."""
     async def main():
         async with hosts() as H:

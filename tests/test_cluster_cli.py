@@ -41,8 +41,8 @@ def converged(st: dict[str, Any], members: set[str]) -> bool:
 
 def test_a_host_that_looks_gone_while_its_threads_exit_is_reaped() -> None:
     """A zombie thread-group leader whose other threads still run looks gone (`_proc_state`) but cannot be
-    reaped yet; `cluster down` used to try once and leave a zombie of ours (CI: "host process ... still there
-    after cluster down"). `_reap` waits for it."""
+    reaped yet; a single reap attempt leaves a zombie of ours (CI: "host process ... still there after
+    cluster down"). `_reap` waits for it."""
     code = ("import ctypes, os, threading, time\n"
             "threading.Thread(target=lambda: (time.sleep(0.5), os._exit(0))).start()\n"
             "ctypes.CDLL(None).pthread_exit(None)\n")  # the main thread ends first, as a leader can

@@ -1,4 +1,4 @@
-"""The monitoring dashboard (issue 19 §1, docs/dashboard.md).
+"""The monitoring dashboard (docs/dashboard.md).
 
 * The dashboard's DDB replica follows a mirror stream (snapshot, batches) and builds the page's views.
 * The server pushes a new page everything, then only what changed; the page's object summaries.

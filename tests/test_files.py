@@ -1,5 +1,5 @@
 """haa.files: every file a user hands HAA is size-, depth- and node-limited, rejects duplicate keys and fails
-with one line (issue 13, defect 7); and the CLIs that read them (haa-hostd --config, haa-sim --arena /
+with one line; and the CLIs that read them (haa-hostd --config, haa-sim --arena /
 --schedule) print exactly that one line and exit 2, quickly, as real processes.
 
 The fuzz test runs `HAA_FUZZ_EXAMPLES` examples (300 by default; `make fuzz` raises it).

@@ -1,4 +1,4 @@
-"""The Foxglove bridge (haa.lab.foxglove, `haactl foxglove`; issue 19 §4).
+"""The Foxglove bridge (haa.lab.foxglove, `haactl foxglove`).
 
 A WebSocket client speaking the Foxglove WebSocket protocol (aiohttp; the SDK names the subprotocol
 `foxglove.sdk.v1`, the same protocol as `foxglove.websocket.v1`, which it refuses by name) connects to the

@@ -1,4 +1,4 @@
-"""Fuzz targets (issue 13, "Make it stay fixed"): every decoder that reads bytes from outside, fed with random
+"""Fuzz targets, so that what was fixed stays fixed: every decoder that reads bytes from outside, fed with random
 bytes, random protobuf messages generated from the message descriptors (extreme numbers, NaN and infinities,
 odd strings, nested and repeated fields) and mutations of valid encodings (flipped and overwritten bytes,
 truncations, insertions, splices, huge and overlong varints, length prefixes that claim more than follows).
@@ -18,8 +18,7 @@ Targets, and what may come out of them:
     `AgentTable.apply` and `Ddb.apply` on two replicas (only `DdbError` from the DDB, none from the table;
     both replicas stay equal), `Ddb.restore` (only `DdbError`).
 
-The regression tests of issue 13 defect 8 are here too (undecodable requests, spawn timeouts, oversized
-agent messages).
+Regression tests for undecodable requests, spawn timeouts and oversized agent messages are here too.
 
 Budget: CI runs each target with a fixed number of examples (derandomized: the same inputs every run), each
 example a batch of inputs (see BATCH): 2,000-3,000 inputs per decoder target, 200-1,000 calls per gRPC
@@ -622,7 +621,7 @@ class _Sender(AgentBase):
 
 
 def test_agent_send_over_max_agent_message_is_a_clear_error_in_the_agent() -> None:
-    """Issue 13 defect 8, the agent side: an agent's send over MAX_AGENT_MESSAGE raises ValueError naming the
+    """Oversized agent messages, the agent side: an agent's send over MAX_AGENT_MESSAGE raises ValueError naming the
     limit before anything goes to the host (before, it passed up to the 16 MiB frame limit, and a message
     that fit the agent's frame could still be dropped further on once wrapped)."""
     frames: list[Any] = []
@@ -714,7 +713,7 @@ def counters(h: MemberHost) -> dict[str, int]:
 
 
 def test_undecodable_requests_without_the_token_are_unauthenticated_and_counted(host: MemberHost) -> None:
-    """Issue 13 defect 8: garbage to every method without (or with a wrong) token was UNKNOWN "DecodeError"
+    """Regression guard: garbage to every method without (or with a wrong) token was UNKNOWN "DecodeError"
     and not counted; it is UNAUTHENTICATED, counted as rejected_unauthenticated and control_rejected."""
     before = counters(host)
     ch = grpc.insecure_channel(host.address)
@@ -748,7 +747,7 @@ def test_undecodable_requests_with_the_token_are_invalid_argument_and_counted(ho
 
 
 def test_agent_send_and_request_over_max_agent_message_are_refused_up_front(host: MemberHost) -> None:
-    """Issue 13 defect 8: a 50 MB AgentSend returned ok and the owner then dropped it ("frame exceeds limit");
+    """Regression guard: a 50 MB AgentSend returned ok and the owner then dropped it ("frame exceeds limit");
     a payload over MAX_AGENT_MESSAGE is refused with ok=false and the reason, and one at the limit is taken."""
     c = host.client
     r = c.agent_spawn("counter", b"{}")
@@ -818,7 +817,7 @@ def test_host_alive_and_serving_after_the_control_fuzzing(host: MemberHost) -> N
 
 @pytest.mark.slow
 def test_a_spawn_that_times_out_is_deadline_exceeded(tmp_path: Path) -> None:
-    """Issue 13 defect 8: a spawn whose commit does not come back (the other member is stopped) surfaced as
+    """Regression guard: a spawn whose commit does not come back (the other member is stopped) surfaced as
     UNKNOWN "TimeoutError"; it is DEADLINE_EXCEEDED with a reason. About 12 s (the runtime waits 10 s)."""
     (tmp_path / "token").write_text(TOKEN + "\n")
     p1, p2 = free_port(), free_port()
@@ -866,7 +865,7 @@ def sim() -> Iterator[SimProcess]:
 
 
 def test_sim_undecodable_requests_are_unauthenticated_or_invalid_argument(sim: SimProcess) -> None:
-    """Issue 13 defect 8 for haa-sim: garbage was UNKNOWN "DecodeError"; it is UNAUTHENTICATED without the
+    """Regression guard for haa-sim: garbage was UNKNOWN "DecodeError"; it is UNAUTHENTICATED without the
     token and INVALID_ARGUMENT with it."""
     ch = grpc.insecure_channel(sim.address)
     for s, m in SIM_METHODS:

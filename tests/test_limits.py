@@ -1,4 +1,4 @@
-"""Size limits and memory bounds (issue 13, defects 2 and 6; docs/limits.md, "Sizes and memory").
+"""Size limits and memory bounds (docs/limits.md, "Sizes and memory").
 
 Unit tests: the byte bounds of the delivered log, the DDB mirror ring and a mirror subscriber's queue, the
 JSON bounds of a DDB batch, the agent table's config / backup / queue bounds. Real processes (a 4-host

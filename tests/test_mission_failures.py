@@ -1,4 +1,4 @@
-"""Failures during a mission (issue 15 §5) on real processes: killing any one agent or host, or retiring a host
+"""Failures during a mission on real processes: killing any one agent or host, or retiring a host
 or an avatar, mid-mission — the mission goes on and completes, and nothing committed is lost.
 
 The CI mission (tests/test_mission_run.py) kills SupervisorExplore and a path planner and retires a host. This

@@ -1,4 +1,4 @@
-"""The robot team on real processes (issue 15 §5): one short shared mission carries the checks — it completes
+"""The robot team on real processes: one short shared mission carries the checks — it completes
 while SupervisorExplore and a path planner are killed and a host retires mid-mission; the results have every
 key; the agents made no ground-truth or Detect call; readings were processed; nothing is left running."""
 

@@ -1,4 +1,4 @@
-"""AgentPlayback on a real mission (issue 19 §2-§3, thesis §6.1.4; docs/playback.md).
+"""AgentPlayback on a real mission (thesis §6.1.4; docs/playback.md).
 
 One short recorded mission (50 s at speed 4, three hosts, two seekers; SupervisorExplore killed at 24 s and
 recovered, a host leaving at 32 s, so agents are transferred): every agent is recorded, in per-agent folders,

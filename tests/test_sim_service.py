@@ -161,7 +161,7 @@ def test_ground_truth(sim: SimProcess) -> None:
 
 
 def test_ground_truth_calls_are_counted_per_caller(sim: SimProcess) -> None:
-    """Issue 15: haa-sim counts ground-truth and Detect calls per caller (x-haa-caller), so a mission test can
+    """haa-sim counts ground-truth and Detect calls per caller (x-haa-caller), so a mission test can
     assert that the agents made none; the avatar API itself is not counted."""
     with SimClient(sim.address, caller="A7") as c, SimClient(sim.address, caller="runner") as r:
         before = dict(r.info().truth_calls)

@@ -1,4 +1,4 @@
-"""Mutual TLS (issue 20 §2, docs/deploy.md): certificates, and a real `--tls` cluster that refuses impostors.
+"""Mutual TLS (docs/deploy.md): certificates, and a real `--tls` cluster that refuses impostors.
 
 The unit tests check the cluster CA (`haa.cluster.tls`) and the loading checks (`haa.tls`). The cluster tests
 share one local cluster of 3 haa-hostd processes made by `haactl cluster up --tls` (in-process CLI) and run in

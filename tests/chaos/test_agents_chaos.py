@@ -1,4 +1,4 @@
-"""Agent-layer chaos in containers (issue 4 §7): counter pairs stay correct while host containers are killed,
+"""Agent-layer chaos in containers: counter pairs stay correct while host containers are killed,
 paused and stopped and agent processes are SIGKILLed.
 
 A compose cluster of `HAA_AGENT_CHAOS_HOSTS` (default 6; 10 collapsed at the host layer on the loaded 2-core

@@ -1,4 +1,4 @@
-"""Chaos on a 10-container compose cluster (issue 3 §7), in order on one cluster:
+"""Chaos on a 10-container compose cluster, in order on one cluster:
 
 1. the ten containers form one group with all ten members;
 2. killing the leader, then a random member, removes each from every view (a killed container refuses

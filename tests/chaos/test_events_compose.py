@@ -1,5 +1,5 @@
-"""`haactl agent events --compose` after a host container was killed and restarted (issue 18 §3, the defect
-reported on the compose cluster: "A1 (counter) crashed on h1" and no line of A1 thawing on h10).
+"""`haactl agent events --compose` after a host container was killed and restarted (a regression
+guard: on the compose cluster the timeline said "A1 (counter) crashed on h1" and had no line of A1 thawing on h10).
 
 A compose project of its own (`haaevents<pid>`: the first 4 host services of compose/compose.yaml, free
 published ports, a free 10.77.x.0/24 subnet; helpers of test_agents_chaos) runs one counter agent; it is moved
@@ -97,7 +97,7 @@ def test_killed_and_restarted_container_keeps_its_events(compose: Compose) -> No
 
 
 def test_stats_bundles_of_the_compose_cluster(compose: Compose, tmp_path: Path) -> None:
-    """`haactl stats collect --compose` after the scenario above (issue 18 §3; docs/stats.md): one bundle per
+    """`haactl stats collect --compose` after the scenario above (docs/stats.md): one bundle per
     container, read through the docker SDK — the killed, stopped VICTIM's too — with its samples, its log and
     the events that happened on it (A1 thawed there, its crash reported by a survivor). Runs on the cluster of
     the test above (it leaves VICTIM stopped); ≈5 s."""

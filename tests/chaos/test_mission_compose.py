@@ -1,4 +1,4 @@
-"""`haactl mission start|status|logs|stop --compose` (issue 15 §3): a short exploration by the real robot team
+"""`haactl mission start|status|logs|stop --compose`: a short exploration by the real robot team
 on a 3-host compose cluster, its agents in the host containers, haa-sim the compose `sim` service (started by
 `mission start` with the mission's arena, seed and speed, reached by the agents as sim:7100), to completion;
 then `stop` takes the sim container down again.

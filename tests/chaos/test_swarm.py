@@ -1,4 +1,4 @@
-"""The Docker Swarm stack (issue 20 §1, compose/stack.yaml, haa.cluster.swarm_backend): a single-node swarm on
+"""The Docker Swarm stack (compose/stack.yaml, haa.cluster.swarm_backend): a single-node swarm on
 this machine's engine (`docker swarm init --advertise-addr 127.0.0.1` when the engine is in none; it leaves the
 swarm again at the end if it made it and nothing else runs in it).
 
