@@ -2,10 +2,11 @@
 
 * `helpers`: waiting and running — `until(cond)` polls a condition on the event loop, `wait_sync(cond)` off
   it (both return the true value; `NotYet(why)` is a false answer that says why; `ignore=` names exceptions
-  that mean "not yet"), `run(coro)` runs a coroutine with a timeout; `haactl` in-process — `Cli` (a cluster's
-  `haactl`, with `json`, `fails`, `status`, `hosts`, `agents`, `events`), `local_cluster(root, *up)` (a local
-  cluster taken down at the end, no process left behind). Tests wait for conditions; they sleep only where
-  they measure time or let time pass on purpose.
+  that mean "not yet"), `wait_value(get, pred)` returns `get()` once `pred` holds for it, `run(coro)` runs a
+  coroutine with a timeout; `haactl` in-process — `haactl(args)`, `Cli` (a cluster's `haactl`, with `out`,
+  `json`, `fails`, `status`, `hosts`, `agents`, `events`), `local_cluster(root, *up)` (a local cluster taken
+  down at the end, no process left behind). Tests wait for conditions; they sleep only where they measure
+  time or let time pass on purpose (a quiet period, a pace, a hang), and say so.
 * `hashseed`: runs simulated schedules under several PYTHONHASHSEEDs (a seed must reproduce anywhere).
 * `hostilecluster`: a real three-host cluster for the hostile-peer and hostile-client tests.
 * `limitagents`: agent types for the resource-limit tests.

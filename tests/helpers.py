@@ -52,8 +52,8 @@ class NotYet:
 class _Poll:
     """One poll's bookkeeping: the deadline, and what the last attempt said."""
 
-    def __init__(self, timeout: float, what: str, ignore: tuple[type[BaseException], ...]) -> None:
-        self.timeout, self.what, self.ignore = timeout, what, ignore
+    def __init__(self, timeout: float, what: str) -> None:
+        self.timeout, self.what = timeout, what
         self.deadline = time.monotonic() + timeout
         self.last = ""
 
@@ -76,7 +76,7 @@ async def until(cond: Callable[[], T | Awaitable[T]], timeout: float = DEFAULT_T
     """Return `cond()` as soon as it is true (`cond` may be a coroutine function); fail after `timeout`
     seconds with `what` in the message. Polls every `interval` seconds on the running event loop. An exception
     of a type in `ignore` counts as "not yet" (its text goes into the timeout message, as a `NotYet`'s does)."""
-    p = _Poll(timeout, what, ignore)
+    p = _Poll(timeout, what)
     while True:
         try:
             got = cond()
@@ -97,7 +97,7 @@ def wait_sync(cond: Callable[[], T], timeout: float = DEFAULT_TIMEOUT, what: str
               interval: float = 0.02, ignore: tuple[type[BaseException], ...] = ()) -> T:
     """`until` for code outside an event loop (processes, threads, a cluster polled over RPCs): returns
     `cond()` once it is true."""
-    p = _Poll(timeout, what, ignore)
+    p = _Poll(timeout, what)
     while True:
         try:
             got = cond()
