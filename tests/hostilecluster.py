@@ -1,7 +1,7 @@
-"""A live 3-host cluster for the hostile-client and hostile-peer suites (issue 13), and its health check.
+"""A live 3-host cluster for the hostile-client and hostile-peer suites, and its health check.
 
 `start_cluster(root)` starts h1..h3 (membership mode, on loopback) and a counter pair on h2; `assert_healthy`
-checks what the issue asks after every hostile request: every host lives, the group agrees on one view, the DDB
+checks what must hold after every hostile request: every host lives, the group agrees on one view, the DDB
 replicas are equal at a common sequence number, a write commits within a second, and no agent has two live
 instances. Used by tests/test_hostile_clients.py and tests/test_hostile_peers.py (import it as `hostilecluster`).
 """

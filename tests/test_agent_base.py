@@ -10,15 +10,11 @@ import subprocess
 import sys
 
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.pb import agent_pb2 as pb
 from haa.sdk import registry
 from haa.sdk.base import AgentBase, AgentContext, RemoteError, child_name, new_agent_id, root_name
-
-
-def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 20))
 
 
 def make(cls, frames: list, *, epoch: int = 1, name: str = "A1") -> AgentContext:
@@ -59,7 +55,7 @@ class Slow(AgentBase):
     async def on_message(self, src, payload):
         self.active += 1
         self.max_active = max(self.max_active, self.active)
-        await asyncio.sleep(0.002)
+        await asyncio.sleep(0.002)  # a handler that takes a while: handlers would overlap if run concurrently
         self.seen.append(payload)
         self.send(src, b"ack:" + payload)
         self.active -= 1

@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import socket
 import struct
+import termios
 
 import pytest
+from helpers import run, until
 
 from haa.pb import agent_pb2 as pb
 from haa.sdk.channel import Channel, ChannelError, FrameTooLarge
-
-
-def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 20))
 
 
 async def pair(max_frame: int = 1 << 20) -> tuple[Channel, Channel]:
@@ -21,6 +20,17 @@ async def pair(max_frame: int = 1 << 20) -> tuple[Channel, Channel]:
     host = await Channel.open(a, pb.AgentToHost, max_frame=max_frame)
     agent = await Channel.open(b, pb.HostToAgent, max_frame=max_frame)
     return host, agent
+
+
+def sent_all(chan: Channel) -> bool:
+    """The peer has half-closed (the agent's `runner._linger`): all it sent is in `chan`'s buffer, unread."""
+    return chan.reader._eof  # asyncio.StreamReader has no public "EOF received" while data is still buffered
+
+
+def unread(chan: Channel) -> int:
+    """Bytes waiting in `chan`'s socket, not yet taken by its transport (FIONREAD)."""
+    sock = chan.writer.transport.get_extra_info("socket")
+    return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
 
 
 def test_frames_both_ways_in_order():
@@ -106,7 +116,7 @@ def test_the_frozen_frame_survives_host_writes_after_the_freeze():
     """An agent that has sent Frozen waits for the host to close the channel (haa.sdk.runner._linger): a
     busy host may still write to it (watch events, answers) before it reads Frozen, and a write to a closed
     socket (EPIPE) made the host's transport drop the unread Frozen frame: 'channel error: read failed: [Errno
-    32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group, issue 15 §5)."""
+    32] Broken pipe', a transfer turned into a crash (SupervisorSLAM as its host left the group)."""
     from haa.sdk import registry, runner
 
     async def main():
@@ -121,10 +131,11 @@ def test_the_frozen_frame_survives_host_writes_after_the_freeze():
         while (await host.recv()).WhichOneof("msg") != "ready":
             pass
         host.send(pb.HostToAgent(freeze=pb.HostToAgent.Freeze()))
-        await asyncio.sleep(0.5)  # the agent packs its state and sends Frozen; the host has not read it yet
+        # the agent packs its state, sends Frozen and half-closes; the host has not read it yet
+        await until(lambda: sent_all(host), what="the agent's Frozen and half-close")
         for _ in range(50):
             host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(0.005)  # writes spread over time, as a busy host's are
         kinds = []
         while (m := await host.recv()) is not None:
             kinds.append(m.WhichOneof("msg"))
@@ -147,13 +158,14 @@ def test_frames_buffered_before_a_reset_are_received_before_the_end():
         agent.writer.transport.pause_reading()  # what the host writes stays unread in the agent's socket
         for _ in range(20):
             host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
-        await asyncio.sleep(0.05)
+        await until(lambda: unread(agent) == host.bytes_out, what="the host's frames unread in the agent's socket")
         agent.send(pb.AgentToHost(log=pb.AgentToHost.Log(event="last words")))
         agent.send(pb.AgentToHost(error=pb.AgentToHost.Error(message="boom")))
         await agent.drain()
         agent.close()
         await agent.wait_closed()
-        await asyncio.sleep(0.05)
+        await until(lambda: host.reader.exception() is not None, what="the reset at the host")
+        assert isinstance(host.reader.exception(), ConnectionResetError)
         kinds = []
         while (m := await host.recv()) is not None:
             kinds.append(m.WhichOneof("msg"))
@@ -178,10 +190,11 @@ def test_the_error_of_an_agent_that_fails_at_start_survives_host_writes():
         assert (await host.recv()).WhichOneof("msg") == "hello"
         host.send(pb.HostToAgent(thaw=pb.HostToAgent.Thaw(state=b"not json")))
         host.send(pb.HostToAgent(resume=pb.HostToAgent.Resume(how="thaw")))
-        await asyncio.sleep(0.2)  # the agent fails and reports it; the host has not read it yet
+        # the agent fails, reports it and half-closes; the host has not read it yet
+        await until(lambda: sent_all(host), what="the agent's Error and half-close")
         for _ in range(50):
             host.send(pb.HostToAgent(watch_event=pb.HostToAgent.WatchEvent(watch_id=1, event="append", key="k")))
-            await asyncio.sleep(0.002)
+            await asyncio.sleep(0.002)  # writes spread over time, as a busy host's are
         kinds = []
         while (m := await host.recv()) is not None:
             kinds.append((m.WhichOneof("msg"), m.error.message if m.WhichOneof("msg") == "error" else ""))

@@ -8,26 +8,20 @@ tests check the merging of AgentList replies without a cluster.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import signal
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from typer.testing import CliRunner
+from helpers import Cli, local_cluster, wait_value
 
 from haa.cluster.agents import AgentRow, merge_agents
 from haa.cluster.events import TimelineEvent
 from haa.cluster.feed import EventFeed
 from haa.pb import control_pb2 as cpb
-from haactl.main import app
 
-runner = CliRunner()
 COUNTER = json.dumps({"spawn_peer": True, "period": 0.05, "backup_every": 20})
 
 
@@ -96,7 +90,7 @@ def test_timeline_shows_each_table_event_once() -> None:
 
 
 def test_no_cluster_is_a_clear_error(tmp_path: Path) -> None:
-    r = runner.invoke(app, ["agent", "list", "--root", str(tmp_path)])
+    r = Cli(tmp_path)("agent", "list", ok=False)
     assert r.exit_code == 1
     assert "no cluster running" in r.output and "haactl cluster up" in r.output
 
@@ -146,47 +140,14 @@ def test_kill_asks_the_owner_the_host_names(monkeypatch: pytest.MonkeyPatch, own
 # ---------------------------------------------------------------------------------------------- a cluster
 
 
-class Cli:
-    def __init__(self, root: Path) -> None:
-        self.root = root
-
-    def __call__(self, *args: str, ok: bool = True) -> Any:
-        r = runner.invoke(app, [*args, "--root", str(self.root)])
-        if ok:
-            assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r
-
-    def fails(self, *args: str) -> str:
-        r = self(*args, ok=False)
-        assert r.exit_code == 1, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}"
-        return " ".join(r.output.split())  # rich may wrap the line
-
-    def agents(self) -> dict[str, dict[str, Any]]:
-        return {a["name"]: a for a in json.loads(self("agent", "list", "--json").stdout)["agents"]}
-
-
 def wait_agents(cli: Cli, pred: Any, timeout: float, what: str) -> dict[str, dict[str, Any]]:
-    deadline = time.monotonic() + timeout
-    while True:
-        a = cli.agents()
-        if pred(a):
-            return a
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}: {json.dumps(a, indent=1)[:3000]}")
-        time.sleep(0.2)
+    return wait_value(cli.agents, pred, timeout, what, interval=0.2, show=lambda a: json.dumps(a, indent=1))
 
 
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cli]:
-    c = Cli(tmp_path_factory.mktemp("agents"))
-    c("cluster", "up", "--hosts", "3")
-    yield c
-    runner.invoke(app, ["cluster", "down", "--grace", "1", "--root", str(c.root)])
-    state = c.root / "cluster.json"
-    if state.exists():  # down failed: do not leave processes behind
-        for rec in json.loads(state.read_text())["hosts"].values():
-            with contextlib.suppress(ProcessLookupError, TypeError):
-                os.kill(rec["pid"], signal.SIGKILL)
+    with local_cluster(tmp_path_factory.mktemp("agents"), "--hosts", "3") as c:
+        yield c
 
 
 def test_spawn_list_tree(cli: Cli) -> None:

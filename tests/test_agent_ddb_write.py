@@ -1,4 +1,4 @@
-"""Agents' batched DDB writes and log watches (issue 15): `AgentBase.ddb_write`, `ddb_log_append` and `watch_log`.
+"""Agents' batched DDB writes and log watches: `AgentBase.ddb_write`, `ddb_log_append` and `watch_log`.
 
 Three levels: the agent's side in-process (AgentContext and its frames); the host's side (AgentDriver's checks
 before anything is proposed, fencing, the per-op results, log events with their indexes) with a fake runtime;
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
@@ -27,10 +27,6 @@ from haa.pb import ddb_pb2
 from haa.sdk.base import AgentBase, AgentContext, HostError, new_agent_id
 
 # ============================================================================ the agent's side (in-process)
-
-
-def run(coro: Any) -> Any:
-    return asyncio.run(asyncio.wait_for(coro, 20))
 
 
 class Writer(AgentBase):

@@ -1,8 +1,8 @@
-"""`haactl agent events` from what the hosts persisted (issue 18 §3: "the merged timeline must be true first").
+"""`haactl agent events` from what the hosts persisted: the merged timeline must be true first.
 
-The defect: an agent active on h10, `host kill h10`, `host restart h10`, then `agent events` printed "A1 (counter)
+Regression guard: an agent active on h10, `host kill h10`, `host restart h10`, then `agent events` printed "A1 (counter)
 crashed on h1" with no line of A1 thawing on h10 — the restarted host's in-memory history had lost it, and the
-crash every member reports was put on the wrong host. Now the timeline is read from every host's log (its data
+crash every member reports was put on the wrong host. The timeline is read from every host's log (its data
 dir; a container's log), and a crash the table recorded is shown where the agent ran, "reported by" the member
 that logged it.
 
@@ -17,22 +17,16 @@ that logged it.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import signal
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from typer.testing import CliRunner
+from helpers import Cli, haactl, wait_value
 
 from haa.cluster.events import Merger, TimelineEvent, log_event, timeline_events, view_events
-from haactl.main import app
 
-runner = CliRunner()
 REPO = Path(__file__).resolve().parents[1]
 A1 = "7f3c9a10-0000-4000-8000-000000000001"
 
@@ -155,7 +149,7 @@ def test_compose_reads_the_container_logs_of_stopped_and_restarted_hosts(monkeyp
     monkeypatch.setattr("haa.cluster.compose_backend.docker_client", lambda: fake)
     monkeypatch.delenv("HAA_COMPOSE_PROJECT", raising=False)
     args = ["agent", "events", "--compose", "--compose-file", str(REPO / "compose" / "compose.yaml")]
-    r = runner.invoke(app, [*args, "--json"])
+    r = haactl([*args, "--json"])
     assert r.exit_code == 0, r.output
     assert fake.listed and all(x["all"] for x in fake.listed)  # stopped containers too
     js = [json.loads(ln) for ln in r.stdout.splitlines()]
@@ -170,7 +164,7 @@ def test_compose_reads_the_container_logs_of_stopped_and_restarted_hosts(monkeyp
     # restarted: the same container, its log holds both lives (here: the same lines and a new start)
     fake._list[2] = FakeContainer("h10", "running", 0, [*logs["h10"], rec(13.0, "h10", "view", view=5,
                                                                           removed=[], added=["h10"])], 17010)
-    r = runner.invoke(app, args)
+    r = haactl(args)
     assert r.exit_code == 0, r.output
     text = " ".join(r.stdout.split())
     assert "A1 (counter) thawing on h10" in text and "A1 (counter) crashed on h10 (reported by h1)" in text
@@ -187,7 +181,7 @@ def test_compose_unreadable_log_is_a_warning(monkeypatch: pytest.MonkeyPatch) ->
     broken.logs = gone  # type: ignore[method-assign]
     fake = FakeDocker([FakeContainer("h1", "running", 0, logs["h1"], 17001), broken])
     monkeypatch.setattr("haa.cluster.compose_backend.docker_client", lambda: fake)
-    r = runner.invoke(app, ["agent", "events", "--compose", "--compose-file", str(REPO / "compose" / "compose.yaml")])
+    r = haactl(["agent", "events", "--compose", "--compose-file", str(REPO / "compose" / "compose.yaml")])
     assert r.exit_code == 0, r.output
     assert "the log of h2 could not be read" in " ".join(r.output.split())
     assert "A1 (counter) spawned by h1" in " ".join(r.stdout.split())
@@ -196,46 +190,10 @@ def test_compose_unreadable_log_is_a_warning(monkeypatch: pytest.MonkeyPatch) ->
 # ---------------------------------------------------------------------------------------------- a real cluster
 
 
-class Cli:
-    def __init__(self, root: Path) -> None:
-        self.root = root
-
-    def __call__(self, *args: str) -> str:
-        r = runner.invoke(app, [*args, "--root", str(self.root)])
-        assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r.stdout
-
-    def agents(self) -> dict[str, dict[str, Any]]:
-        return {a["name"]: a for a in json.loads(self("agent", "list", "--json"))["agents"]}
-
-    def events(self) -> list[dict[str, Any]]:
-        return [json.loads(ln) for ln in self("agent", "events", "--json").splitlines()]
-
-
-@pytest.fixture
-def cli(tmp_path: Path) -> Iterator[Cli]:
-    c = Cli(tmp_path / "cluster")
-    try:
-        yield c
-    finally:
-        runner.invoke(app, ["cluster", "down", "--grace", "1", "--root", str(c.root)])
-        state = c.root / "cluster.json"
-        if state.exists():  # down failed: leave no process behind
-            for r in json.loads(state.read_text())["hosts"].values():
-                with contextlib.suppress(ProcessLookupError, TypeError):
-                    os.kill(r["pid"], signal.SIGKILL)
-
-
 def wait_agent(cli: Cli, pred: Any, timeout: float, what: str) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while True:
-        with contextlib.suppress(AssertionError):
-            a = cli.agents().get("A1")
-            if a and pred(a):
-                return a
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.2)
+    """A1's row of `agent list` once `pred` holds for it (a command failing meanwhile is "not yet")."""
+    return wait_value(lambda: cli.agents().get("A1"), lambda a: a and pred(a), timeout, what, interval=0.2,
+                      ignore=(AssertionError,))
 
 
 def check_story(evs: list[dict[str, Any]], victim: str, restarted: bool) -> None:
@@ -260,7 +218,8 @@ def check_story(evs: list[dict[str, Any]], victim: str, restarted: bool) -> None
     assert all(e["host"] for e in evs), [e for e in evs if not e["host"]]  # every line names a host
 
 
-def test_killed_and_restarted_host_keeps_its_events(cli: Cli) -> None:
+def test_killed_and_restarted_host_keeps_its_events(local_cluster: Cli) -> None:
+    cli = local_cluster
     t0 = time.monotonic()
     cli("cluster", "up", "--hosts", "3")
     cli("agent", "spawn", "counter", "--config", json.dumps({"period": 0.2, "backup_every": 5}))
@@ -274,7 +233,8 @@ def test_killed_and_restarted_host_keeps_its_events(cli: Cli) -> None:
     evs = cli.events()
     check_story(evs, victim, restarted=True)
     # -f: the same history first (the live streams replay what the logs hold: not shown twice), then follows
-    follow = [json.loads(ln) for ln in cli("agent", "events", "-f", "--count", str(len(evs)), "--json").splitlines()]
+    follow = [json.loads(ln)
+              for ln in cli.out("agent", "events", "-f", "--count", str(len(evs)), "--json").splitlines()]
     def lines(es: list[dict[str, Any]]) -> list[tuple[str, str, str]]:
         return [(e["text"], e["host"], e["reporter"]) for e in es]
 

@@ -9,6 +9,7 @@ import hashlib
 import json
 
 import pytest
+from helpers import until
 
 from haa.core import agentrequests as ops
 from haa.core import agenttable as at
@@ -105,11 +106,8 @@ def test_the_default_key_is_type_config_digest_and_count():
         for cmd in ({"type": "a"}, {"type": "a"}, {"type": "a", "config": {"x": 1}}, {"type": "b"},
                     {"type": "a", "key": "mine"}, {"type": "a", "key": ""}):
             ctx.feed(pb.HostToAgent(deliver=pb.AgentMsg(src="op", dst=init.agent_id, payload=json.dumps(cmd).encode())))
-            for _ in range(200):
-                asks = [f for f in frames if f.WhichOneof("msg") == "spawn_child"]
-                if asks:
-                    break
-                await asyncio.sleep(0.005)
+            asks = await until(lambda: [f for f in frames if f.WhichOneof("msg") == "spawn_child"],
+                               what="the agent's spawn_child")
             (f,) = asks
             frames.remove(f)
             keys.append(f.spawn_child.key)

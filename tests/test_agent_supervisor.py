@@ -17,7 +17,7 @@ import time
 
 import psutil
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.hostd.agentproc import (
     AgentSupervisor,
@@ -36,14 +36,30 @@ HB = 0.2
 HANG = 1.0
 
 
-def run(coro, timeout: float = 60):
-    return asyncio.run(asyncio.wait_for(coro, timeout))
+#: real agent processes on a loaded machine: a hang fails the test after a minute
+RUN_TIMEOUT = 60
 
 
 def hosts(**kw) -> LocalHosts:
     kw.setdefault("heartbeat_period", HB)
     kw.setdefault("hang_timeout", HANG)
     return LocalHosts(("h1", "h2"), **kw)
+
+
+async def flowing(H: LocalHosts, a: str, n: int = 10) -> None:
+    """Until counter `a` has received `n` more pings than now: its peer's traffic reaches it."""
+    start = (await H.request_json(a, b"stats"))["received"]
+
+    async def more() -> bool:
+        return (await H.request_json(a, b"stats"))["received"] >= start + n
+
+    await until(more, interval=0.02, what=f"{n} more pings to {a}")
+
+
+async def arrived(H: LocalHosts, a: str, paused_peer: dict) -> bool:
+    """Counter `a` has taken every ping its peer sent before the pause that answered `paused_peer`."""
+    s = (await H.request_json(a, b"stats"))["streams"].get(paused_peer["id"])
+    return bool(s) and s["gen"] == paused_peer["gen"] and s["expected"] == paused_peer["next_seq"]
 
 
 def gone(pid: int) -> bool:
@@ -67,11 +83,11 @@ def test_transfer_keeps_counters_no_loss_no_duplicate_order_kept():
             held = 0
             # a1 to h2, a2 to h2, a1 back to h1: each while the other keeps sending to it
             held += await H.transfer(a1, "h2")
-            await asyncio.sleep(0.15)
+            await flowing(H, a1)
             held += await H.transfer(a2, "h2")
-            await asyncio.sleep(0.15)
+            await flowing(H, a2)
             held += await H.transfer(a1, "h1")
-            await asyncio.sleep(0.15)
+            await flowing(H, a1)
             assert held > 0, "no message was queued during the transfers: the test did not test anything"
             # at rest: stop both pingers, let the last messages arrive, compare
             p1 = await H.request_json(a1, b"pause")
@@ -99,7 +115,7 @@ def test_transfer_keeps_counters_no_loss_no_duplicate_order_kept():
             assert len(frozen) == 3
             print(f"\ntransfer: {held} messages held and handed over; a1 sent {s1['sent']}, a2 sent {s2['sent']}")
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_recover_from_backup_counts_loss_separately():
@@ -108,20 +124,29 @@ def test_recover_from_backup_counts_loss_separately():
             a1, a2 = new_agent_id(), new_agent_id()
             cfg = {"period": 0.005, "ddb": False, "paused": True}
             await H.create("counter", {**cfg, "peer": a2, "backup_every": 1000}, "h1", agent_id=a1)
-            await H.create("counter", {**cfg, "peer": a1, "backup_every": 25}, "h1", agent_id=a2)
+            await H.create("counter", {**cfg, "peer": a1, "backup_every": 0}, "h1", agent_id=a2)
             await H.request(a1, b"resume")
             await H.request(a2, b"resume")
+            await flowing(H, a2)
+            await H.request(a2, b"backup")  # its only backup: traffic after it is certain
             await until(lambda: a2 in H.backups, what="a backup of a2")
-            await asyncio.sleep(0.1)
+            await flowing(H, a2)  # pings a2 takes after its backup: lost to its next life
+            await flowing(H, a1)  # pings a2 sends after its backup: sent again by its next life
             os.kill(H.pid(a2), signal.SIGKILL)
             ev = await H.wait_end(a2)
             assert isinstance(ev, Failed) and ev.reason == "killed by signal 9"
             backup = await H.recover(a2, "h2")
             assert backup is not None
-            await asyncio.sleep(0.3)
-            await H.request(a1, b"pause")
-            await H.request(a2, b"pause")
-            await asyncio.sleep(0.3)
+
+            async def new_life_seen() -> bool:  # a1 takes pings of a2's new life
+                gen = (await H.request_json(a2, b"stats"))["gen"]
+                return (await H.request_json(a1, b"stats"))["streams"][a2]["gen"] == gen
+
+            await until(new_life_seen, interval=0.02, what="a1 to hear from a2's new life")
+            p1 = await H.request_json(a1, b"pause")
+            p2 = await H.request_json(a2, b"pause")
+            await until(lambda: arrived(H, a2, p1), what="a1's last pings at a2")
+            await until(lambda: arrived(H, a1, p2), what="a2's last pings at a1")
             s1 = await H.request_json(a1, b"stats")
             s2 = await H.request_json(a2, b"stats")
             assert s2["recoveries"] == 1 and s2["gen"] > s1["gen"] - 100  # a new life of a2
@@ -134,7 +159,7 @@ def test_recover_from_backup_counts_loss_separately():
             assert s2["lost_after_recovery"] > 0
             print(f"\nrecovery: a1 saw {s1['resent_after_recovery']} resent; a2 lost {s2['lost_after_recovery']}")
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_kill_9_is_reported_within_a_heartbeat_and_the_host_goes_on():
@@ -159,7 +184,7 @@ def test_kill_9_is_reported_within_a_heartbeat_and_the_host_goes_on():
             assert H.sups["h1"].agents() == []
             print(f"\nkill -9 -> Failed in {dt * 1e3:.1f} ms")
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_hung_agent_is_killed_and_reported():
@@ -183,7 +208,7 @@ def test_hung_agent_is_killed_and_reported():
             task.cancel()
             print(f"\nhang -> Failed after {dt:.2f} s (hang_timeout {HANG} s, heartbeat {HB} s): {ev.reason}")
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_exit_codes_and_agent_errors(tmp_path):
@@ -213,7 +238,7 @@ def test_exit_codes_and_agent_errors(tmp_path):
             log = (tmp_path / "agents" / f"{spec.agent_id}.log").read_text()
             assert "Traceback" in log and "JSONDecodeError" in log
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_stop_by_the_agent_or_the_host_reports_stopped_once():
@@ -228,12 +253,12 @@ def test_stop_by_the_agent_or_the_host_reports_stopped_once():
             H.sups["h2"].stop(b)
             assert await H.wait_end(b) == Stopped(b)
             await until(lambda: gone(pa) and gone(pb_), what="processes to exit")
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # a quiet period: no event may follow the Stopped ones
             ends = [ev for _, ev in H.events if isinstance(ev, Stopped | Failed | Frozen)]
             assert ends == [Stopped(a), Stopped(b)]
             assert H.sups["h1"].agents() == [] and H.sups["h2"].agents() == []
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_malformed_and_oversized_frames_fail_the_agent_not_the_host():
@@ -259,11 +284,11 @@ def test_malformed_and_oversized_frames_fail_the_agent_not_the_host():
                 await H.request(ok, {"op": "send", "to": ok, "size": 1 << 20})
             assert json.loads(await H.request(ok, {"op": "echo", "data": 3})) == 3
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_a_message_over_the_agent_limit_fails_the_agent_that_bypassed_its_check():
-    """Issue 13: AgentContext.send refuses a payload over MAX_AGENT_MESSAGE; an agent that writes such a frame
+    """AgentContext.send refuses a payload over MAX_AGENT_MESSAGE; an agent that writes such a frame
     on its channel itself (within the frame limit) is stopped by its host as a protocol error, not routed."""
     async def main():
         async with hosts() as H:
@@ -275,7 +300,7 @@ def test_a_message_over_the_agent_limit_fails_the_agent_that_bypassed_its_check(
             ok = await H.create("probe", {}, "h1")
             assert json.loads(await H.request(ok, {"op": "echo", "data": 1})) == 1
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_unknown_type_is_a_clear_spawn_error():
@@ -305,7 +330,7 @@ def test_unknown_type_is_a_clear_spawn_error():
         finally:
             await sup.close()
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_request_response_timeout_and_late_reply():
@@ -332,7 +357,7 @@ def test_request_response_timeout_and_late_reply():
             r = await H.request_json(a, {"op": "request", "to": ghost, "data": "x"})
             assert r == {"error": f"RemoteError: no agent {ghost} to answer"}
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_ddb_get_put_watch_round_trip():
@@ -355,14 +380,15 @@ def test_ddb_get_put_watch_round_trip():
                 st = await H.request_json(b, {"op": "state"})
                 return [e for e in st["events"] if e[0] == "watch"]
 
-            end = time.monotonic() + 5
-            while len(await events()) < 2 and time.monotonic() < end:
-                await asyncio.sleep(0.02)
+            async def both() -> bool:
+                return len(await events()) >= 2
+
+            await until(both, timeout=5, interval=0.02, what="b's two watch events")
             assert await events() == [["watch", "add", "cfg/x", "1"], ["watch", "write", "cfg/x", "3"]]
             await H.request(b, {"op": "unwatch", "id": wid})
             await until(lambda: not H.watches, what="unwatch")
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_spawner_children_are_named_by_parentage():
@@ -380,7 +406,7 @@ def test_spawner_children_are_named_by_parentage():
             g = json.loads(await H.request(kids[1], {"op": "spawn_child", "type": "probe"}))
             assert H.specs[g].name == f"{names[1]}.1"
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_buffered_messages_and_thaw_order():
@@ -421,7 +447,7 @@ def test_buffered_messages_and_thaw_order():
         finally:
             await sup.close()
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_stats_measure_cpu_and_messages_per_peer():
@@ -435,10 +461,12 @@ def test_stats_measure_cpu_and_messages_per_peer():
             await H.create("counter", {**cfg, "peer": a1}, "h2", agent_id=a2)
             await H.request(a1, b"resume")
             await H.request(a2, b"resume")
-            await asyncio.sleep(2.0)
-            await H.request(a1, b"pause")
-            await H.request(a2, b"pause")
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(2.0)  # the window the CPU and message counts measure
+            p1 = await H.request_json(a1, b"pause")
+            p2 = await H.request_json(a2, b"pause")
+            # every ping sent before the pauses delivered (counted by the supervisor: no request to the agents)
+            await until(lambda: (st := H.sups["h2"].stats())[a2].msgs_in.get(a1) == p1["sent"]
+                        and st[a1].msgs_in.get(a2) == p2["sent"], what="the last pings delivered")
             s1 = H.sups["h1"].stats()
             s2 = H.sups["h2"].stats()
             print(f"\ncpu: busy(0.5) {s1[busy].cpu:.2f}, idle probe {s1[idle].cpu:.3f}, counter {s2[a1].cpu:.3f}; "
@@ -450,7 +478,7 @@ def test_stats_measure_cpu_and_messages_per_peer():
             assert s2[a2].msgs_in[a1] == sent1 and s2[a2].bytes_in[a1] == s2[a1].bytes_out[a2] == sent1 * 120
             assert s2[a1].msgs_in[""] == s2[a1].msgs_out[""] == 2  # the operator's resume and pause, replies
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_forkserver_death_fails_its_agents_and_spawning_recovers():
@@ -466,7 +494,7 @@ def test_forkserver_death_fails_its_agents_and_spawning_recovers():
             assert json.loads(await H.request(b, {"op": "echo", "data": 2})) == 2
             assert H.sups["h1"].forkserver_restarts == 1
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_close_kills_every_agent_and_the_fork_server():
@@ -481,7 +509,7 @@ def test_close_kills_every_agent_and_the_fork_server():
         assert all(gone(p) for p in pids + zygotes)
         assert len(H.events) == n  # no events after close()
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_runs_on_uvloop_and_spawn_latency():
@@ -529,7 +557,7 @@ def test_counter_spawns_its_peer_and_publishes_stats_to_the_ddb():
             parent = await H.request_json(a, b"stats")
             assert parent["peer"] == child["id"] and H.specs[child["id"]].parent == a
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_agent_log_lines_reach_the_host_log(caplog):
@@ -543,7 +571,7 @@ def test_agent_log_lines_reach_the_host_log(caplog):
             assert rec.fields == {"x": 1, "why": "test", "agent": a, "agent_name": H.specs[a].name,
                                   "agent_type": "probe"}
 
-    run(main())
+    run(main(), RUN_TIMEOUT)
 
 
 def test_a_raising_event_callback_is_counted_and_logged_not_raised(caplog):

@@ -1,4 +1,4 @@
-"""Per-host limits of an agent kind (issue 15: SupervisorSLAM's "at most one sensor agent of each type per
+"""Per-host limits of an agent kind (SupervisorSLAM's "at most one sensor agent of each type per
 host"): the allocator never places more than `max_per_host` agents of a limited kind on one host, in the first
 session and in rebalancing sessions, and reports the agents beyond the kind's places as unallocatable."""
 

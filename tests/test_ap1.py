@@ -1,6 +1,6 @@
 """`haactl bench ap1` checks what it quotes: every participant of a step delivered the step's committed
-transactions, the same ones in the same order (issue 14: `same_delivered_hash` compared each host's cumulative
-hash chain, which also covers the steps a host took no part in, so it was false for every n >= 3)."""
+transactions, the same ones in the same order (a regression guard: a cumulative hash chain per host also
+covers the steps a host took no part in, so comparing those was false for every n >= 3)."""
 
 from __future__ import annotations
 

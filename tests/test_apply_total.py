@@ -1,4 +1,4 @@
-"""Applying a committed transaction is total and deterministic (issue 13, defect 1).
+"""Applying a committed transaction is total and deterministic.
 
 One `AgentSpawn` with cost=+inf once wedged a live group: the agent table accepted it and the allocator raised
 while the host reacted to the committed transaction. These tests feed two replicas of the group's global state

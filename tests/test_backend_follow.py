@@ -5,7 +5,7 @@ from __future__ import annotations
 import queue
 import threading
 
-from waits import wait_sync
+from helpers import wait_sync
 
 from haa.cluster.backend import merged_follow
 

@@ -131,7 +131,7 @@ def test_bench_ap3_real_smoke_two_hosts(tmp_path) -> None:
     for s in r["samples"]:
         assert s["ok"] and not math.isnan(s["allocated_s"])
         assert 0 < s["consensus_s"] <= s["allocated_s"] <= s["request_s"]
-        assert s["bid_messages"] >= 0
+        assert s["bid_messages"] >= 2  # each of the two hosts sends its bids to the other at least once
         assert s["oac_messages_window"] >= s["oac_messages_session"] == 12  # 2 OACs of 2 participants
     assert "| 2 |" in benchtables.ap3_real(rows)
     path = tmp_path / "ap3.json"

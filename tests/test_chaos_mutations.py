@@ -1,4 +1,4 @@
-"""Every chaos check can fail on real hosts (issue 18 §2): one short local chaos run per mutation of
+"""Every chaos check can fail on real hosts: one short local chaos run per mutation of
 haa.lab.chaos.mutations — every haa-hostd of the run a deliberately broken variant — must fail exactly the check
 that mutation targets and pass the others. Plans of 3 hosts and 3-16 s; the settle wait is cut short where
 the broken group cannot settle (a diverged replica, an agent never recovered)."""
@@ -48,7 +48,7 @@ def test_a_mutation_is_refused_inside_a_mission_and_unknown_names_are_errors() -
 
 
 def test_a_pair_that_never_crashed_may_lose_nothing_at_all() -> None:
-    """Per-sender order across transfers (issue 18 §2): `lost_after_recovery` is allowed only where the counter
+    """Per-sender order across transfers: `lost_after_recovery` is allowed only where the counter
     or its peer crashed (a recovery from an older backup, Alg. 8)."""
     from haa.lab.chaos.checks import check_counter_streams
 

@@ -8,57 +8,26 @@ streams while other commands write).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import psutil
 import pytest
-from typer.testing import CliRunner
+from helpers import Cli, local_cluster, wait_sync, wait_value
 
 from haa.cluster.local_backend import _proc_state, _reap
-from haactl.main import app
 
 HAACTL = Path(sys.executable).parent / "haactl"
-runner = CliRunner()
-
-
-class Cli:
-    def __init__(self, root: Path) -> None:
-        self.root = root
-
-    def __call__(self, *args: str, ok: bool = True) -> Any:
-        r = runner.invoke(app, [*args, "--root", str(self.root)])
-        if ok:
-            assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r
-
-    def json(self, *args: str) -> Any:
-        return json.loads(self(*args, "--json").stdout)
-
-    def status(self) -> dict[str, Any]:
-        return self.json("cluster", "status", "--sample", "0")
-
-    def hosts(self) -> dict[str, dict[str, Any]]:
-        return {h["name"]: h for h in self.status()["hosts"]}
 
 
 def wait_status(cli: Cli, pred: Any, timeout: float, what: str) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while True:
-        st = cli.status()
-        if pred(st):
-            return st
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}: {json.dumps(st, indent=1)[:3000]}")
-        time.sleep(0.1)
+    """`cluster status` once `pred` holds for it."""
+    return wait_value(cli.status, pred, timeout, what, show=lambda st: json.dumps(st, indent=1))
 
 
 def converged(st: dict[str, Any], members: set[str]) -> bool:
@@ -72,16 +41,14 @@ def converged(st: dict[str, Any], members: set[str]) -> bool:
 
 def test_a_host_that_looks_gone_while_its_threads_exit_is_reaped() -> None:
     """A zombie thread-group leader whose other threads still run looks gone (`_proc_state`) but cannot be
-    reaped yet; `cluster down` used to try once and leave a zombie of ours (CI: "host process ... still there
-    after cluster down"). `_reap` waits for it."""
+    reaped yet; a single reap attempt leaves a zombie of ours (CI: "host process ... still there after
+    cluster down"). `_reap` waits for it."""
     code = ("import ctypes, os, threading, time\n"
             "threading.Thread(target=lambda: (time.sleep(0.5), os._exit(0))).start()\n"
             "ctypes.CDLL(None).pthread_exit(None)\n")  # the main thread ends first, as a leader can
     p = subprocess.Popen([sys.executable, "-c", code])
-    deadline = time.monotonic() + 10
-    while psutil.Process(p.pid).status() != psutil.STATUS_ZOMBIE:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_sync(lambda: psutil.Process(p.pid).status() == psutil.STATUS_ZOMBIE, 10, "the leader to be a zombie",
+              interval=0.01)
     assert _proc_state(p.pid, None) is None  # looks gone ...
     os.kill(p.pid, 0)  # ... but is still there: its one reap attempt came too early
     assert _reap(p.pid, 10)
@@ -92,14 +59,8 @@ def test_a_host_that_looks_gone_while_its_threads_exit_is_reaped() -> None:
 
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cli]:
-    c = Cli(tmp_path_factory.mktemp("cluster"))
-    yield c
-    runner.invoke(app, ["cluster", "down", "--grace", "1", "--root", str(c.root)])
-    state = c.root / "cluster.json"
-    if state.exists():  # down failed: do not leave processes behind
-        for rec in json.loads(state.read_text())["hosts"].values():
-            with contextlib.suppress(ProcessLookupError, TypeError):
-                os.kill(rec["pid"], signal.SIGKILL)
+    with local_cluster(tmp_path_factory.mktemp("cluster")) as c:  # started by the first test
+        yield c
 
 
 def test_up_forms_the_group(cli: Cli) -> None:
@@ -114,7 +75,8 @@ def test_up_forms_the_group(cli: Cli) -> None:
     for name, h in rows.items():
         assert h["state"] == "alive" and h["member"] and h["view"] == st["view"]
         assert h["rank"] == st["members"].index(name)
-        assert h["suspicions"] == [] and h["rss_bytes"] > 0 and h["cpu_percent"] >= 0
+        assert h["suspicions"] == [] and h["rss_bytes"] > 0 and 0 <= h["cpu_percent"] <= 100 * os.cpu_count()
+    assert sum(h["cpu_percent"] for h in rows.values()) > 0  # measured over the 1 s sample: heartbeats cost CPU
     table = cli("cluster", "status", "--sample", "0").output
     assert "4 members, leader h1" in table and "members (rank order): " + " ".join(st["members"]) in table
 
@@ -269,14 +231,8 @@ def test_down(cli: Cli) -> None:
     assert "stopped 3 hosts" in r.output
     assert "SIGKILL" not in r.output, r.output  # every host left gracefully
     for pid in pids:  # gone (and reaped: `cluster up` ran in this process, so they were our children)
-        deadline = time.monotonic() + 3
-        while True:
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                break
-            assert time.monotonic() < deadline, f"host process {pid} still there after cluster down"
-            time.sleep(0.05)
+        wait_sync(lambda pid=pid: not psutil.pid_exists(pid), 3, f"host process {pid} to go after cluster down",
+                  interval=0.05)
     r = cli("cluster", "status", ok=False)
     assert "no cluster running" in r.output
     # the logs outlive the cluster; "shutdown" is not always among the last lines: a stopping host still

@@ -1,4 +1,4 @@
-"""The monitoring dashboard (issue 19 §1, docs/dashboard.md).
+"""The monitoring dashboard (docs/dashboard.md).
 
 * The dashboard's DDB replica follows a mirror stream (snapshot, batches) and builds the page's views.
 * The server pushes a new page everything, then only what changed; the page's object summaries.
@@ -246,7 +246,7 @@ def test_dashboard_in_a_browser_against_a_running_mission(tmp_path):
                 await b.evaluate("document.querySelector('[data-dtw=\"/slam\"]').click()")
                 await b.evaluate("document.querySelector('#tree [data-agent]').click()")
                 await b.wait_for("document.getElementById('detail').textContent.includes('type')", 10)
-                await asyncio.sleep(0.3)
+                await asyncio.sleep(0.3)  # the page paints the selection before the screenshot is taken
                 await b.screenshot(shot)
                 return {
                     "listed": len(listed), "shown": shown,

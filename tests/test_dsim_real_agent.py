@@ -1,4 +1,4 @@
-"""A real control-system agent on virtual time (issue 17, item 4): ExecutiveMission in the deterministic simulator.
+"""A real control-system agent on virtual time: ExecutiveMission in the deterministic simulator.
 
 The agent's own code runs unchanged on `haa.sdk.sched.VirtualScheduler`; its DDB reads and writes, spawns,
 backups and messages go through the simulated hosts (haa.lab.dsim.vagent), which crash, pause, kill, hang and move

@@ -1,5 +1,5 @@
 """haa.files: every file a user hands HAA is size-, depth- and node-limited, rejects duplicate keys and fails
-with one line (issue 13, defect 7); and the CLIs that read them (haa-hostd --config, haa-sim --arena /
+with one line; and the CLIs that read them (haa-hostd --config, haa-sim --arena /
 --schedule) print exactly that one line and exit 2, quickly, as real processes.
 
 The fuzz test runs `HAA_FUZZ_EXAMPLES` examples (300 by default; `make fuzz` raises it).
@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import wait_sync
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -368,11 +369,13 @@ def test_hostd_with_the_most_core_entries_still_stops_on_sigterm(tmp_path: Path)
     )  # fmt: skip
     try:
         log = tmp_path / "d" / "h0.jsonl"
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline and not (log.exists() and '"startup"' in log.read_text(errors="replace")):
+
+        def started() -> bool:
             assert p.poll() is None, p.stderr.read() if p.stderr else ""
-            time.sleep(0.1)
-        time.sleep(0.5)
+            return log.exists() and '"startup"' in log.read_text(errors="replace")
+
+        wait_sync(started, 20, "the daemon's startup line", interval=0.1)
+        time.sleep(0.5)  # on purpose: SIGTERM while the 1,000 peers' failure detectors are at work
         t0 = time.monotonic()
         p.send_signal(signal.SIGTERM)
         p.wait(timeout=20)

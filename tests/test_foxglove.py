@@ -1,4 +1,4 @@
-"""The Foxglove bridge (haa.lab.foxglove, `haactl foxglove`; issue 19 §4).
+"""The Foxglove bridge (haa.lab.foxglove, `haactl foxglove`).
 
 A WebSocket client speaking the Foxglove WebSocket protocol (aiohttp; the SDK names the subprotocol
 `foxglove.sdk.v1`, the same protocol as `foxglove.websocket.v1`, which it refuses by name) connects to the
@@ -36,7 +36,7 @@ import aiohttp
 import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-from typer.testing import CliRunner
+from helpers import Cli
 
 from haa.core import ddb as ddbops
 from haa.core.ddb import Ddb
@@ -44,7 +44,6 @@ from haa.lab.dashboard.sources import Hub
 from haa.lab.foxglove import FoxgloveBridge
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
-from haactl.main import app
 
 REPO = Path(__file__).resolve().parents[1]
 #: the Foxglove WebSocket protocol's subprotocol names: foxglove-sdk 0.30 serves the protocol (spec: the
@@ -246,19 +245,9 @@ def test_bridge_publishes_a_recorded_mirror_feed() -> None:
 
 
 @pytest.fixture()
-def cluster(tmp_path: Path) -> Iterator[Path]:
-    root = tmp_path / "cluster"
-    r = CliRunner().invoke(app, ["cluster", "up", "--hosts", "1", "--timeout", "60", "--root", str(root)])
-    assert r.exit_code == 0, r.output
-    try:
-        yield root
-    finally:
-        CliRunner().invoke(app, ["cluster", "down", "--grace", "1", "--root", str(root)])
-        state = root / "cluster.json"
-        if state.exists():
-            for rec in json.loads(state.read_text())["hosts"].values():
-                with contextlib.suppress(ProcessLookupError, TypeError):
-                    os.kill(rec["pid"], signal.SIGKILL)
+def cluster(local_cluster: Cli) -> Path:
+    local_cluster("cluster", "up", "--hosts", "1", "--timeout", "60")
+    return local_cluster.root
 
 
 def test_haactl_foxglove_bridges_a_running_cluster(cluster: Path) -> None:
@@ -294,7 +283,7 @@ def test_haactl_foxglove_bridges_a_running_cluster(cluster: Path) -> None:
             out = p.communicate(timeout=60)[0]  # a clean exit, not a fast one: CI machines are loaded
         except subprocess.TimeoutExpired:
             p.send_signal(signal.SIGUSR1)  # every thread's stack into the output below (haactl's faulthandler)
-            time.sleep(2)
+            time.sleep(2)  # time for the dump to be written; this is the failure path
             p.kill()
             out = p.communicate()[0]
     assert p.returncode == 130 and "Traceback" not in out, out

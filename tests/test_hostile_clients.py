@@ -1,14 +1,14 @@
-"""Hostile and careless clients against a live cluster (issue 13): single requests that once wedged the group.
+"""Hostile and careless clients against a live cluster: single requests that once wedged the group.
 
 A 3-host cluster on loopback (real `haa-hostd` processes, a counter pair on h2: tests/hostilecluster.py) gets,
 through the raw control API with the cluster token — not through haactl, whose own checks do not protect the
-cluster — the request classes the probe found harmful: agent spawns with out-of-bounds numbers (defect 1: a
-`cost=+inf` spawn wedged the group), DDB writes with bad keys and values, operator requests naming nothing,
-undecodable and mutated protobuf requests on every control method (defect 8). After each class every host
+cluster — the request classes the probe found harmful: agent spawns with out-of-bounds numbers (a
+`cost=+inf` spawn once wedged the group), DDB writes with bad keys and values, operator requests naming nothing,
+undecodable and mutated protobuf requests on every control method. After each class every host
 lives, the group agrees on one view, the DDB replicas are equal at a common sequence number, a write commits
 within a second and no agent has two live instances (`assert_healthy`).
 
-Oversized requests (defect 2), bad agent configs (defect 3) and impersonating peers (defects 4, 5) have their
+Oversized requests, bad agent configs and impersonating peers have their
 own suites: tests/test_limits.py, tests/test_agent_limits.py, tests/test_hostile_peers.py.
 """
 
@@ -66,7 +66,7 @@ BAD_SPAWNS = [
 
 
 def test_spawn_with_out_of_bounds_numbers_is_refused_and_the_group_stays_whole(cluster: Cluster) -> None:
-    """Defect 1: `AgentSpawn cost=+inf` was accepted, the receiving host's allocator raised while applying it,
+    """Regression guard: `AgentSpawn cost=+inf` was accepted, the receiving host's allocator raised while applying it,
     its inbound link ended and the group wedged with diverged replicas. Every bad number is refused with the
     field in the reason, on whichever host receives it, and nothing is committed."""
     before = _agents(cluster)
@@ -144,7 +144,7 @@ def _raw_call(address: str, method: str, data: bytes, token: str | None) -> grpc
 
 
 def test_undecodable_and_mutated_requests_get_a_clean_status(cluster: Cluster) -> None:
-    """Defect 8 on a live host: random bytes and mutated encodings on every control method. Without the token
+    """Bad encodings on a live host: random bytes and mutated encodings on every control method. Without the token
     every one is UNAUTHENTICATED (even when it does not decode); with it, never UNKNOWN or INTERNAL (a Python
     exception escaping a handler); the host keeps serving and the group stays whole."""
     rng = random.Random(13)

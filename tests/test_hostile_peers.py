@@ -1,4 +1,4 @@
-"""Peers that claim another host's name or incarnation (issue 13, defects 4 and 5).
+"""Peers that claim another host's name or incarnation.
 
 With the cluster token anybody can open a host link under any name. These tests do what a hostile or
 careless peer would, through a raw `HostLink.Open` client (metadata built by hand) or by starting a second
@@ -13,7 +13,6 @@ it.
 
 from __future__ import annotations
 
-import asyncio
 import signal
 import time
 from collections.abc import Iterator
@@ -23,6 +22,7 @@ import grpc
 import psutil
 import pytest
 from grpc import aio
+from helpers import run, until
 from hostilecluster import (
     AGENTS,
     TOKEN,
@@ -35,7 +35,6 @@ from hostilecluster import (
     start_cluster,
     view,
 )
-from waits import until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
@@ -86,7 +85,7 @@ def test_incarnation_metadata_is_parsed_strictly() -> None:
 
 
 def test_claims_of_a_live_hosts_name_are_refused_and_change_nothing(cluster: Cluster) -> None:
-    """Defect 4: as `h1` on h2's port, incarnation 2**70 (locked h1 out for good), strings int() accepts, one
+    """Claims as `h1` on h2's port: incarnation 2**70 (it locked h1 out for good), strings int() accepts, one
     an hour ahead of the clock, one 30 s ahead while h1 lives, and an older one — all refused and counted;
     h1 keeps its incarnation, nobody suspects it, the view does not change."""
     h1, h2 = cluster.hosts["h1"], cluster.hosts["h2"]
@@ -121,8 +120,8 @@ def test_claims_of_a_live_hosts_name_are_refused_and_change_nothing(cluster: Clu
 
 
 def test_a_second_daemon_under_a_live_name_is_refused(cluster: Cluster) -> None:
-    """Defect 5: `haa-hostd --name h2` with the core list while h2 lives is refused by every member (it
-    joined and recovered h2's agents while h2 still ran them); the group does not change."""
+    """`haa-hostd --name h2` with the core list while h2 lives is refused by every member (accepted, it would
+    join and recover h2's agents while h2 still runs them); the group does not change."""
     before = view(cluster.hosts["h1"])
     imp = cluster.second("h2", "impostor")
     imp.start()
@@ -130,7 +129,7 @@ def test_a_second_daemon_under_a_live_name_is_refused(cluster: Cluster) -> None:
     wait(lambda: view(cluster.hosts["h1"]) != before
          or all(h.status().counters.values["rejected_live_incarnation"] >= 1 for h in others), 20,
          "the impostor refused by h1 and h3 (or accepted)")
-    deadline = time.monotonic() + 2.0
+    deadline = time.monotonic() + 2.0  # for two seconds: the view stays, the impostor is no member
     while time.monotonic() < deadline:
         assert view(cluster.hosts["h1"]) == before
         assert not imp.status().member
@@ -244,7 +243,7 @@ async def claim(port: int, sender: str, inc: int, heartbeat: bool) -> aio.Stream
 
 
 def test_a_claim_alone_never_locks_the_real_host_out() -> None:
-    """Defect 4: a stream claiming a newer incarnation of `a` that carries no valid message (made while `a` was
+    """A stream claiming a newer incarnation of `a` that carries no valid message (made while `a` was
     not connected) is forgotten once it is gone; the real `a` connects (it was refused as stale for good)."""
     async def main() -> None:
         pa, pb_ = free_port(), free_port()
@@ -261,11 +260,11 @@ def test_a_claim_alone_never_locks_the_real_host_out() -> None:
         await a.close()
         await b.close()
 
-    asyncio.run(asyncio.wait_for(main(), 30))
+    run(main())
 
 
 def test_a_displaced_host_is_told_and_rejoins_above_the_newer_incarnation() -> None:
-    """Defect 4/5: a newer incarnation of `a` that spoke (a valid heartbeat) while the real `a` was silent
+    """A newer incarnation of `a` that spoke (a valid heartbeat) while the real `a` was silent
     displaces it; the real `a` is refused as stale with the newer incarnation, reincarnates above it and
     is accepted once the newer one is gone — never locked out for good."""
     async def main() -> None:
@@ -287,14 +286,14 @@ def test_a_displaced_host_is_told_and_rejoins_above_the_newer_incarnation() -> N
         await a.close()
         await b.close()
 
-    asyncio.run(asyncio.wait_for(main(), 30))
+    run(main())
 
 
 # ------------------------------------------------------------------------------------------- hearsay
 
 
 def test_hearsay_never_supersedes_a_peer_we_hear_from() -> None:
-    """Defect 4 through the messages of a member: an OAC participant list or a relayed introduction naming
+    """Incarnation claims through the messages of a member: an OAC participant list or a relayed introduction naming
     (h1, 2**64 - 1) made every host treat the live h1 as restarted (its real incarnation dead, locked out for
     good: the transport refuses an incarnation that far ahead). Hearsay is believed only while no incarnation
     of the peer is trusted; a peer that really restarted is suspected first, then believed."""

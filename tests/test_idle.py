@@ -3,7 +3,6 @@
 import os
 import subprocess
 import sys
-import time
 
 from haa.lab.experiments.idle import _proc_cpu, _tree_cpu
 
@@ -26,6 +25,5 @@ def test_tree_counts_the_cpu_and_memory_of_children():
         assert tree_pss > 0
     finally:
         child.kill()
-        child.wait()
-    time.sleep(0.05)
+        child.wait()  # reaped: the pid names no process now
     assert _tree_cpu({"gone": child.pid}) == {}  # a vanished process is skipped, not an error

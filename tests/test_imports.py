@@ -128,7 +128,7 @@ def _broken_contracts(importer: str, imported: str) -> set[str]:
         # the core reaching up into the agents
         ("haa.core.ddb", "haa.sdk.base", "The core imports no runtime"),
         ("haa.core.qos", "haa.core.ufd", "No import cycles"),
-        # the arrows that were named exceptions until issue 17 removed them: each would break a contract again
+        # arrows the contracts forbid without a named exception: each breaks a contract
         ("haa.sdk.runner", "haa.hostd.agentproc", "Packages import only lower layers"),
         ("haa.sdk.tap", "haa.lab.experiments.localhosts", "Packages import only lower layers"),
         ("haa.sim.actions", "haa.sim.world", "No import cycles"),

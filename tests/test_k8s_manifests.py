@@ -1,5 +1,5 @@
 """The Kubernetes manifests (compose/k8s/) and the settings the Swarm stack (compose/stack.yaml) gives its tasks,
-checked without a cluster (issue 20 §1).
+checked without a cluster.
 
 Every manifest is loaded into the `kubernetes` client's models (ApiClient's deserializer, with its client-side
 validation of required fields) and serialised back: the round trip must give the document again, so a key the

@@ -1,4 +1,4 @@
-"""Size limits and memory bounds (issue 13, defects 2 and 6; docs/limits.md, "Sizes and memory").
+"""Size limits and memory bounds (docs/limits.md, "Sizes and memory").
 
 Unit tests: the byte bounds of the delivered log, the DDB mirror ring and a mirror subscriber's queue, the
 JSON bounds of a DDB batch, the agent table's config / backup / queue bounds. Real processes (a 4-host
@@ -135,9 +135,9 @@ def test_loop_watch_counts_stalls() -> None:
     async def main() -> None:
         w = LoopWatch(c, tick=0.01)
         w.start()
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # the watch ticks on an idle loop ...
         time.sleep(0.3)  # a callback that keeps the loop busy
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # ... and after the stall, when it measures it
         w.stop()
 
     asyncio.run(main())
@@ -238,7 +238,7 @@ def test_largest_accepted_requests_commit_without_a_view_change(group: dict[str,
         assert rem.ok, rem
     finally:
         ch.close()
-    time.sleep(1.5)
+    time.sleep(1.5)  # a host expelled by a stall would be removed within ~1-2 s
     assert _views(group) == before
 
 

@@ -8,28 +8,23 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
-import signal
 import socket
 import subprocess
 import sys
 import time
 import urllib.request
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import Cli, local_cluster, wait_sync
 from prometheus_client.parser import text_string_to_metric_families
-from typer.testing import CliRunner
 
 from haa.cluster.procs import free_port, hostd_command
 from haa.hostd.daemon import load_settings
 from haa.sim.service import SimClient
-from haactl.main import app
-
-runner = CliRunner()
 
 
 def scrape(url: str) -> dict[str, dict[tuple[tuple[str, str], ...], float]]:
@@ -53,44 +48,10 @@ def by_label(m: dict[str, Any], name: str, label: str) -> dict[str, float]:
     return {dict(k)[label]: v for k, v in m.get(name, {}).items() if v}
 
 
-def poll(fn: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    last = None
-    while True:
-        last = fn()
-        if last:
-            return last
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.1)
-
-
-class Cli:
-    def __init__(self, root: Path) -> None:
-        self.root = root
-
-    def __call__(self, *args: str) -> str:
-        r = runner.invoke(app, [*args, "--root", str(self.root)])
-        assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r.stdout
-
-    def json(self, *args: str) -> Any:
-        return json.loads(self(*args, "--json"))
-
-
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cli]:
-    c = Cli(tmp_path_factory.mktemp("metrics"))
-    c("cluster", "up", "--local", "--hosts", "2", "--timeout", "60")
-    try:
+    with local_cluster(tmp_path_factory.mktemp("metrics"), "--local", "--hosts", "2", "--timeout", "60") as c:
         yield c
-    finally:
-        runner.invoke(app, ["cluster", "down", "--grace", "1", "--root", str(c.root)])
-        state = c.root / "cluster.json"
-        if state.exists():  # down failed: leave no process behind
-            for rec in json.loads(state.read_text())["hosts"].values():
-                with contextlib.suppress(ProcessLookupError, TypeError):
-                    os.kill(rec["pid"], signal.SIGKILL)
 
 
 def urls(cli: Cli) -> dict[str, str]:
@@ -129,7 +90,7 @@ def test_ddb_writes_show_in_the_oac_histograms_and_the_ddb_size(cli: Cli) -> Non
                  and one(now[h], "haa_ddb_objects") == one(before[h], "haa_ddb_objects") + n for h in u)
         return now if ok else None
 
-    after = poll(grown, 20, f"{n} more deliveries and objects on every host")
+    after = wait_sync(grown, 20, f"{n} more deliveries and objects on every host", interval=0.1)
     for h in u:
         m, b = after[h], before[h]
         # a histogram is consistent: +Inf bucket == count, buckets never decrease
@@ -165,7 +126,8 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
                 return False
         return True
 
-    poll(agree, 30, "every agent active, and haa_agents and haa_agent_table to match `agent list`")
+    wait_sync(agree, 30, "every agent active, and haa_agents and haa_agent_table to match `agent list`", interval=0.1)
+
     def four_processes() -> dict[str, Any] | None:
         """4 processes (an allocation session may still be moving one), each measured by its supervisor once."""
         ms = {h: scrape(url) for h, url in u.items()}
@@ -173,7 +135,7 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
         rss = [v for h in u for v in ms[h].get("haa_agent_rss_bytes", {}).values()]
         return ms if n == 4 and len(rss) == 4 and min(rss) > 1e6 else None
 
-    m = poll(four_processes, 30, "4 agent processes, their memory measured")
+    m = wait_sync(four_processes, 30, "4 agent processes, their memory measured", interval=0.1)
     assert sum(one(m[h], "haa_agents_spawned_total") for h in u) >= 4
     assert all(one(m[h], "haa_allocation_sessions_total") >= 1 for h in u)
     assert sum(by_label(m[h], "haa_agent_events_total", "event").get("active", 0) for h in u) >= 4
@@ -188,7 +150,7 @@ def test_agents_by_state_match_agent_list(cli: Cli) -> None:
                 return n, b
         return None
 
-    n, b = poll(pinged, 30, "A3's pings to A3.1 in haa_agent_messages_sent_total")
+    n, b = wait_sync(pinged, 30, "A3's pings to A3.1 in haa_agent_messages_sent_total", interval=0.1)
     assert b >= n * 8  # every ping carries at least its header
     listed = {r["name"]: r for r in cli.json("agent", "list")["agents"]}
     assert listed["A3"]["msgs_out"] >= n
@@ -208,9 +170,9 @@ def test_transfers_and_recoveries_are_counted(cli: Cli) -> None:
     dest = "h2" if rows["A1"]["host"] == "h1" else "h1"
     cli("agent", "move", "A1", dest)  # a transfer: frozen here, thawed there (Alg. 6)
     cli("agent", "kill", "A2")  # an agent failure, recovered from its backup (Alg. 8)
-    after = poll(lambda: (lambda e: e if e.get("thawed", 0) > before.get("thawed", 0)
-                          and e.get("recovered", 0) > before.get("recovered", 0) else None)(events()),
-                 20, "a thawed and a recovered event")
+    after = wait_sync(lambda: (lambda e: e if e.get("thawed", 0) > before.get("thawed", 0)
+                               and e.get("recovered", 0) > before.get("recovered", 0) else None)(events()),
+                      20, "a thawed and a recovered event", interval=0.1)
     assert after.get("crashed", 0) > before.get("crashed", 0)
     assert after.get("freezing", 0) > before.get("freezing", 0)
 
@@ -219,8 +181,8 @@ def test_a_killed_host_is_suspected_by_the_survivor(cli: Cli) -> None:
     u = urls(cli)
     cli("host", "kill", "h2")
     # the survivor's failure detector suspects h2 (2 core hosts: no quorum to remove it, it stays suspected)
-    m = poll(lambda: (lambda m: m if one(m, "haa_suspected", peer="h2") == 1 else None)(scrape(u["h1"])),
-             20, "h1 to suspect h2")
+    m = wait_sync(lambda: (lambda m: m if one(m, "haa_suspected", peer="h2") == 1 else None)(scrape(u["h1"])),
+                  20, "h1 to suspect h2", interval=0.1)
     assert one(m, "haa_suspicions") == 1 and one(m, "haa_link_connected", peer="h2") == 0
     with pytest.raises(OSError):
         scrape(u["h2"])

@@ -1,5 +1,5 @@
 """haa.mission.metrics: map scores on synthetic maps, localization error, time averages, event counts, the
-results table (issue 15 §3)."""
+results table."""
 
 import math
 

@@ -1,15 +1,14 @@
-"""The robot team on real processes (issue 15 §5): one short shared mission carries the checks — it completes
+"""The robot team on real processes: one short shared mission carries the checks — it completes
 while SupervisorExplore and a path planner are killed and a host retires mid-mission; the results have every
 key; the agents made no ground-truth or Detect call; readings were processed; nothing is left running."""
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import pytest
-from test_mission_runner import our_processes
+from test_mission_runner import no_processes_left, our_processes
 
 from haa.mission import load_mission, results
 from haa.mission import runner as rn
@@ -21,7 +20,7 @@ HERE = Path(__file__).resolve().parent
 def ci_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     tmp = tmp_path_factory.mktemp("mission")
     r = rn.run_mission(load_mission(HERE / "missions" / "ci.yaml"), None, tmp / "out")
-    time.sleep(0.5)
+    no_processes_left(str(tmp))
     return r, tmp
 
 

@@ -1,6 +1,7 @@
-"""The mission runner (issue 15 §3-4): schedule timing, the transcript, the experiment statistics, the results
-JSON, `haactl mission run` on a bad file, and the runner on real processes with stand-in team agents
-(tests/test_mission_runner_fakes.py) until the robot team lands.
+"""The mission runner: schedule timing, the transcript, the experiment statistics, the results JSON,
+`haactl mission run` on a bad file, the runner on real processes with stand-in team agents
+(tests/test_mission_runner_fakes.py: the runner's own checks, independent of the real team), and the real
+team on missions/quick.yaml.
 
 `run(mission_file, tmp_path, ...)` runs a mission and returns the results dict: the end-to-end mission test
 of the real team is one call of it (with the default agent types) plus its asserts.
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import psutil
 import pytest
+from helpers import wait_sync, wait_value
 from test_mission_runner_fakes import EST_OFFSET_M, FAKE_AVATAR, FAKE_DURATION_S, FAKE_EXEC
 
 from haa.lab.experiments import af as ex
@@ -79,6 +81,12 @@ def our_processes(marker: str) -> list[str]:
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             pass
     return out
+
+
+def no_processes_left(marker: str, timeout: float = 10.0) -> None:
+    """Wait until no process mentions `marker` (a finished mission's processes exit shortly after it)."""
+    wait_value(lambda: our_processes(marker), lambda ps: not ps, timeout, f"no process of {marker} left behind",
+               interval=0.1, show="\n".join)
 
 
 # ---------------------------------------------------------------------------------------------- schedules
@@ -311,8 +319,7 @@ def test_a_mission_with_stand_in_agents_runs_end_to_end(tmp_path, monkeypatch):
         assert want in text, text
     clocks = [ln[:5] for ln in text.splitlines()]
     assert clocks == sorted(clocks, key=lambda c: (int(c[:2]), int(c[3:])))
-    time.sleep(0.5)
-    assert not our_processes(str(tmp_path)), "processes left behind"
+    no_processes_left(str(tmp_path))
 
 
 def test_start_status_stop_on_a_running_cluster(tmp_path, monkeypatch):
@@ -325,26 +332,20 @@ def test_start_status_stop_on_a_running_cluster(tmp_path, monkeypatch):
     b = LocalBackend(root)
     b.up(2, 2)
     try:
-        deadline = time.monotonic() + 60
-        while not b.formation(["h1", "h2"]).done:
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        wait_sync(lambda: b.formation(["h1", "h2"]).done, 60, "h1 and h2 in one group", interval=0.2)
         m = load_mission(mission_file(tmp_path, FAKE_MISSION.replace("speed: 4", "speed: 2")))
         st = attached.start_attached(root, m, agent_types=types)
         assert st["pid"] and st["mission"] == "fake"
         with pytest.raises(plan.MissionRunError, match="is running"):
             attached.start_attached(root, m, agent_types=types)
-        deadline = time.monotonic() + 60
-        while True:
-            st = attached.read_json(attached.mission_dir(root) / attached.STATE_FILE)
-            if (st and st.get("state") == "running" and st.get("avatars") and st["avatars"][0]["agent"]
-                    and sum(len(v) for v in st["agents_per_host"].values()) >= 2):
-                break
-            assert time.monotonic() < deadline, st
-            time.sleep(0.3)
+        st = wait_value(lambda: attached.read_json(attached.mission_dir(root) / attached.STATE_FILE),
+                        lambda st: (st and st.get("state") == "running" and st.get("avatars")
+                                    and st["avatars"][0]["agent"]
+                                    and sum(len(v) for v in st["agents_per_host"].values()) >= 2),
+                        60, "the mission running, its agents placed", interval=0.3)
         assert st["hosts"] == ["h1", "h2"]  # the host schedule is not applied to the operator's cluster
-        time.sleep(attached.TRANSCRIPT_PERIOD + 1.5)
-        assert any("requested by the operator" in ln["text"] for ln in attached.live_transcript(root))
+        wait_sync(lambda: any("requested by the operator" in ln["text"] for ln in attached.live_transcript(root)),
+                  attached.TRANSCRIPT_PERIOD + 10, "the live transcript to show the executive requested", interval=0.3)
         res = attached.stop_attached(root)
         assert res["was_running"] and res["sim"] == "stopped"
         assert res["results"]["completed"] is False and res["results"]["reason"] == "stopped by the operator"
@@ -361,7 +362,7 @@ def test_start_status_stop_on_a_running_cluster(tmp_path, monkeypatch):
 def test_the_quick_mission_of_the_robot_team(tmp_path):
     """The real team (haa/agents/) on missions/quick.yaml: it completes, the results have every key, the
     agents made no ground-truth or Detect call, nothing is left running. (Further checks of a shared short
-    mission — an agent kill, a host leave — can go here; issue 15 §5.)"""
+    mission — an agent kill, a host leave — are in test_mission_run.py and test_mission_failures.py.)"""
     r = run(REPO / "missions" / "quick.yaml", tmp_path, speed=2.0)
     assert set(results.REQUIRED_KEYS) <= set(r)
     assert r["completed"] is True, (r["reason"], r["errors"])
@@ -370,5 +371,4 @@ def test_the_quick_mission_of_the_robot_team(tmp_path):
     assert 0 < r["coverage"] <= 1 and 0 < r["accuracy"] <= 1 and r["position_error_m"] is not None
     assert r["agents_avg"] > 5 and 1.5 <= r["hosts_avg"] <= 2.0
     assert "Mission finished" in (tmp_path / "out" / "transcript.txt").read_text()
-    time.sleep(0.5)
-    assert not our_processes(str(tmp_path)), "processes left behind"
+    no_processes_left(str(tmp_path))

@@ -1,5 +1,5 @@
-"""Stand-ins for the two top-level team agents, so that the mission runner can be tested on real processes
-before the robot team exists (tests/test_mission_runner.py loads this module into the hosts through
+"""Stand-ins for the two top-level team agents, so that the mission runner is tested on real processes
+independently of the robot team (tests/test_mission_runner.py loads this module into the hosts through
 HAA_AGENT_MODULES and runs the runner with `agent_types=(FAKE_EXEC, FAKE_AVATAR)`).
 
 They speak the runner's side of docs/team.md and nothing more: `fake_executive_mission` takes the executive's

@@ -1,14 +1,14 @@
-"""A second `haactl mission start` on the same local cluster runs a mission of its own (issue 15 §3): the
-first mission's `mission/status = complete` (and its map, estimates, ...) stays in the DDB after it ended, and
-a second start used to read it and finish at once. The runner now clears the team's keys
-(haa.mission.runner.TEAM_PREFIXES) before it spawns the new executive. Stand-in team agents
-(test_mission_runner_fakes: complete after FAKE_DURATION_S simulated seconds, at speed 4 about 6 s); ≈ 40 s."""
+"""A second `haactl mission start` on the same local cluster runs a mission of its own: the first mission's
+`mission/status = complete` (and its map, estimates, ...) stays in the DDB after it ended, and a start that
+read it would finish at once. The runner clears the team's keys (haa.mission.runner.TEAM_PREFIXES) before it
+spawns the new executive. Stand-in team agents (test_mission_runner_fakes: complete after FAKE_DURATION_S
+simulated seconds, at speed 4 about 6 s); ≈ 40 s."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
+from helpers import wait_sync, wait_value
 from test_mission_runner import FAKE_MISSION, fake_team, mission_file, our_processes
 from test_mission_runner_fakes import FAKE_DURATION_S
 
@@ -19,13 +19,9 @@ from haa.mission import runner as rn
 
 
 def wait_state(root: Path, pred, timeout: float, what: str) -> dict:
-    deadline = time.monotonic() + timeout
-    while True:
-        st = attached.read_json(attached.mission_dir(root) / attached.STATE_FILE) or {}
-        if pred(st):
-            return st
-        assert time.monotonic() < deadline, f"timed out waiting for {what}: {st}"
-        time.sleep(0.3)
+    """The mission's state file once `pred` holds for it."""
+    return wait_value(lambda: attached.read_json(attached.mission_dir(root) / attached.STATE_FILE) or {}, pred, timeout, what,
+                      interval=0.3)
 
 
 def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
@@ -34,10 +30,7 @@ def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
     b = LocalBackend(root)
     b.up(2, 2)
     try:
-        deadline = time.monotonic() + 60
-        while not b.formation(["h1", "h2"]).done:
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        wait_sync(lambda: b.formation(["h1", "h2"]).done, 60, "h1 and h2 in one group", interval=0.2)
         m = load_mission(mission_file(tmp_path, FAKE_MISSION))
         durations = []
         for _ in range(2):

@@ -1,4 +1,4 @@
-"""AgentPlayback on a real mission (issue 19 §2-§3, thesis §6.1.4; docs/playback.md).
+"""AgentPlayback on a real mission (thesis §6.1.4; docs/playback.md).
 
 One short recorded mission (50 s at speed 4, three hosts, two seekers; SupervisorExplore killed at 24 s and
 recovered, a host leaving at 32 s, so agents are transferred): every agent is recorded, in per-agent folders,
@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_mission_runner import our_processes
+from test_mission_runner import no_processes_left
 from typer.testing import CliRunner
 
 from haa.lab.playback import reader
@@ -55,8 +55,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     t0 = time.monotonic()
     r = rn.run_mission(load_mission(tmp / "playback.yaml"), None, tmp / "out")
     r["_wall_s"] = time.monotonic() - t0
-    time.sleep(0.5)
-    assert not our_processes(str(tmp)), "processes left behind"
+    no_processes_left(str(tmp))
     return r, tmp / "out" / "recording"  # `record: true`: <out>/recording
 
 

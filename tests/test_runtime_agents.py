@@ -110,7 +110,7 @@ def test_counter_pair_survives_moves_kills_leave_and_crash(hosts: dict[str, Memb
                          for p in agent_pids), 10, "the crashed host's agents gone")
 
     # at rest: every message of a sender life that did not crash arrived once, in order
-    time.sleep(1.5)
+    time.sleep(1.5)  # the pair runs a while on the healed group: a loss or a duplicate would show in its stats
     for name in ("A1", "A1.1"):
         c = counters(hosts, name)
         assert c["received"] > 10, c

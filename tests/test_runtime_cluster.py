@@ -14,7 +14,7 @@ from pathlib import Path
 import grpc
 import pytest
 from grpc import aio
-from waits import until
+from helpers import until
 
 from haa.cluster.hostprocs import LocalCluster, wait_for
 from haa.hostd.control import ControlClient

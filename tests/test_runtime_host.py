@@ -6,10 +6,10 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import time
-from collections.abc import Awaitable, Callable, Hashable
+from collections.abc import Callable, Hashable
 
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.cluster.hostprocs import free_port
 from haa.core.effects import CancelTimer, SetTimer
@@ -26,10 +26,6 @@ FAST_CORE = CoreConfig(
     ufd=UfdConfig(qos=QosTargets(td_upper=0.3, tmr_lower=3600.0, tm_upper=1.0), initial_period=0.02),
     exclude_after=30.0,
 )
-
-
-def run(fn: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(asyncio.wait_for(fn(), 30))
 
 
 def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = None) -> dict[str, HostRuntime]:
@@ -89,7 +85,7 @@ def test_timer_wheel_replaces_cancels_and_never_fires_early() -> None:
         assert fired[0][0] >= t + 0.03 and fired[1][0] >= t + 0.06
         await rt.stop()
 
-    run(main)
+    run(main())
 
 
 def test_single_host_commit_and_abort_and_delivered_log() -> None:
@@ -114,7 +110,7 @@ def test_single_host_commit_and_abort_and_delivered_log() -> None:
             rt.propose_nowait(b"x", participants=["ghost"])
         await rt.stop()
 
-    run(main)
+    run(main())
 
 
 def test_two_hosts_commit_then_timeout_when_the_peer_is_gone() -> None:
@@ -134,7 +130,7 @@ def test_two_hosts_commit_then_timeout_when_the_peer_is_gone() -> None:
         assert exc.value.participants == ("a", "b")
         await rts["a"].stop()
 
-    run(main)
+    run(main())
 
 
 def test_reincarnation_on_exclusion_notice() -> None:
@@ -162,7 +158,7 @@ def test_reincarnation_on_exclusion_notice() -> None:
         for rt in rts.values():
             await rt.stop()
 
-    run(main)
+    run(main())
 
 
 def test_concurrent_proposals_commit_and_close_everything() -> None:
@@ -189,7 +185,7 @@ def test_concurrent_proposals_commit_and_close_everything() -> None:
         for rt in rts.values():
             await rt.stop()
 
-    run(main)
+    run(main())
 
 
 def test_delivered_log_is_bounded_and_the_chain_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -211,4 +207,4 @@ def test_delivered_log_is_bounded_and_the_chain_goes_on(monkeypatch: pytest.Monk
         assert log_.hash == h == log_.entries[-1].chain_hash
         await rt.stop()
 
-    run(main)
+    run(main())

@@ -20,7 +20,7 @@ from typing import Any
 
 import grpc
 import pytest
-from waits import until
+from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
 from haa.cluster.hostprocs import wait_for as wait
@@ -308,7 +308,7 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
         finally:
             await rt.stop()
 
-    asyncio.run(asyncio.wait_for(main(), 30))
+    run(main())
 
 
 def test_one_daemon_per_data_dir(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The parts HostRuntime owns, each alone — no server, no sockets (issue 17: the runtime split along its seams).
+"""The parts HostRuntime owns, each alone — no server, no sockets.
 
 The effect dispatcher (every effect reaches its part; an effect outside the closed union is an error, not a
 silent drop), the timer wheel, the delivered log, propose waiters and latencies, the DDB group commit (driven by
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from waits import until
+from helpers import until
 
 from haa.core import agentio as io
 from haa.core import ddb

@@ -23,7 +23,7 @@ from typing import Any
 import grpc
 import pytest
 from grpc import aio
-from waits import until
+from helpers import run, until
 
 from haa.cluster.hostprocs import free_port
 from haa.core import wire
@@ -109,10 +109,6 @@ async def connected_pair(carrier: str) -> tuple[Node, Node]:
     return a, b
 
 
-def run(coro_fn: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(asyncio.wait_for(coro_fn(), 30))
-
-
 def hb(i: int) -> Heartbeat:
     return Heartbeat(i, 0.1, float(i))
 
@@ -142,7 +138,7 @@ def test_a_frame_larger_than_what_a_server_accepts_arrives_in_pieces(carrier: st
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_frame_pieces_join_to_the_frame_and_nothing_else_is_taken_for_a_piece() -> None:
@@ -204,7 +200,7 @@ def test_the_server_refuses_a_message_above_max_request_unread() -> None:
         await server.stop(0)
         assert max(lags, default=0.0) < 0.5, max(lags)
 
-    run(main)
+    run(main())
 
 
 # ------------------------------------------------------------------------------------------------ (f)
@@ -226,7 +222,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
                 sent += 1
                 a.t.send("b", 22, hb(sent))
                 if sent % 20 == 0:
-                    await asyncio.sleep(0.001)
+                    await asyncio.sleep(0.001)  # a producer's pace: the links run between bursts
 
         producer = asyncio.create_task(produce())
         for _ in range(2):
@@ -243,7 +239,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
         await producer
         n = sent
         await until(lambda: len(b.got) >= n, timeout=10, what="all messages")
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # a quiet period: a duplicate would arrive now
         assert b.seqs() == list(range(1, n + 1))
         assert all(src == "a" and inc == 11 and dst == 22 for src, inc, dst, _m in b.got)
         assert a.t.counters["link_disconnects"] >= 2
@@ -255,7 +251,7 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_new_receiver_incarnation_discards_messages_for_the_old_one(carrier: str) -> None:
@@ -290,7 +286,7 @@ def test_new_receiver_incarnation_discards_messages_for_the_old_one(carrier: str
         await a.close()
         await b2.close()
 
-    run(main)
+    run(main())
 
 
 def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused(carrier: str) -> None:
@@ -323,7 +319,7 @@ def test_sender_reincarnation_restarts_numbering_and_stale_sender_is_refused(car
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_a_down_peer_does_not_stall_the_others(carrier: str) -> None:
@@ -345,7 +341,7 @@ def test_a_down_peer_does_not_stall_the_others(carrier: str) -> None:
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str) -> None:
@@ -366,7 +362,7 @@ def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str)
         # quiet host: held for lazy_quiet, then written
         t0 = time.monotonic()
         a.t.send("b", 22, hb(1), lazy=True)
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # within lazy_quiet: the message must still be held
         assert b.got == []
         await until(lambda: len(b.got) == 1, timeout=2.0, what="the lazy message alone")
         assert 0.12 <= time.monotonic() - t0 < 0.5
@@ -391,8 +387,9 @@ def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str)
                 b.t.send("a", 11, hb(i))
                 await asyncio.sleep(0.02)
 
+        chat0 = a.t.counters["rx_frames"]
         task = asyncio.create_task(chatter())
-        await asyncio.sleep(0.1)
+        await until(lambda: a.t.counters["rx_frames"] >= chat0 + 3, what="b's chatter arriving at a")
         t2 = time.monotonic()
         a.t.send("b", 22, hb(5), lazy=True)
         await until(lambda: len(b.got) == 5, timeout=2.0, what="the lazy message on a busy host")
@@ -402,7 +399,7 @@ def test_lazy_messages_wait_for_other_traffic_and_keep_their_order(carrier: str)
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_before_first_contact_only_recent_unaddressed_messages_are_kept(carrier: str) -> None:
@@ -413,16 +410,16 @@ def test_before_first_contact_only_recent_unaddressed_messages_are_kept(carrier:
         a.t.start()
         for i in range(1, 101):
             a.t.send("b", 0, hb(i))  # heartbeats to a peer that has not started yet
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # ... and stays down a while: a's link tries and fails
         await b.serve()
         await until(lambda: len(b.got) == 16)
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # a quiet period: no 17th may follow
         assert b.seqs() == list(range(85, 101))
         assert a.t.counters["dropped_precontact"] == 84
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 # ------------------------------------------------------------------------------------------ hostile input
@@ -554,7 +551,7 @@ def test_refused_calls(
         await ok.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream_survives(carrier: str) -> None:
@@ -592,7 +589,7 @@ def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream
         await raw.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered(carrier: str) -> None:
@@ -629,7 +626,7 @@ def test_a_gap_ends_the_stream_and_the_sender_resends_from_the_last_delivered(ca
             await link.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) -> None:
@@ -651,9 +648,9 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) 
                 link.restart()
             else:
                 link.kick()
-            await asyncio.sleep(0.001 if i % 2 else 0)
+            await asyncio.sleep(0.001 if i % 2 else 0)  # restarts at varied points of the links' work
         await until(lambda: len(b.got) >= sent, timeout=20, what="all messages")
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # a quiet period: a duplicate would arrive now
         assert b.seqs() == list(range(1, sent + 1))
         assert b.t.counters["link_gap"] == 0 and a.t.counters["link_sender_gap"] == 0
         tasks = [t for t in asyncio.all_tasks() if t.get_name() == "link-b" and not t.done()]
@@ -661,7 +658,7 @@ def test_restarts_and_kicks_during_traffic_never_run_two_sessions(carrier: str) 
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(carrier: str) -> None:
@@ -725,7 +722,7 @@ def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(
         for x in (a, b, c):
             await x.close()
 
-    run(main)
+    run(main())
 
 
 def test_a_newer_incarnation_ends_the_streams_of_the_older_one(carrier: str) -> None:
@@ -754,7 +751,7 @@ def test_a_newer_incarnation_ends_the_streams_of_the_older_one(carrier: str) -> 
         for x in (old, new, b):
             await x.close()
 
-    run(main)
+    run(main())
 
 
 # ------------------------------------------------------------------------------------- the TCP carrier only
@@ -825,7 +822,7 @@ def test_tcp_hostile_bytes_cost_one_counter_and_the_connection() -> None:
         assert c["rejected_stalled"] == 3
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_the_tcp_frame_limit_is_the_grpc_message_limit() -> None:
@@ -857,7 +854,7 @@ def test_a_frame_split_into_single_bytes_and_frames_in_one_segment_arrive_whole(
         await raw.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_hosts_with_different_carriers_refuse_each_other_loudly() -> None:
@@ -882,7 +879,7 @@ def test_hosts_with_different_carriers_refuse_each_other_loudly() -> None:
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())
 
 
 def test_tcp_links_over_mutual_tls(tmp_path: Path) -> None:
@@ -945,4 +942,4 @@ def test_tcp_links_over_mutual_tls(tmp_path: Path) -> None:
         await a.close()
         await b.close()
 
-    run(main)
+    run(main())

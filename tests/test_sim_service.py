@@ -15,8 +15,10 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from helpers import haactl, wait_sync
+from test_metrics import one, scrape
 
+from haa.cluster.procs import free_port
 from haa.pb import sim_pb2 as pb
 from haa.sim.groundtruth import surface_grid
 from haa.sim.service import DEFAULT_TICK, SimClient, decode_frame
@@ -159,7 +161,7 @@ def test_ground_truth(sim: SimProcess) -> None:
 
 
 def test_ground_truth_calls_are_counted_per_caller(sim: SimProcess) -> None:
-    """Issue 15: haa-sim counts ground-truth and Detect calls per caller (x-haa-caller), so a mission test can
+    """haa-sim counts ground-truth and Detect calls per caller (x-haa-caller), so a mission test can
     assert that the agents made none; the avatar API itself is not counted."""
     with SimClient(sim.address, caller="A7") as c, SimClient(sim.address, caller="runner") as r:
         before = dict(r.info().truth_calls)
@@ -175,10 +177,8 @@ def test_ground_truth_calls_are_counted_per_caller(sim: SimProcess) -> None:
     assert delta == {"A7/Poses": 2, "A7/Landmarks": 1, "A7/Detect": 1, "runner/Info": 1}, delta
 
 
-def test_step_mode_is_deterministic_and_equals_the_library(sim: SimProcess) -> None:
+def test_step_mode_is_deterministic_and_equals_the_library() -> None:
     """The server in step mode gives exactly what the library World gives when stepped in the same ticks."""
-    with sim.client() as c:
-        t0 = c.info().time
     s2 = SimProcess("--arena", "small", "--seed", "9", "--step")
     try:
         with s2.client() as c:
@@ -187,7 +187,7 @@ def test_step_mode_is_deterministic_and_equals_the_library(sim: SimProcess) -> N
             odo = c.odometry(aid, period=0.25)
             next(odo)
             c.set_velocity(aid, 1.0, 0.4)
-            c.step(1.0)
+            t = c.step(1.0)
             got = [next(odo) for _ in range(4)]
             det = c.detect(aid)
             truth = next(a for a in c.poses().avatars if a.avatar_id == aid)
@@ -207,7 +207,7 @@ def test_step_mode_is_deterministic_and_equals_the_library(sim: SimProcess) -> N
     assert [(o.landmark_id, o.range, o.bearing) for o in det.landmarks] == [
         (o.landmark_id, o.range, o.bearing) for o in w.landmark_observations(a)
     ]
-    assert t0 >= 0
+    assert t == pytest.approx(w.time) == pytest.approx(1.0)  # the server's clock: the same ticks, only when stepped
 
 
 def test_schedule_join_crash_retire_and_attach(tmp_path: Path) -> None:
@@ -220,7 +220,8 @@ def test_schedule_join_crash_retire_and_attach(tmp_path: Path) -> None:
         "  - {at: 2.0, retire: s1}\n"
         "  - {at: 2.5, join: {type: carrier, id: s3, start: 6}}\n"
     )
-    s = SimProcess("--arena", "small", "--seed", "1", "--step", "--schedule", str(mission))
+    metrics = f"http://127.0.0.1:{(port := free_port())}/metrics"
+    s = SimProcess("--arena", "small", "--seed", "1", "--step", "--schedule", str(mission), "--metrics-port", str(port))
     try:
         with s.client() as c:
             c.wait_ready()
@@ -244,9 +245,10 @@ def test_schedule_join_crash_retire_and_attach(tmp_path: Path) -> None:
 
             reader = threading.Thread(target=read_sonar, daemon=True)
             reader.start()
-            # the stream is served once its first message is asked for: give the server time to subscribe it
-            # before the clock moves (under load the call can reach the server after a step)
-            time.sleep(1.0)
+            # the stream is served once its first message is asked for: the clock moves only once the server has
+            # subscribed it (under load the call can reach the server after a step)
+            wait_sync(lambda: one(scrape(metrics), "haa_sim_subscribers", stream="sonar") == 1, 20,
+                      "the sonar stream subscribed at the server", interval=0.05)
             c.step(3.0)
             seen = [(e.kind, e.avatar_id, round(e.time, 3)) for e in (next(events) for _ in range(3))]
             assert seen == [("crashed", "s2", 1.5), ("retired", "s1", 2.0), ("joined", "s3", 2.5)]
@@ -309,7 +311,7 @@ def test_realtime_clock_speed_and_token(tmp_path: Path) -> None:
             assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
         with s.client(token="s3cret") as c:
             t0, w0 = c.info().time, time.monotonic()
-            time.sleep(1.0)
+            time.sleep(1.0)  # the wall time over which the clock's rate is measured
             t1, w1 = c.info().time, time.monotonic()
             rate = (t1 - t0) / (w1 - w0)
             assert 5.0 < rate < 22.0, rate  # 20x requested; a loaded machine may fall behind, never ahead
@@ -338,9 +340,7 @@ def test_forage_actions_over_grpc(tmp_path: Path) -> None:
             assert dropped[-1].status == pb.ACTION_STATUS_SUCCEEDED and dropped[-1].region_id == ""
             assert len(c.collectables().regions) == 3
             out = tmp_path / "state.png"
-            from haactl.main import app
-
-            r = CliRunner().invoke(app, ["sim", "show", "--server", s.address, "-o", str(out)])
+            r = haactl(["sim", "show", "--server", s.address, "-o", str(out)])
             assert r.exit_code == 0, r.output
             assert out.stat().st_size > 10_000
     finally:

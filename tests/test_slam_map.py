@@ -217,7 +217,7 @@ def test_map_metrics():
 
 
 def test_landmark_map_keeps_the_shared_pose_error():
-    """Issue 16: one avatar's sightings share its pose error, so 200 of them must not make the landmark
+    """One avatar's sightings share its pose error, so 200 of them must not make the landmark
     estimate 14x surer than one (the plain Kalman fusion, window=None, does exactly that); a second avatar
     with its own (independent) pose error does sharpen it, and so does the same avatar in another window."""
     cov = np.diag([0.01, 0.01])  # sensor part + pose part of each sighting
@@ -252,7 +252,7 @@ def test_landmark_gate_skips_outlying_sightings():
 
 
 def test_landmark_map_without_window_is_the_plain_kalman_fusion():
-    """window=None: every sighting an independent measurement, as the library fused them before issue 16."""
+    """window=None: every sighting an independent measurement (the plain Kalman fusion)."""
     rng = np.random.default_rng(3)
     m = LandmarkMap(window=None)
     mean, cov = None, None

@@ -1,4 +1,4 @@
-"""The motion model (eq. 5.1-3) covers the drift haa-sim draws (issue 16; docs/slam.md "Motion model")."""
+"""The motion model (eq. 5.1-3) covers the drift haa-sim draws (docs/slam.md "Motion model")."""
 
 from __future__ import annotations
 

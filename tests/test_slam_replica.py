@@ -348,7 +348,7 @@ def test_checkpoint_is_exact_at_any_cut(stream, synth, cut):
 
 
 def test_checkpoint_exact_on_the_basic_team(basic):
-    """The issue's case: 20 s of Basic, 30 particles, cut at several points."""
+    """A real case: 20 s of Basic, 30 particles, cut at several points."""
     items = [encode(e) for e in recording_events(basic)]
     full = apply_all(SlamReplica(basic.grid, config_for(basic, N), seed=2), items)
     for k in (5, len(items) // 3, 2 * len(items) // 3 + 1):

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import until
 
 from haa.agents import team
 from haa.agents.sensor_cooccupancy import AgentSensorCooccupancy
@@ -185,8 +186,8 @@ def test_a_sensor_agent_runs_its_processings_side_by_side() -> None:
             rec = {"avatar": "s1", "agent": "a", "kind": "cooccupancy", "t": float(n), "n": n, "radius": 0.12}
             await asyncio.wait_for(agent.on_message("sup", team.dumps(
                 {"op": "process", "key": f"k{n}", "proc": "sensor_cooccupancy", "reading": rec})), 1.0)
-        await asyncio.sleep(0.01)
-        assert len(ctx.writes) == 3 and not [m for _, m in ctx.sent if m.get("op") == "done"]
+        await until(lambda: len(ctx.writes) == 3, what="the three processings at their DDB writes, side by side")
+        assert not [m for _, m in ctx.sent if m.get("op") == "done"]
         ctx.release.set()
         await asyncio.gather(*agent.jobs)
         done = [m for _, m in ctx.sent if m.get("op") == "done"]

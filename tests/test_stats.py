@@ -1,4 +1,4 @@
-"""Stats bundles and reports (issue 18 §3-4) on a real local cluster: 4 haa-hostd processes sampling every
+"""Stats bundles and reports on a real local cluster: 4 haa-hostd processes sampling every
 0.5 s, two counter pairs; the host running A1 is killed and its agents are recovered elsewhere; bundles are
 collected while the cluster runs (the dead host's from its data dir) and again after `cluster down`; a report
 and a comparison are rendered and their PNGs are real images. Bad input gets one clear error line."""

@@ -1,4 +1,4 @@
-"""The robot-team agents' pure logic (issue 15): frames, legs, bids, slots, completion. The agents themselves
+"""The robot-team agents' pure logic: frames, legs, bids, slots, completion. The agents themselves
 run in tests/test_mission_run.py on real processes."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Mutual TLS (issue 20 §2, docs/deploy.md): certificates, and a real `--tls` cluster that refuses impostors.
+"""Mutual TLS (docs/deploy.md): certificates, and a real `--tls` cluster that refuses impostors.
 
 The unit tests check the cluster CA (`haa.cluster.tls`) and the loading checks (`haa.tls`). The cluster tests
 share one local cluster of 3 haa-hostd processes made by `haactl cluster up --tls` (in-process CLI) and run in
@@ -24,7 +24,7 @@ import grpc
 import pytest
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes
-from typer.testing import CliRunner
+from helpers import Cli, local_cluster, wait_sync, wait_value
 
 from haa import tls
 from haa.cluster.local_backend import LocalBackend
@@ -32,10 +32,6 @@ from haa.cluster.tls import ClusterCA, make_cluster_tls
 from haa.core import ddb
 from haa.hostd.transport import MD_HB_KEY, MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD
 from haa.pb import control_pb2 as cpb
-from haactl.main import app
-
-runner = CliRunner()
-
 
 # ------------------------------------------------------------------------------------------------ certificates
 
@@ -123,9 +119,7 @@ def test_handshake_tap_counts_grpc_lines_and_passes_stderr_through(tmp_path: Pat
         tap.start()
         os.write(2, b"ordinary line\nE1127 ssl_transport_security.cc:1] Handshake failed with error SSL_ERROR_SSL: "
                     b"error:1000:SSL routines:OPENSSL_internal:CERTIFICATE_VERIFY_FAILED: x\n")
-        deadline = time.monotonic() + 10
-        while not seen and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_sync(lambda: seen, 10, "the tap to read the handshake line", interval=0.01)
         tap.stop()
     finally:
         os.dup2(saved, 2)
@@ -154,14 +148,10 @@ def test_haa_hostd_refuses_material_for_another_name_in_one_line(tmp_path: Path,
 
 
 class Cluster:
-    def __init__(self, root: Path) -> None:
-        self.root = root
+    def __init__(self, cli: Cli) -> None:
+        self.cli = cli
+        self.root = cli.root
         self.view0 = 0  # the view the group formed in
-
-    def cli(self, *args: str) -> Any:
-        r = runner.invoke(app, [*args, "--root", str(self.root)])
-        assert r.exit_code == 0, f"haactl {' '.join(args)} -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r
 
     @property
     def backend(self) -> LocalBackend:
@@ -172,13 +162,8 @@ class Cluster:
             return dict(c.status().counters.values)
 
     def wait_counter(self, name: str, key: str, at_least: int, timeout: float = 20.0) -> dict[str, int]:
-        deadline = time.monotonic() + timeout
-        while True:
-            c = self.counters(name)
-            if c.get(key, 0) >= at_least:
-                return c
-            assert time.monotonic() < deadline, f"{name}: {key} = {c.get(key, 0)} < {at_least}"
-            time.sleep(0.1)
+        return wait_value(lambda: self.counters(name), lambda c: c.get(key, 0) >= at_least, timeout,
+                          f"{name}'s {key} to reach {at_least}", show=lambda c: f"{key} = {c.get(key, 0)}")
 
     def logged(self, name: str, event: str) -> list[dict[str, Any]]:
         path = self.root / name / f"{name}.jsonl"
@@ -190,11 +175,7 @@ class Cluster:
         return out
 
     def wait_logged(self, name: str, event: str, timeout: float = 20.0) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while not self.logged(name, event):
-            assert time.monotonic() < deadline, f"{name} never logged {event}"
-            time.sleep(0.1)
-        return self.logged(name, event)[0]
+        return wait_sync(lambda: self.logged(name, event), timeout, f"{name} to log {event}", interval=0.1)[0]
 
     def members(self) -> dict[str, Any]:
         return json.loads(self.cli("cluster", "status", "--json", "--sample", "0").stdout)
@@ -202,12 +183,9 @@ class Cluster:
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    c = Cluster(tmp_path_factory.mktemp("tls") / "cluster")
-    c.cli("cluster", "up", "--tls", "--hosts", "3", "--timeout", "90")
-    try:
-        yield c
-    finally:
-        runner.invoke(app, ["cluster", "down", "--purge", "--grace", "2", "--root", str(c.root)])
+    with local_cluster(tmp_path_factory.mktemp("tls") / "cluster", "--tls", "--hosts", "3", "--timeout", "90",
+                       down=("--purge", "--grace", "2")) as cli:
+        yield Cluster(cli)
 
 
 def _pem(path: Path) -> bytes:

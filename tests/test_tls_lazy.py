@@ -1,5 +1,5 @@
-"""A host without TLS does not load `cryptography` (~13 MiB of RSS per host process, issue 17's
-measurement): haa.tls imports it where a certificate is read."""
+"""A host without TLS does not load `cryptography` (~13 MiB of RSS per host process,
+measured): haa.tls imports it where a certificate is read."""
 
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MYPY = Path(sys.executable).with_name("mypy")
-#: the issue's bound on `# type: ignore` comments in the core (issue 17)
+#: the bound on `# type: ignore` comments in the core
 IGNORE_BUDGET = 10
 #: `# type: ignore` comments outside the core, each with its error code: protobuf messages read through their
 #: Any base class (slam.recording, control, agentdriver), the mutation switches patching methods

@@ -70,7 +70,7 @@ def test_the_verifier_catches_each_broken_variant(name, algorithm, seeds, prop):
 
 
 def test_a_removed_member_that_crashed_before_it_learnt_so_is_no_exactly_once_violation(monkeypatch):
-    """Seed 1701 with one sequencer batch in flight (issue 14): h6#1, suspected during a delay spike, is left
+    """Seed 1701 with one sequencer batch in flight: h6#1, suspected during a delay spike, is left
     out of OAC(remove) of itself (seq 28 at the others) but is still a participant of the next batch, which it
     delivers as its seq 28 before it crashes. The same batch applied at two seq numbers by two processes is one
     application: DDB-Exactly-Once tells batches apart by transaction id (it reported writes 3-5 of h1#1

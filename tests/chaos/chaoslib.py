@@ -4,11 +4,11 @@ that reads it through the control API (statuses, convergence, removal, the leade
 from __future__ import annotations
 
 import random
-import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import grpc
+from helpers import wait_sync
 
 from haa.cluster.compose_backend import ComposeBackend
 from haa.hostd.control import ControlClient
@@ -60,21 +60,8 @@ class Chaos:
         return out
 
     def wait(self, pred: Callable[[], Any], timeout: float, what: str) -> Any:
-        deadline = time.monotonic() + timeout
-        last: Any = None
-        while True:
-            try:
-                last = pred()
-            except grpc.RpcError as e:
-                last = None
-                err = e.code()
-            else:
-                err = None
-            if last:
-                return last
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout} s waiting for {what} (seed {self.seed}; {err})")
-            time.sleep(0.2)
+        """`pred()` once true (an RPC error is "not yet"); the timeout message names the seed."""
+        return wait_sync(pred, timeout, f"{what} (seed {self.seed})", interval=0.2, ignore=(grpc.RpcError,))
 
     def converged(self, expect: list[str]) -> dict[str, cpb.StatusReply] | None:
         """Every expected host answers, is a member of the same view with exactly `expect` and holds the

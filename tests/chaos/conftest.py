@@ -1,4 +1,4 @@
-"""Container chaos tests (issue 3 §7): a 10-container compose cluster (compose/compose.yaml, project haa).
+"""Container chaos tests: a 10-container compose cluster (compose/compose.yaml, project haa).
 
 Needs a reachable docker engine and the image haa-hostd:latest (`make docker-setup image`); without them the
 tests are skipped with the reason — or fail, when HAA_REQUIRE_DOCKER=1 (as in .ci/run, so that CI cannot

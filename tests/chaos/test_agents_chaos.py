@@ -1,4 +1,4 @@
-"""Agent-layer chaos in containers (issue 4 §7): counter pairs stay correct while host containers are killed,
+"""Agent-layer chaos in containers: counter pairs stay correct while host containers are killed,
 paused and stopped and agent processes are SIGKILLed.
 
 A compose cluster of `HAA_AGENT_CHAOS_HOSTS` (default 6; 10 collapsed at the host layer on the loaded 2-core
@@ -66,6 +66,7 @@ import grpc
 import pytest
 import yaml
 from chaoslib import docker_problem
+from helpers import NotYet, wait_sync
 
 from haa.cluster.backend import ClusterError, natural_key, wait_until
 from haa.cluster.compose_backend import ComposeBackend, host_service
@@ -725,65 +726,63 @@ class ChaosMonkey:
 # ---------------------------------------------------------------------------------------------- checks
 
 
-def settled(c: Cluster) -> tuple[dict[str, str], str]:
-    """({agent name: host running it}, "") when every host holds the same table of exactly the six
-    counters, each active with a member owner that runs it and no other host running it; else ({}, why)."""
+#: a poll of the cluster retries after an RPC error
+RPC = (grpc.RpcError,)
+
+
+def settled(c: Cluster) -> dict[str, str] | NotYet:
+    """{agent name: host running it} when every host holds the same table of exactly the six counters, each
+    active with a member owner that runs it and no other host running it; else why not."""
     lists = c.lists(c.names, timeout=3.0)
     if len(lists) != len(c.names):
-        return {}, f"no AgentList from {sorted(set(c.names) - set(lists))}"
+        return NotYet(f"no AgentList from {sorted(set(c.names) - set(lists))}")
     tables = {n: sorted((a.id, a.name, a.status, a.owner, a.epoch) for a in r.agents) for n, r in lists.items()}
     if len({tuple(t) for t in tables.values()}) != 1:
-        return {}, "the hosts' agent tables differ"
+        return NotYet("the hosts' agent tables differ")
     rows = next(iter(lists.values())).agents
     names = sorted(a.name for a in rows)
     want = sorted([f"A{i}" for i in range(1, PAIRS + 1)] + [f"A{i}.1" for i in range(1, PAIRS + 1)])
     if names != want:
-        return {}, f"the table holds {names}, not {want}"
+        return NotYet(f"the table holds {names}, not {want}")
     out = {}
     for a in rows:
         if a.status != "active" or a.owner not in c.names:
-            return {}, f"{a.name} is {a.status} (owner {a.owner or '-'})"
+            return NotYet(f"{a.name} is {a.status} (owner {a.owner or '-'})")
         running = [n for n, r in lists.items() for x in r.agents if x.id == a.id and x.local_phase]
         mine = next(x for x in lists[a.owner].agents if x.id == a.id)
         if running != [a.owner] or mine.local_phase != "active" or not mine.pid:
-            return {}, f"{a.name}: owner {a.owner} (phase {mine.local_phase or '-'}, pid {mine.pid}), on {running}"
+            return NotYet(f"{a.name}: owner {a.owner} (phase {mine.local_phase or '-'}, pid {mine.pid}), on {running}")
         out[a.name] = a.owner
-    return out, ""
+    return out
 
 
-def wait_for(what: str, timeout: float, fn: Callable[[], tuple[Any, str]]) -> Any:
-    deadline = time.monotonic() + timeout
-    why = ""
-    while True:
-        try:
-            v, why = fn()
-        except grpc.RpcError as e:
-            v, why = None, f"{e.code().name}"
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}: {why}")
-        time.sleep(0.5)
+def warmed_up(c: Cluster) -> dict[str, dict[str, Any]] | NotYet:
+    """The counters' stats once each of them has published that it receives pings and has made a backup."""
+    stats = c.counters(c.names[0])
+    if len(stats) != 2 * PAIRS:
+        return NotYet(f"stats of {sorted(stats)}")
+    cold = sorted(n for n, s in stats.items() if s["received"] == 0 or s["backups"] == 0)
+    return NotYet(f"no pings or no backup yet: {cold}") if cold else stats
 
 
-def stable_counters(c: Cluster, rng: random.Random) -> tuple[dict[str, dict[str, Any]] | None, str]:
+def stable_counters(c: Cluster, rng: random.Random) -> dict[str, dict[str, Any]] | NotYet:
     """Two reads of the counters 2.5 s apart (through two hosts): every counter published in between, its
     peer's pings kept arriving, and lost / out_of_order / duplicate did not change."""
     a, b = rng.choice(c.names), rng.choice(c.names)
     first = c.counters(a)
-    time.sleep(2.5)
+    time.sleep(2.5)  # the period over which the counters must progress
     second = c.counters(b)
     if sorted(second) != sorted(first) or len(second) != 2 * PAIRS:
-        return None, f"stats of {sorted(second)}"
+        return NotYet(f"stats of {sorted(second)}")
     for name, s in second.items():
         f = first[name]
         if s["time"] <= f["time"]:
-            return None, f"{name} did not publish for 2.5 s"
+            return NotYet(f"{name} did not publish for 2.5 s")
         if s["received"] <= f["received"]:
-            return None, f"{name} received nothing for 2.5 s ({s['received']})"
+            return NotYet(f"{name} received nothing for 2.5 s ({s['received']})")
         if any(s[k] != f[k] for k in ("lost", "out_of_order", "duplicate")):
-            return None, f"{name}: lost / out_of_order / duplicate still changing"
-    return second, ""
+            return NotYet(f"{name}: lost / out_of_order / duplicate still changing")
+    return second
 
 
 def counter_table(stats: dict[str, dict[str, Any]]) -> str:
@@ -815,9 +814,9 @@ def test_counter_pairs_survive_container_chaos(cluster: Cluster) -> None:
                     cl.close()
                 assert rep.ok, f"spawn through {via}: {rep.reason}"
                 c.note(f"** operator (via {via}): spawn counter {rep.name} (it spawns its peer {rep.name}.1)")
-            placed = wait_for("the six counters to run", 60, lambda: settled(c))
+            placed = wait_sync(lambda: settled(c), 60, "the six counters to run", interval=0.5, ignore=RPC)
             print(f"{c.now():6.1f}s  counters placed: {placed}")
-            time.sleep(3.0)  # pings flowing, first backups made
+            wait_sync(lambda: warmed_up(c), 30, "pings flowing, first backups made", interval=0.5, ignore=RPC)
             monkey = ChaosMonkey(c, rng)
             t_chaos = time.monotonic()
             monkey.run(SECONDS)
@@ -826,11 +825,15 @@ def test_counter_pairs_survive_container_chaos(cluster: Cluster) -> None:
             print(f"{c.now():6.1f}s  chaos over after {chaos_s:.1f} s: {monkey.done}")
             t_heal = time.monotonic()
             wait_until(lambda: c.backend.formation(c.names), 120, what=f"all {len(c.names)} hosts in one group")
-            placed = wait_for("every counter active on exactly one member host", 90, lambda: settled(c))
+            placed = wait_sync(lambda: settled(c), 90, "every counter active on exactly one member host", interval=0.5,
+                               ignore=RPC)
             healed_s = time.monotonic() - t_heal
             print(f"{c.now():6.1f}s  healed in {healed_s:.1f} s: {placed}")
-            stats = wait_for("stable, progressing counters", 40, lambda: stable_counters(c, rng))
-            time.sleep(1.0)  # a last sample round on the healed cluster
+            stats = wait_sync(lambda: stable_counters(c, rng), 40, "stable, progressing counters", interval=0.5,
+                              ignore=RPC)
+            n = len(sampler.obs)
+            wait_sync(lambda: len(sampler.obs) >= n + len(c.names), 10, "a last sample round on the healed cluster",
+                      interval=0.1)
         ov = double_active(sampler.obs)
         report += [
             f"seed {c.seed}; {len(c.names)} hosts; chaos {chaos_s:.1f} s, healed in {healed_s:.1f} s; "

@@ -1,4 +1,4 @@
-"""Chaos on a 10-container compose cluster (issue 3 §7), in order on one cluster:
+"""Chaos on a 10-container compose cluster, in order on one cluster:
 
 1. the ten containers form one group with all ten members;
 2. killing the leader, then a random member, removes each from every view (a killed container refuses
@@ -168,7 +168,7 @@ def test_writes_survive_random_kills_and_pauses(chaos: Chaos) -> None:
     actions: list[str] = []
     t_start = time.monotonic()
     with Writers(chaos, 3) as writers:
-        time.sleep(1.0)
+        chaos.wait(lambda: writers.acked, 30, "the first acknowledged writes")
         forced = ["kill", "pause"]  # both failure kinds happen in every run
         while time.monotonic() - t_start < seconds:
             down = killed | paused
@@ -193,7 +193,7 @@ def test_writes_survive_random_kills_and_pauses(chaos: Chaos) -> None:
                     chaos.backend.resume(victim)
                     paused.discard(victim)
             actions.append(f"{time.monotonic() - t_start:5.1f}s {kind} {victim}")
-            time.sleep(rng.uniform(1.5, 4.0))
+            time.sleep(rng.uniform(1.5, 4.0))  # the pace of the chaos
         for n in sorted(paused):
             chaos.backend.resume(n)
             actions.append(f"{time.monotonic() - t_start:5.1f}s resume {n} (end)")

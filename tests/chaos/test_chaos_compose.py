@@ -1,4 +1,4 @@
-"""`haactl chaos run PLAN --compose` (issue 18 §1-2): a 30 s plan against a 5-container compose cluster — a
+"""`haactl chaos run PLAN --compose`: a 30 s plan against a 5-container compose cluster — a
 host container killed and restarted, one paused and unpaused, one cut off the network (`docker network
 disconnect`) and connected again, two agent hangs — under the ddb-writes workload, with every check green
 from the hosts' persisted logs (the killed container's read through the docker SDK) and every fault and

@@ -1,8 +1,8 @@
-"""A newcomer's raw compose path (issue 20 §3): `docker-compose up` before `make image` wrote compose/token.
+"""A newcomer's raw compose path: `docker-compose up` before `make image` wrote compose/token.
 
-Docker bind-mounts a missing source as a new empty directory, and every host used to stop with exit code 2 and
-a bare "Is a directory". The image's entrypoint (compose/haa-entrypoint.sh) now says what is wrong and what to
-do, for the hosts and for haa-sim. Run on a copy of compose/compose.yaml in a temporary directory (no token
+Docker bind-mounts a missing source as a new empty directory, where a host would stop with exit code 2 and a
+bare "Is a directory". The image's entrypoint (compose/haa-entrypoint.sh) says what is wrong and what to do,
+for the hosts and for haa-sim. Run on a copy of compose/compose.yaml in a temporary directory (no token
 there) with `docker-compose run` (no published ports: it cannot collide with a running cluster) under a
 project and subnet of its own. Needs docker and the image haa-hostd:latest (`make docker-setup image`).
 """

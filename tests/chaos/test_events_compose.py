@@ -1,5 +1,5 @@
-"""`haactl agent events --compose` after a host container was killed and restarted (issue 18 §3, the defect
-reported on the compose cluster: "A1 (counter) crashed on h1" and no line of A1 thawing on h10).
+"""`haactl agent events --compose` after a host container was killed and restarted (a regression
+guard: on the compose cluster the timeline said "A1 (counter) crashed on h1" and had no line of A1 thawing on h10).
 
 A compose project of its own (`haaevents<pid>`: the first 4 host services of compose/compose.yaml, free
 published ports, a free 10.77.x.0/24 subnet; helpers of test_agents_chaos) runs one counter agent; it is moved
@@ -13,7 +13,6 @@ engine or the image (failed with HAA_REQUIRE_DOCKER=1). ≈40-60 s.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import random
@@ -24,42 +23,26 @@ from typing import Any
 
 import pytest
 from chaoslib import docker_problem
+from helpers import Cli, wait_value
 from test_agents_chaos import up_on_free_subnet
-from typer.testing import CliRunner
 
 from haa.cluster.backend import wait_until
-from haactl.main import app
 
 pytestmark = pytest.mark.docker
-runner = CliRunner()
 N = 4
 VICTIM = "h4"  # not a core host: the group keeps its three core members
 
 
-class Compose:
+class Compose(Cli):
+    """`haactl ... --compose` for one compose file and project."""
+
     def __init__(self, file: Path, project: str) -> None:
-        self.file, self.project = file, project
-
-    def __call__(self, *args: str) -> str:
-        r = runner.invoke(app, [*args, "--compose", "--compose-file", str(self.file)],
-                          env={"HAA_COMPOSE_PROJECT": self.project})
-        assert r.exit_code == 0, f"haactl {' '.join(args)} --compose -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r.stdout
-
-    def a1(self) -> dict[str, Any] | None:
-        agents = json.loads(self("agent", "list", "--json"))["agents"]
-        return next((a for a in agents if a["name"] == "A1"), None)
+        super().__init__(extra=("--compose", "--compose-file", str(file)), env={"HAA_COMPOSE_PROJECT": project})
 
     def wait_a1(self, pred: Any, timeout: float, what: str) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while True:
-            with contextlib.suppress(AssertionError):
-                a = self.a1()
-                if a and pred(a):
-                    return a
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out waiting for {what}")
-            time.sleep(0.3)
+        """A1's row of `agent list` once `pred` holds for it (a command failing meanwhile is "not yet")."""
+        return wait_value(lambda: self.agents().get("A1"), lambda a: a and pred(a), timeout, what, interval=0.3,
+                          ignore=(AssertionError,))
 
 
 @pytest.fixture(scope="module")
@@ -105,16 +88,16 @@ def test_killed_and_restarted_container_keeps_its_events(compose: Compose) -> No
     compose("host", "kill", VICTIM, "--wait", "--timeout", "60")
     compose.wait_a1(lambda a: a["state"] == "active" and a["host"] != VICTIM, 60, "A1 recovered elsewhere")
     compose("host", "restart", VICTIM, "--timeout", "90")  # the same container: a new incarnation
-    evs = [json.loads(ln) for ln in compose("agent", "events", "--json").splitlines()]
+    evs = [json.loads(ln) for ln in compose.out("agent", "events", "--json").splitlines()]
     print("\n".join(f"{e['clock']} {e['text']}" for e in evs))
     check_story(evs)
     compose("host", "kill", VICTIM, "--wait", "--timeout", "60")  # stopped for good: its container's log remains
-    check_story([json.loads(ln) for ln in compose("agent", "events", "--json").splitlines()])
+    check_story([json.loads(ln) for ln in compose.out("agent", "events", "--json").splitlines()])
     print(f"compose scenario: {time.monotonic() - t0:.1f} s")
 
 
 def test_stats_bundles_of_the_compose_cluster(compose: Compose, tmp_path: Path) -> None:
-    """`haactl stats collect --compose` after the scenario above (issue 18 §3; docs/stats.md): one bundle per
+    """`haactl stats collect --compose` after the scenario above (docs/stats.md): one bundle per
     container, read through the docker SDK — the killed, stopped VICTIM's too — with its samples, its log and
     the events that happened on it (A1 thawed there, its crash reported by a survivor). Runs on the cluster of
     the test above (it leaves VICTIM stopped); ≈5 s."""

@@ -1,4 +1,4 @@
-"""`haactl mission start|status|logs|stop --compose` (issue 15 §3): a short exploration by the real robot team
+"""`haactl mission start|status|logs|stop --compose`: a short exploration by the real robot team
 on a 3-host compose cluster, its agents in the host containers, haa-sim the compose `sim` service (started by
 `mission start` with the mission's arena, seed and speed, reached by the agents as sim:7100), to completion;
 then `stop` takes the sim container down again.
@@ -11,7 +11,6 @@ HAA_REQUIRE_DOCKER=1). ≈ 60-90 s.
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import re
@@ -22,16 +21,14 @@ from pathlib import Path
 import pytest
 import yaml
 from chaoslib import docker_problem
+from helpers import Cli, NotYet, wait_sync
 from test_agents_chaos import SOURCE, up_on_free_subnet
-from typer.testing import CliRunner
 
 from haa.cluster.backend import wait_until
 from haa.cluster.compose_backend import ComposeBackend
 from haa.cluster.hostprocs import free_port
-from haactl.main import app
 
 pytestmark = pytest.mark.docker
-runner = CliRunner()
 N = 3
 
 MISSION = """\
@@ -66,17 +63,6 @@ def sim_containers(backend: ComposeBackend) -> list:
     return [c for c in mine if c.labels.get("com.docker.compose.service") == "sim"]
 
 
-class Cli:
-    def __init__(self, file: Path, project: str) -> None:
-        self.env = {"HAA_COMPOSE_FILE": str(file), "HAA_COMPOSE_PROJECT": project}
-
-    def __call__(self, *args: str, ok: bool = True) -> str:
-        r = runner.invoke(app, ["mission", *args, "--compose"], env=self.env)
-        if ok:
-            assert r.exit_code == 0, f"haactl mission {' '.join(args)} --compose -> {r.exit_code}\n{r.output}"
-        return r.stdout
-
-
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ComposeBackend, Path]]:
     problem = docker_problem()
@@ -100,21 +86,22 @@ def test_a_mission_runs_to_completion_on_the_compose_cluster(cluster, tmp_path, 
     backend, f = cluster
     monkeypatch.chdir(tmp_path)  # the mission state: .haa/compose-<project>/mission under the current directory
     (tmp_path / "m.yaml").write_text(MISSION)
-    cli = Cli(f, backend.project)
+    cli = Cli(extra=("--compose",), env={"HAA_COMPOSE_FILE": str(f), "HAA_COMPOSE_PROJECT": backend.project})
     try:
         t0 = time.monotonic()
-        started = cli("start", str(tmp_path / "m.yaml"))
+        started = cli.out("mission", "start", str(tmp_path / "m.yaml"))
         assert "mission compose-quick started" in started
         sim = sim_containers(backend)
         assert sim and sim[0].status == "running"
-        st: dict = {}
         saw_running = False
-        while time.monotonic() - t0 < 150:
-            st = json.loads(cli("status", "--json"))
+
+        def ended() -> dict | NotYet:
+            nonlocal saw_running
+            st = cli.json("mission", "status")
             saw_running = saw_running or (st.get("state") == "running" and bool(st.get("agents_per_host")))
-            if st.get("state") in ("finished", "failed"):
-                break
-            time.sleep(1.0)
+            return st if st.get("state") in ("finished", "failed") else NotYet(f"state {st.get('state')}")
+
+        st = wait_sync(ended, 150, "the mission to end", interval=1.0)
         print(f"mission on compose: {st.get('state')} after {time.monotonic() - t0:.1f} s wall")
         assert st.get("state") == "finished", st
         res = st["results"]
@@ -123,11 +110,11 @@ def test_a_mission_runs_to_completion_on_the_compose_cluster(cluster, tmp_path, 
         # the agents ran in the containers (the hosts of the compose cluster), and the status says where
         assert set(st["hosts"]) == {"h1", "h2", "h3"}
         assert sum(len(v) for v in st["agents_per_host"].values()) >= 4, st["agents_per_host"]
-        logs = cli("logs")
+        logs = cli.out("mission", "logs")
         assert "mission" in logs.lower() and "s1" in logs
-        text = cli("status")
+        text = cli.out("mission", "status")
         assert "compose-quick" in text
     finally:
-        stopped = cli("stop", ok=False)
+        stopped = cli("mission", "stop", ok=False).stdout
     assert "haa-sim stopped" in stopped, stopped
     assert not sim_containers(backend)

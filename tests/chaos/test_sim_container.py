@@ -20,6 +20,7 @@ import grpc
 import pytest
 import yaml
 from chaoslib import docker_problem
+from helpers import wait_sync
 
 from haa.pb import sim_pb2 as pb
 from haa.sim.service import SimClient, decode_frame
@@ -69,18 +70,18 @@ def container(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, s
         volumes={str(token_dir / "token"): {"bind": "/run/haa/token", "mode": "ro"}},
     )
     try:
-        deadline = time.monotonic() + 30
-        port = None
-        while time.monotonic() < deadline:
+        def listening() -> str | None:
+            """The published port once haa-sim listens; fails at once if it exited."""
             c.reload()
             if c.status == "exited":
                 raise AssertionError(f"haa-sim exited: {c.logs().decode()[-2000:]}")
             binding = (c.attrs["NetworkSettings"]["Ports"] or {}).get("7100/tcp")
-            if binding and b'"event": "listening"' in c.logs():
-                port = binding[0]["HostPort"]
-                break
-            time.sleep(0.2)
-        assert port, f"haa-sim did not start: {c.logs().decode()[-2000:]}"
+            return binding[0]["HostPort"] if binding and b'"event": "listening"' in c.logs() else None
+
+        try:
+            port = wait_sync(listening, 30, "haa-sim to listen", interval=0.2)
+        except AssertionError as e:
+            raise AssertionError(f"{e}: {c.logs().decode()[-2000:]}") from None
         yield c, f"127.0.0.1:{port}"
     finally:
         try:
@@ -122,7 +123,7 @@ def test_sim_container_serves_the_avatar_and_ground_truth_apis(container: tuple[
         occ, explorable, g = c.grid(0.1)
         assert occ.shape == explorable.shape == (72, 34) and g.explorable_area == pytest.approx(24.2, abs=0.2)
         t0 = c.info().time
-        time.sleep(0.5)
+        time.sleep(0.5)  # wall time passes: the simulated clock must run 10x as fast
         assert c.info().time > t0 + 1.0  # 10x: the clock runs in the container
         c.crash(aid)
         assert next(events).kind == "crashed"

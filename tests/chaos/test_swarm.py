@@ -1,4 +1,4 @@
-"""The Docker Swarm stack (issue 20 §1, compose/stack.yaml, haa.cluster.swarm_backend): a single-node swarm on
+"""The Docker Swarm stack (compose/stack.yaml, haa.cluster.swarm_backend): a single-node swarm on
 this machine's engine (`docker swarm init --advertise-addr 127.0.0.1` when the engine is in none; it leaves the
 swarm again at the end if it made it and nothing else runs in it).
 
@@ -27,23 +27,21 @@ import json
 import os
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import grpc
 import pytest
 from chaoslib import docker_problem
-from typer.testing import CliRunner
+from helpers import Cli, wait_sync
 
 from haa.cluster.backend import ClusterError, wait_until
 from haa.cluster.swarm_backend import SwarmBackend
 from haa.core import ddb
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
-from haactl.main import app
 
 pytestmark = pytest.mark.docker
-runner = CliRunner()
 CORE = ["core1", "core2", "core3"]
 
 
@@ -51,19 +49,13 @@ def docker(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]
     return subprocess.run(["docker", *args], capture_output=True, text=True, timeout=timeout)
 
 
-class Swarm:
+class Swarm(Cli):
+    """`haactl ... --swarm` for one stack, and its backend."""
+
     def __init__(self, stack: str) -> None:
+        super().__init__(extra=("--swarm",), env={"HAA_SWARM_STACK": stack})
         self.stack = stack
-        self.env = {"HAA_SWARM_STACK": stack}
         self.backend = SwarmBackend(stack=stack)
-
-    def __call__(self, *args: str) -> str:
-        r = runner.invoke(app, [*args, "--swarm"], env=self.env)
-        assert r.exit_code == 0, f"haactl {' '.join(args)} --swarm -> {r.exit_code}\n{r.output}\n{r.exception!r}"
-        return r.stdout
-
-    def agents(self) -> dict[str, dict[str, Any]]:
-        return {a["name"]: a for a in json.loads(self("agent", "list", "--json"))["agents"]}
 
     def counters(self) -> dict[str, dict[str, Any]]:
         """The counters' stats as published in the DDB (`demo/<agent name>`), read on a member."""
@@ -77,20 +69,8 @@ class Swarm:
         return {o.key.removeprefix("demo/"): t.public(t.decode(o.value)[0]) for o in objs if o.type == "json"}
 
 
-def poll(what: str, timeout: float, fn: Callable[[], Any]) -> Any:
-    """fn() until it returns something true (AssertionError / ClusterError / RPC trouble count as not yet)."""
-    deadline = time.monotonic() + timeout
-    last = ""
-    while True:
-        try:
-            got = fn()
-            if got:
-                return got
-        except (AssertionError, ClusterError) as e:
-            last = str(e)[:300]
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} ({last})")
-        time.sleep(0.5)
+#: what a poll of the swarm takes for "not yet" (a failing haactl command, the backend's errors)
+NOT_YET = (AssertionError, ClusterError)
 
 
 @pytest.fixture(scope="module")
@@ -114,8 +94,7 @@ def swarm() -> Iterator[Swarm]:
             for h in s.backend.hosts():  # a paused task would not stop
                 if h.state == "paused":
                     s.backend.resume(h.name)
-        r = runner.invoke(app, ["cluster", "down", "--swarm"], env=s.env)
-        print(r.output)
+        print(s("cluster", "down", ok=False).output)
         if made_swarm and not docker("service", "ls", "-q").stdout.strip():
             docker("swarm", "leave", "--force")
 
@@ -123,7 +102,7 @@ def swarm() -> Iterator[Swarm]:
 def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     b = swarm.backend
     t0 = time.monotonic()
-    up = json.loads(swarm("cluster", "up", "--hosts", "6", "--tls", "--json", "--timeout", "150"))
+    up = swarm.json("cluster", "up", "--hosts", "6", "--tls", "--timeout", "150")
     first = [*CORE, "host1", "host2", "host3"]
     assert sorted(up["members"]) == sorted(first), up
     assert up["backend"] == "swarm"
@@ -131,7 +110,7 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     hosts = {h.name: h for h in b.hosts()}
     assert [n for n, h in hosts.items() if h.core] == CORE
     assert all(h.state == "alive" and h.metrics_url for h in hosts.values()), hosts
-    st = json.loads(swarm("cluster", "status", "--json", "--sample", "0"))
+    st = swarm.json("cluster", "status", "--sample", "0")
     assert st["agreed"] and st["ddb_hashes_equal"] and sorted(st["members"]) == sorted(first), st
 
     # mutual TLS: a client with the token but no certificate is refused; a task cannot enroll as another host
@@ -145,8 +124,8 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
 
     # a counter pair, A1 on the host that will be killed
     swarm("agent", "spawn", "counter", "--config", json.dumps({"spawn_peer": True, "period": 0.1, "backup_every": 5}))
-    poll("both counters active", 60,
-         lambda: (a := swarm.agents()) and len(a) == 2 and all(x["state"] == "active" for x in a.values()))
+    wait_sync(lambda: (a := swarm.agents()) and len(a) == 2 and all(x["state"] == "active" for x in a.values()),
+              60, "both counters active", interval=0.5, ignore=NOT_YET)
 
     # docker service scale: two more hosts join
     t1 = time.monotonic()
@@ -169,7 +148,7 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
         # for host2 failed a run where the allocation moved A1 on within the move's 30 s
         swarm("agent", "move", "A1", "host2", "--no-wait")
         with contextlib.suppress(AssertionError):
-            victim_host = poll("A1 active on a non-core host", 20, a1_host)
+            victim_host = wait_sync(a1_host, 20, "A1 active on a non-core host", interval=0.5, ignore=NOT_YET)
             break
     else:
         raise AssertionError(f"A1 never settled on a non-core host: {swarm.agents()}")
@@ -179,7 +158,8 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
     victim = b.container(victim_host)
     r = docker("kill", victim.id)
     assert r.returncode == 0, r.stderr
-    poll(f"{victim_host} killed", 20, lambda: b.host(victim_host).state == "killed")
+    wait_sync(lambda: b.host(victim_host).state == "killed", 20, f"{victim_host} killed", interval=0.5,
+              ignore=NOT_YET)
     wait_until(lambda: b.removed_everywhere([victim_host]), 30, what=f"{victim_host} removed from every view")
     t_removed = time.monotonic() - t2
     f, _ = wait_until(lambda: b.rejoined(victim_host), 90, what=f"the replacement of {victim_host} to join")
@@ -210,7 +190,7 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
         service.reload()
         return (service.attrs.get("UpdateStatus") or {}).get("State") == "completed" and b.formation(eight).done
 
-    poll("the core's rolling update", 240, updated)
+    wait_sync(updated, 240, "the core's rolling update", interval=0.5, ignore=NOT_YET)
     inc_core = {m.name: m.incarnation for m in b.call("host1", lambda c: c.status(), "Status").member_info}
     assert all(inc_core[n] != inc_after[n] for n in CORE), (inc_core, inc_after)
     assert fewest >= 2, (f"the core was down to {fewest} member(s) during the rolling update:\n"
@@ -220,19 +200,21 @@ def test_swarm_stack_scales_and_replaces_a_killed_task(swarm: Swarm) -> None:
 
     # the agents survived the lot: recovered from the killed host, both active on members, counting cleanly
     members = set(eight)
-    poll("both counters active on members", 60, lambda: (a := swarm.agents()) and len(a) == 2
-         and all(x["state"] == "active" and x["host"] in members for x in a.values()))
-    before = poll("counter stats", 30, lambda: (c := swarm.counters()) and len(c) == 2 and c)
+    wait_sync(lambda: (a := swarm.agents()) and len(a) == 2
+              and all(x["state"] == "active" and x["host"] in members for x in a.values()),
+              60, "both counters active on members", interval=0.5, ignore=NOT_YET)
+    before = wait_sync(lambda: (c := swarm.counters()) and len(c) == 2 and c, 30, "counter stats", interval=0.5,
+                       ignore=NOT_YET)
 
     def progressing() -> dict[str, dict[str, Any]] | None:
         now = swarm.counters()
         ok = len(now) == 2 and all(now[n]["received"] > before[n]["received"] for n in now)
         return now if ok else None
 
-    after = poll("both counters receiving", 30, progressing)
+    after = wait_sync(progressing, 30, "both counters receiving", interval=0.5, ignore=NOT_YET)
     for name, s in after.items():
         assert s["lost"] == 0 and s["out_of_order"] == 0 and s["duplicate"] == 0, (name, s)
-    evs = [json.loads(ln) for ln in swarm("agent", "events", "--json").splitlines()]  # read from the tasks' logs
+    evs = [json.loads(ln) for ln in swarm.out("agent", "events", "--json").splitlines()]  # read from the tasks' logs
     a1 = [e for e in evs if e["name"] == "A1"]
     crash = [e for e in a1 if e["event"] == "crashed" and e["host"] == victim_host]
     # was A1 on the victim when it was killed? Its last event there before the victim's removal says: the

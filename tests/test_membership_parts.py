@@ -1,4 +1,4 @@
-"""The membership machines split out of `MembershipNode` (issue 17), each driven alone with a fake host:
+"""The membership sub-machines of `MembershipNode`, each driven alone with a fake host:
 `Join` (Alg. 3 ll. 35-39, 50-75), `MembershipUpdate` (ll. 76-157, 166-179), `GroupWrites` (ll. 127-132,
 144-145, 153-155) and `GroupLeave` (ll. 14-21). No `HostCore`, no runtime, no simulator: a `GlobalState`
 with a member list, a fake for the read-only host protocol, and the effects checked as returned.
