@@ -132,7 +132,7 @@ def test_kill_asks_the_owner_the_host_names(monkeypatch: pytest.MonkeyPatch, own
                    phases={"h1": "active"})
     monkeypatch.setattr(ac.ClusterOpts, "backend", lambda self, last=False: cluster)
     monkeypatch.setattr(ac, "load_rows", lambda backend: ({}, [row]))
-    r = runner.invoke(app, ["agent", "kill", "A1", "--no-wait"])
+    r = Cli()("agent", "kill", "A1", "--no-wait", ok=False)
     assert r.exit_code == (0 if owner else 1), r.output
     assert said in " ".join(r.output.split()) and cluster.asked == asked
 

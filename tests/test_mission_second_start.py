@@ -20,8 +20,8 @@ from haa.mission import runner as rn
 
 def wait_state(root: Path, pred, timeout: float, what: str) -> dict:
     """The mission's state file once `pred` holds for it."""
-    return wait_value(lambda: attached.read_json(attached.mission_dir(root) / attached.STATE_FILE) or {}, pred, timeout, what,
-                      interval=0.3)
+    state = attached.mission_dir(root) / attached.STATE_FILE
+    return wait_value(lambda: attached.read_json(state) or {}, pred, timeout, what, interval=0.3)
 
 
 def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
