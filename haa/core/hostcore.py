@@ -51,7 +51,21 @@ from haa.core.messages import (
     TxId,
 )
 from haa.core.oac import OacError, OrderedAtomicCommit
-from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+from haa.core.ufd import (
+    ArmFreshness,
+    AskPeriod,
+    Beat,
+    Deadline,
+    EmitHeartbeat,
+    HeartbeatIn,
+    HeartbeatObserver,
+    HeartbeatSender,
+    NewPeriod,
+    ObserverEffect,
+    Suspect,
+    Trust,
+    UfdConfig,
+)
 
 FD_UFD = "ufd"
 FD_EXTERNAL = "external"
@@ -258,17 +272,13 @@ class HostCore:
         if kind == "hb":  # Alg. 1 l. 6
             if p.sender is None:
                 return
-            hb = p.sender.beat(now)
-            self._send(q, p.inc, hb)
-            self._timer(("hb", q), p.sender.next_send)
+            for s in p.sender.step(now, Beat()):
+                if isinstance(s, EmitHeartbeat):
+                    self._send(q, p.inc, s.hb)
+                    self._timer(("hb", q), s.next_at)
         elif kind == "fd":  # Alg. 1 l. 17-18
-            obs = p.observer
-            if obs is None:
-                return
-            if obs.on_deadline(now):
-                self._set_suspected(now, p, True)
-            elif obs.trusted and now < obs.freshness:  # fired early (a driver's clock rounding): wait again
-                self._timer(("fd", q), obs.freshness)
+            if p.observer is not None:
+                self._observed(now, p, p.observer.step(now, Deadline()))
         elif kind == "excl":
             if k[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:
                 self._exclude(now, p)
@@ -307,23 +317,13 @@ class HostCore:
             return None
         t = type(msg)
         if isinstance(msg, Heartbeat):
-            obs = p.observer
-            if obs is None:
-                return None
-            became_trusted, new_period = obs.on_heartbeat(now, msg)
-            self._timer(("fd", src), obs.freshness)
-            if new_period is not None:
-                self._send(src, src_inc, SetPeriod(new_period))  # Alg. 1 l. 27
-            if became_trusted:
-                self._set_suspected(now, p, False)
+            if p.observer is not None:
+                self._observed(now, p, p.observer.step(now, HeartbeatIn(msg)))
         elif t in OAC_TYPES:
             self.oac.on_message(src, src_inc, cast(OacMessage, msg))
         elif isinstance(msg, SetPeriod):
-            if p.sender is not None:
-                try:
-                    p.sender.set_period(msg.period)
-                except ValueError:
-                    self.counters["rejected_bad_period"] += 1
+            if p.sender is not None and p.sender.step(now, NewPeriod(msg.period)):  # PeriodRefused
+                self.counters["rejected_bad_period"] += 1
         elif isinstance(msg, Excluded):
             if msg.incarnation == self.inc:
                 self._log("excluded_by_peer", by=src)
@@ -335,6 +335,21 @@ class HostCore:
         else:
             self.counters["rejected_unknown_message"] += 1
         return None
+
+    def _observed(self, now: float, p: _Peer, effects: list[ObserverEffect]) -> None:
+        """Carry out what `p`'s heartbeat observer decided (Alg. 1 ll. 17-27)."""
+        for e in effects:
+            match e:
+                case ArmFreshness(at):
+                    self._timer(("fd", p.name), at)
+                case AskPeriod(period):
+                    self._send(p.name, p.inc, SetPeriod(period))  # Alg. 1 l. 27
+                case Trust():
+                    self._set_suspected(now, p, False)
+                case Suspect():
+                    self._set_suspected(now, p, True)
+                case _:
+                    assert_never(e)
 
     def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
         """External failure detector output (fd_mode='external')."""

@@ -196,7 +196,7 @@ class HostRuntime:
     @property
     def mnode(self) -> MembershipNode | None:
         """The membership node (inside the agent layer when agents run), None in static mode."""
-        node = getattr(self.node, "m", self.node)
+        node = self.node.m if isinstance(self.node, AgentNode) else self.node
         return node if isinstance(node, MembershipNode) else None
 
     @property

@@ -22,6 +22,7 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from haa.core.agentnode import AgentNode
 from haa.core.effects import (
     CancelTimer,
     Closed,
@@ -147,6 +148,12 @@ class SimHost:
         if core is None:
             raise RuntimeError(f"{self.name}#{self.inc} has no core (crashed)")
         return core
+
+    @property
+    def membership(self) -> Any:
+        """The membership node of the host's core: an `AgentNode`'s `m`, else the core itself (None if crashed)."""
+        core = self.core
+        return core.m if isinstance(core, AgentNode) else core
 
     def local(self, t: float) -> float:
         return self.offset + (1.0 + self.drift) * t
@@ -468,7 +475,7 @@ class SimCluster:
 
     def _record_ed_hat(self, h: SimHost, peer: str, inc: int) -> None:
         """The observer's E(D) estimate: mean offset delay minus the true clock offset (eq. 4.4-1)."""
-        core = h.core
+        core = h.membership
         assert core is not None
         pst = core.peers.get(peer)
         if pst is None:
