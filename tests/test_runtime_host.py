@@ -32,7 +32,7 @@ def run(fn: Callable[[], Awaitable[None]]) -> None:
     asyncio.run(asyncio.wait_for(fn(), 30))
 
 
-def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = None) -> dict[str, HostRuntime]:
+def runtimes(names: list[str], no_votes: tuple[bytes, ...] = ()) -> dict[str, HostRuntime]:
     ports = {n: free_port() for n in names}
     return {
         n: HostRuntime(
@@ -43,7 +43,7 @@ def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = 
                 token="t",
                 core=FAST_CORE,
             ),
-            evaluate=evaluate,
+            no_votes=no_votes,
         )
         for n in names
     }
@@ -94,7 +94,7 @@ def test_timer_wheel_replaces_cancels_and_never_fires_early() -> None:
 
 def test_single_host_commit_and_abort_and_delivered_log() -> None:
     async def main() -> None:
-        rt = runtimes(["solo"], evaluate=lambda _t, payload: payload != b"veto")["solo"]
+        rt = runtimes(["solo"], no_votes=(b"veto",))["solo"]
         await rt.start()
         res = await rt.propose(b"a", participants=[])
         assert res.participants == ("solo",) and res.txid.host == "solo"

@@ -34,6 +34,7 @@ from haa.core.effects import (
     Send,
     SetTimer,
     Suspicion,
+    Voted,
 )
 from haa.core.hostcore import FD_EXTERNAL, CoreConfig, HostCore
 from haa.core.inputs import FdReport, PeerInfo, Receive, Start, TimerFired
@@ -224,17 +225,13 @@ class SimCluster:
         h.crash_pending = None
         name = h.name
 
-        def evaluate(txid: TxId, payload: bytes, _name: str = name, _inc: int = inc) -> bool:
-            vote = (payload, _name) not in self.no_votes
-            self.history.votes.setdefault(txid, {})[(_name, _inc)] = vote
-            return vote
-
         core: SimCore
         if self.make_core is not None:
             core = self.make_core(h, inc)
         else:
             known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
-            core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+            no = [payload for payload, who in self.no_votes if who == name]
+            core = HostCore(name, inc, self.names, self.config, no_votes=no, known_incs=known)
         h.core = core
         proc = (name, inc)
         self.history.started[proc] = self.now
@@ -452,6 +449,8 @@ class SimCluster:
                     self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
                 case Closed():
                     hist.closed[proc].add(e.txid)
+                case Voted():
+                    hist.votes.setdefault(e.txid, {})[proc] = e.ok
                 case Suspicion():
                     hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
                     self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")

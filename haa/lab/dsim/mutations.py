@@ -108,7 +108,7 @@ def skip_order_gate() -> Undo:
             if tx.state == oac_mod.DECIDED and tx.commit and tx.content:
                 tx.state = oac_mod.DONE
                 self.delivered += 1
-                self._emit(Deliver(tx.id, tx.order, tx.payload))
+                self._out.append(Deliver(tx.id, tx.order, tx.payload))
                 tx.decide_from.add(self.name)
                 if tx.relayed_decide:
                     self._announce_delivered(tx)
