@@ -2,7 +2,7 @@
 
 Each machine takes `step(now, input)` and returns its effects; a small fake stands for the node it reads
 (the `SeqHost` / `XferHost` protocols), and the tests carry out the effects the way the node does
-(`ProposeBatch` -> `Proposed`, `ApplyTx`/`Restore` -> `Continue`).
+(`ProposeBatch` with the id the machine reserved, `ApplyTx`/`Restore` -> `Continue`).
 """
 
 from __future__ import annotations
@@ -47,6 +47,11 @@ class FakeSeqHost:
     open: bool = True
     seq_of: tuple[str, int] | None = LEADER
     done: dict[tuple[str, int], set[int]] = field(default_factory=dict)
+    txids: int = 0
+
+    def new_txid(self) -> TxId:
+        self.txids += 1
+        return TxId(ME[0], ME[1], self.txids)
 
     def is_member(self) -> bool:
         return self.member
@@ -65,7 +70,7 @@ class FakeSeqHost:
 
 
 class SeqDriver:
-    """Carries out a sequencer's effects as `MembershipNode._seq` does; proposals get ids t1, t2, ..."""
+    """Carries out a sequencer's effects as `MembershipNode._seq` does (proposal ids come from the host: 1, 2, ...)."""
 
     def __init__(self, host: FakeSeqHost, **cfg: Any) -> None:
         self.m = sq.Sequencer(ME, host, sq.SeqConfig(**cfg))
@@ -79,9 +84,8 @@ class SeqDriver:
             out.append(e)
             if isinstance(e, sq.ProposeBatch):
                 self.n += 1
-                txid = TxId(ME[0], ME[1], self.n)
-                self.proposed[txid] = e.entries
-                out += self.step(now, sq.Proposed(txid))
+                assert e.txid == TxId(ME[0], ME[1], self.n)  # reserved from the host, in order
+                self.proposed[e.txid] = e.entries
             elif isinstance(e, sq.Count):
                 self.counters[e.name] = self.counters.get(e.name, 0) + e.n
         return out
@@ -342,6 +346,11 @@ class FakeFormationHost:
     form: bool = True
     incs: dict[str, int] = field(default_factory=dict)
     suspected: set[tuple[str, int]] = field(default_factory=set)
+    txids: int = 0
+
+    def new_txid(self) -> TxId:
+        self.txids += 1
+        return TxId("h2", 1, self.txids)
 
     def may_form(self) -> bool:
         return self.form
@@ -384,17 +393,15 @@ def test_fallback_proposes_the_unsuspected_core_head_once_at_a_time_and_retries_
     host = FakeFormationHost(incs={"h1": 3, "h3": 1}, suspected={("h1", 3)})
     m = formation(("h2", 1), host, c_h=3)
     out = m.step(5.0, fm.FormationDue())
-    assert out == [fm.ProposeFallback((Member("h2", 1, "h2:1"), Member("h3", 1, "h3:1")))]  # h1 suspected (l. 47)
     t = TxId("h2", 1, 1)
-    assert isinstance(out[0], fm.ProposeFallback)
-    assert m.step(5.0, fm.Proposed(t, out[0].members)) == [
-        Log("formation_fallback", {"tx": str(t), "members": ["h2", "h3"]})]
+    assert out == [fm.ProposeFallback(t, (Member("h2", 1, "h2:1"), Member("h3", 1, "h3:1"))),  # h1 suspected (l. 47)
+                   Log("formation_fallback", {"tx": str(t), "members": ["h2", "h3"]})]
     assert m.step(5.5, fm.FormationDue()) == []  # l. 49: wait until decided
     assert m.step(5.6, fm.Aborted(TxId("h3", 1, 9), False)) == []  # not ours
     assert m.step(5.7, fm.Aborted(t, False)) == [SetTimer(fm.FORMATION_TIMER, 6.7)]  # l. 46: repeat
     assert m.txid is None
-    m.step(6.7, fm.FormationDue())
-    m.step(6.7, fm.Proposed(TxId("h2", 1, 2), ()))
+    (again, _log) = m.step(6.7, fm.FormationDue())
+    assert isinstance(again, fm.ProposeFallback) and again.txid == TxId("h2", 1, 2) == m.txid
     assert m.step(7.0, fm.Delivered(TxId("h2", 1, 2))) == [] and m.txid is None
     m.txid = TxId("h2", 1, 3)
     assert m.step(7.5, fm.Aborted(TxId("h2", 1, 3), True)) == []  # aborted, but a group exists: no retry

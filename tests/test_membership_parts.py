@@ -43,9 +43,14 @@ class FakeHost:
     locked: bool = False
     catching: bool = False
     decided: bool = True
+    txids: int = 0
 
     def is_member(self) -> bool:
         return self.state.is_member(self.me)
+
+    def new_txid(self) -> TxId:
+        self.txids += 1
+        return TxId(self.me[0], self.me[1], self.txids)
 
     def is_leaving(self) -> bool:
         return self.leaving
@@ -172,7 +177,7 @@ def test_admitted_and_removed_hosts_leave_the_join_list() -> None:
 
 
 class UpdateDriver:
-    """Carries out the machine's `ProposeTx` as the node does: proposals get ids t1, t2, ..."""
+    """Carries out the machine's `ProposeTx` as the node does (the ids come from the host: 1, 2, ...)."""
 
     def __init__(self, host: FakeHost) -> None:
         self.m = up.MembershipUpdate(host.me, 1, CORE, host, retry_backoff=0.05)
@@ -184,9 +189,8 @@ class UpdateDriver:
         for e in self.m.step(now, inp):
             out.append(e)
             if isinstance(e, up.ProposeTx):
-                txid = TxId("h1", 1, len(self.proposed) + 1)
+                assert e.txid == TxId(*self.m.me, len(self.proposed) + 1)  # reserved from the host, in order
                 self.proposed.append((e.tx, e.participants))
-                out += self.step(now, up.Proposed(txid))
             elif isinstance(e, up.RunUpdate):
                 out += self.step(now, up.Run())
         self.effects += out
@@ -277,14 +281,11 @@ def test_writes_are_held_while_locked_and_acknowledged_once_committed() -> None:
     assert w.step(0.0, gw.Request("r1", b"agent", seq=False)) == [] and len(w.held) == 1  # l. 129
     assert w.step(0.0, gw.Request("r2", b"ddb", seq=True)) == [gw.ToSequencer("r2", b"ddb")]  # its own holding
     host.locked = False
-    assert w.step(1.0, gw.Release()) == [gw.ProposeWrite(b"agent")]  # ll. 132, 145, 155
-    w.step(1.0, gw.Proposed(TxId("h2", 1, 1)))
-    assert w.step(2.0, gw.Aborted(TxId("h2", 1, 1))) == [gw.ProposeWrite(b"agent")]  # re-proposed
-    w.step(2.0, gw.Proposed(TxId("h2", 1, 2)))
+    assert w.step(1.0, gw.Release()) == [gw.ProposeWrite(TxId("h2", 1, 1), b"agent")]  # ll. 132, 145, 155
+    assert w.step(2.0, gw.Aborted(TxId("h2", 1, 1))) == [gw.ProposeWrite(TxId("h2", 1, 2), b"agent")]  # re-proposed
     out = w.step(3.0, gw.Aborted(TxId("h2", 1, 2)))
     assert isinstance(out[0], WriteDone) and not out[0].ok and "gave up after 2 attempts" in out[0].reason
-    w.step(4.0, gw.Request("r3", b"agent", seq=False))
-    w.step(4.0, gw.Proposed(TxId("h2", 1, 3)))
+    assert w.step(4.0, gw.Request("r3", b"agent", seq=False)) == [gw.ProposeWrite(TxId("h2", 1, 3), b"agent")]
     (done,) = w.step(5.0, gw.Committed(TxId("h2", 1, 3), 9, "", None))
     assert done.ok and done.seq == 9 and done.req == "r3" and not w.writes
 

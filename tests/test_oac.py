@@ -275,11 +275,57 @@ def test_thesis_initial_timestamp_breaks_agreement():
     assert "AC-Uniform-Agreement" in {v.prop for v in check_oac(scenario_for(cl), cl, True).violations}
 
 
+class _Host:
+    """What OAC reads of its host (`OacHost`), from plain functions."""
+
+    def __init__(self, suspected=lambda _h, _i: False, dead=lambda _h, _i: False, removed=lambda _h, _i: False):
+        self.is_suspected, self.is_dead, self.is_removed = suspected, dead, removed
+
+
+class _Driven:
+    """An `OrderedAtomicCommit` driven by hand the way `HostCore` drives it: its sends go to `send`, a vote it
+    asks for is yes (`Evaluate` -> `Vote`), the rest of its effects are kept in `emitted`."""
+
+    def __init__(self, name, host, send=lambda *_a: None):
+        from haa.core.oac import OrderedAtomicCommit
+
+        self.oac = OrderedAtomicCommit(name, 1, host)
+        self.send = send
+        self.emitted: list = []
+
+    def step(self, inp):
+        from haa.core.effects import Send
+        from haa.core.oac import Evaluate, Learn, Vote
+
+        for e in self.oac.step(0.0, inp):
+            if isinstance(e, Send):
+                self.send(e.dst, e.dst_inc, e.msg, e.lazy)
+            elif isinstance(e, Evaluate):
+                self.step(Vote(e.txid, True))
+            elif not isinstance(e, Learn):
+                self.emitted.append(e)
+
+    def propose(self, payload, parts):
+        from haa.core.oac import Propose
+
+        txid = self.oac.new_txid()
+        self.step(Propose(txid, payload, tuple(parts)))
+        return txid
+
+    def on_message(self, src, src_inc, msg):
+        from haa.core.oac import Incoming
+
+        self.step(Incoming(src, src_inc, msg))
+
+    def on_peer_change(self, peer):
+        from haa.core.oac import PeerChanged
+
+        self.step(PeerChanged(peer))
+
+
 def _direct_group(n):
     """n OrderedAtomicCommit objects wired through one FIFO queue of (src, dst, msg, lazy), no failure detector."""
     from collections import deque
-
-    from haa.core.oac import OrderedAtomicCommit
 
     names = [f"h{i + 1}" for i in range(n)]
     wire = deque()
@@ -292,7 +338,8 @@ def _direct_group(n):
             wire.append((q, dst, msg))
             sent.append((q, dst, type(msg).__name__, lazy))
 
-        oacs[q] = OrderedAtomicCommit(q, 1, send, emitted[q].append, lambda _h, _i: False, lambda _h, _i: False)
+        oacs[q] = _Driven(q, _Host(), send)
+        emitted[q] = oacs[q].emitted
 
     def run():
         while wire:
@@ -325,8 +372,6 @@ def _pair_with_removal():
     h1's group removed (`HostCore.removed`): such an incarnation is also permanently suspected."""
     from collections import deque
 
-    from haa.core.oac import OrderedAtomicCommit
-
     removed: set = set()
     wires = {"h1": deque(), "h2": deque()}
     emitted = {"h1": [], "h2": []}
@@ -339,7 +384,8 @@ def _pair_with_removal():
         def dead(h, i, q=q):
             return q == "h1" and (h, i) in removed
 
-        oacs[q] = OrderedAtomicCommit(q, 1, send, emitted[q].append, dead, dead, is_removed=dead)
+        oacs[q] = _Driven(q, _Host(dead, dead, dead), send)
+        emitted[q] = oacs[q].emitted
 
     def deliver(dst, count=None):
         k = 0
@@ -368,7 +414,7 @@ def test_a_partner_the_group_removed_before_it_voted_leaves_an_abort():
     removed.add(("h2", 1))
     oacs["h1"].on_peer_change("h2")
     assert _outcomes(emitted["h1"]) == ([False], [])
-    assert oacs["h1"].active_count == 0 and not oacs["h1"].txs  # decided and closed (l. 41: h2 is dead)
+    assert oacs["h1"].oac.active_count == 0 and not oacs["h1"].oac.txs  # decided and closed (l. 41: h2 is dead)
 
 
 def test_a_partner_the_group_removed_after_it_decided_commit_agrees():
@@ -392,10 +438,7 @@ def test_a_partner_the_group_removed_after_it_decided_commit_agrees():
 def test_a_merely_suspected_partner_still_blocks_a_two_participant_transaction():
     """Only the group's removal lets a participant decide alone: with n = 2 a suspicion (or an exclusion that
     is not a removal) is a crash Alg. 2 does not tolerate (f < n/2 = 1), and the transaction waits."""
-    from haa.core.oac import OrderedAtomicCommit
-
-    out: list = []
-    oac = OrderedAtomicCommit("h1", 1, lambda *_a: None, out.append, lambda *_a: True, lambda *_a: True)
+    oac = _Driven("h1", _Host(lambda *_a: True, lambda *_a: True))
     oac.propose(b"z", [("h2", 1)])
     oac.on_peer_change("h2")
-    assert _outcomes(out) == ([], []) and oac.active_count == 1
+    assert _outcomes(oac.emitted) == ([], []) and oac.oac.active_count == 1

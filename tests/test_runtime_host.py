@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import time
-from collections.abc import Callable, Hashable
+from collections.abc import Hashable
 
 import pytest
 from helpers import run, until
@@ -28,7 +28,7 @@ FAST_CORE = CoreConfig(
 )
 
 
-def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = None) -> dict[str, HostRuntime]:
+def runtimes(names: list[str], no_votes: tuple[bytes, ...] = ()) -> dict[str, HostRuntime]:
     ports = {n: free_port() for n in names}
     return {
         n: HostRuntime(
@@ -39,7 +39,7 @@ def runtimes(names: list[str], evaluate: Callable[[TxId, bytes], bool] | None = 
                 token="t",
                 core=FAST_CORE,
             ),
-            evaluate=evaluate,
+            no_votes=no_votes,
         )
         for n in names
     }
@@ -90,7 +90,7 @@ def test_timer_wheel_replaces_cancels_and_never_fires_early() -> None:
 
 def test_single_host_commit_and_abort_and_delivered_log() -> None:
     async def main() -> None:
-        rt = runtimes(["solo"], evaluate=lambda _t, payload: payload != b"veto")["solo"]
+        rt = runtimes(["solo"], no_votes=(b"veto",))["solo"]
         await rt.start()
         res = await rt.propose(b"a", participants=[])
         assert res.participants == ("solo",) and res.txid.host == "solo"

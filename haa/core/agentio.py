@@ -1,10 +1,10 @@
 """The vocabulary between the agent layer (`haa.core.agentnode`) and whatever runs agent instances.
 
 `AgentNode` is sans-I/O: it never starts a process. It asks its driver to, with the *commands* below, and
-learns what the instances did from the *events* the driver feeds back (`AgentNode.on_agent_event`). The real
-driver is the daemon with its `haa.hostd.agentproc.AgentSupervisor` (OS processes); the deterministic
-simulator (`haa.lab.dsim.agents`) runs simulated agents. Every command and event names the instance by agent id
-*and epoch* (the fencing epoch of the agent table): an event of an older instance is ignored.
+learns what the instances did from the *events* the driver feeds back (`InstanceEvent` inputs of
+`AgentNode.step`). The real driver is the daemon with its `haa.hostd.agentproc.AgentSupervisor` (OS processes);
+the deterministic simulator (`haa.lab.dsim.agents`) runs simulated agents. Every command and event names the
+instance by agent id *and epoch* (the fencing epoch of the agent table): an event of an older instance is ignored.
 
 Messages cross this boundary as `haa.v1.RoutedMsg` (proto/haa/pb/agenttx.proto).
 """
@@ -115,6 +115,8 @@ class AgentTimeline:
 
 
 AGENT_COMMANDS = (SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent, AnswerAgent)
+#: the commands a driver of agent instances carries out
+AgentCommand = SpawnShell | StartAgent | DeliverAgent | FreezeAgent | KillAgent | AnswerAgent
 
 # ----------------------------------------------------------------------------------------------- events
 

@@ -24,7 +24,9 @@ state) and composes what thesis Chapter 4 builds on it for agents; each part is 
 The node keeps one record per instance (`local`: phase, epoch, streams; `haa.core.agentstep.Local`) and
 carries out the machines' effects in the order they come (`_apply`). Agent instances are not started here:
 the node emits commands (`haa.core.agentio`: SpawnShell, StartAgent, DeliverAgent, FreezeAgent, KillAgent,
-AnswerAgent) and takes events back through `on_agent_event`. The daemon runs OS processes
+AnswerAgent) and takes events back as `InstanceEvent` inputs. Every input, the host's and the agent layer's, goes
+through `step(now, input)` (`haa.core.inputs.AgentInput`); `drain()` returns the typed effects (`AgentNodeEffect`).
+What the node reads of the membership node is `m` (its state, OAC, members). The daemon runs OS processes
 (`haa.hostd.agentproc`); the simulator runs simulated agents (`haa.lab.dsim.agents`). No I/O, no clock, no
 randomness: ids of new agents come from the caller.
 """
@@ -32,9 +34,9 @@ randomness: ids of new agents come from the caller.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Hashable, Iterable, Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from typing import Any, assert_never, cast
+from typing import assert_never, cast
 
 from haa.core import agentplan as plan
 from haa.core import agentrequests as ops
@@ -42,6 +44,8 @@ from haa.core import agenttable as at
 from haa.core import recovery as rc
 from haa.core import transfer as tr
 from haa.core.agentio import (
+    AgentCommand,
+    AgentEvent,
     AgentOpDone,
     AgentTimeline,
     AnswerAgent,
@@ -73,14 +77,34 @@ from haa.core.agentstep import (
     Timeline,
 )
 from haa.core.allocglue import AllocGlue, GlueEffect
+from haa.core.effects import Effect as CoreEffect
 from haa.core.effects import Log, Send, SetTimer
-from haa.core.inputs import FdReport, LeaveGroup, NodeInput, PeerInfo, Receive, Start, Submit, TimerFired
+from haa.core.groupeffects import NodeEffect
+from haa.core.inputs import (
+    AgentInput,
+    CreateAgent,
+    FdReport,
+    InstanceEvent,
+    LeaveGroup,
+    MoveAgent,
+    OperatorSend,
+    PeerInfo,
+    Receive,
+    RemoveAgent,
+    ReportCosts,
+    RunAllocation,
+    SetPaused,
+    Start,
+    Submit,
+    TimerFired,
+    Undeliverable,
+)
 from haa.core.membership import AppliedTx, Left, MembershipNode, ViewChange, WriteDone
 from haa.core.messages import AgentHostMsg
 from haa.core.oac import DONE
 from haa.pb import agenttx_pb2 as apb
 
-__all__ = ["AgentConfig", "AgentNode", "Local"]
+__all__ = ["AgentConfig", "AgentNode", "AgentNodeEffect", "Local"]
 
 #: a write of the agent layer that was given up or refused is retried after this long (seconds)
 RETRY_AFTER = 0.1
@@ -88,11 +112,11 @@ RETRY_AFTER = 0.1
 _TRANSFER_WRITES = frozenset({"freeze", "release", "claim"})
 _RECOVERY_WRITES = frozenset({"recovered", "failed"})
 _ALLOC_WRITES = frozenset({"host", "start", "finish"})
-#: not handed on to the membership node by `AgentNode.__getattr__`: its own parts, and the membership node's
-#: inputs, which go through `AgentNode.step` (handed on, they would bypass the agent layer's clock)
-_NOT_HANDED_ON = frozenset({"m", "start", "on_message", "on_suspicion", "on_peer_info", "submit"})
 #: what the machines ask the node to do
 Effect = tr.TransferEffect | rc.RecoveryEffect | GlueEffect | RouteEffect | ops.OpEffect | LeaveEffect
+#: what `drain()` returns: the host's effects (the core's and the membership node's, but the agent layer's own
+#: writes), the commands for the agent instances, and the answers to operator requests
+AgentNodeEffect = CoreEffect | NodeEffect | AgentCommand | AgentOpDone | OperatorReply | AgentTimeline
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,7 +150,7 @@ class AgentNode:
         self.config = cfg = config or AgentConfig()
         self.name = node.name
         self.local: dict[str, Local] = {}  # the instances this host runs or prepares
-        self.out: list[Any] = []
+        self.out: list[AgentNodeEffect] = []
         self.counters: Counter[str] = Counter()
         self.transfer = tr.Transfer(self)
         self.recovery = rc.Recovery(self, rc.BackoffConfig(cfg.backoff_base, cfg.backoff_cap))
@@ -138,12 +162,6 @@ class AgentNode:
         self._alloc_msgs = self._seq = 0
         self._now = 0.0
         self._poll_armed = False
-
-    def __getattr__(self, name: str) -> Any:
-        # the rest is the membership node's (state, oac, is_member, ...): drivers drive either the same way
-        if name in _NOT_HANDED_ON:
-            raise AttributeError(name)
-        return getattr(self.m, name)
 
     # ------------------------------------------------------------------ the view the machines read (AgentView)
 
@@ -179,7 +197,7 @@ class AgentNode:
                 case Propose():
                     self._seq += 1
                     req = AgentWrite(e.kind, e.agent, e.epoch, self._seq)
-                    self.m.submit(self._now, at.encode(e.tx), req, kind="agent")
+                    self.m.step(self._now, Submit(at.encode(e.tx), req, "agent"))
                 case HostSend():
                     inc = next((m.inc for m in self.m.state.members if m.name == e.host), 0)
                     if inc and e.host != self.name:
@@ -226,11 +244,11 @@ class AgentNode:
                 case Go():
                     for agent in list(self.local):  # the deadline passed: these will be recovered elsewhere
                         self._forget(agent, kill="host leaving")
-                    self.m.leave(self._now)
+                    self.m.step(self._now, LeaveGroup())
                 case _:
                     assert_never(e)
 
-    def _cmd(self, c: Any) -> None:
+    def _cmd(self, c: AgentCommand) -> None:
         if type(c) is StartAgent:  # the start grace of this instance counts from here
             loc = self.local.get(c.agent)
             if loc is not None and loc.epoch == c.epoch:
@@ -247,26 +265,49 @@ class AgentNode:
 
     # ------------------------------------------------------------------ inputs (wrapping the membership node)
 
-    def step(self, now: float, inp: NodeInput) -> None:
-        """One input (`haa.core.inputs`); effects accumulate for `drain()`."""
+    def step(self, now: float, inp: AgentInput) -> None:
+        """One input (`haa.core.inputs`): the host's, handed to the membership node underneath, or the agent
+        layer's own; effects accumulate for `drain()`."""
         self._now = now
         match inp:
             case Receive():
                 if (up := self.m.step(now, inp)) is not None:  # an AgentHostMsg the core let through
                     self._on_host_msg(up.src, up.src_inc, up.msg)
             case TimerFired(key):
-                self.on_timer(now, key)
+                self._on_timer(now, key)
             case LeaveGroup():
-                self.leave(now)
+                self._leave(now)
             case Start() | FdReport() | PeerInfo() | Submit():
                 self.m.step(now, inp)
+            case CreateAgent():
+                self._apply(self.ops.create(ops.create(
+                    inp.agent_id, inp.type_name, inp.config, inp.parent, self.name, inp.cost, inp.hardware,
+                    inp.transfer_penalty, inp.recovery, inp.max_per_host, inp.key), inp.req))
+            case RemoveAgent(ref, req):
+                self._apply(self.ops.remove(ref, self.name, req))
+            case MoveAgent(ref, host, req):
+                self._apply(self.ops.move(ref, host, self.members(), req))
+            case SetPaused(paused, req):
+                self._apply(self.ops.propose(ops.pause(paused), req))
+            case RunAllocation():  # the leader starts one (`AllocGlue.run`)
+                self._apply(self.alloc.run(now, self.m.is_member()))
+            case ReportCosts(cpu, affinity):  # committed so that the leader's next session uses them
+                tx = ops.costs(self.table, self.name, dict(cpu), dict(affinity)) if self.m.is_member() else None
+                if tx is not None:
+                    self._apply([Propose(tx, "costs", "", 0)])
+            case OperatorSend(dst, payload, conv, src):
+                if (r := self.table.resolve(dst)) is not None:
+                    self._route(apb.RoutedMsg(src=src, dst=r.id, payload=payload, conv=conv))
+            case InstanceEvent(ev):
+                self._on_instance_event(now, ev)
+            case Undeliverable(agent, epoch, m):
+                self._undeliverable(agent, epoch, m)
             case _:
                 assert_never(inp)
 
-    def on_timer(self, now: float, key: Hashable) -> None:
-        self._now = now
+    def _on_timer(self, now: float, key: Hashable) -> None:
         if not isinstance(key, AgentTimer):
-            self.m.on_timer(now, key)
+            self.m.step(now, TimerFired(key))
         elif key.what == "poll":  # Alg. 6 l. 9 again
             self._poll_armed = False
             for loc in list(self.local.values()):
@@ -282,63 +323,14 @@ class AgentNode:
         elif key.what == "drain":
             self._apply(self.leaving.check(len(self.local), force=now >= self.leaving.deadline))
 
-    def leave(self, now: float) -> None:
+    def _leave(self, now: float) -> None:
         """Graceful leave (thesis AF-1): hand every agent over, then leave the group (`haa.core.agentleave`)."""
-        self._now = now
         self.alloc.draining = True
         self._apply(self.leaving.begin(now, len(self.local), self.m.is_member()))
 
-    # ------------------------------------------------------------------ operator requests (`haa.core.agentrequests`)
-
-    def create_agent(self, now: float, agent_id: str, type_name: str, config: bytes = b"", *, parent: str = "",
-                     cost: float = 0.1, hardware: Iterable[str] = (), transfer_penalty: float = 0.1,
-                     recovery: str = "backup", max_per_host: int = 0, req: Hashable = None,
-                     key: str = "") -> None:
-        self._now = now
-        self._apply(self.ops.create(ops.create(agent_id, type_name, config, parent, self.name, cost, hardware,
-                                               transfer_penalty, recovery, max_per_host, key), req))
-
-    def remove_agent(self, now: float, ref: str, req: Hashable = None) -> None:
-        self._now = now
-        self._apply(self.ops.remove(ref, self.name, req))
-
-    def move_agent(self, now: float, ref: str, host: str, req: Hashable = None) -> None:
-        self._now = now
-        self._apply(self.ops.move(ref, host, self.members(), req))
-
-    def set_paused(self, now: float, paused: bool, req: Hashable = None) -> None:
-        self._now = now
-        self._apply(self.ops.propose(ops.pause(paused), req))
-
-    def run_allocation(self, now: float) -> None:
-        """An operator asks for an allocation session now (the leader starts one, `AllocGlue.run`)."""
-        self._now = now
-        self._apply(self.alloc.run(now, self.m.is_member()))
-
-    def report_costs(self, now: float, cpu: dict[str, float], affinity: dict[tuple[str, str], float]) -> None:
-        """Measured CPU per local agent and message rates between agent pairs (bytes/s): committed so that the
-        leader's next session uses them (Alg. 4 ll. 22-23)."""
-        self._now = now
-        if self.m.is_member() and (tx := ops.costs(self.table, self.name, cpu, affinity)) is not None:
-            self._apply([Propose(tx, "costs", "", 0)])
-
-    def operator_request(self, now: float, dst: str, payload: bytes, conv: int) -> bool:
-        """A request from the operator, answered with an `OperatorReply` effect here (the reply travels back
-        from the agent's host: the request's sender is "@<this host>")."""
-        return self.operator_send(now, dst, payload, conv, "@" + self.name)
-
-    def operator_send(self, now: float, dst: str, payload: bytes, conv: int = 0, src: str = "") -> bool:
-        """A message from the operator (no sender agent, unsequenced)."""
-        self._now = now
-        r = self.table.resolve(dst)
-        if r is not None:
-            self._route(apb.RoutedMsg(src=src, dst=r.id, payload=payload, conv=conv))
-        return r is not None
-
     # ------------------------------------------------------------------ events of local instances, other hosts
 
-    def on_agent_event(self, now: float, ev: Any) -> None:
-        self._now = now
+    def _on_instance_event(self, now: float, ev: AgentEvent) -> None:
         loc = self.local.get(ev.agent)
         if loc is None or loc.epoch != ev.epoch:
             self.counters["stale_agent_events"] += 1  # an older instance (fenced): ignored
@@ -352,16 +344,15 @@ class AgentNode:
         elif type(ev) is Stopped:  # the agent ended itself: removed from the table
             self._apply([Propose(ops.remove(loc.id, self.name, loc.epoch), "stopped", loc.id, loc.epoch)])
         elif type(ev) is SpawnChild:
-            self.create_agent(now, ev.child_id, ev.type, ev.config, parent=loc.id,
-                              max_per_host=ev.max_per_host, req=("child", loc.id, loc.epoch, ev.req), key=ev.key)
+            self.step(now, CreateAgent(ev.child_id, ev.type, ev.config, parent=loc.id, max_per_host=ev.max_per_host,
+                                       req=("child", loc.id, loc.epoch, ev.req), key=ev.key))
 
-    def undeliverable(self, now: float, agent: str, epoch: int, m: apb.RoutedMsg) -> None:
+    def _undeliverable(self, agent: str, epoch: int, m: apb.RoutedMsg) -> None:
         """The driver could not hand `m` to the instance (its process is ending): hold the message until the
         table says where the agent is (its failure is being reported, or it stopped itself)."""
-        self._now = now
         loc = self.local.get(agent)
         if loc is not None and loc.epoch == epoch and loc.phase == "freezing":
-            if not self.transfer.step(now, Hold(m)):  # queue1 before Alg. 5 l. 11; after it, an orphan
+            if not self.transfer.step(self._now, Hold(m)):  # queue1 before Alg. 5 l. 11; after it, an orphan
                 return
         self._rc(rc.Orphan(agent, m))
 
@@ -375,14 +366,14 @@ class AgentNode:
             else:
                 self.counters["malformed_bid_update"] += 1
         elif msg.kind == "alloc_run":
-            self.run_allocation(self._now)
+            self._apply(self.alloc.run(self._now, self.m.is_member()))
         else:
             self._apply(self.router.from_host(src, msg))
 
     # ------------------------------------------------------------------ drain: membership effects + ours, commits
 
-    def drain(self) -> list[Any]:
-        res: list[Any] = []
+    def drain(self) -> list[AgentNodeEffect]:
+        res: list[AgentNodeEffect] = []
         while True:
             effs = self.m.drain()
             if self._alloc_msgs:  # Alg. 4 l. 77: every update received in this input has been processed

@@ -1,7 +1,7 @@
 """The agent table transactions an operator (or an agent) asks for, built and checked before they are proposed.
 
 `haa.core.agentnode.AgentNode` takes operator requests (`haactl agent spawn|remove|move|pause`, the agents'
-own `spawn_child` and `stop`, the measured costs of `AgentNode.report_costs`) and proposes them as `AgentTx`
+own `spawn_child` and `stop`, the measured costs of a `ReportCosts` input) and proposes them as `AgentTx`
 transactions; this module builds those transactions. A request that cannot be valid is refused here with the
 reason the table would give (`agenttable.check_create`), so an operator learns it at once instead of after an
 OAC. Whether a valid-looking request takes effect is still decided by the table, identically on every member.

@@ -97,4 +97,14 @@ class Log:
     fields: dict[str, Any] = field(default_factory=dict)
 
 
-Effect = Send | SetTimer | CancelTimer | Decided | Deliver | Closed | Suspicion | PeerDead | Reincarnate | Log
+@dataclass(frozen=True, slots=True)
+class Voted:
+    """This host voted `ok` on OAC transaction `txid` (Alg. 2 ll. 27-30; the verifiers check AC-Uniform-Validity
+    against these)."""
+
+    txid: TxId
+    ok: bool
+
+
+Effect = (Send | SetTimer | CancelTimer | Decided | Deliver | Closed | Suspicion | PeerDead | Reincarnate | Log
+          | Voted)

@@ -62,6 +62,10 @@ class FormationHost(Protocol):
     def address(self, name: str) -> str:
         """The address of host `name` ("" if unknown)."""
 
+    def new_txid(self) -> TxId:
+        """A fresh OAC transaction id of this host incarnation for a proposal (the one call that changes the node:
+        it reserves the id, so the machine knows its transaction before it is proposed)."""
+
 
 # ------------------------------------------------------------------------------------------------ inputs
 
@@ -82,14 +86,6 @@ class FormationDue:
 
 
 @dataclass(frozen=True, slots=True)
-class Proposed:
-    """The node proposed the `ProposeFallback` it was given and OAC named it `txid`."""
-
-    txid: TxId
-    members: tuple[Member, ...]
-
-
-@dataclass(frozen=True, slots=True)
 class Aborted:
     """OAC aborted transaction `txid`; `has_group`: this host has a member list by now."""
 
@@ -104,7 +100,7 @@ class Delivered:
     txid: TxId
 
 
-FormationInput = Start | DiscoveryDue | FormationDue | Proposed | Aborted | Delivered
+FormationInput = Start | DiscoveryDue | FormationDue | Aborted | Delivered
 
 
 # ------------------------------------------------------------------------------------------------ effects
@@ -117,8 +113,9 @@ class FormGroupOfOne:
 
 @dataclass(frozen=True, slots=True)
 class ProposeFallback:
-    """l. 48: propose OAC(formationFallback, p, members) to `members`, then step with `Proposed`."""
+    """l. 48: propose OAC(formationFallback, p, members) as `txid` to `members`."""
 
+    txid: TxId
     members: tuple[Member, ...]
 
 
@@ -156,10 +153,10 @@ class Formation:
             case FormationDue():
                 # ll. 46-48: while p ∉ memberList_p, propose to the unsuspected core head; l. 49: one at a time
                 if self.host.may_form() and self.txid is None:
-                    self._out.append(ProposeFallback(self.head_list()))
-            case Proposed(txid, members):
-                self.txid = txid
-                self._out.append(Log("formation_fallback", {"tx": str(txid), "members": [m.name for m in members]}))
+                    self.txid = txid = self.host.new_txid()
+                    members = self.head_list()
+                    self._out.append(ProposeFallback(txid, members))
+                    self._out.append(Log("formation_fallback", {"tx": str(txid), "members": [m.name for m in members]}))
             case Aborted(txid, has_group):
                 if txid == self.txid:
                     self.txid = None

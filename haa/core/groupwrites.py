@@ -10,15 +10,15 @@ on (`ToSequencer`), and the sequencer does its own holding.
 
 `GroupWrites` is this part of one host incarnation as a sans-I/O machine with its own state: the changes
 held, and the proposed ones by transaction id. Interface: `step(now, input) -> list[WritesEffect]` over the
-closed unions `WritesInput` and `WritesEffect`; a proposal is the effect `ProposeWrite`, which the node
-proposes at once and answers with `Proposed(txid)`. What it reads of the node comes through `WritesHost`.
+closed unions `WritesInput` and `WritesEffect`; a proposal is the effect `ProposeWrite`, with the transaction
+id the machine reserved (`new_txid`), which the node proposes at once. What it reads of the node comes through
+`WritesHost`.
 
 No I/O, no clock, no randomness.
 """
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Protocol, assert_never
@@ -41,6 +41,10 @@ class WritesHost(Protocol):
 
     def catching_up(self) -> bool:
         """A new member whose state has not caught up yet."""
+
+    def new_txid(self) -> TxId:
+        """A fresh OAC transaction id of this host incarnation for a proposal (the one call that changes the node:
+        it reserves the id, so the machine knows its transaction before it is proposed)."""
 
 
 @dataclass(slots=True)
@@ -69,13 +73,6 @@ class Release:
 
 
 @dataclass(frozen=True, slots=True)
-class Proposed:
-    """The node proposed the oldest unanswered `ProposeWrite` as `txid`."""
-
-    txid: TxId
-
-
-@dataclass(frozen=True, slots=True)
 class Aborted:
     """OAC aborted `txid`."""
 
@@ -92,7 +89,7 @@ class Committed:
     result: object
 
 
-WritesInput = Request | Release | Proposed | Aborted | Committed
+WritesInput = Request | Release | Aborted | Committed
 
 
 # ------------------------------------------------------------------------------------------------ effects
@@ -100,8 +97,9 @@ WritesInput = Request | Release | Proposed | Aborted | Committed
 
 @dataclass(frozen=True, slots=True)
 class ProposeWrite:
-    """Propose `payload` by OAC to every member; answer with `Proposed(txid)`."""
+    """Propose `payload` by OAC as `txid` to every member."""
 
+    txid: TxId
     payload: bytes
 
 
@@ -127,7 +125,6 @@ class GroupWrites:
         self.max_attempts = max_attempts
         self.held: list[Write] = []  # changes held while locked (l. 129) or catching up
         self.writes: dict[TxId, Write] = {}  # proposed, not yet committed or aborted
-        self._proposing: deque[Write] = deque()  # ProposeWrite effects not yet answered by Proposed
         self._out: list[WritesEffect] = []
 
     def step(self, now: float, inp: WritesInput) -> list[WritesEffect]:
@@ -151,8 +148,6 @@ class GroupWrites:
                     held, self.held = self.held, []
                     for w in held:
                         self._propose(w)
-            case Proposed(txid):
-                self.writes[txid] = self._proposing.popleft()
             case Aborted(txid):
                 w_ = self.writes.pop(txid, None)
                 if w_ is not None:
@@ -170,8 +165,9 @@ class GroupWrites:
             self._out.append(ToSequencer(w.req, w.payload))
             return
         w.attempts += 1
-        self._proposing.append(w)
-        self._out.append(ProposeWrite(w.payload))
+        txid = self.host.new_txid()
+        self.writes[txid] = w
+        self._out.append(ProposeWrite(txid, w.payload))
 
     def _retry(self, w: Write, why: str) -> None:
         h = self.host

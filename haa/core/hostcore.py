@@ -24,12 +24,15 @@ The module performs no I/O, reads no clock and uses no randomness.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Hashable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, assert_never, cast
 
 from haa.core.effects import (
     CancelTimer,
+    Closed,
+    Decided,
+    Deliver,
     Effect,
     Log,
     PeerDead,
@@ -37,6 +40,7 @@ from haa.core.effects import (
     Send,
     SetTimer,
     Suspicion,
+    Voted,
 )
 from haa.core.inputs import CoreInput, FdReport, PeerInfo, Receive, Start, TimerFired
 from haa.core.messages import (
@@ -50,8 +54,32 @@ from haa.core.messages import (
     SetPeriod,
     TxId,
 )
-from haa.core.oac import OacError, OrderedAtomicCommit
-from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+from haa.core.oac import (
+    Evaluate,
+    Incoming,
+    Learn,
+    OacError,
+    OacInput,
+    OrderedAtomicCommit,
+    PeerChanged,
+    Propose,
+    Vote,
+)
+from haa.core.ufd import (
+    ArmFreshness,
+    AskPeriod,
+    Beat,
+    Deadline,
+    EmitHeartbeat,
+    HeartbeatIn,
+    HeartbeatObserver,
+    HeartbeatSender,
+    NewPeriod,
+    ObserverEffect,
+    Suspect,
+    Trust,
+    UfdConfig,
+)
 
 FD_UFD = "ufd"
 FD_EXTERNAL = "external"
@@ -93,6 +121,14 @@ class AppMessage:
     msg: AgentHostMsg
 
 
+@dataclass(frozen=True, slots=True)
+class VoteRequest:
+    """OAC asks this host's vote on `txid` (Alg. 2 l. 27): the layer above answers with `HostCore.vote`."""
+
+    txid: TxId
+    payload: bytes
+
+
 class _Peer:
     __slots__ = ("inc", "last_notice", "name", "observer", "sender", "suspected")
 
@@ -114,7 +150,7 @@ class HostCore:
         inc: int,
         peers: Iterable[str],
         config: CoreConfig | None = None,
-        evaluate: Callable[[TxId, bytes], bool] | None = None,
+        no_votes: Iterable[bytes] = (),
         known_incs: dict[str, int] | None = None,
         accept_group: bool = False,
     ) -> None:
@@ -140,20 +176,13 @@ class HostCore:
         #: a membership layer runs on top (`haa.core.membership.MembershipNode`): `on_message` returns the
         #: membership messages of Alg. 3 to it, and one from a host this core has never heard of adds that host
         #: as a peer (an applicant, or a member introduced to us) instead of being rejected
+        #: and answers OAC's `Evaluate` requests (`VoteRequest`: `step` returns them to it). Without one the core
+        #: votes itself: yes, but no on the payloads of `no_votes` (the simulator's unilateral aborts, Alg. 2 l. 27)
         self.accept_group = accept_group
+        self.no_votes = frozenset(no_votes)
         self.started = False
         self._now = 0.0
-        self.oac = OrderedAtomicCommit(
-            name,
-            inc,
-            self._oac_send,
-            self.out.append,
-            self.is_suspected,
-            self.is_dead,
-            evaluate,
-            learn=self._learn_participants,
-            is_removed=self.is_removed,
-        )
+        self.oac = OrderedAtomicCommit(name, inc, self)
 
     # ------------------------------------------------------------------ queries used by OAC
 
@@ -194,11 +223,35 @@ class HostCore:
     def _send(self, dst: str, dst_inc: int, msg: Message) -> None:
         self.out.append(Send(dst, dst_inc, msg))
 
-    def _oac_send(self, dst: str, dst_inc: int, msg: OacMessage, lazy: bool = False) -> None:
-        if (dst, dst_inc) in self.dead:
-            self.counters["oac_not_sent_to_dead"] += 1
-            return
-        self.out.append(Send(dst, dst_inc, msg, lazy))
+    def _oac(self, now: float, inp: OacInput) -> VoteRequest | None:
+        """Step OAC and carry out its effects in order; a vote it asks for is answered here without a layer above
+        (static mode), else returned for that layer to answer (`vote`)."""
+        ask: VoteRequest | None = None
+        for e in self.oac.step(now, inp):
+            match e:
+                case Send(dst, dst_inc):
+                    if (dst, dst_inc) in self.dead:
+                        self.counters["oac_not_sent_to_dead"] += 1
+                    else:
+                        self.out.append(e)
+                case Learn(parts):
+                    self._learn_participants(parts)
+                case Evaluate(txid, payload):
+                    if self.accept_group:
+                        ask = VoteRequest(txid, payload)
+                    else:
+                        ask = self._oac(now, Vote(txid, payload not in self.no_votes))
+                case Decided() | Deliver() | Closed() | Log() | Voted():
+                    self.out.append(e)
+                case _:
+                    assert_never(e)
+        return ask
+
+    def vote(self, now: float, txid: TxId, ok: bool) -> None:
+        """The layer above answers a `VoteRequest` (Alg. 2 ll. 27-30)."""
+        self._now = now
+        if self._oac(now, Vote(txid, ok)) is not None:  # (a vote never asks for another one)
+            raise OacError(f"the vote on {txid} asked for another vote")
 
     def _timer(self, key: Hashable, at: float) -> None:
         self.out.append(SetTimer(key, at))
@@ -208,7 +261,7 @@ class HostCore:
 
     # ------------------------------------------------------------------ inputs
 
-    def step(self, now: float, inp: CoreInput) -> GroupMessage | AppMessage | None:
+    def step(self, now: float, inp: CoreInput) -> GroupMessage | AppMessage | VoteRequest | None:
         """One input (`haa.core.inputs`); its effects accumulate for `drain()`. A message for the layer above
         (membership or agent layer) that passed the core's checks is returned."""
         match inp:
@@ -258,24 +311,20 @@ class HostCore:
         if kind == "hb":  # Alg. 1 l. 6
             if p.sender is None:
                 return
-            hb = p.sender.beat(now)
-            self._send(q, p.inc, hb)
-            self._timer(("hb", q), p.sender.next_send)
+            for s in p.sender.step(now, Beat()):
+                if isinstance(s, EmitHeartbeat):
+                    self._send(q, p.inc, s.hb)
+                    self._timer(("hb", q), s.next_at)
         elif kind == "fd":  # Alg. 1 l. 17-18
-            obs = p.observer
-            if obs is None:
-                return
-            if obs.on_deadline(now):
-                self._set_suspected(now, p, True)
-            elif obs.trusted and now < obs.freshness:  # fired early (a driver's clock rounding): wait again
-                self._timer(("fd", q), obs.freshness)
+            if p.observer is not None:
+                self._observed(now, p, p.observer.step(now, Deadline()))
         elif kind == "excl":
             if k[2] == p.inc and p.suspected and (q, p.inc) not in self.dead:
                 self._exclude(now, p)
 
     def on_message(
         self, now: float, src: str, src_inc: int, dst_inc: int, msg: Message
-    ) -> GroupMessage | AppMessage | None:
+    ) -> GroupMessage | AppMessage | VoteRequest | None:
         """A message from `src`; a membership message (with `accept_group`) is returned for the layer above."""
         self._now = now
         p = self.peers.get(src)
@@ -307,23 +356,13 @@ class HostCore:
             return None
         t = type(msg)
         if isinstance(msg, Heartbeat):
-            obs = p.observer
-            if obs is None:
-                return None
-            became_trusted, new_period = obs.on_heartbeat(now, msg)
-            self._timer(("fd", src), obs.freshness)
-            if new_period is not None:
-                self._send(src, src_inc, SetPeriod(new_period))  # Alg. 1 l. 27
-            if became_trusted:
-                self._set_suspected(now, p, False)
+            if p.observer is not None:
+                self._observed(now, p, p.observer.step(now, HeartbeatIn(msg)))
         elif t in OAC_TYPES:
-            self.oac.on_message(src, src_inc, cast(OacMessage, msg))
+            return self._oac(now, Incoming(src, src_inc, cast(OacMessage, msg)))
         elif isinstance(msg, SetPeriod):
-            if p.sender is not None:
-                try:
-                    p.sender.set_period(msg.period)
-                except ValueError:
-                    self.counters["rejected_bad_period"] += 1
+            if p.sender is not None and p.sender.step(now, NewPeriod(msg.period)):  # PeriodRefused
+                self.counters["rejected_bad_period"] += 1
         elif isinstance(msg, Excluded):
             if msg.incarnation == self.inc:
                 self._log("excluded_by_peer", by=src)
@@ -335,6 +374,21 @@ class HostCore:
         else:
             self.counters["rejected_unknown_message"] += 1
         return None
+
+    def _observed(self, now: float, p: _Peer, effects: list[ObserverEffect]) -> None:
+        """Carry out what `p`'s heartbeat observer decided (Alg. 1 ll. 17-27)."""
+        for e in effects:
+            match e:
+                case ArmFreshness(at):
+                    self._timer(("fd", p.name), at)
+                case AskPeriod(period):
+                    self._send(p.name, p.inc, SetPeriod(period))  # Alg. 1 l. 27
+                case Trust():
+                    self._set_suspected(now, p, False)
+                case Suspect():
+                    self._set_suspected(now, p, True)
+                case _:
+                    assert_never(e)
 
     def on_suspicion(self, now: float, peer: str, suspected: bool) -> None:
         """External failure detector output (fd_mode='external')."""
@@ -386,7 +440,7 @@ class HostCore:
         if reason == "removed" and (name, inc) not in self.removed:
             self.removed.add((name, inc))
             if (name, inc) in self.dead:  # already excluded or superseded: OAC learns that it was removed
-                self.oac.on_peer_change(name)
+                self._oac(now, PeerChanged(name))
         if (name, inc) in self.dead:
             return
         self._mark_dead(p, inc, reason)
@@ -397,10 +451,17 @@ class HostCore:
         p.last_notice = now
         self._send(name, inc, Excluded(inc))
 
-    def propose_to(self, now: float, payload: bytes, participants: Iterable[tuple[str, int]]) -> TxId:
-        """Propose an OAC transaction to exactly these host incarnations (this host is always included)."""
+    def new_txid(self) -> TxId:
+        """A fresh OAC transaction id of this host incarnation, for `propose_to` (chosen before proposing)."""
+        return self.oac.new_txid()
+
+    def propose_to(self, now: float, txid: TxId, payload: bytes,
+                   participants: Iterable[tuple[str, int]]) -> VoteRequest | None:
+        """Propose OAC transaction `txid` (`new_txid`) to exactly these host incarnations (this host is always
+        included); this host's own vote on it is asked for at once (a `VoteRequest` for the layer above)."""
         self._now = now
-        return self.oac.propose(payload, [pq for pq in participants if pq[0] != self.name])
+        parts = tuple(pq for pq in participants if pq[0] != self.name)
+        return self._oac(now, Propose(txid, payload, parts))
 
     def propose(self, now: float, payload: bytes, participants: Iterable[str] | None = None) -> TxId:
         """Propose an OAC transaction; default participants: this host and every peer it trusts."""
@@ -418,8 +479,11 @@ class HostCore:
                 if not p.inc or (q, p.inc) in self.dead:
                     raise OacError(f"participant {q!r} is not reachable (no live incarnation known)")
                 names.append(q)
-        parts = [(q, self.peers[q].inc) for q in sorted(set(names))]
-        return self.oac.propose(payload, parts)
+        parts = tuple((q, self.peers[q].inc) for q in sorted(set(names)))
+        txid = self.oac.new_txid()
+        if self._oac(now, Propose(txid, payload, parts)) is not None:
+            raise OacError("propose() is the static mode's: a layer above proposes with propose_to and votes")
+        return txid
 
     # ------------------------------------------------------------------ internals
 
@@ -432,7 +496,7 @@ class HostCore:
                 self._timer(key, now + self.config.exclude_after)
             else:
                 self.out.append(CancelTimer(key))
-        self.oac.on_peer_change(p.name)
+        self._oac(self._now, PeerChanged(p.name))
 
     def _learn_participants(self, parts: tuple[tuple[str, int], ...]) -> None:
         """A participant list names an incarnation we never heard from: it exists (its proposer heard
@@ -448,7 +512,7 @@ class HostCore:
         self.dead.add((p.name, inc))
         self.out.append(PeerDead(p.name, inc, reason))
         self._log("peer_dead", peer=p.name, inc=inc, reason=reason)
-        self.oac.on_peer_change(p.name)
+        self._oac(self._now, PeerChanged(p.name))
 
     def _exclude(self, now: float, p: _Peer) -> None:
         """Permanent suspicion after `exclude_after` of continuous suspicion."""
@@ -467,7 +531,7 @@ class HostCore:
                 # the detector's output for an incarnation it has not heard from yet is SUSPECTED (l. 15-18)
                 self.out.append(Suspicion(p.name, inc, True))
                 self._timer(("excl", p.name, inc), now + self.config.exclude_after)
-            self.oac.on_peer_change(p.name)
+            self._oac(self._now, PeerChanged(p.name))
             return
         self.out.append(CancelTimer(("excl", p.name, old)))
         self._mark_dead(p, old, "restarted")
@@ -479,7 +543,7 @@ class HostCore:
             self._timer(("excl", p.name, inc), now + self.config.exclude_after)
         else:
             p.suspected = False
-        self.oac.on_peer_change(p.name)
+        self._oac(self._now, PeerChanged(p.name))
 
     # ------------------------------------------------------------------ introspection
 

@@ -57,7 +57,7 @@ The class does no I/O, reads no clock and uses no randomness.
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, assert_never, cast
 
@@ -74,7 +74,6 @@ from haa.core.formation import (
     ProposeFallback,
 )
 from haa.core.formation import Delivered as FDelivered
-from haa.core.formation import Proposed as FProposed
 from haa.core.formation import Start as FStart
 from haa.core.globalstate import (
     GlobalState,
@@ -96,10 +95,9 @@ from haa.core.groupleave import Abandoned, Excluded, GroupLeave, LeaveCalled, Le
 from haa.core.groupwrites import Aborted as WAborted
 from haa.core.groupwrites import Committed as WCommitted
 from haa.core.groupwrites import GroupWrites, ProposeWrite, ToSequencer, WritesEffect
-from haa.core.groupwrites import Proposed as WProposed
 from haa.core.groupwrites import Release as WRelease
 from haa.core.groupwrites import Request as WRequest
-from haa.core.hostcore import AppMessage, CoreConfig, GroupMessage, HostCore
+from haa.core.hostcore import AppMessage, CoreConfig, GroupMessage, HostCore, VoteRequest
 from haa.core.inputs import FdReport, LeaveGroup, NodeInput, PeerInfo, Receive, TimerFired
 from haa.core.inputs import Start as NStart
 from haa.core.inputs import Submit as NSubmit
@@ -148,7 +146,6 @@ from haa.core.sequencer import (
     Flush,
     Forwarded,
     ProposeBatch,
-    Proposed,
     Retarget,
     RetryDue,
     SeqConfig,
@@ -195,7 +192,6 @@ from haa.core.update import (
     UpdateInput,
     Withdrawn,
 )
-from haa.core.update import Proposed as UProposed
 from haa.core.update import RetryDue as URetryDue
 
 Proc = tuple[str, int]
@@ -298,8 +294,7 @@ class MembershipNode:
         for n, a in self.known_hosts:
             self.addrs[n] = a
         self.addrs[name] = addr
-        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, evaluate=self._evaluate,
-                             accept_group=True)
+        self.core = HostCore(name, inc, [n for n in self.core_names if n != name], cfg.core, accept_group=True)
         #: node effects go through the core's outbox, in order (so it holds both kinds)
         self.out = cast("list[Effect | NodeEffect]", self.core.out)
         self.state = GlobalState(self.core_names, self.c_f)
@@ -432,6 +427,8 @@ class MembershipNode:
         g = self.core.on_message(now, src, src_inc, dst_inc, msg)
         if isinstance(g, GroupMessage):  # a membership message, handled right where the core let it through
             self._on_group(g.src, g.src_inc, g.msg)
+        elif isinstance(g, VoteRequest):
+            self._vote(g)
         return g if isinstance(g, AppMessage) else None
 
     def _on_group(self, src: str, src_inc: int, msg: Message) -> None:
@@ -511,16 +508,14 @@ class MembershipNode:
             match e:
                 case Send() | SetTimer() | Log() | WriteDone() | Left() | Reincarnate():
                     self.out.append(e)
-                case ProposeTx(tx, parts):  # the membership update's
-                    self._up(UProposed(self.core.propose_to(now, encode_tx(tx), parts)))
-                case ProposeFallback(members):  # the formation's (ll. 46-49)
-                    parts = [m.proc for m in members]
-                    self._form(FProposed(self.core.propose_to(now, encode_tx(TxFormation(self.me, members)), parts),
-                                         members))
-                case ProposeBatch(entries):  # the sequencer's
-                    self._seq(Proposed(self.core.propose_to(now, encode_tx(TxSeq(entries)), self.state.procs())))
-                case ProposeWrite(payload):
-                    self._carry(self.wr.step(now, WProposed(self.core.propose_to(now, payload, self.state.procs()))))
+                case ProposeTx(txid, tx, parts):  # the membership update's
+                    self._propose(txid, encode_tx(tx), parts)
+                case ProposeFallback(txid, members):  # the formation's (ll. 46-49)
+                    self._propose(txid, encode_tx(TxFormation(self.me, members)), [m.proc for m in members])
+                case ProposeBatch(txid, entries):  # the sequencer's
+                    self._propose(txid, encode_tx(TxSeq(entries)), self.state.procs())
+                case ProposeWrite(txid, payload):
+                    self._propose(txid, payload, self.state.procs())
                 case ToSequencer(req, payload):
                     self._seq(Submit(req, payload))
                 case FormGroupOfOne():  # ll. 42-43
@@ -598,6 +593,15 @@ class MembershipNode:
                 self.addrs.setdefault(m.name, m.addr)
 
     # ------------------------------------------------------------------ OAC votes and outcomes
+
+    def _propose(self, txid: TxId, payload: bytes, participants: Iterable[Proc]) -> None:
+        """Propose a machine's transaction by OAC, with the id the machine reserved; vote on it at once."""
+        if (ask := self.core.propose_to(self._now, txid, payload, participants)) is not None:
+            self._vote(ask)
+
+    def _vote(self, ask: VoteRequest) -> None:
+        """OAC asks this host's vote on a transaction (Alg. 2 l. 27): the group's rules decide it (`_evaluate`)."""
+        self.core.vote(self._now, ask.txid, self._evaluate(ask.txid, ask.payload))
 
     def _evaluate(self, txid: TxId, payload: bytes) -> bool:
         try:

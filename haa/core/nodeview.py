@@ -45,7 +45,8 @@ class ViewedNode(Protocol):
 
 
 class NodeView:
-    """The read-only view of `node` that its machines are given as their host."""
+    """The view of `node` that its machines are given as their host: reads, and one call that changes it,
+    `new_txid` (a transaction id reserved for a proposal)."""
 
     def __init__(self, node: ViewedNode) -> None:
         self.node = node
@@ -54,6 +55,9 @@ class NodeView:
     @property
     def state(self) -> GlobalState:
         return self.node.state
+
+    def new_txid(self) -> TxId:
+        return self.node.core.new_txid()
 
     # ------------------------------------------------------------------ the failure detector, on processes
 

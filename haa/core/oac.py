@@ -1,7 +1,7 @@
 """Totally ordered atomic commit HAA-OAC (thesis §4.5, Appendix II Alg. 2).
 
 A transaction is proposed by one host to a set of participants (one of which is the proposer). Every
-participant votes through an evaluate hook (unilateral abort), then the participants run rounds of a
+participant votes (unilateral abort, ll. 27-30), then the participants run rounds of a
 rotating-coordinator consensus (the non-blocking atomic commit of [67], steps P1/C1/P2/C2) on the outcome.
 Total order across transactions with different participant sets comes from the thesis' order proposals:
 a participant proposes an order above every open transaction it knows when it first learns a transaction,
@@ -10,8 +10,19 @@ the highest proposal wins, and a committed transaction is delivered only when it
 decidedTransactions until every participant has acknowledged the decision or is permanently suspected
 (l. 41), and is then forgotten (closed).
 
-This class is sans-I/O: it is driven by `on_message`, `propose` and `on_peer_change`, and
-acts only through the callables it is given. Line numbers in comments refer to Alg. 2.
+This class is sans-I/O, a machine like every other of the core: one `step(now, input)` returns the effects.
+
+* Inputs: `Propose(txid, payload, participants)` (startTransaction, ll. 3-5; the id is pre-assigned by the
+  caller with `new_txid()`, so a proposer knows it before anything is sent), `Incoming(src, src_inc, msg)` (an
+  OAC message from another host), `PeerChanged(peer)` (the failure detector's output about `peer` changed, or
+  one of its incarnations became permanently suspected), `Vote(txid, ok)` (this host's vote, ll. 27-30).
+* Effects: `Send` (to another host; `lazy` below), `Decided`, `Deliver`, `Closed`, `Log`, and for the host
+  around it: `Evaluate(txid, payload)` (vote on this transaction: answered by a `Vote` input, until which the
+  transaction waits and its messages are held), `Voted(txid, ok)` (the vote was taken, for the record) and
+  `Learn(participants)` (a participant list names incarnations the host may not know yet).
+
+What it reads of its host (`OacHost`): the failure detector's output, permanent suspicion and removal.
+Line numbers in comments refer to Alg. 2.
 
 Where the pseudo-code is silent or needs completing for liveness, the choices are (docs/oac.md):
 
@@ -41,10 +52,11 @@ Where the pseudo-code is silent or needs completing for liveness, the choices ar
 from __future__ import annotations
 
 import heapq
-from collections.abc import Callable, Iterable
-from typing import Any
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Protocol, assert_never
 
-from haa.core.effects import Closed, Decided, Deliver, Log
+from haa.core.effects import Closed, Decided, Deliver, Log, Send, Voted
 from haa.core.messages import (
     OacAck,
     OacDecide,
@@ -57,6 +69,67 @@ from haa.core.messages import (
 )
 
 Participant = tuple[str, int]
+
+
+class OacHost(Protocol):
+    """What OAC reads of its host (`haa.core.hostcore.HostCore`)."""
+
+    def is_suspected(self, q: str, qi: int) -> bool:
+        """The failure detector's current output (◇S_p); True also for a permanently suspected incarnation."""
+        ...
+
+    def is_dead(self, q: str, qi: int) -> bool:
+        """Permanent suspicion (l. 41)."""
+        ...
+
+    def is_removed(self, q: str, qi: int) -> bool:
+        """The group removed this incarnation (Alg. 3 l. 118): it is permanently suspected and its messages
+        are dropped for good. Used only by `_decide_alone`."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class Propose:
+    txid: TxId
+    payload: bytes
+    participants: tuple[Participant, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Incoming:
+    src: str
+    src_inc: int
+    msg: OacMessage
+
+
+@dataclass(frozen=True, slots=True)
+class PeerChanged:
+    peer: str
+
+
+@dataclass(frozen=True, slots=True)
+class Vote:
+    txid: TxId
+    ok: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Evaluate:
+    """Vote on `txid` (ll. 27-30): answer with a `Vote` input."""
+
+    txid: TxId
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Learn:
+    """A participant list: the host learns of the incarnations it names (and suspects those it cannot hear)."""
+
+    participants: tuple[Participant, ...]
+
+
+OacInput = Propose | Incoming | PeerChanged | Vote
+OacEffect = Send | Decided | Deliver | Closed | Log | Evaluate | Voted | Learn
 
 UNDECIDED = 0  # in activeTransactions, no outcome yet
 DECIDED = 1  # in activeTransactions, outcome known, waiting at the l. 37 gate
@@ -108,6 +181,7 @@ class _Tx:
         "senders",
         "state",
         "ts",
+        "voting",
     )
 
     def __init__(self, txid: TxId, order: int) -> None:
@@ -133,8 +207,10 @@ class _Tx:
         self.round_decided = -1
         self.relayed_content = False
         self.senders: set[Participant] = set()
-        # Task 2 messages that reached a placeholder, replayed once the transaction arrives
+        # Task 2 messages that reached a placeholder, replayed once the transaction arrives (or, while this
+        # host's vote is asked for, once it is given)
         self.pending: list[tuple[str, int, OacMessage]] = []
+        self.voting = False
 
     def set_participants(self, parts: tuple[Participant, ...]) -> None:
         self.parts = parts
@@ -148,53 +224,43 @@ class _Tx:
 
 
 class OrderedAtomicCommit:
-    """Alg. 2 for one host.
+    """Alg. 2 for one host (`name`, incarnation `inc`): see the module docstring."""
 
-    Args:
-        name, inc: this host and its incarnation.
-        send: send(dst, dst_inc, msg, lazy) to another host (never called for this host itself). `lazy` marks a
-            message no host waits for in a failure-free run (a Task 1 rebroadcast of a decision learned from
-            someone else, l. 36; a round estimate sent right after acknowledging the previous round, l. 47):
-            the transport may hold it for a few milliseconds to send it together with other traffic on the
-            same channel (FIFO order is kept; docs/oac.md, "Lazy messages").
-        emit: receives `Decided`, `Deliver`, `Closed` and `Log` effects.
-        is_suspected: (host, inc) -> bool, the failure detector's current output (◇S_p), True also for a
-            permanently suspected incarnation.
-        is_dead: (host, inc) -> bool, permanent suspicion (l. 41).
-        evaluate: (txid, payload) -> vote (l. 27); False is a unilateral abort.
-        learn: called with every participant list this host learns, so that the host can learn of peer
-            incarnations it has not heard from itself (and start suspecting them).
-        is_removed: (host, inc) -> bool, the group removed this incarnation (Alg. 3 l. 118): it is permanently
-            suspected and its messages are dropped for good. Used only by `_decide_alone`.
-    """
-
-    def __init__(
-        self,
-        name: str,
-        inc: int,
-        send: Callable[[str, int, OacMessage, bool], None],
-        emit: Callable[[Any], None],
-        is_suspected: Callable[[str, int], bool],
-        is_dead: Callable[[str, int], bool],
-        evaluate: Callable[[TxId, bytes], bool] | None = None,
-        learn: Callable[[tuple[Participant, ...]], None] | None = None,
-        is_removed: Callable[[str, int], bool] | None = None,
-    ) -> None:
+    def __init__(self, name: str, inc: int, host: OacHost) -> None:
         self.name = name
-        self._learn = learn or (lambda _parts: None)
         self.inc = inc
-        self._send_fn = send
-        self._emit = emit
-        self._is_suspected = is_suspected
-        self._is_dead = is_dead
-        self._evaluate = evaluate or (lambda _txid, _payload: True)
-        self._is_removed = is_removed or (lambda _q, _qi: False)
+        self._host = host
+        self._out: list[OacEffect] = []
         self.txs: dict[TxId, _Tx] = {}  # activeTransactions_p ∪ decidedTransactions_p (ll. 1-2)
         self._gate: list[tuple[int, TxId]] = []  # min-heap over active (order, id), lazily invalidated
         self._seq = 0
         self.delivered = 0
 
+    def new_txid(self) -> TxId:
+        """A fresh transaction id of this host incarnation, for a `Propose` (ids are never reused)."""
+        self._seq += 1
+        return TxId(self.name, self.inc, self._seq)
+
+    def step(self, now: float, inp: OacInput) -> list[OacEffect]:
+        """One input (module docstring); returns its effects in the order they were produced."""
+        match inp:
+            case Propose(txid, payload, participants):
+                self._propose(txid, payload, participants)
+            case Incoming(src, src_inc, msg):
+                self._on_message(src, src_inc, msg)
+            case PeerChanged(peer):
+                self._on_peer_change(peer)
+            case Vote(txid, ok):
+                self._on_vote(txid, ok)
+            case _:
+                assert_never(inp)
+        out, self._out = self._out, []
+        return out
+
     # ------------------------------------------------------------------ helpers
+
+    def _send_fn(self, dst: str, dst_inc: int, msg: OacMessage, lazy: bool) -> None:
+        self._out.append(Send(dst, dst_inc, msg, lazy))
 
     def _send(self, dst: str, dst_inc: int, msg: OacMessage) -> None:
         if dst == self.name:
@@ -207,7 +273,7 @@ class OrderedAtomicCommit:
                 self._send_fn(q, qi, msg, lazy)
 
     def _suspected(self, q: str, qi: int) -> bool:
-        return q != self.name and self._is_suspected(q, qi)
+        return q != self.name and self._host.is_suspected(q, qi)
 
     def _highest(self, exclude: TxId | None = None) -> tuple[int, TxId] | None:
         """Highest (order, id) of activeTransactions_p ∪ decidedTransactions_p (l. 4, l. 22)."""
@@ -224,19 +290,19 @@ class OrderedAtomicCommit:
         heapq.heappush(self._gate, (tx.order, tx.id))
 
     def _log(self, event: str, **fields: Any) -> None:
-        self._emit(Log(event, fields))
+        self._out.append(Log(event, fields))
 
     # ------------------------------------------------------------------ inputs
 
-    def propose(self, payload: bytes, participants: Iterable[Participant]) -> TxId:
+    def _propose(self, txid: TxId, payload: bytes, participants: Iterable[Participant]) -> None:
         """startTransaction (ll. 3-5). The proposer is moved to the head of the list (docs/oac.md)."""
         parts = [p for p in participants if p[0] != self.name]
         names = [p[0] for p in parts]
         if len(set(names)) != len(names):
             raise OacError(f"duplicate participant in {names}")
+        if (txid.host, txid.inc) != (self.name, self.inc) or txid in self.txs:
+            raise OacError(f"{txid} is not a fresh transaction id of {self.name}#{self.inc} (new_txid)")
         parts_t: tuple[Participant, ...] = ((self.name, self.inc), *parts)
-        self._seq += 1
-        txid = TxId(self.name, self.inc, self._seq)
         # l. 4: back of the queue (docs/oac.md, "Orders never go back", tried and taken back)
         high = self._highest()
         order = (high[0] if high else 0) + 1
@@ -245,9 +311,8 @@ class OrderedAtomicCommit:
             if q != self.name:
                 self._send_fn(q, qi, msg, False)
         self._on_transaction(self.name, self.inc, msg)  # our own copy (l. 6)
-        return txid
 
-    def on_message(self, src: str, src_inc: int, msg: OacMessage) -> None:
+    def _on_message(self, src: str, src_inc: int, msg: OacMessage) -> None:
         """Any OAC message from another host (ll. 6-8 and ll. 72-84, then the waits it may release)."""
         if type(msg) is OacTransaction:
             self._on_transaction(src, src_inc, msg)
@@ -276,7 +341,7 @@ class OrderedAtomicCommit:
         if isinstance(msg, OacDecide):
             self._on_decide(tx, src, msg)
             return
-        if not tx.content:
+        if not tx.content or tx.voting:
             if not isinstance(msg, OacOrder) and tx.state == UNDECIDED:
                 tx.pending.append((src, src_inc, msg))
             return
@@ -291,7 +356,7 @@ class OrderedAtomicCommit:
                 tx.acks.setdefault((msg.order, msg.round), {})[src] = msg.ack
         self._progress(tx)
 
-    def on_peer_change(self, peer: str) -> None:
+    def _on_peer_change(self, peer: str) -> None:
         """The failure detector's output about `peer` changed, or one of its incarnations became
         permanently suspected: re-check every wait that involves it (ll. 49, 57, 41), relay transactions
         whose proposer is now suspected, and drop placeholders nobody alive can resolve."""
@@ -304,7 +369,7 @@ class OrderedAtomicCommit:
                 self._close_check(tx)
             elif not tx.parts and tx.state == UNDECIDED:
                 # placeholder that knows neither the transaction nor its outcome
-                if tx.senders and all(self._is_dead(q, qi) for q, qi in tx.senders):
+                if tx.senders and all(self._host.is_dead(q, qi) for q, qi in tx.senders):
                     self._log("oac_placeholder_dropped", tx=str(tx.id))
                     del self.txs[tx.id]
         self._deliver_ready()
@@ -365,10 +430,23 @@ class OrderedAtomicCommit:
         tx.payload = msg.payload
         tx.set_participants(parts)
         tx.senders.add((src, src_inc))
-        self._learn(parts)
+        self._out.append(Learn(parts))
         if bump:
             self._send_all(tx, OacOrder(tx.id, order_p))  # l. 24
-        if not self._evaluate(tx.id, tx.payload):  # l. 27-30: unilateral abort
+        tx.voting = True  # l. 27: the host votes; the transaction waits for its `Vote`
+        self._out.append(Evaluate(tx.id, tx.payload))
+
+    def _on_vote(self, txid: TxId, ok: bool) -> None:
+        """ll. 27-32: this host's vote on a transaction it was asked to evaluate."""
+        tx = self.txs.get(txid)
+        if tx is None or not tx.voting:
+            self._log("oac_vote_unasked", tx=str(txid))
+            return
+        tx.voting = False
+        self._out.append(Voted(txid, ok))
+        if tx.state != UNDECIDED:  # the outcome reached us while the vote was asked for: nothing to do
+            return
+        if not ok:  # l. 27-30: unilateral abort
             self._log("oac_vote_no", tx=str(tx.id))
             self._decide(tx, commit=False, order=-1, rnd=tx.r)
             return
@@ -378,7 +456,7 @@ class OrderedAtomicCommit:
         pending, tx.pending = tx.pending, []
         for psrc, pinc, pmsg in pending:
             if tx.pinc.get(psrc) == pinc and tx.state == UNDECIDED:
-                self.on_message(psrc, pinc, pmsg)
+                self._on_message(psrc, pinc, pmsg)
 
     def _relay_content(self, tx: _Tx) -> None:
         if tx.content and not tx.relayed_content and tx.state == UNDECIDED:
@@ -435,7 +513,7 @@ class OrderedAtomicCommit:
         if tx.n != 2:
             return False
         q, qi = tx.parts[1] if tx.parts[0][0] == self.name else tx.parts[0]
-        return q != self.name and self._is_removed(q, qi)
+        return q != self.name and self._host.is_removed(q, qi)
 
     def _decide_alone(self, tx: _Tx) -> None:
         """Decide a two-participant transaction whose partner the group removed, with this host's estimate
@@ -515,7 +593,7 @@ class OrderedAtomicCommit:
                 self._log("oac_bad_decide", tx=str(tx.id), src=src)
                 return
             tx.set_participants(parts)
-            self._learn(parts)
+            self._out.append(Learn(parts))
         if msg.delivered:
             tx.decide_from.add(src)
         if tx.state == UNDECIDED:  # l. 34
@@ -534,7 +612,7 @@ class OrderedAtomicCommit:
         if commit:
             tx.order = order  # the final order (Lemma OAC-2)
             self._push_gate(tx)
-        self._emit(Decided(tx.id, commit))
+        self._out.append(Decided(tx.id, commit))
         if not commit:  # l. 37: abort needs no order
             tx.state = DONE  # ll. 38-40
         self._deliver_ready()  # this transaction, or others it was holding back at the gate
@@ -566,7 +644,7 @@ class OrderedAtomicCommit:
             heapq.heappop(gate)
             tx.state = DONE  # l. 39-40
             self.delivered += 1
-            self._emit(Deliver(tx.id, tx.order, tx.payload))  # l. 38
+            self._out.append(Deliver(tx.id, tx.order, tx.payload))  # l. 38
             tx.payload = b""
             tx.decide_from.add(self.name)
             if tx.relayed_decide:
@@ -582,10 +660,10 @@ class OrderedAtomicCommit:
         if tx.state != DONE or not tx.parts:
             return
         for q, qi in tx.parts:
-            if q not in tx.decide_from and not self._is_dead(q, qi):
+            if q not in tx.decide_from and not self._host.is_dead(q, qi):
                 return
         if self.txs.pop(tx.id, None) is not None:
-            self._emit(Closed(tx.id))
+            self._out.append(Closed(tx.id))
 
     # ------------------------------------------------------------------ introspection
 

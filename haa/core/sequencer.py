@@ -19,11 +19,11 @@ for one host incarnation, as a sans-I/O machine with its own state:
   up); an aborted batch goes back to the front of the queue (`BatchAborted`).
 
 Interface: `step(now, input) -> list[SeqEffect]` with the closed unions `SeqInput` and `SeqEffect`. The
-machine reads what it needs of its host through the narrow read-only `SeqHost` protocol (membership, who
-the sequencer is, the replicated dedup record) and changes nothing outside itself: sends, timers, answers,
-proposals and counter increments all come back as effects, in the order the node must carry them out. A
-proposal (`ProposeBatch`) is carried out by the node, which reports the OAC transaction id back at once
-(`Proposed`), so the machine can match the later decision to the batch.
+machine reads what it needs of its host through the narrow `SeqHost` protocol (membership, who the sequencer
+is, the replicated dedup record; the one call that changes the node reserves a transaction id) and changes
+nothing outside itself: sends, timers, answers, proposals and counter increments all come back as effects, in
+the order the node must carry them out. A proposal (`ProposeBatch`) carries the transaction id the machine
+reserved, so it matches the later decision to the batch.
 
 No I/O, no clock, no randomness.
 """
@@ -78,6 +78,10 @@ class SeqHost(Protocol):
     def settled(self, origin: Proc, cseq: int) -> bool:
         """The replicated dedup record says `origin`'s write `cseq` is applied or settled."""
 
+    def new_txid(self) -> TxId:
+        """A fresh OAC transaction id of this host incarnation for a proposal (the one call that changes the node:
+        it reserves the id, so the machine knows its transaction before it is proposed)."""
+
 
 # ------------------------------------------------------------------------------------------------ inputs
 
@@ -116,13 +120,6 @@ class Flush:
 
 
 @dataclass(frozen=True, slots=True)
-class Proposed:
-    """The node proposed the oldest `ProposeBatch` it was given and OAC named it `txid`."""
-
-    txid: TxId
-
-
-@dataclass(frozen=True, slots=True)
 class BatchApplied:
     """Transaction `txid` was applied here as the `seq`-th global transaction. `results`: what became of each
     entry when it was a sequencer batch (anyone's), () otherwise."""
@@ -139,7 +136,7 @@ class BatchAborted:
     txid: TxId
 
 
-SeqInput = Submit | Forwarded | RetryDue | Retarget | Flush | Proposed | BatchApplied | BatchAborted
+SeqInput = Submit | Forwarded | RetryDue | Retarget | Flush | BatchApplied | BatchAborted
 
 
 # ------------------------------------------------------------------------------------------------ effects
@@ -147,8 +144,9 @@ SeqInput = Submit | Forwarded | RetryDue | Retarget | Flush | Proposed | BatchAp
 
 @dataclass(frozen=True, slots=True)
 class ProposeBatch:
-    """Propose `TxSeq(entries)` by OAC to every member, then report the transaction id with `Proposed`."""
+    """Propose `TxSeq(entries)` by OAC as `txid` to every member."""
 
+    txid: TxId
     entries: tuple[SeqEntry, ...]
 
 
@@ -191,7 +189,6 @@ class Sequencer:
         # as the sequencer
         self.queue: deque[SeqEntry] = deque()
         self.known: set[tuple[Proc, int]] = set()  # (origin, cseq) queued or in a batch of ours
-        self.proposing: deque[tuple[SeqEntry, ...]] = deque()  # handed out as ProposeBatch, txid not yet known
         self.inflight: dict[TxId, tuple[SeqEntry, ...]] = {}
         self._now = 0.0
         self._out: list[SeqEffect] = []
@@ -215,8 +212,6 @@ class Sequencer:
                     self._forward(list(self.pending))
             case Flush():
                 self._flush()
-            case Proposed(txid):
-                self.inflight[txid] = self.proposing.popleft()
             case BatchApplied(txid, seq, results):
                 self._applied(txid, seq, results)
             case BatchAborted(txid):
@@ -228,7 +223,7 @@ class Sequencer:
 
     def busy(self) -> bool:
         """Writes are pending here or batches of ours are queued or in OAC."""
-        return bool(self.pending or self.queue or self.proposing or self.inflight)
+        return bool(self.pending or self.queue or self.inflight)
 
     # ------------------------------------------------------------------ origin
 
@@ -324,7 +319,7 @@ class Sequencer:
         if not self.host.may_batch():
             return
         cfg = self.config
-        while q and len(self.inflight) + len(self.proposing) < cfg.seq_inflight:
+        while q and len(self.inflight) < cfg.seq_inflight:
             entries: list[SeqEntry] = []
             size = 0
             while q and len(entries) < cfg.seq_max_entries and (
@@ -334,8 +329,9 @@ class Sequencer:
                 entries.append(e)
                 size += len(e.tx)
             batch = tuple(entries)
-            self.proposing.append(batch)
-            self._out.append(ProposeBatch(batch))
+            txid = self.host.new_txid()
+            self.inflight[txid] = batch
+            self._out.append(ProposeBatch(txid, batch))
             self._out.append(Count("seq_batches"))
 
     def _done(self, txid: TxId, commit: bool) -> None:

@@ -23,7 +23,17 @@ Choices where the thesis is silent (docs/ufd.md):
   underestimates rare, long delays (GC pauses, scheduler stalls) that the Chebyshev bound cannot see.
 * setPeriod is only sent when the period changes by more than `period_change` (relative).
 
-Both halves are plain objects: they take the local time as an argument and return what to do.
+Both halves are sans-I/O machines like every other of the core: one `step(now, input)` that returns the effects
+(what to send, when to look again, a change of the output), so a driver — `haa.core.hostcore.HostCore` on a host,
+the QoS simulator `haa.lab.dsim.ufdqos` — does the sending and the timing:
+
+* `HeartbeatSender.step`: `Beat` (the local clock reached p_tau_l) -> `EmitHeartbeat(hb, next_at)`;
+  `NewPeriod(period)` (setPeriod arrived, ll. 11-12) -> nothing, or `PeriodRefused` for a period that is no number
+  above 0;
+* `HeartbeatObserver.step`: `HeartbeatIn(hb)` (ll. 19-27) -> `ArmFreshness(at)` (look again at q_tau_{l+1}),
+  then `AskPeriod(period)` if the sender should change its period (l. 27), then `Trust()` if the output changed
+  to TRUSTED; `Deadline()` (the freshness point passed, ll. 17-18) -> `Suspect()` if the output changed to
+  SUSPECTED, or `ArmFreshness(at)` if the timer fired early.
 """
 
 from __future__ import annotations
@@ -31,9 +41,79 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import assert_never
 
 from haa.core.messages import Heartbeat
 from haa.core.qos import CLUSTER_QOS, FdParams, QosTargets, configure
+
+
+@dataclass(frozen=True, slots=True)
+class Beat:
+    """The sender's local clock reached the next send time p_tau_l (l. 6)."""
+
+
+@dataclass(frozen=True, slots=True)
+class NewPeriod:
+    """setPeriod(period) arrived from the observer (ll. 11-12)."""
+
+    period: float
+
+
+@dataclass(frozen=True, slots=True)
+class HeartbeatIn:
+    """The observer received heartbeat m_j (ll. 19-27)."""
+
+    hb: Heartbeat
+
+
+@dataclass(frozen=True, slots=True)
+class Deadline:
+    """The observer's freshness point q_tau_{l+1} passed (ll. 17-18)."""
+
+
+@dataclass(frozen=True, slots=True)
+class EmitHeartbeat:
+    """Send `hb` (m_l) now; the next one is due at `next_at` on the local clock."""
+
+    hb: Heartbeat
+    next_at: float
+
+
+@dataclass(frozen=True, slots=True)
+class PeriodRefused:
+    """A setPeriod value that is no finite number above 0: ignored."""
+
+    period: float
+
+
+@dataclass(frozen=True, slots=True)
+class ArmFreshness:
+    """Look again (a `Deadline` input) at `at`, the freshness point q_tau_{l+1}."""
+
+    at: float
+
+
+@dataclass(frozen=True, slots=True)
+class AskPeriod:
+    """Tell the sender to use this heartbeat period (setPeriod, l. 27)."""
+
+    period: float
+
+
+@dataclass(frozen=True, slots=True)
+class Trust:
+    """The output about the observed process changed to TRUSTED (l. 24)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Suspect:
+    """The output about the observed process changed to SUSPECTED (l. 18)."""
+
+
+SenderInput = Beat | NewPeriod
+SenderEffect = EmitHeartbeat | PeriodRefused
+ObserverInput = HeartbeatIn | Deadline
+ObserverEffect = ArmFreshness | AskPeriod | Trust | Suspect
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,8 +147,22 @@ class HeartbeatSender:
         self.next_send = now  # l. 4: p_tau_0
         self.l = 0  # l. 5
 
-    def beat(self, now: float) -> Heartbeat:
-        """l. 6-10: called when the local clock reaches p_tau_l; returns m_l. Next send at `next_send`."""
+    def step(self, now: float, inp: SenderInput) -> list[SenderEffect]:
+        """One input (module docstring)."""
+        match inp:
+            case Beat():
+                hb = self._beat(now)
+                return [EmitHeartbeat(hb, self.next_send)]
+            case NewPeriod(period):
+                if not (period > 0.0 and math.isfinite(period)):
+                    return [PeriodRefused(period)]
+                self.next_period = period  # l. 11-12: adopted after the next heartbeat is sent (l. 7)
+                return []
+            case _:
+                assert_never(inp)
+
+    def _beat(self, now: float) -> Heartbeat:
+        """l. 6-10: the local clock reached p_tau_l; returns m_l. Next send at `next_send`."""
         self.period = self.next_period  # l. 7
         sent_at = self.next_send
         hb = Heartbeat(seq=self.l, period=self.period, sent_at=sent_at)  # l. 8
@@ -79,12 +173,6 @@ class HeartbeatSender:
         self.next_send = nxt
         self.l += 1  # l. 10
         return hb
-
-    def set_period(self, period: float) -> None:
-        """l. 11-12: adopted after the next heartbeat is sent (l. 7)."""
-        if not (period > 0.0 and math.isfinite(period)):
-            raise ValueError(f"invalid heartbeat period {period!r}")
-        self.next_period = period
 
 
 class HeartbeatObserver:
@@ -122,18 +210,30 @@ class HeartbeatObserver:
         self.count = 0  # heartbeats received since the last re-evaluation
         self.contacted = False
 
-    # l. 17-18
-    def on_deadline(self, now: float) -> bool:
-        """The freshness point q_tau_{l+1} passed; return True if this changes the output to SUSPECTED."""
-        if now >= self.freshness and self.trusted:
-            self.trusted = False
-            return True
-        return False
+    def step(self, now: float, inp: ObserverInput) -> list[ObserverEffect]:
+        """One input (module docstring)."""
+        match inp:
+            case HeartbeatIn(hb):
+                became_trusted, new_period = self._on_heartbeat(now, hb)
+                out: list[ObserverEffect] = [ArmFreshness(self.freshness)]
+                if new_period is not None:
+                    out.append(AskPeriod(new_period))
+                if became_trusted:
+                    out.append(Trust())
+                return out
+            case Deadline():
+                if now >= self.freshness and self.trusted:  # l. 17-18
+                    self.trusted = False
+                    return [Suspect()]
+                if self.trusted and now < self.freshness:  # fired early (a driver's clock rounding): wait again
+                    return [ArmFreshness(self.freshness)]
+                return []
+            case _:
+                assert_never(inp)
 
-    def on_heartbeat(self, now: float, hb: Heartbeat) -> tuple[bool, float | None]:
-        """l. 19-27. Returns (output changed to TRUSTED, new setPeriod value or None).
-
-        The caller re-arms its freshness timer at `self.freshness`."""
+    def _on_heartbeat(self, now: float, hb: Heartbeat) -> tuple[bool, float | None]:
+        """l. 19-27. Returns (output changed to TRUSTED, new setPeriod value or None); `freshness` is the new
+        freshness point."""
         if hb.seq <= self.l:  # l. 20: stale or duplicate
             return False, None
         if not (math.isfinite(hb.period) and hb.period > 0.0 and math.isfinite(hb.sent_at)):

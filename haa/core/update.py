@@ -18,9 +18,9 @@ the proposer, unlocks when OAC(membership) aborts.
 
 Interface: `step(now, input) -> list[UpdateEffect]` over the closed unions `UpdateInput` and `UpdateEffect`,
 plus the query `vote(txid, tx)` (the OAC evaluate hook of ll. 110-116; it records the transaction as a
-group transaction in progress). A proposal is the effect `ProposeTx`: the node proposes it at once and steps
-the machine with `Proposed(txid)`. What the machine reads of its node — the global state, suspicion, the
-applicants of `haa.core.join` and whether every OAC is decided — comes through the read-only `UpdateHost`.
+group transaction in progress). A proposal is the effect `ProposeTx`, with the transaction id the machine
+reserved (`new_txid`): the node proposes it at once. What the machine reads of its node — the global state,
+suspicion, the applicants of `haa.core.join` and whether every OAC is decided — comes through `UpdateHost`.
 
 No I/O, no clock, no randomness.
 """
@@ -76,6 +76,10 @@ class UpdateHost(Protocol):
     def all_decided(self) -> bool:
         """Every OAC transaction this host knows with content is decided (l. 103)."""
 
+    def new_txid(self) -> TxId:
+        """A fresh OAC transaction id of this host incarnation for a proposal (the one call that changes the node:
+        it reserves the id, so the machine knows its transaction before it is proposed)."""
+
 
 @dataclass(slots=True)
 class Attempt:
@@ -113,13 +117,6 @@ class SuspicionChanged:
 @dataclass(frozen=True, slots=True)
 class Poll:
     """Re-check the waits of l. 103 (the node steps this after every input)."""
-
-
-@dataclass(frozen=True, slots=True)
-class Proposed:
-    """The node proposed the last `ProposeTx` as `txid`."""
-
-    txid: TxId
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,7 +169,7 @@ class GroupTxApplied:
 
 
 UpdateInput = (
-    Run | RetryDue | SuspicionChanged | Poll | Proposed | LockedMsg | LeaveAsked | GroupOfOne | TxAborted
+    Run | RetryDue | SuspicionChanged | Poll | LockedMsg | LeaveAsked | GroupOfOne | TxAborted
     | TxDelivered | GroupTxApplied
 )
 
@@ -182,8 +179,9 @@ UpdateInput = (
 
 @dataclass(frozen=True, slots=True)
 class ProposeTx:
-    """Propose `tx` by OAC to exactly `participants`; answer with `Proposed(txid)`."""
+    """Propose `tx` by OAC as `txid` to exactly `participants`."""
 
+    txid: TxId
     tx: GroupTx
     participants: tuple[Proc, ...]
 
@@ -232,7 +230,7 @@ UpdateEffect = (
 
 @dataclass(slots=True)
 class _Pending:
-    """What the last `ProposeTx` was, for its `Proposed`: the attempt it belongs to, what to log."""
+    """What a `ProposeTx` is: the attempt it belongs to, what to log."""
 
     what: Literal["remove", "membership", "group_of_one"]
     attempt: Attempt | None
@@ -260,7 +258,6 @@ class MembershipUpdate:
         self.group_txs: set[TxId] = set()  # remove / membership transactions in progress here (l. 77)
         self.lock_keys: dict[TxId, str] = {}  # membership transactions we voted on -> the lock they release
         self.key_seq = 0
-        self._pending: _Pending | None = None
         self._out: list[UpdateEffect] = []
         self._now = 0.0
 
@@ -279,8 +276,6 @@ class MembershipUpdate:
                     self._update()
             case Poll():
                 self._poll()
-            case Proposed(txid):
-                self._proposed(txid)
             case LockedMsg(src, key):
                 self._on_locked(src, key)
             case LeaveAsked(p):  # ll. 18-21
@@ -343,8 +338,9 @@ class MembershipUpdate:
         return f"{self.me[0]}.{self.me[1]}.{self.key_seq}"
 
     def _propose(self, tx: GroupTx, parts: tuple[Proc, ...], pending: _Pending) -> None:
-        self._pending = pending
-        self._out.append(ProposeTx(tx, parts))
+        txid = self.host.new_txid()
+        self._out.append(ProposeTx(txid, tx, parts))
+        self._proposed(txid, pending)
 
     def _retry_later(self) -> None:
         """l. 109 after a failed attempt: updateMembership() again, after `retry_backoff` (the pseudo-code
@@ -401,10 +397,7 @@ class MembershipUpdate:
         a_ = Attempt(TxId("", 0, 0), key, active, members, "remove")
         self._propose(TxRemove(key, self.me, removal), tuple(active), _Pending("remove", a_, fields, []))  # l. 102
 
-    def _proposed(self, txid: TxId) -> None:
-        p = self._pending
-        assert p is not None, "Proposed without a ProposeTx"
-        self._pending = None
+    def _proposed(self, txid: TxId, p: _Pending) -> None:
         self.group_txs.add(txid)
         a = p.attempt
         if p.what == "group_of_one":

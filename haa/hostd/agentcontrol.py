@@ -35,6 +35,7 @@ from grpc import aio
 
 from haa.core.agentnode import AgentNode
 from haa.core.agenttable import MAX_CONFIG
+from haa.core.inputs import CreateAgent, MoveAgent, OperatorSend, RemoveAgent, RunAllocation, SetPaused
 from haa.hostd.outcomes import NotMembershipMode
 from haa.pb import control_pb2 as cpb
 from haa.sdk.channel import message_too_large
@@ -110,22 +111,23 @@ class AgentControl:
             if r is None:
                 return cpb.AgentOpReply(ok=False, reason=f"unknown parent {request.parent!r}")
             parent = r.id
-        if drv is not None and len(request.config) <= MAX_CONFIG:  # larger: refused by create_agent
+        if drv is not None and len(request.config) <= MAX_CONFIG:  # larger: refused by the CreateAgent input
             # a config the type's model refuses would commit an agent that can never start (issue 13, defect 3):
             # the fork server, which has the agent classes, checks it before anything is proposed
             why = await drv.sup.validate_config(request.type, request.config)
             if why:
                 return cpb.AgentOpReply(ok=False, reason=f"{request.type}: {why}")
         agent_id = str(uuid.uuid4())
-        done = await self.rt.agent_ops.agent_op(
-            node.create_agent, agent_id, request.type, request.config,
+        done = await self.rt.agent_ops.agent_op(lambda req: CreateAgent(
+            agent_id, request.type, request.config,
             parent=parent,
             cost=request.cost if request.cost > 0 else info.cost,
-            hardware=list(request.hardware) or list(info.hardware),
+            hardware=tuple(request.hardware) or tuple(info.hardware),
             transfer_penalty=request.transfer_penalty if request.transfer_penalty >= 0 else info.transfer_penalty,
             recovery=request.recovery or info.recovery or "backup",
-            max_per_host=info.max_per_host,  # declared by the type (AgentBase.MAX_PER_HOST; issue 15)
-        )
+            max_per_host=info.max_per_host,  # declared by the type (AgentBase.MAX_PER_HOST)
+            req=req,
+        ))
         return self._reply(done)
 
     async def AgentKill(self, request: cpb.AgentRef, context: aio.ServicerContext) -> cpb.AgentOpReply:
@@ -147,12 +149,12 @@ class AgentControl:
         return cpb.AgentOpReply(ok=True, id=r.id, name=r.name)
 
     async def AgentRemove(self, request: cpb.AgentRef, context: aio.ServicerContext) -> cpb.AgentOpReply:
-        node = await self._agent_node(context)
-        return self._reply(await self.rt.agent_ops.agent_op(node.remove_agent, request.ref))
+        await self._agent_node(context)
+        return self._reply(await self.rt.agent_ops.agent_op(lambda req: RemoveAgent(request.ref, req)))
 
     async def AgentMove(self, request: cpb.AgentMoveRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
-        node = await self._agent_node(context)
-        return self._reply(await self.rt.agent_ops.agent_op(node.move_agent, request.ref, request.host))
+        await self._agent_node(context)
+        return self._reply(await self.rt.agent_ops.agent_op(lambda req: MoveAgent(request.ref, request.host, req)))
 
     async def AgentSend(self, request: cpb.AgentSendRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
@@ -160,8 +162,10 @@ class AgentControl:
         if too_large:
             self.rt.counters["control_oversized"] += 1
             return cpb.AgentOpReply(ok=False, reason=too_large)
-        ok = self.rt.feed(node.operator_send, request.ref, request.payload)
-        return cpb.AgentOpReply(ok=bool(ok), reason="" if ok else f"unknown agent {request.ref!r}")
+        if node.table.resolve(request.ref) is None:
+            return cpb.AgentOpReply(ok=False, reason=f"unknown agent {request.ref!r}")
+        self.rt.feed(node.step, OperatorSend(request.ref, request.payload))
+        return cpb.AgentOpReply(ok=True)
 
     async def AgentRequest(self, request: cpb.AgentSendRequest,
                            context: aio.ServicerContext) -> cpb.AgentRequestReply:
@@ -183,11 +187,11 @@ class AgentControl:
         node = await self._agent_node(context)
         a = request.action or "status"
         if a in ("pause", "resume"):
-            done = await self.rt.agent_ops.agent_op(node.set_paused, a == "pause")
+            done = await self.rt.agent_ops.agent_op(lambda req: SetPaused(a == "pause", req))
             if not done.ok:
                 await context.abort(grpc.StatusCode.UNAVAILABLE, done.reason)
         elif a == "run":
-            self.rt.feed(node.run_allocation)
+            self.rt.feed(node.step, RunAllocation())
         elif a != "status":
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"unknown action {a!r} (status|pause|resume|run)")
         return self._list(node)

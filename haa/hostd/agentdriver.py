@@ -10,9 +10,9 @@ never imports or reads the runtime itself:
 
 * SpawnShell -> `supervisor.spawn` (a task; ShellReady when the process said hello, Failed if it could not
   start); StartAgent -> start_fresh / thaw / recover with the messages; DeliverAgent -> deliver (a message
-  the process no longer takes goes back to the node, `AgentNode.undeliverable`); FreezeAgent -> freeze;
+  the process no longer takes goes back to the node, an `Undeliverable` input); FreezeAgent -> freeze;
   KillAgent -> kill; AnswerAgent -> answer;
-* supervisor events -> `AgentNode.on_agent_event` (with the instance's epoch: the supervisor runs one
+* supervisor events -> `InstanceEvent` inputs of the `AgentNode` (with the instance's epoch: the supervisor runs one
   instance per agent id here); an agent's `spawn_child` of an unknown type, or with a config the child
   type's model refuses (`AgentSupervisor.validate_config`, asked of the fork server), is answered with the
   error at once instead of being committed as an agent that can never start; and the agents' DDB requests,
@@ -20,7 +20,7 @@ never imports or reads the runtime itself:
   of ops checked with `ddb.check_op` before anything is proposed — through the host's group commit, fenced
   by the instance's epoch);
 * every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
-  `AgentNode.report_costs`, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
+  a `ReportCosts` input, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ from haa.core import agentio as io
 from haa.core.agentnode import AgentNode
 from haa.core.agenttable import AgentTable
 from haa.core.ddb import Ddb
+from haa.core.inputs import AgentLayerInput, InstanceEvent, OperatorSend, ReportCosts, Undeliverable
 from haa.core.membership import MembershipNode
 from haa.hostd.outcomes import DdbWriteResult, NotMembershipMode
 from haa.pb import agenttx_pb2 as apb
@@ -82,19 +83,15 @@ class AgentOps:
 
     # ------------------------------------------------------------------ operators
 
-    async def agent_op(self, call: Callable[..., Any], *args: Any, timeout: float = 10.0, **kw: Any) -> io.AgentOpDone:
-        """Run an operator request of the agent layer (`AgentNode.create_agent`, `remove_agent`, `move_agent`,
-        `set_paused`) and wait for its `AgentOpDone`."""
-        self.agent_node()
+    async def agent_op(self, request: Callable[[Hashable], AgentLayerInput], timeout: float = 10.0) -> io.AgentOpDone:
+        """Run an operator request of the agent layer (`CreateAgent`, `RemoveAgent`, `MoveAgent`, `SetPaused`,
+        built by `request(req)`) and wait for its `AgentOpDone`."""
+        node = self.agent_node()
         req = ("op", self._next_req())
         fut: asyncio.Future[io.AgentOpDone] = asyncio.get_running_loop().create_future()
         self._ops[req] = fut
-
-        def operator_request(now: float, *a: Any) -> Any:
-            return call(now, *a, req=req, **kw)
-
         try:
-            self.feed(operator_request, *args)
+            self.feed(node.step, request(req))
             return await asyncio.wait_for(fut, timeout)
         finally:
             self._ops.pop(req, None)
@@ -107,8 +104,10 @@ class AgentOps:
         fut: asyncio.Future[io.OperatorReply] = asyncio.get_running_loop().create_future()
         self._requests[conv] = fut
         try:
-            if not self.feed(node.operator_request, ref, payload, conv):
+            if node.table.resolve(ref) is None:
                 raise LookupError(f"unknown agent {ref!r}")
+            # the reply travels back from the agent's host: the request's sender is "@<this host>"
+            self.feed(node.step, OperatorSend(ref, payload, conv, "@" + node.name))
             return await asyncio.wait_for(fut, timeout)
         finally:
             self._requests.pop(conv, None)
@@ -128,17 +127,17 @@ class AgentOps:
     def on_agent_event(self, ev: io.AgentEvent) -> None:
         node = self._node()
         if isinstance(node, AgentNode):
-            self.feed(node.on_agent_event, ev)
+            self.feed(node.step, InstanceEvent(ev))
 
     def undeliverable(self, agent: str, epoch: int, msg: apb.RoutedMsg) -> None:
         node = self._node()
         if isinstance(node, AgentNode):
-            self.feed(node.undeliverable, agent, epoch, msg)
+            self.feed(node.step, Undeliverable(agent, epoch, msg))
 
     def report_costs(self, cpu: dict[str, float], rates: dict[tuple[str, str], float]) -> None:
         node = self._node()
         if isinstance(node, AgentNode):
-            self.feed(node.report_costs, cpu, rates)
+            self.feed(node.step, ReportCosts(cpu, rates))
 
     def local_replica(self) -> Ddb | None:
         """This host's DDB replica (it is replaced when a joiner installs its sponsor's state)."""

@@ -41,6 +41,7 @@ from haa.core.effects import (
     Send,
     SetTimer,
     Suspicion,
+    Voted,
 )
 from haa.core.membership import AppliedTx, Connect, Left, NodeEffect, ViewChange, WriteDone
 from haa.hostd.agentops import AgentBackend, AgentCommand, AgentOps
@@ -120,6 +121,9 @@ class EffectDispatcher:
                     self.proposals.delivered(e.txid, d2d)
                 case Closed():
                     counters["oac_closed"] += 1
+                case Voted():
+                    if not e.ok:
+                        counters["oac_voted_no"] += 1
                 case Suspicion():
                     log_event(log, logging.INFO, "suspicion", peer=e.peer, inc=e.inc, suspected=e.suspected)
                 case PeerDead():

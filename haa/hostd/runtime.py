@@ -34,7 +34,7 @@ import logging
 import socket
 import time
 from collections import Counter
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 from dataclasses import replace as dataclass_replace
 from pathlib import Path
@@ -123,14 +123,15 @@ class HostRuntime:
     def __init__(
         self,
         config: RuntimeConfig,
-        evaluate: Callable[[TxId, bytes], bool] | None = None,
+        no_votes: Iterable[bytes] = (),
         agents: AgentBackend | None = None,
     ) -> None:
         if agents is not None and not (config.membership and config.agents):
             raise ValueError("agent processes need the agent layer (membership mode with agents on)")
         self.config = config
         self.name = config.name
-        self.evaluate = evaluate
+        #: static mode: the payloads this host votes no on (OAC's unilateral abort, Alg. 2 l. 27; tests)
+        self.no_votes = tuple(no_votes)
         self.counters: Counter[str] = Counter()
         self.ident = HostIdentity(config.name, 0)
         self.membership = config.membership
@@ -196,7 +197,7 @@ class HostRuntime:
     @property
     def mnode(self) -> MembershipNode | None:
         """The membership node (inside the agent layer when agents run), None in static mode."""
-        node = getattr(self.node, "m", self.node)
+        node = self.node.m if isinstance(self.node, AgentNode) else self.node
         return node if isinstance(node, MembershipNode) else None
 
     @property
@@ -211,7 +212,7 @@ class HostRuntime:
         if self.mnode is not None:
             # a reincarnation: apply to the hosts the previous incarnation knew as members
             known = [(m.name, m.addr) for m in self.mnode.state.members if m.name != self.name] or known
-        self.node, self.core = build_node(cfg, inc, self.advertise, known, self.evaluate)
+        self.node, self.core = build_node(cfg, inc, self.advertise, known, self.no_votes)
 
     async def start(self) -> None:
         """Bind the server, start the links, the agent backend and the node."""
@@ -523,13 +524,13 @@ def build_node(
     inc: int,
     advertise: str,
     known: list[tuple[str, str]],
-    evaluate: Callable[[TxId, bytes], bool] | None,
+    no_votes: Iterable[bytes] = (),
 ) -> tuple[AgentNode | MembershipNode | HostCore, HostCore]:
     """The state machines of one incarnation and its core: a bare `HostCore` over the static peer list, or a
     `MembershipNode` (Alg. 3) applying to the core processes and `known` hosts, wrapped in an `AgentNode` when
     agents run."""
     if not cfg.membership:
-        core = HostCore(cfg.name, inc, list(cfg.peers), cfg.core, evaluate=evaluate)
+        core = HostCore(cfg.name, inc, list(cfg.peers), cfg.core, no_votes=no_votes)
         return core, core
     ncfg = dataclass_replace(cfg.node, core=cfg.core) if cfg.node is not None else NodeConfig(core=cfg.core)
     node = MembershipNode(cfg.name, inc, advertise, cfg.core_processes, ncfg, known_hosts=known)

@@ -58,6 +58,7 @@ from haa.core.agentio import (
 )
 from haa.core.agentnode import AgentConfig, AgentNode
 from haa.core.globalstate import TxAgent, decode_tx
+from haa.core.inputs import CreateAgent, InstanceEvent, MoveAgent
 from haa.core.membership import AppliedTx, MembershipNode, ViewChange
 from haa.lab.dsim import hostile
 from haa.lab.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
@@ -308,7 +309,7 @@ class AgentSim(GroupSim):
     def _event(self, h: SimHost, ev: Any) -> None:
         node = node_of(h)
         if node is not None:
-            node.on_agent_event(h.local(self.cl.now), ev)
+            node.step(h.local(self.cl.now), InstanceEvent(ev))
 
     def _command(self, h: SimHost, c: Any) -> None:
         proc = (h.name, h.inc)
@@ -423,8 +424,8 @@ class AgentSim(GroupSim):
 
     def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
         """Ask `node` to create agent #`i` (id `agent`): a counter of a random cost."""
-        node.create_agent(now, agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3), transfer_penalty=0.1,
-                          recovery="backup", req=("create", i))
+        node.step(now, CreateAgent(agent, "counter", b"", cost=self.arng.uniform(0.05, 0.3), transfer_penalty=0.1,
+                                   recovery="backup", req=("create", i)))
 
     def _ensure_created(self) -> None:
         """An operator whose request died with its host asks again (until the end of the fault window)."""
@@ -445,7 +446,7 @@ class AgentSim(GroupSim):
         node = live_node(h)
         names = [m.name for m in node.m.state.members]
         target = names[hi % len(names)]
-        node.move_agent(h.local(self.cl.now), self.ah.ids[ai], target)
+        node.step(h.local(self.cl.now), MoveAgent(self.ah.ids[ai], target))
         self.cl._apply(h)
 
     def _kill(self, ai: int, hang: bool) -> None:

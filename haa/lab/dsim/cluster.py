@@ -22,6 +22,7 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from haa.core.agentnode import AgentNode
 from haa.core.effects import (
     CancelTimer,
     Closed,
@@ -33,6 +34,7 @@ from haa.core.effects import (
     Send,
     SetTimer,
     Suspicion,
+    Voted,
 )
 from haa.core.hostcore import FD_EXTERNAL, CoreConfig, HostCore
 from haa.core.inputs import FdReport, PeerInfo, Receive, Start, TimerFired
@@ -148,6 +150,12 @@ class SimHost:
             raise RuntimeError(f"{self.name}#{self.inc} has no core (crashed)")
         return core
 
+    @property
+    def membership(self) -> Any:
+        """The membership node of the host's core: an `AgentNode`'s `m`, else the core itself (None if crashed)."""
+        core = self.core
+        return core.m if isinstance(core, AgentNode) else core
+
     def local(self, t: float) -> float:
         return self.offset + (1.0 + self.drift) * t
 
@@ -217,17 +225,13 @@ class SimCluster:
         h.crash_pending = None
         name = h.name
 
-        def evaluate(txid: TxId, payload: bytes, _name: str = name, _inc: int = inc) -> bool:
-            vote = (payload, _name) not in self.no_votes
-            self.history.votes.setdefault(txid, {})[(_name, _inc)] = vote
-            return vote
-
         core: SimCore
         if self.make_core is not None:
             core = self.make_core(h, inc)
         else:
             known = {n: self.hosts[n].inc for n in self.names if self.hosts[n].inc} if self.external else None
-            core = HostCore(name, inc, self.names, self.config, evaluate=evaluate, known_incs=known)
+            no = [payload for payload, who in self.no_votes if who == name]
+            core = HostCore(name, inc, self.names, self.config, no_votes=no, known_incs=known)
         h.core = core
         proc = (name, inc)
         self.history.started[proc] = self.now
@@ -445,6 +449,8 @@ class SimCluster:
                     self._note(f"decide {e.txid} {'commit' if e.commit else 'abort'} at {h.name}#{h.inc}")
                 case Closed():
                     hist.closed[proc].add(e.txid)
+                case Voted():
+                    hist.votes.setdefault(e.txid, {})[proc] = e.ok
                 case Suspicion():
                     hist.suspicions.append((now, proc, (e.peer, e.inc), e.suspected))
                     self._note(f"{h.name}#{h.inc} {'suspects' if e.suspected else 'trusts'} {e.peer}#{e.inc}")
@@ -468,7 +474,7 @@ class SimCluster:
 
     def _record_ed_hat(self, h: SimHost, peer: str, inc: int) -> None:
         """The observer's E(D) estimate: mean offset delay minus the true clock offset (eq. 4.4-1)."""
-        core = h.core
+        core = h.membership
         assert core is not None
         pst = core.peers.get(peer)
         if pst is None:

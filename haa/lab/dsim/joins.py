@@ -31,6 +31,7 @@ from typing import Any
 
 from haa.core.agentio import AgentTimeline
 from haa.core.agentnode import AgentConfig, AgentNode
+from haa.core.inputs import CreateAgent
 from haa.core.membership import ViewChange
 from haa.lab.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents, seed_fields
 from haa.lab.dsim.cluster import SimHost
@@ -124,8 +125,8 @@ class JoinSim(AgentSim):
 
     def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
         """A counter of the drawn cost and transfer penalty."""
-        node.create_agent(now, agent, "counter", b"", cost=self.js.costs[i], transfer_penalty=self.js.penalties[i],
-                          recovery="backup", req=("create", i))
+        node.step(now, CreateAgent(agent, "counter", b"", cost=self.js.costs[i], transfer_penalty=self.js.penalties[i],
+                                   recovery="backup", req=("create", i)))
 
     def _on_effect(self, h: SimHost, e: Any) -> None:
         t = type(e)

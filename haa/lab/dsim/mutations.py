@@ -108,7 +108,7 @@ def skip_order_gate() -> Undo:
             if tx.state == oac_mod.DECIDED and tx.commit and tx.content:
                 tx.state = oac_mod.DONE
                 self.delivered += 1
-                self._emit(Deliver(tx.id, tx.order, tx.payload))
+                self._out.append(Deliver(tx.id, tx.order, tx.payload))
                 tx.decide_from.add(self.name)
                 if tx.relayed_decide:
                     self._announce_delivered(tx)
@@ -190,7 +190,17 @@ def never_precommit() -> Undo:
 
 
 def deaf_detector() -> Undo:
-    return _patch(ufd_mod.HeartbeatObserver, "on_deadline", lambda self, now: False)
+    """The observer never suspects: a passed freshness point changes nothing (a timer that fired early is still
+    re-armed, as the real observer does)."""
+    cls = ufd_mod.HeartbeatObserver
+    step = cls.step
+
+    def deaf(self: ufd_mod.HeartbeatObserver, now: float, inp: ufd_mod.ObserverInput) -> list[ufd_mod.ObserverEffect]:
+        if isinstance(inp, ufd_mod.Deadline):
+            return [ufd_mod.ArmFreshness(self.freshness)] if self.trusted and now < self.freshness else []
+        return step(self, now, inp)
+
+    return _patch(cls, "step", deaf)
 
 
 def _always(cls: type, *methods: str) -> Callable[[], Undo]:

@@ -24,7 +24,18 @@ from dataclasses import asdict, dataclass
 
 from haa.core.messages import Heartbeat
 from haa.core.qos import QosTargets
-from haa.core.ufd import HeartbeatObserver, HeartbeatSender, UfdConfig
+from haa.core.ufd import (
+    AskPeriod,
+    Beat,
+    Deadline,
+    EmitHeartbeat,
+    HeartbeatIn,
+    HeartbeatObserver,
+    HeartbeatSender,
+    NewPeriod,
+    Trust,
+    UfdConfig,
+)
 from haa.lab.dsim.network import DelayModel
 from haa.lab.dsim.scheduler import EventHeap
 
@@ -112,7 +123,7 @@ def _run_pair(
         fresh = observer.freshness
         if observer.trusted and fresh <= t and fresh <= end:  # l. 17-18 fires before this event
             set_state(fresh, True)
-            observer.on_deadline(fresh)
+            observer.step(fresh, Deadline())
             if crash_at is not None and fresh >= crash_at:
                 detect = fresh - crash_at  # the last transition after the crash is the permanent one
             continue
@@ -122,19 +133,21 @@ def _run_pair(
         if kind == SEND:
             if crash_at is not None and t >= crash_at:
                 continue
-            hb = sender.beat(t + offset)
-            if rng.random() >= p_loss:
-                push(t + delay.sample(rng), ARRIVE, hb)
-            push(sender.next_send - offset, SEND, None)
+            for s in sender.step(t + offset, Beat()):
+                if isinstance(s, EmitHeartbeat):
+                    if rng.random() >= p_loss:
+                        push(t + delay.sample(rng), ARRIVE, s.hb)
+                    push(s.next_at - offset, SEND, None)
         elif kind == ARRIVE:
             assert isinstance(data, Heartbeat)
-            became, new_period = observer.on_heartbeat(t, data)
-            if became:
+            effects = observer.step(t, HeartbeatIn(data))
+            if any(isinstance(e, Trust) for e in effects):
                 set_state(t, False)
-            if new_period is not None:
-                push(t + delay.sample(rng), SETP, new_period)
+            for e in effects:
+                if isinstance(e, AskPeriod):
+                    push(t + delay.sample(rng), SETP, e.period)
         elif crash_at is None or t < crash_at:
-            sender.set_period(float(data))  # type: ignore[arg-type]
+            sender.step(t + offset, NewPeriod(float(data)))  # type: ignore[arg-type]
     ed_at_crash = observer.mean_offset() + offset  # O_i = D_i - offset (eq. 4.4-1)
     if suspected and since >= warmup and crash_at is None:
         suspected_time += end - since

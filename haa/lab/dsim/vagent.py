@@ -85,6 +85,7 @@ from haa.core.agentio import (
     Stopped,
 )
 from haa.core.agentnode import AgentNode
+from haa.core.inputs import CreateAgent
 from haa.core.membership import AppliedTx, WriteDone
 from haa.hostd.agentdriver import SCAN_LIMIT, SCAN_MAX_BYTES
 from haa.lab.dsim.agents import (
@@ -195,8 +196,8 @@ class RealAgentSim(AgentSim):
     def _create_agent(self, node: AgentNode, now: float, i: int, agent: str) -> None:
         """The executive (the scenario's one agent, #0)."""
         cls = ExecutiveMission
-        node.create_agent(now, agent, REAL_TYPE, self.config, cost=cls.COST, transfer_penalty=cls.TRANSFER_PENALTY,
-                          recovery=cls.RECOVERY, req=("create", i))
+        node.step(now, CreateAgent(agent, REAL_TYPE, self.config, cost=cls.COST, transfer_penalty=cls.TRANSFER_PENALTY,
+                                   recovery=cls.RECOVERY, req=("create", i)))
 
     def _schedule_send(self, h: SimHost, a: SimAgent) -> None:
         """The children are shells: they send nothing (module docstring)."""
