@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from haa.core.hostcore import FD_EXTERNAL, CoreConfig
+from haa.core.host.hostcore import FD_EXTERNAL, CoreConfig
 from haa.core.messages import OacTransaction
 from haa.lab.dsim import mutations
 from haa.lab.dsim.checks import check_oac
@@ -220,7 +220,7 @@ def test_restarted_peer_that_never_speaks_is_still_excluded():
     """A new incarnation learned from a handshake (or a participant list) that then dies without a single
     heartbeat must become permanently suspected, or transactions naming it never close (l. 41)."""
     from haa.core.effects import PeerDead, SetTimer
-    from haa.core.hostcore import CoreConfig, HostCore
+    from haa.core.host.hostcore import CoreConfig, HostCore
 
     core = HostCore("h1", 1, ["h1", "h2"], CoreConfig(exclude_after=2.0))
     core.start(0.0)
@@ -262,7 +262,7 @@ def test_round_zero_lock_survives_a_later_round():
 
 def test_thesis_initial_timestamp_breaks_agreement():
     """The same schedule with ts_p initialised to 0 as printed (l. 20): h1 commits, h2 and h3 abort."""
-    from haa.core import oac as oac_mod
+    from haa.core.oac import oac as oac_mod
 
     original = oac_mod.INITIAL_TS
     oac_mod.INITIAL_TS = 0
@@ -279,7 +279,7 @@ def _direct_group(n):
     """n OrderedAtomicCommit objects wired through one FIFO queue of (src, dst, msg, lazy), no failure detector."""
     from collections import deque
 
-    from haa.core.oac import OrderedAtomicCommit
+    from haa.core.oac.oac import OrderedAtomicCommit
 
     names = [f"h{i + 1}" for i in range(n)]
     wire = deque()
@@ -325,7 +325,7 @@ def _pair_with_removal():
     h1's group removed (`HostCore.removed`): such an incarnation is also permanently suspected."""
     from collections import deque
 
-    from haa.core.oac import OrderedAtomicCommit
+    from haa.core.oac.oac import OrderedAtomicCommit
 
     removed: set = set()
     wires = {"h1": deque(), "h2": deque()}
@@ -392,7 +392,7 @@ def test_a_partner_the_group_removed_after_it_decided_commit_agrees():
 def test_a_merely_suspected_partner_still_blocks_a_two_participant_transaction():
     """Only the group's removal lets a participant decide alone: with n = 2 a suspicion (or an exclusion that
     is not a removal) is a crash Alg. 2 does not tolerate (f < n/2 = 1), and the transaction waits."""
-    from haa.core.oac import OrderedAtomicCommit
+    from haa.core.oac.oac import OrderedAtomicCommit
 
     out: list = []
     oac = OrderedAtomicCommit("h1", 1, lambda *_a: None, out.append, lambda *_a: True, lambda *_a: True)

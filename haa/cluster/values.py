@@ -9,7 +9,7 @@ from __future__ import annotations
 import base64
 from typing import Any
 
-from haa.core import ddb
+from haa.core.ddb import objects as ddb
 
 
 def show_bytes(b: bytes) -> str:
