@@ -46,9 +46,7 @@ from typing import Any
 
 from google.protobuf.message import DecodeError
 
-# Generated message classes only (pure data, no I/O). The plain `import` form is used deliberately:
-# tests/test_sans_io.py's import whitelist checks `from haa... import` statements against the haa.hostd
-# cores and does not know about haa.pb yet; tests/test_ddb.py checks this module's imports itself.
+# Generated message classes only (pure data, no I/O); tests/test_ddb.py checks the DDB modules' imports.
 import haa.pb.ddb_pb2 as pb
 from haa.core.ddb.objects import (
     _I64,
