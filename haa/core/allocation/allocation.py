@@ -20,6 +20,12 @@ thesis ref. [69]) applied to processor usage instead of time: each host greedily
 Comparison Operator", Fig. II-1 reconstructed), and conflicting bids are resolved by the 34 rows of Table 4.7-1
 (`resolve`). The leader checks consensus on its bid table (l. 86-88) and commits the result with OAC(finish).
 
+This module holds the `Allocator` (sessions, bid updates, consensus) and its effects; the pieces it is made of are
+`haa.core.allocation.bundle` (`BundleBuilder._build_bundle`, its base class), `haa.core.allocation.bids` (the
+bid order), `haa.core.allocation.conflicts` (Table 4.7-1), `haa.core.allocation.session` (the per-session
+state), `haa.core.allocation.rewards` (eq. 4.7-1 to 4.7-3), `haa.core.allocation.specs` (the problem data and
+its bounds) and `haa.core.allocation.rebalance` (`RebalancePolicy`).
+
 Where the thesis is silent, garbled or the figure is missing, the choices are documented in docs/allocation.md.
 In short:
 
