@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 from haa.cluster.agents import wait_rows  # noqa: E402
 from haa.cluster.backend import wait_until  # noqa: E402
 from haa.cluster.local_backend import LocalBackend  # noqa: E402
-from haa.core import ddb as ddbops  # noqa: E402
+from haa.core.ddb import ops as ddbops  # noqa: E402
 from haa.lab.dashboard.browser import Chromium  # noqa: E402
 from haa.slam.grid import GridSpec  # noqa: E402
 from haa.slam.replica import encode_map  # noqa: E402

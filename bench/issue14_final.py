@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from haa.core.membership import NodeConfig
+from haa.core.membership.membership import NodeConfig
 from haa.lab.experiments.ap4 import run_ap4
 from haa.lab.experiments.idle import measure_local
 

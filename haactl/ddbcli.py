@@ -16,7 +16,8 @@ from rich.markup import escape
 
 from haa.cluster.backend import ClusterError, rpc_error_text
 from haa.cluster.values import plain_value, show_bytes
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
+from haa.core.ddb.objects import DdbError
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 from haactl.cliopts import (
@@ -112,7 +113,7 @@ def ddb_put(
         raise ClusterError(f"--type must be one of {', '.join(TYPE_NAMES)}, not {type_name!r}")
     try:
         op = ddb.put(key, type_name, parse_value(type_name, value))
-    except ddb.DdbError as e:
+    except DdbError as e:
         raise ClusterError(str(e)) from None
     backend = where.backend()
     h = backend.pick_host(host)

@@ -17,7 +17,7 @@ import psutil
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
 
 TOKEN = "hostile-peers-token"
 NAMES = ["h1", "h2", "h3"]

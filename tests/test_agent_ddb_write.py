@@ -19,7 +19,9 @@ from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import MAX_LOG_ITEM_BYTES
 from haa.hostd import agentproc as ap
 from haa.hostd.agentdriver import AgentDriver
 from haa.pb import agent_pb2 as pb
@@ -158,12 +160,12 @@ class FakeRuntime:
 
     def __init__(self, fenced: bool = False) -> None:
         self.name = "h1"
-        self.replica = ddb.Ddb()
+        self.replica = Ddb()
         self.writes: list[tuple[list[Any], bool]] = []
         self.counters: Counter[str] = Counter()
         self.fenced = fenced
 
-    def local_replica(self) -> ddb.Ddb:
+    def local_replica(self) -> Ddb:
         return self.replica
 
     def agent_table(self) -> None:
@@ -192,7 +194,7 @@ def test_the_driver_checks_every_op_before_proposing_and_answers_per_op() -> Non
     async def main() -> None:
         rt = FakeRuntime()
         drv, sup = driver(rt)
-        big = b"x" * (ddb.MAX_LOG_ITEM_BYTES + 1)
+        big = b"x" * (MAX_LOG_ITEM_BYTES + 1)
         refused = {
             1: [ddb.log_append("ok", [b"a"]), ddb.log_append("", [b"a"])],
             2: [ddb.put("k", "blob", b""), ddb_pb2.DdbOp(put=ddb_pb2.DdbPut(key="k", type="nope"))],

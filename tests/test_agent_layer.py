@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haa.core import agenttable as at
-from haa.core.routing import Inbox, Outbox
+from haa.core.agents.routing import Inbox, Outbox
+from haa.core.ddb import agenttable as at
 from haa.lab.dsim.agents import draw_agents, run_agents
 from haa.pb import agenttx_pb2 as apb
 

@@ -21,8 +21,8 @@ from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import agenttable as at
-from haa.core import ddb
+from haa.core.ddb import agenttable as at
+from haa.core.ddb import ops as ddb
 from haa.hostd.agentproc import AgentSupervisor, Envelope, Failed, InstanceSpec
 from haa.pb import agenttx_pb2 as apb
 from haa.sdk.base import new_agent_id
@@ -325,7 +325,7 @@ def test_a_ddb_write_from_a_stale_instance_is_fenced() -> None:
     host recovered the agent) gets an error instead."""
     from types import SimpleNamespace
 
-    from haa.core import agenttable as at
+    from haa.core.ddb import agenttable as at
     from haa.hostd.agentdriver import AgentDriver
     from haa.pb import agenttx_pb2 as apb
 

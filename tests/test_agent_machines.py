@@ -1,5 +1,5 @@
-"""The agent layer's machines driven alone: transfer (thesis Alg. 5-6, `haa.core.transfer.Transfer`) and
-backup/recovery (Alg. 7-8, `haa.core.recovery.Recovery`).
+"""The agent layer's machines driven alone: transfer (thesis Alg. 5-6, `haa.core.agents.transfer.Transfer`) and
+backup/recovery (Alg. 7-8, `haa.core.agents.recovery.Recovery`).
 
 No `AgentNode`, no membership, no runtime: each test builds a real replicated agent table, gives the machine a
 small view of it (`View`: this host's name, the member list, whether every OAC is decided), feeds inputs through
@@ -13,11 +13,10 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from haa.core import agenttable as at
-from haa.core import recovery as rc
-from haa.core import transfer as tr
 from haa.core.agentio import FreezeAgent, KillAgent, SpawnShell, StartAgent
-from haa.core.agentstep import (
+from haa.core.agents import recovery as rc
+from haa.core.agents import transfer as tr
+from haa.core.agents.agentstep import (
     MAX_RESPAWNS,
     Activate,
     AgentTimer,
@@ -35,7 +34,8 @@ from haa.core.agentstep import (
     ShellUp,
     Timeline,
 )
-from haa.core.routing import Inbox, Outbox
+from haa.core.agents.routing import Inbox, Outbox
+from haa.core.ddb import agenttable as at
 from haa.pb import agenttx_pb2 as apb
 
 AGENT = "agent-0001"

@@ -11,9 +11,9 @@ import json
 import pytest
 from helpers import until
 
-from haa.core import agentrequests as ops
-from haa.core import agenttable as at
 from haa.core.agentio import AnswerAgent
+from haa.core.agents import agentrequests as ops
+from haa.core.ddb import agenttable as at
 from haa.pb import agent_pb2 as pb
 from haa.sdk.base import MAX_SPAWN_KEY, AgentBase, AgentContext, new_agent_id
 

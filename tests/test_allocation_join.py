@@ -9,7 +9,9 @@ import random
 import pytest
 from test_allocation import Net
 
-from haa.core.allocation import AgentSpec, Allocator, HostSpec, bid_key
+from haa.core.allocation.allocation import Allocator
+from haa.core.allocation.bids import bid_key
+from haa.core.allocation.specs import AgentSpec, HostSpec
 from haa.lab.dsim import mutations
 from haa.lab.dsim.joins import draw_join, run_join
 from haa.lab.dsim.sweep import run_seed

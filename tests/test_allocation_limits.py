@@ -10,8 +10,9 @@ from collections import Counter
 import pytest
 from test_allocation import Net
 
-from haa.core import allocwire
-from haa.core.allocation import AgentSpec, Allocator, HostSpec, SessionStart, over_limit
+from haa.core.allocation import allocwire
+from haa.core.allocation.allocation import Allocator
+from haa.core.allocation.specs import AgentSpec, HostSpec, SessionStart, over_limit
 
 
 def sensor(i, kind="sonar", limit=1, cost=0.1, host=None, hw=frozenset()):
@@ -177,7 +178,7 @@ def _create(aid, type_="sonar", limit=1, hw=()):
 
 
 def test_the_table_refuses_bad_limits_and_disagreeing_creates_on_every_replica():
-    from haa.core import agenttable as at
+    from haa.core.ddb import agenttable as at
 
     t1, t2 = at.AgentTable(), at.AgentTable()
     for t in (t1, t2):
@@ -194,7 +195,7 @@ def test_the_table_refuses_bad_limits_and_disagreeing_creates_on_every_replica()
 
 
 def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_limit():
-    from haa.core import agenttable as at
+    from haa.core.ddb import agenttable as at
     from haa.pb import agenttx_pb2 as apb
 
     t = at.AgentTable()
@@ -234,7 +235,8 @@ def test_a_finish_unallocates_limited_agents_it_leaves_out_and_a_move_keeps_the_
 
 
 def test_the_verifier_checks_the_limit_in_schedules_with_faults():
-    from haa.lab.dsim.allocation import PROPS, draw_alloc
+    from haa.lab.dsim.alloccheck import PROPS
+    from haa.lab.dsim.allocschedule import draw_alloc
     from haa.lab.dsim.sweep import run_seed
 
     assert "AA-Per-Host-Limit" in PROPS
@@ -245,7 +247,9 @@ def test_the_verifier_checks_the_limit_in_schedules_with_faults():
 
 
 def test_an_unallocatable_limited_agent_gets_a_place_when_a_host_joins():
-    from haa.lab.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc
+    from haa.lab.dsim.alloccheck import check_alloc
+    from haa.lab.dsim.allocschedule import AFault, AllocScenario
+    from haa.lab.dsim.allocsim import AllocSim
 
     names = ["h1", "h2"]
     agents = tuple(sensor(i) for i in range(3))

@@ -11,10 +11,13 @@ from pathlib import Path
 import pytest
 from hashseed import trace_hashes
 
-from haa.core.allocation import AgentSpec, HostSpec
-from haa.lab.dsim import allocation as sim_mod
+from haa.core.allocation.specs import AgentSpec, HostSpec
+from haa.lab.dsim import allocquality as sim_mod
 from haa.lab.dsim import mutations
-from haa.lab.dsim.allocation import AFault, AllocScenario, AllocSim, check_alloc, run_quality
+from haa.lab.dsim.alloccheck import check_alloc
+from haa.lab.dsim.allocquality import run_quality
+from haa.lab.dsim.allocschedule import AFault, AllocScenario
+from haa.lab.dsim.allocsim import AllocSim
 from haa.lab.dsim.sweep import run_seed, sweep
 
 BIN = Path(sys.executable).parent / "haactl"
@@ -184,7 +187,7 @@ def test_bench_alloc_quality_smoke():
 def test_without_bid_warping_an_affinity_rich_instance_never_converges(monkeypatch):
     """Affinity bonuses make rewards grow along a bundle (no diminishing marginal gains): without warping, the
     two hosts of this instance outbid each other for ever; with it, the session ends."""
-    from haa.core.allocation import Allocator
+    from haa.core.allocation.allocation import Allocator
 
     sc = sim_mod.quality_instance(69, "roomy")
     sim = AllocSim(sc)

@@ -1,4 +1,4 @@
-"""Allocation bytes on the wire (proto/haa/pb/alloc.proto via haa.core.allocwire): round trips, determinism,
+"""Allocation bytes on the wire (proto/haa/pb/alloc.proto via haa.core.allocation.allocwire): round trips, determinism,
 and clear one-line errors naming the field for malformed bytes."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from haa.core.allocation import AgentSpec, Bid, BidUpdate, HostSpec, ProposeFinish, SessionStart, nil_bid
-from haa.core.allocwire import (
+from haa.core.allocation.allocation import ProposeFinish
+from haa.core.allocation.allocwire import (
     AllocWireError,
     SessionFinish,
     decode_finish,
@@ -20,6 +20,8 @@ from haa.core.allocwire import (
     encode_start,
     encode_update,
 )
+from haa.core.allocation.bids import Bid, BidUpdate, nil_bid
+from haa.core.allocation.specs import AgentSpec, HostSpec, SessionStart
 from haa.pb import alloc_pb2 as apb
 
 START = SessionStart(

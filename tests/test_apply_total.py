@@ -17,9 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from haa.core import agenttable as at
-from haa.core.allocation import MAX_COST, AgentSpec, HostSpec
-from haa.core.globalstate import GlobalState, TxAgent, TxDdb, TxFormation, encode_tx
+from haa.core.allocation.specs import MAX_COST, AgentSpec, HostSpec
+from haa.core.ddb import agenttable as at
+from haa.core.membership.globalstate import GlobalState, TxAgent, TxDdb, TxFormation, encode_tx
 from haa.core.messages import Member, TxId
 from haa.lab.dsim import hostile
 from haa.pb import agenttx_pb2 as apb

@@ -26,8 +26,8 @@ import aiohttp
 import numpy as np
 import pytest
 
-from haa.core import ddb as ddbops
-from haa.core.ddb import Ddb
+from haa.core.ddb import ops as ddbops
+from haa.core.ddb.ddb import Ddb
 from haa.lab.dashboard.browser import Chromium, find_chromium
 from haa.lab.dashboard.model import DdbMirror, avatar_of, batch_keys, map_view
 from haa.lab.dashboard.server import DashboardServer

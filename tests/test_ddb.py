@@ -14,8 +14,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import haa.pb.ddb_pb2 as pb
-from haa.core import ddb as D
-from haa.core.ddb import Ddb, DdbError, DdbEvent
+from haa.core.ddb import ops as D
+from haa.core.ddb.ddb import Ddb, DdbEvent
+from haa.core.ddb.objects import INT64_MAX, INT64_MIN, MAX_BATCH_BYTES, MAX_VALUE_BYTES, DdbError
 
 ROOT = Path(__file__).resolve().parents[1]
 MiB = 1024 * 1024
@@ -160,10 +161,10 @@ def test_counter_add():
     assert db.get("n").value == 5 and db.get("n").type_name == "counter"
     run(db, D.add("n", -7), D.add("n", 0))
     assert db.get("n").value == -2 and db.get("n").version == 2
-    run(db, D.put("n", "counter", D.INT64_MAX - 1))
+    run(db, D.put("n", "counter", INT64_MAX - 1))
     res = run(db, D.add("n", 1), D.add("n", 1))
-    assert res.results[0].ok and res.results[1].reason == (f"counter overflow: {D.INT64_MAX} + 1 is outside int64")
-    assert db.get("n").value == D.INT64_MAX
+    assert res.results[0].ok and res.results[1].reason == (f"counter overflow: {INT64_MAX} + 1 is outside int64")
+    assert db.get("n").value == INT64_MAX
     run(db, D.put("b", "blob", b""))
     assert reasons(run(db, D.add("b", 1))) == ["type mismatch: 'b' is a blob, not a counter"]
 
@@ -225,7 +226,7 @@ def _state(db):
         (pb.DdbBatch(ops=[pb.DdbOp()]).SerializeToString(), "op 0 has no operation set"),
         (pb.DdbBatch(ops=[D.put("a", "blob", b""), pb.DdbOp()]).SerializeToString(), "op 1 has no operation"),
         (b"\x0a\x05\x0a\x03\x0a\x01\xff", "does not decode"),  # invalid UTF-8 in a string field
-        (b"\x00" * (D.MAX_BATCH_BYTES + 1), "batch too large"),
+        (b"\x00" * (MAX_BATCH_BYTES + 1), "batch too large"),
     ],
 )
 def test_malformed_payload_is_rejected_and_changes_nothing(payload, message):
@@ -245,29 +246,29 @@ def test_malformed_payload_is_rejected_and_changes_nothing(payload, message):
 
 def test_value_size_limits():
     db = Ddb()
-    big = b"x" * (D.MAX_VALUE_BYTES + 1)
+    big = b"x" * (MAX_VALUE_BYTES + 1)
     with pytest.raises(DdbError, match="value too large"):
         D.put("k", "blob", big)
     with pytest.raises(DdbError, match="value too large"):
         D.append("k", big)
     # (one op per batch: two values over the limit are more than a batch may hold)
     res = run(db, raw_put("k", "blob", big))
-    assert reasons(res) == [f"value too large: {D.MAX_VALUE_BYTES + 1} bytes > {D.MAX_VALUE_BYTES}"]
+    assert reasons(res) == [f"value too large: {MAX_VALUE_BYTES + 1} bytes > {MAX_VALUE_BYTES}"]
     res = run(db, pb.DdbOp(append=pb.DdbAppend(key="l", item=big)))
-    assert reasons(res) == [f"value too large: item of {D.MAX_VALUE_BYTES + 1} bytes > {D.MAX_VALUE_BYTES}"]
-    assert run(db, D.put("k", "blob", b"x" * D.MAX_VALUE_BYTES)).ok
+    assert reasons(res) == [f"value too large: item of {MAX_VALUE_BYTES + 1} bytes > {MAX_VALUE_BYTES}"]
+    assert run(db, D.put("k", "blob", b"x" * MAX_VALUE_BYTES)).ok
     # a list's items count together; trimming can keep it under the limit
-    half = b"y" * (D.MAX_VALUE_BYTES // 2)
+    half = b"y" * (MAX_VALUE_BYTES // 2)
     assert run(db, D.append("l", half), D.append("l", half)).ok
     res = run(db, D.append("l", b"z"))
-    assert reasons(res) == [f"value too large: list would hold {D.MAX_VALUE_BYTES + 1} bytes > {D.MAX_VALUE_BYTES}"]
+    assert reasons(res) == [f"value too large: list would hold {MAX_VALUE_BYTES + 1} bytes > {MAX_VALUE_BYTES}"]
     assert run(db, D.append("l", b"z", max_len=2)).ok and db.get("l").size == len(half) + 1
 
 
 def test_batch_size_limit_on_encode():
-    chunk = b"x" * (D.MAX_VALUE_BYTES - 64)
+    chunk = b"x" * (MAX_VALUE_BYTES - 64)
     with pytest.raises(DdbError, match="batch too large"):
-        D.encode_batch([D.put(f"k{i}", "blob", chunk) for i in range(D.MAX_BATCH_BYTES // D.MAX_VALUE_BYTES + 1)])
+        D.encode_batch([D.put(f"k{i}", "blob", chunk) for i in range(MAX_BATCH_BYTES // MAX_VALUE_BYTES + 1)])
     with pytest.raises(DdbError, match="no operations"):
         D.encode_batch([])
 
@@ -674,7 +675,7 @@ class Model:
             if cur and cur[0] != "counter":
                 return False
             new = (cur[1] if cur else 0) + delta
-            if not D.INT64_MIN <= new <= D.INT64_MAX:
+            if not INT64_MIN <= new <= INT64_MAX:
                 return False
             self.objs[key] = ["counter", new, self.seq, cur[3] if cur else self.seq]
         return True
@@ -694,14 +695,14 @@ VALUES = st.one_of(
     st.tuples(st.just("blob"), st.binary(max_size=4)),
     st.tuples(st.just("json"), JSON),
     st.tuples(st.just("list"), st.lists(st.binary(max_size=3), max_size=3)),
-    st.tuples(st.just("counter"), st.integers(D.INT64_MIN, D.INT64_MAX) | st.integers(-3, 3)),
+    st.tuples(st.just("counter"), st.integers(INT64_MIN, INT64_MAX) | st.integers(-3, 3)),
 )
 OPS = st.one_of(
     st.builds(lambda k, tv: ("put", k, *tv), KEYS, VALUES),
     st.builds(lambda k: ("delete", k), KEYS),
     st.builds(lambda k, i, m: ("append", k, i, m), KEYS, st.binary(max_size=3), st.integers(0, 3)),
     st.builds(lambda k, v, tv: ("cas", k, v, *tv), KEYS, st.integers(0, 6), VALUES),
-    st.builds(lambda k, d: ("add", k, d), KEYS, st.integers(-5, 5) | st.integers(D.INT64_MIN, D.INT64_MAX)),
+    st.builds(lambda k, d: ("add", k, d), KEYS, st.integers(-5, 5) | st.integers(INT64_MIN, INT64_MAX)),
 )
 BATCHES = st.lists(st.tuples(st.lists(OPS, min_size=1, max_size=4), st.booleans()), min_size=1, max_size=12)
 
@@ -751,16 +752,19 @@ def test_replicas_agree_with_each_other_and_the_model(batches, cut):
 # ---------------------------------------------------------------------------------------- sans-I/O
 
 
-def test_ddb_module_is_sans_io():
-    """ddb.py imports only the standard library's pure modules, protobuf and its generated messages."""
+@pytest.mark.parametrize("module", ["objects", "ddb", "ops"])
+def test_ddb_module_is_sans_io(module):
+    """The DDB's modules (haa/core/ddb/: objects.py, ddb.py, ops.py) import only the standard library's pure
+    modules, protobuf, its generated messages and each other."""
     spec = importlib.util.spec_from_file_location("_sans_io", ROOT / "tests/test_sans_io.py")
     sans_io = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(sans_io)
-    path = ROOT / "haa/core/ddb.py"
+    path = ROOT / f"haa/core/ddb/{module}.py"
     assert not sans_io._imports(path) & sans_io.FORBIDDEN
     tree = ast.parse(path.read_text())
     haa = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names if a.name.startswith("haa")}
     haa |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("haa")}
-    assert haa == {"haa.pb.ddb_pb2"}
+    assert "haa.pb.ddb_pb2" in haa
+    assert haa <= {"haa.pb.ddb_pb2", "haa.core.ddb.objects", "haa.core.ddb.ops"}
     src = path.read_text()
     assert "import grpc" not in src and "ddb_pb2_grpc" not in src

@@ -11,8 +11,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import haa.pb.ddb_pb2 as pb
-from haa.core import ddb as D
-from haa.core.ddb import Ddb, DdbError, DdbEvent
+from haa.core.ddb import ops as D
+from haa.core.ddb.ddb import Ddb, DdbEvent
+from haa.core.ddb.objects import (
+    MAX_KEY,
+    MAX_LOG_BYTES,
+    MAX_LOG_INDEX,
+    MAX_LOG_ITEM_BYTES,
+    MAX_LOG_ITEMS,
+    MAX_VALUE_BYTES,
+    DdbError,
+)
 
 KiB = 1024
 
@@ -141,25 +150,25 @@ def test_a_deleted_log_starts_again_at_zero_as_a_new_object():
 
 def test_item_size_limit():
     db = Ddb()
-    big = b"x" * (D.MAX_LOG_ITEM_BYTES + 1)
+    big = b"x" * (MAX_LOG_ITEM_BYTES + 1)
     with pytest.raises(DdbError, match="MAX_LOG_ITEM_BYTES"):
         D.log_append("L", [b"ok", big])
     res = run(db, raw_append("L", [b"ok", big]))  # a peer that skipped the check: the op fails, whole
-    assert reasons(res) == [f"log item 1 too large: {len(big)} bytes > {D.MAX_LOG_ITEM_BYTES} (MAX_LOG_ITEM_BYTES)"]
+    assert reasons(res) == [f"log item 1 too large: {len(big)} bytes > {MAX_LOG_ITEM_BYTES} (MAX_LOG_ITEM_BYTES)"]
     assert "L" not in db
     assert run(db, D.log_append("L", [big[:-1]])).ok  # exactly the limit
 
 
 def test_total_size_limit_then_trim_makes_room():
-    assert D.MAX_LOG_BYTES == 16 * D.MAX_LOG_ITEM_BYTES  # (the arithmetic below)
+    assert MAX_LOG_BYTES == 16 * MAX_LOG_ITEM_BYTES  # (the arithmetic below)
     db = Ddb()
-    item = b"y" * D.MAX_LOG_ITEM_BYTES
+    item = b"y" * MAX_LOG_ITEM_BYTES
     for _ in range(4):  # 4 x 4 items: exactly MAX_LOG_BYTES (a batch stays under MAX_BATCH_BYTES)
         assert run(db, D.log_append("L", [item] * 4)).ok
-    assert db.get("L").size == D.MAX_LOG_BYTES
+    assert db.get("L").size == MAX_LOG_BYTES
     res = run(db, D.log_append("L", [b"", b"z"]))
     assert reasons(res) == [
-        f"log full: 'L' would hold {D.MAX_LOG_BYTES + 1} bytes > {D.MAX_LOG_BYTES} (MAX_LOG_BYTES); trim it first"
+        f"log full: 'L' would hold {MAX_LOG_BYTES + 1} bytes > {MAX_LOG_BYTES} (MAX_LOG_BYTES); trim it first"
     ]
     assert log_of(db, "L")[0] == 0 and len(log_of(db, "L")[1]) == 16  # nothing of the op was appended
     assert run(db, D.log_trim("L", 1), D.log_append("L", [b"z"])).ok
@@ -171,17 +180,17 @@ def test_total_size_limit_then_trim_makes_room():
 
 def test_item_count_limit():
     db = Ddb()
-    assert run(db, D.log_append("L", [b""] * D.MAX_LOG_ITEMS)).ok
+    assert run(db, D.log_append("L", [b""] * MAX_LOG_ITEMS)).ok
     res = run(db, D.log_append("L", [b""]))
     assert reasons(res) == [
-        f"log full: 'L' would hold {D.MAX_LOG_ITEMS + 1} items > {D.MAX_LOG_ITEMS} (MAX_LOG_ITEMS); trim it first"
+        f"log full: 'L' would hold {MAX_LOG_ITEMS + 1} items > {MAX_LOG_ITEMS} (MAX_LOG_ITEMS); trim it first"
     ]
     with pytest.raises(DdbError, match="MAX_LOG_ITEMS"):
-        D.log_append("M", [b""] * (D.MAX_LOG_ITEMS + 1))
+        D.log_append("M", [b""] * (MAX_LOG_ITEMS + 1))
 
 
 def test_index_overflow_is_refused():
-    top = D.MAX_LOG_INDEX
+    top = MAX_LOG_INDEX
     snap = pb.DdbSnapshot(format=1, seq=1)
     value = pb.DdbLogValue(first=top - 1, items=[b"a"]).SerializeToString()
     snap.objects.add(key="L", type="log", value=value, version=1, created=1)
@@ -211,7 +220,7 @@ def test_client_constructor_errors():
 
 
 def test_check_op_refuses_what_needs_no_replica_to_refuse():
-    big = b"x" * (D.MAX_LOG_ITEM_BYTES + 1)
+    big = b"x" * (MAX_LOG_ITEM_BYTES + 1)
     cases = {
         "": [D.log_append("L", [b"a"]), D.log_trim("L", 3), D.put("k", "json", {"a": 1}), D.add("n", 1)],
         "invalid key: empty": [D.log_append("", [b"a"]), D.log_trim("", 0)],
@@ -220,7 +229,7 @@ def test_check_op_refuses_what_needs_no_replica_to_refuse():
         "a log is written only by its own ops": [pb.DdbOp(cas=pb.DdbCas(key="k", type="log"))],
         "log_append with no items": [pb.DdbOp(log_append=pb.DdbLogAppend(key="L"))],
         "log item 0 too large": [raw_append("L", [big])],
-        "value too large": [pb.DdbOp(put=pb.DdbPut(key="k", type="blob", value=b"v" * (D.MAX_VALUE_BYTES + 1)))],
+        "value too large": [pb.DdbOp(put=pb.DdbPut(key="k", type="blob", value=b"v" * (MAX_VALUE_BYTES + 1)))],
         "op has no operation set": [pb.DdbOp()],
     }
     for reason, ops in cases.items():
@@ -279,13 +288,13 @@ def test_restore_rejects_bad_log_values():
         s.objects.add(key="L", type="log", value=value, version=1, created=1)
         return s.SerializeToString()
 
-    big = b"x" * (D.MAX_LOG_ITEM_BYTES + 1)
+    big = b"x" * (MAX_LOG_ITEM_BYTES + 1)
     cases = {
         "not a DdbLogValue": b"\xff\xff",
         "log item 0 too large": pb.DdbLogValue(items=[big]).SerializeToString(),
-        "log too long": pb.DdbLogValue(items=[b""] * (D.MAX_LOG_ITEMS + 1)).SerializeToString(),
+        "log too long": pb.DdbLogValue(items=[b""] * (MAX_LOG_ITEMS + 1)).SerializeToString(),
         "log too large": pb.DdbLogValue(items=[big[:-1]] * 17).SerializeToString(),
-        "log index overflow": pb.DdbLogValue(first=D.MAX_LOG_INDEX, items=[b"a"]).SerializeToString(),
+        "log index overflow": pb.DdbLogValue(first=MAX_LOG_INDEX, items=[b"a"]).SerializeToString(),
     }
     for message, value in cases.items():
         with pytest.raises(DdbError, match=message):
@@ -340,8 +349,8 @@ def test_malformed_log_ops_are_refused_identically_on_every_replica():
         raw_append("", [b"a"]),
         raw_append("L", []),
         raw_append("b", [b"a"]),
-        raw_append("x" * (D.MAX_KEY + 1), [b"a"]),
-        raw_append("L", [b"z" * (D.MAX_LOG_ITEM_BYTES + 1)]),
+        raw_append("x" * (MAX_KEY + 1), [b"a"]),
+        raw_append("L", [b"z" * (MAX_LOG_ITEM_BYTES + 1)]),
         pb.DdbOp(log_trim=pb.DdbLogTrim(key="L", upto=2**64 - 1)),
         pb.DdbOp(log_trim=pb.DdbLogTrim(key="\0")),
         pb.DdbOp(put=pb.DdbPut(key="L", type="log", value=pb.DdbLogValue(first=0).SerializeToString())),

@@ -1,4 +1,4 @@
-"""DDB values have one decoder, haa.core.ddb.decode_value: a record's canonical bytes -> the value a reader of
+"""DDB values have one decoder, haa.core.ddb.ops.decode_value: a record's canonical bytes -> the value a reader of
 the replica sees (`DdbObject.value`), for every type; haa.cluster.values.plain_value (the operator's JSON-able
 form: `haactl ddb`) and haa.cluster.queries.ddb_read (the mission runner's reads) build on it."""
 
@@ -9,8 +9,9 @@ import json
 import pytest
 
 from haa.cluster.values import plain_value
-from haa.core import ddb as D
-from haa.core.ddb import Ddb, DdbError
+from haa.core.ddb import ops as D
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import TYPES, DdbError
 
 
 def replica() -> Ddb:
@@ -32,7 +33,7 @@ def replica() -> Ddb:
 
 def test_every_type_decodes_to_what_a_reader_of_the_replica_sees():
     db = replica()
-    assert {db.get(k).type_name for k in "jbclg"} == set(D.TYPES)  # every type is covered
+    assert {db.get(k).type_name for k in "jbclg"} == set(TYPES)  # every type is covered
     for key in "jbclg":
         obj = db.get(key)
         assert D.decode_value(obj.type_name, obj.data) == obj.value, key

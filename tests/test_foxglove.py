@@ -38,8 +38,8 @@ import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from helpers import Cli
 
-from haa.core import ddb as ddbops
-from haa.core.ddb import Ddb
+from haa.core.ddb import ops as ddbops
+from haa.core.ddb.ddb import Ddb
 from haa.lab.dashboard.sources import Hub
 from haa.lab.foxglove import FoxgloveBridge
 from haa.pb import control_pb2 as cpb

@@ -59,8 +59,11 @@ from test_sim_service import SimProcess
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import agenttable, wire
-from haa.core import ddb as ddbmod
+from haa.core import wire
+from haa.core.ddb import agenttable
+from haa.core.ddb import ddb as ddbmod
+from haa.core.ddb.objects import DdbError
+from haa.core.ddb.ops import encode_batch, put
 from haa.core.messages import Excluded
 from haa.hostd.control import MD_TOKEN
 from haa.hostd.logs import LOGGER_NAME
@@ -941,7 +944,7 @@ def test_fuzz_ddb_apply_on_two_replicas(batch: list[bytes]) -> None:
         for db in (a, b):
             try:
                 out.append(repr(db.apply(p)))
-            except ddbmod.DdbError as e:
+            except DdbError as e:
                 out.append(f"DdbError: {e}")
             except Exception as e:
                 raise AssertionError(f"Ddb.apply raised {e!r} on {_show(p)}") from e
@@ -951,7 +954,7 @@ def test_fuzz_ddb_apply_on_two_replicas(batch: list[bytes]) -> None:
 
 def _snapshot() -> bytes:
     db = ddbmod.Ddb()
-    db.apply(ddbmod.encode_batch([ddbmod.put("k1", "blob", b"v"), ddbmod.put("k2", "json", {"a": 1})]))
+    db.apply(encode_batch([put("k1", "blob", b"v"), put("k2", "json", {"a": 1})]))
     return db.snapshot()
 
 
@@ -965,7 +968,7 @@ def test_fuzz_ddb_restore(seed: int) -> None:
     for data in batch:
         try:
             db = ddbmod.Ddb.restore(data)
-        except ddbmod.DdbError:
+        except DdbError:
             continue
         except Exception as e:
             raise AssertionError(f"Ddb.restore raised {e!r} on {_show(data)}") from e

@@ -22,8 +22,8 @@ import grpc
 import pytest
 from hostilecluster import TOKEN, Cluster, assert_healthy, start_cluster
 
-from haa.core import ddb
-from haa.core.allocation import MAX_COST
+from haa.core.allocation.specs import MAX_COST
+from haa.core.ddb import objects as ddb
 from haa.hostd.transport import MD_TOKEN
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2 as dpb

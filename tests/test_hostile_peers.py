@@ -297,7 +297,7 @@ def test_hearsay_never_supersedes_a_peer_we_hear_from() -> None:
     (h1, 2**64 - 1) made every host treat the live h1 as restarted (its real incarnation dead, locked out for
     good: the transport refuses an incarnation that far ahead). Hearsay is believed only while no incarnation
     of the peer is trusted; a peer that really restarted is suspected first, then believed."""
-    from haa.core.hostcore import HostCore
+    from haa.core.host.hostcore import HostCore
 
     core = HostCore("h2", 5, ["h1", "h2", "h3"])
     core.start(0.0)

@@ -22,8 +22,10 @@ import pytest
 
 from haa.cluster.hostprocs import MemberHost
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import agenttable as at
-from haa.core import ddb
+from haa.core.ddb import agenttable as at
+from haa.core.ddb import ops as ddb
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import MAX_BATCH_BYTES, MAX_JSON_VALUE_BYTES, MAX_VALUE_BYTES, DdbError
 from haa.core.messages import TxId
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.mirrors import MirrorSub
@@ -63,9 +65,9 @@ def test_delivered_log_is_bounded_in_bytes_and_keeps_counting() -> None:
 
 
 def test_mirror_ring_is_bounded_in_bytes() -> None:
-    db = ddb.Ddb()
+    db = Ddb()
     ops = membench.max_blob_batch("k")
-    for _ in range(3 * BUFFER_BUDGET // ddb.MAX_BATCH_BYTES + 1):
+    for _ in range(3 * BUFFER_BUDGET // MAX_BATCH_BYTES + 1):
         db.apply(ddb.encode_batch(ops))
     ring = db.mirror_since(db.seq - 1)
     assert ring is not None and len(ring) == 1  # the newest batch is always there
@@ -90,22 +92,22 @@ def test_mirror_subscriber_queue_is_bounded_in_bytes() -> None:
 
 
 def test_json_bounds_are_checked_before_parsing() -> None:
-    text = b"[" + b"{}," * (ddb.MAX_JSON_VALUE_BYTES // 3) + b"{}]"
+    text = b"[" + b"{}," * (MAX_JSON_VALUE_BYTES // 3) + b"{}]"
     big = ddb._op(put=ddb.pb.DdbPut(key="j", type="json", value=text))
     assert "MAX_JSON_VALUE_BYTES" in ddb.check_json_sizes([big])
-    with pytest.raises(ddb.DdbError, match="MAX_JSON_VALUE_BYTES"):
+    with pytest.raises(DdbError, match="MAX_JSON_VALUE_BYTES"):
         ddb.encode_batch([big])
     # a committed batch over the bound (from a peer that skipped the edge check) is refused identically
     raw = ddb.pb.DdbBatch(ops=[big]).SerializeToString()
-    db = ddb.Ddb()
-    with pytest.raises(ddb.DdbError, match="MAX_JSON_VALUE_BYTES"):
+    db = Ddb()
+    with pytest.raises(DdbError, match="MAX_JSON_VALUE_BYTES"):
         db.apply(raw)
     assert db.seq == 0
     # the largest accepted JSON batch of the costliest kind applies
     res = db.apply(ddb.encode_batch(membench.max_json_batch()))
     assert all(r.ok for r in res.results)
-    with pytest.raises(ddb.DdbError):
-        ddb.encode_value("json", ["x" * ddb.MAX_JSON_VALUE_BYTES])
+    with pytest.raises(DdbError):
+        ddb.encode_value("json", ["x" * MAX_JSON_VALUE_BYTES])
 
 
 def test_agent_table_size_bounds() -> None:
@@ -150,7 +152,7 @@ def test_grpc_limits_are_set_on_purpose() -> None:
     assert opts["grpc.max_send_message_length"] == MAX_MESSAGE  # a joiner's snapshot, a large reply
     assert opts["grpc.max_concurrent_streams"] > 0
     # every request a client may send is below the server's limit, so the handlers' checks refuse it cleanly
-    assert max(ddb.MAX_BATCH_BYTES, at.MAX_CONFIG, at.MAX_STATE) * 4 <= MAX_REQUEST
+    assert max(MAX_BATCH_BYTES, at.MAX_CONFIG, at.MAX_STATE) * 4 <= MAX_REQUEST
     assert MAX_AGENT_MESSAGE + 64 * 1024 <= MAX_REQUEST
     # a host-link frame above it goes in pieces that fit
     assert LINK_PIECE + 64 <= MAX_REQUEST
@@ -206,11 +208,11 @@ def test_over_limit_requests_are_refused_cleanly_and_expel_nobody(group: dict[st
                             timeout=30)
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
         # DDB: a batch over MAX_BATCH_BYTES, and JSON over its bound
-        big = [ddb.put(f"lim/{i}", "blob", b"b" * ddb.MAX_VALUE_BYTES) for i in range(3)]
+        big = [ddb.put(f"lim/{i}", "blob", b"b" * MAX_VALUE_BYTES) for i in range(3)]
         with pytest.raises(grpc.RpcError) as e:
             stub.DdbWrite(cpb.DdbWriteRequest(ops=big), metadata=md, timeout=30)
         assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
-        text = b"[" + b"0," * ddb.MAX_JSON_VALUE_BYTES + b"0]"
+        text = b"[" + b"0," * MAX_JSON_VALUE_BYTES + b"0]"
         js = [ddb._op(put=ddb.pb.DdbPut(key="lim/j", type="json", value=text))]
         w = stub.DdbWrite(cpb.DdbWriteRequest(ops=js), metadata=md, timeout=30)
         assert not w.committed and "MAX_JSON_VALUE_BYTES" in w.reason, w

@@ -2,9 +2,17 @@
 
 import pytest
 
-from haa.core import ddb
-from haa.core.globalstate import GlobalState, TxDdb, TxFormation, TxMembership, TxRemove, decode_tx, encode_tx
-from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.ddb import ops as ddb
+from haa.core.membership.globalstate import (
+    GlobalState,
+    TxDdb,
+    TxFormation,
+    TxMembership,
+    TxRemove,
+    decode_tx,
+    encode_tx,
+)
+from haa.core.membership.membership import MembershipNode, NodeConfig
 from haa.core.messages import Excluded, Member, TxId
 from haa.lab.dsim import mutations
 from haa.lab.dsim.cluster import CRASHED

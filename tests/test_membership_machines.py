@@ -13,12 +13,12 @@ from typing import Any
 
 import pytest
 
-from haa.core import formation as fm
-from haa.core import sequencer as sq
-from haa.core import statetransfer as xf
 from haa.core.effects import Log, Send, SetTimer
-from haa.core.globalstate import GlobalState, SeqApplied, SeqEntry, TxFormation
-from haa.core.groupeffects import NodeTimer, WriteDone
+from haa.core.membership import formation as fm
+from haa.core.membership import sequencer as sq
+from haa.core.membership import statetransfer as xf
+from haa.core.membership.globalstate import GlobalState, SeqApplied, SeqEntry, TxFormation
+from haa.core.membership.groupeffects import NodeTimer, WriteDone
 from haa.core.messages import Member, SeqWrite, StateRequest, TxId
 
 ME = ("h2", 1)

@@ -9,13 +9,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from haa.core import groupleave as gl
-from haa.core import groupwrites as gw
-from haa.core import join as jn
-from haa.core import update as up
 from haa.core.effects import Log, Reincarnate, Send, SetTimer
-from haa.core.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
-from haa.core.groupeffects import Left, WriteDone
+from haa.core.membership import groupleave as gl
+from haa.core.membership import groupwrites as gw
+from haa.core.membership import join as jn
+from haa.core.membership import update as up
+from haa.core.membership.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
+from haa.core.membership.groupeffects import Left, WriteDone
 from haa.core.messages import Apply, Connections, Introduce, Leave, Member, Sponsor, TxId
 
 H1, H2, H3, H4 = ("h1", 1), ("h2", 1), ("h3", 1), ("h4", 1)

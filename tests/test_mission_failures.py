@@ -86,7 +86,7 @@ class Mirror(threading.Thread):
             self.anchors.setdefault(o.key[len("slam/anchor/"):], {})[float(v["t"])] = tuple(v["pose"])
 
     def run(self) -> None:
-        from haa.core.ddb import Ddb
+        from haa.core.ddb.ddb import Ddb
 
         while not self.stop.is_set():
             hosts = queries.alive_hosts(self.run_.backend)

@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from haa.core.hostcore import FD_EXTERNAL, CoreConfig
+from haa.core.host.hostcore import FD_EXTERNAL, CoreConfig
 from haa.core.messages import OacTransaction
 from haa.lab.dsim import mutations
 from haa.lab.dsim.checks import check_oac
@@ -220,7 +220,7 @@ def test_restarted_peer_that_never_speaks_is_still_excluded():
     """A new incarnation learned from a handshake (or a participant list) that then dies without a single
     heartbeat must become permanently suspected, or transactions naming it never close (l. 41)."""
     from haa.core.effects import PeerDead, SetTimer
-    from haa.core.hostcore import CoreConfig, HostCore
+    from haa.core.host.hostcore import CoreConfig, HostCore
 
     core = HostCore("h1", 1, ["h1", "h2"], CoreConfig(exclude_after=2.0))
     core.start(0.0)
@@ -262,7 +262,7 @@ def test_round_zero_lock_survives_a_later_round():
 
 def test_thesis_initial_timestamp_breaks_agreement():
     """The same schedule with ts_p initialised to 0 as printed (l. 20): h1 commits, h2 and h3 abort."""
-    from haa.core import oac as oac_mod
+    from haa.core.oac import oac as oac_mod
 
     original = oac_mod.INITIAL_TS
     oac_mod.INITIAL_TS = 0
@@ -287,7 +287,7 @@ class _Driven:
     asks for is yes (`Evaluate` -> `Vote`), the rest of its effects are kept in `emitted`."""
 
     def __init__(self, name, host, send=lambda *_a: None):
-        from haa.core.oac import OrderedAtomicCommit
+        from haa.core.oac.oac import OrderedAtomicCommit
 
         self.oac = OrderedAtomicCommit(name, 1, host)
         self.send = send
@@ -295,7 +295,7 @@ class _Driven:
 
     def step(self, inp):
         from haa.core.effects import Send
-        from haa.core.oac import Evaluate, Learn, Vote
+        from haa.core.oac.oac import Evaluate, Learn, Vote
 
         for e in self.oac.step(0.0, inp):
             if isinstance(e, Send):
@@ -306,19 +306,19 @@ class _Driven:
                 self.emitted.append(e)
 
     def propose(self, payload, parts):
-        from haa.core.oac import Propose
+        from haa.core.oac.oac import Propose
 
         txid = self.oac.new_txid()
         self.step(Propose(txid, payload, tuple(parts)))
         return txid
 
     def on_message(self, src, src_inc, msg):
-        from haa.core.oac import Incoming
+        from haa.core.oac.oac import Incoming
 
         self.step(Incoming(src, src_inc, msg))
 
     def on_peer_change(self, peer):
-        from haa.core.oac import PeerChanged
+        from haa.core.oac.oac import PeerChanged
 
         self.step(PeerChanged(peer))
 

@@ -1,10 +1,10 @@
-"""The configuration procedure of Chen, Toueg & Aguilera used by Alg. 1 (haa.core.qos)."""
+"""The configuration procedure of Chen, Toueg & Aguilera used by Alg. 1 (haa.core.ufd.qos)."""
 
 import math
 
 import pytest
 
-from haa.core.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute, log_f
+from haa.core.ufd.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute, log_f
 
 
 def test_thesis_qos_costs_about_twelve_heartbeats_per_minute():

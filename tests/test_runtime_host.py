@@ -13,11 +13,11 @@ from helpers import run, until
 
 from haa.cluster.hostprocs import free_port
 from haa.core.effects import CancelTimer, SetTimer
-from haa.core.hostcore import CoreConfig
+from haa.core.host.hostcore import CoreConfig
 from haa.core.messages import Excluded, TxId
-from haa.core.oac import OacError
-from haa.core.qos import QosTargets
-from haa.core.ufd import UfdConfig
+from haa.core.oac.oac import OacError
+from haa.core.ufd.qos import QosTargets
+from haa.core.ufd.ufd import UfdConfig
 from haa.hostd.delivered import GENESIS_HASH, chain_hash
 from haa.hostd.outcomes import HostReincarnated, ProposeTimeout, TransactionAborted
 from haa.hostd.runtime import HostRuntime, RuntimeConfig

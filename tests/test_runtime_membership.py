@@ -24,7 +24,8 @@ from helpers import run, until
 
 from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
+from haa.core.ddb.ddb import Ddb
 from haa.hostd.control import ControlClient
 
 TOKEN = "membership-test-token"
@@ -113,7 +114,7 @@ def test_ddb_writes_through_any_host_and_the_mirror_stream(cluster: dict[str, Me
     stream.cancel()
     kinds = [e.WhichOneof("event") for e in events]
     assert kinds[0] == "snapshot" and kinds.count("batch") == 22
-    replica = ddb.Ddb.restore(events[0].snapshot.SerializeToString())
+    replica = Ddb.restore(events[0].snapshot.SerializeToString())
     for e in events[1:]:
         if e.WhichOneof("event") == "batch":
             assert e.batch.ddb_seq == replica.seq + 1
@@ -268,7 +269,7 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
     request gets exactly its own ops' results, later ops see earlier ones, atomic requests travel alone."""
     import asyncio
 
-    from haa.core.membership import NodeConfig
+    from haa.core.membership.membership import NodeConfig
     from haa.hostd.groupcommit import DDB_MAX_INFLIGHT
     from haa.hostd.runtime import HostRuntime, RuntimeConfig
 

@@ -19,10 +19,12 @@ import pytest
 from helpers import until
 
 from haa.core import agentio as io
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import MAX_VALUE_BYTES
 from haa.core.effects import CancelTimer, Closed, Decided, Deliver, Log, Reincarnate, Send, SetTimer
-from haa.core.globalstate import TxDdb, encode_tx
-from haa.core.membership import AppliedTx, Connect, Left, WriteDone
+from haa.core.membership.globalstate import TxDdb, encode_tx
+from haa.core.membership.membership import AppliedTx, Connect, Left, WriteDone
 from haa.core.messages import Heartbeat, TxId
 from haa.hostd.agentops import AgentOps
 from haa.hostd.datadir import HostDataDir
@@ -170,7 +172,7 @@ def test_view_changes_and_applied_batches_feed_counters_mirrors_and_known_hosts(
     async def main() -> None:
         d, p = _dispatcher(tmp_path)
         mirrors: Mirrors = p["mirrors"]
-        replica = ddb.Ddb()
+        replica = Ddb()
         sub = mirrors.subscribe(views=True, replica=replica)
         batch = ddb.encode_batch([ddb.put("k", "counter", 1)], origin="h1")
         res = replica.apply(batch)
@@ -181,7 +183,7 @@ def test_view_changes_and_applied_batches_feed_counters_mirrors_and_known_hosts(
         # a new replica object (a joiner installed its sponsor's state): the subscriber resyncs
         mirrors.check_replica(replica)
         assert not sub.queue
-        mirrors.check_replica(ddb.Ddb())
+        mirrors.check_replica(Ddb())
         assert await sub.get() == ("resync",)
         mirrors.close()
         assert await sub.get() is None
@@ -258,7 +260,7 @@ class FakeNode:
 
     def __init__(self, writes: Callable[[], GroupCommit]) -> None:
         self.writes = writes
-        self.replica = ddb.Ddb()
+        self.replica = Ddb()
         self.batches: list[tuple[int, bool]] = []  # (ops, atomic)
 
     def propose(self, payload: bytes, req: int, kind: str) -> None:
@@ -302,7 +304,7 @@ def test_group_commit_refuses_bad_writes_up_front_and_fails_queued_ones_when_clo
         gc, node = _group_commit(lambda: closed[0])
         with pytest.raises(WriteFailed, match="empty"):
             await gc.ddb_write([])
-        big = [ddb.put(f"k{i}", "blob", b"x" * ddb.MAX_VALUE_BYTES) for i in range(3)]
+        big = [ddb.put(f"k{i}", "blob", b"x" * MAX_VALUE_BYTES) for i in range(3)]
         with pytest.raises(WriteFailed, match="MAX_BATCH_BYTES"):
             await gc.ddb_write(big)
         assert node.batches == []

@@ -176,7 +176,7 @@ def test_decode_accepts_the_boundaries() -> None:
         m.OacDecide(T, -1, -1, False, P3, True),  # unilateral abort before any round (Alg. 2 l. 29)
         m.OacDecide(T, wire.MAX_ORDER, wire.MAX_ROUND, True, P3, False),
         m.OacEstimate(T, 0, 0, False, 0),
-        m.OacEstimate(T, 0, 0, False, -1),  # the initial timestamp (Alg. 2 l. 20, haa.core.oac.INITIAL_TS)
+        m.OacEstimate(T, 0, 0, False, -1),  # the initial timestamp (Alg. 2 l. 20, haa.core.oac.oac.INITIAL_TS)
         m.OacTransaction(T, b"", (("h1", 5),), 1),  # a single-host transaction
     ]
     for msg in ok:

@@ -9,8 +9,18 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-#: every module of the core package (a new machine is covered the moment it is added)
-CORE_MODULES = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "haa" / "core").glob("*.py"))
+#: every module of the core package and of its subpackages (a new machine is covered the moment it is added)
+CORE_MODULES = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "haa" / "core").rglob("*.py"))
+
+
+def _dotted(module: str) -> str:
+    """haa/core/ddb/ops.py -> haa.core.ddb.ops; haa/core/ddb/__init__.py -> haa.core.ddb."""
+    parts = Path(module).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+#: the core's packages (`from haa.core.ddb import ops` imports the module haa.core.ddb.ops)
+CORE_PACKAGES = {_dotted(m) for m in CORE_MODULES if m.endswith("__init__.py")}
 FORBIDDEN = {
     "asyncio",
     "grpc",
@@ -60,7 +70,7 @@ def _haa_imports(tree: ast.AST) -> list[str]:
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("haa"):
-            if node.module in ("haa.pb", "haa.core"):
+            if node.module == "haa.pb" or node.module in CORE_PACKAGES:
                 out += [f"{node.module}.{a.name}" for a in node.names]
             else:
                 out.append(node.module)
@@ -69,17 +79,35 @@ def _haa_imports(tree: ast.AST) -> list[str]:
     return out
 
 
+def _not_allowed(tree: ast.AST) -> list[str]:
+    """The `haa...` imports of a core module that are neither core modules nor generated message modules."""
+    allowed_haa = {_dotted(m) for m in CORE_MODULES}
+    return [name for name in _haa_imports(tree)
+            if not (name in allowed_haa or (name.startswith("haa.pb.") and name.endswith("_pb2")))]
+
+
 def test_core_modules_only_import_each_other_and_generated_messages():
     """Cores may use each other and the generated protobuf message classes (plain data, no I/O); never
     the `_grpc` service stubs."""
-    allowed_haa = {"haa.core"} | {f"haa.core.{Path(m).stem}" for m in CORE_MODULES}
     for module in CORE_MODULES:
-        for name in _haa_imports(ast.parse((ROOT / module).read_text())):
-            ok = name in allowed_haa or (name.startswith("haa.pb.") and name.endswith("_pb2"))
-            assert ok, f"{module} imports {name}"
+        bad = _not_allowed(ast.parse((ROOT / module).read_text()))
+        assert not bad, f"{module} imports {bad}"
 
 
 def test_checker_catches_a_forbidden_import(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text("import time\nfrom asyncio import sleep\n")
     assert _imports(bad) & FORBIDDEN == {"time", "asyncio"}
+
+
+def test_the_subpackages_are_covered_and_a_forbidden_haa_import_is_caught():
+    """The glob reaches the modules of the core's subpackages, and the import whitelist refuses what a core
+    module may not import (the runtime, a `_grpc` stub, a name the package does not define as a module)."""
+    assert {"haa/core/ufd/ufd.py", "haa/core/membership/update.py", "haa/core/ddb/ops.py",
+            "haa/core/agents/agentnode.py", "haa/core/ddb/__init__.py"} <= set(CORE_MODULES)
+    ok = "from haa.core.ddb import ops as ddb\nfrom haa.core.membership.globalstate import GlobalState\n"
+    assert _not_allowed(ast.parse(ok)) == []
+    bad = ("from haa.hostd import runtime\nfrom haa.pb import hostlink_pb2_grpc\nimport haa.sdk.base\n"
+           "from haa.core.agents import AgentNode\n")
+    assert sorted(_not_allowed(ast.parse(bad))) == ["haa.core.agents.AgentNode", "haa.hostd",
+                                                    "haa.pb.hostlink_pb2_grpc", "haa.sdk.base"]

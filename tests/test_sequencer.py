@@ -2,8 +2,8 @@
 batches them into one OAC; replicas apply each write once per (origin, cseq). Deterministic group simulator
 and the replicated state; the real daemons are covered by tests/test_runtime_membership.py and bench ap1."""
 
-from haa.core import ddb
-from haa.core.globalstate import GlobalState, SeqEntry, TxDdb, TxMembership, TxSeq, TxTest, encode_tx
+from haa.core.ddb import ops as ddb
+from haa.core.membership.globalstate import GlobalState, SeqEntry, TxDdb, TxMembership, TxSeq, TxTest, encode_tx
 from haa.core.messages import Member, TxId
 from haa.lab.dsim.group import GroupScenario, GroupSim, check_group
 from haa.lab.dsim.network import DelayModel

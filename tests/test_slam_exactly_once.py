@@ -4,7 +4,7 @@ A sensor agent commits the processing's marker `slam/done/<avatar>/<n>/<proc>` i
 Observe events, with a cas "must not exist"; SupervisorSLAM skips marked processings when it (re)loads the
 reading list and deletes the markers with the raw entry; a restarted sensor agent is asked what it still has
 (a sync) instead of getting everything again. The agents run on a stand-in context over a real DDB replica
-(haa.core.ddb.Ddb: the batches, the cas and the atomic abort are the DDB's own), with messages routed FIFO
+(haa.core.ddb.ddb.Ddb: the batches, the cas and the atomic abort are the DDB's own), with messages routed FIFO
 per receiver and held while the receiver is down, as the hosts do.
 """
 
@@ -22,7 +22,8 @@ from haa.agents import team
 from haa.agents.sensor_cooccupancy import AgentSensorCooccupancy
 from haa.agents.sensor_sonar import AgentSensorSonar
 from haa.agents.supervisor_slam import SupervisorSLAM
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
+from haa.core.ddb.ddb import Ddb
 from haa.sdk import registry
 from haa.slam import events as sev
 
@@ -34,7 +35,7 @@ class Bus:
     message for an agent that is down waits for its next life), one-shot timers, spawns."""
 
     def __init__(self) -> None:
-        self.ddb = ddbops.Ddb()
+        self.ddb = Ddb()
         self.t = 100.0
         self.agents: dict[str, Any] = {}
         self.queue: list[tuple[str, str, dict[str, Any]]] = []  # (src, dst, message), in sending order

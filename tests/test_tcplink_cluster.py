@@ -16,7 +16,7 @@ import pytest
 
 from haa.cluster.hostprocs import MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
 
 TOKEN = "tcplink-test-token"
 NAMES = ["h1", "h2", "h3"]

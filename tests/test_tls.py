@@ -29,7 +29,7 @@ from helpers import Cli, local_cluster, wait_sync, wait_value
 from haa import tls
 from haa.cluster.local_backend import LocalBackend
 from haa.cluster.tls import ClusterCA, make_cluster_tls
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
 from haa.hostd.transport import MD_HB_KEY, MD_INC, MD_SENDER, MD_TOKEN, OPEN_METHOD
 from haa.pb import control_pb2 as cpb
 

@@ -5,8 +5,8 @@ import math
 import pytest
 
 from haa.core.messages import Heartbeat
-from haa.core.qos import QosTargets, configure
-from haa.core.ufd import (
+from haa.core.ufd.qos import QosTargets, configure
+from haa.core.ufd.ufd import (
     ArmFreshness,
     AskPeriod,
     Beat,
@@ -153,7 +153,7 @@ def test_a_freshness_timer_that_fires_early_is_rearmed():
     core must wait for the deadline again, or a crashed peer stays trusted forever (found by the
     100,000-schedule sweep, seed 7020)."""
     from haa.core.effects import SetTimer, Suspicion
-    from haa.core.hostcore import CoreConfig, HostCore
+    from haa.core.host.hostcore import CoreConfig, HostCore
 
     core = HostCore("q", 1, ["q", "p"], CoreConfig(ufd=CFG))
     core.start(0.0)

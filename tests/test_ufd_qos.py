@@ -2,7 +2,7 @@
 
 import pytest
 
-from haa.core.qos import THESIS_QOS, QosTargets
+from haa.core.ufd.qos import THESIS_QOS, QosTargets
 from haa.lab.dsim.network import DelayModel
 from haa.lab.dsim.ufdqos import measure
 
@@ -35,7 +35,7 @@ def test_thesis_qos_costs_twelve_heartbeats_a_minute_on_a_lan():
 def test_a_detector_with_a_too_small_margin_misses_the_target(monkeypatch):
     """The measurement can fail: a detector that believes the network has no jitter and no loss picks
     eta = T_D^U and alpha = 0, and then suspects at every late heartbeat."""
-    from haa.core.ufd import HeartbeatObserver
+    from haa.core.ufd.ufd import HeartbeatObserver
 
     monkeypatch.setattr(HeartbeatObserver, "delay_variance", lambda self: 0.0)
     monkeypatch.setattr(HeartbeatObserver, "loss_estimate", lambda self: 0.0)

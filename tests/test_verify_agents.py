@@ -50,7 +50,7 @@ def test_a_group_of_two_that_removes_its_partner_is_not_wedged():
     its timing): the group shrank to {h3, h2} and h3, its front, removed h2. Four OAC transactions of just h3
     and h2 were still open; with two participants the quorum is both, the removed incarnation never votes
     again, so they never decided and held h3's l. 37 gate for good (not quiet after healing). A participant
-    now decides such a transaction alone (haa.core.oac, `_decide_alone`; docs/oac.md)."""
+    now decides such a transaction alone (haa.core.oac.oac, `_decide_alone`; docs/oac.md)."""
     from haa.lab.dsim.sweep import run_seed
 
     assert run_seed("recovery", 1229, 5).violations == []

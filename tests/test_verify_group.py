@@ -6,8 +6,8 @@ import pytest
 from hashseed import trace_hashes
 
 from haa.core.effects import Decided, Send
-from haa.core.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
-from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.membership.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
+from haa.core.membership.membership import MembershipNode, NodeConfig
 from haa.core.messages import Apply, Connections, Introduce, Member, Sponsor, TxId
 from haa.lab.dsim import mutations
 from haa.lab.dsim.group import DDB_PROPS, MEMBERSHIP_PROPS, GroupScenario, GroupSim, check_group

@@ -58,7 +58,7 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
 from haa.pb import sim_pb2 as spb
 from haa.sdk.registry import register
 from haa.slam import events as sev

@@ -25,7 +25,7 @@ from typing import Any
 import pydantic
 
 from haa.agents import team
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
 from haa.sdk.registry import register
 
 

@@ -47,7 +47,7 @@ import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
 from haa.sdk.registry import register
 from haa.slam.replica import decode_map
 

@@ -78,7 +78,7 @@ from typing import Any, Literal
 import pydantic
 
 from haa.agents import team
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
 from haa.sdk.registry import register
 from haa.slam import events as sev
 from haa.slam.grid import GridSpec

@@ -32,7 +32,7 @@ import numpy as np
 import pydantic
 
 from haa.agents.simlink import SimLink as SimLink  # the channel to haa-sim (re-exported: team.SimLink)
-from haa.core import ddb as ddbops
+from haa.core.ddb import ops as ddbops
 from haa.sdk.base import AgentBase, Clock
 
 T = TypeVar("T")

@@ -23,7 +23,7 @@ import grpc
 from haa.cluster.backend import ALIVE, Backend, ClusterError, natural_key, rpc_error_text
 from haa.pb import control_pb2 as cpb
 
-#: table statuses (haa.core.agenttable) and local phases (haa.core.agentnode.Local) -> the state shown
+#: table statuses (haa.core.ddb.agenttable) and local phases (haa.core.agents.agentnode.Local) -> the state shown
 PHASE_STATE = {"claiming": "thawing", "thawing": "thawing", "recovering": "recovering", "active": "active",
                "freezing": "freezing"}
 

@@ -94,7 +94,7 @@ def share_of_cores(hosts: int, cores: int | None = None) -> float:
     """Each host's capacity K_h when `hosts` hosts share this machine: its cores divided among them (issue 15:
     a local cluster of N hosts on a 2-core machine must not believe it has N cores), within the allocator's
     bounds (docs/allocation.md, "host capacities")."""
-    from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY
+    from haa.core.allocation.specs import MAX_CAPACITY, MIN_CAPACITY
 
     c = machine_cores() if cores is None else cores
     return min(MAX_CAPACITY, max(MIN_CAPACITY, round(c / max(1, hosts), 3)))

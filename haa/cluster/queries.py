@@ -2,7 +2,7 @@
 runner, which polls with them; nothing here knows about missions).
 
 * `alive_hosts` — the hosts the backend sees alive; `host_client` — a control client of one of them.
-* `ddb_read` — {key: value} from one replica (values decoded by haa.core.ddb.decode_value); `ddb_bytes` — the
+* `ddb_read` — {key: value} from one replica (values decoded by haa.core.ddb.ops.decode_value); `ddb_bytes` — the
   size of the DDB's values.
 * `cluster_view` — the agreed group, every host's active agents, and every agent's most advanced table row.
 * `registered_types`, `spawn_agent`, `remove_agents` (an agent and all its descendants, deepest first).
@@ -21,7 +21,8 @@ from typing import Any
 import grpc
 
 from haa.cluster.backend import ALIVE, Backend, ClusterError, agreed_group
-from haa.core import ddb
+from haa.core.ddb import objects as ddb
+from haa.core.ddb.ops import decode_value
 from haa.pb import control_pb2 as cpb
 
 
@@ -53,7 +54,7 @@ def ddb_read(backend: Backend, keys: Sequence[str] = (), prefix: str = "", prefe
         out: dict[str, Any] = {}
         for o in reply.objects:
             with contextlib.suppress(ddb.DdbError):
-                out[o.key] = ddb.decode_value(o.type, o.value)
+                out[o.key] = decode_value(o.type, o.value)
         return n, out
     return None
 

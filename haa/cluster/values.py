@@ -1,6 +1,6 @@
 """DDB values as an operator reads them: `plain_value(type, bytes)` turns a record's canonical value bytes
 (haa.core.ddb's types: json, blob, counter, list, log, ...) into a JSON-able Python value — text where the
-bytes are UTF-8, "base64:..." where they are not. Decoded by haa.core.ddb.decode_value (the one decoder);
+bytes are UTF-8, "base64:..." where they are not. Decoded by haa.core.ddb.ops.decode_value (the one decoder);
 bytes it cannot decode are shown as they are. Used by `haactl ddb` (get, ls, watch) and the demo
 (haa.lab.experiments.demo reads the counters the agents publish).
 """
@@ -10,7 +10,8 @@ from __future__ import annotations
 import base64
 from typing import Any
 
-from haa.core import ddb
+from haa.core.ddb.objects import DdbError
+from haa.core.ddb.ops import decode_value
 
 
 def show_bytes(b: bytes) -> str:
@@ -25,8 +26,8 @@ def plain_value(type_name: str, data: bytes) -> Any:
     """A record's canonical value bytes -> a JSON-able Python value (an unknown type or malformed bytes: the
     bytes, shown)."""
     try:
-        value = ddb.decode_value(type_name, data)
-    except ddb.DdbError:
+        value = decode_value(type_name, data)
+    except DdbError:
         return show_bytes(data)
     if isinstance(value, bytes):
         return show_bytes(value)

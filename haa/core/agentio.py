@@ -1,4 +1,4 @@
-"""The vocabulary between the agent layer (`haa.core.agentnode`) and whatever runs agent instances.
+"""The vocabulary between the agent layer (`haa.core.agents.agentnode`) and whatever runs agent instances.
 
 `AgentNode` is sans-I/O: it never starts a process. It asks its driver to, with the *commands* below, and
 learns what the instances did from the *events* the driver feeds back (`InstanceEvent` inputs of

@@ -18,7 +18,7 @@ host-level input this way, and an `AgentNode` takes the agent layer's inputs the
   `WriteDone` effect;
 * `LeaveGroup` — groupLeave() (Alg. 3 l. 14; membership mode only).
 
-The agent layer's inputs (`AgentNode.step`; the requests are built by `haa.core.agentrequests`):
+The agent layer's inputs (`AgentNode.step`; the requests are built by `haa.core.agents.agentrequests`):
 
 * `CreateAgent`, `RemoveAgent`, `MoveAgent`, `SetPaused` — operator requests, each answered by an
   `AgentOpDone` effect carrying `req`;

@@ -226,9 +226,9 @@ AGENT_HOST_KINDS = ("msg", "freeze_ack", "claim_ack", "alloc", "alloc_run", "op_
 
 @dataclass(slots=True)
 class AgentHostMsg:
-    """Host-to-host message of the agent layer (`haa.core.agentnode`): kind "msg" (a routed agent message,
+    """Host-to-host message of the agent layer (`haa.core.agents.agentnode`): kind "msg" (a routed agent message,
     `data` = haa.v1.RoutedMsg), "freeze_ack" (Alg. 5 l. 24), "claim_ack" (Alg. 6 l. 16), "alloc" (a bid
-    update of Alg. 4 l. 84, `data` encoded by `haa.core.allocwire`) or "alloc_run" (an operator asked a
+    update of Alg. 4 l. 84, `data` encoded by `haa.core.allocation.allocwire`) or "alloc_run" (an operator asked a
     member that is not the leader for an allocation session: passed on to the leader) or "op_reply" (an
     agent's reply to an operator request, sent back to the host the operator asked; `data` = RoutedMsg)."""
 

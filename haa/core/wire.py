@@ -46,7 +46,7 @@ from haa.core.messages import (
     StateSnapshot,
     TxId,
 )
-from haa.core.oac import INITIAL_TS
+from haa.core.oac.oac import INITIAL_TS
 from haa.pb import hostlink_pb2 as pb
 
 #: longest host name accepted on the wire
@@ -60,7 +60,7 @@ MAX_HB_SEQ = 2**62
 #: a heartbeat period above one hour is an attack, not a configuration
 MAX_PERIOD = 3600.0
 #: a local clock reading (seconds) beyond 31,000 years is garbage; one such value would also swamp the
-#: observer's running sum of offset delays (haa.core.ufd) long after it left the window
+#: observer's running sum of offset delays (haa.core.ufd.ufd) long after it left the window
 MAX_CLOCK = 1e12
 #: most participants an OAC transaction may name
 MAX_PARTICIPANTS = 4096
@@ -388,7 +388,7 @@ def _dec_order(env: pb.Envelope) -> OacOrder:
 def _dec_estimate(env: pb.Envelope) -> OacEstimate:
     m = env.oac_estimate
     k = "oac_estimate"
-    if m.ts < INITIAL_TS or m.ts > MAX_ROUND:  # -1: no proposal adopted yet (haa.core.oac.INITIAL_TS)
+    if m.ts < INITIAL_TS or m.ts > MAX_ROUND:  # -1: no proposal adopted yet (haa.core.oac.oac.INITIAL_TS)
         raise WireError(f"{k}: ts {m.ts} out of range")
     return OacEstimate(_dec_txid(m, k), _order(m.order, k), _round(m.round, k), m.precommit, m.ts)
 

@@ -4,7 +4,7 @@ Served by `HostControlService` (haa.hostd.control), which inherits `AgentControl
 cluster token like the rest of the API. The service reaches the agent layer through the runtime
 (`HostRuntime.agent_ops`, `feed`) and the agent processes through the `AgentDriver` the composition root
 (haa.hostd.daemon.build_host) gives it. Operator requests go through the host's agent layer
-(`haa.core.agentnode.AgentNode`) and are committed to the replicated agent table:
+(`haa.core.agents.agentnode.AgentNode`) and are committed to the replicated agent table:
 
 * `AgentList`: the table as this host holds it (identical on every member), with what this host knows of
   the instances it runs (phase, CPU, pid), the allocation session ids and the paused flag.
@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING, Any
 import grpc
 from grpc import aio
 
-from haa.core.agentnode import AgentNode
-from haa.core.agenttable import MAX_CONFIG
+from haa.core.agents.agentnode import AgentNode
+from haa.core.ddb.agenttable import MAX_CONFIG
 from haa.core.inputs import CreateAgent, MoveAgent, OperatorSend, RemoveAgent, RunAllocation, SetPaused
 from haa.hostd.outcomes import NotMembershipMode
 from haa.pb import control_pb2 as cpb

@@ -1,6 +1,6 @@
 """AgentDriver: carries out the agent layer's commands on real agent processes, and feeds their events back.
 
-The sans-I/O `AgentNode` (haa.core.agentnode) says what should happen to this host's agent instances
+The sans-I/O `AgentNode` (haa.core.agents.agentnode) says what should happen to this host's agent instances
 (`haa.core.agentio` commands); `AgentSupervisor` (haa.hostd.agentproc) runs OS processes. The driver joins
 the two. The daemon's composition root (haa.hostd.daemon.build_host) builds it and hands it to the
 `HostRuntime` as its agent backend (the `AgentBackend` protocol of haa.hostd.agentops); at `start` the runtime
@@ -37,8 +37,10 @@ from pathlib import Path
 from typing import Any, Protocol, assert_never
 
 from haa.core import agentio as io
-from haa.core import ddb as ddbmod
-from haa.core.agenttable import MAX_CONFIG, AgentTable
+from haa.core.ddb import ops as ddbmod
+from haa.core.ddb.agenttable import MAX_CONFIG, AgentTable
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import MAX_KEY
 from haa.hostd import agentproc as ap
 from haa.hostd.agentops import AgentCommand
 from haa.hostd.logs import log_event
@@ -75,7 +77,7 @@ class AgentHost(Protocol):
 
     def report_costs(self, cpu: dict[str, float], rates: dict[tuple[str, str], float]) -> None: ...
 
-    def local_replica(self) -> ddbmod.Ddb | None: ...
+    def local_replica(self) -> Ddb | None: ...
 
     def agent_table(self) -> AgentTable | None: ...
 
@@ -275,7 +277,7 @@ class AgentDriver:
 
     # ------------------------------------------------------------------ DDB for agents
 
-    def _replica(self) -> ddbmod.Ddb | None:
+    def _replica(self) -> Ddb | None:
         return self.host.local_replica()
 
     def _ddb_get(self, ev: ap.DdbGet) -> None:
@@ -294,7 +296,7 @@ class AgentDriver:
         keys: list[str] = []
         values: list[bytes] = []
         size, truncated = 0, False
-        if ddb is not None and len(ev.prefix) <= ddbmod.MAX_KEY:
+        if ddb is not None and len(ev.prefix) <= MAX_KEY:
             for obj in ddb.items(ev.prefix):
                 data = obj.data
                 if len(keys) >= limit or size + len(data) + len(obj.key) > SCAN_MAX_BYTES:

@@ -26,11 +26,11 @@ from collections.abc import Awaitable, Callable, Hashable
 from typing import Any, Protocol
 
 from haa.core import agentio as io
-from haa.core.agentnode import AgentNode
-from haa.core.agenttable import AgentTable
-from haa.core.ddb import Ddb
+from haa.core.agents.agentnode import AgentNode
+from haa.core.ddb.agenttable import AgentTable
+from haa.core.ddb.ddb import Ddb
 from haa.core.inputs import AgentLayerInput, InstanceEvent, OperatorSend, ReportCosts, Undeliverable
-from haa.core.membership import MembershipNode
+from haa.core.membership.membership import MembershipNode
 from haa.hostd.outcomes import DdbWriteResult, NotMembershipMode
 from haa.pb import agenttx_pb2 as apb
 

@@ -58,8 +58,9 @@ from grpc import aio
 
 from haa import rpcguard
 from haa import tls as tlsmod
-from haa.core import ddb as ddbmod
-from haa.core.oac import OacError
+from haa.core.ddb import objects as ddbmod
+from haa.core.ddb.ops import put
+from haa.core.oac.oac import OacError
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.outcomes import (
@@ -293,7 +294,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             while time.perf_counter() < stop:
                 t = time.perf_counter()
                 try:
-                    await rt.writes.ddb_write([ddbmod.put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
+                    await rt.writes.ddb_write([put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
                 except WriteFailed:
                     failed += 1
                 else:
@@ -543,7 +544,7 @@ class ControlClient(AgentClientMixin):
         return self._stub.Latencies(cpb.LatencyRequest(reset=reset), metadata=self._md, timeout=self.timeout)
 
     def ddb_write(self, ops: Sequence[object], atomic: bool = False, timeout: float = 30.0) -> cpb.DdbWriteReply:
-        """Write a batch of DDB ops (`haa.core.ddb.put/delete/append/cas/add`) through this host; returns
+        """Write a batch of DDB ops (`haa.core.ddb.ops.put/delete/append/cas/add`) through this host; returns
         once the batch is committed and applied here (`committed`), or given up (`reason`)."""
         req = cpb.DdbWriteRequest(ops=list(ops), atomic=atomic)  # type: ignore[arg-type]
         return self._stub.DdbWrite(req, metadata=self._md, timeout=timeout)

@@ -39,7 +39,7 @@ recorder as their tap (HAA_AGENT_TAP=haa.sdk.recorder:from_env, loaded by name: 
 
 The QoS options are the failure detector's targets (thesis §4.4.2): detection time bound T_D^U, mean
 mistake recurrence time lower bound T_MR^L and mean mistake duration upper bound T_M^U, in seconds
-(default `haa.core.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
+(default `haa.core.ufd.qos.CLUSTER_QOS`). SIGTERM and SIGINT are a graceful leave (membership mode: the group
 removes this host first, for at most `--leave-timeout` seconds), then a graceful shutdown (links closed, the
 final delivered count and hash logged); a second signal skips the wait. The event loop is uvloop; set
 HAA_EVENT_LOOP=asyncio for the standard library loop.
@@ -74,12 +74,12 @@ from pydantic import (
 
 from haa import files
 from haa import tls as tlsmod
-from haa.core.agentnode import AgentConfig
-from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY
-from haa.core.hostcore import CoreConfig
-from haa.core.membership import NodeConfig
-from haa.core.qos import CLUSTER_QOS, QosTargets
-from haa.core.ufd import UfdConfig
+from haa.core.agents.agentnode import AgentConfig
+from haa.core.allocation.specs import MAX_CAPACITY, MIN_CAPACITY
+from haa.core.host.hostcore import CoreConfig
+from haa.core.membership.membership import NodeConfig
+from haa.core.ufd.qos import CLUSTER_QOS, QosTargets
+from haa.core.ufd.ufd import UfdConfig
 from haa.hostd.agentdriver import AgentDriver
 from haa.hostd.control import HostControlService
 from haa.hostd.logs import LOGGER_NAME, log_event
@@ -142,7 +142,7 @@ def parse_peers(text: str) -> list[tuple[str, str]]:
 
 
 class MembershipSettings(BaseModel):
-    """Alg. 3 tunables (`membership:` section of the YAML file; see `haa.core.membership.NodeConfig`)."""
+    """Alg. 3 tunables (`membership:` section of the YAML file; see `haa.core.membership.membership.NodeConfig`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 

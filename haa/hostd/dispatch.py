@@ -43,7 +43,7 @@ from haa.core.effects import (
     Suspicion,
     Voted,
 )
-from haa.core.membership import AppliedTx, Connect, Left, NodeEffect, ViewChange, WriteDone
+from haa.core.membership.membership import AppliedTx, Connect, Left, NodeEffect, ViewChange, WriteDone
 from haa.hostd.agentops import AgentBackend, AgentCommand, AgentOps
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import DeliveredLog

@@ -27,8 +27,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from haa.core import ddb as ddbmod
-from haa.core.membership import WriteDone
+from haa.core.ddb import objects as ddbmod
+from haa.core.ddb.ddb import ApplyResult
+from haa.core.ddb.ops import check_json_sizes, encode_batch, json_bytes
+from haa.core.membership.membership import WriteDone
 from haa.hostd.outcomes import DdbWriteResult, WriteFailed, WriteResult
 
 #: at most this many of this host's DDB batches are in OAC at a time (the rest wait and are merged)
@@ -90,7 +92,7 @@ class GroupCommit:
             self._writes.pop(req, None)
 
     async def ddb_write(self, ops: list[Any], atomic: bool = False, timeout: float = 30.0) -> DdbWriteResult:
-        """Write DDB ops (`haa.core.ddb.put/...`) to the group through the group commit (module docstring)
+        """Write DDB ops (`haa.core.ddb.ops.put/...`) to the group through the group commit (module docstring)
         and wait until they are committed and applied here. Raises `WriteFailed` (see `submit`) or
         `NotMembershipMode`."""
         self._gate()
@@ -99,12 +101,12 @@ class GroupCommit:
         size = sum(op.ByteSize() for op in ops)
         if size > ddbmod.MAX_BATCH_BYTES:  # checked before anything is queued (docs/limits.md)
             raise WriteFailed(f"batch of {size} bytes > {ddbmod.MAX_BATCH_BYTES} (MAX_BATCH_BYTES)")
-        why = ddbmod.check_json_sizes(ops)
+        why = check_json_sizes(ops)
         if why:
             raise WriteFailed(why)
         fut: asyncio.Future[DdbWriteResult] = asyncio.get_running_loop().create_future()
         fut.add_done_callback(_retrieve)
-        q = _QueuedWrite(list(ops), atomic, size, fut, sum(ddbmod.json_bytes(op) for op in ops))
+        q = _QueuedWrite(list(ops), atomic, size, fut, sum(json_bytes(op) for op in ops))
         self._queue.append(q)
         self.counters["ddb_writes"] += 1
         self._flush()
@@ -151,7 +153,7 @@ class GroupCommit:
                 return
             ops = [op for q in group for op in q.ops]
             try:
-                payload = ddbmod.encode_batch(ops, origin=self.name, atomic=group[0].atomic)
+                payload = encode_batch(ops, origin=self.name, atomic=group[0].atomic)
             except ddbmod.DdbError as e:  # (ddb_write checked each request; a group of them stays in bounds)
                 for q in group:
                     if not q.fut.done():
@@ -197,7 +199,7 @@ class GroupCommit:
         exc = gfut.exception() if not gfut.cancelled() else WriteFailed("cancelled")
         res = None if exc is not None else gfut.result()
         applied = res.result if res is not None else None
-        if exc is None and not isinstance(applied, ddbmod.ApplyResult):
+        if exc is None and not isinstance(applied, ApplyResult):
             exc = WriteFailed(res.reason if res is not None and res.reason else "committed but not applied")
         if exc is not None:
             reason = getattr(exc, "reason", None) or str(exc)
@@ -205,7 +207,7 @@ class GroupCommit:
                 if not q.fut.done():
                     q.fut.set_exception(WriteFailed(reason))
         else:
-            assert res is not None and isinstance(applied, ddbmod.ApplyResult)
+            assert res is not None and isinstance(applied, ApplyResult)
             i = 0
             for q in group:
                 n = len(q.ops)

@@ -19,9 +19,9 @@ import asyncio
 from collections import deque
 from typing import Any
 
-from haa.core.ddb import ApplyResult, Ddb
-from haa.core.globalstate import SeqApplied, TxDdb, TxSeq, decode_tx
-from haa.core.membership import AppliedTx, ViewChange
+from haa.core.ddb.ddb import ApplyResult, Ddb
+from haa.core.membership.globalstate import SeqApplied, TxDdb, TxSeq, decode_tx
+from haa.core.membership.membership import AppliedTx, ViewChange
 
 #: a mirror subscriber whose queue holds more payload bytes than this is cut back to a resync (a snapshot)
 MIRROR_SUB_MAX_BYTES = 16 << 20

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from haa.core.ddb import OpResult
+from haa.core.ddb.ddb import OpResult
 from haa.core.messages import TxId
 
 
@@ -71,7 +71,7 @@ class WriteResult:
 
     txid: TxId
     global_seq: int
-    result: object | None  # haa.core.ddb.ApplyResult for DDB batches
+    result: object | None  # haa.core.ddb.ddb.ApplyResult for DDB batches
     reason: str  # non-empty if the payload was committed but could not be applied (malformed)
 
 

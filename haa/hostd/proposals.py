@@ -21,9 +21,9 @@ from collections import deque
 from collections.abc import Callable
 
 from haa.core.effects import Decided, Deliver
-from haa.core.hostcore import HostCore
+from haa.core.host.hostcore import HostCore
 from haa.core.messages import TxId
-from haa.core.oac import OrderedAtomicCommit
+from haa.core.oac.oac import OrderedAtomicCommit
 from haa.hostd.outcomes import ProposeResult, ProposeTimeout, TransactionAborted
 
 #: how many latency samples are kept (oldest dropped first)

@@ -43,10 +43,10 @@ from typing import Any, Protocol, cast
 import psutil
 from grpc import aio
 
-from haa.core.agentnode import AgentConfig, AgentNode
-from haa.core.hostcore import CoreConfig, HostCore
+from haa.core.agents.agentnode import AgentConfig, AgentNode
+from haa.core.host.hostcore import CoreConfig, HostCore
 from haa.core.inputs import LeaveGroup, PeerInfo, Receive, Start, Submit, TimerFired
-from haa.core.membership import MembershipNode, NodeConfig
+from haa.core.membership.membership import MembershipNode, NodeConfig
 from haa.core.messages import Message, TxId
 from haa.hostd.agentops import AgentBackend, AgentOps
 from haa.hostd.datadir import HostDataDir
@@ -103,7 +103,7 @@ class RuntimeConfig:
     #: how long SIGTERM waits for the graceful leave to commit before stopping anyway, s (with agents: after
     #: handing them over, which takes at most `agent.drain_timeout`)
     leave_timeout: float = 3.0
-    #: membership mode runs the agent layer (haa.core.agentnode) and supervises agent processes
+    #: membership mode runs the agent layer (haa.core.agents.agentnode) and supervises agent processes
     agents: bool = True
     agent: AgentConfig = field(default_factory=AgentConfig)
     #: hang detection of agent processes (no heartbeat for this long), s

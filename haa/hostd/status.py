@@ -15,8 +15,8 @@ from typing import Any
 
 import psutil
 
-from haa.core.hostcore import HostCore
-from haa.core.membership import MembershipNode
+from haa.core.host.hostcore import HostCore
+from haa.core.membership.membership import MembershipNode
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.transport import Transport
 

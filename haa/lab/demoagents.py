@@ -58,7 +58,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from haa.core import ddb as ddbmod
+from haa.core.ddb import ops as ddbmod
 from haa.pb import agent_pb2 as apb
 from haa.sdk.base import AgentBase, AgentContext, RemoteError
 from haa.sdk.channel import MAX_AGENT_MESSAGE

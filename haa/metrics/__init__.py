@@ -5,7 +5,7 @@ Each daemon started with `--metrics-port P` serves `GET /metrics` (the Prometheu
 counted for the metrics: at each scrape, custom collectors read what the daemon already keeps — the runtime's
 counters and latency samples, the membership state, the replicated agent table, the agent supervisor's
 measurements, the DDB replica, haa-sim's world — the same sources the statistics sampler (haa.hostd.sampler)
-writes to `stats.jsonl`. The sans-I/O core modules (haa.core.ufd, oac, core, membership, ddb, allocation,
+writes to `stats.jsonl`. The sans-I/O core modules (haa.core.ufd.ufd, oac, core, membership, ddb, allocation,
 transfer, recovery, agentnode) do not know about any of it.
 
 The collectors live next to what they read; this package holds what they share and imports no other HAA

@@ -95,7 +95,7 @@ def clear_team_state(backend: Backend, timeout: float = 15.0) -> int:
     """Delete every key of TEAM_PREFIXES from the cluster's DDB (a committed write), so that a mission started
     on a cluster that ran another one has a status, map and filters of its own (`haactl mission start` twice:
     the second must not read the first's `mission/status = complete`). The number of keys deleted."""
-    from haa.core import ddb as ddbmod
+    from haa.core.ddb import ops as ddbmod
 
     names = queries.alive_hosts(backend)
     if not names:

@@ -15,7 +15,7 @@ host, over one channel (`haa.sdk.channel`). What an agent gets:
   `await ddb_put_json(key, obj)`;
   `await ddb_write(ops, atomic=False) -> [reason or "" per op]` (ops built with `haa.core.ddb`: put, delete,
   append, cas, add, log_append, log_trim), `await ddb_log_append(key, items)`; `watch(prefix, callback)`,
-  `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.core.ddb.decode_log(ddb_get bytes)` reads a
+  `watch_log(key, callback(index, item))`, `unwatch(id)`; `haa.core.ddb.ops.decode_log(ddb_get bytes)` reads a
   log as (first, items);
 * `backup()` (Alg. 7 ll. 1-3), `await spawn_child(type_name, config, key=...)` (idempotent: a retried spawn
   gets the child its first request created, docs/agents.md "Idempotent spawn"), `stop()`,
@@ -76,7 +76,8 @@ from typing import Any, ClassVar
 
 import pydantic
 
-from haa.core import ddb as ddbmod
+from haa.core.ddb import objects as ddbmod
+from haa.core.ddb.ops import log_append
 from haa.pb import agent_pb2 as pb
 from haa.sdk.channel import message_too_large
 
@@ -97,7 +98,7 @@ DEFAULT_CPU_LIMIT = 0.9
 REQUEST_TIMEOUT = 5.0
 #: default timeout of the calls answered by the host (DDB, spawn_child), seconds
 HOST_TIMEOUT = 30.0
-#: longest spawn key (`spawn_child(key=)`; haa.core.agenttable.MAX_SPAWN_KEY)
+#: longest spawn key (`spawn_child(key=)`; haa.core.ddb.agenttable.MAX_SPAWN_KEY)
 MAX_SPAWN_KEY = 256
 
 #: fault injection (haactl chaos, docs/chaos.md): an *operator* request (sender "@<host>") whose payload is this
@@ -390,7 +391,7 @@ class AgentBase:
         await self._ctx.ddb_put(key, json.dumps(value, separators=(",", ":")).encode(), "json", timeout)
 
     async def ddb_write(self, ops: Iterable[Any], atomic: bool = False, timeout: float = HOST_TIMEOUT) -> list[str]:
-        """Write several DDB ops (`haa.core.ddb.put`, `delete`, `append`, `cas`, `add`, `log_append`,
+        """Write several DDB ops (`haa.core.ddb.ops.put`, `delete`, `append`, `cas`, `add`, `log_append`,
         `log_trim`) in one batch, committed through the group (this waits for the commit). Returns one entry
         per op, in order: "" if it succeeded, else its reason. With `atomic`, one failing op fails them all
         ("atomic batch aborted: op i failed: ...") and nothing is written. HostError if the host refused the
@@ -402,7 +403,7 @@ class AgentBase:
         """Append `items` to the DDB log `key` (created if absent); HostError if it failed (e.g. the log is
         full: trim it with `ddb_write([log_trim(key, upto)])`, docs/ddb.md "Logs")."""
         try:
-            op = ddbmod.log_append(key, items)
+            op = log_append(key, items)
         except ddbmod.DdbError as e:
             raise ValueError(f"ddb_log_append {key!r}: {e}") from None
         (why,) = await self._ctx.ddb_write([op], False, timeout)
@@ -921,7 +922,7 @@ class AgentContext:
         try:
             body = pb.AgentToHost.DdbWrite(req_id=rid, ops=batch, atomic=bool(atomic))
         except TypeError:
-            raise TypeError("ddb_write: ops must be DdbOp messages (haa.core.ddb.put, log_append, ...)") from None
+            raise TypeError("ddb_write: ops must be DdbOp messages (haa.core.ddb.ops.put, log_append, ...)") from None
         ans = await self._call(pb.AgentToHost(ddb_write=body), rid, timeout, f"ddb_write of {len(batch)} op(s)")
         errors = list(ans.op_errors)
         if len(errors) != len(batch):  # pragma: no cover - a host bug

@@ -16,7 +16,7 @@ Protocol (proto/haa/pb/agent.proto, one message per packet on a SOCK_SEQPACKET s
 * host -> zygote: `ForkServerRequest` with `validate` set: check a config against the type's model
   (`AgentBase.check_config`) without forking, answered `Reply.config_error` ("" = valid). The config
   travels in a memfd attached as SCM_RIGHTS (a packet is bounded by the socket buffer; a config may be
-  1 MiB, `haa.core.agenttable.MAX_CONFIG`), `config_size` bytes of it; at most MAX_VALIDATE_BYTES are read;
+  1 MiB, `haa.core.ddb.agenttable.MAX_CONFIG`), `config_size` bytes of it; at most MAX_VALIDATE_BYTES are read;
 * zygote -> host: `ForkServerEvent.exit` (pid, exit code or signal) for every child it reaps. The agents
   are the zygote's children, so it is the one that learns how each ended ("exited code 1", "killed by
   signal 9"); the host turns that into the agent's Failed event.
@@ -64,7 +64,7 @@ PR_SET_PDEATHSIG = 1
 #: largest packet on the control socket (the ready message with the type table is the big one)
 MAX_PACKET = 1 << 20
 #: the largest config a validate request may carry (the memfd is not read beyond it); the agent table's own
-#: limit (haa.core.agenttable.MAX_CONFIG) is smaller and checked by the host first
+#: limit (haa.core.ddb.agenttable.MAX_CONFIG) is smaller and checked by the host first
 MAX_VALIDATE_BYTES = 16 * 1024 * 1024
 #: environment defaults for the zygote (one math thread per agent process)
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}

@@ -41,7 +41,7 @@ import pydantic
 
 from haa.sdk.base import RECOVERY_STRATEGIES, AgentBase
 
-#: largest AgentBase.MAX_PER_HOST (= haa.core.allocation.MAX_PER_HOST; not imported: agent processes load
+#: largest AgentBase.MAX_PER_HOST (= haa.core.allocation.specs.MAX_PER_HOST; not imported: agent processes load
 #: this module and need nothing of the host daemon)
 MAX_PER_HOST = 1000
 

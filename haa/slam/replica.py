@@ -88,7 +88,7 @@ from haa.slam.sensors import (
 from haa.slam.system import SlamConfig, SlamSystem
 
 DEFAULT_HORIZON = 30.0  # s of simulated time (see the module docstring)
-BLOB_LIMIT = 1 << 20  # bytes: the DDB's largest value (haa.core.ddb.MAX_VALUE_BYTES)
+BLOB_LIMIT = 1 << 20  # bytes: the DDB's largest value (haa.core.ddb.objects.MAX_VALUE_BYTES)
 FORMAT = 1
 _MAGIC = b"HAAS"
 MAP_LEVELS = 254  # uint8 0..254 ↦ p = q / 254 (0.5 is exactly 127)

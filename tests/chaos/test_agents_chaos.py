@@ -71,7 +71,7 @@ from helpers import NotYet, wait_sync
 from haa.cluster.backend import ClusterError, natural_key, wait_until
 from haa.cluster.compose_backend import ComposeBackend, host_service
 from haa.cluster.hostprocs import free_port
-from haa.core import ddb
+from haa.core.ddb import objects as ddb
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 

@@ -22,7 +22,8 @@ import grpc
 import pytest
 from chaoslib import NAMES, Chaos
 
-from haa.core import ddb
+from haa.core.ddb import objects as ddb
+from haa.core.ddb import ops as ddb_ops
 
 pytestmark = pytest.mark.docker
 
@@ -31,7 +32,7 @@ def put(chaos: Chaos, host: str, key: str, value: Any, timeout: float = 5.0) -> 
     """One DDB put through `host`; True if it was acknowledged (committed, applied, op ok)."""
     c = chaos.client(host, timeout=timeout)
     try:
-        r = c.ddb_write([ddb.put(key, "json", value)], timeout=timeout)
+        r = c.ddb_write([ddb_ops.put(key, "json", value)], timeout=timeout)
         return bool(r.committed and r.results and r.results[0].ok)
     except grpc.RpcError:
         return False

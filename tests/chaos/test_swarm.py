@@ -37,7 +37,7 @@ from helpers import Cli, wait_sync
 
 from haa.cluster.backend import ClusterError, wait_until
 from haa.cluster.swarm_backend import SwarmBackend
-from haa.core import ddb
+from haa.core.ddb import objects as ddb
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 

@@ -27,7 +27,7 @@ import grpc
 from haa.cluster.agents import AgentRow, agent_lists, merge_agents
 from haa.cluster.backend import ALIVE, Backend, ClusterError
 from haa.cluster.events import parse_lines
-from haa.core import ddb as ddbmod
+from haa.core.ddb import ops as ddbmod
 from haa.pb import control_pb2 as cpb
 
 #: DDB prefixes the workloads write

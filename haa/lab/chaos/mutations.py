@@ -75,7 +75,7 @@ def _ack_before_commit() -> None:
 
 
 def _diverge_replica(host: str) -> None:
-    from haa.core.ddb import Ddb
+    from haa.core.ddb.ddb import Ddb
     from haa.lab.chaos.workload import STOP_KEY
     from haa.pb import ddb_pb2 as pb
 
@@ -153,8 +153,8 @@ def _drop_message() -> None:
 
 
 def _no_recovery() -> None:
-    from haa.core import agenttable as at
-    from haa.core.recovery import Recovery
+    from haa.core.agents.recovery import Recovery
+    from haa.core.ddb import agenttable as at
 
     orig = Recovery._recover
 

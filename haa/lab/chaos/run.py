@@ -34,7 +34,7 @@ from typing import Any, Protocol
 from haa.cluster.agents import AgentRow, active_row, wait_rows
 from haa.cluster.backend import Backend, ClusterError, wait_until
 from haa.cluster.local_backend import LocalBackend
-from haa.core import ddb as ddbmod
+from haa.core.ddb import ops as ddbmod
 from haa.lab.chaos import collect
 from haa.lab.chaos.checks import Check, run_checks
 from haa.lab.chaos.inject import Injected, Injector, local_problems

@@ -23,7 +23,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from haa.core import ddb as ddbmod
+from haa.core.ddb import ops as ddbmod
 from haa.sdk.base import AgentBase, HostError
 from haa.sdk.registry import register
 

@@ -3,7 +3,7 @@
 `DdbMirror` is the dashboard's own replica of the DDB (thesis AgentMirror, Table 6.1-1: "an up-to-date copy of
 the DDB ... then ... each new DDB update"): `apply(event)` takes one `MirrorEvent` of a host's `Mirror` stream
 (a snapshot, an applied batch or a view change) and returns the keys it changed, applying batches with the
-same deterministic `haa.core.ddb.Ddb` the hosts run — so the copy is exactly the host's replica at that seq.
+same deterministic `haa.core.ddb.ddb.Ddb` the hosts run — so the copy is exactly the host's replica at that seq.
 
 The page's views are plain JSON (or base64 bytes) computed from the replica:
 
@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from haa.core.ddb import Ddb, DdbError, DdbObject
+from haa.core.ddb.ddb import Ddb
+from haa.core.ddb.objects import DdbError, DdbObject
 from haa.pb import control_pb2 as cpb
 from haa.pb import ddb_pb2
 

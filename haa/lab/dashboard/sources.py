@@ -49,7 +49,7 @@ from haa.cluster.events import (
     timeline_events,
     view_events,
 )
-from haa.core.ddb import DdbError
+from haa.core.ddb.objects import DdbError
 from haa.hostd.control import ControlClient
 from haa.lab.dashboard.model import OVERLAY_PREFIXES, DdbMirror
 from haa.pb import control_pb2 as cpb

@@ -3,7 +3,7 @@
 `draw_agents(seed, hosts, mix)` turns one seed into a scenario: a host group as in `haa.lab.dsim.group` (joins,
 leaves, crashes, restarts, pauses, delay spikes that make the failure detector suspect correct hosts), plus
 a team of simulated agents that exchange numbered messages, operator moves (transfers), agent kills and
-hangs. `AgentSim` runs it: every host is an `AgentNode` (haa.core.agentnode) over its `MembershipNode`, and
+hangs. `AgentSim` runs it: every host is an `AgentNode` (haa.core.agents.agentnode) over its `MembershipNode`, and
 the agent instances are `SimAgent`s that execute the node's commands with a small, seeded latency, as agent
 processes would. `check_agents` then checks (`haactl verify transfer|recovery`; `mix` chooses the faults):
 
@@ -40,7 +40,6 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.core import agenttable as at
 from haa.core.agentio import (
     AgentOpDone,
     AgentTimeline,
@@ -56,10 +55,11 @@ from haa.core.agentio import (
     SpawnShell,
     StartAgent,
 )
-from haa.core.agentnode import AgentConfig, AgentNode
-from haa.core.globalstate import TxAgent, decode_tx
+from haa.core.agents.agentnode import AgentConfig, AgentNode
+from haa.core.ddb import agenttable as at
 from haa.core.inputs import CreateAgent, InstanceEvent, MoveAgent
-from haa.core.membership import AppliedTx, MembershipNode, ViewChange
+from haa.core.membership.globalstate import TxAgent, decode_tx
+from haa.core.membership.membership import AppliedTx, MembershipNode, ViewChange
 from haa.lab.dsim import hostile
 from haa.lab.dsim.cluster import ALIVE, CRASHED, EV_CALL, PAUSED, SimHost
 from haa.lab.dsim.group import GroupScenario, GroupSim, GroupViolation, draw_group

@@ -22,7 +22,7 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from haa.core.agentnode import AgentNode
+from haa.core.agents.agentnode import AgentNode
 from haa.core.effects import (
     CancelTimer,
     Closed,
@@ -36,7 +36,7 @@ from haa.core.effects import (
     Suspicion,
     Voted,
 )
-from haa.core.hostcore import FD_EXTERNAL, CoreConfig, HostCore
+from haa.core.host.hostcore import FD_EXTERNAL, CoreConfig, HostCore
 from haa.core.inputs import FdReport, PeerInfo, Receive, Start, TimerFired
 from haa.core.messages import OAC_TYPES, Heartbeat, TxId
 from haa.lab.dsim.network import DelayModel
@@ -69,7 +69,7 @@ PAUSED = 1
 CRASHED = 2
 
 
-#: core Log events that report a bug caught by a safety net (haa.core.agentnode): violations in every sweep
+#: core Log events that report a bug caught by a safety net (haa.core.agents.agentnode): violations in every sweep
 ERROR_EVENTS = frozenset({"agent_layer_error"})
 
 @dataclass

@@ -53,11 +53,11 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.core import ddb as ddbmod
-from haa.core.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
-from haa.core.hostcore import CoreConfig
+from haa.core.ddb import ops as ddbmod
+from haa.core.host.hostcore import CoreConfig
 from haa.core.inputs import LeaveGroup, Submit
-from haa.core.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
+from haa.core.membership.globalstate import TxDdb, TxMembership, TxRemove, TxSeq, decode_tx
+from haa.core.membership.membership import AppliedTx, Left, MembershipNode, NodeConfig, ViewChange, WriteDone
 from haa.core.messages import TxId
 from haa.lab.dsim.cluster import ALIVE, CRASHED, PAUSED, SimCluster, SimHost
 from haa.lab.dsim.network import DelayModel

@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from haa.core.agentio import AgentTimeline
-from haa.core.agentnode import AgentConfig, AgentNode
+from haa.core.agents.agentnode import AgentConfig, AgentNode
 from haa.core.inputs import CreateAgent
-from haa.core.membership import ViewChange
+from haa.core.membership.membership import ViewChange
 from haa.lab.dsim.agents import SIM_AGENT, AgentScenario, AgentSim, check_agents, seed_fields
 from haa.lab.dsim.cluster import SimHost
 from haa.lab.dsim.group import GroupScenario, GroupViolation

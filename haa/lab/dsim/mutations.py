@@ -80,16 +80,20 @@ from typing import Any
 from google.protobuf.message import DecodeError
 
 import haa.pb.ddb_pb2 as ddb_pb
-from haa.core import allocation as alloc_mod
-from haa.core import ddb as ddb_mod
-from haa.core import globalstate as globalstate_mod
-from haa.core import membership as membership_mod
-from haa.core import oac as oac_mod
-from haa.core import ufd as ufd_mod
-from haa.core import update as update_mod
+from haa.core.allocation import allocation as alloc_mod
+from haa.core.allocation.bids import Bid
+from haa.core.allocation.conflicts import RESET
+from haa.core.allocation.session import _Session
+from haa.core.allocation.specs import SessionStart
+from haa.core.ddb import ddb as ddb_mod
 from haa.core.effects import Deliver
-from haa.core.globalstate import GlobalState
+from haa.core.membership import globalstate as globalstate_mod
+from haa.core.membership import membership as membership_mod
+from haa.core.membership import update as update_mod
+from haa.core.membership.globalstate import GlobalState
 from haa.core.messages import OacDecide, OacProposal, StateSnapshot
+from haa.core.oac import oac as oac_mod
+from haa.core.ufd import ufd as ufd_mod
 
 Undo = Callable[[], None]
 
@@ -295,22 +299,22 @@ def thesis_accept() -> Undo:
 
 def cbba_reset() -> Undo:
     def broadcast_bid(
-        self: alloc_mod.Allocator, s: alloc_mod._Session, j: str, sender_bid: alloc_mod.Bid, action: str
-    ) -> alloc_mod.Bid:
-        return sender_bid if action == alloc_mod.RESET else s.bid(j)
+        self: alloc_mod.Allocator, s: _Session, j: str, sender_bid: Bid, action: str
+    ) -> Bid:
+        return sender_bid if action == RESET else s.bid(j)
 
     return _patch(alloc_mod.Allocator, "_broadcast_bid", broadcast_bid)
 
 
 def no_unallocatable() -> Undo:
-    return _patch(alloc_mod.SessionStart, "unallocatable", lambda self: ())
+    return _patch(SessionStart, "unallocatable", lambda self: ())
 
 
 def ignore_hardware() -> Undo:
-    cls = alloc_mod._Session
+    cls = _Session
     original = cls.make_ready
 
-    def make_ready(self: alloc_mod._Session, start: alloc_mod.SessionStart, me: str) -> None:
+    def make_ready(self: _Session, start: SessionStart, me: str) -> None:
         original(self, start, me)
         if self.spec is not None:
             self.eligible = tuple(a.id for a in start.agents if not self.spec.draining)
@@ -324,9 +328,9 @@ def ignore_per_host_limit() -> Undo:
 
 def no_stream_order() -> Undo:
     """The receiver's host passes agent messages on as they arrive, without the sender-stream numbers
-    (haa.core.routing): a message that overtook an earlier one on another path is processed first, and one
+    (haa.core.agents.routing): a message that overtook an earlier one on another path is processed first, and one
     that reached the agent twice is processed twice."""
-    from haa.core import routing as routing_mod
+    from haa.core.agents import routing as routing_mod
 
     def offer(self: routing_mod.Inbox, m: object) -> list[object]:
         return [m]
@@ -337,7 +341,7 @@ def no_stream_order() -> Undo:
 def oldest_backup() -> Undo:
     """Recovery starts from the first backup an agent ever committed instead of the latest (Alg. 7 l. 5 keeps
     only the first)."""
-    from haa.core import agenttable as table_mod
+    from haa.core.ddb import agenttable as table_mod
 
     original = table_mod.AgentTable._tx_backup
 
@@ -353,7 +357,7 @@ def oldest_backup() -> Undo:
 def unchecked_claim() -> Undo:
     """OAC(claim) is accepted whatever the agent's state (Alg. 6 l. 13 without its test): a host that thaws an
     agent another host has already claimed runs a second instance."""
-    from haa.core import agenttable as table_mod
+    from haa.core.ddb import agenttable as table_mod
 
     def tx_claim(self: table_mod.AgentTable, m: object) -> object:
         r = self.records.get(m.id)  # type: ignore[attr-defined]
@@ -371,7 +375,7 @@ def unbounded_values() -> Undo:
     """The agent table's number checks as before issue 13: only `x >= lo` (NaN refused; inf, 1e308 and values
     above the upper bounds accepted). A create with cost=+inf, proposed by a member that skips the edge checks,
     enters every table. Breaks AG-Refuse-Invalid."""
-    from haa.core import agenttable as table_mod
+    from haa.core.ddb import agenttable as table_mod
 
     return _patch(table_mod, "_bad_number", lambda x, lo, hi: not x >= lo)
 
@@ -380,7 +384,7 @@ def raising_reaction() -> Undo:
     """The agent layer raises while it reacts to a committed agent-list change (as the allocator did on a
     cost=+inf agent before issue 13): the host's safety net catches it and goes on. Breaks AG-No-Error (the
     verifiers must not let the net hide a bug)."""
-    from haa.core import allocglue as glue_mod
+    from haa.core.agents import allocglue as glue_mod
 
     original = glue_mod.AllocGlue.change
 
@@ -395,8 +399,8 @@ def raising_reaction() -> Undo:
 def joiner_default_capacity() -> Undo:
     """The agent layer as before the join fixes: a member whose `HostInfo` is not in the agent table yet (a host
     that just joined) is read as one core without hardware, and the join's session runs, so it bids in it."""
-    from haa.core import allocglue as glue_mod
-    from haa.core.allocation import MAX_CAPACITY, MIN_CAPACITY, HostSpec
+    from haa.core.agents import allocglue as glue_mod
+    from haa.core.allocation.specs import MAX_CAPACITY, MIN_CAPACITY, HostSpec
 
     def host_specs(self: glue_mod.AllocGlue) -> tuple[HostSpec, ...]:
         out = []
@@ -420,7 +424,7 @@ def joiner_default_capacity() -> Undo:
 
 def no_spawn_key() -> Undo:
     """The agent table as before idempotent spawn: a create's key names no existing child, every create makes one."""
-    from haa.core import agenttable as table_mod
+    from haa.core.ddb import agenttable as table_mod
 
     def child_by_key(self: table_mod.AgentTable, parent: str, key: str) -> None:
         return None

@@ -25,9 +25,9 @@ import random
 from dataclasses import dataclass, field
 from typing import Any
 
-from haa.core.hostcore import FD_EXTERNAL, FD_UFD, CoreConfig
-from haa.core.qos import QosTargets
-from haa.core.ufd import UfdConfig
+from haa.core.host.hostcore import FD_EXTERNAL, FD_UFD, CoreConfig
+from haa.core.ufd.qos import QosTargets
+from haa.core.ufd.ufd import UfdConfig
 from haa.lab.dsim.cluster import SimCluster
 from haa.lab.dsim.network import DelayModel
 

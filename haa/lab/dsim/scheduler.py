@@ -3,7 +3,7 @@
 A discrete-event simulator is a loop: take the earliest pending event, set the clock to its time, carry it
 out (which may schedule more events), repeat. `EventHeap` is that queue, shared by the simulators of
 `haa.lab.dsim` — the host cluster (`haa.lab.dsim.cluster.SimCluster`, and through it the group, agent and join
-simulations), the allocation simulator (`haa.lab.dsim.allocation.AllocSim`) and the failure detector's QoS
+simulations), the allocation simulator (`haa.lab.dsim.allocsim.AllocSim`) and the failure detector's QoS
 runs (`haa.lab.dsim.ufdqos`) — and by the agents that run on virtual time inside the cluster
 (`haa.lab.dsim.vagent`).
 

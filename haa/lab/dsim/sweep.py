@@ -3,7 +3,7 @@
 Algorithms: `ufd` and `oac` run `haa.lab.dsim.schedule` scenarios on bare host cores (checked by
 `haa.lab.dsim.checks`); `membership` and `ddb` run `haa.lab.dsim.group` scenarios on `MembershipNode`s (Alg. 3 and
 the replicated DDB; `ddb` with a heavier write workload) and report `haa.lab.dsim.group.VERIFIER_PROPS`;
-`allocation` runs `haa.lab.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.lab.dsim.allocation.PROPS`);
+`allocation` runs `haa.lab.dsim.allocation` schedules (Alg. 4 on N Allocators, `haa.lab.dsim.alloccheck.PROPS`);
 `transfer` and `recovery` run `haa.lab.dsim.agents` schedules (the whole agent layer on `AgentNode`s over a host
 group: allocation, Alg. 5-8, routing; `haa.lab.dsim.agents.AGENT_PROPS`); `join` runs `haa.lab.dsim.joins` schedules
 (the agent layer on a quiet group that hosts join: no agent transferred twice per join, plus the agent props).

@@ -23,8 +23,8 @@ import random
 from dataclasses import asdict, dataclass
 
 from haa.core.messages import Heartbeat
-from haa.core.qos import QosTargets
-from haa.core.ufd import (
+from haa.core.ufd.qos import QosTargets
+from haa.core.ufd.ufd import (
     AskPeriod,
     Beat,
     Deadline,

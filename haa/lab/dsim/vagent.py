@@ -68,7 +68,6 @@ from typing import Any
 from haa.agents import executive_avatar, supervisor_explore, supervisor_slam
 from haa.agents.executive_mission import ExecutiveMission
 from haa.agents.team import K_EVENTS, K_STATUS
-from haa.core import ddb as ddbmod
 from haa.core.agentio import (
     AnswerAgent,
     BackupMade,
@@ -84,9 +83,11 @@ from haa.core.agentio import (
     StartAgent,
     Stopped,
 )
-from haa.core.agentnode import AgentNode
+from haa.core.agents.agentnode import AgentNode
+from haa.core.ddb import ops as ddbmod
+from haa.core.ddb.ddb import ApplyResult, Ddb, DdbEvent
 from haa.core.inputs import CreateAgent
-from haa.core.membership import AppliedTx, WriteDone
+from haa.core.membership.membership import AppliedTx, WriteDone
 from haa.hostd.agentdriver import SCAN_LIMIT, SCAN_MAX_BYTES
 from haa.lab.dsim.agents import (
     _NOISE,
@@ -358,7 +359,7 @@ class RealAgentSim(AgentSim):
             self.rh.logs.append((self.cl.now, h.name, epoch, f.log.event, f.log.fields_json))
         # hello, ready, heartbeat: nothing for the node (the driver only logs them)
 
-    def _replica(self, h: SimHost) -> ddbmod.Ddb:
+    def _replica(self, h: SimHost) -> Ddb:
         return _node(h).m.state.ddb
 
     def _spawn_child(self, h: SimHost, a: RealInstance, s: pb.AgentToHost.SpawnChild) -> None:
@@ -426,7 +427,7 @@ class RealAgentSim(AgentSim):
             return
         a, req_id, h = entry
         res = e.result
-        if e.ok and isinstance(res, ddbmod.ApplyResult):
+        if e.ok and isinstance(res, ApplyResult):
             errors = ["" if r.ok else (r.reason or "failed") for r in res.results]
             ans = pb.HostToAgent.Answer(req_id=req_id, ok=True, op_errors=errors)
         else:
@@ -444,7 +445,7 @@ class RealAgentSim(AgentSim):
             a.replica.unwatch(a.replica_watch)
         a.replica = ddb
 
-        def on_event(ev: ddbmod.DdbEvent) -> None:
+        def on_event(ev: DdbEvent) -> None:
             for wid, prefix in list(a.watches.items()):
                 if not ev.key.startswith(prefix):
                     continue

@@ -1,8 +1,8 @@
 """Experiment AP-3 (thesis §7.2.3): time to allocation consensus and messages sent, 2..10 hosts x 5..60
 agents, and the allocation-quality study (`haactl bench ap3`, `haactl bench alloc-quality`).
 
-AP-3 runs one allocation session of the real `haa.core.allocation.Allocator`s in the deterministic simulator
-(`haa.lab.dsim.allocation.AllocSim`) with:
+AP-3 runs one allocation session of the real `haa.core.allocation.allocation.Allocator`s in the deterministic simulator
+(`haa.lab.dsim.allocsim.AllocSim`) with:
 
 * bid updates delayed by a model of our loopback gRPC transport: a log-normal fitted to the one-way latency
   `bench transport` measured (bench-results/transport.json, variant "transport": p50 0.39 ms, p99 0.99 ms);
@@ -22,7 +22,7 @@ OAC(finish) at the leader, bid-update messages (one per destination), the OAC me
 
 The quality study compares the committed allocation's total reward (eq. 4.7-1 summed over hosts, each host's
 agents in their best order) with the exhaustive optimum on random instances of up to 8 agents and 4 hosts
-(`haa.lab.dsim.allocation.run_quality`).
+(`haa.lab.dsim.allocquality.run_quality`).
 """
 
 from __future__ import annotations
@@ -35,8 +35,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from haa.core.allocation import AgentSpec, HostSpec
-from haa.lab.dsim.allocation import REGIMES, AllocScenario, AllocSim, run_quality
+from haa.core.allocation.specs import AgentSpec, HostSpec
+from haa.lab.dsim.allocquality import REGIMES, run_quality
+from haa.lab.dsim.allocschedule import AllocScenario
+from haa.lab.dsim.allocsim import AllocSim
 from haa.lab.dsim.network import DelayModel
 
 HOSTS = (2, 3, 4, 5, 6, 7, 8, 9, 10)
@@ -199,7 +201,7 @@ def run_ap3(
 
 
 def run_quality_study(instances: int = 500, seed: int = 0) -> dict[str, Any]:
-    """Both instance families of `haa.lab.dsim.allocation.quality_instance`; the ratio is reported for the
+    """Both instance families of `haa.lab.dsim.allocquality.quality_instance`; the ratio is reported for the
     instances whose optimum is positive (a negative optimum means every allocation overloads a host)."""
     out: dict[str, Any] = {"instances": instances, "first_seed": seed, "regimes": {}}
     for regime in REGIMES:

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from haa.cluster.hostprocs import MemberHost, member_group, wait_for
-from haa.core import ddb
+from haa.core.ddb import ops as ddb
 from haa.lab.experiments.ap2 import CORE
 
 

@@ -36,8 +36,9 @@ from typing import Any
 import psutil
 
 from haa.cluster.hostprocs import MemberHost, free_port, wait_for
-from haa.core import agenttable as at
-from haa.core import ddb
+from haa.core.ddb import agenttable as at
+from haa.core.ddb import objects as ddb
+from haa.core.ddb.ops import encode_batch, put
 from haa.sdk.channel import MAX_AGENT_MESSAGE
 
 NAMES = ["h1", "h2", "h3", "h4"]
@@ -62,8 +63,8 @@ def max_blob_batch(prefix: str = "bench/mem/blob") -> list[Any]:
     """Put ops of blob values that fill one batch up to MAX_BATCH_BYTES (each value just under the value limit)."""
     n = ddb.MAX_BATCH_BYTES // ddb.MAX_VALUE_BYTES
     size = ddb.MAX_VALUE_BYTES - 1024
-    ops = [ddb.put(f"{prefix}/{i}", "blob", bytes([i]) * size) for i in range(n)]
-    ddb.encode_batch(ops)  # raises if over the limit
+    ops = [put(f"{prefix}/{i}", "blob", bytes([i]) * size) for i in range(n)]
+    encode_batch(ops)  # raises if over the limit
     return ops
 
 
@@ -72,8 +73,8 @@ def max_json_batch(prefix: str = "bench/mem/json") -> list[Any]:
     per = min(ddb.MAX_JSON_VALUE_BYTES, ddb.MAX_BATCH_JSON_BYTES)
     n = max(1, ddb.MAX_BATCH_JSON_BYTES // per)
     text = ("[" + ",".join(["{}"] * ((per - 2) // 3)) + "]").encode()
-    ops = [ddb.put(f"{prefix}/{i}", "json", json.loads(text)) for i in range(n)]
-    ddb.encode_batch(ops)
+    ops = [put(f"{prefix}/{i}", "json", json.loads(text)) for i in range(n)]
+    encode_batch(ops)
     return ops
 
 

@@ -2,7 +2,7 @@
 
 Two parts:
 
-* `heartbeat_rates()`: the heartbeat rate that the configuration procedure of §4.4 (haa.core.qos.configure:
+* `heartbeat_rates()`: the heartbeat rate that the configuration procedure of §4.4 (haa.core.ufd.qos.configure:
   eq. 4.4-2 solved for η and α) chooses for the thesis' QoS (T_D^U = 10 s, T_MR^L = 1 week, T_M^U = 30 s) and
   for the cluster default (1 s, 1 day, 1 s), over message loss probabilities p_L and delay deviations σ(D) —
   the cost of a monitored pair per minute.
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from haa.core.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
+from haa.core.ufd.qos import CLUSTER_QOS, THESIS_QOS, QosTargets, configure, heartbeats_per_minute
 from haa.lab.dsim.network import DelayModel
 from haa.lab.dsim.ufdqos import QosMeasurement, measure
 
