@@ -10,6 +10,7 @@ from collections import deque
 from pathlib import Path
 
 import pytest
+from helpers import parse_source
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -178,7 +179,7 @@ def test_bad_input_is_a_clear_one_line_error(make, words):
 @pytest.mark.parametrize("path", sorted((ROOT / "haa/core/allocation").glob("*.py")), ids=lambda p: p.name)
 def test_allocation_core_is_sans_io(path):
     forbidden = {"asyncio", "grpc", "time", "socket", "threading", "random", "os", "datetime", "subprocess"}
-    tree = ast.parse(path.read_text())
+    tree = parse_source(path)
     names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     assert not names & forbidden

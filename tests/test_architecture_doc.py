@@ -11,6 +11,8 @@ import re
 from functools import cache
 from pathlib import Path
 
+from helpers import parse_source
+
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "architecture.md"
 
@@ -39,7 +41,7 @@ def _classes() -> dict[str, set[str]]:
     """Every class defined in haa/ -> the names defined in its body (methods, attributes), merged by name."""
     out: dict[str, set[str]] = {}
     for f in (ROOT / "haa").rglob("*.py"):
-        for node in ast.walk(ast.parse(f.read_text(), str(f))):
+        for node in ast.walk(parse_source(f)):
             if isinstance(node, ast.ClassDef):
                 names = out.setdefault(node.name, set())
                 for item in node.body:

@@ -10,6 +10,7 @@ import struct
 from pathlib import Path
 
 import pytest
+from helpers import parse_source
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -761,7 +762,7 @@ def test_ddb_module_is_sans_io(module):
     spec.loader.exec_module(sans_io)
     path = ROOT / f"haa/core/ddb/{module}.py"
     assert not sans_io._imports(path) & sans_io.FORBIDDEN
-    tree = ast.parse(path.read_text())
+    tree = parse_source(path)
     haa = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names if a.name.startswith("haa")}
     haa |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("haa")}
     assert "haa.pb.ddb_pb2" in haa

@@ -7,6 +7,7 @@ import ast
 from pathlib import Path
 
 import pytest
+from helpers import parse_source
 
 ROOT = Path(__file__).resolve().parents[1]
 #: every module of the core package and of its subpackages (a new machine is covered the moment it is added)
@@ -38,18 +39,8 @@ FORBIDDEN = {
 }
 
 
-def _parse(path: Path) -> ast.Module:
-    try:
-        return ast.parse(path.read_text(), filename=str(path))
-    except SystemError:
-        # CPython 3.11.7's "AST constructor recursion depth mismatch" (python/cpython#106905, fixed in 3.11.8):
-        # a failed parse elsewhere leaves the depth counter off and the next parse raises spuriously (seen once
-        # in a loaded CI run); a second parse of the same file is exact
-        return ast.parse(path.read_text(), filename=str(path))
-
-
 def _imports(path: Path) -> set[str]:
-    tree = _parse(path)
+    tree = parse_source(path)
     names: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -90,7 +81,7 @@ def test_core_modules_only_import_each_other_and_generated_messages():
     """Cores may use each other and the generated protobuf message classes (plain data, no I/O); never
     the `_grpc` service stubs."""
     for module in CORE_MODULES:
-        bad = _not_allowed(ast.parse((ROOT / module).read_text()))
+        bad = _not_allowed(parse_source(ROOT / module))
         assert not bad, f"{module} imports {bad}"
 
 
@@ -106,8 +97,8 @@ def test_the_subpackages_are_covered_and_a_forbidden_haa_import_is_caught():
     assert {"haa/core/ufd/ufd.py", "haa/core/membership/update.py", "haa/core/ddb/ops.py",
             "haa/core/agents/agentnode.py", "haa/core/ddb/__init__.py"} <= set(CORE_MODULES)
     ok = "from haa.core.ddb import ops as ddb\nfrom haa.core.membership.globalstate import GlobalState\n"
-    assert _not_allowed(ast.parse(ok)) == []
+    assert _not_allowed(parse_source(ok)) == []
     bad = ("from haa.hostd import runtime\nfrom haa.pb import hostlink_pb2_grpc\nimport haa.sdk.base\n"
            "from haa.core.agents import AgentNode\n")
-    assert sorted(_not_allowed(ast.parse(bad))) == ["haa.core.agents.AgentNode", "haa.hostd",
+    assert sorted(_not_allowed(parse_source(bad))) == ["haa.core.agents.AgentNode", "haa.hostd",
                                                     "haa.pb.hostlink_pb2_grpc", "haa.sdk.base"]
