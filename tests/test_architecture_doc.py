@@ -96,7 +96,7 @@ def test_the_check_fails_on_a_name_the_code_does_not_have():
 
 def test_the_pictures_of_the_layers_are_the_contract():
     assert _picture("haactl") == _layers("layers")
-    assert _picture("experiments | foxglove") == _layers("lab-layers")
+    assert _picture("bench") == _layers("lab-layers")
 
 
 def test_the_layer_check_fails_on_a_picture_that_differs():

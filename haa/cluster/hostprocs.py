@@ -186,7 +186,7 @@ def member_group(base: Path, hosts: int, hostd_yaml: str, core_size: int = 3, ta
     """`hosts` membership-mode hosts h1..hN under `base`, not started: a fresh cluster token in `base/token`, the
     first `core_size` as the core process list, each without agents and with `hostd_yaml` (the text of a
     hostd.yaml, written to `base/hostd.yaml`) as its configuration. The benchmarks' group (haa.lab.experiments.ddb,
-    bench/seq_ab.py)."""
+    haa/lab/bench/seq_ab.py)."""
     token = f"{tag}-{time.time_ns()}"
     (base / "token").write_text(token + "\n")
     conf = base / "hostd.yaml"

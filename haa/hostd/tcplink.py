@@ -3,7 +3,7 @@ connection instead of a grpc.aio stream (issue 14; `haa-hostd --host-link tcp`, 
 link").
 
 Why: a grpc.aio stream write plus the read at the peer costs ~0.25 ms of CPU whatever the frame carries, 4-5x an
-asyncio TCP write (bench/transport_grpc_vs_tcp.py), and a 10-host OAC needs ~80-90 frames. This module is only
+asyncio TCP write (haa/lab/bench/transport_grpc_vs_tcp.py), and a 10-host OAC needs ~80-90 frames. This module is only
 the carrier: the link semantics — per-link sequence numbers, cumulative acks, resend from `acked_seq + 1` after a
 reconnect, duplicate drop, receiver and sender incarnation changes, the incarnation-claim rules, lazy messages,
 the counters — are `transport.OutLink` and `Transport._admit` / `Transport.on_frame`, shared by both carriers.

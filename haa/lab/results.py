@@ -866,21 +866,21 @@ KNOWN: dict[str, Known] = {
     "r1": Known("missions", "Agent failure, R-1 (Table 7.3-1)", render_r1, command_r1),
     "ap1": Known("commit", "Ordered atomic commit on real processes, AP-1", render_ap1, "haactl bench ap1"),
     "hostd_oac_latency": Known("commit", "One commit and one hop inside haa-hostd (2-3 hosts)", render_hostd_oac,
-                               ".venv/bin/python bench/hostd_oac_latency.py"),
+                               ".venv/bin/python -m haa.lab.bench.hostd_oac_latency"),
     "transport": Known("commit", "Host link: gRPC stream against unary calls", render_transport,
-                       ".venv/bin/python bench/transport_stream_vs_unary.py"),
+                       ".venv/bin/python -m haa.lab.bench.transport_stream_vs_unary"),
     "hostlink-ab": Known("commit", "Commit cost per host-link carrier: gRPC stream against plain TCP",
-                         render_hostlink_ab, "PYTHONPATH=. .venv/bin/python bench/hostlink_ab.py --runs 3 --hosts 10 "
+                         render_hostlink_ab, ".venv/bin/python -m haa.lab.bench.hostlink_ab --runs 3 --hosts 10 "
                          "-n 100 --out bench-results/hostlink-ab.json"),
     "issue14-final": Known("commit", "Commit-path goals per host-link carrier (10 hosts)", render_commit_goals,
-                           "flock /tmp/haa-bench.lock env PYTHONPATH=. .venv/bin/python bench/issue14_final.py "
+                           "flock /tmp/haa-bench.lock env .venv/bin/python -m haa.lab.bench.carriers "
                            "--runs 3 --out bench-results/issue14-final.json"),
     "issue14-ab": Known("commit", "Lazy OAC messages, before and after (10 hosts)", render_lazy_ab,
                         "alternate the two trees with `haactl bench ap1 --hosts 10 --min-hosts 10 -n 200`, "
                         "`haactl bench idle --hosts 10`, `haactl bench ap4 --hosts 10 --reps 3`, "
                         "`haactl bench ddb --hosts 10 --all-writing`"),
     "issue14-seq-profile": Known("commit", "The sequencer leader profiled: carriers and batches in flight (10 hosts)",
-                                 render_seq_profile, "PYTHONPATH=. .venv/bin/python bench/seq_ab.py --hosts 10 "
+                                 render_seq_profile, ".venv/bin/python -m haa.lab.bench.seq_ab --hosts 10 "
                                  "--writers 32 --writers 8 --variant grpc:2 --variant grpc:1 --variant tcp:2 "
                                  "--variant tcp:1 --runs 3 --out bench-results/issue14-seq-profile.json "
                                  "(`--profile DIR` for py-spy)"),
@@ -908,7 +908,7 @@ KNOWN: dict[str, Known] = {
     "memory": Known("parts", "Memory and event-loop stalls under maximum-size requests", render_memory,
                     "haactl bench memory"),
     "dashboard": Known("parts", "Dashboard: commit to painted page", render_dashboard,
-                       ".venv/bin/python bench/dashboard_latency.py"),
+                       ".venv/bin/python -m haa.lab.bench.dashboard_latency"),
     "issue17-ab": Known("parts", "Before and after splitting the core and the runtime into machines (AP-1, AP-2, "
                         "AP-4, idle)", render_restructure_ab, command_restructure_ab),
 }

@@ -1,7 +1,7 @@
 """How long a committed DDB change takes to show on the dashboard page (issue 19 §1: "within 1 s, with 50 agents
 and a 200x200 grid").
 
-    .venv/bin/python bench/dashboard_latency.py [--hosts 3] [--agents 50] [--cells 200] [--rounds 30]
+    .venv/bin/python -m haa.lab.bench.dashboard_latency [--hosts 3] [--agents 50] [--cells 200] [--rounds 30]
 
 A local cluster of `--hosts` haa-hostd processes runs `--agents` counter agents (pairs that message each other
 once a second, so that the hierarchy shows message rates); a `--cells` x `--cells` occupancy grid is published at
@@ -30,16 +30,15 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from haa.cluster.agents import wait_rows
+from haa.cluster.backend import wait_until
+from haa.cluster.local_backend import LocalBackend
+from haa.core.ddb import ops as ddbops
+from haa.lab.dashboard.browser import Chromium
+from haa.slam.grid import GridSpec
+from haa.slam.replica import encode_map
 
-from haa.cluster.agents import wait_rows  # noqa: E402
-from haa.cluster.backend import wait_until  # noqa: E402
-from haa.cluster.local_backend import LocalBackend  # noqa: E402
-from haa.core.ddb import ops as ddbops  # noqa: E402
-from haa.lab.dashboard.browser import Chromium  # noqa: E402
-from haa.slam.grid import GridSpec  # noqa: E402
-from haa.slam.replica import encode_map  # noqa: E402
+REPO = Path(__file__).resolve().parents[3]
 
 HAACTL = [sys.executable, "-c", "from haactl.main import app; app()"]
 

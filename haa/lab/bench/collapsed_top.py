@@ -1,6 +1,6 @@
 """Top frames of py-spy raw (collapsed-stack) profiles: own and total samples per function, and per group.
 
-    python bench/collapsed_top.py FILE [FILE ...] [--top 25]
+    .venv/bin/python -m haa.lab.bench.collapsed_top FILE [FILE ...] [--top 25]
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ row, the CPU time (user + system) of the leader and of the whole cluster over th
 before and after each run. `--profile DIR` records the leader with py-spy (`--native`-less, `--idle` off) during
 the first `--writers` row of every run, as a raw collapsed-stack file per run.
 
-    PYTHONPATH=. .venv/bin/python bench/seq_ab.py --hosts 10 --writers 32 --variant grpc:2 --variant tcp:2 \\
+    .venv/bin/python -m haa.lab.bench.seq_ab --hosts 10 --writers 32 --variant grpc:2 --variant tcp:2 \\
         --runs 3 --out bench-results/issue14-seq-profile.json
 """
 

@@ -1,6 +1,6 @@
 """What Prometheus metrics cost an idle local cluster (issue 19 §4; docs/metrics.md, "Cost").
 
-    python bench/metrics_cost.py [--hosts 10] [--window 20] [--period 1]
+    .venv/bin/python -m haa.lab.bench.metrics_cost [--hosts 10] [--window 20] [--period 1]
 
 Brings up an idle cluster of N membership-mode hosts (haa.cluster.local_backend, every host with its /metrics)
 and measures, over `window` seconds each, the CPU of every haa-hostd process (psutil: user + system):

@@ -1,12 +1,13 @@
-"""Issue 14's goals measured on one tree, per host-link carrier, run by run alternating (the closing measurement).
+"""The commit path's goals measured on one tree, per host-link carrier, run by run alternating.
 
 Each run, for one carrier (`HAA_HOST_LINK`, which the hosts inherit), measures in this order:
 
 * AP-1 at `--hosts` (static group, 50 warm-up transactions, then paced, back-to-back, all-proposing and
-  concurrent with 2 in flight per host; `bench/hostlink_ab.py`'s `one_run`, cluster CPU and frames per
+  concurrent with 2 in flight per host; `haa.lab.bench.hostlink_ab`'s `one_run`, cluster CPU and frames per
   transaction included);
 * the DDB all-writing load through the sequencer with the tree's default `seq_inflight` (a fresh membership
-  group; `bench/seq_ab.py`'s `one_run`: writes/s, write p50, OAC p50, writes per OAC, cluster CPU per write);
+  group; `haa.lab.bench.seq_ab`'s `one_run`: writes/s, write p50, OAC p50, writes per OAC, cluster CPU per
+  write);
 * `bench idle` (`haa.lab.experiments.idle.measure_local`: CPU of an idle membership-mode cluster, % of one core);
 * `bench ap4` at `--hosts` (`haa.lab.experiments.ap4.run_ap4`: transfer idle / under ping, host recovery, crash
   detection).
@@ -15,7 +16,7 @@ Runs alternate grpc, tcp, grpc, ... so that a neighbour's load falls on both ali
 recorded before each part. Every run is written to `--out` as soon as it ends (a killed sweep keeps what it
 measured); the summary prints the medians per carrier beside the issue's goals.
 
-    flock /tmp/haa-bench.lock env PYTHONPATH=. .venv/bin/python bench/issue14_final.py --runs 3 \\
+    flock /tmp/haa-bench.lock env .venv/bin/python -m haa.lab.bench.carriers --runs 3 \\
         --out bench-results/issue14-final.json
 """
 
@@ -26,7 +27,6 @@ import importlib.util
 import json
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -39,13 +39,8 @@ CARRIERS = ("grpc", "tcp")
 
 
 def _bench(name: str) -> Any:
-    """A sibling benchmark script as a module (bench/ is no package)."""
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(name + ".py"))
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    """A sibling benchmark (haa.lab.bench.<name>)."""
+    return importlib.import_module(f"haa.lab.bench.{name}")
 
 
 def _ap4_summary(row: dict[str, Any]) -> dict[str, float | None]:

@@ -8,7 +8,7 @@ flight per host) and adds, per row: the CPU time (user + system) of every haa-ho
 transaction, and the frames every host wrote (`tx_frames`) per transaction. Runs alternate grpc, tcp, grpc, ...
 so that a neighbour's load falls on both alike; the 1-minute load average is recorded before each run.
 
-    PYTHONPATH=. .venv/bin/python bench/hostlink_ab.py --runs 3 --hosts 10 -n 100 --out bench-results/hostlink-ab.json
+    .venv/bin/python -m haa.lab.bench.hostlink_ab --runs 3 --hosts 10 -n 100 --out bench-results/hostlink-ab.json
 """
 
 from __future__ import annotations

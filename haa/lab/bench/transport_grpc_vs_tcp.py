@@ -3,7 +3,8 @@
 One process (uvloop), loopback, both ends in it: the sender writes N 40-byte messages one at a time (each
 `await call.write` on a grpc.aio bidi stream / each `write` + `drain` on an asyncio TCP stream, length-
 prefixed), the receiver reads them one by one. Printed: messages per second and process CPU per message
-(sender + receiver together, every thread of the process). Run: `.venv/bin/python bench/transport_grpc_vs_tcp.py`
+(sender + receiver together, every thread of the process). Run:
+`.venv/bin/python -m haa.lab.bench.transport_grpc_vs_tcp`
 (docs/transport.md, "Where the floor is").
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import struct
 import time
+from collections.abc import AsyncIterator
 
 import grpc
 import uvloop
@@ -50,7 +52,7 @@ async def main_tcp() -> None:
 async def main_grpc() -> None:
     done: asyncio.Future[float] = asyncio.get_running_loop().create_future()
 
-    async def handler(it, _ctx):  # type: ignore[no-untyped-def]
+    async def handler(it: AsyncIterator[bytes], _ctx: object) -> AsyncIterator[bytes]:
         n = 0
         async for _ in it:
             n += 1

@@ -8,7 +8,7 @@ everything a hop costs in the daemon: encode, queue, batch, gRPC stream write, l
 the core's step, and the effect loop. The idle CPU of each daemon (heartbeats only) is measured too.
 
 Prints a table and writes `bench-results/hostd_oac_latency.json`. Never fails on a timing.
-Run: `.venv/bin/python bench/hostd_oac_latency.py [--hosts 2,3] [--tx 300]`.
+Run: `.venv/bin/python -m haa.lab.bench.hostd_oac_latency [--hosts 2,3] [--tx 300]`.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import psutil
 
 from haa.hostd.control import ControlClient
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 TOKEN = "bench-token"
 
 

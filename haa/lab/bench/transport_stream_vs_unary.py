@@ -20,8 +20,8 @@ One-way latency uses CLOCK_MONOTONIC, which is the same clock in both processes 
 `Heartbeat.sent_at`, the receiver subtracts it from its arrival time. Burst throughput is measured from the
 first enqueue to the arrival of the last message at the receiver.
 
-Prints a table and writes `bench-results/transport.json`. Run: `.venv/bin/python bench/transport_stream_vs_unary.py`
-(`--quick` for a short run). It never fails on a timing.
+Prints a table and writes `bench-results/transport.json`. Run:
+`.venv/bin/python -m haa.lab.bench.transport_stream_vs_unary` (`--quick` for a short run). It never fails on a timing.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from haa.core.messages import Heartbeat
 from haa.hostd.transport import Transport, encode_frame, envelope_chunk
 from haa.pb import hostlink_pb2 as pb
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 STREAM = "/bench.Link/Stream"
 UNARY = "/bench.Link/Unary"
 STATS = "/bench.Link/Stats"
@@ -93,7 +93,7 @@ class Receiver:
             self.last = 0
             self.held.clear()
         if frame.first_seq != self.last + 1:
-            self.held[frame.first_seq] = frame  # type: ignore[assignment]
+            self.held[frame.first_seq] = frame
             return
         self._deliver(frame)
         while self.last + 1 in self.held:
@@ -395,7 +395,8 @@ def main() -> None:
         return
     n_lat, bursts = (300, 5) if args.quick else (2000, 20)
     port, tport = _free_port(), _free_port()
-    proc = subprocess.Popen([sys.executable, __file__, "--serve", str(port), "--tport", str(tport)])
+    proc = subprocess.Popen([sys.executable, "-m", "haa.lab.bench.transport_stream_vs_unary", "--serve", str(port),
+                             "--tport", str(tport)])
     try:
         time.sleep(0.5)
         results = asyncio.run(client(port, tport, args.variants.split(","), n_lat, bursts, 1000))
