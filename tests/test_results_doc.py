@@ -1,4 +1,4 @@
-"""docs/results.md is generated from bench-results/*.json (haa/lab/results.py, `make results`): the committed page
+"""docs/results.md is generated from bench-results/*.json (haa/lab/results/, `make results`): the committed page
 must be what the JSON files give, every file must have its section, and a changed number must change the page."""
 
 from __future__ import annotations
