@@ -227,9 +227,9 @@ class AgentBase:
     #: anything is committed (`check_config`, asked of the fork server), and `self.cfg` is the validated model
     CONFIG: ClassVar[type[pydantic.BaseModel] | None] = None
     #: resident memory (RSS, MiB) the agent's process may use; over it, its host kills it (docs/agents.md,
-    #: "Resource limits"). The address space is capped too, at a margin above it (`haa.hostd.agentproc`)
+    #: "Resource limits"). The address space is capped too, at a margin above it (`haa.hostd.agentmonitor`)
     MEMORY_LIMIT_MB: ClassVar[int] = DEFAULT_MEMORY_LIMIT_MB
-    #: CPU the agent may use, as a fraction of one core, sustained over `haa.hostd.agentproc.CPU_LIMIT_WINDOW`
+    #: CPU the agent may use, as a fraction of one core, sustained over `haa.hostd.agentmonitor.CPU_LIMIT_WINDOW`
     #: (10 s); over it, its host kills it. Per type: a sensor agent may need a whole core (1.0) or more
     CPU_LIMIT: ClassVar[float] = DEFAULT_CPU_LIMIT
 
