@@ -63,8 +63,11 @@ from haa.core import agenttable, wire
 from haa.core import ddb as ddbmod
 from haa.core.messages import Excluded
 from haa.hostd.control import MD_TOKEN
+from haa.hostd.grpclink import receive
+from haa.hostd.linkcommon import RxState
 from haa.hostd.logs import LOGGER_NAME
-from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, _RxState, _varint, encode_frame
+from haa.hostd.outlink import _varint
+from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, encode_frame
 from haa.hostd.transport import envelope_chunk as chunk
 from haa.pb import agent_pb2 as apb
 from haa.pb import agenttx_pb2 as txpb
@@ -382,10 +385,10 @@ def test_fuzz_link_frames_receive_loop(seed: int) -> None:
         frames = make_frames(rng, rng.randint(1, 6), "a", inc)
         got: list[tuple[str, int, list[Any]]] = []
         t = Transport("b", "tok", {"a": "127.0.0.1:1"}, on_envelopes=lambda s, i, items, g=got: g.append((s, i, items)))
-        rx = _RxState(inc)
+        rx = RxState(inc)
         t._rx["a"] = rx
         try:
-            run(t._receive(_aiter(frames), "a", inc, rx, _Acks()))  # type: ignore[arg-type]
+            run(receive(t, _aiter(frames), "a", inc, rx, _Acks()))  # type: ignore[arg-type]
         except LinkGap:
             pass
         except Exception as e:
