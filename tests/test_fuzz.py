@@ -57,7 +57,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_sim_service import SimProcess
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import agenttable, wire
 from haa.core import ddb as ddbmod
@@ -697,15 +697,14 @@ def assert_statuses(reqs: list[tuple[str, bool, bytes]], codes: list[grpc.Status
 def host() -> Iterator[MemberHost]:
     """One haa-hostd: a group of one, agent layer on (no rebalancing)."""
     root = Path(tempfile.mkdtemp(prefix="haa-fuzz-"))
-    (root / "token").write_text(TOKEN + "\n")
-    port = free_port()
-    h = MemberHost("h1", port, {"h1": f"127.0.0.1:{port}"}, root, TOKEN, ["--rebalance-period", "0"])
+    group = MemberGroup(root, ["h1"], core=1, token=TOKEN, args=["--rebalance-period", "0"])
+    h = group["h1"]
     h.start()
     try:
         wait(lambda: len(h.status().members) == 1, 40, "a group of one")
         yield h
     finally:
-        h.kill()
+        group.close()
         err = (h.data_dir / "stderr.1.txt").read_text()
         assert "Traceback" not in err, err[-3000:]
 
@@ -819,14 +818,10 @@ def test_host_alive_and_serving_after_the_control_fuzzing(host: MemberHost) -> N
 def test_a_spawn_that_times_out_is_deadline_exceeded(tmp_path: Path) -> None:
     """Issue 13 defect 8: a spawn whose commit does not come back (the other member is stopped) surfaced as
     UNKNOWN "TimeoutError"; it is DEADLINE_EXCEEDED with a reason. About 12 s (the runtime waits 10 s)."""
-    (tmp_path / "token").write_text(TOKEN + "\n")
-    p1, p2 = free_port(), free_port()
-    core = {"h1": f"127.0.0.1:{p1}"}
     args = ["--rebalance-period", "0", "--exclude-after", "60"]
-    h1 = MemberHost("h1", p1, core, tmp_path, TOKEN, args)
-    h2 = MemberHost("h2", p2, core, tmp_path, TOKEN, args)
-    h1.start()
-    h2.start()
+    group = MemberGroup(tmp_path, ["h1", "h2"], core=1, token=TOKEN, args=args)
+    h1, h2 = group["h1"], group["h2"]
+    group.start()
     try:
         wait(lambda: len(h1.status().members) == 2, 40, "a group of two")
         assert h2.proc is not None
@@ -839,8 +834,7 @@ def test_a_spawn_that_times_out_is_deadline_exceeded(tmp_path: Path) -> None:
         assert time.monotonic() - t0 < 25  # the server's 10 s, not the client's 30 s
         assert h1.status().counters.values.get("control_errors", 0) == 1
     finally:
-        h1.kill()
-        h2.kill()
+        group.close()
 
 
 # ============================================================================ (c) the simulator's API
