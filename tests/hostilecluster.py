@@ -15,7 +15,7 @@ from pathlib import Path
 import grpc
 import psutil
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core.ddb import ops as ddb
 
@@ -31,29 +31,20 @@ AGENTS = ("A1", "A1.1")
 class Cluster:
     def __init__(self, root: Path) -> None:
         self.root = root
-        (root / "token").write_text(TOKEN + "\n")
-        ports = {n: free_port() for n in NAMES}
-        self.core = {n: f"127.0.0.1:{ports[n]}" for n in NAMES}
-        self.hosts = {n: MemberHost(n, ports[n], self.core, root, TOKEN, ARGS) for n in NAMES}
-        self.extra: list[MemberHost] = []  # second daemons under a taken name
+        self.group = MemberGroup(root, NAMES, core=NAMES, token=TOKEN, args=ARGS)
+        self.core = self.group.core
+        self.hosts = self.group.hosts
 
     def second(self, name: str, tag: str) -> MemberHost:
         """Another haa-hostd under `name` (its own port and data directory), not started yet."""
-        root = self.root / tag
-        root.mkdir()
-        (root / "token").write_text(TOKEN + "\n")
-        h = MemberHost(name, free_port(), self.core, root, TOKEN, ARGS)
-        self.extra.append(h)
-        return h
+        return self.group.new_host(name, root=self.root / tag)
 
     def members(self) -> list[MemberHost]:
         """The three hosts of the fixture (their current processes)."""
         return list(self.hosts.values())
 
     def close(self) -> None:
-        for h in [*self.hosts.values(), *self.extra]:
-            h.kill()
-            h.client.close()
+        self.group.close()
 
 
 def view(h: MemberHost) -> tuple[tuple[tuple[str, int], ...], int]:

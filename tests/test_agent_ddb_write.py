@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from helpers import run, until
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core.ddb import ops as ddb
 from haa.core.ddb.ddb import Ddb
@@ -270,16 +270,15 @@ TOKEN = "ddb-write-test-token"
 @pytest.fixture(scope="module")
 def host(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MemberHost]:
     root: Path = tmp_path_factory.mktemp("ddbwrite")
-    (root / "token").write_text(TOKEN + "\n")
-    port = free_port()
-    h = MemberHost("h1", port, {"h1": f"127.0.0.1:{port}"}, root, TOKEN, ["--rebalance-period", "0"])
+    group = MemberGroup(root, ["h1"], core=1, token=TOKEN, args=["--rebalance-period", "0"])
+    h = group["h1"]
     try:
         h.start()
         wait(lambda: len(h.status().members) == 1, 40, "a group of 1")
         wait(lambda: "probe" in h.client.agent_list().agent_types, 20, "the agent types")
         yield h
     finally:
-        h.kill()
+        group.close()
 
 
 def ask(h: MemberHost, agent: str, cmd: dict[str, Any]) -> Any:

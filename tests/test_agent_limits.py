@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from helpers import run, until
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core.ddb import agenttable as at
 from haa.core.ddb import ops as ddb
@@ -191,19 +191,15 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Member
     mp.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
     mp.setenv("HAA_AGENT_MODULES", "limitagents")
     root: Path = tmp_path_factory.mktemp("limits")
-    (root / "token").write_text(TOKEN + "\n")
-    ports = {n: free_port() for n in NAMES}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in NAMES}
-    hs = {n: MemberHost(n, ports[n], core, root, TOKEN, ARGS) for n in NAMES}
+    group = MemberGroup(root, NAMES, core=NAMES, token=TOKEN, args=ARGS)
+    hs = group.hosts
     try:
-        for h in hs.values():
-            h.start()
+        group.start()
         wait(lambda: all(len(h.status().members) == 2 for h in hs.values()), 40, "a group of 2")
         wait(lambda: "limits-startfail" in hs["h1"].client.agent_list().agent_types, 20, "the test agent types")
         yield hs
     finally:
-        for h in hs.values():
-            h.kill()
+        group.close()
         mp.undo()
 
 

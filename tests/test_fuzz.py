@@ -57,7 +57,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_sim_service import SimProcess
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost, free_port
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core import wire
 from haa.core.ddb import agenttable
@@ -66,8 +66,11 @@ from haa.core.ddb.objects import DdbError
 from haa.core.ddb.ops import encode_batch, put
 from haa.core.messages import Excluded
 from haa.hostd.control import MD_TOKEN
+from haa.hostd.grpclink import receive
+from haa.hostd.linkcommon import RxState
 from haa.hostd.logs import LOGGER_NAME
-from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, _RxState, _varint, encode_frame
+from haa.hostd.outlink import _varint
+from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, encode_frame
 from haa.hostd.transport import envelope_chunk as chunk
 from haa.pb import agent_pb2 as apb
 from haa.pb import agenttx_pb2 as txpb
@@ -381,10 +384,10 @@ def test_fuzz_link_frames_receive_loop(seed: int) -> None:
         frames = make_frames(rng, rng.randint(1, 6), "a", inc)
         got: list[tuple[str, int, list[Any]]] = []
         t = Transport("b", "tok", {"a": "127.0.0.1:1"}, on_envelopes=lambda s, i, items, g=got: g.append((s, i, items)))
-        rx = _RxState(inc)
+        rx = RxState(inc)
         t._rx["a"] = rx
         try:
-            run(t._receive(_aiter(frames), "a", inc, rx, _Acks()), loop=_loop())  # type: ignore[arg-type]
+            run(receive(t, _aiter(frames), "a", inc, rx, _Acks()), loop=_loop())  # type: ignore[arg-type]
         except LinkGap:
             pass
         except Exception as e:
@@ -698,15 +701,14 @@ def assert_statuses(reqs: list[tuple[str, bool, bytes]], codes: list[grpc.Status
 def host() -> Iterator[MemberHost]:
     """One haa-hostd: a group of one, agent layer on (no rebalancing)."""
     root = Path(tempfile.mkdtemp(prefix="haa-fuzz-"))
-    (root / "token").write_text(TOKEN + "\n")
-    port = free_port()
-    h = MemberHost("h1", port, {"h1": f"127.0.0.1:{port}"}, root, TOKEN, ["--rebalance-period", "0"])
+    group = MemberGroup(root, ["h1"], core=1, token=TOKEN, args=["--rebalance-period", "0"])
+    h = group["h1"]
     h.start()
     try:
         wait(lambda: len(h.status().members) == 1, 40, "a group of one")
         yield h
     finally:
-        h.kill()
+        group.close()
         err = (h.data_dir / "stderr.1.txt").read_text()
         assert "Traceback" not in err, err[-3000:]
 
@@ -822,14 +824,10 @@ def test_host_alive_and_serving_after_the_control_fuzzing(host: MemberHost) -> N
 def test_a_spawn_that_times_out_is_deadline_exceeded(tmp_path: Path) -> None:
     """Regression guard: a spawn whose commit does not come back (the other member is stopped) surfaced as
     UNKNOWN "TimeoutError"; it is DEADLINE_EXCEEDED with a reason. About 12 s (the runtime waits 10 s)."""
-    (tmp_path / "token").write_text(TOKEN + "\n")
-    p1, p2 = free_port(), free_port()
-    core = {"h1": f"127.0.0.1:{p1}"}
     args = ["--rebalance-period", "0", "--exclude-after", "60"]
-    h1 = MemberHost("h1", p1, core, tmp_path, TOKEN, args)
-    h2 = MemberHost("h2", p2, core, tmp_path, TOKEN, args)
-    h1.start()
-    h2.start()
+    group = MemberGroup(tmp_path, ["h1", "h2"], core=1, token=TOKEN, args=args)
+    h1, h2 = group["h1"], group["h2"]
+    group.start()
     try:
         wait(lambda: len(h1.status().members) == 2, 40, "a group of two")
         assert h2.proc is not None
@@ -842,8 +840,7 @@ def test_a_spawn_that_times_out_is_deadline_exceeded(tmp_path: Path) -> None:
         assert time.monotonic() - t0 < 25  # the server's 10 s, not the client's 30 s
         assert h1.status().counters.values.get("control_errors", 0) == 1
     finally:
-        h1.kill()
-        h2.kill()
+        group.close()
 
 
 # ============================================================================ (c) the simulator's API

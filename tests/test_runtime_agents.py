@@ -13,7 +13,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 
 TOKEN = "agents-test-token"
@@ -25,18 +25,14 @@ ARGS = ["--rebalance-period", "0", "--drain-timeout", "8", "--agent-hang-timeout
 @pytest.fixture(scope="module")
 def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, MemberHost]]:
     root: Path = tmp_path_factory.mktemp("agents")
-    (root / "token").write_text(TOKEN + "\n")
-    ports = {n: free_port() for n in NAMES}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in CORE}
-    hs = {n: MemberHost(n, ports[n], core, root, TOKEN, ARGS) for n in NAMES}
-    for h in hs.values():
-        h.start()
+    group = MemberGroup(root, NAMES, core=CORE, token=TOKEN, args=ARGS)
+    hs = group.hosts
+    group.start()
     try:
         wait(lambda: all(len(h.status().members) == 4 for h in hs.values()), 40, "a group of 4")
         yield hs
     finally:
-        for h in hs.values():
-            h.kill()
+        group.close()
 
 
 def live(hs: dict[str, MemberHost]) -> list[MemberHost]:

@@ -22,7 +22,7 @@ import grpc
 import pytest
 from helpers import run, until
 
-from haa.cluster.hostprocs import MemberHost, free_port, hostd_command
+from haa.cluster.hostprocs import MemberGroup, MemberHost, free_port, hostd_command
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core.ddb import ops as ddb
 from haa.core.ddb.ddb import Ddb
@@ -54,18 +54,12 @@ def agree(hosts: list[MemberHost], members: list[str] | None = None) -> bool:
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, MemberHost]]:
     root = tmp_path_factory.mktemp("membership")
-    (root / "token").write_text(TOKEN + "\n")
-    ports = {n: free_port() for n in NAMES}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in CORE}
-    hosts = {n: MemberHost(n, ports[n], core, root, TOKEN) for n in NAMES}
-    for h in hosts.values():
-        h.start()
+    group = MemberGroup(root, NAMES, core=CORE, token=TOKEN)
+    group.start()
     try:
-        yield hosts
+        yield group.hosts
     finally:
-        for h in hosts.values():
-            h.kill()
-            h.client.close()
+        group.close()
 
 
 def test_group_forms_with_the_first_core_process_as_leader(cluster: dict[str, MemberHost]) -> None:

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from haa.cluster.hostprocs import MemberHost, free_port
+from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
 from haa.core.ddb import ops as ddb
 
@@ -42,19 +42,14 @@ def events(h: MemberHost) -> list[dict[str, Any]]:
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, MemberHost]]:
     root = tmp_path_factory.mktemp("tcplink")
-    (root / "token").write_text(TOKEN + "\n")
-    ports = {n: free_port() for n in NAMES}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in NAMES}
-    hosts = {n: MemberHost(n, ports[n], core, root, TOKEN, ARGS) for n in NAMES}
-    hosts["odd"] = MemberHost("odd", free_port(), core, root, TOKEN, ["--host-link", "grpc", "--no-agents"])
-    for n in NAMES:
-        hosts[n].start()
+    group = MemberGroup(root, NAMES, core=NAMES, token=TOKEN, args=ARGS)
+    hosts = dict(group.hosts)
+    hosts["odd"] = group.new_host("odd", ["--host-link", "grpc", "--no-agents"])
+    group.start()
     try:
         yield hosts
     finally:
-        for h in hosts.values():
-            h.kill()
-            h.client.close()
+        group.close()
 
 
 def test_a_tcp_linked_cluster_commits_and_survives_a_killed_host(cluster: dict[str, MemberHost]) -> None:

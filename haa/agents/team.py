@@ -110,7 +110,7 @@ def team_config(agent: AgentBase, **extra: Any) -> dict[str, Any]:
 def frame_from_pb(m: Any, avatar: str) -> SimpleNamespace:
     """A haa-sim CameraFrame message as the object haa.control's detectors read (image, K, mount, max_range,
     time, avatar); the true pose is not in the message and is not made up."""
-    from haa.sim.service import decode_frame
+    from haa.sim.convert import decode_frame
 
     return SimpleNamespace(
         image=decode_frame(m),

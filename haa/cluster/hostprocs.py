@@ -1,15 +1,23 @@
-"""Host processes for experiments and tests: real `haa-hostd` processes on free loopback ports, one data dir each.
+"""Local hosts for benchmarks and tests: real `haa-hostd` processes on free loopback ports, one data dir each.
 
-Used by the experiments (haa.lab.experiments: AP-1..AP-4, ddb, memory) and the tests (moved here from
-haactl/local.py: haa must not import haactl). Each host gets its own folder under the cluster
-root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the cluster shares one token
-file. `HostProc` is one host process (start, SIGKILL, SIGSTOP/SIGCONT, SIGTERM, control client);
-`LocalCluster` starts them all and waits until every host trusts every other (with `tls`, over mutual TLS:
-a cluster CA and certificates in `<root>/tls`, haa.cluster.tls). `free_port`, `hostd_command`
-and `member_command` live in haa.cluster.procs (the local cluster backend and the mission runner use them too)
-and are importable from here as before. `MemberHost` is one membership-mode host with a given core (the
-experiments grow and shrink groups of them); `wait_for` polls a condition, RPC errors counting as "not yet".
-(`haactl cluster` itself runs on haa.cluster.local_backend, which keeps its state on disk between commands.)
+The one helper the experiments (haa.lab.experiments: AP-1..AP-4, ddb, memory), the tests and the scripts in bench/
+start hosts with (moved here from haactl/local.py: haa must not import haactl). Every host gets its own folder
+under the cluster root (`<root>/<name>/`: JSON-lines log `<name>.jsonl`, stderr per start) and the hosts of a
+cluster share one token file.
+
+* `HostProc` — one host process: start (again: a new incarnation), SIGKILL, SIGSTOP/SIGCONT, SIGTERM, its control
+  client, its log. `MemberHost` makes one in membership mode (it finds the group through a core list, Alg. 3).
+* `MemberGroup` — membership-mode hosts h1..hN under one root, the first K the core list; started, waited for
+  until they form one group, killed together.
+* `LocalCluster` — static-mode hosts, full mesh (`--peers`), waited for until every host trusts every other
+  (with `tls`, over mutual TLS: a cluster CA and certificates in `<root>/tls`, haa.cluster.tls).
+* `wait_for` polls a condition, RPC errors counting as "not yet".
+
+`free_port`, `hostd_command` and `member_command` live in haa.cluster.procs (with `start_hostd`, which every local
+host process is started by: the operator's cluster of haa.cluster.local_backend too) and are importable from here
+as before. (`haactl cluster` and `haactl chaos run` use haa.cluster.local_backend, which keeps its state on disk
+between commands; `LocalHosts` of haa.lab.experiments.localhosts is not a cluster of processes but several agent
+supervisors in one process.)
 """
 
 from __future__ import annotations
@@ -20,17 +28,29 @@ import secrets
 import signal
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
 
-from haa.cluster.procs import free_port, hostd_command, member_command
+from haa.cluster.procs import free_port, hostd_command, member_command, start_hostd, static_command, write_token
 from haa.cluster.tls import CLIENT_DIR, make_cluster_tls
 from haa.hostd.control import ControlClient
 from haa.pb import control_pb2 as cpb
 from haa.tls import ClientTls, load_client
+
+__all__ = [
+    "HostProc",
+    "LocalCluster",
+    "MemberGroup",
+    "MemberHost",
+    "free_port",
+    "hostd_command",
+    "member_command",
+    "member_group",
+    "wait_for",
+]
 
 T = TypeVar("T")
 
@@ -51,44 +71,35 @@ def wait_for(fn: Callable[[], T], timeout: float, what: str, interval: float = 0
         time.sleep(interval)
 
 
+# ---------------------------------------------------------------------------------------------- one host
+
+
 class HostProc:
-    def __init__(
-        self, name: str, port: int, peers: dict[str, int], root: Path, token_file: Path, args: list[str],
-        tls: ClientTls | None = None,
-    ) -> None:
+    """One haa-hostd process on loopback: `name` at `address`, started with command line `cmd`, its data dir
+    `data_dir`, the cluster `token` (and `tls`, haactl's certificate, for its control client). Not started until
+    `start()`; each start is a new process (a new incarnation)."""
+
+    def __init__(self, name: str, address: str, cmd: list[str], data_dir: Path, token: str,
+                 tls: ClientTls | None = None) -> None:
         self.name = name
+        self.address = address
+        self.port = int(address.rpartition(":")[2])
+        self.cmd = cmd
+        self.data_dir = data_dir
+        self.log_file = data_dir / f"{name}.jsonl"
+        self.token = token
         self.tls = tls
-        self.port = port
-        self.address = f"127.0.0.1:{port}"
-        self.data_dir = root / name
-        self.cmd = [
-            *hostd_command(),
-            "--name",
-            name,
-            "--listen",
-            self.address,
-            "--peers",
-            ",".join(f"{p}=127.0.0.1:{pp}" for p, pp in peers.items()),
-            "--token-file",
-            str(token_file),
-            "--data-dir",
-            str(self.data_dir),
-            *args,
-        ]
         self.proc: subprocess.Popen[bytes] | None = None
-        self.token = token_file.read_text().strip()
         self._client: ControlClient | None = None
         self.starts = 0
 
     def start(self) -> None:
-        self.data_dir.mkdir(parents=True, exist_ok=True)
         self.starts += 1
-        err = open(self.data_dir / f"stderr.{self.starts}.txt", "wb")  # noqa: SIM115 - owned by the process
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err, env={**os.environ})
-        err.close()
+        self.proc = start_hostd(self.cmd, self.data_dir, self.starts)
 
     @property
     def client(self) -> ControlClient:
+        """Its control client (made at first use; `close()` closes it)."""
         if self._client is None:
             self._client = ControlClient(self.address, self.token, tls=self.tls, server_name=self.name)
         return self._client
@@ -96,16 +107,28 @@ class HostProc:
     def status(self) -> cpb.StatusReply:
         return self.client.status()
 
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
     def signal(self, sig: int) -> None:
         assert self.proc is not None
         self.proc.send_signal(sig)
 
     def kill9(self) -> None:
+        """SIGKILL (the process must have been started) and wait for it."""
         self.signal(signal.SIGKILL)
         assert self.proc is not None
         self.proc.wait(10)
 
+    def kill(self) -> None:
+        """SIGKILL it if it runs (paused or not) and wait for it; nothing if it does not."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.kill()
+            self.proc.wait(10)
+
     def terminate(self, timeout: float = 10.0) -> int:
+        """SIGTERM (a graceful stop; SIGCONT first, should it be paused); its exit code."""
         assert self.proc is not None
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGCONT)
@@ -113,10 +136,26 @@ class HostProc:
         return self.proc.wait(timeout)
 
     def log_events(self) -> list[dict[str, Any]]:
-        path = self.data_dir / f"{self.name}.jsonl"
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        """Every line of its JSON-lines log."""
+        return [json.loads(line) for line in self.log_file.read_text().splitlines() if line.strip()]
+
+    def events(self, since: float, names: set[str] | None = None) -> list[dict[str, Any]]:
+        """Its log's events stamped at or after `since` (of the given event names), none if it has no log yet;
+        a line that does not parse is skipped."""
+        if not self.log_file.exists():
+            return []
+        out = []
+        for line in self.log_file.read_text().splitlines():
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue
+            if e.get("ts", 0) >= since and (names is None or e.get("event") in names):
+                out.append(e)
+        return out
 
     def close(self) -> None:
+        """Close its control client and kill the process if it still runs."""
         if self._client is not None:
             self._client.close()
             self._client = None
@@ -125,8 +164,116 @@ class HostProc:
             self.proc.wait(10)
 
 
+class MemberHost(HostProc):
+    """One membership-mode haa-hostd process on loopback port `port`, its data dir `<root>/<name>` and the cluster
+    token file `<root>/token` (holding `token`); it finds the group through `core` (name -> address, Alg. 3)."""
+
+    def __init__(
+        self, name: str, port: int, core: dict[str, str], root: Path, token: str, args: list[str] | None = None
+    ) -> None:
+        address = f"127.0.0.1:{port}"
+        super().__init__(name, address, member_command(name, address, core, root / "token", root / name, args),
+                         root / name, token)
+
+
+# ---------------------------------------------------------------------------------------------- groups
+
+
+class MemberGroup:
+    """Membership-mode hosts on loopback under one root (module docstring): the cluster token file `<root>/token`,
+    the hosts `hosts` (a number: h1..hN; or their names), the first `core` of them (or the names given) the core
+    list every host is started with, each on a free port with the arguments `args`. Not started until `start()`;
+    `close()` (or the end of a `with`) kills every process of the group, also those made by `new_host`."""
+
+    def __init__(self, root: Path, hosts: int | Sequence[str], *, core: int | Sequence[str] = 3,
+                 token: str | None = None, args: Sequence[str] = ()) -> None:
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        self.token = token or os.urandom(16).hex()
+        write_token(root / "token", self.token)
+        self.names = [f"h{i}" for i in range(1, hosts + 1)] if isinstance(hosts, int) else list(hosts)
+        ports = {n: free_port() for n in self.names}
+        core_names = self.names[:core] if isinstance(core, int) else list(core)
+        #: the core list: name -> address
+        self.core = {n: f"127.0.0.1:{ports[n]}" for n in core_names}
+        self.args = list(args)
+        self.hosts: dict[str, MemberHost] = {
+            n: MemberHost(n, ports[n], self.core, root, self.token, list(self.args)) for n in self.names
+        }
+        self._others: list[MemberHost] = []
+
+    def __enter__(self) -> MemberGroup:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __getitem__(self, name: str) -> MemberHost:
+        return self.hosts[name]
+
+    def __iter__(self) -> Iterator[MemberHost]:
+        return iter(self.hosts.values())
+
+    def new_host(self, name: str, args: Sequence[str] | None = None, root: Path | None = None) -> MemberHost:
+        """Another host (not started) that finds this group through its core list: its own free port, the group's
+        arguments unless `args` are given, and under `root` (its own data root: the token file is written there
+        too) or the group's. Not one of `hosts`; `close()` kills it too."""
+        if root is not None and root != self.root:
+            root.mkdir(parents=True, exist_ok=True)
+            write_token(root / "token", self.token)
+        h = MemberHost(name, free_port(), self.core, root or self.root, self.token,
+                       list(self.args if args is None else args))
+        self._others.append(h)
+        return h
+
+    def start(self, names: Sequence[str] | None = None) -> None:
+        """Start the hosts (all, or those named)."""
+        for n in names or self.names:
+            self.hosts[n].start()
+
+    def form(self, timeout: float = 60.0, *, what: str | None = None, interval: float = 0.05) -> float:
+        """Start every host and wait until they form one group (`wait_members`); the seconds that took."""
+        t0 = time.monotonic()
+        self.start()
+        self.wait_members(timeout, what=what, interval=interval)
+        return time.monotonic() - t0
+
+    def members(self, name: str) -> list[str]:
+        """The members of the view host `name` has now."""
+        return list(self.hosts[name].status().members)
+
+    def wait_members(self, timeout: float = 60.0, names: Sequence[str] | None = None, *, what: str | None = None,
+                     interval: float = 0.05) -> None:
+        """Wait until every host of `names` (default: all) is in a view of exactly `names`."""
+        want = set(names or self.names)
+        wait_for(lambda: all(set(self.members(x)) == want for x in want), timeout,
+                 what or f"the group {sorted(want)}", interval=interval)
+
+    def close(self) -> None:
+        """Kill every process of the group and close their control clients."""
+        seen: set[int] = set()
+        for h in [*self.hosts.values(), *self._others]:
+            if id(h) in seen:
+                continue
+            seen.add(id(h))
+            h.kill()
+            h.close()
+
+
+def member_group(base: Path, hosts: int, hostd_yaml: str, core_size: int = 3, tag: str = "group") -> list[MemberHost]:
+    """`hosts` membership-mode hosts h1..hN under `base`, not started (a `MemberGroup`'s hosts): a fresh cluster
+    token, the first `core_size` as the core list, each without agents and with `hostd_yaml` (the text of a
+    hostd.yaml, written to `base/hostd.yaml`) as its configuration. The DDB benchmarks' group
+    (haa.lab.experiments.ddb, haa.lab.bench.seq_ab)."""
+    conf = base / "hostd.yaml"
+    conf.write_text(hostd_yaml)
+    group = MemberGroup(base, hosts, core=core_size, token=f"{tag}-{time.time_ns()}",
+                        args=["--no-agents", "--config", str(conf)])
+    return list(group.hosts.values())
+
+
 class LocalCluster:
-    """N haa-hostd processes, full mesh, on free loopback ports."""
+    """N static-mode haa-hostd processes, full mesh, on free loopback ports (module docstring)."""
 
     def __init__(
         self, names: list[str], root: Path, token: str | None = None, args: list[str] | None = None, tls: bool = False
@@ -136,18 +283,18 @@ class LocalCluster:
         token = token or secrets.token_hex(24)
         self.token = token
         self.token_file = root / "token"
-        self.token_file.write_text(token + "\n")
-        self.token_file.chmod(0o600)
-        ports = {n: free_port() for n in names}
+        write_token(self.token_file, token, private=True)
+        addrs = {n: f"127.0.0.1:{free_port()}" for n in names}
         client = None
         if tls:
             ca = make_cluster_tls(root / "tls", names)
             client = load_client(root / "tls" / CLIENT_DIR)
-        self.hosts = {
-            n: HostProc(n, ports[n], {p: pp for p, pp in ports.items() if p != n}, root, self.token_file,
-                        [*(args or []), *(["--tls-dir", str(ca.host_dir(n))] if tls else [])], client)
-            for n in names
-        }
+        self.hosts: dict[str, HostProc] = {}
+        for n in names:
+            host_args = [*(args or []), *(["--tls-dir", str(ca.host_dir(n))] if tls else [])]
+            peers = {p: a for p, a in addrs.items() if p != n}
+            cmd = static_command(n, addrs[n], peers, self.token_file, root / n, host_args)
+            self.hosts[n] = HostProc(n, addrs[n], cmd, root / n, token, client)
 
     def __getitem__(self, name: str) -> HostProc:
         return self.hosts[name]
@@ -180,66 +327,3 @@ class LocalCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def member_group(base: Path, hosts: int, hostd_yaml: str, core_size: int = 3, tag: str = "group") -> list[MemberHost]:
-    """`hosts` membership-mode hosts h1..hN under `base`, not started: a fresh cluster token in `base/token`, the
-    first `core_size` as the core process list, each without agents and with `hostd_yaml` (the text of a
-    hostd.yaml, written to `base/hostd.yaml`) as its configuration. The benchmarks' group (haa.lab.experiments.ddb,
-    haa/lab/bench/seq_ab.py)."""
-    token = f"{tag}-{time.time_ns()}"
-    (base / "token").write_text(token + "\n")
-    conf = base / "hostd.yaml"
-    conf.write_text(hostd_yaml)
-    names = [f"h{i + 1}" for i in range(hosts)]
-    ports = {n: free_port() for n in names}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in names[:core_size]}
-    return [MemberHost(n, ports[n], core, base, token, ["--no-agents", "--config", str(conf)]) for n in names]
-
-
-class MemberHost:
-    """One membership-mode haa-hostd process on loopback, its data dir `<root>/<name>` and the cluster token
-    file `<root>/token` (restartable: each start is a new incarnation). Used by benchmarks and tests."""
-
-    def __init__(
-        self, name: str, port: int, core: dict[str, str], root: Path, token: str, args: list[str] | None = None
-    ) -> None:
-        self.name = name
-        self.address = f"127.0.0.1:{port}"
-        self.data_dir = root / name
-        self.log_file = self.data_dir / f"{name}.jsonl"
-        self.cmd = member_command(name, self.address, core, root / "token", self.data_dir, args)
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.client = ControlClient(self.address, token)
-        self.starts = 0
-
-    def start(self) -> None:
-        self.starts += 1
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.data_dir / f"stderr.{self.starts}.txt", "wb") as err:
-            self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=err)
-
-    def status(self) -> cpb.StatusReply:
-        return self.client.status()
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def kill(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGCONT)
-            self.proc.kill()
-            self.proc.wait(10)
-
-    def events(self, since: float, names: set[str] | None = None) -> list[dict[str, Any]]:
-        if not self.log_file.exists():
-            return []
-        out = []
-        for line in self.log_file.read_text().splitlines():
-            try:
-                e = json.loads(line)
-            except ValueError:
-                continue
-            if e.get("ts", 0) >= since and (names is None or e.get("event") in names):
-                out.append(e)
-        return out

@@ -53,7 +53,7 @@ from haa.cluster.backend import (
     natural_key,
     state_phrase,
 )
-from haa.cluster.procs import free_port, member_command
+from haa.cluster.procs import free_port, member_command, start_hostd, stderr_file, write_token
 from haa.cluster.tls import CLIENT_DIR, HOSTS_DIR, CaError, ClusterCA, make_cluster_tls
 from haa.tls import ClientTls, TlsError, load_client
 
@@ -244,7 +244,6 @@ class LocalBackend(Backend):
     def _spawn(self, name: str) -> None:
         rec = self._rec(name)
         data_dir = Path(rec["data_dir"])
-        data_dir.mkdir(parents=True, exist_ok=True)
         rec["starts"] = int(rec.get("starts", 0)) + 1
         args = list(self.state["args"])
         if rec.get("metrics_port"):
@@ -252,11 +251,8 @@ class LocalBackend(Backend):
         if self.state.get("tls_dir"):
             args += ["--tls-dir", str(Path(self.state["tls_dir"]) / HOSTS_DIR / name)]
         cmd = member_command(name, rec["address"], self.state["core"], Path(self.state["token_file"]), data_dir, args)
-        err_path = data_dir / f"stderr.{rec['starts']}.txt"
-        with open(err_path, "wb") as err:
-            p = subprocess.Popen(
-                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True
-            )
+        p = start_hostd(cmd, data_dir, rec["starts"], detach=True)  # outlives this command (module docstring)
+        err_path = stderr_file(data_dir, rec["starts"])
         self._procs[name] = p
         try:
             ct = psutil.Process(p.pid).create_time()
@@ -309,8 +305,7 @@ class LocalBackend(Backend):
             for n in names:  # a data dir of a previous life would make a host re-apply instead of forming
                 shutil.rmtree(self.root / n, ignore_errors=True)
             token_file = self.root / "token"
-            token_file.write_text(secrets.token_hex(32) + "\n")
-            token_file.chmod(0o600)
+            write_token(token_file, secrets.token_hex(32), private=True)
             self.token = token_file.read_text().strip()
             tls_dir = self.root / "tls"
             if tls:

@@ -1,4 +1,6 @@
-"""Starting haa-hostd processes on this machine: a free loopback port, the daemon's command line.
+"""Starting haa-hostd processes on this machine: a free loopback port, the daemon's command line (membership
+mode with a core list, or static mode with a peer list), the cluster token file, and the start itself
+(`start_hostd`: a data dir, stderr to a file per start).
 
 Shared by the local cluster backend (haa.cluster.local_backend), the mission runner (haa.mission.runner) and
 the experiments' and tests' host processes (haa.cluster.hostprocs).
@@ -8,6 +10,7 @@ from __future__ import annotations
 
 import random
 import socket
+import subprocess
 import sys
 from pathlib import Path
 
@@ -83,3 +86,53 @@ def member_command(
         str(data_dir),
         *(args or []),
     ]
+
+
+def static_command(
+    name: str,
+    address: str,
+    peers: dict[str, str],
+    token_file: Path,
+    data_dir: Path,
+    args: list[str] | None = None,
+) -> list[str]:
+    """The command line of a static-mode host: it links to every peer of a fixed list (full mesh)."""
+    return [
+        *hostd_command(),
+        "--name",
+        name,
+        "--listen",
+        address,
+        "--peers",
+        ",".join(f"{n}={a}" for n, a in peers.items()),
+        "--token-file",
+        str(token_file),
+        "--data-dir",
+        str(data_dir),
+        *(args or []),
+    ]
+
+
+def write_token(path: Path, token: str, *, private: bool = False) -> None:
+    """Write the cluster token file (`private`: readable by its owner only)."""
+    path.write_text(token + "\n")
+    if private:
+        path.chmod(0o600)
+
+
+def stderr_file(data_dir: Path, start: int) -> Path:
+    """Where the `start`-th start of a host writes its stderr (its data dir, one file per start)."""
+    return data_dir / f"stderr.{start}.txt"
+
+
+def start_hostd(cmd: list[str], data_dir: Path, start: int, *, detach: bool = False) -> subprocess.Popen[bytes]:
+    """Start a haa-hostd process with command line `cmd`: its data dir is made, stdout discarded, stderr written to
+    `stderr_file(data_dir, start)`. `detach`: in a session of its own with no stdin, so that it outlives the command
+    that started it and a terminal's interrupt does not reach it (the operator's cluster, haa.cluster.local_backend).
+    """
+    data_dir.mkdir(parents=True, exist_ok=True)
+    with open(stderr_file(data_dir, start), "wb") as err:
+        if detach:
+            return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                                    start_new_session=True)
+        return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)

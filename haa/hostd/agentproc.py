@@ -55,6 +55,11 @@ host commits a spawn.
 Measurements (`stats()`, for the allocation's cost and affinity): per agent the CPU share of one core over
 the last `cpu_window` seconds (psutil), total CPU seconds and RSS, and messages and bytes in and out per peer
 agent id (peer "" = the host or the operator), counted where they cross this supervisor.
+
+The supervisor's parts, each in a module of its own: the values and events (haa.hostd.agentevents, re-exported
+here), one instance and its process's exit (haa.hostd.agentinstance), the monitor of hangs and resource limits
+(haa.hostd.agentmonitor), the fork server and its agent types (haa.hostd.agenttypes). This module drives them:
+spawning (fork, hello), feeding an agent, and reading its frames until it ends.
 """
 
 from __future__ import annotations
@@ -63,24 +68,47 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 import signal
 import socket
 import time
-import uuid
-from collections import defaultdict, deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import psutil
 
+from haa.hostd.agentevents import (
+    AgentEvent,
+    AgentStats,
+    Backup,
+    DdbGet,
+    DdbPut,
+    DdbScan,
+    DdbUnwatch,
+    DdbWatch,
+    DdbWrite,
+    Envelope,
+    Failed,
+    Frozen,
+    InstanceSpec,
+    Ready,
+    Sent,
+    SpawnChild,
+    Stopped,
+)
+from haa.hostd.agentinstance import LIVE_STATES, AgentInstance, ProcessTable
+from haa.hostd.agentmonitor import AS_MARGIN_FACTOR, CPU_LIMIT_WINDOW, MEM_PERIOD, MIB, AgentMonitor
+from haa.hostd.agenttypes import VALIDATE_TIMEOUT, AgentTypes
 from haa.hostd.logs import log_event
 from haa.pb import agent_pb2 as pb
 from haa.sdk.channel import DEFAULT_MAX_FRAME, Channel, ChannelError, message_too_large
-from haa.sdk.forkserver import ForkServer, SpawnError
+from haa.sdk.forkserver import SpawnError
 
 __all__ = [
+    "AS_MARGIN_FACTOR",
+    "CPU_LIMIT_WINDOW",
+    "MEM_PERIOD",
+    "MIB",
+    "VALIDATE_TIMEOUT",
     "AgentEvent",
     "AgentStats",
     "AgentSupervisor",
@@ -104,283 +132,11 @@ __all__ = [
 
 LOGGER = logging.getLogger("haa.hostd.agents")
 
-#: the window over which an agent's CPU share is compared with its type's CPU_LIMIT (seconds)
-CPU_LIMIT_WINDOW = 10.0
-#: how often every agent's RSS is compared with its type's MEMORY_LIMIT_MB (seconds)
-MEM_PERIOD = 0.25
-#: the address-space cap of an agent process: its size when it said hello + this times its memory limit
-AS_MARGIN_FACTOR = 4
-MIB = 1024 * 1024
-#: how long a config check may wait for the fork server (it answers in milliseconds when it runs)
-VALIDATE_TIMEOUT = 2.0
-
 _LOG_LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
-UINT64_MAX = 2**64 - 1
-
-
-# ---------------------------------------------------------------------------------------------- values
-
-
-@dataclass(frozen=True)
-class InstanceSpec:
-    """One instance of an agent on this host. `epoch` fences instances: a new one (thaw, recovery) gets a
-    larger epoch than every earlier instance of the same agent."""
-
-    agent_id: str
-    name: str
-    type_name: str
-    config: bytes = b""
-    epoch: int = 0
-    parent: str | None = None
-
-    def validate(self) -> None:
-        """Raise ValueError naming the field and the reason."""
-        try:
-            if str(uuid.UUID(self.agent_id)) != self.agent_id.lower():
-                raise ValueError
-        except (ValueError, TypeError, AttributeError):
-            raise ValueError(f"agent_id: not a UUID string: {self.agent_id!r}") from None
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError("name: must be a non-empty string")
-        if not isinstance(self.type_name, str) or not self.type_name:
-            raise ValueError("type_name: must be a non-empty string")
-        if not isinstance(self.config, bytes):
-            raise ValueError(f"config: must be bytes, not {type(self.config).__name__}")
-        if isinstance(self.epoch, bool) or not isinstance(self.epoch, int) or not 0 <= self.epoch <= UINT64_MAX:
-            raise ValueError(f"epoch: must be an int in 0..2**64-1, got {self.epoch!r}")
-        if self.parent is not None and not isinstance(self.parent, str):
-            raise ValueError(f"parent: must be an agent id or None, got {self.parent!r}")
-
-
-@dataclass(frozen=True)
-class Envelope:
-    """A message between agents as the host sees it. `src` = "" for the host/operator; `conv` != 0 makes it
-    a request (reply False) or its response (reply True, `error` set if it failed)."""
-
-    src: str
-    dst: str
-    payload: bytes
-    conv: int = 0
-    reply: bool = False
-    error: str = ""
-
-    def to_pb(self) -> pb.AgentMsg:
-        return pb.AgentMsg(src=self.src, dst=self.dst, payload=self.payload, conv=self.conv, reply=self.reply,
-                           error=self.error)
-
-    @staticmethod
-    def from_pb(m: pb.AgentMsg) -> Envelope:
-        return Envelope(src=m.src, dst=m.dst, payload=bytes(m.payload), conv=m.conv, reply=m.reply, error=m.error)
-
-
-# ---------------------------------------------------------------------------------------------- events
-
-
-@dataclass(frozen=True)
-class Ready:
-    """The agent started (`how` = "start"), thawed ("thaw") or recovered ("recover") and handled the
-    messages queued for it."""
-
-    agent_id: str
-    how: str = "start"
-
-
-@dataclass(frozen=True)
-class Sent:
-    """A message the agent sent (including responses to requests), in the agent's send order. `env.src` is
-    always the agent's id (the supervisor sets it; an agent cannot pose as another)."""
-
-    agent_id: str
-    env: Envelope
-
-
-@dataclass(frozen=True)
-class Backup:
-    """Alg. 7 l. 3: the agent's backup, for DDB.agents[a].backup."""
-
-    agent_id: str
-    data: bytes
-
-
-@dataclass(frozen=True)
-class Frozen:
-    """Alg. 5 l. 19: the agent's packed state; the process is exiting. Terminal."""
-
-    agent_id: str
-    state: bytes
-
-
-@dataclass(frozen=True)
-class SpawnChild:
-    """The agent asks for a child; answer with `answer(agent_id, req_id, ok, child_id.encode())`."""
-
-    agent_id: str
-    req_id: int
-    type_name: str
-    config: bytes
-    #: the spawn's idempotence key (docs/agents.md, "Idempotent spawn"; "" = always a new child)
-    key: str = ""
-
-
-@dataclass(frozen=True)
-class DdbGet:
-    """Answer with `answer(agent_id, req_id, True, value)` or `answer(..., True, b"", missing=True)`."""
-
-    agent_id: str
-    req_id: int
-    key: str
-
-
-@dataclass(frozen=True)
-class DdbScan:
-    """Answer with `answer(agent_id, req_id, True, b"", keys=[...], values=[...], truncated=...)`."""
-
-    agent_id: str
-    req_id: int
-    prefix: str
-    limit: int
-
-
-@dataclass(frozen=True)
-class DdbPut:
-    """Answer with `answer(agent_id, req_id, ok, b"", error)` once the write is committed (or refused)."""
-
-    agent_id: str
-    req_id: int
-    key: str
-    value: bytes
-    type_name: str = "blob"
-
-
-@dataclass(frozen=True)
-class DdbWrite:
-    """Several DDB ops (`haa.pb.ddb_pb2.DdbOp`) in one batch; answer with `answer(agent_id, req_id, committed,
-    b"", error, op_errors=[...])` once the batch is committed (or refused)."""
-
-    agent_id: str
-    req_id: int
-    ops: tuple[object, ...]
-    atomic: bool = False
-
-
-@dataclass(frozen=True)
-class DdbWatch:
-    """Notify DDB events on keys starting with `prefix` with `notify_watch(agent_id, watch_id, ...)`."""
-
-    agent_id: str
-    watch_id: int
-    prefix: str
-
-
-@dataclass(frozen=True)
-class DdbUnwatch:
-    agent_id: str
-    watch_id: int
-
-
-@dataclass(frozen=True)
-class Stopped:
-    """The agent ended itself normally (or after `stop()`); the process is exiting. Terminal."""
-
-    agent_id: str
-
-
-@dataclass(frozen=True)
-class Failed:
-    """The agent failed; its process is gone. Terminal. `reason`: see the module docstring."""
-
-    agent_id: str
-    reason: str
-
-
-AgentEvent = (
-    Ready | Sent | Backup | Frozen | SpawnChild | DdbGet | DdbScan | DdbPut | DdbWrite | DdbWatch | DdbUnwatch
-    | Stopped | Failed
-)
-
-
-@dataclass
-class AgentStats:
-    """A snapshot of one agent process (see the module docstring, "Measurements")."""
-
-    agent_id: str
-    name: str
-    type_name: str
-    epoch: int
-    pid: int
-    state: str
-    cpu: float = 0.0  # fraction of one core over the last window
-    cpu_seconds: float = 0.0
-    rss: int = 0
-    msgs_in: dict[str, int] = field(default_factory=dict)
-    bytes_in: dict[str, int] = field(default_factory=dict)
-    msgs_out: dict[str, int] = field(default_factory=dict)
-    bytes_out: dict[str, int] = field(default_factory=dict)
-    buffered: int = 0  # messages held here until the agent starts
-    mailbox: int = 0  # items waiting in the agent's mailbox (its last heartbeat)
-    handled: int = 0
-    uptime: float = 0.0
-    spawn_seconds: float = 0.0  # spawn() call -> Hello
-
-
-# ---------------------------------------------------------------------------------------------- instances
-
-LIVE_STATES = ("spawning", "shell", "running", "freezing", "stopping")
 
 
 class _ProtocolError(Exception):
     pass
-
-
-class _Instance:
-    def __init__(self, spec: InstanceSpec) -> None:
-        self.spec = spec
-        self.pid = 0
-        self.proc: psutil.Process | None = None
-        self.fork: ForkServer | None = None  # the fork server that forked it (and reports its exit)
-        self.chan: Channel[pb.AgentToHost] | None = None
-        self.state = "spawning"
-        self.pending: deque[Envelope] = deque()
-        self.task: asyncio.Task[None] | None = None
-        self.exit_reason: str | None = None
-        self.exited = asyncio.Event()
-        self.fail_reason: str | None = None
-        self.agent_error = ""
-        self.terminal = False
-        self.t0 = time.monotonic()
-        self.last_heard = self.t0
-        self.spawn_seconds = 0.0
-        self.msgs_in: defaultdict[str, int] = defaultdict(int)
-        self.bytes_in: defaultdict[str, int] = defaultdict(int)
-        self.msgs_out: defaultdict[str, int] = defaultdict(int)
-        self.bytes_out: defaultdict[str, int] = defaultdict(int)
-        self.cpu = 0.0
-        self.cpu_seconds = 0.0
-        self.cpu_sample: tuple[float, float] | None = None
-        self.cpu_hist: deque[tuple[float, float]] = deque()  # (time, total CPU seconds), for the CPU limit
-        self.rss = 0
-        self.memory_limit = 0  # bytes (0: none)
-        self.cpu_limit = 0.0  # cores (0: none)
-        self.mailbox = 0
-        self.handled = 0
-
-    @property
-    def id(self) -> str:
-        return self.spec.agent_id
-
-    def count_in(self, env: Envelope) -> None:
-        self.msgs_in[env.src] += 1
-        self.bytes_in[env.src] += len(env.payload)
-
-
-def _alive(proc: psutil.Process | None) -> bool:
-    """Whether the process still runs (a zombie does not); False if unknown."""
-    if proc is None:
-        return False
-    try:
-        return proc.is_running() and proc.status() != psutil.STATUS_ZOMBIE
-    except psutil.Error:
-        return False
 
 
 class AgentSupervisor:
@@ -432,11 +188,13 @@ class AgentSupervisor:
         self.preload = list(preload)
         self.preload_types = list(preload_types)
         self.log = logger or LOGGER
-        self._agents: dict[str, _Instance] = {}
-        self._by_pid: dict[int, _Instance] = {}
-        self._unclaimed_exits: dict[int, str] = {}
-        self._fork: ForkServer | None = None
-        self._fork_lock = asyncio.Lock()
+        self._agents: dict[str, AgentInstance] = {}
+        self._procs = ProcessTable()
+        self._types = AgentTypes(self._procs.on_exit, self._on_forkserver_dead, workdir=self.workdir,
+                                 preload=self.preload, preload_types=self.preload_types, log=self.log)
+        self._limits = AgentMonitor(self._agents, heartbeat_period=heartbeat_period, hang_timeout=hang_timeout,
+                                    cpu_window=cpu_window, cpu_limit_window=cpu_limit_window,
+                                    mem_period=mem_period, log=self.log)
         self._monitor: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()  # every instance's task, also of ended ones still exiting
         self._closing = False
@@ -445,9 +203,19 @@ class AgentSupervisor:
         self.spawned = 0
         self.failed = 0
         self.event_errors = 0
-        self.forkserver_restarts = 0
-        self.over_limit = 0
-        self.unchecked_configs = 0
+
+    @property
+    def forkserver_restarts(self) -> int:
+        return self._types.restarts
+
+    @property
+    def over_limit(self) -> int:
+        """Agents killed for being over their type's memory or CPU limit."""
+        return self._limits.over_limit
+
+    @property
+    def unchecked_configs(self) -> int:
+        return self._types.unchecked_configs
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -459,25 +227,8 @@ class AgentSupervisor:
         self._started = True
         if self.workdir is not None:
             (self.workdir / "agents").mkdir(parents=True, exist_ok=True)
-        await self._ensure_forkserver()
-        self._monitor = asyncio.create_task(self._monitor_loop(), name="agent-monitor")
-
-    async def _ensure_forkserver(self) -> ForkServer:
-        async with self._fork_lock:
-            if self._fork is not None and self._fork.alive:
-                return self._fork
-            if self._fork is not None:
-                await self._fork.close()
-                self.forkserver_restarts += 1
-            fs = ForkServer(self._on_exit, on_dead=self._on_forkserver_dead, workdir=self.workdir,
-                            preload=self.preload, preload_types=self.preload_types)
-            await fs.start()
-            for e in fs.load_errors:
-                log_event(self.log, logging.WARNING, "agent_type_load_error", error=e)
-            log_event(self.log, logging.INFO, "agent_forkserver_started", pid=fs.pid, types=fs.known(),
-                      imported=sorted(fs.types), seconds=round(fs.start_seconds, 3))
-            self._fork = fs
-            return fs
+        await self._types.ensure()
+        self._monitor = asyncio.create_task(self._limits.run(), name="agent-monitor")
 
     async def close(self) -> None:
         """Kill every agent process and stop the fork server; no events are reported from here on."""
@@ -486,9 +237,9 @@ class AgentSupervisor:
             self._monitor.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._monitor
-        insts = list({*self._agents.values(), *self._by_pid.values()})
+        insts = list({*self._agents.values(), *self._procs.instances()})
         for inst in insts:
-            self._signal(inst, signal.SIGKILL)
+            inst.signal(signal.SIGKILL)
         tasks = list(self._tasks)
         for t in tasks:
             t.cancel()
@@ -496,40 +247,32 @@ class AgentSupervisor:
         for inst in insts:
             if inst.chan is not None:
                 inst.chan.close()
-        if self._fork is not None:
-            await self._fork.close()
+        await self._types.close()
         self._agents.clear()
 
     # ------------------------------------------------------------------ information
 
     def known_types(self) -> list[str]:
         """The names of every agent type this host can start, imported or not."""
-        return self._fork.known() if self._fork is not None else []
+        return self._types.known()
 
     def imported_type(self, type_name: str) -> pb.AgentTypeInfo | None:
         """The type's info if the fork server has imported it already (no request needed), else None."""
-        return self._fork.types.get(type_name) if self._fork is not None else None
+        return self._types.imported(type_name)
 
     async def type_info(self, type_name: str) -> pb.AgentTypeInfo | None:
         """The type's cost, hardware, transfer penalty, recovery, config model and limits; the fork server imports
         a type registered by name only at this first request. None if the type is unknown here or its module fails
         to import (logged once as `agent_type_load_error`, and in `load_errors`)."""
-        fs = self._fork
-        if fs is None or (type_name not in fs.types and type_name not in fs.lazy):
-            return None
-        try:
-            return await fs.describe(type_name)
-        except SpawnError as e:
-            log_event(self.log, logging.WARNING, "agent_type_load_error", type=type_name, error=str(e))
-            return None
+        return await self._types.info(type_name)
 
     @property
     def load_errors(self) -> list[str]:
-        return list(self._fork.load_errors) if self._fork is not None else []
+        return self._types.load_errors
 
     @property
     def forkserver_pid(self) -> int | None:
-        return self._fork.pid if self._fork is not None else None
+        return self._types.pid
 
     def agents(self) -> list[str]:
         """Ids of the agents with a live process here (spawning, shell, running, freezing, stopping)."""
@@ -569,7 +312,7 @@ class AgentSupervisor:
             for a, inst in self._agents.items()
         }
 
-    def _get(self, agent_id: str) -> _Instance:
+    def _get(self, agent_id: str) -> AgentInstance:
         inst = self._agents.get(agent_id)
         if inst is None:
             raise KeyError(f"agent {agent_id} has no process on host {self.host}")
@@ -582,17 +325,7 @@ class AgentSupervisor:
         config passes unchecked, logged as `agent_config_unchecked` and counted: the spawn is not held up by a
         fork server that could not start the agent anyway, and a config that then fails to start ends with
         the agent `failed` after agenttable.MAX_START_FAILURES tries (docs/agents-host.md)."""
-        info = await self.type_info(type_name)
-        if info is None or not info.has_config:
-            return ""
-        try:
-            fs = await self._ensure_forkserver()
-            return await fs.validate(type_name, config, timeout=timeout)
-        except (SpawnError, OSError) as e:
-            self.unchecked_configs += 1
-            log_event(self.log, logging.WARNING, "agent_config_unchecked", type=type_name, bytes=len(config),
-                      error=str(e))
-            return ""
+        return await self._types.validate(type_name, config, timeout)
 
     # ------------------------------------------------------------------ spawning
 
@@ -609,11 +342,11 @@ class AgentSupervisor:
                 f"agent_id: {spec.agent_id} ({old.spec.name}) already has a process here (pid {old.pid}, {old.state})"
             )
         t0 = time.perf_counter()
-        inst = _Instance(spec)
+        inst = AgentInstance(spec)
         self._agents[spec.agent_id] = inst
         host_sock, agent_sock = socket.socketpair()
         try:
-            fs = await self._ensure_forkserver()
+            fs = await self._types.ensure()
             if spec.type_name in fs.lazy:  # imported in the zygote now, and its limits known before the fork
                 await fs.describe(spec.type_name)
             inst.chan = await Channel.open(host_sock, pb.AgentToHost, max_frame=self.max_frame)
@@ -629,12 +362,7 @@ class AgentSupervisor:
             agent_sock.close()
             inst.pid = pid
             inst.fork = fs
-            self._by_pid[pid] = inst
-            early = self._unclaimed_exits.pop(pid, None)
-            if early is not None:
-                inst.exit_reason = early
-                inst.exited.set()
-                self._by_pid.pop(pid, None)
+            self._procs.add(inst)
             with contextlib.suppress(psutil.Error):
                 inst.proc = psutil.Process(pid)
             try:
@@ -649,14 +377,14 @@ class AgentSupervisor:
                 if msg is not None and kind == "error":
                     why = msg.error.message
                 elif msg is None:
-                    await self._wait_exit(inst, 1.0)
+                    await self._procs.wait_exit(inst, 1.0)
                     why = f"the process ended before hello ({inst.exit_reason or 'status unknown'})"
                 else:
                     why = f"expected hello, got {kind}"
                 raise SpawnError(f"agent {spec.name} ({spec.type_name}) did not start: {why}")
         except BaseException as e:
             agent_sock.close()
-            self._signal(inst, signal.SIGKILL)
+            inst.signal(signal.SIGKILL)
             inst.state = "failed"
             inst.terminal = True
             if inst.chan is not None:
@@ -672,7 +400,7 @@ class AgentSupervisor:
             raise SpawnError(f"agent {spec.name}: {type(e).__name__}: {e}") from e
         inst.state = "shell"
         inst.last_heard = time.monotonic()
-        self._set_limits(inst, fs)
+        self._limits.set_limits(inst, fs.types.get(spec.type_name))
         inst.spawn_seconds = time.perf_counter() - t0
         self.spawned += 1
         inst.task = asyncio.create_task(self._serve(inst), name=f"agent-{spec.name}")
@@ -681,36 +409,9 @@ class AgentSupervisor:
         log_event(self.log, logging.INFO, "agent_spawned", agent=spec.agent_id, name=spec.name, type=spec.type_name,
                   epoch=spec.epoch, pid=inst.pid, ms=round(inst.spawn_seconds * 1e3, 2))
 
-    def _set_limits(self, inst: _Instance, fs: ForkServer) -> None:
-        """The type's resource limits for this instance; the address-space cap on its process."""
-        info = fs.types.get(inst.spec.type_name)
-        if info is None:
-            return
-        inst.memory_limit = int(info.memory_limit_mb) * MIB
-        inst.cpu_limit = float(info.cpu_limit)
-        if not inst.memory_limit or inst.proc is None:
-            return
-        try:
-            vms = inst.proc.memory_info().vms
-            cap = vms + AS_MARGIN_FACTOR * inst.memory_limit
-            inst.proc.rlimit(psutil.RLIMIT_AS, (cap, cap))
-        except (psutil.Error, OSError, ValueError, AttributeError) as e:
-            log_event(self.log, logging.WARNING, "agent_rlimit_failed", agent=inst.id, name=inst.spec.name,
-                      error=f"{type(e).__name__}: {e}")
-
-    def _over_limit(self, inst: _Instance, reason: str) -> None:
-        """Kill an agent over one of its type's limits; Failed(reason) follows."""
-        if inst.fail_reason is not None or inst.terminal:
-            return
-        inst.fail_reason = reason
-        self.over_limit += 1
-        log_event(self.log, logging.WARNING, "agent_over_limit", agent=inst.id, name=inst.spec.name,
-                  type=inst.spec.type_name, pid=inst.pid, reason=reason)
-        self._signal(inst, signal.SIGKILL)
-
     # ------------------------------------------------------------------ driving an agent
 
-    def _send(self, inst: _Instance, msg: pb.HostToAgent) -> bool:
+    def _send(self, inst: AgentInstance, msg: pb.HostToAgent) -> bool:
         """Queue a frame to the agent; False if its channel is already broken (its task reports that)."""
         assert inst.chan is not None
         try:
@@ -794,7 +495,7 @@ class AgentSupervisor:
         if inst is None:
             return False
         log_event(self.log, logging.INFO, "agent_kill", agent=agent_id, name=inst.spec.name, pid=inst.pid)
-        return self._signal(inst, signal.SIGKILL)
+        return inst.signal(signal.SIGKILL)
 
     def answer(self, agent_id: str, req_id: int, ok: bool, value: bytes, error: str = "", *,
                missing: bool = False, op_errors: Sequence[str] = (), keys: Sequence[str] = (),
@@ -831,7 +532,7 @@ class AgentSupervisor:
             log_event(self.log, logging.ERROR, "agent_event_callback_error", kind=type(ev).__name__,
                       agent=ev.agent_id, error=f"{type(e).__name__}: {e}")
 
-    def _on_frame(self, inst: _Instance, msg: pb.AgentToHost) -> None:
+    def _on_frame(self, inst: AgentInstance, msg: pb.AgentToHost) -> None:
         kind = msg.WhichOneof("msg")
         a = inst.id
         if kind == "heartbeat":
@@ -888,7 +589,7 @@ class AgentSupervisor:
         else:  # hello again, or something unknown
             raise _ProtocolError(f"unexpected {kind} frame in state {inst.state}")
 
-    def _agent_log(self, inst: _Instance, m: pb.AgentToHost.Log) -> None:
+    def _agent_log(self, inst: AgentInstance, m: pb.AgentToHost.Log) -> None:
         level = _LOG_LEVELS.get(m.level, logging.INFO)
         try:
             fields = json.loads(m.fields_json) if m.fields_json else {}
@@ -899,7 +600,7 @@ class AgentSupervisor:
         fields.update(agent=inst.id, agent_name=inst.spec.name, agent_type=inst.spec.type_name)
         log_event(self.log, level, m.event or "agent_log", **fields)
 
-    async def _serve(self, inst: _Instance) -> None:
+    async def _serve(self, inst: AgentInstance) -> None:
         """Read the agent's frames until it ends; then report Frozen/Stopped (already done) or Failed."""
         assert inst.chan is not None
         try:
@@ -913,7 +614,7 @@ class AgentSupervisor:
                     break
         except (ChannelError, _ProtocolError) as e:
             # a process that dies with unread input resets its socket: then the exit status is the reason
-            if inst.fail_reason is None and not await self._wait_exit(inst, 0.2):
+            if inst.fail_reason is None and not await self._procs.wait_exit(inst, 0.2):
                 inst.fail_reason = f"channel error: {e}"
         except asyncio.CancelledError:
             inst.chan.close()
@@ -925,16 +626,16 @@ class AgentSupervisor:
             # Frozen / Stopped were reported; the process exits by itself (or is made to)
             inst.chan.close()
             self._retire(inst)
-            await self._wait_gone(inst, 3.0)
+            await self._procs.wait_gone(inst, 3.0)
             return
         # close first: an agent that ended (a fatal error) half-closes and waits for us to close
         # (haa.sdk.runner._linger), so that our writes never break the pipe before we read its last frames
         inst.chan.close()
-        if inst.fail_reason is None and not await self._wait_exit(inst, 1.0):
+        if inst.fail_reason is None and not await self._procs.wait_exit(inst, 1.0):
             inst.fail_reason = "channel error: the agent closed its channel but did not exit"
         if inst.fail_reason is not None:
-            self._signal(inst, signal.SIGKILL)
-        await self._wait_gone(inst, 5.0)
+            inst.signal(signal.SIGKILL)
+        await self._procs.wait_gone(inst, 5.0)
         reason = inst.fail_reason or inst.exit_reason or "exited (status unknown)"
         if inst.agent_error and inst.fail_reason is None:
             reason = f"{reason} (agent error: {inst.agent_error})"
@@ -946,159 +647,12 @@ class AgentSupervisor:
                   type=inst.spec.type_name, pid=inst.pid, reason=reason)
         self._emit(Failed(inst.id, reason))
 
-    def _retire(self, inst: _Instance) -> None:
+    def _retire(self, inst: AgentInstance) -> None:
         if self._agents.get(inst.id) is inst:
             del self._agents[inst.id]
-
-    async def _wait_exit(self, inst: _Instance, timeout: float) -> bool:
-        """Wait up to `timeout` for the process's exit; True once it is gone. The fork server reports exits;
-        if the one that forked this agent died (its children die with it), psutil tells instead."""
-        end = time.monotonic() + timeout
-        while not inst.exited.is_set():
-            orphan = inst.fork is not None and not inst.fork.alive
-            if orphan and not _alive(inst.proc):
-                self._set_exited(inst, "fork server died: exit status unknown")
-                break
-            left = end - time.monotonic()
-            if left <= 0:
-                return False
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(inst.exited.wait(), min(left, 0.05) if orphan else left)
-        return True
-
-    def _set_exited(self, inst: _Instance, reason: str) -> None:
-        if inst.exit_reason is None:
-            inst.exit_reason = reason
-        if self._by_pid.get(inst.pid) is inst:
-            del self._by_pid[inst.pid]
-        inst.exited.set()
-
-    async def _wait_gone(self, inst: _Instance, timeout: float) -> None:
-        """Wait until the process is gone; SIGKILL it if it does not go in time."""
-        if await self._wait_exit(inst, timeout):
-            return
-        self._signal(inst, signal.SIGKILL)
-        if await self._wait_exit(inst, 1.0):
-            return
-        # the fork server is slow or stuck: ask the kernel
-        if inst.proc is not None:
-            with contextlib.suppress(psutil.Error):
-                await asyncio.to_thread(inst.proc.wait, 2.0)
-        self._set_exited(inst, "exit status unknown: the fork server did not report it")
-
-    def _signal(self, inst: _Instance, sig: int) -> bool:
-        """Signal the agent's process unless it is known to be gone."""
-        if not inst.pid or inst.exited.is_set():
-            return False
-        try:
-            if inst.proc is not None:
-                inst.proc.send_signal(sig)  # psutil checks the pid was not reused
-            else:
-                os.kill(inst.pid, sig)
-            return True
-        except (psutil.Error, ProcessLookupError, PermissionError):
-            return False
-
-    def _on_exit(self, pid: int, reason: str) -> None:
-        inst = self._by_pid.pop(pid, None)
-        if inst is None:
-            self._unclaimed_exits[pid] = reason  # exited before spawn() recorded its pid
-            while len(self._unclaimed_exits) > 1000:
-                self._unclaimed_exits.pop(next(iter(self._unclaimed_exits)))
-            return
-        inst.exit_reason = reason
-        inst.exited.set()
 
     def _on_forkserver_dead(self, reason: str) -> None:
         if self._closing:
             return
         log_event(self.log, logging.ERROR, "agent_forkserver_died", reason=reason,
                   agents=len(self._agents))
-
-    # ------------------------------------------------------------------ monitor: hangs and CPU
-
-    async def _monitor_loop(self) -> None:
-        tick = max(0.02, min(self.heartbeat_period / 4, self.mem_period))
-        last = time.monotonic()
-        last_cpu = 0.0
-        last_mem = 0.0
-        while True:
-            await asyncio.sleep(tick)
-            now = time.monotonic()
-            gap = now - last
-            last = now
-            if gap > max(tick * 4, self.hang_timeout / 2):
-                # this loop did not run for a while: the agents' frames may be sitting unread in the sockets
-                log_event(self.log, logging.WARNING, "agent_monitor_stalled", seconds=round(gap, 3))
-                for inst in self._agents.values():
-                    inst.last_heard = max(inst.last_heard, now)
-                continue
-            for inst in list(self._agents.values()):
-                if inst.state in ("spawning",) or inst.fail_reason is not None or inst.terminal:
-                    continue
-                silent = now - inst.last_heard
-                if silent > self.hang_timeout:
-                    inst.fail_reason = f"hung: no heartbeat for {silent:.1f} s"
-                    log_event(self.log, logging.WARNING, "agent_hung", agent=inst.id, name=inst.spec.name,
-                              pid=inst.pid, silent=round(silent, 3))
-                    self._signal(inst, signal.SIGKILL)
-            if now - last_cpu >= self.cpu_window:
-                last_cpu = now
-                last_mem = now
-                self._sample_cpu(now)
-            elif now - last_mem >= self.mem_period:
-                last_mem = now
-                self._sample_memory()
-
-    def _sample_memory(self) -> None:
-        """RSS of the agents with a memory limit, checked against it (between CPU samples)."""
-        for inst in list(self._agents.values()):
-            if inst.proc is None or not inst.memory_limit or inst.fail_reason is not None or inst.terminal:
-                continue
-            try:
-                inst.rss = inst.proc.memory_info().rss
-            except psutil.Error:
-                continue
-            self._check_memory(inst)
-
-    def _check_memory(self, inst: _Instance) -> None:
-        if inst.memory_limit and inst.rss > inst.memory_limit:
-            self._over_limit(inst, f"over its memory limit of {inst.memory_limit // MIB} MiB "
-                                   f"(RSS {inst.rss / MIB:.0f} MiB)")
-
-    def _check_cpu(self, inst: _Instance, now: float, total: float) -> None:
-        """The CPU share over the last `cpu_limit_window` seconds (once that much has been sampled)."""
-        if not inst.cpu_limit:
-            return
-        h = inst.cpu_hist
-        h.append((now, total))
-        while len(h) > 2 and now - h[1][0] >= self.cpu_limit_window:
-            h.popleft()
-        t0, c0 = h[0]
-        span = now - t0
-        if span >= self.cpu_limit_window * 0.95:
-            share = (total - c0) / span
-            if share > inst.cpu_limit:
-                self._over_limit(inst, f"over its CPU limit of {inst.cpu_limit:g} cores "
-                                       f"({share:.2f} over {span:.0f} s)")
-
-    def _sample_cpu(self, now: float) -> None:
-        for inst in list(self._agents.values()):
-            if inst.proc is None:
-                continue
-            try:
-                with inst.proc.oneshot():
-                    t = inst.proc.cpu_times()
-                    inst.rss = inst.proc.memory_info().rss
-            except psutil.Error:
-                continue
-            total = t.user + t.system
-            if inst.cpu_sample is not None:
-                t_prev, c_prev = inst.cpu_sample
-                if now > t_prev:
-                    inst.cpu = max(0.0, (total - c_prev) / (now - t_prev))
-            inst.cpu_sample = (now, total)
-            inst.cpu_seconds = total
-            if inst.fail_reason is None and not inst.terminal and inst.state != "spawning":
-                self._check_memory(inst)
-                self._check_cpu(inst, now, total)

@@ -6,7 +6,7 @@ Why: a grpc.aio stream write plus the read at the peer costs ~0.25 ms of CPU wha
 asyncio TCP write (haa/lab/bench/transport_grpc_vs_tcp.py), and a 10-host OAC needs ~80-90 frames. This module is only
 the carrier: the link semantics — per-link sequence numbers, cumulative acks, resend from `acked_seq + 1` after a
 reconnect, duplicate drop, receiver and sender incarnation changes, the incarnation-claim rules, lazy messages,
-the counters — are `transport.OutLink` and `Transport._admit` / `Transport.on_frame`, shared by both carriers.
+the counters — are `outlink.OutLink` and `Transport._admit` / `Transport.on_frame`, shared by both carriers.
 gRPC stays the carrier of every service (control API, agents, DDB clients) and the default of the host link.
 
 Wire format. Every message in either direction is a 5-byte header — kind (1 byte), payload length (4 bytes,
@@ -68,58 +68,40 @@ import socket
 import ssl
 import struct
 import tempfile
-from collections import Counter, deque
-from collections.abc import Awaitable, Callable
+from collections import deque
 from typing import Any, Protocol
 
 import grpc
 from grpc import aio
 
 from haa import tls as tlsmod
-from haa.hostd.linkcommon import MD_TOKEN, LinkDown, LinkGap, LinkRefused, Refusal, parse_incarnation, split_address
-from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
+from haa.hostd.linkcommon import (
+    MAX_MESSAGE,
+    MD_TOKEN,
+    Acks,
+    LinkDown,
+    LinkGap,
+    LinkHost,
+    LinkRefused,
+    Refusal,
+    RxState,
+    parse_incarnation,
+    split_address,
+)
+from haa.hostd.logs import LOGGER_NAME, log_event
 
 log = logging.getLogger(LOGGER_NAME + ".tcplink")
 
 
-class Transport(Protocol):
-    """What this carrier uses of `haa.hostd.transport.Transport` (which imports this module, so it is not
-    imported here): its settings, counters, and the checks and frame handling both carriers share."""
-
-    token: str
-    carrier: str
-    tls: tlsmod.HostTls | None
-    stall_timeout: float
-    counters: Counter[str]
-    limiter: RateLimiter
-
-    def check_token(self, metadata: Any) -> bool: ...
-
-    def _admit(self, md: dict[str, str], token_ok: bool, peer: str,
-               ident: tuple[str, str] | None) -> tuple[str, int, Any, bytes | None]: ...
-
-    def _reject(self, counter: str, event: str, **fields: Any) -> None: ...
-
-    def _opened_stream(self, handle: Any, sender: str, inc: int) -> None: ...
-
-    def _closed_stream(self, handle: Any, sender: str, st: Any) -> None: ...
-
-    def handshake_reply(self, st: Any) -> bytes: ...
-
-    def acker(self, write: Callable[[bytes], Awaitable[None]], st: Any) -> Any: ...
-
-    def on_frame(self, data: bytes, sender: str, inc: int, st: Any) -> bool: ...
-
-
 class OutLink(Protocol):
-    """What this carrier uses of a `haa.hostd.transport.OutLink`: whom it links to, and its gRPC channel."""
+    """What this carrier uses of a `haa.hostd.outlink.OutLink`: whom it links to, and its gRPC channel."""
 
     peer: str
     address: str
     _channel: aio.Channel | None
 
     @property
-    def t(self) -> Transport: ...
+    def t(self) -> LinkHost: ...
 
 #: kind byte + payload length
 HEADER = struct.Struct(">BI")
@@ -130,8 +112,8 @@ REFUSE = 4
 HELLO_MAGIC = b"HAAlink1\n"
 #: the largest hello (before the handshake nothing larger is buffered) and reply/refusal a sender accepts
 MAX_HELLO = 4096
-#: the largest frame, as the gRPC carrier's `transport.MAX_MESSAGE` (a joiner's whole state is one message)
-MAX_FRAME = 64 << 20
+#: the largest frame, as the gRPC carrier's (`linkcommon.MAX_MESSAGE`: a joiner's whole state is one message)
+MAX_FRAME = MAX_MESSAGE
 #: a connection that leaves its hello, or a frame, unfinished this long (plus the frame's length at MIN_RATE)
 #: is closed (`rejected_stalled`)
 STALL_TIMEOUT = 10.0
@@ -217,7 +199,7 @@ class _Framed(asyncio.Protocol):
     """Length-prefixed messages on a stream connection (see the module docstring): `on_message(kind, payload)`
     for each whole one; at most one unfinished message is buffered, and it must finish in time."""
 
-    def __init__(self, t: Transport) -> None:
+    def __init__(self, t: LinkHost) -> None:
         self.t = t
         self.tr: asyncio.Transport | None = None
         self.closed = False
@@ -333,14 +315,14 @@ class _Framed(asyncio.Protocol):
 
 class ServerConn(_Framed):
     """One inbound TCP link: the hello and the checks of `Transport._admit`, then frames to `Transport.on_frame`
-    and acks by the shared `_Acker`."""
+    and acks by the shared `Acker`."""
 
-    def __init__(self, t: Transport) -> None:
+    def __init__(self, t: LinkHost) -> None:
         super().__init__(t)
         self.sender = ""
         self.inc = 0
-        self.st: Any = None  # the sender's `transport._RxState` once the hello was accepted
-        self.acker: Any = None  # its `transport._Acker`
+        self.st: RxState | None = None  # the sender's receive state once the hello was accepted
+        self.acker: Acks | None = None  # its acks (`transport.Acker`)
         self.peer = "?"
         self._hello_timer: asyncio.TimerHandle | None = None
 
@@ -438,7 +420,7 @@ class ServerConn(_Framed):
             self.st = None
 
 
-async def serve(t: Transport, host: str, port: int) -> tuple[asyncio.AbstractServer, int]:
+async def serve(t: LinkHost, host: str, port: int) -> tuple[asyncio.AbstractServer, int]:
     """Listen for TCP links of transport `t` on `host:port` (see `Transport.open_tcp`)."""
     bind: str | None = host.strip("[]")
     if bind in ("", "::", "0.0.0.0"):
@@ -455,10 +437,10 @@ async def serve(t: Transport, host: str, port: int) -> tuple[asyncio.AbstractSer
 
 
 class ClientConn(_Framed):
-    """One outbound TCP link as a `transport.LinkCall`: replies are read (rarely: a handshake, then acks at most
+    """One outbound TCP link as a `linkcommon.LinkCall`: replies are read (rarely: a handshake, then acks at most
     once a `Transport.ack_interval`), frames written."""
 
-    def __init__(self, t: Transport) -> None:
+    def __init__(self, t: LinkHost) -> None:
         super().__init__(t)
         self._replies: deque[bytes] = deque()
         self._refusal: Exception | None = None

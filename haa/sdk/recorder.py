@@ -271,7 +271,7 @@ class Recorder:
         self.outputs += 1
         self._write(TOPIC_OUTPUT, msg.SerializeToString(), msg.seq, ns)
 
-    # ------------------------------------------------------------------ the tap (haa.sdk.base.AgentContext)
+    # ------------------------------------------------------------------ the tap (haa.sdk.context.AgentContext)
 
     def wrap_emit(self, emit: Callable[[pb.AgentToHost], None]) -> Callable[[pb.AgentToHost], None]:
         def recorded(frame: pb.AgentToHost) -> None:
@@ -296,7 +296,7 @@ class Recorder:
         self.input(ppb.PlaybackInput(freeze_fed=True))
 
     def item(self, kind: str, data: Any) -> None:
-        """The mailbox worker took this item (haa.sdk.base.AgentContext._take_item)."""
+        """The mailbox worker took this item (haa.sdk.context.AgentContext._take_item)."""
         self.input(item_input(kind, data))
 
     def answer(self, req_id: int, ans: pb.HostToAgent.Answer | None) -> None:
@@ -337,7 +337,7 @@ def output_of(frame: pb.AgentToHost) -> ppb.PlaybackOutput:
 
 
 def item_input(kind: str, data: Any) -> ppb.PlaybackInput:
-    """The PlaybackInput of a mailbox item (haa.sdk.base.AgentContext's mailbox kinds)."""
+    """The PlaybackInput of a mailbox item (haa.sdk.context.AgentContext's mailbox kinds)."""
     if kind == "msg":
         return ppb.PlaybackInput(message=data)
     if kind == "timer":

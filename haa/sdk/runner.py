@@ -32,8 +32,8 @@ from typing import Any, TypeVar
 from haa.pb import agent_pb2 as pb
 from haa.sdk import registry
 from haa.sdk import tap as agent_tap
-from haa.sdk.base import AgentContext, AgentFatal
 from haa.sdk.channel import DEFAULT_MAX_FRAME, Channel, ChannelError
+from haa.sdk.context import AgentContext, AgentFatal
 from haa.sdk.sched import AsyncioScheduler
 
 #: how long a new process waits for its Init frame

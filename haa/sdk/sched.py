@@ -1,6 +1,6 @@
 """The clock and scheduler an agent runs on (issue 17, item 4): wall time in a process, virtual time in the simulator.
 
-Everything in an agent's runtime (`haa.sdk.base.AgentContext`) that depends on time or waits goes
+Everything in an agent's runtime (`haa.sdk.context.AgentContext`) that depends on time or waits goes
 through one `AgentScheduler`:
 
 * `time()` and `call_at(when, fn)` — the base of the agent's timers (`call_later`, `every`) and a handle to

@@ -31,8 +31,8 @@ if TYPE_CHECKING:
 
 
 class SimCollector:
-    """See the module docstring. `core` is haa-sim's `haa.sim.service.SimCore`, `service` its `SimService`
-    (typed Any: haa.sim.service imports this module, and modules of a package form no import cycle)."""
+    """See the module docstring. `core` is haa-sim's `haa.sim.simcore.SimCore`, `service` its
+    `haa.sim.servicer.SimService` (typed Any, as haa.sim.service, which imports this module, passes them)."""
 
     def __init__(self, core: Any, service: Any) -> None:
         self.core = core

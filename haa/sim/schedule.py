@@ -18,7 +18,7 @@ A schedule file is read by `haa.files` (at most 1 MiB, 64 levels, 100,000 nodes,
 at most `MAX_ENTRIES` entries (docs/limits.md).
 
 The world applies every entry exactly at its time (a `World.step` that spans it is split there); entries
-with the same time apply in file order. The gRPC API can do the same on demand (haa.sim.service).
+with the same time apply in file order. The gRPC API can do the same on demand (haa.sim.servicer).
 """
 
 from __future__ import annotations

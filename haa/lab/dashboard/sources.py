@@ -475,7 +475,7 @@ class TruthPoller(Source):
         return None
 
     def run(self) -> None:
-        from haa.sim.service import SimClient
+        from haa.sim.client import SimClient
 
         while not self.stopped.is_set():
             target = self.find()

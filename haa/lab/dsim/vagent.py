@@ -5,7 +5,7 @@ a counter that stands in for an agent process. This module runs a *real* `AgentB
 `haa.agents.executive_mission.ExecutiveMission`, the mission's top agent (App. III L3047-3051) — with its
 own code, unchanged, on the simulator's clock (issue 17, item 4):
 
-* **Its runtime.** Each instance is an `haa.sdk.base.AgentContext`, the very object the agent runner
+* **Its runtime.** Each instance is an `haa.sdk.context.AgentContext`, the very object the agent runner
   builds in an agent process, given a `haa.sdk.sched.VirtualScheduler` instead of the asyncio loop: its
   timers (`every`, `call_later`), the awaits of its requests and DDB calls and their timeouts, and its
   mailbox worker are events on the cluster's event heap (`SimCluster.at`), and `now()` is the simulated
@@ -104,7 +104,7 @@ from haa.lab.dsim.cluster import ALIVE, SimHost
 from haa.lab.dsim.group import GroupViolation
 from haa.pb import agent_pb2 as pb
 from haa.sdk import registry
-from haa.sdk.base import AgentContext
+from haa.sdk.context import AgentContext
 from haa.sdk.sched import VirtualScheduler
 
 #: the real agent type run on virtual time, and the children it spawns (run as SimAgent shells)

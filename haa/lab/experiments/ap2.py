@@ -20,7 +20,6 @@ The process start-up (Python imports, ~0.5-1 s on this machine) is not part of a
 
 from __future__ import annotations
 
-import os
 import statistics
 import time
 from collections.abc import Callable
@@ -29,7 +28,7 @@ from typing import Any
 
 import grpc
 
-from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberGroup, MemberHost, wait_for
 
 CORE = 3
 
@@ -48,20 +47,14 @@ def _view_at(host: MemberHost, since: float, pred: Callable[[dict[str, Any]], bo
 class Ap2Run:
     def __init__(self, root: Path, max_hosts: int, log: Callable[[str], None]) -> None:
         self.root = root
-        root.mkdir(parents=True, exist_ok=True)
-        self.token = os.urandom(16).hex()
-        (root / "token").write_text(self.token + "\n")
-        names = [f"h{i}" for i in range(1, max_hosts + 1)]
-        ports = {n: free_port() for n in names}
-        core = {n: f"127.0.0.1:{ports[n]}" for n in names[:CORE]}
         # membership only: the agent layer's own transactions would add OAC traffic to what AP-2 measures
-        self.hosts = {n: MemberHost(n, ports[n], core, root, self.token, ["--no-agents"]) for n in names}
+        self.cluster = MemberGroup(root, max_hosts, core=CORE, args=["--no-agents"])
+        self.token = self.cluster.token
+        self.hosts = self.cluster.hosts
         self.log = log
 
     def close(self) -> None:
-        for h in self.hosts.values():
-            h.kill()
-            h.client.close()
+        self.cluster.close()
 
     def group(self, n: int) -> list[MemberHost]:
         return [self.hosts[f"h{i}"] for i in range(1, n + 1)]

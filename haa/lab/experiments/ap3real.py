@@ -193,7 +193,7 @@ def run_group(n: int, agents: Iterable[int], reps: int, root: Path, seed: int = 
     rng = random.Random(f"ap3real-{seed}-{n}")
     rows = []
     with BenchCluster(root, n) as c:
-        took = c.start()
+        took = c.form()
         log(f"n={n}: group formed in {took:.1f} s")
         c.wait_quiet()
         have = 0

@@ -55,7 +55,7 @@ from typing import Any
 
 import grpc
 
-from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberGroup, MemberHost, wait_for
 from haa.lab.experiments.ap1 import percentile
 from haa.lab.experiments.benchagents import THESIS_STATE_BYTES
 
@@ -168,49 +168,29 @@ class EventTap:
 # ----------------------------------------------------------------------------------------- the cluster
 
 
-class BenchCluster:
+class BenchCluster(MemberGroup):
     """n membership-mode hosts h1..hn on loopback (h1-h3 core), their timeline, and helpers."""
 
     def __init__(self, root: Path, n: int, args: Iterable[str] = HOSTD_ARGS) -> None:
-        self.root = root
-        root.mkdir(parents=True, exist_ok=True)
-        self.token = os.urandom(16).hex()
-        (root / "token").write_text(self.token + "\n")
-        names = [f"h{i}" for i in range(1, n + 1)]
-        ports = {x: free_port() for x in names}
-        core = {x: f"127.0.0.1:{ports[x]}" for x in names[:CORE]}
-        self.hosts = {x: MemberHost(x, ports[x], core, root, self.token, list(args)) for x in names}
-        self.names = names
+        super().__init__(root, n, core=CORE, args=list(args))
         self.tap = EventTap()
 
     def __enter__(self) -> BenchCluster:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def close(self) -> None:
         self.tap.close()
-        for h in self.hosts.values():
-            h.kill()
-            h.client.close()
+        super().close()
 
-    def start(self, timeout: float = 120.0) -> float:
-        t0 = time.monotonic()
-        for h in self.hosts.values():
-            h.start()
-        self.wait_group(timeout)
+    def form(self, timeout: float = 120.0, *, what: str | None = None, interval: float = 0.1) -> float:
+        """Start the hosts, wait until they form one group, then follow every host's timeline."""
+        took = super().form(timeout, what=what, interval=interval)
         for h in self.hosts.values():
             self.tap.follow(h)
-        return time.monotonic() - t0
-
-    def members(self, name: str) -> list[str]:
-        return list(self.hosts[name].status().members)
+        return took
 
     def wait_group(self, timeout: float = 120.0, names: list[str] | None = None) -> None:
-        want = set(names or self.names)
-        wait_for(lambda: all(set(self.members(x)) == want for x in want), timeout, f"the group {sorted(want)}",
-                 interval=0.1)
+        self.wait_members(timeout, names, interval=0.1)
 
     @property
     def h1(self) -> MemberHost:
@@ -470,7 +450,7 @@ def run_one(n: int, reps: int, root: Path, state_bytes: int = THESIS_STATE_BYTES
     """All four actions on a fresh group of n hosts; the samples and their summaries."""
     load0 = os.getloadavg()[0]
     with BenchCluster(root, n) as c:
-        took = c.start()
+        took = c.form()
         log(f"n={n}: group formed in {took:.1f} s")
         c.wait_quiet()
         samples: dict[str, list[dict[str, Any]]] = {

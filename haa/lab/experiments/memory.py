@@ -35,7 +35,7 @@ from typing import Any
 
 import psutil
 
-from haa.cluster.hostprocs import MemberHost, free_port, wait_for
+from haa.cluster.hostprocs import MemberGroup, MemberHost, wait_for
 from haa.core.ddb import agenttable as at
 from haa.core.ddb import objects as ddb
 from haa.core.ddb.ops import encode_batch, put
@@ -49,14 +49,9 @@ MiB = 1 << 20
 
 def start_group(root: Path, token: str, names: list[str] = NAMES, args: list[str] = ARGS) -> dict[str, MemberHost]:
     """Start a membership group on loopback and wait until every host sees every other as a member."""
-    (root / "token").write_text(token + "\n")
-    ports = {n: free_port() for n in names}
-    core = {n: f"127.0.0.1:{ports[n]}" for n in names if n in CORE}
-    hs = {n: MemberHost(n, ports[n], core, root, token, args) for n in names}
-    for h in hs.values():
-        h.start()
-    wait_for(lambda: all(len(h.status().members) == len(names) for h in hs.values()), 60, "a group of 4")
-    return hs
+    group = MemberGroup(root, names, core=[n for n in names if n in CORE], token=token, args=args)
+    group.form(60, what="a group of 4")
+    return group.hosts
 
 
 def max_blob_batch(prefix: str = "bench/mem/blob") -> list[Any]:

@@ -35,14 +35,15 @@ from haa.lab.playback.reader import Instance
 from haa.pb import agent_pb2 as pb
 from haa.pb import playback_pb2 as ppb
 from haa.sdk import registry
-from haa.sdk.base import AgentContext, AgentFatal, Clock
+from haa.sdk.context import AgentContext, AgentFatal
+from haa.sdk.sched import Clock
 
 #: no input taken for this long (wall seconds) while some remain: the replay diverged
 STALL_S = 2.0
 #: after the last input, how long the agent may still run (its last handler) before the replay ends
 SETTLE_S = 0.3
 
-#: the mailbox kinds (haa.sdk.base.AgentContext) among the PlaybackInput fields
+#: the mailbox kinds (haa.sdk.context.AgentContext) among the PlaybackInput fields
 ITEM_KINDS = frozenset({"begin", "message", "timer", "watch", "log_item", "resume", "freeze", "stop"})
 
 
