@@ -63,54 +63,22 @@ def hostd_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "haa.hostd.daemon"]
 
 
-def member_command(
-    name: str,
-    address: str,
-    core: dict[str, str],
-    token_file: Path,
-    data_dir: Path,
-    args: list[str] | None = None,
-) -> list[str]:
+def _command(flag: str, name: str, address: str, hosts: dict[str, str], token_file: Path, data_dir: Path,
+             args: list[str] | None) -> list[str]:
+    return [*hostd_command(), "--name", name, "--listen", address, flag, ",".join(f"{n}={a}" for n, a in hosts.items()),
+            "--token-file", str(token_file), "--data-dir", str(data_dir), *(args or [])]
+
+
+def member_command(name: str, address: str, core: dict[str, str], token_file: Path, data_dir: Path,
+                   args: list[str] | None = None) -> list[str]:
     """The command line of a membership-mode host (Alg. 3): it finds the group through the core list."""
-    return [
-        *hostd_command(),
-        "--name",
-        name,
-        "--listen",
-        address,
-        "--core",
-        ",".join(f"{n}={a}" for n, a in core.items()),
-        "--token-file",
-        str(token_file),
-        "--data-dir",
-        str(data_dir),
-        *(args or []),
-    ]
+    return _command("--core", name, address, core, token_file, data_dir, args)
 
 
-def static_command(
-    name: str,
-    address: str,
-    peers: dict[str, str],
-    token_file: Path,
-    data_dir: Path,
-    args: list[str] | None = None,
-) -> list[str]:
+def static_command(name: str, address: str, peers: dict[str, str], token_file: Path, data_dir: Path,
+                   args: list[str] | None = None) -> list[str]:
     """The command line of a static-mode host: it links to every peer of a fixed list (full mesh)."""
-    return [
-        *hostd_command(),
-        "--name",
-        name,
-        "--listen",
-        address,
-        "--peers",
-        ",".join(f"{n}={a}" for n, a in peers.items()),
-        "--token-file",
-        str(token_file),
-        "--data-dir",
-        str(data_dir),
-        *(args or []),
-    ]
+    return _command("--peers", name, address, peers, token_file, data_dir, args)
 
 
 def write_token(path: Path, token: str, *, private: bool = False) -> None:
