@@ -816,7 +816,7 @@ def test_host_alive_and_serving_after_the_control_fuzzing(host: MemberHost) -> N
     assert c.get("core_errors", 0) == 0, dict(c)
     # the handlers' exceptions (control_errors) were all proper statuses: none was a bug
     assert not host.events(0, {"control_internal_error"}), host.events(0, {"control_internal_error"})[:3]
-    r = host.client.ddb_write([ddbmod.put("fuzz/after", "blob", b"1")], timeout=10)
+    r = host.client.ddb_write([put("fuzz/after", "blob", b"1")], timeout=10)
     assert r.committed, r
 
 

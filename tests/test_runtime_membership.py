@@ -294,7 +294,8 @@ def test_group_commit_merges_concurrent_writes_and_keeps_each_requests_results(t
                 assert [o.key for o in r.results] == [f"k{i}", f"k{i}"] and all(o.ok for o in r.results)
             assert not res[30].results[0].ok and res[30].merged == 1
             assert [o.ok for o in res[31].results] == [True, False]
-            db = rt.node.state.ddb  # type: ignore[union-attr]
+            assert rt.mnode is not None
+            db = rt.mnode.state.ddb
             assert db.get("k5").value == 105 and db.get("k1") is None
             c = rt.counters
             assert c["ddb_writes"] == 32

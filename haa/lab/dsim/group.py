@@ -494,7 +494,7 @@ class GroupSim:
         sets: set[tuple[Proc, ...]] = set()
         dead: set[Proc] = set()
         for h in cl.by_idx:
-            node = getattr(h.core, "m", h.core)  # an AgentNode (haa.lab.dsim.agents) wraps the membership node
+            node = h.membership  # an AgentNode (haa.lab.dsim.agents) wraps the membership node
             if node is None or h.state == CRASHED or not isinstance(node, MembershipNode):
                 continue
             dead |= node.core.dead
