@@ -346,3 +346,26 @@ def test_parse_mission_from_data():
         bad = base()
         bad["avatars"][0]["type"] = "tank"
         parse_mission(bad, "inline")
+
+
+def test_the_lab_offers_the_mission_extensions_and_a_team_without_it_refuses_a_chaos_plan(tmp_path, monkeypatch):
+    """A mission reaches the lab's chaos plans and stats bundles through entry points (haa.mission.extensions):
+    installed, they name the lab's modules; without them a mission with `chaos:` is refused with one line."""
+    import importlib.metadata
+
+    from haa.mission import extensions
+
+    assert extensions.extension("chaos").__name__ == "haa.lab.chaos.inmission"
+    assert extensions.extension("bundles").__module__ == "haa.lab.stats.inmission"
+    (tmp_path / "plan.yaml").write_text("name: p\nfaults: [{at_s: 5, action: kill, target: host h2}]\n")
+    d = base()
+    d["chaos"] = "plan.yaml"
+    d["hosts"] = {"start": 3}
+    assert load_mission(write(tmp_path, d)).spec.chaos == "plan.yaml"
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda **_kw: ())
+    with pytest.raises(extensions.ExtensionMissing, match="mission extension 'bundles'"):
+        extensions.extension("bundles")
+    with pytest.raises(MissionError) as e:
+        load_mission(write(tmp_path, d))
+    text = str(e.value)
+    assert "\n" not in text and "chaos: no installed package offers the mission extension 'chaos'" in text, text
