@@ -48,6 +48,9 @@ class FakeSeqHost:
     seq_of: tuple[str, int] | None = LEADER
     done: dict[tuple[str, int], set[int]] = field(default_factory=dict)
     txids: int = 0
+    formed: bool = True
+    locked: bool = False
+    catching: bool = False
 
     def new_txid(self) -> TxId:
         self.txids += 1
@@ -55,6 +58,15 @@ class FakeSeqHost:
 
     def is_member(self) -> bool:
         return self.member
+
+    def group_formed(self) -> bool:
+        return self.formed
+
+    def is_locked(self) -> bool:
+        return self.locked
+
+    def catching_up(self) -> bool:
+        return self.catching
 
     def has_left(self) -> bool:
         return self.left
@@ -104,6 +116,24 @@ def test_origin_forwards_to_the_sequencer_and_arms_the_retry_timer() -> None:
     assert sends(out) == [Send("h1", 1, SeqWrite(1, ((2, b"w2"),)))]
     assert not [e for e in out if isinstance(e, SetTimer)]
     assert d.counters["seq_forwarded"] == 2
+
+
+def test_origin_refuses_outside_a_formed_group_and_holds_while_catching_up() -> None:
+    host = FakeSeqHost(member=False)
+    d = SeqDriver(host)
+    assert d.step(0.0, sq.Submit("r0", b"w0")) == [WriteDone("r0", False, None, 0, "not a member of the group")]
+    host.member, host.formed = True, False
+    assert d.step(0.0, sq.Submit("r1", b"w1")) == [WriteDone("r1", False, None, 0, "the group is not formed yet")]
+    host.formed, host.catching = True, True  # a new member: held, no cseq taken, nothing sent, no timer
+    assert d.step(1.0, sq.Submit("r2", b"w2")) == [] and d.step(1.0, sq.Submit("r3", b"w3")) == []
+    assert d.m.held and not d.m.pending and d.m.busy()
+    assert d.step(2.0, sq.Release()) == []  # still catching up: still held
+    host.catching, host.locked = False, True
+    assert d.step(2.0, sq.Release()) == []  # locked (Alg. 3 l. 129): still held
+    host.locked = False
+    out = d.step(3.0, sq.Release())  # released in submission order, cseq 1 and 2
+    assert sends(out) == [Send("h1", 1, SeqWrite(1, ((1, b"w2"),))), Send("h1", 1, SeqWrite(1, ((2, b"w3"),)))]
+    assert not d.m.held and list(d.m.pending) == [1, 2]
 
 
 def test_origin_answers_its_writes_when_the_batch_is_applied() -> None:

@@ -278,21 +278,20 @@ def test_a_former_leaders_stale_transaction_retries_our_own_attempt() -> None:
 def test_writes_are_held_while_locked_and_acknowledged_once_committed() -> None:
     host = FakeHost(H2, group(H1, H2, H3), locked=True)
     w = gw.GroupWrites(host, max_attempts=2)
-    assert w.step(0.0, gw.Request("r1", b"agent", seq=False)) == [] and len(w.held) == 1  # l. 129
-    assert w.step(0.0, gw.Request("r2", b"ddb", seq=True)) == [gw.ToSequencer("r2", b"ddb")]  # its own holding
+    assert w.step(0.0, gw.Request("r1", b"agent")) == [] and len(w.held) == 1  # l. 129
     host.locked = False
     assert w.step(1.0, gw.Release()) == [gw.ProposeWrite(TxId("h2", 1, 1), b"agent")]  # ll. 132, 145, 155
     assert w.step(2.0, gw.Aborted(TxId("h2", 1, 1))) == [gw.ProposeWrite(TxId("h2", 1, 2), b"agent")]  # re-proposed
     out = w.step(3.0, gw.Aborted(TxId("h2", 1, 2)))
     assert isinstance(out[0], WriteDone) and not out[0].ok and "gave up after 2 attempts" in out[0].reason
-    assert w.step(4.0, gw.Request("r3", b"agent", seq=False)) == [gw.ProposeWrite(TxId("h2", 1, 3), b"agent")]
+    assert w.step(4.0, gw.Request("r3", b"agent")) == [gw.ProposeWrite(TxId("h2", 1, 3), b"agent")]
     (done,) = w.step(5.0, gw.Committed(TxId("h2", 1, 3), 9, "", None))
     assert done.ok and done.seq == 9 and done.req == "r3" and not w.writes
 
 
 def test_a_write_is_refused_outside_a_formed_group() -> None:
     w = gw.GroupWrites(FakeHost(H4, group(H1, H2, H3)), max_attempts=5)
-    (done,) = w.step(0.0, gw.Request("r", b"x", seq=False))
+    (done,) = w.step(0.0, gw.Request("r", b"x"))
     assert not done.ok and done.reason == "not a member of the group"
 
 

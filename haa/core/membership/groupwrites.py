@@ -4,9 +4,10 @@ Alg. 3 applies every change of the global state in total order by OAC among the 
 ll. 127-132, 144-145, 153-155): a change requested while the global state is locked for a membership change
 is held (l. 129) and proposed once it is unlocked (ll. 132, 145, 155). HAA acknowledges a change to whoever
 requested it only once it committed and was applied here (`WriteDone`), re-proposes it after an abort (up to
-`max_attempts`), and holds it too while this host is a new member whose state has not caught up. DDB and
-test writes go through the sequencer instead (`haa.core.membership.sequencer`, docs/oac.md): this machine hands them
-on (`ToSequencer`), and the sequencer does its own holding.
+`max_attempts`), and holds it too while this host is a new member whose state has not caught up. These are
+the agent-table changes (`TxAgent`), and DDB and test writes when the node runs without the sequencer
+(`NodeConfig.sequencer` off, the thesis' own way); with it, the node hands DDB and test writes straight to
+the sequencer (`haa.core.membership.sequencer`, docs/oac.md), which does its own holding.
 
 `GroupWrites` is this part of one host incarnation as a sans-I/O machine with its own state: the changes
 held, and the proposed ones by transaction id. Interface: `step(now, input) -> list[WritesEffect]` over the
@@ -52,7 +53,6 @@ class Write:
     req: Hashable
     payload: bytes
     attempts: int = 0
-    seq: bool = False  # through the sequencer
 
 
 # ------------------------------------------------------------------------------------------------ inputs
@@ -60,11 +60,10 @@ class Write:
 
 @dataclass(frozen=True, slots=True)
 class Request:
-    """Change the global state by the encoded group transaction `payload`; `seq`: through the sequencer."""
+    """Change the global state by the encoded group transaction `payload`."""
 
     req: Hashable
     payload: bytes
-    seq: bool
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,15 +102,7 @@ class ProposeWrite:
     payload: bytes
 
 
-@dataclass(frozen=True, slots=True)
-class ToSequencer:
-    """Submit this DDB or test write to the sequencer (`haa.core.membership.sequencer.Submit`)."""
-
-    req: Hashable
-    payload: bytes
-
-
-WritesEffect = ProposeWrite | ToSequencer | WriteDone
+WritesEffect = ProposeWrite | WriteDone
 
 
 # ------------------------------------------------------------------------------------------------ machine
@@ -131,15 +122,15 @@ class GroupWrites:
         self._out = []
         h = self.host
         match inp:
-            case Request(req, payload, seq):
-                w = Write(req, payload, seq=seq)
+            case Request(req, payload):
+                w = Write(req, payload)
                 if h.catching_up():  # a new member catching up: hold until its state has caught up
                     self.held.append(w)
                 elif not h.is_member():
                     self._out.append(WriteDone(req, False, None, 0, "not a member of the group"))
                 elif not h.group_formed():
                     self._out.append(WriteDone(req, False, None, 0, "the group is not formed yet"))
-                elif h.is_locked() and not seq:  # l. 129: hold while locked (the sequencer holds its own)
+                elif h.is_locked():  # l. 129: hold while locked
                     self.held.append(w)
                 else:
                     self._propose(w)
@@ -161,9 +152,6 @@ class GroupWrites:
         return self._out
 
     def _propose(self, w: Write) -> None:
-        if w.seq:
-            self._out.append(ToSequencer(w.req, w.payload))
-            return
         w.attempts += 1
         txid = self.host.new_txid()
         self.writes[txid] = w

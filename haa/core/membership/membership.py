@@ -106,7 +106,7 @@ from haa.core.membership.groupleave import (
 )
 from haa.core.membership.groupwrites import Aborted as WAborted
 from haa.core.membership.groupwrites import Committed as WCommitted
-from haa.core.membership.groupwrites import GroupWrites, ProposeWrite, ToSequencer, WritesEffect
+from haa.core.membership.groupwrites import GroupWrites, ProposeWrite, WritesEffect
 from haa.core.membership.groupwrites import Release as WRelease
 from haa.core.membership.groupwrites import Request as WRequest
 from haa.core.membership.join import (
@@ -147,6 +147,7 @@ from haa.core.membership.sequencer import (
     Sequencer,
     Submit,
 )
+from haa.core.membership.sequencer import Release as SRelease
 from haa.core.membership.statetransfer import (
     Applied,
     ApplyTx,
@@ -484,7 +485,10 @@ class MembershipNode:
         `WriteDone` effect; a committed change has been applied here before `WriteDone`."""
         self._now = now
         tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxAgent(payload) if kind == "agent" else TxTest(payload)
-        self._carry(self.wr.step(now, WRequest(req, encode_tx(tx), self.config.sequencer and kind in ("ddb", "test"))))
+        if self.config.sequencer and kind in ("ddb", "test"):
+            self._seq(Submit(req, encode_tx(tx)))
+        else:
+            self._carry(self.wr.step(now, WRequest(req, encode_tx(tx))))
 
     def leave(self, now: float) -> None:
         """groupLeave() (ll. 14-17): the `Left` effect follows once the group has removed this host."""
@@ -506,8 +510,10 @@ class MembershipNode:
         self._carry(self.seq.step(self._now, inp))
 
     def _release(self) -> None:
-        """ll. 132, 145, 155: propose the changes held while locked."""
+        """ll. 132, 145, 155: propose the changes held while locked (or while catching up)."""
         self._carry(self.wr.step(self._now, WRelease()))
+        if self.seq.held:
+            self._seq(SRelease())
 
     def _carry(self, effects: Sequence[MachineEffect]) -> None:
         """Carry out the effects of one step of a machine, in order; a proposal's txid goes back at once."""
@@ -524,8 +530,6 @@ class MembershipNode:
                     self._propose(txid, encode_tx(TxSeq(entries)), self.state.procs())
                 case ProposeWrite(txid, payload):
                     self._propose(txid, payload, self.state.procs())
-                case ToSequencer(req, payload):
-                    self._seq(Submit(req, payload))
                 case FormGroupOfOne():  # ll. 42-43
                     self._up(GroupOfOne(Member(self.name, self.inc, self.addr)))
                 case Link(name, addr):

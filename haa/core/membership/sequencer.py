@@ -8,10 +8,13 @@ by restarted rounds. HAA avoids the conflicts: a member forwards its DDB and tes
 which batches what it receives into one OAC transaction (`TxSeq`) to every member. `Sequencer` is both sides
 for one host incarnation, as a sans-I/O machine with its own state:
 
-* as an **origin**: a write gets the next client sequence number `cseq` and is forwarded (`SeqWrite`) to the
-  sequencer of the moment; it is forwarded again when the sequencer changes (`Retarget`: a view change or a
-  suspicion) or after `seq_retry` without being applied (`RetryDue`), given up after `seq_abandon`, and
-  answered (`WriteDone`) when the batch entry that applied it is applied here (`BatchApplied`);
+* as an **origin**: a DDB or test write of this host comes here straight from the node (`Submit`): refused at
+  once when this host is not a member or the group is not formed, held while this host is a new member whose
+  state has not caught up (released by `Release`, like the held changes of Alg. 3 l. 132), else it gets the
+  next client sequence number `cseq` and is forwarded (`SeqWrite`) to the sequencer of the moment; it is
+  forwarded again when the sequencer changes (`Retarget`: a view change or a suspicion) or after `seq_retry`
+  without being applied (`RetryDue`), given up after `seq_abandon`, and answered (`WriteDone`) when the batch
+  entry that applied it is applied here (`BatchApplied`);
 * as the **sequencer**: forwarded writes are queued once per (origin, cseq) unless the replicated dedup
   record (`GlobalState.seq_origins`) says they are settled, and proposed as batches of at most
   `seq_max_entries` writes / `seq_max_bytes`, at most `seq_inflight` batches in OAC at once, only while the
@@ -69,6 +72,15 @@ class SeqHost(Protocol):
     def has_left(self) -> bool:
         """This incarnation stopped taking part (left, removed, or restarting)."""
 
+    def group_formed(self) -> bool:
+        """The group is a correct group (not provisional)."""
+
+    def is_locked(self) -> bool:
+        """locked_p (l. 6): the global state is locked for a membership change."""
+
+    def catching_up(self) -> bool:
+        """A new member whose state has not caught up yet."""
+
     def may_batch(self) -> bool:
         """Global-state changes may be proposed now: a member, not locked (Alg. 3 l. 129), caught up, not left."""
 
@@ -92,6 +104,11 @@ class Submit:
 
     req: Hashable
     payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Release:
+    """The global state may be unlocked, or this new member caught up: forward the writes held meanwhile."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,7 +153,7 @@ class BatchAborted:
     txid: TxId
 
 
-SeqInput = Submit | Forwarded | RetryDue | Retarget | Flush | BatchApplied | BatchAborted
+SeqInput = Submit | Release | Forwarded | RetryDue | Retarget | Flush | BatchApplied | BatchAborted
 
 
 # ------------------------------------------------------------------------------------------------ effects
@@ -183,6 +200,7 @@ class Sequencer:
         self.config = config or SeqConfig()
         # as an origin
         self.next_cseq = 1
+        self.held: list[tuple[Hashable, bytes]] = []  # submitted while catching up (no cseq yet)
         self.pending: dict[int, _Pending] = {}  # forwarded, not yet applied here (in cseq order)
         self.target: Proc | None = None  # where they were forwarded last
         self.timer_armed = False
@@ -197,10 +215,20 @@ class Sequencer:
         self._now = now
         match inp:
             case Submit(req, payload):
-                cseq = self.next_cseq
-                self.next_cseq += 1
-                self.pending[cseq] = _Pending(req, payload, now)
-                self._forward([cseq])
+                h = self.host
+                if h.catching_up():  # a new member: hold until its state has caught up
+                    self.held.append((req, payload))
+                elif not h.is_member():
+                    self._out.append(WriteDone(req, False, None, 0, "not a member of the group"))
+                elif not h.group_formed():
+                    self._out.append(WriteDone(req, False, None, 0, "the group is not formed yet"))
+                else:
+                    self._submit(req, payload)
+            case Release():
+                if self.held and not (self.host.is_locked() or self.host.catching_up()):
+                    held, self.held = self.held, []
+                    for req, payload in held:
+                        self._submit(req, payload)
             case Forwarded(origin, floor, writes):
                 self._accept(origin, floor, writes)
             case RetryDue():
@@ -222,10 +250,16 @@ class Sequencer:
         return out
 
     def busy(self) -> bool:
-        """Writes are pending here or batches of ours are queued or in OAC."""
-        return bool(self.pending or self.queue or self.inflight)
+        """Writes are held or pending here or batches of ours are queued or in OAC."""
+        return bool(self.held or self.pending or self.queue or self.inflight)
 
     # ------------------------------------------------------------------ origin
+
+    def _submit(self, req: Hashable, payload: bytes) -> None:
+        cseq = self.next_cseq
+        self.next_cseq += 1
+        self.pending[cseq] = _Pending(req, payload, self._now)
+        self._forward([cseq])
 
     def _forward(self, cseqs: Sequence[int]) -> None:
         """Forward these pending writes (in cseq order) to the sequencer of the moment."""
