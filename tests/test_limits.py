@@ -211,11 +211,12 @@ def test_over_limit_requests_are_refused_cleanly_and_expel_nobody(group: dict[st
         big = [ddb.put(f"lim/{i}", "blob", b"b" * MAX_VALUE_BYTES) for i in range(3)]
         with pytest.raises(grpc.RpcError) as e:
             stub.DdbWrite(cpb.DdbWriteRequest(ops=big), metadata=md, timeout=30)
-        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "MAX_BATCH_BYTES" in e.value.details()
         text = b"[" + b"0," * MAX_JSON_VALUE_BYTES + b"0]"
         js = [ddb._op(put=ddb.pb.DdbPut(key="lim/j", type="json", value=text))]
-        w = stub.DdbWrite(cpb.DdbWriteRequest(ops=js), metadata=md, timeout=30)
-        assert not w.committed and "MAX_JSON_VALUE_BYTES" in w.reason, w
+        with pytest.raises(grpc.RpcError) as e:
+            stub.DdbWrite(cpb.DdbWriteRequest(ops=js), metadata=md, timeout=30)
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "MAX_JSON_VALUE_BYTES" in e.value.details()
     finally:
         ch.close()
     time.sleep(1.5)  # a host expelled by a stall would be removed within ~1-2 s

@@ -1,8 +1,8 @@
 """The parts HostRuntime owns, each alone — no server, no sockets.
 
 The effect dispatcher (every effect reaches its part; an effect outside the closed union is an error, not a
-silent drop), the timer wheel, the delivered log, propose waiters and latencies, the DDB group commit (driven by
-a fake node that commits on the next loop turn), mirror subscribers, the agent operations, the data directory,
+silent drop), the timer wheel, the delivered log, propose waiters and latencies, the host's writes (driven by a
+fake node that commits on the next loop turn), mirror subscribers, the agent operations, the data directory,
 and the composition root (`build_host`).
 """
 
@@ -21,7 +21,7 @@ from helpers import until
 from haa.core import agentio as io
 from haa.core.ddb import ops as ddb
 from haa.core.ddb.ddb import Ddb
-from haa.core.ddb.objects import MAX_VALUE_BYTES
+from haa.core.ddb.objects import MAX_JSON_VALUE_BYTES, MAX_VALUE_BYTES
 from haa.core.effects import CancelTimer, Closed, Decided, Deliver, Log, Reincarnate, Send, SetTimer
 from haa.core.membership.globalstate import TxDdb, encode_tx
 from haa.core.membership.membership import AppliedTx, Connect, Left, WriteDone
@@ -30,11 +30,11 @@ from haa.hostd.agentops import AgentOps
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import GENESIS_HASH, DeliveredLog, chain_hash
 from haa.hostd.dispatch import EffectDispatcher
-from haa.hostd.groupcommit import DDB_MAX_INFLIGHT, GroupCommit
 from haa.hostd.mirrors import Mirrors
-from haa.hostd.outcomes import NotMembershipMode, TransactionAborted, WriteFailed
+from haa.hostd.outcomes import InvalidWrite, NotMembershipMode, TransactionAborted, WriteFailed
 from haa.hostd.proposals import Proposals
 from haa.hostd.timers import TimerWheel
+from haa.hostd.writes import Writes
 
 # ----------------------------------------------------------------------------------------------- fakes
 
@@ -82,11 +82,11 @@ class FakeBackend:
     def kill_all(self, reason: str) -> None: ...
 
 
-def _no_writes() -> GroupCommit:
+def _no_writes() -> Writes:
     def propose(payload: bytes, req: int, kind: str) -> None:
         raise AssertionError("no write expected")
 
-    return GroupCommit("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 10**6)).__next__)
+    return Writes("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 10**6)).__next__)
 
 
 def _dispatcher(tmp_path: Path, agents: FakeBackend | None = None) -> tuple[EffectDispatcher, dict[str, Any]]:
@@ -252,13 +252,13 @@ def test_proposals_time_both_latencies_and_answer_their_waiters() -> None:
     asyncio.run(main())
 
 
-# ----------------------------------------------------------------------------------------------- group commit
+# ----------------------------------------------------------------------------------------------- writes
 
 
 class FakeNode:
     """Commits each submitted batch on the next loop turn by applying it to one replica (as OAC would)."""
 
-    def __init__(self, writes: Callable[[], GroupCommit]) -> None:
+    def __init__(self, writes: Callable[[], Writes]) -> None:
         self.writes = writes
         self.replica = Ddb()
         self.batches: list[tuple[int, bool]] = []  # (ops, atomic)
@@ -271,57 +271,60 @@ class FakeNode:
         asyncio.get_running_loop().call_soon(self.writes().done, done)
 
 
-def _group_commit(closed: Callable[[], bool] = lambda: False) -> tuple[GroupCommit, FakeNode]:
-    gc: list[GroupCommit] = []
-    node = FakeNode(lambda: gc[0])
-    gc.append(GroupCommit("h1", Counter(), node.propose, lambda: None, closed, iter(range(1, 10**6)).__next__))
-    return gc[0], node
+def _writes(closed: Callable[[], bool] = lambda: False) -> tuple[Writes, FakeNode]:
+    w: list[Writes] = []
+    node = FakeNode(lambda: w[0])
+    w.append(Writes("h1", Counter(), node.propose, lambda: None, closed, iter(range(1, 10**6)).__next__))
+    return w[0], node
 
 
-def test_group_commit_merges_queued_writes_and_slices_each_requests_results() -> None:
+def test_each_ddb_write_is_one_batch_with_its_own_results() -> None:
     async def main() -> None:
-        gc, node = _group_commit()
-        writes = [gc.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 10)]) for i in range(20)]
-        writes.append(gc.ddb_write([ddb.cas("k0", 999, "counter", 1)], atomic=True))
+        wr, node = _writes()
+        writes = [wr.ddb_write([ddb.put(f"k{i}", "counter", i), ddb.add(f"k{i}", 10)]) for i in range(20)]
+        writes.append(wr.ddb_write([ddb.cas("k0", 999, "counter", 1), ddb.put("k99", "counter", 1)], atomic=True))
         res = await asyncio.gather(*writes)
         for i, r in enumerate(res[:20]):
             assert [(o.key, o.ok) for o in r.results] == [(f"k{i}", True), (f"k{i}", True)]
-        assert not res[20].results[0].ok and res[20].merged == 1
+        # all or none covers exactly the atomic request's ops: the stale cas fails, so k99 is not written
+        assert [o.ok for o in res[20].results] == [False, False] and node.replica.get("k99") is None
         assert node.replica.get("k7").value == 17
-        # the first DDB_MAX_INFLIGHT went alone; the rest waited and went out merged; the atomic one alone
-        assert len(node.batches) < 21 and max(r.merged for r in res) > 1
-        assert node.batches[-1] == (1, True)
-        c = gc.counters
-        assert c["ddb_writes"] == 21 and c["ddb_batches"] == len(node.batches) >= DDB_MAX_INFLIGHT
-        assert c["ddb_merged_writes"] == 21 - c["ddb_batches"]
+        # one batch per request, in request order (the sequencer is the one batching layer, in the core)
+        assert node.batches == [(2, False)] * 20 + [(2, True)]
+        assert [r.ddb_seq for r in res] == list(range(1, 22))
+        assert wr.counters["ddb_writes"] == 21
 
     asyncio.run(main())
 
 
-def test_group_commit_refuses_bad_writes_up_front_and_fails_queued_ones_when_closed() -> None:
+def test_a_bad_write_is_refused_where_it_enters_and_nothing_is_proposed() -> None:
     async def main() -> None:
         closed = [False]
-        gc, node = _group_commit(lambda: closed[0])
-        with pytest.raises(WriteFailed, match="empty"):
-            await gc.ddb_write([])
+        wr, node = _writes(lambda: closed[0])
+        with pytest.raises(InvalidWrite, match="empty batch"):
+            await wr.ddb_write([])
         big = [ddb.put(f"k{i}", "blob", b"x" * MAX_VALUE_BYTES) for i in range(3)]
-        with pytest.raises(WriteFailed, match="MAX_BATCH_BYTES"):
-            await gc.ddb_write(big)
-        assert node.batches == []
+        with pytest.raises(InvalidWrite, match="MAX_BATCH_BYTES"):
+            await wr.ddb_write(big)
+        js = [ddb._op(put=ddb.pb.DdbPut(key=f"j{i}", type="json", value=b"1" * (MAX_JSON_VALUE_BYTES // 2)))
+              for i in range(3)]
+        with pytest.raises(InvalidWrite, match="MAX_BATCH_JSON_BYTES"):
+            await wr.ddb_write(js)
+        assert node.batches == [] and wr.counters["ddb_writes"] == 0
         closed[0] = True
         with pytest.raises(WriteFailed, match="stopping or left"):
-            await gc.ddb_write([ddb.put("k", "counter", 1)])
+            await wr.ddb_write([ddb.put("k", "counter", 1)])
         assert node.batches == []
 
     asyncio.run(main())
 
 
-def test_group_commit_ends_open_writes_on_a_new_incarnation() -> None:
+def test_open_writes_end_on_a_new_incarnation() -> None:
     async def main() -> None:
         def propose(payload: bytes, req: int, kind: str) -> None:
             pass  # never committed
 
-        gc = GroupCommit("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 100)).__next__)
+        gc = Writes("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 100)).__next__)
         w = asyncio.ensure_future(gc.submit(b"t", "test", timeout=5))
         x = asyncio.ensure_future(gc.ddb_write([ddb.put("k", "counter", 1)], timeout=5))
         await until(lambda: len(gc._writes) == 2, what="both writes proposed")

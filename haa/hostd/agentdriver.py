@@ -17,7 +17,7 @@ never imports or reads the runtime itself:
   type's model refuses (`AgentSupervisor.validate_config`, asked of the fork server), is answered with the
   error at once instead of being committed as an agent that can never start; and the agents' DDB requests,
   served from the local replica (reads, watches) or through the group (writes — DdbPut, and DdbWrite, a batch
-  of ops checked with `ddb.check_op` before anything is proposed — through the host's group commit, fenced
+  of ops checked with `ddb.check_op` before anything is proposed — through the host's writes (haa.hostd.writes), fenced
   by the instance's epoch);
 * every `stats_period`, the measured CPU of each agent and the bytes exchanged between agent pairs go to
   a `ReportCosts` input, which commits the significant changes for the allocation (Alg. 4 ll. 22-23).
@@ -336,7 +336,7 @@ class AgentDriver:
         self._task(run(), "agent-ddb-put")
 
     def _ddb_write(self, ev: ap.DdbWrite) -> None:
-        """Like `_ddb_put` (fencing, group commit), for a batch of ops; every op is checked first (bad key,
+        """Like `_ddb_put` (fencing, the host's writes), for a batch of ops; every op is checked first (bad key,
         unknown or unwritable type, an oversized value, item or log append: an error answer, nothing proposed).
         The answer of a committed batch carries one reason per op ("" = it succeeded)."""
         why = "" if ev.ops else "empty batch"

@@ -13,9 +13,9 @@ the `AgentOps` object it gets at `start` (its `AgentHost` protocol), so it never
   (create, remove, move, pause) and waits for its `AgentOpDone`; `agent_request` sends an operator request
   to an agent and waits for its `OperatorReply`; `feed` runs any other node input (send, run allocation);
 * the backend: `on_agent_event` (what an instance did), `undeliverable`, `report_costs`, the local replica
-  and agent table (reads, fencing) and `ddb_write` (the agents' writes, through the group commit).
+  and agent table (reads, fencing) and `ddb_write` (the agents' writes, through haa.hostd.writes).
 
-Request numbers come from the runtime's one sequence (`next_req`, shared with the group commit).
+Request numbers come from the runtime's one sequence (`next_req`, shared with the writes).
 """
 
 from __future__ import annotations

@@ -58,13 +58,13 @@ from grpc import aio
 
 from haa import rpcguard
 from haa import tls as tlsmod
-from haa.core.ddb import objects as ddbmod
 from haa.core.ddb.ops import put
 from haa.core.oac.oac import OacError
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
 from haa.hostd.outcomes import (
     HostReincarnated,
+    InvalidWrite,
     NotMembershipMode,
     ProposeTimeout,
     TransactionAborted,
@@ -237,14 +237,12 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
         rt = self.rt
         if not rt.membership:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "static mode (--peers): this host has no DDB")
-        if not request.ops:
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty batch")
         rt.counters["control_ddb_writes"] += 1
-        size = sum(op.ByteSize() for op in request.ops)
-        if size > ddbmod.MAX_BATCH_BYTES:
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch larger than {ddbmod.MAX_BATCH_BYTES} bytes")
         try:
             res = await rt.writes.ddb_write(list(request.ops), request.atomic, timeout=self._deadline(context))
+        except InvalidWrite as e:  # (empty, too large, JSON bounds: haa.core.ddb.ops.check_batch)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, e.reason)
+            raise
         except WriteFailed as e:
             return cpb.DdbWriteReply(committed=False, reason=e.reason)
         except NotMembershipMode as e:

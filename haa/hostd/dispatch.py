@@ -14,7 +14,7 @@ ends in `assert_never`, so an effect added to one of those unions and not handle
 * `Suspicion`, `PeerDead`, `Log` -> the JSON-lines log (a core `Log` that repeats a typed effect at debug
   level, a bug caught by a safety net at error level);
 * `AppliedTx`, `ViewChange` -> counters, the mirror subscribers (haa.hostd.mirrors) and the known-hosts
-  file (haa.hostd.datadir); `WriteDone` -> the group commit (haa.hostd.groupcommit); `Left` -> the runtime;
+  file (haa.hostd.datadir); `WriteDone` -> the writes (haa.hostd.writes); `Left` -> the runtime;
 * agent commands and timeline entries -> the agent backend (processes); `AgentOpDone`, `OperatorReply` ->
   the waiting operator calls (haa.hostd.agentops);
 * `Reincarnate` -> returned: the runtime replaces its node once the whole list is carried out.
@@ -47,12 +47,12 @@ from haa.core.membership.membership import AppliedTx, Connect, Left, NodeEffect,
 from haa.hostd.agentops import AgentBackend, AgentCommand, AgentOps
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import DeliveredLog
-from haa.hostd.groupcommit import GroupCommit
 from haa.hostd.logs import LOGGER_NAME, log_event
 from haa.hostd.mirrors import Mirrors
 from haa.hostd.proposals import Proposals
 from haa.hostd.timers import TimerWheel
 from haa.hostd.transport import Transport
+from haa.hostd.writes import Writes
 
 log = logging.getLogger(LOGGER_NAME + ".runtime")
 
@@ -74,7 +74,7 @@ class EffectDispatcher:
         timers: TimerWheel,
         proposals: Proposals,
         delivered: DeliveredLog,
-        writes: GroupCommit,
+        writes: Writes,
         mirrors: Mirrors,
         agent_ops: AgentOps,
         agents: AgentBackend | None,

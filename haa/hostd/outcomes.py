@@ -3,11 +3,11 @@
 `HostRuntime.propose` (static mode, OAC of thesis Alg. 2) answers with a `ProposeResult` or raises
 `TransactionAborted`, `ProposeTimeout` or `HostReincarnated`; `HostRuntime.submit` and `ddb_write`
 (membership mode: a global-state change committed by OAC and applied by every member, §4.6-4.7) answer with
-a `WriteResult` / `DdbWriteResult` or raise `WriteFailed`; every membership-only call raises
-`NotMembershipMode` on a host running a static peer list. The control service (haa.hostd.control) maps these
-exceptions onto gRPC status codes.
+a `WriteResult` / `DdbWriteResult` or raise `WriteFailed` (`InvalidWrite`: refused before proposing); every
+membership-only call raises `NotMembershipMode` on a host running a static peer list. The control service
+(haa.hostd.control) maps these exceptions onto gRPC status codes.
 
-Plain data, no behaviour: a leaf module the runtime's parts (haa.hostd.proposals, groupcommit, agentops),
+Plain data, no behaviour: a leaf module the runtime's parts (haa.hostd.proposals, writes, agentops),
 the control service and the agent driver all import, so none of them imports another to name an outcome.
 """
 
@@ -61,6 +61,11 @@ class WriteFailed(Exception):
         self.reason = reason
 
 
+class InvalidWrite(WriteFailed):
+    """A DDB write that is not a valid batch (`haa.core.ddb.ops.check_batch`): refused where it entered the
+    host, nothing proposed. `reason` names the bound."""
+
+
 class NotMembershipMode(Exception):
     """The operation needs group membership (`--core`); this host runs a static peer list (`--peers`)."""
 
@@ -77,12 +82,11 @@ class WriteResult:
 
 @dataclass(frozen=True)
 class DdbWriteResult:
-    """One `ddb_write` request, committed and applied on this host: its ops' results (in request order),
-    the DDB seq of the batch that carried it and how many requests shared that batch (group commit)."""
+    """One `ddb_write` request, committed and applied on this host: its ops' results (in request order) and
+    the DDB seq of its batch."""
 
     txid: TxId
     global_seq: int
     ddb_seq: int
     results: tuple[OpResult, ...]
-    merged: int
 

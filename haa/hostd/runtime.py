@@ -11,7 +11,7 @@ it for real (docs/architecture.md, "How an input travels"):
   `EffectDispatcher` (haa.hostd.dispatch: one `match` over the closed `HostEffect` union).
 * **Parts.** Each concern is a class of its own that the runtime owns: the timer wheel (haa.hostd.timers),
   the delivered log with its hash chain (haa.hostd.delivered), propose waiters and latency samples
-  (haa.hostd.proposals), the DDB group commit (haa.hostd.groupcommit), operator and agent-driver calls
+  (haa.hostd.proposals), the global-state writes (haa.hostd.writes), operator and agent-driver calls
   (haa.hostd.agentops), mirror subscribers (haa.hostd.mirrors) and the data directory's incarnation and
   known-hosts files (haa.hostd.datadir). What they return and raise is in haa.hostd.outcomes.
 * **Reincarnation.** A `Reincarnate` effect (this host was excluded) or a peer that knows a newer incarnation
@@ -52,7 +52,6 @@ from haa.hostd.agentops import AgentBackend, AgentOps
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.dispatch import EffectDispatcher, HostEffect
-from haa.hostd.groupcommit import GroupCommit
 from haa.hostd.logs import LOGGER_NAME, HostIdentity, log_event, setup_logging, teardown_logging
 from haa.hostd.mirrors import Mirrors
 from haa.hostd.outcomes import (
@@ -66,6 +65,7 @@ from haa.hostd.resources import LoopWatch, tune_malloc
 from haa.hostd.status import host_status
 from haa.hostd.timers import TimerWheel
 from haa.hostd.transport import Transport, split_address
+from haa.hostd.writes import Writes
 from haa.tls import HandshakeTap, HostTls
 
 log = logging.getLogger(LOGGER_NAME + ".runtime")
@@ -164,7 +164,7 @@ class HostRuntime:
         self.timers = TimerWheel(self._fire)
         self.delivered = DeliveredLog()
         self.proposals = Proposals(config.name)
-        self.writes = GroupCommit(config.name, self.counters, self._submit_input, self._check_writable,
+        self.writes = Writes(config.name, self.counters, self._submit_input, self._check_writable,
                                   lambda: self.stopping or self.left, next_req)
         self.agent_ops = AgentOps(config.name, self.counters, lambda: self.node, self.feed,
                                   lambda ops, atomic: self.writes.ddb_write(ops, atomic), next_req)
@@ -369,7 +369,7 @@ class HostRuntime:
         self._apply()
 
     def _submit_input(self, payload: bytes, req: int, kind: str) -> None:
-        """The group commit's way into the node (`MembershipNode.submit`, through the agent layer if any)."""
+        """The writes' way into the node (`MembershipNode.submit`, through the agent layer if any)."""
         node = self.node
         assert isinstance(node, (AgentNode, MembershipNode))
         self.feed(node.step, Submit(payload, req, kind))

@@ -222,19 +222,28 @@ def check_json_sizes(ops: Iterable[pb.DdbOp]) -> str:
     return ""
 
 
+def check_batch(batch: pb.DdbBatch) -> str:
+    """'' if `batch` is one a host may propose, else the reason: the one definition of a valid batch (at least
+    one op, at most `MAX_BATCH_BYTES` encoded, so every replica's `Ddb.apply` takes it, and the JSON bounds of
+    `check_json_sizes`). Cheap (sizes only); `encode_batch` runs it, where a write enters a host
+    (`haa.hostd.writes.Writes.ddb_write`) and wherever else a batch is made."""
+    if not batch.ops:
+        return "empty batch"
+    size = batch.ByteSize()
+    if size > MAX_BATCH_BYTES:
+        return f"batch of {size} bytes > {MAX_BATCH_BYTES} (MAX_BATCH_BYTES)"
+    return check_json_sizes(batch.ops)
+
+
 def encode_batch(ops: Iterable[pb.DdbOp], origin: str = "", client_seq: int = 0, atomic: bool = False) -> bytes:
-    """Encode ops as one OAC payload; raises `DdbError` if it has no ops or exceeds `MAX_BATCH_BYTES` or the
-    JSON bounds (`check_json_sizes`)."""
+    """Encode ops as one OAC payload; raises `DdbError` with `check_batch`'s reason if it is not a valid
+    batch."""
     try:
         batch = pb.DdbBatch(ops=list(ops), origin=origin, client_seq=client_seq, atomic=atomic)
     except (TypeError, ValueError) as e:
         raise DdbError(f"invalid batch: {e}") from None
-    if not batch.ops:
-        raise DdbError("batch has no operations")
-    data: bytes = batch.SerializeToString()
-    if len(data) > MAX_BATCH_BYTES:
-        raise DdbError(f"batch too large: {len(data)} bytes > {MAX_BATCH_BYTES}")
-    why = check_json_sizes(batch.ops)
+    why = check_batch(batch)
     if why:
         raise DdbError(why)
+    data: bytes = batch.SerializeToString()
     return data

@@ -85,8 +85,8 @@ def _run_group(
                 f"a group of {hosts}",
             )
             value = bytes(64)
-            # (clients, ops per request, spread over the hosts?) — the last: many clients of one host, the
-            # case group commit is for (agents writing through their host)
+            # (clients, ops per request, spread over the hosts?) — the last: many clients of one host (agents
+            # writing through their host)
             cases = [(c, b, True) for c in clients for b in batch_sizes] + ([(crowd, 1, False)] if batch_sizes else [])
             for run_id, (n_clients, size, spread) in enumerate(cases):
                 lat: list[list[float]] = [[] for _ in range(n_clients)]
