@@ -9,6 +9,7 @@ from haa.lab.results.common import (
     Json,
     Lines,
     machine_line,
+    mean_std,
     num,
     span,
     table,
@@ -249,3 +250,32 @@ def render_ddb(d: Json, name: str) -> Lines:
     return lines
 
 
+
+
+def render_write_path_ab(d: Json, name: str) -> Lines:
+    trees = d["trees"]
+    lines = [f"{d['hosts']} membership-mode hosts, every host writing at once (`DdbLoad`: writers inside each host, "
+             f"single-put writes, {num(d['seconds'])} s per row), through the sequencer; the trees alternating run by "
+             f"run, measured {d['date']} on {d['cores']} cores. Mean ± STD over the runs:", "",
+             *(f"* `{k}`: {v}" for k, v in trees.items()), ""]
+    rows = []
+    for w in sorted({r["writers_per_host"] for r in d["ddb_runs"]}):
+        for t in trees:
+            rs = [r for r in d["ddb_runs"] if r["tree"] == t and r["writers_per_host"] == w]
+            if rs:
+                rows.append([w, f"`{t}`", len(rs), mean_std([r["writes_per_s"] for r in rs], 0),
+                             mean_std([r["p50_ms"] for r in rs], 1), mean_std([r["writes_per_oac"] for r in rs], 1),
+                             mean_std([r["cpu_per_write_ms"] for r in rs], 3)])
+    lines += table(["writers per host", "tree", "runs", "writes/s", "write p50 (ms)", "writes per OAC",
+                    "cluster CPU per write (ms)"], rows)
+    ap1 = d.get("ap1_runs", [])
+    if ap1:
+        lines += ["", f"`haactl bench ap1` on the same trees (static mode: OAC among the hosts, not the DDB path; "
+                  f"{len({r['run'] for r in ap1})} runs of each, alternating), propose→decide p50 (ms), mean ± STD:",
+                  ""]
+        keys = sorted({(r["n"], r["load"]) for r in ap1}, key=lambda k: (k[0], k[1]))
+        ts = [t for t in trees if any(r["tree"] == t for r in ap1)]
+        lines += table(["n", "load", *(f"`{t}`" for t in ts)],
+                       [[n, load, *(mean_std([r["p50_ms"] for r in ap1 if r["tree"] == t and r["n"] == n
+                                             and r["load"] == load], 2) for t in ts)] for n, load in keys])
+    return lines

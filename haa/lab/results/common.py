@@ -73,6 +73,17 @@ def num(x: Any, digits: int = 4) -> str:
     return text.rstrip("0").rstrip(".") if "." in text else text
 
 
+def mean_std(xs: list[float], decimals: int = 1) -> str:
+    """'mean ± sample STD' of a few runs ('—' for none; the mean alone for one)."""
+    if not xs:
+        return "—"
+    m = sum(xs) / len(xs)
+    if len(xs) == 1:
+        return f"{m:,.{decimals}f}"
+    sd = math.sqrt(sum((x - m) ** 2 for x in xs) / (len(xs) - 1))
+    return f"{m:,.{decimals}f} ± {sd:,.{decimals}f}"
+
+
 def ms(seconds: float | None) -> str:
     """Seconds as whole milliseconds."""
     return "—" if seconds is None else f"{seconds * 1e3:,.0f}"

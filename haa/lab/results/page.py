@@ -23,6 +23,7 @@ from haa.lab.results.commit import (
     render_seq_inflight_ab,
     render_seq_profile,
     render_transport,
+    render_write_path_ab,
 )
 from haa.lab.results.common import (
     PAGE,
@@ -129,6 +130,11 @@ KNOWN: dict[str, Known] = {
     "ddb-seq-inflight-ab": Known("commit", "Sequencer batches in flight, one against two (5 hosts)",
                                  render_seq_inflight_ab, "`haactl bench ddb --hosts 5 --all-writing --sequencer on` "
                                  "with `membership: seq_inflight: 1` or `2` in the hosts' hostd.yaml, alternating"),
+    "ddb-write-path-ab": Known("commit", "One DDB write path against the group commit (5 hosts)",
+                               render_write_path_ab, "alternate the two trees (PYTHONPATH=<tree>) with "
+                               "`.venv/bin/python -m haa.lab.bench.seq_ab --hosts 5 --writers 1 --writers 8 "
+                               "--writers 32 --variant grpc:1 --runs 1 --out FILE` and `haactl bench ap1 --hosts 5 "
+                               "--min-hosts 3 -n 150`"),
     "ddb": Known("commit", "DDB writes: batching and clients", render_ddb, "haactl bench ddb"),
     "ap2": Known("group", "Join, leave and removal, AP-2", render_ap2, "haactl bench ap2"),
     "ap3": Known("group", "Time to allocation consensus, AP-3", render_ap3,
