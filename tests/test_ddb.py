@@ -780,3 +780,66 @@ def test_ddb_module_is_sans_io(module):
     assert haa <= {"haa.pb.ddb_pb2", "haa.core.ddb.objects", "haa.core.ddb.ops"}
     src = path.read_text()
     assert "import grpc" not in src and "ddb_pb2_grpc" not in src
+
+
+# ------------------------------------------------------------------------------------------------ work bounds
+
+
+def test_a_batch_of_more_than_max_batch_ops_is_refused_at_the_edge_and_on_apply():
+    from haa.core.ddb.objects import MAX_BATCH_OPS
+
+    ops = [D.delete(f"k{i}") for i in range(MAX_BATCH_OPS + 1)]  # ~130 KB: bytes would not stop it
+    with pytest.raises(DdbError, match=rf"batch of {MAX_BATCH_OPS + 1} ops > {MAX_BATCH_OPS} \(MAX_BATCH_OPS\)"):
+        D.encode_batch(ops)
+    db = Ddb()
+    raw = pb.DdbBatch(ops=ops).SerializeToString()  # a peer that skipped the edge: refused, nothing applied
+    with pytest.raises(DdbError, match="MAX_BATCH_OPS"):
+        db.apply(raw)
+    assert db.seq == 0
+    assert len(run(db, *ops[:MAX_BATCH_OPS]).results) == MAX_BATCH_OPS  # the bound itself is accepted
+
+
+def _footprint(db: Ddb) -> tuple[int, int]:
+    return db.size, sum(len(o.key) + o.size for o in db.items())
+
+
+def test_the_replica_bounds_its_keys_and_bytes_and_an_op_over_them_fails_alone(monkeypatch):
+    import haa.core.ddb.ddb as ddbmod
+
+    monkeypatch.setattr(ddbmod, "MAX_DDB_KEYS", 3)
+    monkeypatch.setattr(ddbmod, "MAX_DDB_BYTES", 100)
+    db = Ddb()
+    res = run(db, *[D.put(k, "blob", str(i).encode()) for i, k in enumerate("abcd", 1)])
+    assert [r.ok for r in res.results] == [True, True, True, False]
+    assert reasons(res)[3] == "ddb full: 4 keys > 3 (MAX_DDB_KEYS)"
+    assert db.ls() == ["a", "b", "c"] and db.footprint == 6 == _footprint(db)[1]
+    # deleting makes room; replacing a value in place needs no new key
+    res = run(db, D.delete("a"), D.put("d", "blob", b"4"), D.put("b", "blob", b"x" * 60))
+    assert [r.ok for r in res.results] == [True, True, True] and db.ls() == ["b", "c", "d"]
+    # bytes (key characters + values: b 61, c 2, d 2): growing "c" by 39 takes the replica to 104 > 100 and
+    # fails, only that op; a later smaller growth still applies
+    res = run(db, D.put("c", "blob", b"y" * 40), D.put("d", "blob", b"z" * 30))
+    assert [r.ok for r in res.results] == [False, True]
+    assert reasons(res)[0] == "ddb full: 104 bytes > 100 (MAX_DDB_BYTES); delete or trim first", reasons(res)
+    assert db.footprint == _footprint(db)[1] == 61 + 2 + 31
+    # atomic: the op over the bound aborts the whole batch
+    before = db.content_hash()
+    res = run(db, D.delete("b"), D.put("e", "blob", b"1"), D.put("f", "blob", b"1"), atomic=True)
+    assert not any(r.ok for r in res.results) and "ddb full" in res.results[0].reason
+    assert db.ls() == ["b", "c", "d"] and db.content_hash() != before  # (a new seq, nothing else changed)
+    # a snapshot carries its footprint
+    assert Ddb.restore(db.snapshot()).footprint == db.footprint
+
+
+def test_many_new_keys_in_one_batch_keep_the_index_sorted():
+    import random
+
+    rng = random.Random(5)
+    db = Ddb()
+    keys = [f"k/{rng.randrange(10**9)}/{i}" for i in range(3000)]
+    run(db, *[D.put(k, "blob", b"") for k in keys[:1000]])  # a merge (more than 256 new keys)
+    run(db, *[D.put(k, "blob", b"") for k in keys[1000:1010]])  # inserts one by one
+    run(db, *[D.put(k, "blob", b"") for k in keys[1010:]], *[D.delete(k) for k in keys[:500]])
+    assert db.ls() == sorted(keys[500:]) and db.ls("k/1") == sorted(k for k in keys[500:] if k.startswith("k/1"))
+    assert Ddb.restore(db.snapshot()).content_hash() == db.content_hash()
+    assert db.footprint == _footprint(db)[1]

@@ -196,6 +196,22 @@ def test_sequencer_respects_the_byte_limit() -> None:
     assert [[x.cseq for x in b] for b in d.proposed.values()] == [[1], [2], [3]]  # an oversized write goes alone
 
 
+def test_sequencer_keeps_a_batchs_ops_within_the_cost_bound() -> None:
+    d = SeqDriver(FakeSeqHost(seq_of=ME), seq_inflight=4, seq_max_cost=10)
+    d.step(0.0, sq.Forwarded(OTHER, 1, ((1, b"a"), (2, b"b"), (3, b"c"), (4, b"d"), (5, b"e")), (4, 6, 3, 25, 1)))
+    # 4+6 fit; 3 opens the next; 25 goes alone (a single write always goes); 1 after it
+    assert [[x.cseq for x in b] for b in d.proposed.values()] == [[1, 2], [3], [4], [5]]
+    assert [x.cost for b in d.proposed.values() for x in b] == [4, 6, 3, 25, 1]
+
+
+def test_an_origin_forwards_each_writes_cost() -> None:
+    d = SeqDriver(FakeSeqHost())
+    out = d.step(0.0, sq.Submit("r1", b"w1", 7))
+    assert sends(out) == [Send("h1", 1, SeqWrite(1, ((1, b"w1"),), (7,)))]
+    out = d.step(0.0, sq.Submit("r2", b"w2"))  # cost 1 (a test write): no costs on the wire, as before
+    assert sends(out) == [Send("h1", 1, SeqWrite(1, ((2, b"w2"),)))]
+
+
 def test_sequencer_dedups_queued_and_settled_writes() -> None:
     host = FakeSeqHost(seq_of=ME, open=False, done={OTHER: {1}})
     d = SeqDriver(host)

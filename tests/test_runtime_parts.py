@@ -83,7 +83,7 @@ class FakeBackend:
 
 
 def _no_writes() -> Writes:
-    def propose(payload: bytes, req: int, kind: str) -> None:
+    def propose(payload: bytes, req: int, kind: str, cost: int = 1) -> None:
         raise AssertionError("no write expected")
 
     return Writes("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 10**6)).__next__)
@@ -263,7 +263,7 @@ class FakeNode:
         self.replica = Ddb()
         self.batches: list[tuple[int, bool]] = []  # (ops, atomic)
 
-    def propose(self, payload: bytes, req: int, kind: str) -> None:
+    def propose(self, payload: bytes, req: int, kind: str, cost: int = 1) -> None:
         assert kind == "ddb"
         res = self.replica.apply(payload)
         self.batches.append((len(res.results), res.atomic))
@@ -321,7 +321,7 @@ def test_a_bad_write_is_refused_where_it_enters_and_nothing_is_proposed() -> Non
 
 def test_open_writes_end_on_a_new_incarnation() -> None:
     async def main() -> None:
-        def propose(payload: bytes, req: int, kind: str) -> None:
+        def propose(payload: bytes, req: int, kind: str, cost: int = 1) -> None:
             pass  # never committed
 
         gc = Writes("h1", Counter(), propose, lambda: None, lambda: False, iter(range(1, 100)).__next__)

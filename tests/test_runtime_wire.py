@@ -199,6 +199,7 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
         m.StateRequest(m.TxId("h1", 1, 2)),
         m.SeqWrite(3, ((3, b"a"), (5, b""), (6, b"c"))),
         m.SeqWrite(0, ((1, b"x"),)),
+        m.SeqWrite(2, ((2, b"x"), (3, b"y")), (10_000, 1)),  # costs travel; all 1 decodes as ()
     ]
     for msg in msgs:
         env = wire.encode("h9", 7, 0, msg)

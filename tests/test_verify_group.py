@@ -52,6 +52,7 @@ def test_ci_sweep_2000_schedules_at_7_hosts(algorithm):
         # fewer schedules)
         ("no-lock-wait", "ddb", (99, 122), "DDB-Durability"),
         ("seq-no-dedup", "ddb", (16, 43), "DDB-Exactly-Once"),
+        ("seq-no-cost-bound", "ddb", (1, 3), "DDB-Bounded-Batch"),
         ("stale-snapshot", "ddb", (1, 2, 3), "DDB-Joiner-Consistency"),
         ("reorder-restored", "ddb", (0, 1, 2), "DDB-Prefix"),
     ],

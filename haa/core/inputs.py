@@ -78,9 +78,12 @@ class PeerInfo:
 
 @dataclass(frozen=True, slots=True)
 class Submit:
+    """A global-state change of this host (`MembershipNode.submit`); `cost`: its apply cost (DDB ops)."""
+
     payload: bytes
     req: Hashable
     kind: str = "ddb"
+    cost: int = 1
 
 
 @dataclass(frozen=True, slots=True)

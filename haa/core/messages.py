@@ -213,10 +213,12 @@ class StateRequest:
 @dataclass(slots=True)
 class SeqWrite:
     """Global-state changes a member forwards to the sequencer (docs/oac.md, "The sequencer"): `writes` are
-    (cseq, GroupTx payload) in the origin's order; every cseq below `floor` is settled at the origin."""
+    (cseq, GroupTx payload) in the origin's order; every cseq below `floor` is settled at the origin. `costs`:
+    each write's apply cost (its DDB ops; () = 1 each), what the sequencer bounds a transaction by."""
 
     floor: int
     writes: tuple[tuple[int, bytes], ...]
+    costs: tuple[int, ...] = ()
 
 
 # --- the agent layer (Alg. 4-8) ----------------------------------------------------------------------

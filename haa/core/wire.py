@@ -234,8 +234,9 @@ def _enc_seq_write(env: pb.Envelope, m: SeqWrite) -> None:
     t = env.seq_write
     t.floor = m.floor
     add = t.writes.add
-    for cseq, payload in m.writes:
-        add(cseq=cseq, payload=payload)
+    costs = m.costs or (1,) * len(m.writes)
+    for (cseq, payload), cost in zip(m.writes, costs, strict=True):
+        add(cseq=cseq, payload=payload, cost=cost)
 
 
 def _enc_state_request(env: pb.Envelope, m: StateRequest) -> None:
@@ -487,7 +488,8 @@ def _dec_seq_write(env: pb.Envelope) -> SeqWrite:
         last = cseq
     if m.floor > writes[0][0]:
         raise WireError("seq_write: floor above a write it carries")
-    return SeqWrite(m.floor, writes)
+    costs = tuple(w.cost or 1 for w in m.writes)  # (0: a sender that did not say; the least a write costs)
+    return SeqWrite(m.floor, writes, costs if any(c != 1 for c in costs) else ())
 
 
 def _dec_state_request(env: pb.Envelope) -> StateRequest:

@@ -368,11 +368,11 @@ class HostRuntime:
             self._core_error("core failed on a timer", key=repr(key))
         self._apply()
 
-    def _submit_input(self, payload: bytes, req: int, kind: str) -> None:
+    def _submit_input(self, payload: bytes, req: int, kind: str, cost: int) -> None:
         """The writes' way into the node (`MembershipNode.submit`, through the agent layer if any)."""
         node = self.node
         assert isinstance(node, (AgentNode, MembershipNode))
-        self.feed(node.step, Submit(payload, req, kind))
+        self.feed(node.step, Submit(payload, req, kind, cost))
 
     # ------------------------------------------------------------------ effects
 

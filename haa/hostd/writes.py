@@ -7,18 +7,18 @@ was given up. Two kinds of callers:
 * `submit(payload, kind)`: one change as it is (`kind="ddb"`: an encoded `DdbBatch`; `"test"`: any bytes).
 * `ddb_write(ops, atomic)`: DDB ops from the control API's `DdbWrite`/`DdbLoad` and the agents (through the
   agent driver). This is where a DDB write enters the host, and the one place it is validated
-  (`haa.core.ddb.ops.encode_batch` runs `check_batch`): an invalid batch raises `InvalidWrite` and nothing is
-  proposed. Each request becomes one `DdbBatch`, so `atomic` ("all or none") covers exactly its ops and its
-  results are its own.
+  (`haa.core.ddb.ops.encode_batch` runs `check_batch`: ops, bytes, JSON): an invalid batch raises
+  `InvalidWrite` and nothing is proposed. Each request becomes one `DdbBatch`, so `atomic` ("all or none")
+  covers exactly its ops and its results are its own.
 
 There is one batching layer, in the core: the node hands DDB and test writes to the sequencer
 (`haa.core.membership.sequencer`), which batches every member's writes into one OAC transaction and bounds how
 many are in OAC at once. This module only keeps a future per request.
 
-The runtime hands `Writes` what it needs as callables — `propose(payload, req, kind)` feeds the node's `Submit`
-input and carries out its effects, `gate()` raises when this host cannot write now (static mode, leaving),
-`closed()` says the host is stopping or left. Request numbers come from `next_req`, shared with the agent
-operations (one sequence per host).
+The runtime hands `Writes` what it needs as callables — `propose(payload, req, kind, cost)` feeds the node's
+`Submit` input and carries out its effects (`cost`: the DDB ops, what the sequencer bounds a transaction by),
+`gate()` raises when this host cannot write now (static mode, leaving), `closed()` says the host is stopping or
+left. Request numbers come from `next_req`, shared with the agent operations (one sequence per host).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ class Writes:
         self,
         name: str,
         counters: Counter[str],
-        propose: Callable[[bytes, int, str], object],
+        propose: Callable[[bytes, int, str, int], object],
         gate: Callable[[], None],
         closed: Callable[[], bool],
         next_req: Callable[[], int],
@@ -55,8 +55,9 @@ class Writes:
         self._next_req = next_req
         self._writes: dict[int, asyncio.Future[WriteResult]] = {}
 
-    async def submit(self, payload: bytes, kind: str = "ddb", timeout: float = 30.0) -> WriteResult:
-        """Propose one global-state change and wait until it is committed and applied here.
+    async def submit(self, payload: bytes, kind: str = "ddb", timeout: float = 30.0, cost: int = 1) -> WriteResult:
+        """Propose one global-state change (`cost`: its apply cost, the DDB ops it carries) and wait until it is
+        committed and applied here.
 
         Raises `WriteFailed` (not a member, leaving, gave up after aborts, this host restarted, timeout —
         after a timeout the change may still commit) or `NotMembershipMode`."""
@@ -68,7 +69,7 @@ class Writes:
         self._writes[req] = fut
         self.counters["writes_submitted"] += 1
         try:
-            self._propose(payload, req, kind)
+            self._propose(payload, req, kind, cost)
             try:
                 return await asyncio.wait_for(fut, timeout)
             except TimeoutError:
@@ -86,7 +87,7 @@ class Writes:
         except ddbmod.DdbError as e:
             raise InvalidWrite(str(e)) from None
         self.counters["ddb_writes"] += 1
-        res = await self.submit(payload, "ddb", timeout)
+        res = await self.submit(payload, "ddb", timeout, cost=len(ops))
         applied = res.result
         if not isinstance(applied, ApplyResult):  # (a DdbError on apply: refused identically on every replica)
             raise WriteFailed(res.reason or "committed but not applied")

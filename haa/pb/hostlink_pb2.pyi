@@ -207,12 +207,14 @@ class SeqWrite(_message.Message):
     def __init__(self, floor: _Optional[int] = ..., writes: _Optional[_Iterable[_Union[SeqWriteEntry, _Mapping]]] = ...) -> None: ...
 
 class SeqWriteEntry(_message.Message):
-    __slots__ = ("cseq", "payload")
+    __slots__ = ("cseq", "payload", "cost")
     CSEQ_FIELD_NUMBER: _ClassVar[int]
     PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    COST_FIELD_NUMBER: _ClassVar[int]
     cseq: int
     payload: bytes
-    def __init__(self, cseq: _Optional[int] = ..., payload: _Optional[bytes] = ...) -> None: ...
+    cost: int
+    def __init__(self, cseq: _Optional[int] = ..., payload: _Optional[bytes] = ..., cost: _Optional[int] = ...) -> None: ...
 
 class Envelope(_message.Message):
     __slots__ = ("sender", "sender_incarnation", "dest_incarnation", "heartbeat", "set_period", "oac_transaction", "oac_order", "oac_estimate", "oac_proposal", "oac_ack", "oac_decide", "excluded", "apply", "introduce", "sponsor", "connections", "leave", "locked", "state_snapshot", "state_forward", "state_request", "agent_host", "seq_write")

@@ -35,6 +35,19 @@ MAX_VALUE_BYTES = 1024 * 1024
 #: docs/limits.md "Sizes and memory") that costs 50-140 ms per MiB, and a stall must stay well below the
 #: failure detector's margin (~0.7 s): 2 MiB stalled at most ~0.22 s, 16 MiB (the former bound) up to 2.2 s
 MAX_BATCH_BYTES = 2 * 1024 * 1024
+#: most ops in one batch, and in one sequencer transaction in total (`SeqConfig.seq_max_cost`). Bytes do not
+#: bound the work of tiny ops: 100,000 deletes fit in 1.3 MB and cost ~0.45 s of apply alone on one host. An op
+#: costs 4.5-7.5 us to apply (delete, add, append; measured on this 2-core machine) and up to ~15 us more to
+#: create a key in a large replica, so 10,000 ops stay within the ~0.1-0.2 s the largest byte batch
+#: (MAX_BATCH_BYTES) already costs, far below the failure detector's margin (~0.7 s; docs/limits.md)
+MAX_BATCH_OPS = 10_000
+#: most keys one replica holds. Every host keeps every key in memory (~0.8-1.5 KB each with its digest and
+#: index, measured), in every snapshot a joiner receives and in the content hash: 200,000 keys are ~200 MiB
+#: of RSS per host and a ~12 MiB snapshot
+MAX_DDB_KEYS = 200_000
+#: most bytes (keys + stored values) one replica holds: a joiner receives the whole replica in one snapshot
+#: (at most MAX_MESSAGE = 64 MiB with the agent table), so the DDB keeps 16 MiB of it for the rest
+MAX_DDB_BYTES = 48 * 1024 * 1024
 #: largest JSON value (put/cas of type json), in bytes. JSON is parsed and checked on every replica when the
 #: batch applies, at up to ~250 ms per MiB for the costliest texts (`[{},{},...]`, many floats) against ~1 ms
 #: per MiB for a blob: these bounds, not MAX_BATCH_BYTES, bound the event-loop stall of a JSON batch

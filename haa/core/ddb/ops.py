@@ -19,6 +19,7 @@ import haa.pb.ddb_pb2 as pb
 from haa.core.ddb.objects import (
     MAX_BATCH_BYTES,
     MAX_BATCH_JSON_BYTES,
+    MAX_BATCH_OPS,
     MAX_JSON_VALUE_BYTES,
     MAX_LOG_INDEX,
     MAX_VALUE_BYTES,
@@ -224,11 +225,13 @@ def check_json_sizes(ops: Iterable[pb.DdbOp]) -> str:
 
 def check_batch(batch: pb.DdbBatch) -> str:
     """'' if `batch` is one a host may propose, else the reason: the one definition of a valid batch (at least
-    one op, at most `MAX_BATCH_BYTES` encoded, so every replica's `Ddb.apply` takes it, and the JSON bounds of
-    `check_json_sizes`). Cheap (sizes only); `encode_batch` runs it, where a write enters a host
+    one op, at most `MAX_BATCH_OPS` ops and `MAX_BATCH_BYTES` encoded, so every replica's `Ddb.apply` takes it,
+    and the JSON bounds of `check_json_sizes`). Cheap (sizes only); `encode_batch` runs it, where a write enters a host
     (`haa.hostd.writes.Writes.ddb_write`) and wherever else a batch is made."""
     if not batch.ops:
         return "empty batch"
+    if len(batch.ops) > MAX_BATCH_OPS:
+        return f"batch of {len(batch.ops)} ops > {MAX_BATCH_OPS} (MAX_BATCH_OPS)"
     size = batch.ByteSize()
     if size > MAX_BATCH_BYTES:
         return f"batch of {size} bytes > {MAX_BATCH_BYTES} (MAX_BATCH_BYTES)"

@@ -27,7 +27,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from google.protobuf.message import DecodeError
@@ -112,6 +112,8 @@ class SeqEntry:
     cseq: int
     floor: int
     tx: bytes
+    #: its apply cost (DDB ops), what the sequencer bounds a batch by; not part of the transaction
+    cost: int = field(default=1, compare=False)
 
 
 @dataclass(frozen=True, slots=True)

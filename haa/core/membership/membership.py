@@ -61,6 +61,7 @@ from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, assert_never, cast
 
+from haa.core.ddb.objects import MAX_BATCH_OPS
 from haa.core.effects import Decided, Deliver, Effect, Log, PeerDead, Reincarnate, Send, SetTimer, Suspicion
 from haa.core.host.hostcore import AppMessage, CoreConfig, GroupMessage, HostCore, VoteRequest
 from haa.core.inputs import FdReport, LeaveGroup, NodeInput, PeerInfo, Receive, TimerFired
@@ -251,6 +252,8 @@ class NodeConfig:
     seq_retry: float = 2.0
     #: ... and given up after this long (reported "may still commit": a copy may be in a batch somewhere)
     seq_abandon: float = 60.0
+    #: at most this much apply cost (the writes' DDB ops) in one sequencer batch (haa.core.ddb.objects.MAX_BATCH_OPS)
+    seq_max_cost: int = MAX_BATCH_OPS
 
     def core_bounds(self, core_names: tuple[str, ...]) -> tuple[int, int]:
         """(c_f, c_H) for this core process list (l. 1), checked: c_f < c/2 and c_f < c_H <= c."""
@@ -317,7 +320,7 @@ class MembershipNode:
         self.lv = GroupLeave(self.me, v)
         self.xfer = StateTransfer(self.me, v, cfg.catchup_timeout)
         self.seq = Sequencer(self.me, v, SeqConfig(cfg.seq_inflight, cfg.seq_max_entries, cfg.seq_max_bytes,
-                                                   cfg.seq_retry, cfg.seq_abandon))
+                                                   cfg.seq_retry, cfg.seq_abandon, cfg.seq_max_cost))
         self.started = False
         self._now = 0.0
 
@@ -413,8 +416,8 @@ class MembershipNode:
             case FdReport() | PeerInfo():  # the core's alone
                 self._now = now
                 self.core.step(now, inp)
-            case NSubmit(payload, req, kind):
-                self.submit(now, payload, req, kind)
+            case NSubmit(payload, req, kind, cost):
+                self.submit(now, payload, req, kind, cost)
             case LeaveGroup():
                 self.leave(now)
             case _:
@@ -457,8 +460,8 @@ class MembershipNode:
                 self._xfer(Snapshot(seq, data, anchor, anchor_seq))
             case StateRequest(txid):
                 self._xfer(Request(q, txid))
-            case SeqWrite(floor, writes):
-                self._seq(Forwarded(q, floor, writes))
+            case SeqWrite(floor, writes, costs):
+                self._seq(Forwarded(q, floor, writes, costs))
 
 
     def on_timer(self, now: float, key: Hashable) -> None:
@@ -480,13 +483,14 @@ class MembershipNode:
             case "seqretry":
                 self._seq(RetryDue())
 
-    def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb") -> None:
-        """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload. The outcome comes as a
-        `WriteDone` effect; a committed change has been applied here before `WriteDone`."""
+    def submit(self, now: float, payload: bytes, req: Hashable, kind: str = "ddb", cost: int = 1) -> None:
+        """Request a global-state change: a DDB batch (`kind="ddb"`) or a test payload; `cost`: its apply cost
+        (the batch's ops). The outcome comes as a `WriteDone` effect; a committed change has been applied here
+        before `WriteDone`."""
         self._now = now
         tx: GroupTx = TxDdb(payload) if kind == "ddb" else TxAgent(payload) if kind == "agent" else TxTest(payload)
         if self.config.sequencer and kind in ("ddb", "test"):
-            self._seq(Submit(req, encode_tx(tx)))
+            self._seq(Submit(req, encode_tx(tx), cost))
         else:
             self._carry(self.wr.step(now, WRequest(req, encode_tx(tx))))
 

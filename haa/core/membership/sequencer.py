@@ -15,11 +15,12 @@ for one host incarnation, as a sans-I/O machine with its own state:
   forwarded again when the sequencer changes (`Retarget`: a view change or a suspicion) or after `seq_retry`
   without being applied (`RetryDue`), given up after `seq_abandon`, and answered (`WriteDone`) when the batch
   entry that applied it is applied here (`BatchApplied`);
-* as the **sequencer**: forwarded writes are queued once per (origin, cseq) unless the replicated dedup
-  record (`GlobalState.seq_origins`) says they are settled, and proposed as batches of at most
-  `seq_max_entries` writes / `seq_max_bytes`, at most `seq_inflight` batches in OAC at once, only while the
-  node lets global-state changes through (`SeqHost.may_batch`: a member, not locked — l. 129 — not catching
-  up); an aborted batch goes back to the front of the queue (`BatchAborted`).
+* as the **sequencer**: forwarded writes are queued once per (origin, cseq) unless the replicated dedup record
+  (`GlobalState.seq_origins`) says they are settled, and proposed as batches of at most `seq_max_entries` writes /
+  `seq_max_bytes` / `seq_max_cost` (the writes' DDB ops, so that applying one batch costs no more than one request
+  of `MAX_BATCH_OPS` ops; a single write always goes, even over it), at most `seq_inflight` batches in OAC at once,
+  only while the node lets global-state changes through (`SeqHost.may_batch`: a member, not locked — l. 129 — not
+  catching up); an aborted batch goes back to the front of the queue (`BatchAborted`).
 
 Interface: `step(now, input) -> list[SeqEffect]` with the closed unions `SeqInput` and `SeqEffect`. The
 machine reads what it needs of its host through the narrow `SeqHost` protocol (membership, who the sequencer
@@ -38,6 +39,7 @@ from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import Protocol, assert_never
 
+from haa.core.ddb.objects import MAX_BATCH_OPS
 from haa.core.effects import Send, SetTimer
 from haa.core.membership.globalstate import SeqApplied, SeqEntry
 from haa.core.membership.groupeffects import NodeTimer, WriteDone
@@ -61,6 +63,7 @@ class SeqConfig:
     seq_max_bytes: int = 4 << 20
     seq_retry: float = 2.0
     seq_abandon: float = 60.0
+    seq_max_cost: int = MAX_BATCH_OPS
 
 
 class SeqHost(Protocol):
@@ -100,10 +103,12 @@ class SeqHost(Protocol):
 
 @dataclass(frozen=True, slots=True)
 class Submit:
-    """A DDB or test write of this host (an encoded `TxDdb`/`TxTest`), answered by a `WriteDone`."""
+    """A DDB or test write of this host (an encoded `TxDdb`/`TxTest`), answered by a `WriteDone`; `cost`: its
+    apply cost (the DDB ops it carries)."""
 
     req: Hashable
     payload: bytes
+    cost: int = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,11 +119,12 @@ class Release:
 @dataclass(frozen=True, slots=True)
 class Forwarded:
     """A `SeqWrite` from `origin` (or from this host to itself): writes `(cseq, payload)`, all below `floor`
-    settled at the origin."""
+    settled at the origin; `costs`: theirs (() = 1 each)."""
 
     origin: Proc
     floor: int
     writes: tuple[tuple[int, bytes], ...]
+    costs: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -187,6 +193,7 @@ class _Pending:
 
     req: Hashable
     payload: bytes
+    cost: int
     first: float  # first forwarded
     sent: float = 0.0  # last forwarded
 
@@ -200,7 +207,7 @@ class Sequencer:
         self.config = config or SeqConfig()
         # as an origin
         self.next_cseq = 1
-        self.held: list[tuple[Hashable, bytes]] = []  # submitted while catching up (no cseq yet)
+        self.held: list[tuple[Hashable, bytes, int]] = []  # submitted while catching up (no cseq yet)
         self.pending: dict[int, _Pending] = {}  # forwarded, not yet applied here (in cseq order)
         self.target: Proc | None = None  # where they were forwarded last
         self.timer_armed = False
@@ -214,23 +221,23 @@ class Sequencer:
     def step(self, now: float, inp: SeqInput) -> list[SeqEffect]:
         self._now = now
         match inp:
-            case Submit(req, payload):
+            case Submit(req, payload, cost):
                 h = self.host
                 if h.catching_up():  # a new member: hold until its state has caught up
-                    self.held.append((req, payload))
+                    self.held.append((req, payload, cost))
                 elif not h.is_member():
                     self._out.append(WriteDone(req, False, None, 0, "not a member of the group"))
                 elif not h.group_formed():
                     self._out.append(WriteDone(req, False, None, 0, "the group is not formed yet"))
                 else:
-                    self._submit(req, payload)
+                    self._submit(req, payload, cost)
             case Release():
                 if self.held and not (self.host.is_locked() or self.host.catching_up()):
                     held, self.held = self.held, []
-                    for req, payload in held:
-                        self._submit(req, payload)
-            case Forwarded(origin, floor, writes):
-                self._accept(origin, floor, writes)
+                    for req, payload, cost in held:
+                        self._submit(req, payload, cost)
+            case Forwarded(origin, floor, writes, costs):
+                self._accept(origin, floor, writes, costs or (1,) * len(writes))
             case RetryDue():
                 self.timer_armed = False
                 self._retry()
@@ -255,10 +262,10 @@ class Sequencer:
 
     # ------------------------------------------------------------------ origin
 
-    def _submit(self, req: Hashable, payload: bytes) -> None:
+    def _submit(self, req: Hashable, payload: bytes, cost: int) -> None:
         cseq = self.next_cseq
         self.next_cseq += 1
-        self.pending[cseq] = _Pending(req, payload, self._now)
+        self.pending[cseq] = _Pending(req, payload, max(1, cost), self._now)
         self._forward([cseq])
 
     def _forward(self, cseqs: Sequence[int]) -> None:
@@ -272,6 +279,7 @@ class Sequencer:
         floor = next(iter(pending)) if pending else self.next_cseq
         most, most_bytes = self.config.seq_max_entries, self.config.seq_max_bytes
         batch: list[tuple[int, bytes]] = []
+        costs: list[int] = []
         size = 0
         for c in cseqs:
             w = pending.get(c)
@@ -279,20 +287,22 @@ class Sequencer:
                 continue
             w.sent = self._now
             if batch and (len(batch) >= most or size + len(w.payload) > most_bytes):
-                self._send(target, floor, batch)
-                batch, size = [], 0
+                self._send(target, floor, batch, costs)
+                batch, costs, size = [], [], 0
             batch.append((c, w.payload))
+            costs.append(w.cost)
             size += len(w.payload)
         if batch:
-            self._send(target, floor, batch)
+            self._send(target, floor, batch, costs)
         self._arm()
 
-    def _send(self, target: Proc, floor: int, batch: list[tuple[int, bytes]]) -> None:
+    def _send(self, target: Proc, floor: int, batch: list[tuple[int, bytes]], costs: list[int]) -> None:
         self._out.append(Count("seq_forwarded", len(batch)))
+        cost = tuple(costs) if any(c != 1 for c in costs) else ()  # (() : 1 each, as on the wire)
         if target == self.me:
-            self._accept(self.me, floor, tuple(batch))
+            self._accept(self.me, floor, tuple(batch), tuple(costs))
         else:
-            self._out.append(Send(target[0], target[1], SeqWrite(floor, tuple(batch))))
+            self._out.append(Send(target[0], target[1], SeqWrite(floor, tuple(batch), cost)))
 
     def _arm(self) -> None:
         if self.pending and not self.timer_armed:
@@ -330,7 +340,9 @@ class Sequencer:
 
     # ------------------------------------------------------------------ sequencer
 
-    def _accept(self, origin: Proc, floor: int, writes: tuple[tuple[int, bytes], ...]) -> None:
+    def _accept(
+        self, origin: Proc, floor: int, writes: tuple[tuple[int, bytes], ...], costs: tuple[int, ...]
+    ) -> None:
         """Writes forwarded to us (we are, or were, or are about to be the sequencer): queue each one that is
         neither queued here nor applied, and propose."""
         # (an origin that is not a member yet here may be one we have not applied the addition of: its writes
@@ -338,12 +350,12 @@ class Sequencer:
         if self.host.has_left() or len(self.queue) + len(writes) > SEQ_MAX_QUEUE:
             self._out.append(Count("seq_dropped", len(writes)))
             return
-        for cseq, payload in writes:
+        for (cseq, payload), cost in zip(writes, costs, strict=True):
             key = (origin, cseq)
             if key in self.known or self.host.settled(origin, cseq):
                 continue
             self.known.add(key)
-            self.queue.append(SeqEntry(origin, cseq, floor, payload))
+            self.queue.append(SeqEntry(origin, cseq, floor, payload, max(1, cost)))
         self._flush()
 
     def _flush(self) -> None:
@@ -355,13 +367,14 @@ class Sequencer:
         cfg = self.config
         while q and len(self.inflight) < cfg.seq_inflight:
             entries: list[SeqEntry] = []
-            size = 0
+            size = cost = 0
             while q and len(entries) < cfg.seq_max_entries and (
-                not entries or size + len(q[0].tx) <= cfg.seq_max_bytes
+                not entries or (size + len(q[0].tx) <= cfg.seq_max_bytes and cost + q[0].cost <= cfg.seq_max_cost)
             ):
                 e = q.popleft()
                 entries.append(e)
                 size += len(e.tx)
+                cost += e.cost
             batch = tuple(entries)
             txid = self.host.new_txid()
             self.inflight[txid] = batch

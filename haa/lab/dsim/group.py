@@ -34,6 +34,9 @@ DDB (`haactl verify ddb`, `DDB_PROPS`, plus HM-Agreement which they rest on):
   are deduplicated by origin and client sequence; docs/oac.md, "The sequencer"). Batches are told apart by
   their transaction id, not by the global seq they were applied at: a member removed while it was running
   (and crashed before it learnt so) numbers what it still delivers differently from the group.
+* DDB-Bounded-Batch: no sequencer batch of more than one write carries more DDB ops than `seq_max_cost`
+  (`SIM_NODE` sets it low, so that the writes' costs split batches): the apply of one transaction is bounded
+  by the ops of one request (docs/limits.md).
 
 Schedules run with the sequencer (writes forwarded to the leader, batched) except SEQUENCER_OFF_SHARE of them
 (every member proposes its own writes, Alg. 3 as printed); BURST_SHARE of the DDB schedules have bursts in
@@ -53,6 +56,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
+import haa.pb.ddb_pb2 as ddb_pb2
 from haa.core.ddb import ops as ddbmod
 from haa.core.host.hostcore import CoreConfig
 from haa.core.inputs import LeaveGroup, Submit
@@ -77,6 +81,8 @@ SIM_NODE: dict[str, Any] = dict(
     catchup_timeout=0.4,
     hash_every_apply=True,
     seq_retry=0.5,
+    # two or three writes of the DDB workload (1-6 ops each) per batch: the costs split batches under load
+    seq_max_cost=12,
 )
 #: a fault that would break the assumptions is tried again this much later (until the fault window ends)
 GATE_RETRY = 0.1
@@ -251,6 +257,8 @@ class GroupHistory:
     write_proposer: dict[TxId, Proc] = field(default_factory=dict)  # every DDB write transaction seen
     #: (group, batch txid) -> (global seq where first applied, the (origin, cseq) writes it applied) (DDB-Exactly-Once)
     seq_applied: dict[tuple[str, TxId], tuple[int, tuple[tuple[Proc, int], ...]]] = field(default_factory=dict)
+    #: (group, batch txid) -> (writes, DDB ops) it carried (DDB-Bounded-Batch)
+    seq_cost: dict[tuple[str, TxId], tuple[int, int]] = field(default_factory=dict)
     # per process: (group, seq, txid, decoded remove/membership transaction)
     group_txs: dict[Proc, list[tuple[str, int, TxId, Any]]] = field(default_factory=lambda: defaultdict(list))
     joins: dict[Proc, tuple[str, int, str]] = field(default_factory=dict)  # (group, seq, state hash) at join
@@ -329,6 +337,8 @@ class GroupSim:
                 gh.seq_applied.setdefault(
                     (st.genesis, e.txid), (e.seq, tuple((r.origin, r.cseq) for r in e.result if r.applied))
                 )
+                if (st.genesis, e.txid) not in gh.seq_cost:
+                    gh.seq_cost[(st.genesis, e.txid)] = _seq_cost(e.payload)
         elif t is ViewChange:
             gh.views[proc].append((e.group, e.view, tuple(m.proc for m in e.members), self.cl.now))
             if e.correct:
@@ -395,7 +405,7 @@ class GroupSim:
         atomic = n_ops > 1 and r.random() < 0.3
         self.req += 1
         payload = ddbmod.encode_batch(ops, origin=name, client_seq=self.req, atomic=atomic)
-        node.step(h.local(self.cl.now), Submit(payload, (name, self.req)))
+        node.step(h.local(self.cl.now), Submit(payload, (name, self.req), cost=n_ops))
         self.cl._apply(h)
 
     def _leave(self, name: str) -> None:
@@ -594,7 +604,7 @@ MEMBERSHIP_PROPS = frozenset(
 )
 DDB_PROPS = frozenset(
     {"HM-Agreement", "DDB-Prefix", "DDB-Convergence", "DDB-Durability", "DDB-Atomicity", "DDB-Joiner-Consistency",
-     "DDB-Exactly-Once"}
+     "DDB-Exactly-Once", "DDB-Bounded-Batch"}
 )
 #: which properties each verifier reports (`haactl verify membership|ddb`)
 VERIFIER_PROPS = {"membership": MEMBERSHIP_PROPS, "ddb": DDB_PROPS}
@@ -622,6 +632,17 @@ def check_group(sim: GroupSim, props: frozenset[str] | None = None) -> list[Grou
     if props is not None:
         out = [v for v in out if v.prop in props]
     return out
+
+
+def _seq_cost(payload: bytes) -> tuple[int, int]:
+    """(writes, DDB ops) of an applied sequencer batch, counted from its bytes (a test write counts 1)."""
+    tx = decode_tx(payload)
+    assert isinstance(tx, TxSeq)
+    ops = 0
+    for entry in tx.entries:
+        inner = decode_tx(entry.tx)
+        ops += len(ddb_pb2.DdbBatch.FromString(inner.data).ops) if isinstance(inner, TxDdb) else 1
+    return len(tx.entries), ops
 
 
 def _check(sim: GroupSim) -> list[GroupViolation]:
@@ -812,6 +833,12 @@ def _check(sim: GroupSim) -> list[GroupViolation]:
                 bad("DDB-Exactly-Once",
                     f"write {cseq} of {_p(origin)} applied at seq {first[0]} ({first[1]}) and again at {s} ({txid})",
                     origin)
+    # DDB-Bounded-Batch: a batch of several writes stays within seq_max_cost DDB ops
+    most = sim.node_cfg.seq_max_cost
+    for (_g, txid), (n, ops) in sorted(gh.seq_cost.items(), key=lambda kv: str(kv[0][1])):
+        if n > 1 and ops > most:
+            bad("DDB-Bounded-Batch", f"batch {txid} of {n} writes carried {ops} DDB ops > seq_max_cost {most}",
+                (txid.host, txid.inc))
     for txid, proc in gh.write_proposer.items():
         if proc not in hist.crash_time:
             continue

@@ -72,6 +72,7 @@ A real agent on virtual time, checked by `haactl verify executive` (`haa.lab.dsi
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import weakref
 from collections.abc import Callable
@@ -231,6 +232,18 @@ def seq_no_dedup() -> Undo:
     def __init__(self: membership_mod.MembershipNode, *args: Any, **kw: Any) -> None:
         init(self, *args, **kw)
         self.state.dedup = False
+
+    return _patch(cls, "__init__", __init__)
+
+
+def seq_no_cost_bound() -> Undo:
+    """The sequencer packs batches by entries and bytes only, not by the writes' DDB ops (`seq_max_cost` off)."""
+    cls = membership_mod.MembershipNode
+    init = cls.__init__
+
+    def __init__(self: membership_mod.MembershipNode, *args: Any, **kw: Any) -> None:
+        init(self, *args, **kw)
+        self.seq.config = dataclasses.replace(self.seq.config, seq_max_cost=10**9)
 
     return _patch(cls, "__init__", __init__)
 
@@ -448,6 +461,7 @@ MUTATIONS: dict[str, tuple[Callable[[], Undo], str, str]] = {
     "reorder-restored": (reorder_restored, "ddb", "DDB-Prefix"),
     "no-dissolution": (no_dissolution, "membership", "HM-Termination"),
     "seq-no-dedup": (seq_no_dedup, "ddb", "DDB-Exactly-Once"),
+    "seq-no-cost-bound": (seq_no_cost_bound, "ddb", "DDB-Bounded-Batch"),
     "thesis-accept": (thesis_accept, "allocation", "AA-Validity"),
     "cbba-reset": (cbba_reset, "allocation", "AA-Table-Fidelity"),
     "no-unallocatable": (no_unallocatable, "allocation", "AA-Liveness"),
