@@ -292,13 +292,16 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             while time.perf_counter() < stop:
                 t = time.perf_counter()
                 try:
-                    await rt.writes.ddb_write([put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
+                    res = await rt.writes.ddb_write([put(f"{prefix}/{i}/{k}", "blob", value)], timeout=30.0)
                 except WriteFailed:
                     failed += 1
                 else:
-                    committed += 1
-                    if len(lat) < 200_000:
-                        lat.append(time.perf_counter() - t)
+                    if not res.results[0].ok:  # committed, the put refused (a full DDB: MAX_DDB_KEYS / BYTES)
+                        failed += 1
+                    else:
+                        committed += 1
+                        if len(lat) < 200_000:
+                            lat.append(time.perf_counter() - t)
                 k += 1
 
         await asyncio.gather(*(writer(i) for i in range(r.writers)))
