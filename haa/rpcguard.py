@@ -9,7 +9,9 @@ method of a protobuf service with raw bytes instead (`request_deserializer=None`
 1. checks the call's metadata first (`Guard.authenticate`); refused: `UNAUTHENTICATED` (`kind` "unauthenticated");
 2. parses the bytes into the method's request type; malformed: `INVALID_ARGUMENT` ("malformed");
 3. runs the servicer's method (the same `async def Name(request, context)` the generated servicer base
-   class declares; server-streaming methods are async generators); an exception escaping it becomes a
+   class declares; a server-streaming method is an async generator, or a coroutine that sends with
+   `await context.write(...)` — which it can bound in time, for a client that stops reading; either may
+   hand out an already serialized message as `bytes`, sent as it is); an exception escaping it becomes a
    status through `Guard.statuses` ("error"): `TimeoutError` -> `DEADLINE_EXCEEDED`, `ValueError` /
    `OverflowError` / `DecodeError` -> `INVALID_ARGUMENT`, `ConnectionError` -> `UNAVAILABLE`, the caller's own
    exception types as it maps them, anything else -> `INTERNAL` (a bug of ours: logged with its traceback by
@@ -26,6 +28,7 @@ Client-streaming methods are not supported (none of our services has one).
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
@@ -108,7 +111,18 @@ class Guard:
         await context.abort(code, _cut(detail))
 
 
+def _serializer(cls: Any) -> Callable[[Any], bytes]:
+    """`cls.SerializeToString`, passing bytes (a message serialized once for many calls) through as they are."""
+    encode = cls.SerializeToString
+
+    def serialize(m: Any) -> bytes:
+        return m if isinstance(m, bytes) else encode(m)
+
+    return serialize
+
+
 def _unary(guard: Guard, m: MethodDescriptor, fn: Callable[..., Awaitable[Any]], req_cls: Any) -> Any:
+    """A unary method, or a server-streaming one that sends with `context.write` (a coroutine)."""
     async def handler(raw: bytes, context: aio.ServicerContext) -> Any:
         request = await guard.admit(m, raw, context, req_cls)
         try:
@@ -144,10 +158,11 @@ def guarded_handler(service: ServiceDescriptor, servicer: object, guard: Guard) 
             raise ValueError(f"{service.full_name}.{m.name}: client streaming is not supported")
         fn = getattr(servicer, m.name)
         req_cls = message_factory.GetMessageClass(m.input_type)
-        ser = message_factory.GetMessageClass(m.output_type).SerializeToString
+        ser = _serializer(message_factory.GetMessageClass(m.output_type))
         if m.server_streaming:
+            wrap = _stream if inspect.isasyncgenfunction(fn) else _unary
             handlers[m.name] = grpc.unary_stream_rpc_method_handler(
-                _stream(guard, m, fn, req_cls), request_deserializer=None, response_serializer=ser
+                wrap(guard, m, fn, req_cls), request_deserializer=None, response_serializer=ser
             )
         else:
             handlers[m.name] = grpc.unary_unary_rpc_method_handler(

@@ -20,7 +20,9 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import grpc
+import psutil
 import pytest
+from helpers import wait_sync
 from hostilecluster import TOKEN, Cluster, assert_healthy, start_cluster
 
 from haa.core.allocation.specs import MAX_COST
@@ -140,6 +142,48 @@ def test_op_heavy_writes_are_refused_at_the_edge_and_a_commit_carries_one_reques
     assert len({r.global_seq for r in replies}) == 8, sorted(r.global_seq for r in replies)
     assert_healthy(cluster)
     assert h1.status().ddb_seq >= seq_before + 8
+
+
+def test_mirror_streams_of_one_client_are_bounded_and_places_come_back(cluster: Cluster) -> None:
+    """The probe's D2: 40 mirror streams that never read took a host to 1,127 MiB; 500 opened and dropped
+    stalled it 719 ms. Now one client gets MAX_MIRRORS_PER_CLIENT streams, the rest are refused with the bound
+    named, a snapshot is built once for all, and a closed stream's place is free again."""
+    from haa.hostd.mirrors import MAX_MIRRORS_PER_CLIENT
+
+    h2 = cluster.hosts["h2"]
+    rss0 = psutil.Process(h2.proc.pid).memory_info().rss  # type: ignore[union-attr]
+    ch = grpc.insecure_channel(h2.address)
+    stub = control_pb2_grpc.HostControlStub(ch)
+    md = [(MD_TOKEN, TOKEN)]
+    calls = [stub.Mirror(cpb.MirrorRequest(views=True), metadata=md) for _ in range(MAX_MIRRORS_PER_CLIENT + 4)]
+    accepted, refused = [], []
+    for c in calls:
+        try:
+            ev = next(c)
+            assert ev.WhichOneof("event") == "snapshot"
+            accepted.append(c)
+        except grpc.RpcError as e:
+            assert e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "MAX_MIRRORS_PER_CLIENT" in (e.details() or "")
+            refused.append(c)
+    assert (len(accepted), len(refused)) == (MAX_MIRRORS_PER_CLIENT, 4)
+    assert psutil.Process(h2.proc.pid).memory_info().rss < rss0 + (100 << 20)  # type: ignore[union-attr]
+    for c in accepted:
+        c.cancel()
+    opened: list[grpc.Future] = []
+
+    def place_free() -> bool:
+        call = stub.Mirror(cpb.MirrorRequest(views=True), metadata=md)
+        opened.append(call)
+        try:
+            return next(call).WhichOneof("event") == "snapshot"
+        except grpc.RpcError:
+            return False
+
+    wait_sync(place_free, 10, "a cancelled stream's place free again")
+    for c in opened:
+        c.cancel()
+    ch.close()
+    assert_healthy(cluster)
 
 
 def test_operator_requests_naming_nothing_are_refused(cluster: Cluster) -> None:

@@ -35,6 +35,7 @@ from haa.hostd.outcomes import InvalidWrite, NotMembershipMode, TransactionAbort
 from haa.hostd.proposals import Proposals
 from haa.hostd.timers import TimerWheel
 from haa.hostd.writes import Writes
+from haa.pb import control_pb2 as cpb
 
 # ----------------------------------------------------------------------------------------------- fakes
 
@@ -389,3 +390,48 @@ def test_build_host_gives_the_runtime_its_driver_and_serves_the_control_api(tmp_
     assert host.control.rt is host.runtime and host.runtime._services == [host.control]
     static = build_host(RuntimeConfig(name="h1", listen="127.0.0.1:0", peers={"h2": "127.0.0.1:2"}, token="t"))
     assert static.agents is None and static.runtime.agents is None
+
+
+# ----------------------------------------------------------------------------------------------- mirror bounds
+
+
+def test_mirror_streams_are_bounded_per_host_and_per_client() -> None:
+    from haa.hostd.mirrors import MirrorRefused
+
+    async def main() -> None:
+        m, db = Mirrors(max_subs=5, max_per_client=3), Ddb()
+        subs = [m.subscribe(True, db, "10.0.0.1") for _ in range(3)]
+        with pytest.raises(MirrorRefused, match=r"10\.0\.0\.1 has 3 mirror streams here.*MAX_MIRRORS_PER_CLIENT"):
+            m.subscribe(True, db, "10.0.0.1")
+        subs += [m.subscribe(True, db, "10.0.0.2") for _ in range(2)]
+        with pytest.raises(MirrorRefused, match=r"serves 5 mirror streams.*MAX_MIRRORS"):
+            m.subscribe(True, db, "10.0.0.3")
+        m.unsubscribe(subs[0])
+        assert m.subscribe(True, db, "10.0.0.1").client == "10.0.0.1"  # a freed place is taken again
+
+    asyncio.run(main())
+
+
+def test_a_mirror_snapshot_is_built_once_and_later_subscribers_catch_up_from_the_ring() -> None:
+    from haa.hostd.mirrors import snapshot_event
+
+    async def main() -> None:
+        db, m = Ddb(), Mirrors()
+        db.apply(ddb.encode_batch([ddb.put(f"k{i}", "blob", bytes(300)) for i in range(500)]), 7)
+        ev = cpb.MirrorEvent.FromString(snapshot_event(db))  # serialized without decoding the snapshot
+        assert ev.WhichOneof("event") == "snapshot" and ev.ddb_hash == db.content_hash()
+        assert Ddb.restore(ev.snapshot.SerializeToString()).content_hash() == db.content_hash()
+        m.subscribe(True, db)
+        first, since = m.snapshot(db)
+        assert first.seq == 1 and since == []
+        db.apply(ddb.encode_batch([ddb.put("late", "counter", 1)]), 8)  # meta: the global seq
+        again, since = m.snapshot(db)
+        assert again is first and [(e.seq, e.meta) for e in since] == [(2, 8)]  # shared, plus the catch-up
+        replica = Ddb.restore(cpb.MirrorEvent.FromString(again.event).snapshot.SerializeToString())
+        for e in since:
+            replica.apply(e.payload)
+        assert replica.content_hash() == db.content_hash()
+        other = Ddb()
+        assert m.snapshot(other)[0].replica is other  # another replica object: a new snapshot
+
+    asyncio.run(main())

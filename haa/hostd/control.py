@@ -62,6 +62,7 @@ from haa.core.ddb.ops import put
 from haa.core.oac.oac import OacError
 from haa.hostd.agentcontrol import AgentClientMixin, AgentControl
 from haa.hostd.logs import LOGGER_NAME, RateLimiter, log_event
+from haa.hostd.mirrors import MIRROR_SEND_TIMEOUT, MirrorRefused
 from haa.hostd.outcomes import (
     HostReincarnated,
     InvalidWrite,
@@ -99,6 +100,18 @@ STATUSES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
     (HostReincarnated, grpc.StatusCode.ABORTED),
     (TransactionAborted, grpc.StatusCode.ABORTED),
 )
+
+
+class _ClientGone(Exception):
+    """A stream's call ended while we were writing to it (cancelled, deadline, connection closed)."""
+
+
+def _client_address(peer: str) -> str:
+    """A gRPC peer ("ipv4:127.0.0.1:51234", "ipv6:[::1]:5", "unix:...") without its port: one client machine."""
+    kind, _, rest = peer.partition(":")
+    if kind in ("ipv4", "ipv6"):
+        return rest.rsplit(":", 1)[0]
+    return peer
 
 
 def _txid(t: TxId) -> pb.TxId:
@@ -343,22 +356,55 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             truncated=truncated,
         )
 
-    async def Mirror(self, request: cpb.MirrorRequest, context: aio.ServicerContext) -> AsyncIterator[cpb.MirrorEvent]:
+    async def Mirror(self, request: cpb.MirrorRequest, context: aio.ServicerContext) -> None:
+        """A snapshot, then every applied DDB batch (and view changes if asked). Sent with `context.write`, each
+        within `MIRROR_SEND_TIMEOUT`: a client that stops reading is cut off (RESOURCE_EXHAUSTED), and what gRPC
+        held for it is freed. Bounded in number (haa.hostd.mirrors)."""
         rt = self.rt
         try:
             node = rt.member_node()
         except NotMembershipMode as e:
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
             raise
-        sub = rt.mirrors.subscribe(request.views, node.state.ddb)
+        try:
+            sub = rt.mirrors.subscribe(request.views, node.state.ddb, _client_address(context.peer()))
+        except MirrorRefused as e:
+            rt.counters["mirror_refused"] += 1
+            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
+            raise
         task = asyncio.current_task()
         if task is not None:
             rt.stream_tasks.add(task)
         rt.counters["mirror_subscribers"] += 1
+
+        async def send(event: cpb.MirrorEvent | bytes) -> None:
+            try:
+                await asyncio.wait_for(context.write(event), MIRROR_SEND_TIMEOUT)
+            except aio.AbortError:
+                raise
+            except TimeoutError:
+                rt.counters["mirror_cut_off"] += 1
+                await context.abort(
+                    grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    f"the client took no mirror event for {MIRROR_SEND_TIMEOUT:g} s (MIRROR_SEND_TIMEOUT)",
+                )
+            except Exception:  # (grpc's ExecuteBatchError: a write fails only once the call has ended under us)
+                raise _ClientGone from None
+
+        async def send_snapshot(db: Any) -> int:
+            snap, since = rt.mirrors.snapshot(db)
+            await send(snap.event)
+            last = snap.seq
+            for entry in since:  # (a shared snapshot: catch up from the replica's mirror ring)
+                if entry.seq == last + 1:
+                    last = entry.seq
+                    h = db.content_hash() if db.seq == last else ""
+                    batch = cpb.MirrorBatch(ddb_seq=last, payload=entry.payload, global_seq=entry.meta or 0)
+                    await send(cpb.MirrorEvent(batch=batch, ddb_hash=h))
+            return last
+
         try:
-            db = node.state.ddb
-            last = db.seq
-            yield cpb.MirrorEvent(snapshot=dpb.DdbSnapshot.FromString(db.snapshot()), ddb_hash=db.content_hash())
+            last = await send_snapshot(node.state.ddb)
             while True:
                 item = await sub.get()
                 if item is None:
@@ -375,20 +421,17 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                     else:
                         last = seq
                         h = db.content_hash() if db.seq == seq else ""
-                        yield cpb.MirrorEvent(
+                        await send(cpb.MirrorEvent(
                             batch=cpb.MirrorBatch(ddb_seq=seq, payload=payload, global_seq=gseq), ddb_hash=h
-                        )
+                        ))
                         continue
                 if kind == "resync":
-                    last = db.seq
                     rt.counters["mirror_resyncs"] += 1
-                    yield cpb.MirrorEvent(
-                        snapshot=dpb.DdbSnapshot.FromString(db.snapshot()), ddb_hash=db.content_hash()
-                    )
+                    last = await send_snapshot(db)
                 elif kind == "view":
                     v = item[1]
                     lead = v.members[0].name if v.members else ""
-                    yield cpb.MirrorEvent(
+                    await send(cpb.MirrorEvent(
                         view=cpb.ViewEvent(
                             view=v.view,
                             global_seq=v.seq,
@@ -397,7 +440,9 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
                             added=[m.name for m in v.added],
                             leader=lead,
                         )
-                    )
+                    ))
+        except _ClientGone:
+            return
         except asyncio.CancelledError:
             if not rt.stopping:
                 raise

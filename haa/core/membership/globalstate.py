@@ -387,7 +387,7 @@ class GlobalState:
                 self.group_correct = True  # l. 178
         elif isinstance(tx, TxDdb):
             try:
-                ddb_result = self.ddb.apply(tx.data)
+                ddb_result = self.ddb.apply(tx.data, self.seq)  # (meta: the global seq, for mirror catch-up)
             except DdbError as e:
                 err = str(e)
             except Exception as e:  # a bug: the same bytes fail the same way on every replica (apply is total)
@@ -430,7 +430,7 @@ class GlobalState:
             return SeqApplied(e.origin, e.cseq, True, "invalid", None, str(ex))
         if isinstance(inner, TxDdb):
             try:
-                return SeqApplied(e.origin, e.cseq, True, "ddb", self.ddb.apply(inner.data), "")
+                return SeqApplied(e.origin, e.cseq, True, "ddb", self.ddb.apply(inner.data, self.seq), "")
             except DdbError as ex:
                 return SeqApplied(e.origin, e.cseq, True, "ddb", None, str(ex))
             except Exception as ex:  # a bug: the same bytes fail the same way on every replica (apply is total)
