@@ -3,9 +3,11 @@
 Every such file goes through `load_yaml` (or `load_json`, `read_text`), which refuses, before building any
 Python object from it, a file that could make a process hang, blow its memory or die with a traceback:
 
-* **size**: at most `max_bytes` bytes are read (default `MAX_BYTES`, 1 MiB); a larger file, and anything
-  endless such as `/dev/zero` or a FIFO that never closes after the limit, is refused after reading
-  `max_bytes + 1` bytes;
+* **kind**: only a regular file (symbolic links followed) is opened: a FIFO, whose open blocks until someone
+  writes to it, a device such as `/dev/zero` (`/dev/null`, an empty file, excepted), a directory or a socket
+  is refused by `check_regular` before anything is opened, naming what it is;
+* **size**: at most `max_bytes` bytes are read (default `MAX_BYTES`, 1 MiB); a larger file is refused after
+  reading `max_bytes + 1` bytes;
 * **encoding**: the bytes must be strict UTF-8 (the error names the offset of the first bad byte);
 * **depth**: collections nested at most `max_depth` levels (default `MAX_DEPTH`, 64). PyYAML composes
   documents recursively, so a 100,000-deep `[[[[...` would reach Python's recursion limit; the depth is
@@ -31,6 +33,7 @@ from __future__ import annotations
 import errno as errno_mod
 import json
 import os
+import stat
 from typing import Any
 
 import yaml
@@ -93,8 +96,38 @@ def _size(n: int) -> str:
     return f"{n} bytes"
 
 
+_KINDS = (
+    (stat.S_ISDIR, "is a directory, not a file"),
+    (stat.S_ISFIFO, "is a FIFO (a named pipe), not a regular file: its open would wait for a writer"),
+    (stat.S_ISCHR, "is a character device, not a regular file"),
+    (stat.S_ISBLK, "is a block device, not a regular file"),
+    (stat.S_ISSOCK, "is a socket, not a regular file"),
+)
+
+
+def check_regular(path: str | os.PathLike[str]) -> os.stat_result:
+    """`path`'s stat if it is a regular file (symbolic links followed); FileError naming what it is otherwise
+    (no such file, a directory, a FIFO, a device, a socket) — without opening it."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise FileError(path, "no such file", errno_mod.ENOENT) from None
+    except OSError as e:
+        raise FileError(path, f"cannot read: {e.strerror or e}", e.errno) from None
+    if stat.S_ISCHR(st.st_mode) and os.path.realpath(path) == os.devnull:
+        return st  # (reads nothing: the usual way to hand over an empty file)
+    for test, reason in _KINDS:
+        if test(st.st_mode):
+            raise FileError(path, reason)
+    if not stat.S_ISREG(st.st_mode):
+        raise FileError(path, "is not a regular file")
+    return st
+
+
 def read_bytes(path: str | os.PathLike[str], *, what: str = "file", max_bytes: int = MAX_BYTES) -> bytes:
-    """The bytes of `path`, reading at most `max_bytes + 1` of them; FileError if it is larger or unreadable."""
+    """The bytes of `path` (a regular file: `check_regular`), reading at most `max_bytes + 1` of them;
+    FileError if it is larger or unreadable."""
+    check_regular(path)
     try:
         with open(path, "rb", buffering=0) as f:
             chunks: list[bytes] = []

@@ -75,9 +75,9 @@ def test_depth_limit_is_exact_and_counts_aliases() -> None:
     assert parse_yaml(deep, "t", max_depth=80)["b"] is not None
 
 
-def test_dev_zero_and_oversized_files_stop_at_the_limit(tmp_path: Path) -> None:
+def test_devices_are_refused_unopened_and_oversized_files_stop_at_the_limit(tmp_path: Path) -> None:
     t0 = time.monotonic()
-    with pytest.raises(FileError, match=r"^/dev/zero: larger than 1 MiB \(config file limit\)$"):
+    with pytest.raises(FileError, match=r"^/dev/zero: is a character device, not a regular file$"):
         load_yaml("/dev/zero", what="config file")
     with pytest.raises(FileError, match=r"larger than 100 bytes"):
         load_yaml(write(tmp_path / "big.yaml", "a: 1\n" + "#" * 95 + "\n"), max_bytes=100)
@@ -85,34 +85,20 @@ def test_dev_zero_and_oversized_files_stop_at_the_limit(tmp_path: Path) -> None:
     assert time.monotonic() - t0 < 2.0
 
 
-def test_a_fifo_that_never_ends_is_cut_off(tmp_path: Path) -> None:
+def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path: Path) -> None:
     fifo = tmp_path / "fifo"
     os.mkfifo(fifo)
-    stop = threading.Event()
-
-    def feed() -> None:
-        try:
-            with open(fifo, "wb") as f:
-                while not stop.is_set():
-                    f.write(b"a: 1\n" * 1000)
-        except BrokenPipeError:
-            pass
-
-    t = threading.Thread(target=feed, daemon=True)
-    t.start()
-    try:
-        with pytest.raises(FileError, match=r"larger than 64 KiB"):
-            load_yaml(fifo, max_bytes=64 << 10)
-    finally:
-        stop.set()
-        t.join(5)
+    t0 = time.monotonic()
+    with pytest.raises(FileError, match=r"fifo: is a FIFO \(a named pipe\), not a regular file"):
+        load_yaml(fifo)  # nobody writes to it: an open would block forever
+    assert time.monotonic() - t0 < 1.0
 
 
 def test_missing_unreadable_and_directories(tmp_path: Path) -> None:
     with pytest.raises(FileError, match=r"no such file$") as e:
         load_yaml(tmp_path / "nope.yaml")
     assert e.value.os_errno is not None
-    with pytest.raises(FileError, match=r"cannot read: Is a directory"):
+    with pytest.raises(FileError, match=r"is a directory, not a file$"):
         load_yaml(tmp_path)
     assert load_yaml("/dev/null") is None
 
@@ -293,7 +279,7 @@ def test_arena_lists_are_bounded() -> None:
 def test_arena_and_schedule_files_get_one_line(tmp_path: Path) -> None:
     with pytest.raises(ArenaError, match=r"^arena .*/d.yaml: duplicate key 'size' at line 3 \(first at line 2\)$"):
         load_arena(write(tmp_path / "d.yaml", "name: t\nsize: [4, 4]\nsize: [5, 5]\nstart_poses: [[1, 1, 0]]\n"))
-    with pytest.raises(ArenaError, match=r"^arena /dev/zero: larger than 1 MiB"):
+    with pytest.raises(ArenaError, match=r"^arena /dev/zero: is a character device"):
         load_arena("/dev/zero")
     with pytest.raises(ArenaError, match=r"no such file \(built-in arenas: small, large\)"):
         load_arena(tmp_path / "none.yaml")
@@ -342,7 +328,7 @@ def test_hostd_bad_config_files_exit_2_with_one_line(tmp_path: Path) -> None:
         "million": (None, "million.yaml: larger than 256 KiB (config file limit)"),
         "1001": ("core:\n" + "".join(f"  h{i}: a:{20000 + i}\n" for i in range(1001)), "--core: more than 1000"),
         "dup": ("name: h1\nmembership:\n  c_f: 1\n  c_f: 2\n", "duplicate key 'c_f' at line 4 (first at line 3)"),
-        "zero": (None, "/dev/zero: larger than 256 KiB"),
+        "zero": (None, "/dev/zero: is a character device, not a regular file"),
     }
     cmds, expect = [], []
     for name, (content, text) in cases.items():
@@ -353,7 +339,7 @@ def test_hostd_bad_config_files_exit_2_with_one_line(tmp_path: Path) -> None:
                      "--data-dir", str(tmp_path / "d"), "--config", path])  # fmt: skip
         expect.append(text)
     cmds.append([*HOSTD, "--name", "h0", "--listen", "127.0.0.1:0", "--token-file", "/dev/zero"])
-    expect.append("--token-file: cannot read token file /dev/zero: larger than 4 KiB")
+    expect.append("--token-file: cannot read token file /dev/zero: is a character device, not a regular file")
     assert_one_line_exit_2(cmds, expect)
 
 

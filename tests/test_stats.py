@@ -180,6 +180,70 @@ def test_bad_input_gets_one_line(tmp_path):
     assert r.exit_code == 1 and "no hosts to collect from" in r.output
 
 
+def _bomb(path: Path, members: dict[str, int]) -> Path:
+    """A gzip'd tar of zero-filled members (name -> size): a few KB on disk however large they expand."""
+    import io
+    import os
+
+    class Zeros(io.RawIOBase):
+        def __init__(self, n: int) -> None:
+            self.left = n
+
+        def readable(self) -> bool:
+            return True
+
+        def readinto(self, b) -> int:  # type: ignore[override]
+            n = min(len(b), self.left)
+            b[:n] = bytes(n)
+            self.left -= n
+            return n
+
+    with tarfile.open(path, "w:gz", compresslevel=1) as tar:
+        for name, size in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = size
+            tar.addfile(info, io.BufferedReader(Zeros(size)))
+    assert os.path.getsize(path) < 1 << 20
+    return path
+
+
+def test_a_bundle_that_expands_beyond_its_bounds_is_refused_in_one_line(tmp_path, monkeypatch):
+    """The probe's D6: a 1 MB bundle whose stats.jsonl expanded to 900 MB took `haactl report` past 4.8 GB and
+    ended in a 65-line MemoryError traceback. The tar headers' sizes are checked before a member is read, and
+    the decompressed stream as it goes."""
+    import haa.lab.stats.bundle as bundle_mod
+
+    d = tmp_path / "b"
+    d.mkdir()
+    _bomb(d / "h1.tar.gz", {"h1/manifest.json": 10, "h1/stats.jsonl": 70 << 20})
+    r = CliRunner().invoke(app, ["report", str(d)])
+    assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
+    assert "h1/stats.jsonl expands to 70 MiB, more than 64 MiB (MAX_MEMBER)" in r.output
+    monkeypatch.setattr(bundle_mod, "MAX_BUNDLE_BYTES", 3 << 20)
+    p = _bomb(tmp_path / "h2.tar.gz", {f"h2/agents/A{i}.log": 1 << 20 for i in range(4)})
+    with pytest.raises(BundleError, match=r"h2\.tar\.gz: expands to more than 3 MiB \(MAX_BUNDLE_BYTES\)"):
+        read_bundle(p)
+    monkeypatch.setattr(bundle_mod, "MAX_MEMBERS", 10)
+    p = _bomb(tmp_path / "h3.tar.gz", {f"h3/agents/A{i}.log": 1 for i in range(11)})
+    with pytest.raises(BundleError, match=r"more than 10 members \(MAX_MEMBERS\)"):
+        read_bundle(p)
+
+
+def test_a_fifo_or_a_directory_as_a_bundle_is_refused_unopened(tmp_path):
+    import os
+    import time
+
+    os.mkfifo(tmp_path / "h1.tar.gz")  # nobody writes to it
+    t0 = time.monotonic()
+    with pytest.raises(BundleError, match=r"h1\.tar\.gz: is a FIFO"):
+        load_bundles(tmp_path)
+    assert time.monotonic() - t0 < 1.0
+    (tmp_path / "h1.tar.gz").unlink()
+    (tmp_path / "h1.tar.gz").mkdir()
+    with pytest.raises(BundleError, match=r"h1\.tar\.gz: is a directory"):
+        load_bundles(tmp_path)
+
+
 def test_truncated_bundle_is_refused(run, tmp_path):
     src = run["dir"] / "live" / "h1.tar.gz"
     data = src.read_bytes()

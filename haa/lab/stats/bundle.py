@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from haa.cluster.backend import natural_key
+from haa.files import FileError, check_regular, read_text
 
 FORMAT = 1
 SUFFIX = ".tar.gz"
@@ -43,8 +44,18 @@ SUMMARY_FILE = "summary.json"
 #: the last this many bytes of each agent log and of the host's stderr go into the bundle
 MAX_AGENT_LOG = 1 << 20
 MAX_STDERR = 256 << 10
-#: a bundle member larger than this is refused when read (a bundle is ours, but it may be damaged)
-MAX_MEMBER = 1 << 30
+#: what reading one bundle may take (a bundle is ours, but it may be damaged or not ours at all: a 1 MB file
+#: can expand to gigabytes). A member, its JSON lines parsed, takes ~10x its bytes in Python objects, so 64 MiB
+#: keeps one under a GiB; a host's log of a day-long run is ~20-40 MiB
+MAX_MEMBER = 64 << 20
+#: ... all members together (decompressed, the skipped ones included), and how many
+MAX_BUNDLE_BYTES = 256 << 20
+MAX_MEMBERS = 4096
+#: JSON lines in one member (real lines are 100-300 bytes; a member of tiny lines would make tens of millions of
+#: objects out of MAX_MEMBER bytes)
+MAX_LINES = 2_000_000
+#: the cluster summary (summary.json) `read_summary` reads
+MAX_SUMMARY = 16 << 20
 
 
 class BundleError(Exception):
@@ -71,6 +82,8 @@ def write_bundle(path: Path, host: str, members: dict[str, bytes], mtime: float 
 
 def _parse_jsonl(text: str, where: str, strict: bool) -> list[dict[str, Any]]:
     out = []
+    if text.count("\n") > MAX_LINES:
+        raise BundleError(f"{where}: more than {MAX_LINES:,} lines (MAX_LINES)")
     for i, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line:
@@ -135,18 +148,28 @@ class Bundle:
 
 
 def read_bundle(path: Path) -> Bundle:
-    """Read one bundle (`BundleError` with one line if it cannot be)."""
+    """Read one bundle (`BundleError` with one line if it cannot be): a regular file, at most `MAX_MEMBERS`
+    members, `MAX_MEMBER` bytes each and `MAX_BUNDLE_BYTES` in all, decompressed."""
     try:
+        check_regular(path)
         tar = tarfile.open(path, "r:gz")  # noqa: SIM115 - closed by the `with tar` below
+    except FileError as e:
+        raise BundleError(str(e)) from None
     except FileNotFoundError:
         raise BundleError(f"{path}: no such file") from None
     except (tarfile.TarError, OSError, EOFError) as e:
         raise BundleError(f"{path}: not a stats bundle (not a gzip'd tar file: {e})") from None
     files: dict[str, bytes] = {}
     host = ""
+    total = count = 0
     try:
         with tar:
             for m in tar:
+                count += 1
+                if count > MAX_MEMBERS:
+                    raise BundleError(f"{path}: more than {MAX_MEMBERS} members (MAX_MEMBERS)")
+                if tar.offset > MAX_BUNDLE_BYTES:  # (the decompressed stream so far, skipped members included)
+                    raise BundleError(f"{path}: expands to more than {MAX_BUNDLE_BYTES >> 20} MiB (MAX_BUNDLE_BYTES)")
                 if not m.isfile():
                     continue
                 top, _, name = m.name.partition("/")
@@ -156,10 +179,14 @@ def read_bundle(path: Path) -> Bundle:
                     raise BundleError(f"{path}: holds files of two hosts ({host}, {top})")
                 host = top
                 if m.size > MAX_MEMBER:
-                    raise BundleError(f"{path}: {m.name} is larger than {MAX_MEMBER >> 20} MiB")
+                    raise BundleError(f"{path}: {m.name} expands to {m.size >> 20} MiB, more than "
+                                      f"{MAX_MEMBER >> 20} MiB (MAX_MEMBER)")
+                total += m.size
+                if total > MAX_BUNDLE_BYTES:
+                    raise BundleError(f"{path}: expands to more than {MAX_BUNDLE_BYTES >> 20} MiB (MAX_BUNDLE_BYTES)")
                 f = tar.extractfile(m)
                 if f is not None:
-                    files[name] = f.read()
+                    files[name] = f.read(MAX_MEMBER + 1)
     except (tarfile.TarError, OSError, EOFError, ValueError) as e:
         raise BundleError(f"{path}: damaged stats bundle ({type(e).__name__}: {e})") from None
     if "manifest.json" not in files:
@@ -177,7 +204,7 @@ def bundle_paths(d: Path) -> list[Path]:
     if not d.exists():
         raise BundleError(f"{d}: no such directory")
     if not d.is_dir():
-        raise BundleError(f"{d}: not a directory")
+        raise BundleError(f"{d}: not a directory (give the directory `haactl stats collect -o` wrote)")
     paths = sorted(d.glob(f"*{SUFFIX}"), key=lambda p: natural_key(p.name[: -len(SUFFIX)]))
     if not paths:
         raise BundleError(f"{d}: no stats bundles (*{SUFFIX}) in it; write some with `haactl stats collect -o {d}`")
@@ -194,7 +221,9 @@ def read_summary(d: Path) -> dict[str, Any] | None:
     if not p.exists():
         return None
     try:
-        data = json.loads(p.read_text())
-    except (OSError, ValueError) as e:
+        data = json.loads(read_text(p, what="cluster summary", max_bytes=MAX_SUMMARY))
+    except FileError as e:
+        raise BundleError(str(e)) from None
+    except ValueError as e:
         raise BundleError(f"{p}: not a cluster summary ({e})") from None
     return data if isinstance(data, dict) else None
