@@ -143,6 +143,24 @@ def test_bad_input_gets_one_line(tmp_path: Path) -> None:
     assert res.exit_code == 1 and "zz.mcap: not a readable AgentPlayback recording" in res.output, res.output
 
 
+def test_a_segment_beyond_what_a_recorder_writes_or_a_fifo_is_refused(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    monkeypatch.setattr(reader, "MAX_SEGMENT_BYTES", 2048)
+    monkeypatch.setattr(reader, "SEGMENT_SLACK", 1024)
+    rec = Recorder(tmp_path, INIT, segment_bytes=1 << 20)  # one segment, larger than the reader's bound
+    for k in range(200):
+        rec.input(ppb.PlaybackInput(clock=float(k)))
+    rec.close()
+    (seg,) = (tmp_path / "A7.2").iterdir()
+    with pytest.raises(reader.RecordingError, match=r"more than 0 MiB of messages in one segment"):
+        reader.read_segment(seg)
+    os.mkfifo(tmp_path / "f.mcap")  # nobody writes: refused unopened, not waited on
+    with pytest.raises(reader.RecordingError, match=r"f\.mcap: is a FIFO"):
+        reader.read_segment(tmp_path / "f.mcap")
+
+
 def test_haa_hostd_record_dir_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from haa.hostd.daemon import load_settings
 

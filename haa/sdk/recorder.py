@@ -54,6 +54,12 @@ RECORD_ENV = "HAA_RECORD_DIR"
 SEGMENT_ENV = "HAA_RECORD_SEGMENT_BYTES"
 DEFAULT_SEGMENT_BYTES = 64 * 1024 * 1024
 MIN_SEGMENT_BYTES = 4096
+#: the largest segment size one may ask for: a reader keeps a segment's messages in memory, and refuses a
+#: segment of more than this plus `SEGMENT_SLACK` bytes of messages (haa.lab.playback.reader)
+MAX_SEGMENT_BYTES = 256 * 1024 * 1024
+#: what the last message of a segment may add past its rotation size (an agent message, 4 MiB, with its
+#: envelope; a state, 2 MiB)
+SEGMENT_SLACK = 16 * 1024 * 1024
 #: close the open chunk and write it out at least this often, seconds
 FLUSH_S = 1.0
 #: a chunk is closed at this many bytes anyway
@@ -78,7 +84,7 @@ def from_env(init: pb.HostToAgent.Init) -> Recorder | None:
     size = DEFAULT_SEGMENT_BYTES
     if os.environ.get(SEGMENT_ENV):
         try:
-            size = max(MIN_SEGMENT_BYTES, int(os.environ[SEGMENT_ENV]))
+            size = min(MAX_SEGMENT_BYTES, max(MIN_SEGMENT_BYTES, int(os.environ[SEGMENT_ENV])))
         except ValueError:
             print(f"agent {init.name}: {SEGMENT_ENV}={os.environ[SEGMENT_ENV]!r} is not a number; "
                   f"using {DEFAULT_SEGMENT_BYTES}", file=sys.stderr)

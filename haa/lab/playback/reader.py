@@ -17,8 +17,10 @@ from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
+from haa.files import FileError, check_regular
 from haa.pb import playback_pb2 as ppb
 from haa.sdk.recorder import FORMAT as FORMAT
+from haa.sdk.recorder import MAX_SEGMENT_BYTES, SEGMENT_SLACK
 from haa.sdk.recorder import SUFFIX as SUFFIX
 from haa.sdk.recorder import TOPIC_INPUT as TOPIC_INPUT
 from haa.sdk.recorder import TOPIC_INSTANCE as TOPIC_INSTANCE
@@ -69,8 +71,15 @@ class Instance:
 
 
 def read_segment(path: Path, headers_only: bool = False) -> Segment:
-    """Read one segment; RecordingError if it is not an AgentPlayback MCAP file."""
+    """Read one segment; RecordingError if it is not an AgentPlayback MCAP file, or holds more than
+    `MAX_SEGMENT_BYTES` + `SEGMENT_SLACK` bytes of messages (the most a recorder writes in one)."""
     path = Path(path)
+    try:
+        check_regular(path)
+    except FileError as e:
+        raise RecordingError(str(e)) from None
+    most = MAX_SEGMENT_BYTES + SEGMENT_SLACK
+    taken = 0
     try:
         f = open(path, "rb")  # noqa: SIM115 - closed below
     except OSError as e:
@@ -87,6 +96,10 @@ def read_segment(path: Path, headers_only: bool = False) -> Segment:
                 if isinstance(rec, Channel):
                     topics[rec.id] = rec.topic
                 elif isinstance(rec, Message):
+                    taken += len(rec.data)
+                    if taken > most:
+                        raise RecordingError(f"{path}: more than {most >> 20} MiB of messages in one segment "
+                                             "(MAX_SEGMENT_BYTES + SEGMENT_SLACK): not one a recorder wrote")
                     topic = topics.get(rec.channel_id)
                     if topic == TOPIC_INSTANCE:
                         header = ppb.PlaybackInstance.FromString(rec.data)
@@ -96,6 +109,8 @@ def read_segment(path: Path, headers_only: bool = False) -> Segment:
                         inputs.append(ppb.PlaybackInput.FromString(rec.data))
                     elif topic == TOPIC_OUTPUT:
                         outputs.append(ppb.PlaybackOutput.FromString(rec.data))
+        except RecordingError:
+            raise
         except (McapError, EOFError, ValueError, OSError) as e:
             if header is None and isinstance(e, EndOfFile | EOFError):
                 raise EmptySegment(f"{path}: cut before its first message") from None
