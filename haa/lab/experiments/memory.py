@@ -7,6 +7,8 @@ the next host in turn:
 * `ddb`: a DDB batch of MAX_BATCH_BYTES (blob values of just under MAX_VALUE_BYTES; the same keys every
   time, so the replicas' contents stay the same size) and one of MAX_BATCH_JSON_BYTES of the costliest JSON
   there is to check (`[{},{},...]`);
+* `ddb_ops_put`, `ddb_ops_add`, `ddb_ops_delete`: batches of MAX_BATCH_OPS tiny ops (bytes do not bound their
+  work): puts that create as many keys, adds to counters, then deletes of those keys;
 * `spawn`: a probe agent with a config of MAX_CONFIG bytes;
 * `message`: operator messages of MAX_AGENT_MESSAGE bytes to it, and a request that makes its state (the
   probe's "value") MAX_STATE bytes large;
@@ -38,6 +40,7 @@ import psutil
 from haa.cluster.hostprocs import MemberGroup, MemberHost, wait_for
 from haa.core.ddb import agenttable as at
 from haa.core.ddb import objects as ddb
+from haa.core.ddb import ops
 from haa.core.ddb.ops import encode_batch, put
 from haa.sdk.channel import MAX_AGENT_MESSAGE
 
@@ -111,6 +114,10 @@ class Traffic:
         self.steps: list[dict[str, Any]] = []
         self.blob_ops = max_blob_batch()
         self.json_ops = max_json_batch()
+        n = ddb.MAX_BATCH_OPS
+        self.put_ops = [ops.put(f"bench/mem/ops/{i:05d}", "blob", b"x") for i in range(n)]
+        self.add_ops = [ops.add(f"bench/mem/ctr/{i % 100}", 1) for i in range(n)]
+        self.del_ops = [ops.delete(f"bench/mem/ops/{i:05d}") for i in range(n)]
         self.config = max_config()
         self.message = b"m" * MAX_AGENT_MESSAGE
         self.messages = 2
@@ -139,6 +146,9 @@ class Traffic:
     def round(self) -> None:
         self._step("ddb", lambda: self._ddb(self.blob_ops))
         self._step("ddb_json", lambda: self._ddb(self.json_ops))
+        self._step("ddb_ops_put", lambda: self._ddb(self.put_ops))
+        self._step("ddb_ops_add", lambda: self._ddb(self.add_ops))
+        self._step("ddb_ops_delete", lambda: self._ddb(self.del_ops))
         h = self._next()
         r = self._step("spawn", lambda: h.client.agent_spawn("probe", self.config, timeout=30))
         if r is None or not r.ok:
@@ -290,6 +300,7 @@ def _run(
             "ddb_json_value": ddb.MAX_JSON_VALUE_BYTES,
             "ddb_batch": ddb.MAX_BATCH_BYTES,
             "ddb_batch_json": ddb.MAX_BATCH_JSON_BYTES,
+            "ddb_batch_ops": ddb.MAX_BATCH_OPS,
         },
         "steps": attribute(traffic.steps, events),
         "largest_stall_ms": max((e["ms"] for e in events), default=0),
