@@ -20,7 +20,8 @@ method of a protobuf service with raw bytes instead (`request_deserializer=None`
 
 `Guard.on_event(kind, method, detail, exc)` is told about each of the three outcomes, so the owner can count
 them (haa-hostd: `rejected_unauthenticated`, `control_malformed`, `control_errors`; see haa.hostd.control).
-Status details are cut to `MAX_DETAILS` characters: an exception's text can quote a huge input.
+Status details are cut to `MAX_DETAILS` characters: an exception's text can quote a huge input. So are the
+`reason` and `error` texts of a unary reply (`AgentOpReply.reason` naming a 100 kB ref it did not find).
 
 Client-streaming methods are not supported (none of our services has one).
 """
@@ -58,6 +59,17 @@ OnEvent = Callable[[str, str, str, BaseException | None], None]
 
 def _cut(text: str) -> str:
     return text if len(text) <= MAX_DETAILS else text[: MAX_DETAILS - 3] + "..."
+
+
+def _cut_reasons(reply: Any) -> Any:
+    """`reply` with its top-level `reason` / `error` text cut to MAX_DETAILS characters."""
+    fields = getattr(getattr(reply, "DESCRIPTOR", None), "fields_by_name", {})
+    for name in ("reason", "error"):
+        if name in fields:
+            text = getattr(reply, name)
+            if isinstance(text, str) and len(text) > MAX_DETAILS:
+                setattr(reply, name, _cut(text))
+    return reply
 
 
 @dataclass
@@ -126,7 +138,7 @@ def _unary(guard: Guard, m: MethodDescriptor, fn: Callable[..., Awaitable[Any]],
     async def handler(raw: bytes, context: aio.ServicerContext) -> Any:
         request = await guard.admit(m, raw, context, req_cls)
         try:
-            return await fn(request, context)
+            return _cut_reasons(await fn(request, context))
         except aio.AbortError:
             raise
         except Exception as e:

@@ -31,6 +31,7 @@ from haa.hostd.transport import MD_TOKEN
 from haa.pb import control_pb2 as cpb
 from haa.pb import control_pb2_grpc
 from haa.pb import ddb_pb2 as dpb
+from haa.rpcguard import MAX_DETAILS
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +60,11 @@ def _spawn(c: Cluster, host: str, **kw: object) -> cpb.AgentOpReply:
 
 BAD_SPAWNS = [
     ("cost", {"cost": math.inf}),
+    ("cost", {"cost": math.nan}),  # NaN, -1 and -inf were silently replaced by the type's default
+    ("cost", {"cost": -1.0}),
+    ("cost", {"cost": -math.inf}),
+    ("transfer_penalty", {"transfer_penalty": math.nan}),
+    ("transfer_penalty", {"transfer_penalty": -math.inf}),
     ("cost", {"cost": 1e308}),
     ("cost", {"cost": MAX_COST * 2}),
     ("transfer_penalty", {"transfer_penalty": math.inf}),
@@ -189,11 +195,11 @@ def test_mirror_streams_of_one_client_are_bounded_and_places_come_back(cluster: 
 def test_operator_requests_naming_nothing_are_refused(cluster: Cluster) -> None:
     h2 = cluster.hosts["h2"].client
     before = _agents(cluster)
-    for ref in ("", "nobody", "A99", "x" * 10_000, "\x00", "A1.1.1.1"):
-        for call in (h2.agent_kill, h2.agent_remove):
-            assert not call(ref).ok
-        assert not h2.agent_move(ref, "h1").ok
-        assert not h2.agent_send(ref, b"hi").ok
+    for ref in ("", "nobody", "A99", "x" * 100_000, "\x00", "A1.1.1.1"):
+        replies = [h2.agent_kill(ref), h2.agent_remove(ref), h2.agent_move(ref, "h1"), h2.agent_send(ref, b"hi")]
+        assert not any(r.ok for r in replies)
+        # a reason names what was not found, but never echoes a 100 kB field whole
+        assert all(0 < len(r.reason) <= MAX_DETAILS for r in replies), [len(r.reason) for r in replies]
     for host in ("", "nobody", "h" * 1000):
         assert not h2.agent_move("A1", host).ok
     assert _agents(cluster) == before

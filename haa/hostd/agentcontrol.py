@@ -26,6 +26,7 @@ cluster token like the rest of the API. The service reaches the agent layer thro
 from __future__ import annotations
 
 import asyncio
+import math
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from typing import TYPE_CHECKING, Any
@@ -100,6 +101,14 @@ class AgentControl:
 
     async def AgentSpawn(self, request: cpb.AgentSpawnRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
+        # 0 asks for the type's cost and a negative penalty for the type's penalty (control.proto); anything else
+        # that is not a number (NaN, a negative cost, an infinity) is refused, not silently replaced by a default
+        if not (math.isfinite(request.cost) and request.cost >= 0):
+            return cpb.AgentOpReply(ok=False, reason=f"cost {request.cost!r}: must be a finite number >= 0 "
+                                                     "(0: the type's declared cost)")
+        if math.isnan(request.transfer_penalty) or math.isinf(request.transfer_penalty):
+            return cpb.AgentOpReply(ok=False, reason=f"transfer_penalty {request.transfer_penalty!r}: must be a "
+                                                     "finite number (negative: the type's)")
         drv = self.agents
         info = await drv.sup.type_info(request.type) if drv is not None else None
         if info is None:
