@@ -72,6 +72,10 @@ CRASHED = 2
 #: core Log events that report a bug caught by a safety net (haa.core.agents.agentnode): violations in every sweep
 ERROR_EVENTS = frozenset({"agent_layer_error"})
 
+#: a message whose own delay draw is at least this long is recorded (`History.late`): rare with every delay
+#: model the schedules use but the heavy-tailed ones, where one draw in ~10^8 holds a channel for seconds
+LATE_MESSAGE = 0.25
+
 @dataclass
 class Proposal:
     proposer: Proc
@@ -93,6 +97,11 @@ class History:
     suspicions: list[tuple[float, Proc, Proc, bool]] = field(default_factory=list)
     crash_time: dict[Proc, float] = field(default_factory=dict)  # crash (or pause-then-crash start)
     excluded: dict[Proc, float] = field(default_factory=dict)  # first exclusion by any host
+    excluded_by: dict[Proc, Proc] = field(default_factory=dict)  # ... and by whom
+    #: (src host, dst host) -> (sent, arrival) of each message whose own random delay (not an injected spike)
+    #: was at least LATE_MESSAGE: on a FIFO channel it holds back everything sent after it (a heavy tail's
+    #: performance failure, which an accuracy property cannot be asked to survive)
+    late: dict[tuple[str, str], list[tuple[float, float]]] = field(default_factory=dict)
     ended: dict[Proc, float] = field(default_factory=dict)  # life ended (crash, restart, reincarnation)
     started: dict[Proc, float] = field(default_factory=dict)
     pauses: list[tuple[str, float, float]] = field(default_factory=list)  # (host, start, end)
@@ -458,6 +467,7 @@ class SimCluster:
                     hist.dead_marks.append((now, proc, (e.peer, e.inc), e.reason))
                     if e.reason == "excluded":
                         hist.excluded.setdefault((e.peer, e.inc), now)
+                        hist.excluded_by.setdefault((e.peer, e.inc), proc)
                     self._note(f"{h.name}#{h.inc}: {e.peer}#{e.inc} dead ({e.reason})")
                 case Reincarnate():
                     self.at(now, functools.partial(self._reincarnate, h.name, h.inc))
@@ -507,6 +517,8 @@ class SimCluster:
         si, di = h.idx, dst.idx
         now = self.now
         d = self.delay.sample(self.net_rng)
+        if d >= LATE_MESSAGE:
+            self.history.late.setdefault((h.name, e.dst), []).append((now, now + d))
         if self.spikes:
             live = []
             for s in self.spikes:
