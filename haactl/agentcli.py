@@ -148,6 +148,8 @@ def agent_list(
         if r.state == "failed":  # not recovered any more: say why, and how to retry
             out.print(f"[bold red]{r.name} failed[/] after {r.failures} start failures: {escape(r.fail_reason)} "
                       f"(retry: haactl agent move {r.name} <host>)")
+        elif r.waiting:  # allocated nowhere and nothing will change that by itself: say why
+            out.print(f"[yellow]{r.name} waits:[/] {escape(r.waiting)}")
 
 
 @agent_app.command("tree")

@@ -192,6 +192,21 @@ def test_mirror_streams_of_one_client_are_bounded_and_places_come_back(cluster: 
     assert_healthy(cluster)
 
 
+def test_an_agent_no_host_can_run_says_why_in_the_agent_list(cluster: Cluster) -> None:
+    """An agent whose hardware no host offers stayed `new` forever with no reason; the list now says why."""
+    r = _spawn(cluster, "h1", hardware=["quantum-lidar"])
+    assert r.ok, r
+
+    def waiting() -> str:
+        rows = {a.id: a for a in cluster.hosts["h3"].client.agent_list().agents}
+        return rows[r.id].waiting if r.id in rows else ""
+
+    why = wait_sync(waiting, 15, "the waiting reason of an agent no host can run")
+    assert "no host of the group offers the hardware it needs (quantum-lidar" in why, why
+    assert cluster.hosts["h1"].client.agent_remove(r.id).ok
+    assert_healthy(cluster)
+
+
 def test_operator_requests_naming_nothing_are_refused(cluster: Cluster) -> None:
     h2 = cluster.hosts["h2"].client
     before = _agents(cluster)

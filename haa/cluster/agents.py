@@ -70,6 +70,7 @@ class AgentRow:
     recovery: str = ""
     phases: dict[str, str] = field(default_factory=dict)  # host -> local phase, every host reporting one
     fail_reason: str = ""  # the latest failure's reason (state "failed": why it is not recovered)
+    waiting: str = ""  # why it cannot run now, when allocated nowhere (no host offers its hardware, ...)
     failures: int = 0  # consecutive start failures
     msgs_in: int = 0  # agent messages the instance on `host` received since it started (0: none reported)
     msgs_out: int = 0  # ... and sent
@@ -110,7 +111,7 @@ def merge_agents(replies: dict[str, cpb.AgentListReply]) -> list[AgentRow]:
             parent=names.get(a.parent, a.parent[:8]) if a.parent else "", parent_id=a.parent, epoch=a.epoch,
             backup=a.has_backup, status=a.status, owner=a.owner, alloc=a.alloc, pid=pid, queued=a.queued,
             dropped=a.dropped, recovery=a.recovery, phases={h: x.local_phase for h, x in loc.items()},
-            fail_reason=a.fail_reason, failures=a.failures, msgs_in=msgs_in, msgs_out=msgs_out,
+            fail_reason=a.fail_reason, failures=a.failures, msgs_in=msgs_in, msgs_out=msgs_out, waiting=a.waiting,
         ))
     return sorted(out, key=lambda r: name_key(r.name))
 

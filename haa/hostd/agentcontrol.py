@@ -69,6 +69,7 @@ class AgentControl:
         drv = self.agents
         stats = drv.sup.stats() if drv is not None else {}
         out = []
+        members = node.members()
         for r in sorted(t, key=lambda x: x.name):
             loc = node.local.get(r.id)
             st = stats.get(r.id)
@@ -85,6 +86,7 @@ class AgentControl:
                     msgs_out=sum(st.msgs_out.values()) if st is not None else 0,
                     bytes_in=sum(st.bytes_in.values()) if st is not None else 0,
                     bytes_out=sum(st.bytes_out.values()) if st is not None else 0,
+                    waiting=t.waiting(r, members),
                 )
             )
         types = drv.sup.known_types() if drv is not None else []

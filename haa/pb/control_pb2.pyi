@@ -306,7 +306,7 @@ class AgentListRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class AgentInfo(_message.Message):
-    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery", "fail_reason", "failures", "msgs_in", "msgs_out", "bytes_in", "bytes_out")
+    __slots__ = ("id", "name", "type", "parent", "status", "owner", "alloc", "epoch", "life", "cpu", "local_phase", "local_cpu", "pid", "has_backup", "queued", "dropped", "recovery", "fail_reason", "failures", "msgs_in", "msgs_out", "bytes_in", "bytes_out", "waiting")
     ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
@@ -330,6 +330,7 @@ class AgentInfo(_message.Message):
     MSGS_OUT_FIELD_NUMBER: _ClassVar[int]
     BYTES_IN_FIELD_NUMBER: _ClassVar[int]
     BYTES_OUT_FIELD_NUMBER: _ClassVar[int]
+    WAITING_FIELD_NUMBER: _ClassVar[int]
     id: str
     name: str
     type: str
@@ -353,7 +354,8 @@ class AgentInfo(_message.Message):
     msgs_out: int
     bytes_in: int
     bytes_out: int
-    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ..., fail_reason: _Optional[str] = ..., failures: _Optional[int] = ..., msgs_in: _Optional[int] = ..., msgs_out: _Optional[int] = ..., bytes_in: _Optional[int] = ..., bytes_out: _Optional[int] = ...) -> None: ...
+    waiting: str
+    def __init__(self, id: _Optional[str] = ..., name: _Optional[str] = ..., type: _Optional[str] = ..., parent: _Optional[str] = ..., status: _Optional[str] = ..., owner: _Optional[str] = ..., alloc: _Optional[str] = ..., epoch: _Optional[int] = ..., life: _Optional[int] = ..., cpu: _Optional[float] = ..., local_phase: _Optional[str] = ..., local_cpu: _Optional[float] = ..., pid: _Optional[int] = ..., has_backup: _Optional[bool] = ..., queued: _Optional[int] = ..., dropped: _Optional[int] = ..., recovery: _Optional[str] = ..., fail_reason: _Optional[str] = ..., failures: _Optional[int] = ..., msgs_in: _Optional[int] = ..., msgs_out: _Optional[int] = ..., bytes_in: _Optional[int] = ..., bytes_out: _Optional[int] = ..., waiting: _Optional[str] = ...) -> None: ...
 
 class AgentListReply(_message.Message):
     __slots__ = ("host", "agents", "session", "finished_session", "paused", "agent_types")

@@ -660,6 +660,32 @@ class AgentTable:
         self.paused = m.paused
         return AgentApplied("control", "", True)
 
+    def waiting(self, r: AgentRecord, members: Iterable[str]) -> str:
+        """Why agent `r`, allocated nowhere, cannot run now ('' if nothing stands in its way but the next
+        allocation session): no member offers its hardware, every member already runs its type's per-host limit,
+        or allocation is paused. Read from the table as it is (not replicated: each host computes the same)."""
+        if r.alloc or r.status not in ("new", "frozen", "crashed"):
+            return ""
+        hosts = [self.hosts[m] for m in members if m in self.hosts and not self.hosts[m].draining]
+        need = set(r.spec.hardware)
+        if need and not any(need <= set(h.hardware) for h in hosts):
+            offered = sorted({hw for h in hosts for hw in h.hardware})
+            return (f"no host of the group offers the hardware it needs ({', '.join(sorted(need))}; offered: "
+                    f"{', '.join(offered) or 'none'})")
+        limit = r.spec.max_per_host
+        if limit:
+            per_host: dict[str, int] = {}
+            for o in self.records.values():
+                if o.spec.type == r.spec.type and o.alloc:
+                    per_host[o.alloc] = per_host.get(o.alloc, 0) + 1
+            able = [h for h in hosts if need <= set(h.hardware)]
+            if able and all(per_host.get(h.name, 0) >= limit for h in able):
+                return (f"every host that can run it already runs {limit} agent(s) of type {r.spec.type!r} "
+                        f"(at most {limit} per host)")
+        if self.paused:
+            return "allocation is paused (haactl alloc resume)"
+        return ""
+
     def on_removed(self, hosts: Iterable[str]) -> tuple[str, ...]:
         """Members removed from the group: the agents they ran crashed (Alg. 8 "its host is removed"), their
         allocations are void. Returns the agents whose owner changed."""
