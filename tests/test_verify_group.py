@@ -239,3 +239,11 @@ def test_a_former_leaders_transaction_ordered_after_its_replacement_is_a_no_op()
     node = _node("h3", [("h2", 1), ("h3", 1)])
     node._apply(TxId("h1", 1, 5), encode_tx(TxRemove("h1.1.3", ("h1", 1), ())), direct=True)
     assert node.upd.locked is None
+
+
+def test_a_mid_step_crash_that_would_break_the_assumptions_when_it_fires_is_called_off():
+    """Seed 5849 (found by a 10,000-schedule sweep): h4's mid-step crash was armed while no transaction held it,
+    and fired 0.1 s later inside the OAC that admitted it to a group of one (h1, h4: no correct majority left), so
+    the group blocked for good (HM-Termination). An armed crash now fires only if `_safe` still allows it."""
+    r = run_seed("membership", 5849, 7)
+    assert not r.violations, r.violations

@@ -204,6 +204,8 @@ class SimCluster:
         self.now = 0.0
         self.chan_last: dict[tuple[int, int], float] = {}
         self.spikes: list[tuple[int, int, DelayModel, float, float]] = []  # (src|-1, dst|-1, extra, t0, t1)
+        #: asked when an armed mid-step crash is about to fire (`crash(mid_step=True)`): False calls it off
+        self.may_crash: Callable[[str], bool] | None = None
         self.history = History()
         self.msg_counts: Counter[str] = Counter()
         self.oac_in_flight = 0
@@ -272,12 +274,22 @@ class SimCluster:
             inc = h.inc
 
             def fallback() -> None:
-                if h.inc == inc and h.crash_pending is not None and h.state != CRASHED:
+                if h.inc == inc and h.crash_pending is not None and h.state != CRASHED and self._still_may_crash(h):
                     self._crash_now(h)
 
             self.at(self.now + 0.1, fallback)
             return
         self._crash_now(h)
+
+    def _still_may_crash(self, h: SimHost) -> bool:
+        """An armed mid-step crash fires only if the owner's `may_crash` still allows it then (up to 0.1 s after
+        it was armed a transaction may have begun that the crash would leave without a correct majority);
+        otherwise it is called off."""
+        if self.may_crash is None or self.may_crash(h.name):
+            return True
+        h.crash_pending = None
+        self._note(f"crash-mid-step {h.name}#{h.inc} called off (assumptions)")
+        return False
 
     def _crash_now(self, h: SimHost) -> None:
         h.crash_pending = None
@@ -429,7 +441,7 @@ class SimCluster:
         crash_after = False
         if h.crash_pending is not None:
             n_sends = sum(1 for e in effects if type(e) is Send)
-            if n_sends >= 2:
+            if n_sends >= 2 and self._still_may_crash(h):
                 sends_allowed = int(h.crash_pending * n_sends)
                 crash_after = True
                 self._note(f"crash-mid-step {h.name}#{h.inc}: {sends_allowed}/{n_sends} sends leave")

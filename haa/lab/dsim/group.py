@@ -280,6 +280,8 @@ class GroupSim:
         self.cl = SimCluster(sc.names, self.rng, sc.delay, cfg, sc.offsets, sc.drifts, trace=trace)
         self.cl.make_core = self._make_node
         self.cl.on_effect = self._on_effect
+        self.cl.may_crash = self._may_crash_now
+        self.armed: dict[str, Fault] = {}  # mid-step crashes armed and not fired yet
         self.gh = GroupHistory()
         self.core_list = [(nm, nm) for nm in sc.core]
         self.req = 0
@@ -528,9 +530,25 @@ class GroupSim:
                     return False
         return True
 
+    def _may_crash_now(self, name: str) -> bool:
+        """An armed mid-step crash of `name` is about to fire: only if it still keeps the assumptions (`_safe`);
+        else it is dropped like any fault that would break them, and `name` is no longer in trouble."""
+        h = self.cl.hosts[name]
+        proc = (name, h.inc)
+        f = self.armed.pop(name, None)
+        self.trouble.pop(proc, None)  # (its own armed crash is not a fault of the others' views)
+        if self._safe(proc, crash=True):
+            self.trouble[proc] = float("inf")
+            return True
+        if f is not None:
+            self.gh.dropped.append(f)
+        return False
+
     def _crash(self, f: Fault, restart_after: float | None) -> None:
         h = self.cl.hosts[f.host]
         self.trouble[(f.host, h.inc)] = float("inf")
+        if f.kind == "crash_mid":
+            self.armed[f.host] = f
         self.cl.crash(f.host, mid_step=f.kind == "crash_mid")
         if f.kind == "crash_mid" and self.sc.workload == "ddb" and h.state == ALIVE:
             # a write whose broadcast the crash cuts short (DDB-Atomicity: everywhere or nowhere)
