@@ -247,3 +247,11 @@ def test_a_mid_step_crash_that_would_break_the_assumptions_when_it_fires_is_call
     the group blocked for good (HM-Termination). An armed crash now fires only if `_safe` still allows it."""
     r = run_seed("membership", 5849, 7)
     assert not r.violations, r.violations
+
+
+def test_a_leader_whose_lock_wait_fails_releases_the_lock():
+    """Seed 6628 (found by a 10,000-schedule sweep): the lock wait failed (a spiked member's `locked` answer came
+    too late), the accepted joiner was excluded meanwhile, and no later OAC(membership) ever unlocked the members,
+    who held every write for good (HM-Termination). The leader now unlocks with an unchanged OAC(membership)."""
+    r = run_seed("membership", 6628, 7)
+    assert not r.violations, r.violations

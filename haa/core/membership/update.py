@@ -477,6 +477,20 @@ class MembershipUpdate:
             parts = tuple(dict.fromkeys([*a.active, *(m.proc for m in a.accept)]))
             a.stage = "membership"
             self._propose(TxMembership(a.key, self.me, tuple(new)), parts, _Pending("membership", a, {}, new))  # l. 106
+        elif a.key and self.locked == a.key:
+            # ll. 107-109 would drop the attempt and call updateMembership() again, but the members that
+            # locked (l. 127) stay locked until some later OAC(membership) commits (l. 144) or aborts (ll.
+            # 152-155) — and if the next attempt has nothing to accept (its applicant was excluded meanwhile)
+            # none ever comes: every member holds its global-state changes for good (`haactl verify
+            # membership` seed 6628). HAA releases the lock it took: OAC(membership) with this key and the
+            # member list unchanged (no applicant), which every member applies as an unlock (l. 144), then
+            # updates again (l. 151). docs/membership.md, "a failed lock wait".
+            self._log("lock_wait_failed", key=a.key, unlocked=[q[0] for q in a.active if q not in a.locks])
+            a.accept = []
+            a.stage = "membership"
+            members = tuple(self.host.state.members)
+            self._propose(TxMembership(a.key, self.me, members), tuple(a.active),
+                          _Pending("membership", a, {}, list(members)))
         else:  # ll. 107-109
             self.attempt = None
             self._retry_later()
