@@ -36,11 +36,12 @@ MAX_VALUE_BYTES = 1024 * 1024
 #: failure detector's margin (~0.7 s): 2 MiB stalled at most ~0.22 s, 16 MiB (the former bound) up to 2.2 s
 MAX_BATCH_BYTES = 2 * 1024 * 1024
 #: most ops in one batch, and in one sequencer transaction in total (`SeqConfig.seq_max_cost`). Bytes do not
-#: bound the work of tiny ops: 100,000 deletes fit in 1.3 MB and cost ~0.45 s of apply alone on one host. An op
-#: costs 4.5-7.5 us to apply (delete, add, append; measured on this 2-core machine) and up to ~15 us more to
-#: create a key in a large replica, so 10,000 ops stay within the ~0.1-0.2 s the largest byte batch
-#: (MAX_BATCH_BYTES) already costs, far below the failure detector's margin (~0.7 s; docs/limits.md)
-MAX_BATCH_OPS = 10_000
+#: bound the work of tiny ops: 100,000 deletes fit in 1.3 MB. Measured over the whole commit path on a 4-host
+#: group (`haactl bench memory`, docs/limits.md): a batch of 10,000 tiny puts, adds or deletes cost a loop
+#: 367-389 ms of CPU on one host (~39 us an op: decoded, applied, mirrored, hashed), as much as the largest
+#: JSON batch and more than half the failure detector's margin (~0.7 s), with wall-clock stalls to 0.75 s on
+#: the loaded 2-core machine. Half of that keeps an op-heavy batch near the largest blob batch (~0.2 s)
+MAX_BATCH_OPS = 5_000
 #: most keys one replica holds. Every host keeps every key in memory (~0.8-1.5 KB each with its digest and
 #: index, measured), in every snapshot a joiner receives and in the content hash: 200,000 keys are ~200 MiB
 #: of RSS per host and a ~12 MiB snapshot
