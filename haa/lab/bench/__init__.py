@@ -10,4 +10,5 @@ bench-results/*.json (docs/results.md is generated from them). Each is a module 
 * `transport_grpc_vs_tcp`, `transport_stream_vs_unary` — what one message costs per carrier and per gRPC style
 * `metrics_cost` — what Prometheus metrics cost an idle local cluster
 * `dashboard_latency` — committed change -> painted on the dashboard page, in headless Chromium
+* `spawn_burst` — a burst of agent spawns on a fresh group: time until all are active, DDB latency meanwhile
 """
