@@ -117,8 +117,8 @@ def check_regular(path: str | os.PathLike[str]) -> os.stat_result:
     if stat.S_ISCHR(st.st_mode) and os.path.realpath(path) == os.devnull:
         return st  # (reads nothing: the usual way to hand over an empty file)
     for test, reason in _KINDS:
-        if test(st.st_mode):
-            raise FileError(path, reason)
+        if test(st.st_mode):  # (a directory keeps the errno an open would give: callers explain it their way)
+            raise FileError(path, reason, errno_mod.EISDIR if test is stat.S_ISDIR else None)
     if not stat.S_ISREG(st.st_mode):
         raise FileError(path, "is not a regular file")
     return st

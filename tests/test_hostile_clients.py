@@ -90,7 +90,7 @@ def test_spawn_with_out_of_bounds_numbers_is_refused_and_the_group_stays_whole(c
     # the group still takes a good spawn after all that (then removes it again)
     r = _spawn(cluster, "h3", config=b'{"paused": true}')
     assert r.ok, r
-    assert cluster.hosts["h1"].client.agent_remove(r.id).ok
+    assert cluster.hosts["h3"].client.agent_remove(r.id).ok  # (h3 has applied the create it answered for)
     assert_healthy(cluster)
 
 
