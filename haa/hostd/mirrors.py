@@ -31,6 +31,7 @@ from typing import Any
 from haa.core.ddb.ddb import ApplyResult, Ddb, MirrorEntry
 from haa.core.membership.globalstate import SeqApplied, TxDdb, TxSeq, decode_tx
 from haa.core.membership.membership import AppliedTx, ViewChange
+from haa.hostd.outlink import length_delimited
 from haa.pb import control_pb2 as cpb
 
 #: a mirror subscriber whose queue holds more payload bytes than this is cut back to a resync (a snapshot)
@@ -62,14 +63,8 @@ class Snapshot:
 def snapshot_event(replica: Ddb) -> bytes:
     """`MirrorEvent(snapshot=<the replica's>, ddb_hash=...)` serialized, without decoding the snapshot bytes
     into message objects (field 1, length-delimited, is the `DdbSnapshot` as `Ddb.snapshot` encodes it)."""
-    snap = replica.snapshot()
-    n, head = len(snap), bytearray([0x0A])  # field 1, wire type 2
-    while True:
-        b, n = n & 0x7F, n >> 7
-        head.append(b | 0x80 if n else b)
-        if not n:
-            break
-    return bytes(head) + snap + cpb.MirrorEvent(ddb_hash=replica.content_hash()).SerializeToString()
+    event = length_delimited(cpb.MirrorEvent.SNAPSHOT_FIELD_NUMBER, replica.snapshot())
+    return event + cpb.MirrorEvent(ddb_hash=replica.content_hash()).SerializeToString()
 
 
 class MirrorSub:

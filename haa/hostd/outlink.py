@@ -70,9 +70,15 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
+def length_delimited(field: int, data: bytes) -> bytes:
+    """Already serialized bytes as protobuf field `field` (wire type 2), to be joined with a message's other
+    fields without decoding them (a field may come in any order in a serialized message)."""
+    return _varint(field << 3 | 2) + _varint(len(data)) + data
+
+
 def envelope_chunk(env_bytes: bytes) -> bytes:
-    """A serialized Envelope as one element of `Frame.envelopes` (tag 2, length-delimited)."""
-    return b"\x12" + _varint(len(env_bytes)) + env_bytes
+    """A serialized Envelope as one element of `Frame.envelopes` (field 2)."""
+    return length_delimited(2, env_bytes)
 
 
 def encode_frame(first_seq: int, chunks: list[bytes]) -> bytes:
