@@ -132,8 +132,13 @@ def test_allocation_start_and_finish_validity() -> None:
     assert not t.apply(tx(finish=fin), MEMBERS).ok  # finished once
     create(t, "b")
     t.apply(tx(start=apb.AllocStartTx(ses_id=3, leader="h1", group=list(MEMBERS), agents=["a", "b"])), MEMBERS)
-    create(t, "c")  # the agent list changed: the session's finish is void
-    assert not t.apply(tx(finish=apb.AllocFinishTx(ses_id=3, leader="h1", allocation={})), MEMBERS).ok
+    create(t, "c")  # the agent list changed: the start is a snapshot, its finish still counts ("c" waits)
+    assert t.apply(tx(finish=apb.AllocFinishTx(ses_id=3, leader="h1", allocation={"a": "h1", "b": "h2"})),
+                   MEMBERS).ok
+    assert (t.get("b").alloc, t.get("c").alloc) == ("h2", "")
+    # a start proposed before "c" existed commits after it: valid all the same
+    assert t.apply(tx(start=apb.AllocStartTx(ses_id=4, leader="h1", group=list(MEMBERS), agents=["a", "b"])),
+                   MEMBERS).ok
 
 
 def test_snapshot_round_trip_keeps_the_content_hash() -> None:
@@ -232,3 +237,26 @@ def test_agent_simulation_is_deterministic() -> None:
     assert draw_agents(3, 5, "recovery").describe() == draw_agents(3, 5, "recovery").describe()
     with pytest.raises(ValueError, match="unknown mix"):
         draw_agents(1, 5, "nope")
+
+
+def test_the_agent_table_is_bounded_and_a_refused_create_names_the_bound() -> None:
+    """The reliability probe had 2,000 unrunnable agents accepted into an unbounded table; every change of the
+    table re-reads all of them for the allocation. At MAX_AGENTS a create is refused in the total order (so
+    concurrent spawns on several hosts cannot pass it), naming the bound; a retried keyed spawn still gets its
+    child back."""
+    t = at.AgentTable()
+    assert create(t, "parent").ok
+
+    def keyed(aid: str) -> bytes:
+        return tx(create=apb.AgentCreate(id=aid, type="counter", cost=0.01, host="h1", key="spawn-1",
+                                         parent="parent", recovery="backup"))
+
+    assert t.apply(keyed("k"), MEMBERS).ok
+    for i in range(at.MAX_AGENTS - 2):
+        assert create(t, f"a{i}").ok
+    res = create(t, "one-too-many")
+    assert not res.ok and "MAX_AGENTS" in res.reason and str(at.MAX_AGENTS) in res.reason
+    again = t.apply(keyed("k2"), MEMBERS)
+    assert again.ok and again.existing and again.agent == "k"
+    t.apply(tx(remove=apb.AgentRemove(id="a0", host="h1")), MEMBERS)
+    assert create(t, "fits-again").ok

@@ -355,7 +355,6 @@ def test_an_aborted_start_is_given_up_when_the_group_changed():
     [
         (("h2", "h1"), ("a0", "a1"), 0, "not the leader"),
         (("h1", "h2", "h3"), ("a0", "a1"), 0, "group changed"),
-        (("h1", "h2"), ("a0",), 0, "agent list changed"),
         (("h1", "h2"), ("a0", "a1"), 1, "not above"),
     ],
 )
@@ -366,6 +365,20 @@ def test_an_expired_start_opens_no_session(group, ids, committed, reason):
     b.on_start_committed(st_, group, ids)
     assert b.session is None or not b.session.ready
     assert not [e for e in b.drain() if isinstance(e, SendUpdate)]
+
+
+def test_an_agent_list_change_expires_neither_start_nor_finish():
+    """The start's agent list is a snapshot (docs/allocation.md, "Sessions of a bounded size"): an agent added
+    or removed between the start and its commit, or between the start and the finish, leaves the session valid;
+    the added agent waits for the next session. With ll. 39-40's rule a stream of spawns expired every session."""
+    st_ = SessionStart("h1", 1, ("h1", "h2"), tuple(agents(2)), HOSTS3[:2])
+    b = Allocator("h2")
+    assert b.start_valid(st_, ("h1", "h2"), ("a0",)) == ""
+    assert b.start_valid(st_, ("h1", "h2"), ("a0", "a1", "a9")) == ""
+    b.on_start_committed(st_, ("h1", "h2"), ("a0", "a1", "a9"))
+    assert b.session is not None and b.session.ready
+    assert b.finish_valid(1, ("h1", "h2"), ("a1", "a9")) == ""
+    assert "group changed" in b.finish_valid(1, ("h1", "h2", "h3"), ("a0", "a1"))
 
 
 def test_a_start_id_used_up_by_an_expired_start_is_proposed_again_under_a_new_id():
@@ -486,7 +499,9 @@ def test_messages_and_rounds_stay_small_on_a_clean_session():
 def test_rebalance_policy_rate_limits_changes_and_pauses_only_the_periodic_sessions():
     p = RebalancePolicy(period=10.0, min_interval=1.0, session_timeout=3.0)
     assert p.changed(0.0)  # first change: at once
-    assert not p.changed(0.4)  # rate limited ...
+    assert not p.changed(0.4)  # rate limited, and the session still runs ...
+    assert p.deadline() == 3.0 and not p.due(2.9)  # ... so the change waits for its finish (or timeout)
+    p.finished(0.6)
     assert p.deadline() == 1.0 and not p.due(0.9) and p.due(1.0)  # ... one session for the burst
     p.finished(1.5)
     assert p.deadline() == 11.0 and not p.due(10.9) and p.due(11.0)  # periodic
@@ -496,6 +511,17 @@ def test_rebalance_policy_rate_limits_changes_and_pauses_only_the_periodic_sessi
     p.resume()
     assert p.deadline() == 110.0  # running, period > session_timeout
     assert p.starts == 4
+
+
+def test_a_group_change_does_not_wait_for_the_running_session_and_a_finish_with_agents_left_asks_for_more():
+    p = RebalancePolicy(period=10.0, min_interval=1.0, session_timeout=3.0)
+    assert p.changed(0.0)
+    assert not p.changed(1.2)  # an agent-list change waits for the running session
+    assert p.changed(1.3, urgent=True)  # a group change: the running session cannot finish any more
+    p.finished(1.5)
+    assert p.deadline() == 11.3  # nothing pending
+    p.more(1.5)  # the bounded session left agents for the next one
+    assert p.deadline() == 2.3 and p.due(2.3) and p.starts == 3
 
 
 def test_periodic_rebalance_waits_for_a_running_session_up_to_its_timeout():

@@ -43,7 +43,7 @@ def test_ci_sweep_2000_schedules_at_7_hosts():
 @pytest.mark.parametrize(
     ("name", "seeds"),
     [
-        ("thesis-accept", (11, 12)),
+        ("thesis-accept", (45, 114)),
         ("cbba-reset", (2, 6)),
         ("no-unallocatable", (3, 36)),
         ("ignore-hardware", (9, 27)),

@@ -39,7 +39,7 @@ class AllocAffinity(_message.Message):
     def __init__(self, agent: _Optional[str] = ..., alpha: _Optional[float] = ...) -> None: ...
 
 class AllocAgent(_message.Message):
-    __slots__ = ("id", "cost", "hardware", "affinity", "transfer_penalty", "current_host", "kind", "max_per_host")
+    __slots__ = ("id", "cost", "hardware", "affinity", "transfer_penalty", "current_host", "kind", "max_per_host", "placed")
     ID_FIELD_NUMBER: _ClassVar[int]
     COST_FIELD_NUMBER: _ClassVar[int]
     HARDWARE_FIELD_NUMBER: _ClassVar[int]
@@ -48,6 +48,7 @@ class AllocAgent(_message.Message):
     CURRENT_HOST_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     MAX_PER_HOST_FIELD_NUMBER: _ClassVar[int]
+    PLACED_FIELD_NUMBER: _ClassVar[int]
     id: str
     cost: float
     hardware: _containers.RepeatedScalarFieldContainer[str]
@@ -56,7 +57,8 @@ class AllocAgent(_message.Message):
     current_host: str
     kind: str
     max_per_host: int
-    def __init__(self, id: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., affinity: _Optional[_Iterable[_Union[AllocAffinity, _Mapping]]] = ..., transfer_penalty: _Optional[float] = ..., current_host: _Optional[str] = ..., kind: _Optional[str] = ..., max_per_host: _Optional[int] = ...) -> None: ...
+    placed: str
+    def __init__(self, id: _Optional[str] = ..., cost: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., affinity: _Optional[_Iterable[_Union[AllocAffinity, _Mapping]]] = ..., transfer_penalty: _Optional[float] = ..., current_host: _Optional[str] = ..., kind: _Optional[str] = ..., max_per_host: _Optional[int] = ..., placed: _Optional[str] = ...) -> None: ...
 
 class AllocHost(_message.Message):
     __slots__ = ("name", "capacity", "hardware", "draining")
@@ -71,18 +73,22 @@ class AllocHost(_message.Message):
     def __init__(self, name: _Optional[str] = ..., capacity: _Optional[float] = ..., hardware: _Optional[_Iterable[str]] = ..., draining: _Optional[bool] = ...) -> None: ...
 
 class AllocStart(_message.Message):
-    __slots__ = ("leader", "ses_id", "group", "agents", "hosts")
+    __slots__ = ("leader", "ses_id", "group", "agents", "hosts", "has_auction", "auction")
     LEADER_FIELD_NUMBER: _ClassVar[int]
     SES_ID_FIELD_NUMBER: _ClassVar[int]
     GROUP_FIELD_NUMBER: _ClassVar[int]
     AGENTS_FIELD_NUMBER: _ClassVar[int]
     HOSTS_FIELD_NUMBER: _ClassVar[int]
+    HAS_AUCTION_FIELD_NUMBER: _ClassVar[int]
+    AUCTION_FIELD_NUMBER: _ClassVar[int]
     leader: str
     ses_id: int
     group: _containers.RepeatedScalarFieldContainer[str]
     agents: _containers.RepeatedCompositeFieldContainer[AllocAgent]
     hosts: _containers.RepeatedCompositeFieldContainer[AllocHost]
-    def __init__(self, leader: _Optional[str] = ..., ses_id: _Optional[int] = ..., group: _Optional[_Iterable[str]] = ..., agents: _Optional[_Iterable[_Union[AllocAgent, _Mapping]]] = ..., hosts: _Optional[_Iterable[_Union[AllocHost, _Mapping]]] = ...) -> None: ...
+    has_auction: bool
+    auction: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, leader: _Optional[str] = ..., ses_id: _Optional[int] = ..., group: _Optional[_Iterable[str]] = ..., agents: _Optional[_Iterable[_Union[AllocAgent, _Mapping]]] = ..., hosts: _Optional[_Iterable[_Union[AllocHost, _Mapping]]] = ..., has_auction: _Optional[bool] = ..., auction: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class AllocPlacement(_message.Message):
     __slots__ = ("agent", "host")

@@ -92,6 +92,7 @@ class AllocGlue:
                     current_host=(r.owner or None) if r.status == at.ACTIVE else None,
                     kind=r.spec.type if limit else "",
                     max_per_host=min(limit, MAX_PER_HOST),
+                    placed=r.alloc or None,  # its last allocation: a bounded session keeps it there
                 )
             )
         return tuple(out)
@@ -129,14 +130,16 @@ class AllocGlue:
             pol.pause()
         else:
             pol.resume()
+        if pol.running and not self.allocator.busy():
+            pol.finished(now)  # the running session expired or lost its group: changes need not wait for it
         if not len(t) and not force:
             # nothing to allocate: no session (its OAC(start)/OAC(finish) would only add traffic)
             self.allocator.on_change(group, (), self.host_specs(), start=False)
             return self._done()
         if why == "periodic":
             due = leader and pol.due(now)
-        else:
-            due = pol.changed(now) if leader else False
+        else:  # a group change cannot wait for the running session: that session can no longer finish
+            due = pol.changed(now, urgent=why == "membership changed") if leader else False
         if force and leader and not due:
             pol.force(now)
             due = True
@@ -155,7 +158,7 @@ class AllocGlue:
         """A committed agent transaction that concerns the allocation (the node calls it while a member)."""
         k = res.kind
         if k == "start":  # expired starts too: their ids are used up (allocation.py)
-            return self.start_committed(now, payload)
+            return self.start_committed(now, payload, res.reason if not res.ok else "")
         if k == "finish" and res.ok:
             return self.finish_committed(now)
         if k in ("create", "remove") and res.ok and not res.existing:
@@ -209,8 +212,12 @@ class AllocGlue:
         self._alloc_effects(now)
         return self._done()
 
-    def start_committed(self, now: float, payload: bytes) -> list[GlueEffect]:
-        """OAC(start) applied (valid or expired: its id is used up either way, allocation.py), Alg. 4 l. 38."""
+    def start_committed(self, now: float, payload: bytes, verdict: str | None = None) -> list[GlueEffect]:
+        """OAC(start) applied (valid or expired: its id is used up either way, allocation.py), Alg. 4 l. 38.
+        `verdict`: the agent table's decision on it ("" = valid), taken where the start applied in the total
+        order. The allocator follows it: its own `start_valid` would read `committed_ses`, which `change` keeps
+        in step with the table's `ses_id` — read after a whole batch of transactions applied, so possibly
+        already past this start (a later start of the same batch), and the hosts would disagree."""
         try:
             tx = decode_tx(payload)
             # a start is proposed as an agent transaction (another kind raises AttributeError here)
@@ -218,8 +225,9 @@ class AllocGlue:
         except (ValueError, AttributeError) as e:
             self._out.append(Note("allocation_bad_start", {"reason": str(e)}))
             return self._done()
-        self.allocator.on_start_committed(start, tuple(self.view.members()), self.view.table.agent_ids())
+        self.allocator.on_start_committed(start, tuple(self.view.members()), self.view.table.agent_ids(), verdict)
         self._alloc_effects(now)
+        self._settle(now)
         return self._done()
 
     def finish_committed(self, now: float) -> list[GlueEffect]:
@@ -227,7 +235,20 @@ class AllocGlue:
         alloc = {r.id: r.alloc for r in t if r.alloc}
         self.allocator.on_finish_committed(t.finished_ses, alloc, tuple(self.view.members()), t.agent_ids())
         self._alloc_effects(now)
+        self._settle(now)
         return self._done()
+
+    def _settle(self, now: float) -> None:
+        """The session the leader waited for ended without an allocation (its start expired, its group changed):
+        the changes that waited for it (`RebalancePolicy.changed`) are due now."""
+        pol = self.policy
+        members = self.view.members()
+        if not pol.running or self.allocator.busy() or not members or members[0] != self.view.name:
+            return
+        pol.finished(now)
+        nxt = pol.deadline() if pol.pending else None
+        if nxt is not None:
+            self._out.append(ArmTimer(AgentTimer("rebalance"), max(nxt, now)))
 
     def written(self, now: float, kind: str, ses_id: int, ok: bool, member: bool) -> list[GlueEffect]:
         """This host's OAC(start|finish|host) committed (`ok`) or was given up."""
@@ -288,6 +309,15 @@ class AllocGlue:
             elif isinstance(e, Allocated):
                 self.policy.finished(now)
                 self._out.append(Note("allocation_accepted", {
-                    "session": e.ses_id, "agents": len(e.allocation), "unallocatable": list(e.unallocatable)}))
+                    "session": e.ses_id, "agents": len(e.allocation), "unallocatable": list(e.unallocatable),
+                    "deferred": len(e.deferred)}))
+                members = self.view.members()
+                if members and members[0] == self.view.name:
+                    if e.deferred:  # a bounded session left agents without a place: the next session is theirs
+                        self.policy.more(now)
+                    # changes that waited for this session's finish (`RebalancePolicy.changed`) are due now
+                    nxt = self.policy.deadline() if self.policy.pending else None
+                    if nxt is not None:
+                        self._out.append(ArmTimer(AgentTimer("rebalance"), max(nxt, now)))
             elif isinstance(e, Log):
                 self._out.append(Note(e.event, e.fields))

@@ -42,9 +42,13 @@ In short:
   skipped while the bid's owner still claims it; a new bid must beat every claim members made for themselves;
   a rebroadcast of an unchanged bid goes only to the stale sender, and only from the authority on that bid.
 * consensus is not checked while a build is queued (l. 75-76 would decide before the queued build).
-* a committed start is valid if its proposer is the leader, group and agent list are current (ll. 39-40) and
-  its id is above every committed start id; a committed finish is accepted only for the last valid start,
-  unchanged since (l. 94 accepts unconditionally). Both depend only on the total order.
+* a committed start is valid if its proposer is the leader, its group is current (ll. 39-40; its agent list
+  is a snapshot, not required current) and its id is above every committed start id; a committed finish is
+  accepted only for the last valid start, group unchanged since (l. 94 accepts unconditionally). Both depend
+  only on the total order.
+* sessions of a bounded size: above `SESSION_AGENTS` agents a session auctions a window of them
+  (`specs.choose_auction`), the others keep their host (pinned, their load counted first) or wait for the next
+  session (deferred), which the leader starts when this one finishes.
 * hardware: a host bids only for agents whose hardware it has; agents no host of the group can run are
   reported as `unallocatable` and left out of the consensus check (otherwise the session never ends).
 * per-host limits (issue 15, not in the thesis): a host bids for at most `max_per_host` agents of a limited
@@ -67,7 +71,7 @@ from haa.core.allocation.bids import Bid, BidUpdate, bid_gt, nil_bid, same_bid
 from haa.core.allocation.bundle import BundleBuilder
 from haa.core.allocation.conflicts import _GUARDED_RESETS, LEAVE, RESET, TRIM_UPDATE, UPDATE, UPDATE_TIME, Rule, resolve
 from haa.core.allocation.session import _Session
-from haa.core.allocation.specs import AgentSpec, HostSpec, SessionStart, _name
+from haa.core.allocation.specs import MAX_SESSION_AGENTS, AgentSpec, HostSpec, SessionStart, _name, choose_auction
 from haa.core.effects import Log
 
 # --------------------------------------------------------------------------------------------- effects
@@ -106,6 +110,9 @@ class Allocated:
     ses_id: int
     allocation: dict[str, str]
     unallocatable: tuple[str, ...] = ()
+    #: agents that need a place but were outside this bounded session's auction: the leader starts the next
+    #: session for them (`SessionStart.deferred`, docs/allocation.md "Sessions of a bounded size")
+    deferred: tuple[str, ...] = ()
 
 
 AllocEffect = SendUpdate | ProposeStart | ProposeFinish | Allocated | Log
@@ -122,6 +129,9 @@ class Allocator(BundleBuilder):
     fresh group starts at 0.
     """
 
+
+    #: most agents one session auctions (`choose_auction`); the verifier sets a small one to exercise chaining
+    SESSION_AGENTS = MAX_SESSION_AGENTS
 
     def __init__(self, me: str, committed_ses: int = 0) -> None:
         self.me = _name(me, "Allocator.me")
@@ -147,6 +157,17 @@ class Allocator(BundleBuilder):
     @property
     def member(self) -> bool:
         return self.me in self.group
+
+    def busy(self) -> bool:
+        """A session this host knows of may still end in an allocation: its start is not decided yet, or it
+        committed valid, is not finished and its group is still the current one. False once it expired, was
+        finished, or its group changed (`RebalancePolicy` then stops waiting for it)."""
+        if self._pending_start is not None:
+            return True
+        s, st = self.session, self.committed_start
+        if s is None or st is None or st.ses_id != s.ses_id or s.ses_id <= self.finished_ses:
+            return False
+        return st.group == self.group
 
     def own_bids(self) -> dict[str, Bid]:
         """bidTable_p[p] of the current session (empty when there is none)."""
@@ -184,7 +205,8 @@ class Allocator(BundleBuilder):
             if missing:
                 raise ValueError(f"Allocator.on_change: hosts: no HostSpec for group member(s) {missing}")
             ses = max(self.ses_id, self.committed_ses) + 1  # l. 19
-            st = SessionStart(self.me, ses, self.group, self.agents, tuple(self.hosts[g] for g in self.group))
+            auction = choose_auction(self.agents, self.group, self.hosts, ses, self.SESSION_AGENTS)
+            st = SessionStart(self.me, ses, self.group, self.agents, tuple(self.hosts[g] for g in self.group), auction)
             self.ses_id = ses
             self.session = _Session(ses, self.me)  # l. 24 newSession()
             self._pending_start = st
@@ -196,11 +218,11 @@ class Allocator(BundleBuilder):
         self, start: SessionStart, committed: bool, group: tuple[str, ...], agents: Iterable[AgentSpec | str]
     ) -> None:
         """The OAC(start) this host proposed was decided (l. 27). Aborted: propose it again while this host
-        is still the leader of that session and the group and agent list are unchanged (l. 28)."""
+        is still the leader of that session and the group is unchanged (l. 28; the agent list is the start's
+        snapshot, `start_valid`)."""
         if committed or self._pending_start is None or self._pending_start.ses_id != start.ses_id:
             return  # committed: kept pending until delivered (on_start_committed may have to retry it)
-        ids = tuple(a if isinstance(a, str) else a.id for a in agents)
-        if tuple(group) == start.group and ids == start.agent_ids and self.ses_id == start.ses_id:
+        if tuple(group) == start.group and self.ses_id == start.ses_id:
             self._log("alloc.retry_start", ses=start.ses_id)
             self._out.append(ProposeStart(start))
         else:
@@ -208,23 +230,30 @@ class Allocator(BundleBuilder):
 
     # ------------------------------------------------------------------ l. 38-50: start committed
 
-    def start_valid(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> str:
+    def start_valid(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...] = ()) -> str:
         """Why a committed OAC(start) is expired ("" = valid): ll. 39-40 plus increasing session ids. Depends
-        only on totally ordered state, so every host decides the same."""
+        only on totally ordered state, so every host decides the same.
+
+        Ll. 39-40 also expire a start whose agent list is no longer current; here the start's agent list is a
+        snapshot (`agent_ids` is not consulted): agents added since wait for the next session, which their
+        creation triggers, and the places of agents removed since are ignored. With the thesis' rule a stream
+        of spawns expired every start and finish and no session ended (docs/allocation.md, "Sessions of a
+        bounded size")."""
         if not group or start.leader != group[0]:
             return "proposer is not the leader"
         if start.group != tuple(group):
             return "group changed"
-        if start.agent_ids != tuple(agent_ids):
-            return "agent list changed"
         if start.ses_id <= self.committed_ses:
             return f"session id not above the last committed start ({self.committed_ses})"
         return ""
 
-    def on_start_committed(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> None:
+    def on_start_committed(
+        self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...], verdict: str | None = None
+    ) -> None:
         """OAC(start) committed (l. 38); `group` and `agent_ids` are this host's hostGroup and agentList at
-        this point of the total order."""
-        why = self.start_valid(start, tuple(group), tuple(agent_ids))
+        this point of the total order. `verdict`: the replicated state's own decision on this start ("" =
+        valid; the agent table's, `AllocGlue.start_committed`), taken instead of `start_valid`."""
+        why = self.start_valid(start, tuple(group), tuple(agent_ids)) if verdict is None else verdict
         # every committed start id is used up, even an expired one: the next leader proposes a higher one, and
         # a joiner that only knows the highest committed id decides like everyone else
         self.committed_ses = max(self.committed_ses, start.ses_id)
@@ -254,10 +283,10 @@ class Allocator(BundleBuilder):
     def _retry_with_new_id(self, start: SessionStart, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> None:
         """Our OAC(start) committed after another (expired) start with the same id, proposed by a former
         leader before we learned of it: propose the session again under a fresh id, if nothing else changed."""
-        if group != start.group or agent_ids != start.agent_ids or not group or group[0] != self.me:
+        if group != start.group or not group or group[0] != self.me:
             return
         ses = max(self.ses_id, self.committed_ses) + 1
-        st = SessionStart(self.me, ses, start.group, start.agents, start.hosts)
+        st = SessionStart(self.me, ses, start.group, start.agents, start.hosts, start.auction)
         self.ses_id = ses
         self.session = _Session(ses, self.me)
         self._pending_start = st
@@ -426,8 +455,13 @@ class Allocator(BundleBuilder):
         if s.unclaimed or s.mismatch or s.build_queued:  # l. 75-76 would decide before the queued build
             return
         s.decided = True
-        # every allocatable agent has a winner here (`s.unclaimed` is empty)
-        alloc = cast("dict[str, str]", {j: s.own[j].winner for j in s.agents if j in s.allocatable})
+        # every allocatable agent has a winner here (`s.unclaimed` is empty); the agents a bounded session pinned
+        # are in it too, on their host (the agent table clears the place of a limited agent left out)
+        pinned = s.pinned
+        alloc = cast(
+            "dict[str, str]",
+            {j: s.own[j].winner if j in s.allocatable else pinned[j] for j in s.agents if j in s.allocatable or j in pinned},
+        )
         fin = ProposeFinish(s.ses_id, alloc, self.me, s.unallocatable)
         self._pending_finish = fin
         self._log("alloc.consensus", ses=s.ses_id, builds=s.builds, messages=s.messages_sent)
@@ -435,7 +469,8 @@ class Allocator(BundleBuilder):
 
     def on_finish_decided(self, ses_id: int, committed: bool) -> None:
         """The OAC(finish) this host proposed was decided (l. 91). Aborted: propose it again while the
-        session is current and the group and agent list are unchanged (l. 92)."""
+        session is current and the group unchanged (l. 92; a changed agent list does not expire it, see
+        `finish_valid`)."""
         fin = self._pending_finish
         if fin is None or fin.ses_id != ses_id:
             return
@@ -444,13 +479,7 @@ class Allocator(BundleBuilder):
             return
         s = self.session
         st = s.start if s is not None else None
-        if (
-            s is not None
-            and st is not None
-            and s.ses_id == ses_id
-            and self.group == st.group
-            and tuple(a.id for a in self.agents) == st.agent_ids
-        ):
+        if s is not None and st is not None and s.ses_id == ses_id and self.group == st.group:
             self._log("alloc.retry_finish", ses=ses_id)
             self._out.append(fin)
         else:
@@ -458,10 +487,15 @@ class Allocator(BundleBuilder):
 
     # ------------------------------------------------------------------ l. 93-96: finish committed
 
-    def finish_valid(self, ses_id: int, group: tuple[str, ...], agent_ids: tuple[str, ...]) -> str:
+    def finish_valid(self, ses_id: int, group: tuple[str, ...], agent_ids: tuple[str, ...] = ()) -> str:
         """Why a committed OAC(finish) is not accepted ("" = accepted): it must finish the last committed
-        start, which must not have expired since (group and agent list unchanged), and not be finished yet.
-        Depends only on totally ordered state, so every host decides the same."""
+        start, whose group must not have changed since, and not be finished yet. Depends only on totally
+        ordered state, so every host decides the same.
+
+        Agents added or removed since the start do not expire it (`agent_ids` is not consulted): a removed
+        agent's place is ignored, an added one waits for the next session, which its creation triggers. An
+        expiry on every agent-list change left no session finishing while spawns kept arriving (a burst of
+        150 spawns kept a 4-host group allocating for minutes; docs/allocation.md "Sessions of a bounded size")."""
         st = self.committed_start
         if st is None or ses_id != st.ses_id:
             return f"not the last valid session ({st.ses_id if st is not None else 0})"
@@ -469,8 +503,6 @@ class Allocator(BundleBuilder):
             return "session already finished"
         if st.group != tuple(group):
             return "group changed since the start"
-        if st.agent_ids != tuple(agent_ids):
-            return "agent list changed since the start"
         return ""
 
     def on_finish_committed(
@@ -491,8 +523,9 @@ class Allocator(BundleBuilder):
         self.finished_ses = ses_id
         st = self.committed_start
         unalloc = st.unallocatable() if st is not None else ()
-        self._log("alloc.allocated", ses=ses_id, agents=len(allocation))
-        self._out.append(Allocated(ses_id, dict(allocation), unalloc))  # l. 94
+        deferred = st.deferred() if st is not None else ()
+        self._log("alloc.allocated", ses=ses_id, agents=len(allocation), deferred=len(deferred))
+        self._out.append(Allocated(ses_id, dict(allocation), unalloc, deferred))  # l. 94
         s = self.session
         if s is not None and s.ses_id == ses_id:  # l. 95-96
             s.decided = True

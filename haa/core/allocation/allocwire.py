@@ -107,11 +107,15 @@ def encode_start(st: SessionStart) -> bytes:
             current_host=a.current_host or "",
             kind=a.kind,
             max_per_host=a.max_per_host,
+            placed=a.placed or "",
         )
         for k, v in a.affinity.items():
             pa.affinity.add(agent=k, alpha=v)
     for h in st.hosts:
         m.hosts.add(name=h.name, capacity=h.capacity, hardware=sorted(h.hardware), draining=h.draining)
+    if st.auction is not None:
+        m.has_auction = True
+        m.auction.extend(st.auction)
     encoded: bytes = m.SerializeToString()
     return encoded
 
@@ -138,6 +142,7 @@ def decode_start(data: bytes) -> SessionStart:
                     a.current_host or None,
                     a.kind,
                     a.max_per_host,
+                    a.placed or None,
                 )
             )
         except ValueError as e:
@@ -149,7 +154,10 @@ def decode_start(data: bytes) -> SessionStart:
         except ValueError as e:
             raise AllocWireError(f"AllocStart.hosts[{n}]: {e}") from None
     try:
-        return SessionStart(m.leader, m.ses_id, tuple(m.group), tuple(agents), tuple(hosts))
+        auction = tuple(m.auction) if m.has_auction else None
+        if not m.has_auction and m.auction:
+            raise ValueError("auction given without has_auction")
+        return SessionStart(m.leader, m.ses_id, tuple(m.group), tuple(agents), tuple(hosts), auction)
     except ValueError as e:
         raise AllocWireError(f"AllocStart: {e}") from None
 

@@ -84,7 +84,7 @@ class BundleBuilder:
         # the order of a set of strings changes with PYTHONHASHSEED, and so would the last bits of the sums,
         # the ties they break and the whole simulated schedule (a seed must reproduce its trace anywhere)
         in_bundle: set[str] = set(s.entry_of)
-        used = sum(agents[a].cost for a in s.entry_of)
+        used = s.base_used + sum(agents[a].cost for a in s.entry_of)  # the pinned agents' load first
         if self.RESERVE:  # capacity kept for the agents no other member can run (docs/allocation.md)
             used += sum(agents[a].cost for a in s.eligible if a in s.exclusive and a not in in_bundle)
         # hysteresis (docs/allocation.md): for an agent that runs on another host, at least MIN_TRANSFER_PENALTY
@@ -99,6 +99,8 @@ class BundleBuilder:
         margin = {i: hyst if i in away else 0.0 for i in s.eligible}
         bonus: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ij over j in the bundle
         back: dict[str, float] = dict.fromkeys(s.eligible, 0.0)  # sum of alpha_ji x factor_j, j in the bundle
+        for j in s.pinned_mine:  # an agent pinned here gives the affinity bonus as one in the bundle would
+            self._add_bonus(s, j, bonus, back, factor)
         for j in s.entry_of:
             self._add_bonus(s, j, bonus, back, factor)
         claims = self._claims(s)

@@ -64,6 +64,10 @@ class _Session:
         self.unclaimed = 0  # allocatable j with bidTable_p[p][j].z == none
         self.messages_sent = 0
         self.builds = 0
+        # sessions of a bounded size (SessionStart.auction): agents outside the auction that keep their host
+        self.pinned: dict[str, str] = {}
+        self.pinned_mine: tuple[str, ...] = ()  # those on this host, in the start's order
+        self.base_used = 0.0  # their cost: capacity this host's bundle starts with
 
     def bid(self, j: str) -> Bid:
         b = self.own.get(j)
@@ -113,8 +117,21 @@ class _Session:
         self.allocatable = frozenset(self.agents) - frozenset(self.unallocatable)
         spec = self.spec
         unalloc = frozenset(self.unallocatable)  # an agent left out for its kind's limit gets no bid either
+        if start.auction is not None:  # a bounded session: only its auction is bid for and agreed on
+            auction = frozenset(start.auction)
+            self.allocatable = self.allocatable & auction
+            self.pinned = start.pinned()
+            self.pinned_mine = tuple(j for j, h in self.pinned.items() if h == me)
+            base = 0.0
+            for j in self.pinned_mine:  # a fixed order (the start's), so the sum is the same on every run
+                base += self.agents[j].cost
+            self.base_used = base
+        else:
+            auction = frozenset(self.agents)
         self.eligible = tuple(
-            a.id for a in start.agents if spec is not None and spec.can_run(a) and a.id not in unalloc
+            a.id
+            for a in start.agents
+            if spec is not None and spec.can_run(a) and a.id not in unalloc and a.id in auction
         )
         # per-host limits (issue 15): eligible agent -> (kind, max_per_host)
         self.limits = {a.id: (a.kind, a.max_per_host) for a in start.agents if a.max_per_host and a.id in self.eligible}

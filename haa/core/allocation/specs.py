@@ -35,6 +35,14 @@ MAX_NAME = 64
 #: SupervisorSLAM runs "at most one sensor agent of each type per host" (thesis App. III); the bound only keeps
 #: the number a count
 MAX_PER_HOST = 1000
+#: most agents one allocation session auctions (`SessionStart.auction`; docs/allocation.md, "Sessions of a
+#: bounded size"). Bundle building is O(agents x bundle) per build and a session's builds grow with its agents,
+#: so one session over all agents cost ~2.7 s of CPU at 150 agents and ~25 s at 300 (4 hosts, measured in the
+#: AP-3 simulator) and a burst of 500 spawns never finished on a real 4-host group. Above this many agents a
+#: session auctions a window of them (the agents that need a place first) and the others keep their host;
+#: the leader chains sessions until every agent has a place. 64 = the clusters one bundle step examines
+#: (`BundleBuilder.MAX_CLUSTERS`): a 64-agent session costs ~0.2 s of CPU over 4 hosts
+MAX_SESSION_AGENTS = 64
 
 # --------------------------------------------------------------------------------------------- problem data
 
@@ -77,6 +85,7 @@ class AgentSpec:
     current_host: str | None = None
     kind: str = ""
     max_per_host: int = 0
+    placed: str | None = None
 
     def __post_init__(self) -> None:
         _name(self.id, "AgentSpec.id")
@@ -103,6 +112,13 @@ class AgentSpec:
         object.__setattr__(self, "affinity", aff)
         if self.current_host is not None:
             _name(self.current_host, f"AgentSpec({self.id}).current_host")
+        if self.placed is not None:
+            _name(self.placed, f"AgentSpec({self.id}).placed")
+
+    @property
+    def home(self) -> str | None:
+        """The host the agent belongs to now: its last allocation (`placed`), else the host that runs it."""
+        return self.placed if self.placed is not None else self.current_host
 
     def __hash__(self) -> int:
         return hash(
@@ -115,6 +131,7 @@ class AgentSpec:
                 self.current_host,
                 self.kind,
                 self.max_per_host,
+                self.placed,
             )
         )
 
@@ -128,7 +145,7 @@ def _repr_sorted_hardware(spec: AgentSpec | HostSpec) -> str:
     parts = []
     for f in dataclasses.fields(spec):
         v = getattr(spec, f.name)
-        if f.name in ("kind", "max_per_host") and not v:
+        if f.name in ("kind", "max_per_host", "placed", "auction") and not v:
             continue  # left out when unset, so that the traces of schedules without limits keep their hashes
         parts.append(f"{f.name}={sorted(v) if f.name == 'hardware' else repr(v)}")
     return f"{type(spec).__name__}({', '.join(parts)})"
@@ -172,6 +189,9 @@ class SessionStart:
     group: tuple[str, ...]
     agents: tuple[AgentSpec, ...]
     hosts: tuple[HostSpec, ...]
+    #: the agents this session auctions (`choose_auction`); None: all of them (the thesis' session). The others
+    #: keep the host they are `pinned` to, or wait for the next session (`deferred`)
+    auction: tuple[str, ...] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "group", tuple(self.group))
@@ -199,6 +219,14 @@ class SessionStart:
         why = limit_conflict(self.agents)
         if why:
             raise ValueError(f"SessionStart.agents: {why}")
+        if self.auction is not None:
+            object.__setattr__(self, "auction", tuple(self.auction))
+            known = set(ids)
+            if len(set(self.auction)) != len(self.auction):
+                raise ValueError("SessionStart.auction: duplicate agent id")
+            stray = [a for a in self.auction if a not in known]
+            if stray:
+                raise ValueError(f"SessionStart.auction: agent(s) {stray[:3]} not in the session's agents")
 
     @property
     def agent_ids(self) -> tuple[str, ...]:
@@ -218,6 +246,63 @@ class SessionStart:
         out = {a.id for a in self.agents if not any(h.can_run(a) for h in hs)}
         out.update(over_limit(self.agents, hs, out))
         return tuple(a.id for a in self.agents if a.id in out)
+
+    def pinned(self) -> dict[str, str]:
+        """Agents outside the `auction` that keep their `home` host this session (a member that can run them),
+        in the start's agent order. Empty when the session auctions every agent."""
+        if self.auction is None:
+            return {}
+        inside = set(self.auction)
+        hs = {g: self.host(g) for g in self.group}
+        gone = set(self.unallocatable())
+        out: dict[str, str] = {}
+        for a in self.agents:
+            h = a.home
+            if a.id not in inside and a.id not in gone and h in hs and hs[h].can_run(a):
+                out[a.id] = h
+        return out
+
+    def deferred(self) -> tuple[str, ...]:
+        """Agents that need a place but did not fit in this session's `auction`: the next session's."""
+        if self.auction is None:
+            return ()
+        skip = set(self.auction) | set(self.pinned()) | set(self.unallocatable())
+        return tuple(a.id for a in self.agents if a.id not in skip)
+
+
+def choose_auction(
+    agents: tuple[AgentSpec, ...], group: tuple[str, ...], hosts: Mapping[str, HostSpec], ses_id: int,
+    size: int = MAX_SESSION_AGENTS,
+) -> tuple[str, ...] | None:
+    """The agents a session of `ses_id` auctions (docs/allocation.md, "Sessions of a bounded size"): None (all)
+    when there are at most `size`; else every agent of a limited kind (their places are counted per session),
+    then the agents that need a place (no home, or a home that is not a member or cannot run them), then, to fill
+    `size`, placed agents taken in turn from a position that advances with the session id, so that successive
+    load-balancing sessions reach every agent. A deterministic function of its arguments."""
+    if len(agents) <= size:
+        return None
+    members = {g: hosts[g] for g in group if g in hosts}
+    limited = [a.id for a in agents if a.max_per_host]
+    needy: list[str] = []
+    placed: list[str] = []
+    for a in agents:
+        if a.max_per_host or not any(h.can_run(a) for h in members.values()):
+            continue  # limited: always in; no capable member: unallocatable, and must not take a needy one's room
+        h = a.home
+        if h is None or h not in members or not members[h].can_run(a):
+            needy.append(a.id)
+        else:
+            placed.append(a.id)
+    # at least half a window for the agents that need a place, however many limited ones there are: every
+    # session then places some, and a chain of sessions ends
+    room = max(size - len(limited), (size + 1) // 2)
+    chosen = needy[:room]
+    room -= len(chosen)
+    if room and placed:
+        first = (ses_id * room) % len(placed)
+        chosen += (placed[first:] + placed[:first])[:room]
+    inside = set(limited) | set(chosen)
+    return tuple(a.id for a in agents if a.id in inside)
 
 
 def limit_conflict(agents: Iterable[AgentSpec]) -> str:

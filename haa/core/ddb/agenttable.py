@@ -85,6 +85,11 @@ MAX_BLOB = MAX_STATE
 #: payload bytes kept per queue of one agent (messages for it while it is frozen or crashed); more are
 #: counted as dropped, like messages beyond MAX_QUEUE
 MAX_QUEUE_BYTES = 4 * 1024 * 1024
+#: agents the table holds (docs/limits.md, "Agent and host numbers"). Every change of the table re-reads every
+#: agent for the allocation (`AllocGlue.agent_specs`) and every session start carries them all: at 2,000 agents
+#: that is ~36 ms of CPU per change on the leader and a 43 kB OAC(start) (measured; 4,000: 51 ms, 87 kB), and
+#: 32 chained sessions of `MAX_SESSION_AGENTS` place a burst of that size. A create beyond it is refused
+MAX_AGENTS = 2048
 #: characters of a spawn key (AgentCreate.key)
 MAX_SPAWN_KEY = 256
 #: hardware names one agent may require or one host may offer
@@ -401,6 +406,8 @@ class AgentTable:
         why = check_create(c)
         if not why and c.id in self.records:
             why = "create: agent id already exists"
+        if not why and len(self.records) >= MAX_AGENTS and self.child_by_key(c.parent, c.key) is None:
+            why = f"create: the agent table is full ({len(self.records)} agents, at most MAX_AGENTS = {MAX_AGENTS})"
         parent = self.records.get(c.parent) if c.parent else None
         if not why and c.parent and parent is None:
             why = "create: unknown parent"
@@ -448,16 +455,15 @@ class AgentTable:
         return AgentApplied("remove", m.id, True, "", m.host)
 
     def _tx_start(self, s: apb.AllocStartTx) -> AgentApplied:
-        """OAC(start) committed, Alg. 4 ll. 38-40: valid only if proposed by the leader of the current group
-        for the current agent list, with a session id above the last valid one."""
+        """OAC(start) committed, Alg. 4 ll. 38-40: valid only if proposed by the leader of the current group,
+        with a session id above the last valid one. The agent list is the start's snapshot: a change since does
+        not expire it (the same rule as `Allocator.start_valid`)."""
         members = self._members
         why = ""
         if not members or s.leader != members[0]:
             why = "proposer is not the leader"
         elif tuple(s.group) != members:
             why = "group changed"
-        elif tuple(s.agents) != self.agent_ids():
-            why = "agent list changed"
         elif s.ses_id <= self.ses_id:
             why = f"session id not above the last committed ({self.ses_id})"
         # every committed start id is used up, even an expired one (as in `Allocator.on_start_committed`)
@@ -471,7 +477,8 @@ class AgentTable:
 
     def _tx_finish(self, f: apb.AllocFinishTx) -> AgentApplied:
         """OAC(finish) committed, Alg. 4 ll. 93-96: accepted only for the last valid start, once, while the
-        group and the agent list are still those of the start (the same rule as `Allocator.finish_valid`)."""
+        group is still the start's (the same rule as `Allocator.finish_valid`: agents added since wait for the
+        next session, the places of agents removed since are ignored)."""
         why = ""
         if f.ses_id != self.valid_ses:
             why = f"not the last valid session ({self.valid_ses})"
@@ -479,8 +486,6 @@ class AgentTable:
             why = "session already finished"
         elif self.start_group != self._members:
             why = "group changed since the start"
-        elif self.start_agents != self.agent_ids():
-            why = "agent list changed since the start"
         if why:
             return AgentApplied("finish", "", False, why, f.leader)
         self.finished_ses = f.ses_id

@@ -90,25 +90,32 @@ def _per_host_limit(e: Entry) -> str:
 
 def _validity(e: Entry, start: SessionStart | None = None) -> str:
     """Why an accepted allocation is invalid in the world of its entry ("" = valid). `start`: the session's
-    committed start (the current hosts the per-host limits' places depend on)."""
+    committed start — its agent list is the session's (agents added since wait for the next session, the
+    places of agents removed since are ignored), its `auction` the agents it had to place; the others keep
+    their host or are deferred (docs/allocation.md, "Sessions of a bounded size")."""
     assert e.finish is not None
     w = e.world
     alloc = e.finish.allocation
     hosts = [w.hosts[g] for g in w.group]
-    capable = {a.id: [h.name for h in hosts if h.can_run(a)] for a in w.agents}
+    agents = start.agents if start is not None else w.agents
+    capable = {a.id: [h.name for h in hosts if h.can_run(a)] for a in agents}
     no_place = _no_place(start, capable)
+    auction = set(start.auction) if start is not None and start.auction is not None else set(capable)
     allocatable = [a for a, hs in capable.items() if hs and a not in no_place]
-    missing = [a for a in allocatable if a not in alloc]
+    missing = [a for a in allocatable if a not in alloc and a in auction]
     if missing:
         return f"session {e.finish.ses_id} leaves allocatable agent(s) {missing} unallocated"
     extra = [a for a in alloc if a not in capable]
     if extra:
-        return f"session {e.finish.ses_id} allocates agent(s) {extra} not in the agent list {list(w.agent_ids)}"
+        return f"session {e.finish.ses_id} allocates agent(s) {extra} not in the agent list {list(capable)}"
+    homes = {a.id: a.home for a in agents}
     for a, h in alloc.items():
         if h not in w.group:
             return f"session {e.finish.ses_id} puts {a} on {h}, not in the group {list(w.group)}"
         if h not in capable[a]:
             return f"session {e.finish.ses_id} puts {a} on {h}, which lacks its hardware or is draining"
+        if a not in auction and h != homes[a]:
+            return f"session {e.finish.ses_id} moves {a}, outside its auction, from {homes[a]} to {h}"
     unalloc = sorted(a for a, hs in capable.items() if not hs or a in no_place)
     if sorted(e.finish.unallocatable) != unalloc:
         return f"session {e.finish.ses_id} reports unallocatable {sorted(e.finish.unallocatable)}, expected {unalloc}"
@@ -198,6 +205,16 @@ def _check_liveness(sim: AllocSim) -> list[AViolation]:
         return out
     if not sim.quiet:
         return [AViolation("AA-Liveness", f"still busy at the horizon ({len(sim._q)} events queued)")]
+    # every agent that can be placed has been, once quiet: the sessions chained after a bounded one, and those
+    # that agents added during a session triggered, did their work
+    w = sim.world
+    hosts = [w.hosts[g] for g in w.group]
+    capable = {a.id: [h.name for h in hosts if h.can_run(a)] for a in w.agents}
+    no_place = _no_place(SessionStart(w.group[0], 1, w.group, w.agents, tuple(hosts)), capable)
+    homeless = [a.id for a in w.agents if capable[a.id] and a.id not in no_place and a.current_host not in w.group]
+    if homeless:
+        return [AViolation("AA-Liveness", f"quiet, but agent(s) {homeless[:5]} ({len(homeless)}) have no place in "
+                                          f"the group {list(w.group)}")]
     views: dict[str, dict[str, str]] = {}
     for n in _final_members(sim):
         s = n.alloc.session

@@ -63,6 +63,7 @@ class AllocScenario:
     faults: list[AFault] = field(default_factory=list)
     final_pause: bool = True  # pause periodic rebalancing after the last fault, so that the schedule goes quiet
     liveness: float = LIVENESS_BOUND
+    session_agents: int = 0  # most agents a session auctions (0: the Allocator's own, specs.MAX_SESSION_AGENTS)
 
     def describe(self) -> list[str]:
         out = [
@@ -182,8 +183,32 @@ def draw_alloc(seed: int, hosts: int = 7) -> AllocScenario:
             sc.faults.append(AFault(at, "cost", rng.choice(live_agents), round(rng.uniform(0.02, 0.7), 3)))
         else:
             sc.faults.append(AFault(at, kind))
+    _bursts(sc, next_agent, live_agents, all_hosts)
     _limited_kinds(sc)
     return sc
+
+
+def _bursts(sc: AllocScenario, next_agent: int, live_agents: list[str], all_hosts: list[str]) -> None:
+    """In a quarter of the schedules, a burst of 8-30 spawns within a few milliseconds, and sessions bounded to
+    3-6 agents (specs.MAX_SESSION_AGENTS in small), so that windows, pinned agents and chained sessions meet the
+    faults. Drawn from a random source of its own: the other schedules stay those drawn before bursts existed."""
+    rng = random.Random(f"alloc-bursts-{sc.seed}")
+    if rng.random() >= 0.25:
+        return
+    sc.session_agents = rng.choice([3, 4, 6])
+    t = rng.uniform(0.05, 1.2)
+    n = rng.randint(8, 30)
+    for _ in range(n):
+        t += rng.uniform(0.0, 0.002)
+        aid = f"a{next_agent}"
+        next_agent += 1
+        sc.faults.append(AFault(round(t, 4), "agent_add", aid, _agent_spec(rng, aid, live_agents, all_hosts)))
+        live_agents.append(aid)
+    sc.faults.sort(key=lambda f: f.at)
+    total = len(sc.agents) + sum(1 for f in sc.faults if f.kind == "agent_add")
+    # chained sessions: each may meet a slow OAC round (up to 0.6 s more, `AllocSim._propose`) at its start and
+    # at its finish
+    sc.liveness = LIVENESS_BOUND + 1.2 * -(-total // sc.session_agents)
 
 
 #: kinds with a per-host limit the scenarios give agents (issue 15): name -> hardware every agent of it needs

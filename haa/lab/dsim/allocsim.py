@@ -128,7 +128,10 @@ class AllocSim:
     def _new_node(self, name: str, first_entry: int, committed: int) -> _Node:
         sc = self.sc
         pol = RebalancePolicy(sc.period, sc.min_interval, sc.session_timeout)
-        return _Node(name, Allocator(name, committed), pol, first_entry, self.world)
+        alloc = Allocator(name, committed)
+        if sc.session_agents:  # bounded sessions with the few agents of a schedule (docs/allocation.md)
+            alloc.SESSION_AGENTS = sc.session_agents
+        return _Node(name, alloc, pol, first_entry, self.world)
 
     def _push(self, at: float, kind: str, args: tuple[Any, ...]) -> None:
         self._q.push(at, (kind, args))
@@ -227,6 +230,8 @@ class AllocSim:
                 self._propose(node, "finish", e, t_out)
             elif isinstance(e, Allocated):
                 node.policy.finished(t_out)
+                if e.deferred and node.view.group and node.view.group[0] == node.name:
+                    node.policy.more(t_out)  # a bounded session left agents for the next (armed below)
                 self._t(f"{node.name}# allocated ses={e.ses_id} {sorted(e.allocation.items())}")
             elif isinstance(e, Log):
                 if self.trace is not None:
@@ -355,6 +360,9 @@ class AllocSim:
         if e.kind == "start":
             assert e.start is not None
             self._call(node, a.on_start_committed, e.start, node.view.group, node.view.agent_ids)
+            if node.policy.running and not a.busy():  # as AllocGlue: an expired session is not waited for
+                node.policy.finished(self.now)
+                self._arm_timer(node)
             return
         if e.kind == "finish":
             assert e.finish is not None
@@ -368,6 +376,7 @@ class AllocSim:
                 node.view = e.world
                 self._call(node, a.on_change, e.world.group, e.world.agents, e.world.hosts.values(), False)
             return
+        grew_or_shrank = node.view.group != e.world.group
         node.view = e.world
         if e.kind == "control":
             if e.world.paused:
@@ -381,7 +390,9 @@ class AllocSim:
             self._call(node, a.on_change, e.world.group, e.world.agents, e.world.hosts.values(), False)
             node.member = False
             return
-        start = e.kind == "world" and node.policy.changed(self.now)
+        if node.policy.running and not a.busy():  # as AllocGlue: an expired session is not waited for
+            node.policy.finished(self.now)
+        start = e.kind == "world" and node.policy.changed(self.now, urgent=grew_or_shrank)
         self._call(node, a.on_change, e.world.group, e.world.agents, e.world.hosts.values(), start)
 
     # ------------------------------------------------------------------ messages and timers
@@ -408,6 +419,8 @@ class AllocSim:
         if node.timer_at != at:
             return
         node.timer_at = None
+        if node.policy.running and not node.alloc.busy():
+            node.policy.finished(self.now)  # as AllocGlue: an expired session is not waited for
         if node.policy.due(self.now):
             v = node.view
             self._call(node, node.alloc.on_change, v.group, v.agents, v.hosts.values(), True)

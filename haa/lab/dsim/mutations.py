@@ -39,7 +39,7 @@ Host membership (Alg. 3) and the DDB, checked by `haactl verify membership|ddb` 
 Agent allocation (Alg. 4), checked by `haactl verify allocation` (`haa.lab.dsim.allocation`):
 
 * `thesis-accept`    Alg. 4 ll. 93-94 as printed: every committed OAC(finish) is accepted, even one whose
-                     session expired (group or agent list changed after its start). Breaks AA-Validity.
+                     session expired (its group changed after its start). Breaks AA-Validity.
 * `cbba-reset`       Table 4.7-1 "reset & broadcast" as in the CBBA/ACBBA papers: the receiver resets but
                      rebroadcasts the sender's bid instead of its own nil bid, so the leader's bid table no
                      longer shows the members' real rows (the thesis' reason for its change). Breaks
