@@ -114,6 +114,18 @@ def test_backups_only_from_the_current_epoch_and_recovery_takes_the_latest() -> 
     assert not t.apply(tx(backup=apb.AgentBackup(id="a", host="h1", epoch=1, data=b"zombie")), MEMBERS).ok
 
 
+def test_a_move_to_a_host_that_is_no_member_when_it_commits_is_refused() -> None:
+    """The operator named a member, which left the group before the move committed (`haactl verify recovery
+    --hosts 7` seeds 1802 and 1954): the table refuses it, so an agent is never allocated to a non-member."""
+    t = at.AgentTable()
+    create(t, "a")
+    activate(t, "a", "h1")
+    res = t.apply(tx(move=apb.AgentMove(id="a", host="h3")), ("h1", "h2"))
+    assert not res.ok and res.reason == "h3 is not a member of the group"
+    assert t.get("a").alloc == "h1"
+    assert t.apply(tx(move=apb.AgentMove(id="a", host="h2")), ("h1", "h2")).ok
+
+
 def test_allocation_start_and_finish_validity() -> None:
     t = at.AgentTable()
     create(t, "a")

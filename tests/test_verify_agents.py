@@ -4,7 +4,7 @@
 import pytest
 from hashseed import trace_hashes
 
-from haa.lab.dsim.sweep import sweep
+from haa.lab.dsim.sweep import run_seed, sweep
 
 
 @pytest.mark.parametrize("algorithm", ["transfer", "recovery"])
@@ -54,3 +54,39 @@ def test_a_group_of_two_that_removes_its_partner_is_not_wedged():
     from haa.lab.dsim.sweep import run_seed
 
     assert run_seed("recovery", 1229, 5).violations == []
+
+
+def test_a_new_member_whose_sponsor_crashed_acknowledges_the_lock_it_delivered():
+    """Seed 1610 (recovery, 7 hosts; found by a 2,000-schedule sweep): h1 sponsored h5, forwarded it the state
+    up to seq 9, proposed the OAC(membership) that adds it (seq 10) and crashed. h5 delivered that transaction,
+    h2's OAC(remove) of h1 and h2's locking OAC(remove) (seqs 11, 12) itself, asked h2 for the state and got a
+    snapshot at seq 12: it installed it and skipped its three deliveries with their consequences, among them the
+    lock acknowledgement of Alg. 3 l. 130. h2 waited for it for good (l. 103; h5 was not suspected) and held
+    every write: no agent was ever allocated (AG-Liveness: not quiet). A new member whose state is already the
+    one just before the transaction that added it now keeps it and applies its own deliveries from there
+    (haa.core.membership.statetransfer)."""
+    r = run_seed("recovery", 1610, 7)
+    assert not r.violations, r.violations
+
+
+def test_a_move_to_a_host_that_left_before_it_committed_leaves_a_crashed_agent_recoverable():
+    """Seed 1954 (recovery, 7 hosts; found by a 2,000-schedule sweep): at t=3.73 the operator moved A2, crashed
+    and backing off, to h6 through h3, while h6 was a member about to leave. The move's OAC aborted eight times
+    (a delay spike made h3 suspect h4 on and off) and the ninth try committed after OAC(membership) had removed
+    h6 (seq 40 after seq 36): the table set A2's allocation to h6, a non-member, which no host recovers and no
+    session replaces (AG-Liveness: A2 ends crashed, alloc=h6). The agent table now refuses a move to a host
+    that is no member at that point of the total order (haa.core.ddb.agenttable, `_tx_move`)."""
+    r = run_seed("recovery", 1954, 7)
+    assert not r.violations, r.violations
+
+
+def test_a_move_to_a_host_removed_before_it_committed_does_not_freeze_the_agent_for_good():
+    """Seed 1802 (recovery, 7 hosts; found by a 2,000-schedule sweep): the operator moved A6 to h7 through h2
+    at t=3.46; h7 had crashed at 2.99 and was removed at 3.58, before the move committed (seq 74 after seq 53).
+    h5 was freezing A6 for an earlier move to h1 (the session that followed gave it back to h5); the move to h7
+    committed between its freeze and its release, so no member could claim it (Alg. 6 l. 13: only the host it
+    is allocated to) and A6 stayed frozen with the last message of each of four senders in its queue
+    (AT-Consistency: all but one processed; AG-Liveness: ends frozen, alloc=h7). The agent table now refuses
+    a move to a host that is no member when it commits: h5 claims A6 back and it processes everything."""
+    r = run_seed("recovery", 1802, 7)
+    assert not r.violations, r.violations

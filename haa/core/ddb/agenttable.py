@@ -35,7 +35,8 @@ Validity rules, applied identically everywhere (an invalid transaction is a no-o
   child (any status but failed) with that key, the create applies as that child (`AgentApplied.existing`) and
   creates nothing: a spawn retried after a transfer or a recovery of the parent, whose first request had
   already committed, gets the first child instead of a second one (docs/agents.md, "Idempotent spawn");
-* move: allocates the agent to a host; a failed agent becomes crashed again with failures 0 (a retry);
+* move: allocates the agent to a host, which must be a member at that point of the order; a failed agent
+  becomes crashed again with failures 0 (a retry);
 * claim and recovered hand queue1 + queue2 to the new owner (`AgentApplied.msgs`) and clear them;
 * push: appends to queue2 (bounded: MAX_QUEUE messages, then counted as dropped); a push that finds the
   agent active again is not stored but handed to the owner.
@@ -512,6 +513,13 @@ class AgentTable:
             return AgentApplied("move", m.id, False, "unknown agent")
         if len(m.host) > MAX_NAME:
             return AgentApplied("move", m.id, False, f"host name must be at most {MAX_NAME} characters")
+        if m.host and m.host not in self._members:
+            # the operator named a member (`Operations.move` checks), but it left or was removed before the move
+            # committed; its removal already cleared its allocations (`on_removed`), and an allocation to a
+            # non-member would stay until the next session, which nothing may start: a crashed agent would not
+            # be recovered (Alg. 8 l. 14 needs the claimer allocated), a frozen one never claimed (Alg. 6 l. 13)
+            # (`haactl verify recovery --hosts 7` seeds 1954 and 1802)
+            return AgentApplied("move", m.id, False, f"{m.host} is not a member of the group")
         limit = r.spec.max_per_host
         if limit and m.host:
             there = sum(1 for x in self.records.values() if x is not r and x.spec.type == r.type and x.alloc == m.host)
