@@ -248,3 +248,16 @@ def test_a_recovered_executive_resumes_a_start_that_committed_after_it_looked():
     test above). In this schedule the one batch commits before the kill and the recovered instance reads it."""
     r = run_seed("executive", 569, 7)
     assert not r.violations, r.violations
+
+
+def test_a_start_that_never_committed_is_not_the_missions_start():
+    """Seed 49 (7 hosts, a group of 3): the first instance proposed the mission's start on h1 during a delay
+    spike on h1's links; h2 and h3 suspected h1 and removed it, the transaction aborted and h1 came back as a
+    new incarnation: the start never committed. The recovered instance found no status and began the mission —
+    the only start the DDB ever held, the transcript's only "Mission started". EX-Resume took the mission's
+    start from the first status *proposed* (and only from puts: the create-only start, a compare-and-set, went
+    unseen); counting the start there, it reported a second start here (as it did in seeds 494, 769, 822, 1102,
+    1422 before the start became one batch). It takes statuses, the start included, as the DDB applies them:
+    a write that never committed wrote nothing (AC-Uniform-Validity, thesis L545)."""
+    r = run_seed("executive", 49, 7)
+    assert not r.violations, r.violations
