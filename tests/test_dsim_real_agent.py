@@ -171,3 +171,93 @@ def test_the_checks_catch_an_executive_that_forgets_its_mission(monkeypatch):
         _sim, vs = vagent.run_real(seed, 5, "recovery")
         props |= {v.prop for v in vs}
     assert {"EX-Resume", "EX-Once"} <= props
+
+
+def test_a_write_aborted_under_a_suspicion_waits_for_the_group_instead_of_failing_the_agent():
+    """Seed 1263 (7 hosts): a delay spike h2->h1 made h1 suspect h2 while h3 still trusted it, so h1's removal
+    of h2 was voted down and every OAC transaction h1 proposed aborted until the spike ended (AC-Non-Triviality).
+    The executive's `spawn_child` was re-proposed at once after each abort: 50 attempts in 0.8 s, then
+    "gave up after 50 attempts (aborted)", and `on_start` failed (EX-Finish). A write aborted while its host
+    suspects a member is now held, uncounted, until the suspicion ends or the view changes
+    (haa.core.membership.groupwrites)."""
+    r = run_seed("executive", 1263, 7)
+    assert not r.violations, r.violations
+
+
+def test_an_executive_whose_start_record_loses_resumes_the_recorded_start():
+    """The path of `ExecutiveMission._record_start` a compare-and-set exists for, driven frame by frame: a
+    recovered instance without a backup reads no `mission/status`, begins the mission, and its create of the
+    status fails — its predecessor's start, still on its way through the group when it read, committed first.
+    It resumes from the recorded start (no "Mission started"), and its next status carries that start time."""
+    from haa.pb import agent_pb2 as pb
+    from haa.sdk import registry
+    from haa.sdk.context import AgentContext
+
+    loop = Loop()
+    frames: list[pb.AgentToHost] = []
+    init = pb.HostToAgent.Init(agent_id="e1", name="A1", type_name=ExecutiveMission.TYPE,
+                               config=vagent.mission_config(7), epoch=2, host="h1")
+    ctx = AgentContext(init, registry.get(ExecutiveMission.TYPE), frames.append, scheduler=loop.sched)
+    loop.sched.spawn(ctx.run())
+    ctx.feed(pb.HostToAgent(recover=pb.HostToAgent.Recover(has_backup=False)))
+    ctx.feed(pb.HostToAgent(resume=pb.HostToAgent.Resume(how="recover")))
+    earlier = {"state": "running", "t": 1.2, "explored": 0.0, "reason": "", "started_t": 1.0, "finished_t": None,
+               "children": {}}
+    store: dict[str, bytes] = {}
+    writes: list[list] = []
+    for _ in range(40):  # the host's side: answer what the agent asked, until it writes its status again
+        loop.run(until=loop.now)  # what is due now (not the calls' timeouts)
+        todo, frames[:] = list(frames), []
+        for f in todo:
+            kind = f.WhichOneof("msg")
+            if kind == "ddb_get":
+                value = store.get(f.ddb_get.key)
+                ans = pb.HostToAgent.Answer(req_id=f.ddb_get.req_id, ok=True, missing=value is None, value=value or b"")
+            elif kind == "ddb_write":
+                ops = list(f.ddb_write.ops)
+                writes.append(ops)
+                if any(op.WhichOneof("op") == "cas" for op in ops):  # the predecessor's start committed first
+                    store["mission/status"] = json.dumps(earlier).encode()
+                    errors = ["atomic batch aborted: op 1 failed", "version mismatch: expected absent, found 3"]
+                else:
+                    errors = [""] * len(ops)
+                ans = pb.HostToAgent.Answer(req_id=f.ddb_write.req_id, ok=True, op_errors=errors)
+            elif kind == "spawn_child":
+                ans = pb.HostToAgent.Answer(req_id=f.spawn_child.req_id, ok=True, value=b"child")
+            else:
+                continue
+            ctx.feed(pb.HostToAgent(answer=ans))
+        puts = [json.loads(op.put.value) for ops in writes for op in ops
+                if op.WhichOneof("op") == "put" and op.put.key == "mission/status"]
+        if puts:
+            break
+    assert [op.WhichOneof("op") for op in writes[0]] == ["put", "cas"] and writes[0][1].cas.expected_version == 0
+    assert puts and puts[0]["started_t"] == 1.0, puts
+    lines = [json.loads(i)["text"] for ops in writes for op in ops if op.WhichOneof("op") == "log_append"
+             for i in op.log_append.items]
+    assert not any(t.startswith("Mission started") for t in lines), lines
+
+
+def test_a_recovered_executive_resumes_a_start_that_committed_after_it_looked():
+    """Seed 569 (7 hosts): the first instance wrote `mission/params`, then its first `mission/status`, which
+    was still on its way through the group (it took 0.9 s to commit) when the instance was killed; the recovered one
+    read no status on its host's replica and began the mission again, and the first start committed 14 ms
+    before its own: `mission/status` carried two start times (EX-Resume). The params and the first status
+    are now one atomic batch whose status op only creates the key, so the start is recorded once: a recovered
+    instance reads it or, when its own create loses to a start still on its way, resumes from that one (the
+    test above). In this schedule the one batch commits before the kill and the recovered instance reads it."""
+    r = run_seed("executive", 569, 7)
+    assert not r.violations, r.violations
+
+
+def test_a_start_that_never_committed_is_not_the_missions_start():
+    """Seed 49 (7 hosts, a group of 3): the first instance proposed the mission's start on h1 during a delay
+    spike on h1's links; h2 and h3 suspected h1 and removed it, the transaction aborted and h1 came back as a
+    new incarnation: the start never committed. The recovered instance found no status and began the mission —
+    the only start the DDB ever held, the transcript's only "Mission started". EX-Resume took the mission's
+    start from the first status *proposed* (and only from puts: the create-only start, a compare-and-set, went
+    unseen); counting the start there, it reported a second start here (as it did in seeds 494, 769, 822, 1102,
+    1422 before the start became one batch). It takes statuses, the start included, as the DDB applies them:
+    a write that never committed wrote nothing (AC-Uniform-Validity, thesis L545)."""
+    r = run_seed("executive", 49, 7)
+    assert not r.violations, r.violations

@@ -28,6 +28,10 @@ Recovery: "Restore configuration, confirm that appropriate Supervisor agents are
 reason); children are recovered by their own hosts (Alg. 7/8), and a child that was never spawned (a crash
 between start and spawn) is spawned on recovery. Recovered without a backup (a crash before the first one), it
 resumes from `mission/status` (start time, state, children), or begins the mission if there is none yet. The
+mission's start is recorded once: `mission/params` and the first `mission/status` go in one atomic batch whose
+status op is a compare-and-set that only creates the key, and an instance whose create fails resumes from the
+status an earlier instance recorded (that write was still on its way through the group when it read its host's
+replica: `_record_start`). The
 recovered instance writes `mission/status` again at once (a crash between deciding the end and writing it must
 not leave the runner waiting) and says in the transcript what it resumed with. A crash after a child's
 spawn committed and before the backup that records it (an OAC round at mission start) makes the recovered
@@ -127,11 +131,8 @@ class ExecutiveMission(team.TeamAgent):
             # DDB if the first instance wrote it; if it did not, the mission has not begun and begins now
             how = await self._resume_from_status()
         if how == "start":
-            self.started_t = self.now()
-            await self.ddb_write([team.op_put_json(team.K_PARAMS, {
-                "mission": self.m, "speed": self.cfg.speed, "sim": self.cfg.sim, "seed": self.cfg.seed,
-                "expected_cells": self.cfg.expected_cells})])
-            await self._status("")
+            how = await self._record_start()
+        if how == "start":
             await team.transcript(self, f"Mission started: {self.m.get('name')} ({self.m.get('scenario')})")
         elif how == "recover":
             if self.state == "running":  # the backup's share is old: the map says what it is now
@@ -162,6 +163,31 @@ class ExecutiveMission(team.TeamAgent):
         self.children = {str(k): str(v) for k, v in dict(st.get("children") or {}).items()}
         return "recover"
 
+    async def _record_start(self) -> str:
+        """Begin the mission: `mission/params` and the first `mission/status` in one atomic batch whose status is
+        a compare-and-set that only creates the key (version 0: absent), so that the mission's start is recorded
+        once. "start" if this instance recorded it; "recover" if the status was there — an earlier instance of
+        this executive recorded the start (the runner deletes `mission/` before it spawns the executive,
+        docs/team.md): its write was still on its way through the group when this one read `mission/status`
+        (a write is applied in total order, and a recovered instance reads its host's replica), so this one
+        resumes from it instead of starting a second mission. (Found by `haactl verify executive --hosts 7`,
+        seeds 569, 807, 1043, 1583: the first start committed after the recovered instance had read no status,
+        and `mission/status` then carried two start times.)"""
+        self.started_t = self.now()
+        params = team.op_put_json(team.K_PARAMS, {
+            "mission": self.m, "speed": self.cfg.speed, "sim": self.cfg.sim, "seed": self.cfg.seed,
+            "expected_cells": self.cfg.expected_cells})
+        create = ddbops.cas(team.K_STATUS, 0, "json", self._status_value(""))
+        errors = await self.ddb_write([params, create], atomic=True)
+        if not any(errors):
+            return "start"
+        if await self._resume_from_status() == "recover":
+            return "recover"
+        # a status without a start time (not this executive's): nothing to resume from, the mission begins
+        self.started_t = self.now()
+        await self.ddb_write([params, team.op_put_json(team.K_STATUS, self._status_value(""))])
+        return "start"
+
     async def _spawn_children(self) -> None:
         f = self.facts
         res = float(self.m.get("map_resolution", 0.1))
@@ -181,11 +207,13 @@ class ExecutiveMission(team.TeamAgent):
                 self.children[type_name] = await self.spawn_child(type_name, config)
                 self.backup()
 
+    def _status_value(self, reason: str) -> dict[str, Any]:
+        return {"state": self.state, "t": round(self.now(), 3), "explored": round(self.explored, 4),
+                "reason": reason, "started_t": self.started_t, "finished_t": self.finished_t,
+                "children": self.children}
+
     async def _status(self, reason: str) -> None:
-        await self.ddb_write([team.op_put_json(team.K_STATUS, {
-            "state": self.state, "t": round(self.now(), 3), "explored": round(self.explored, 4),
-            "reason": reason, "started_t": self.started_t, "finished_t": self.finished_t,
-            "children": self.children})])
+        await self.ddb_write([team.op_put_json(team.K_STATUS, self._status_value(reason))])
 
     async def _check(self) -> None:
         if self.state != "running":

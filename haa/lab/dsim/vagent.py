@@ -49,7 +49,14 @@ layer's properties (`haa.lab.dsim.agents.check_agents`) plus the executive's (EX
   second child (14 duplicate children in 200 schedules), now a violation (`duplicate_children` counts them).
 * EX-Resume: every `mission/status` the executive writes carries the start time of the mission's first
   start (a thawed or recovered instance resumes the mission, it does not begin another), and no status
-  goes back from `complete`/`stopped` to `running`.
+  goes back from `complete`/`stopped` to `running`. Writes — puts and the executive's create-only start (a
+  compare-and-set) alike — are taken as the DDB applies them, in the total order: a status write that never
+  committed (OAC aborted it and its instance died, or its host was removed before it was decided) or whose
+  compare-and-set failed wrote nothing — no replica holds it, no reader or recovered instance can see it
+  (AC-Uniform-Validity, thesis L545; a recovered agent gets the latest committed backup, AR-Recovery L887, and
+  the committed DDB) — so the mission's first start is the first one committed. (Taken at proposal, as it
+  was, a first instance whose start never committed and a recovered instance that then began the mission —
+  correctly: nothing recorded a start — was a violation: seeds 494, 769, 822, 1102, 1422 at 7 hosts.)
 * EX-Finish: no instance fails; after healing, the final `mission/status` in the DDB says `stopped` (the
   time limit: there is no map) and names one child of each type, each held by the agent table under the
   executive with that type.
@@ -63,7 +70,7 @@ import random
 import uuid
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from haa.agents import executive_avatar, supervisor_explore, supervisor_slam
 from haa.agents.executive_mission import ExecutiveMission
@@ -87,6 +94,7 @@ from haa.core.agents.agentnode import AgentNode
 from haa.core.ddb import ops as ddbmod
 from haa.core.ddb.ddb import ApplyResult, Ddb, DdbEvent
 from haa.core.inputs import CreateAgent
+from haa.core.membership.globalstate import GroupTxError, SeqApplied, TxDdb, TxSeq, decode_tx
 from haa.core.membership.membership import AppliedTx, WriteDone
 from haa.hostd.agentdriver import SCAN_LIMIT, SCAN_MAX_BYTES
 from haa.lab.dsim.agents import (
@@ -103,6 +111,7 @@ from haa.lab.dsim.agents import (
 from haa.lab.dsim.cluster import ALIVE, SimHost
 from haa.lab.dsim.group import GroupViolation
 from haa.pb import agent_pb2 as pb
+from haa.pb import ddb_pb2 as ddbpb
 from haa.sdk import registry
 from haa.sdk.context import AgentContext
 from haa.sdk.sched import VirtualScheduler
@@ -165,8 +174,14 @@ class RealInstance:
 class RealHistory:
     """What the EX-* checks read."""
 
-    #: (time, instance epoch, value) of every mission/status write the executive's host accepted to propose
+    #: (time, instance epoch, value) of every mission/status write applied, in the total order (the first host
+    #: to apply it; a write that aborted, was dropped with its host or failed its compare-and-set is not here)
     statuses: list[tuple[float, int, dict[str, Any]]] = field(default_factory=list)
+    #: the encoded value of every mission/status write the executive's host accepted to propose -> (time,
+    #: instance epoch) of its first proposal: the epoch of an applied one
+    proposed: dict[bytes, tuple[float, int]] = field(default_factory=dict)
+    #: (global seq, txid) of the transactions already looked at for status writes (every host applies each)
+    applied_seen: set[tuple[int, str]] = field(default_factory=set)
     #: (time, epoch, type) of every spawn_child the executive asked for
     spawns: list[tuple[float, int, str]] = field(default_factory=list)
     #: per instance epoch of the executive: how it started and the state it was given (thaw or recover)
@@ -213,6 +228,7 @@ class RealAgentSim(AgentSim):
             self._agent_write_done(e)
             return
         if type(e) is AppliedTx:
+            self._note_statuses(e)
             for a in self.inst.get((h.name, h.inc), {}).values():
                 if isinstance(a, RealInstance) and a.watches:
                     self._watch_replica(h, a)
@@ -413,8 +429,9 @@ class RealAgentSim(AgentSim):
             self._to_agent(h, a.agent, a.epoch, pb.HostToAgent(answer=ans))
             return
         for op in ops:
-            if op.WhichOneof("op") == "put" and op.put.key == K_STATUS:
-                self.rh.statuses.append((self.cl.now, a.epoch, json.loads(op.put.value)))
+            kind = op.WhichOneof("op")
+            if kind in ("put", "cas") and getattr(op, kind).key == K_STATUS:
+                self.rh.proposed.setdefault(bytes(getattr(op, kind).value), (self.cl.now, a.epoch))
         self._write_n += 1
         self._agent_writes[self._write_n] = (a, req_id, h)
         payload = ddbmod.encode_batch(ops, origin=h.name, atomic=atomic)
@@ -433,6 +450,20 @@ class RealAgentSim(AgentSim):
         else:
             ans = pb.HostToAgent.Answer(req_id=req_id, ok=False, error=e.reason or "not committed")
         self._to_agent(h, a.agent, a.epoch, pb.HostToAgent(answer=ans))
+
+    def _note_statuses(self, e: AppliedTx) -> None:
+        """The mission/status writes transaction `e` applied (once per transaction, at the first host to apply
+        it), in order, into `rh.statuses`."""
+        key = (e.seq, str(e.txid))
+        if e.kind not in ("ddb", "seq") or key in self.rh.applied_seen:
+            return
+        self.rh.applied_seen.add(key)
+        for op in _applied_ops(e.payload, e.result):
+            kind = op.WhichOneof("op")
+            if kind in ("put", "cas") and getattr(op, kind).key == K_STATUS:
+                value = bytes(getattr(op, kind).value)
+                _t, epoch = self.rh.proposed.get(value, (0.0, 0))
+                self.rh.statuses.append((self.cl.now, epoch, json.loads(value)))
 
     def _watch_replica(self, h: SimHost, a: RealInstance) -> None:
         """Watch the host's current replica for `a`'s prefixes (again when the replica object changed)."""
@@ -470,6 +501,31 @@ def _node(h: SimHost) -> AgentNode:
 
 def _member_nodes(sim: AgentSim) -> list[AgentNode]:
     return [_node(h) for h in sim.cl.by_idx if h.state == ALIVE and h.core is not None and _node(h).m.is_member()]
+
+
+def _applied_ops(payload: bytes, result: Any) -> list[Any]:
+    """The DDB ops an applied group transaction (a DDB batch, or a sequencer batch of them) wrote: those of its
+    batches that were applied, each op that succeeded."""
+    try:
+        tx = decode_tx(payload)
+    except GroupTxError:
+        return []
+    if isinstance(tx, TxDdb):
+        pairs = [(tx.data, result)]
+    elif isinstance(tx, TxSeq) and isinstance(result, tuple):
+        pairs = []
+        for entry, sa in zip(tx.entries, result, strict=False):
+            if isinstance(sa, SeqApplied) and sa.applied and sa.kind == "ddb":
+                pairs.append((cast(TxDdb, decode_tx(entry.tx)).data, sa.result))
+    else:
+        return []
+    out = []
+    for data, res in pairs:
+        if not isinstance(res, ApplyResult):
+            continue
+        batch = ddbpb.DdbBatch.FromString(data)  # (it applied: it decodes)
+        out += [op for op, r in zip(batch.ops, res.results, strict=False) if r.ok]
+    return out
 
 
 def _agent_msg(m: Any) -> pb.AgentMsg:
@@ -528,11 +584,12 @@ def check_real(sim: RealAgentSim) -> list[GroupViolation]:
     finished = False
     for t, epoch, st in rh.statuses:
         if st.get("started_t") != first_t or first_t is None:
-            bad("EX-Resume", f"t={t:.3f} epoch {epoch} wrote started_t {st.get('started_t')}, the mission started "
-                f"at {first_t}")
+            bad("EX-Resume", f"t={t:.3f} a status of epoch {epoch} with started_t {st.get('started_t')} was applied, "
+                f"the mission started at {first_t}")
             break
         if finished and st.get("state") == "running":
-            bad("EX-Resume", f"t={t:.3f} epoch {epoch} wrote state running after the mission ended")
+            bad("EX-Resume", f"t={t:.3f} a status of epoch {epoch} with state running was applied after the "
+                "mission ended")
             break
         finished = finished or st.get("state") in ("complete", "stopped")
     # EX-Finish (after healing)
