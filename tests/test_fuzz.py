@@ -70,7 +70,7 @@ from haa.hostd.grpclink import receive
 from haa.hostd.linkcommon import RxState
 from haa.hostd.logs import LOGGER_NAME
 from haa.hostd.outlink import _varint
-from haa.hostd.transport import MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, encode_frame
+from haa.hostd.transport import MD_HB_KEY, MD_INC, MD_SENDER, OPEN_METHOD, LinkGap, Transport, encode_frame
 from haa.hostd.transport import envelope_chunk as chunk
 from haa.pb import agent_pb2 as apb
 from haa.pb import agenttx_pb2 as txpb
@@ -509,6 +509,7 @@ def test_fuzz_link_streams_on_a_real_server(link_server: _LinkServer, seed: int)
                 (MD_TOKEN, rng.choice(["tok", "tok", "", "wrong", None])),
                 (MD_SENDER, rng.choice(["a", "a", "b", "zz", "", "-x", "x" * 70, "a b", None])),
                 (MD_INC, rng.choice(["1", "11", "0", "-1", "x", " 7 ", "1_0", str(2**64), "", None])),
+                (MD_HB_KEY, rng.choice(["ab" * 32, "ab" * 32, "cd" * 32, "AB" * 32, "ab" * 31, "", None])),
             )
             if v is not None
         )
@@ -523,7 +524,7 @@ def test_fuzz_link_streams_on_a_real_server(link_server: _LinkServer, seed: int)
 
 def test_link_server_still_serves_after_the_fuzzing(link_server: _LinkServer) -> None:
     before = link_server.got
-    code = run(link_server.open((("x-haa-token", "tok"), (MD_SENDER, "zz"), (MD_INC, "3")), [
+    code = run(link_server.open((("x-haa-token", "tok"), (MD_SENDER, "zz"), (MD_INC, "3"), (MD_HB_KEY, "ef" * 32)), [
         encode_frame(1, [chunk(wire.encode("zz", 3, 7, Excluded(5)).SerializeToString())])]), loop=_loop())
     assert code == grpc.StatusCode.OK and link_server.got == before + 1
 

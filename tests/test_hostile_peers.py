@@ -41,6 +41,7 @@ from haa.cluster.hostprocs import wait_for as wait
 from haa.core import wire
 from haa.core.messages import Heartbeat, Message
 from haa.hostd.transport import (
+    MD_HB_KEY,
     MD_INC,
     MD_SENDER,
     MD_TOKEN,
@@ -65,12 +66,13 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
 # ------------------------------------------------------------------------------------------- raw links
 
 
-def open_link(address: str, sender: str, inc: str, frames: list[bytes] = ()) -> grpc.StatusCode | bytes:  # type: ignore[assignment]
-    """Open `HostLink.Open` as `sender` with incarnation metadata `inc` (as given, unchecked), write `frames`;
-    the handshake's bytes, or the status code the receiver refused with."""
+def open_link(address: str, sender: str, inc: str, frames: list[bytes] = (),  # type: ignore[assignment]
+              key: str = "ab" * 32) -> grpc.StatusCode | bytes:
+    """Open `HostLink.Open` as `sender` with incarnation metadata `inc` (as given, unchecked) and link key `key`,
+    write `frames`; the handshake's bytes, or the status code the receiver refused with."""
     with grpc.insecure_channel(address) as ch:
         call = ch.stream_stream(OPEN_METHOD)(iter(frames), metadata=((MD_TOKEN, TOKEN), (MD_SENDER, sender),
-                                                                      (MD_INC, inc)), timeout=5)
+                                                                      (MD_INC, inc), (MD_HB_KEY, key)), timeout=5)
         try:
             return next(call)
         except grpc.RpcError as e:
@@ -117,6 +119,45 @@ def test_claims_of_a_live_hosts_name_are_refused_and_change_nothing(cluster: Clu
     assert h1.status().incarnation == inc1
     assert view(h2) == before
     assert_healthy(cluster)
+
+
+def test_a_token_holder_cannot_take_over_a_live_hosts_link_or_forge_its_heartbeats(cluster: Cluster) -> None:
+    """The reliability probe, as a token holder: a stream as h1 at h1's live incarnation was accepted and told
+    `acked_seq`, and 200,000 envelopes numbered from there made every real message of h1 a duplicate (puts
+    timed out for minutes, one `reject_invalid` in the log); 200 heartbeat datagrams forged as h2 under the
+    token's MAC key got h2 removed. Now a stream at a live incarnation must carry the link key of the process
+    that opened the first one (refused before anything is read or told), and heartbeat datagrams are MACed with
+    that key, which never leaves the link."""
+    import hashlib
+    import hmac as hm
+    import socket
+
+    h1, h2 = cluster.hosts["h1"], cluster.hosts["h2"]
+    before = view(h2)
+    inc1, inc2 = h1.status().incarnation, h2.status().incarnation
+    frames = [frame_from("h1", inc1, seq, Heartbeat(10**9 + seq, 0.05, 1.0)) for seq in range(1, 50)]
+    assert open_link(h2.address, "h1", str(inc1), frames, key="cd" * 32) == grpc.StatusCode.PERMISSION_DENIED
+    assert h2.status().counters.values["rejected_other_process"] >= 1
+    # heartbeats forged as h2 to h1's datagram port (the gRPC port's number), under the key the token used to give
+    token_key = hashlib.sha256(b"haa-heartbeat\0" + TOKEN.encode()).digest()
+    rejected = h1.status().counters.values["hb_rejected_unauthenticated"]
+    port = int(h1.address.rsplit(":", 1)[1])
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        for i in range(200):
+            body = b"HAAhb1" + wire.encode("h2", inc2, 0, Heartbeat(10**9 + i, 0.05, 1e-3)).SerializeToString()
+            udp.sendto(body + hm.new(token_key, body, hashlib.sha256).digest()[:16], ("127.0.0.1", port))
+    wait(lambda: h1.status().counters.values["hb_rejected_unauthenticated"] >= rejected + 150, 10,
+         "the forged heartbeats refused")
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        assert "h1" not in h2.status().suspicions and "h2" not in h1.status().suspicions
+        time.sleep(0.1)
+    assert view(h2) == before
+    assert_healthy(cluster)
+
+
+def frame_from(sender: str, inc: int, seq: int, msg: Message) -> bytes:
+    return encode_frame(seq, [envelope_chunk(wire.encode(sender, inc, 0, msg).SerializeToString())])
 
 
 def test_a_second_daemon_under_a_live_name_is_refused(cluster: Cluster) -> None:
@@ -232,7 +273,8 @@ class Node:
 async def claim(port: int, sender: str, inc: int, heartbeat: bool) -> aio.StreamStreamCall:
     """A raw stream claiming to be `sender`#`inc`, with one valid heartbeat envelope or none; left open."""
     ch = aio.insecure_channel(f"127.0.0.1:{port}")
-    call = ch.stream_stream(OPEN_METHOD)(metadata=((MD_TOKEN, TOKEN), (MD_SENDER, sender), (MD_INC, str(inc))))
+    call = ch.stream_stream(OPEN_METHOD)(metadata=((MD_TOKEN, TOKEN), (MD_SENDER, sender), (MD_INC, str(inc)),
+                                                   (MD_HB_KEY, "ab" * 32)))
     reply = pb.LinkReply.FromString(await call.read())
     assert reply.receiver == "b"
     if heartbeat:

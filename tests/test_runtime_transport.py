@@ -31,6 +31,7 @@ from haa.core.messages import Excluded, Heartbeat, Message
 from haa.hostd import tcplink
 from haa.hostd.transport import (
     MAX_MESSAGE,
+    MD_HB_KEY,
     MD_INC,
     MD_SENDER,
     MD_TOKEN,
@@ -512,8 +513,9 @@ async def raw_link(node: Node, metadata: tuple[tuple[str, str], ...]) -> RawLink
     return RawLink(node.port, metadata)
 
 
-def md(token: str = TOKEN, sender: str = "a", inc: str = "11") -> tuple[tuple[str, str], ...]:
-    return ((MD_TOKEN, token), (MD_SENDER, sender), (MD_INC, inc))
+def md(token: str = TOKEN, sender: str = "a", inc: str = "11", key: str = "ab" * 32) -> tuple[tuple[str, str], ...]:
+    """A sender's stream metadata; `key` is its link key (the same for every stream of one process)."""
+    return ((MD_TOKEN, token), (MD_SENDER, sender), (MD_INC, inc), (MD_HB_KEY, key))
 
 
 def frame(first: int, msgs: list[Message], sender: str = "a", inc: int = 11) -> bytes:
@@ -525,11 +527,13 @@ def frame(first: int, msgs: list[Message], sender: str = "a", inc: int = 11) -> 
     [
         (md(token="wrong"), grpc.StatusCode.UNAUTHENTICATED, "rejected_unauthenticated"),
         (((MD_SENDER, "a"), (MD_INC, "11")), grpc.StatusCode.UNAUTHENTICATED, "rejected_unauthenticated"),
+        (md(key=""), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
+        (md(key="AB" * 32), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
         (md(sender="mallory"), grpc.StatusCode.PERMISSION_DENIED, "rejected_unknown_peer"),
         (md(inc="x"), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
         (md(inc="0"), grpc.StatusCode.INVALID_ARGUMENT, "rejected_bad_metadata"),
     ],
-    ids=["wrong-token", "no-token", "unknown-sender", "bad-inc", "zero-inc"],
+    ids=["wrong-token", "no-token", "no-key", "upper-case-key", "unknown-sender", "bad-inc", "zero-inc"],
 )
 def test_refused_calls(
     metadata: tuple[tuple[str, str], ...], code: grpc.StatusCode, counter: str, carrier: str
@@ -586,6 +590,46 @@ def test_garbage_invalid_spoofed_and_duplicate_frames_are_dropped_and_the_stream
         while last < 5:
             last = (await raw.reply()).acked_seq
         assert last == 5
+        await raw.close()
+        await b.close()
+
+    run(main())
+
+
+def test_a_stream_of_nothing_but_duplicates_or_invalid_envelopes_is_ended_loudly(
+    carrier: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A link whose numbering was taken by someone else delivers only duplicates: it used to stay silent (every
+    message of the sender lost, one `reject_invalid` in the log). Past `LINK_SUSPECT_DUPLICATES` duplicates in a
+    row (or `LINK_SUSPECT_INVALID` invalid envelopes) the stream ends with an error event `link_suspect`; a new
+    envelope in between resets the count (the bounds are lowered here to keep the test short)."""
+    from haa.hostd import transport as tmod
+
+    monkeypatch.setattr(tmod, "LINK_SUSPECT_DUPLICATES", 30)
+    monkeypatch.setattr(tmod, "LINK_SUSPECT_INVALID", 5)
+
+    async def main() -> None:
+        b = Node("b", 22, free_port(), {"a": free_port()}, carrier=carrier)
+        await b.serve()
+        c = b.t.counters
+        raw = await raw_link(b, md())
+        await raw.reply()
+        await raw.call.write(frame(1, [hb(i) for i in range(1, 11)]))
+        await until(lambda: len(b.got) == 10)
+        await raw.call.write(frame(1, [hb(i) for i in range(1, 11)]))  # 10 duplicates
+        await raw.call.write(frame(11, [hb(11)]))  # a new one: the run starts again
+        await raw.call.write(frame(1, [hb(i) for i in range(1, 12)]))  # 11 duplicates
+        await until(lambda: c["link_duplicates"] == 21)
+        assert c["link_suspect"] == 0
+        await raw.call.write(frame(1, [hb(i) for i in range(1, 12)]))  # 12 .. 22 in a row
+        await raw.call.write(frame(1, [hb(i) for i in range(1, 12)]))  # 23 .. 33: past 30, ended
+        await until(lambda: c["link_suspect"] == 1, what="the stream ended as suspect")
+        await raw.close()
+        raw = await raw_link(b, md())  # the same process reconnects and goes on
+        assert (await raw.reply()).acked_seq == 11
+        spoofed = envelope_chunk(wire.encode("z", 5, 22, Excluded(22)).SerializeToString())
+        await raw.call.write(encode_frame(12, [spoofed] * 5))
+        await until(lambda: c["link_suspect"] == 2, what="invalid envelopes end it too")
         await raw.close()
         await b.close()
 
@@ -692,29 +736,27 @@ def test_heartbeats_travel_as_authenticated_datagrams_once_a_stream_is_accepted(
         import hashlib
         import hmac as hm
 
-        from haa.hostd.transport import heartbeat_key
+        key = a.t.link_key("b")  # a's link key to b, which a's stream gave b
 
         def mac(key: bytes, data: bytes) -> bytes:
             return hm.new(key, data, hashlib.sha256).digest()[:16]
 
-        good = body + mac(heartbeat_key(TOKEN), body)
-        b.t.on_datagram(body + mac(heartbeat_key("wrong token"), body))
+        good = body + mac(key, body)
+        b.t.on_datagram(body + mac(hashlib.sha256(TOKEN.encode()).digest(), body))  # e.g. a key from the token
+        b.t.on_datagram(body + mac(a.t.link_key("c"), body))  # a's key to another host
         b.t.on_datagram(good[:-1] + bytes([good[-1] ^ 1]))
-        assert b.t.counters["hb_rejected_unauthenticated"] == 2
+        assert b.t.counters["hb_rejected_unauthenticated"] == 3
         b.t.on_datagram(b"garbage" * 10)
-        b.t.on_datagram(b"HAAhb1" + b"\xff" * 40)  # the MAC is checked before anything is decoded
+        b.t.on_datagram(b"HAAhb1" + b"\xff" * 40)  # no envelope (decoded first: the key is the sender's)
         b.t.on_datagram(good + b"x" * 600)  # too large
-        assert b.t.counters["hb_rejected_malformed"] == 2 and b.t.counters["hb_rejected_unauthenticated"] == 3
-        junk = b"HAAhb1" + b"\xff" * 40
-        b.t.on_datagram(junk + mac(heartbeat_key(TOKEN), junk))  # authentic, but no envelope
-        assert b.t.counters["hb_rejected_malformed"] == 3
+        assert b.t.counters["hb_rejected_malformed"] == 3 and b.t.counters["hb_rejected_unauthenticated"] == 3
         other = wire.encode("a", 10, 22, hb(100)).SerializeToString()  # an older incarnation of a
-        b.t.on_datagram(b"HAAhb1" + other + mac(heartbeat_key(TOKEN), b"HAAhb1" + other))
-        stranger = wire.encode("z", 5, 22, hb(1)).SerializeToString()  # never opened a stream
-        b.t.on_datagram(b"HAAhb1" + stranger + mac(heartbeat_key(TOKEN), b"HAAhb1" + stranger))
+        b.t.on_datagram(b"HAAhb1" + other + mac(key, b"HAAhb1" + other))
+        stranger = wire.encode("z", 5, 22, hb(1)).SerializeToString()  # never opened a stream: no key
+        b.t.on_datagram(b"HAAhb1" + stranger + mac(key, b"HAAhb1" + stranger))
         assert b.t.counters["hb_rejected_stale"] == 1 and b.t.counters["hb_rejected_unknown"] == 1
         notbeat = wire.encode("a", 11, 22, Excluded(22)).SerializeToString()
-        b.t.on_datagram(b"HAAhb1" + notbeat + mac(heartbeat_key(TOKEN), b"HAAhb1" + notbeat))
+        b.t.on_datagram(b"HAAhb1" + notbeat + mac(key, b"HAAhb1" + notbeat))
         assert b.t.counters["hb_rejected_malformed"] == 4
         n = len(b.seqs())
         b.t.on_datagram(good)  # a valid one is delivered (the failure detector ignores replays, Alg. 1 l. 20)

@@ -2,9 +2,10 @@
 the checks a heartbeat datagram passes before it reaches the core.
 
 A datagram is magic + serialized Envelope + MAC, the MAC being the first HB_MAC_BYTES of HMAC-SHA256 over magic +
-envelope. Without TLS the key is derived from the cluster token (`heartbeat_key`); under TLS every link has its own
-random key, which the sender gives the receiver inside its TLS stream (haa.hostd.transport's docstring, "Mutual
-TLS"), so the receiver checks a datagram from `src` with the key of `src`'s accepted stream. Anything larger than
+envelope. Every link has its own key (`Transport.link_key`), which the sender gives the receiver inside its stream
+(haa.hostd.transport's docstring, "Link keys"), so the receiver checks a datagram from `src` with the key of
+`src`'s accepted stream: with token or TLS alike, a heartbeat is as authentic as a link message (a key derived from
+the cluster token let any token holder forge any host's heartbeats). Anything larger than
 HB_MAX_DATAGRAM bytes is not a heartbeat and is dropped unread. The socket's port is announced in every link
 handshake; a sender resolves it at each handshake (haa.hostd.outlink) and sends its heartbeats there.
 """
@@ -35,11 +36,6 @@ HB_MAC_BYTES = 16
 HB_MAX_DATAGRAM = 512
 
 
-def heartbeat_key(token: str) -> bytes:
-    """The MAC key of heartbeat datagrams (a hash of the token: the token itself never keys two things)."""
-    return hashlib.sha256(b"haa-heartbeat\0" + token.encode()).digest()
-
-
 def _mac(key: bytes, body: bytes) -> bytes:
     return hmac.new(key, body, hashlib.sha256).digest()[:HB_MAC_BYTES]
 
@@ -48,13 +44,12 @@ class HeartbeatDatagrams:
     """The heartbeat socket of one host's transport.
 
     `rx` is the transport's receive state per sender (a datagram counts only from the sender incarnation whose
-    stream was accepted, and under TLS carries that stream's key); `on_datagram` is what the socket calls with
+    stream was accepted, with that stream's key); `on_datagram` is what the socket calls with
     every datagram (the transport's `on_datagram`, which delivers what `accept` lets through).
     """
 
-    def __init__(self, token: str, *, tls: bool, counters: Counter[str], rx: dict[str, RxState],
+    def __init__(self, *, counters: Counter[str], rx: dict[str, RxState],
                  on_datagram: Callable[[bytes], None], enabled: bool = True) -> None:
-        self.tls = tls
         self.counters = counters
         self.rx = rx
         self.on_datagram = on_datagram
@@ -62,8 +57,6 @@ class HeartbeatDatagrams:
         self.enabled = enabled
         #: the port announced in every handshake (0: none; heartbeats to this host then travel on the streams)
         self.port = 0
-        #: the MAC key of every link's datagrams without TLS
-        self.key = heartbeat_key(token)
         self.udp: asyncio.DatagramTransport | None = None
         self.family = socket.AF_INET
 
@@ -117,9 +110,6 @@ class HeartbeatDatagrams:
             c["hb_rejected_malformed"] += 1
             return None
         body, mac = data[:-HB_MAC_BYTES], data[-HB_MAC_BYTES:]
-        if not self.tls and not hmac.compare_digest(mac, _mac(self.key, body)):
-            c["hb_rejected_unauthenticated"] += 1
-            return None
         try:
             env = pb.Envelope.FromString(body[len(HB_MAGIC):])
             src, src_inc, dst_inc, msg = wire.decode(env)
@@ -130,11 +120,13 @@ class HeartbeatDatagrams:
             c["hb_rejected_malformed"] += 1
             return None
         st = self.rx.get(src)
-        if self.tls:  # the key `src` gave this host inside its TLS stream (module docstring)
-            key = st.hb_key if st is not None else None
-            if key is None or not hmac.compare_digest(mac, _mac(key, body)):
-                c["hb_rejected_unauthenticated"] += 1
-                return None
+        if st is None:  # no stream of `src` was accepted: no key to check it with
+            c["hb_rejected_unknown"] += 1
+            return None
+        key = st.hb_key  # the key `src` gave this host inside its stream (module docstring)
+        if key is None or not hmac.compare_digest(mac, _mac(key, body)):
+            c["hb_rejected_unauthenticated"] += 1
+            return None
         if st is None or st.inc != src_inc:
             # no stream of this incarnation was accepted (yet), or a newer one was (a superseded process: its
             # streams were ended when the newer one connected, so it learns of it when it reconnects)

@@ -19,7 +19,7 @@ from haa.hostd.logs import RateLimiter
 MD_TOKEN = "x-haa-token"
 MD_SENDER = "x-haa-sender"
 MD_INC = "x-haa-incarnation"
-#: under TLS: the link's heartbeat MAC key, hex (haa.hostd.transport's docstring, "Mutual TLS")
+#: the sender process's link key for this receiver, hex (haa.hostd.transport's docstring, "Link keys")
 MD_HB_KEY = "x-haa-hb-key"
 #: trailing metadata of a stale-incarnation refusal: the newer incarnation of the sender the receiver knows
 MD_NEWER = "x-haa-newer-incarnation"
@@ -83,7 +83,7 @@ class Refusal(Exception):
 class RxState:
     """What a receiver knows of one sender incarnation (per sender name, the latest it accepted)."""
 
-    __slots__ = ("confirmed", "gaps", "hb_key", "heard", "inc", "last", "period", "streams")
+    __slots__ = ("bad_run", "confirmed", "dup_run", "gaps", "hb_key", "heard", "inc", "last", "period", "streams")
 
     def __init__(self, inc: int) -> None:
         self.inc = inc
@@ -93,10 +93,12 @@ class RxState:
         self.confirmed = False  # it delivered a valid envelope (more than a claim in metadata)
         self.heard = float("-inf")  # loop time of its last valid envelope
         self.period = 0.0  # the heartbeat period it announced last, s
-        self.hb_key: bytes | None = None  # under TLS: the MAC key of its heartbeat datagrams to this host
+        self.hb_key: bytes | None = None  # its link key (MACs its heartbeat datagrams to this host)
+        self.dup_run = 0  # envelopes in a row that were duplicates (no new one since)
+        self.bad_run = 0  # envelopes in a row that were refused as invalid
 
 
-#: what `Transport._admit` returns: (sender, sender incarnation, its receive state, its heartbeat key under TLS)
+#: what `Transport._admit` returns: (sender, sender incarnation, its receive state, its link key)
 Admitted = tuple[str, int, RxState, bytes | None]
 
 

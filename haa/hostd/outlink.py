@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import secrets
 import socket
 from collections import deque
 from collections.abc import Callable
@@ -104,6 +103,8 @@ class LinkOwner(LinkHost, Protocol):
 
     def track(self, task: asyncio.Task[Any]) -> None: ...
 
+    def link_key(self, peer: str) -> bytes: ...
+
 
 class LazyRelease:
     """The lazy messages of every link of one host: a link that holds lazy messages only (`OutLink.enqueue`) is
@@ -180,8 +181,9 @@ class OutLink:
         #: where heartbeats go as datagrams (resolved at each handshake that announced a heartbeat port);
         #: None: heartbeats travel on the stream
         self.hb_addr: tuple[Any, ...] | None = None
-        #: the MAC key of this link's heartbeat datagrams: the token's under token mode, a random one under TLS
-        self.hb_key = secrets.token_bytes(32) if transport.tls is not None else transport.datagrams.key
+        #: the key of this process's link to the peer (`Transport.link_key`): sent in every stream's metadata, it
+        #: MACs this link's heartbeat datagrams and shows the receiver that a new stream comes from the same process
+        self.hb_key = transport.link_key(peer)
         #: something queued must go now: an ordinary (not lazy) message, lazy ones the transport released
         #: (`LazyRelease`), or a resend after a handshake. Lazy messages alone only register the link
         #: with the transport (docs/transport.md, "Lazy messages")
@@ -353,8 +355,7 @@ class OutLink:
     async def _session(self) -> None:
         t = self.t
         md: tuple[tuple[str, str], ...] = ((MD_TOKEN, t.token), (MD_SENDER, t.name), (MD_INC, str(t.incarnation)))
-        if t.tls is not None:
-            md += ((MD_HB_KEY, self.hb_key.hex()),)
+        md += ((MD_HB_KEY, self.hb_key.hex()),)
         call: LinkCall | None = None
         try:
             try:

@@ -13,7 +13,7 @@ Wire format. Every message in either direction is a 5-byte header — kind (1 by
 big-endian) — and the payload:
 
   * `HELLO` (1), sender -> receiver, first and once: `HAAlink1\\n` + a JSON object of the metadata the gRPC
-    carrier sends (`x-haa-token`, `x-haa-sender`, `x-haa-incarnation`, under TLS `x-haa-hb-key`), at most
+    carrier sends (`x-haa-token`, `x-haa-sender`, `x-haa-incarnation`, `x-haa-hb-key`), at most
     `MAX_HELLO` bytes;
   * `FRAME` (2), sender -> receiver: a serialized `haa.v1.Frame` (the very bytes a gRPC stream write carries);
   * `REPLY` (3), receiver -> sender: a serialized `haa.v1.LinkReply` — first the handshake, then the acks;
@@ -39,7 +39,7 @@ that opens `HostLink.Open` on a TCP host is refused with FAILED_PRECONDITION "h2
 Mutual TLS (a `haa.tls.HostTls`, the same material as the gRPC server's): the server requires a client
 certificate of the cluster's CA; the client checks that the server's certificate is the peer's (its DNS name,
 `server_hostname=peer`); a HELLO whose sender is not the host the client certificate names is refused
-(`rejected_name_mismatch`). The heartbeat MAC key travels inside the TLS connection (`x-haa-hb-key`).
+(`rejected_name_mismatch`). The link key travels inside the TLS connection (`x-haa-hb-key`).
 
 Hostile or broken input costs one counter and the connection, never the process or unbounded memory: an unknown
 kind byte, a HELLO that is not `HAAlink1` JSON of strings, a second HELLO, a length above `MAX_FRAME` (the gRPC

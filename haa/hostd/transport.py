@@ -45,9 +45,16 @@ address that is not that peer fails the handshake), and the server (haa.hostd.ru
 certificate of the cluster's CA. A stream whose `x-haa-sender` is not the host its certificate names is
 refused with `PERMISSION_DENIED` (`rejected_name_mismatch`, before every other check but the token): a host
 can speak only as itself. Heartbeat datagrams travel outside TLS, so under TLS each link has its own random
-MAC key, sent to the receiver inside the TLS stream (metadata `x-haa-hb-key`, 64 hex digits, required):
-the receiver checks a datagram from `src` with the key of `src`'s accepted stream, so one host's key cannot
-forge another's heartbeats. Without TLS the key is derived from the cluster token, as before.
+MAC key (below).
+
+Link keys (with or without TLS): every stream of a link carries the sender process's key for this receiver
+(metadata `x-haa-hb-key`, 64 hex digits, required; `Transport.link_key`: an HMAC of a random per-process secret
+and the receiver's name). The receiver checks heartbeat datagrams from `src` with the key of `src`'s accepted
+stream, so no other host — a token holder without TLS, a peer under TLS — can forge them; and a second stream at
+a sender incarnation it hears from must carry the same key (another process under that incarnation is refused,
+`rejected_other_process`, before it learns `acked_seq`). A stream that delivers only duplicates
+(`LINK_SUSPECT_DUPLICATES` in a row) or invalid envelopes (`LINK_SUSPECT_INVALID`) is ended with the error event
+`link_suspect`. docs/deploy.md, "What the token does not guarantee".
 
 Carriers (`carrier`, `haa-hostd --host-link`): everything above is the link; what carries a session is a
 grpc.aio stream (`GRPC`, the default) or a framed TCP connection (`TCP`, haa.hostd.tcplink: the same Frame
@@ -75,9 +82,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import hmac
 import logging
 import re
+import secrets
 import time
 from collections import Counter
 from collections.abc import Awaitable, Callable
@@ -91,7 +100,7 @@ from haa import tls as tlsmod
 from haa.core import wire
 from haa.core.messages import Heartbeat, Message
 from haa.hostd import grpclink, tcplink
-from haa.hostd.datagrams import HB_MAC_BYTES, HB_MAGIC, HB_MAX_DATAGRAM, HeartbeatDatagrams, heartbeat_key
+from haa.hostd.datagrams import HB_MAC_BYTES, HB_MAGIC, HB_MAX_DATAGRAM, HeartbeatDatagrams
 from haa.hostd.grpclink import (
     CARRIERS,
     GRPC,
@@ -176,7 +185,6 @@ __all__ = [
     "encode_frame",
     "envelope_chunk",
     "frame_pieces",
-    "heartbeat_key",
     "parse_incarnation",
     "split_address",
     "valid_name",
@@ -185,6 +193,13 @@ __all__ = [
 log = logging.getLogger(LOGGER_NAME + ".transport")
 
 _HB_KEY_RE = re.compile(r"[0-9a-f]{64}")
+#: a sender's streams that deliver this many duplicate envelopes in a row, or this many invalid ones, without a new
+#: valid envelope are ended with an error event (`link_suspect`): a sender resends from the handshake's
+#: `acked_seq + 1`, so duplicates come only from an old stream of the same process still draining (bounded by its
+#: unacked envelopes) and invalid envelopes never from a correct sender. A link that delivers nothing new for this
+#: long has had its numbering taken by someone else (docs/deploy.md, "What the token does not guarantee")
+LINK_SUSPECT_DUPLICATES = 100_000
+LINK_SUSPECT_INVALID = 1_000
 
 #: called with (sender, sender_inc, [(dst_inc, msg), ...]) for every frame's valid, new envelopes
 OnEnvelopes = Callable[[str, int, list[tuple[int, Message]]], None]
@@ -302,8 +317,18 @@ class Transport:
         self._started = False
         self._closing = False
         #: heartbeats as datagrams (`open_heartbeats`); the port is announced in every handshake
-        self.datagrams = HeartbeatDatagrams(token, tls=tls is not None, counters=self.counters, rx=self._rx,
-                                            on_datagram=self.on_datagram, enabled=datagram_heartbeats)
+        self.datagrams = HeartbeatDatagrams(counters=self.counters, rx=self._rx, on_datagram=self.on_datagram,
+                                            enabled=datagram_heartbeats)
+        #: this process's secret, from which each link's key derives (`link_key`)
+        self._link_secret = secrets.token_bytes(32)
+
+    def link_key(self, peer: str) -> bytes:
+        """The key of this process's link to `peer` (32 bytes): sent inside every stream of the link (metadata
+        `x-haa-hb-key`), it MACs the link's heartbeat datagrams, and it is the receiver's proof that a later
+        stream of the same incarnation comes from the same process (`_admit`). One per receiver, so that no
+        receiver can forge this host's heartbeats to another; the same for every stream of this process, so
+        that a reconnect or a re-added peer presents it again."""
+        return hmac.new(self._link_secret, peer.encode(), hashlib.sha256).digest()
 
     @property
     def lazy_delay(self) -> float:
@@ -485,20 +510,18 @@ class Transport:
             self._reject("rejected_unauthenticated", "reject_unauthenticated", peer=peer)
             raise Refusal("UNAUTHENTICATED", "missing or wrong cluster token")
         sender = md.get(MD_SENDER, "")
-        hb_key = None
-        if self.tls is not None:
-            if ident != (tlsmod.HOST, sender):
-                # a certificate of this cluster's CA (the TLS handshake checked that), but not of `sender`: a host
-                # speaks only as itself (docs/deploy.md, "Mutual TLS")
-                cert = f"{ident[0]} {ident[1]}" if ident else "none"
-                self._reject("rejected_name_mismatch", "reject_name_mismatch", sender=sender[:100], certificate=cert,
-                             peer=peer)
-                raise Refusal("PERMISSION_DENIED", f"the certificate is {cert}'s: it cannot speak as {sender[:100]!r}")
-            text = md.get(MD_HB_KEY, "")
-            if not _HB_KEY_RE.fullmatch(text):
-                self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender, why=MD_HB_KEY)
-                raise Refusal("INVALID_ARGUMENT", f"bad {MD_HB_KEY}: 64 hex digits under TLS")
-            hb_key = bytes.fromhex(text)
+        if self.tls is not None and ident != (tlsmod.HOST, sender):
+            # a certificate of this cluster's CA (the TLS handshake checked that), but not of `sender`: a host
+            # speaks only as itself (docs/deploy.md, "Mutual TLS")
+            cert = f"{ident[0]} {ident[1]}" if ident else "none"
+            self._reject("rejected_name_mismatch", "reject_name_mismatch", sender=sender[:100], certificate=cert,
+                         peer=peer)
+            raise Refusal("PERMISSION_DENIED", f"the certificate is {cert}'s: it cannot speak as {sender[:100]!r}")
+        text = md.get(MD_HB_KEY, "")
+        if not _HB_KEY_RE.fullmatch(text):
+            self._reject("rejected_bad_metadata", "reject_bad_metadata", sender=sender[:100], why=MD_HB_KEY)
+            raise Refusal("INVALID_ARGUMENT", f"bad {MD_HB_KEY}: 64 hex digits (the sender's link key)")
+        hb_key = bytes.fromhex(text)
         if sender not in self.peers and not (self.accept_unknown and valid_name(sender) and sender != self.name):
             self._reject("rejected_unknown_peer", "reject_unknown_peer", sender=sender[:100], peer=peer)
             raise Refusal("PERMISSION_DENIED", f"{sender[:100]!r} is not a configured peer")
@@ -518,6 +541,18 @@ class Transport:
             )
         st = self._rx.get(sender)
         now = asyncio.get_running_loop().time()
+        if st is not None and st.inc == inc and st.hb_key is not None and not hmac.compare_digest(st.hb_key, hb_key):
+            if st.confirmed or self._live(st, now):
+                # another process at the incarnation this host hears from (a token holder, or a copy of the
+                # host's TLS key): accepted, it would be told how far the real sender's numbering got and could
+                # make its messages look like duplicates. The real process always presents the same key
+                self._reject("rejected_other_process", "reject_other_process", sender=sender, inc=inc, peer=peer)
+                raise Refusal("PERMISSION_DENIED", f"{sender} incarnation {inc} already speaks to {self.name} with "
+                                                   "another link key: one process per incarnation")
+            # the key was only ever a claim (no valid message came with it, no stream of it is open): the real
+            # process replaces it, so that a claim alone never locks it out
+            self.counters["rx_claim_forgotten"] += 1
+            st = self._rx[sender] = RxState(inc)
         if st is None or st.inc == inc:
             pass
         elif st.inc < inc:
@@ -548,8 +583,7 @@ class Transport:
                     self.counters["link_superseded_streams"] += 1
                     self._ended.add(other)
                     other.cancel()
-        if hb_key is not None:
-            st.hb_key = hb_key
+        st.hb_key = hb_key
         st.streams += 1
         self._inbound[sender] += 1
         self.counters["link_accepts"] += 1
@@ -628,6 +662,7 @@ class Transport:
             last = st.last
             if seq <= last:
                 counters["link_duplicates"] += 1
+                st.dup_run += 1
                 seq += 1
                 continue
             if seq > last + 1:
@@ -649,12 +684,15 @@ class Transport:
                 src, src_inc, dst_inc, msg = decode(env)
             except wire.WireError as e:
                 self._reject("rejected_invalid", "reject_invalid", sender=sender, reason=str(e))
+                st.bad_run += 1
                 continue
             if src != sender or src_inc != inc:
                 self._reject(
                     "rejected_invalid", "reject_invalid", sender=sender, reason=f"envelope from {src}#{src_inc}"
                 )
+                st.bad_run += 1
                 continue
+            st.dup_run = st.bad_run = 0
             kind = wire.KIND[type(msg)]
             counters["rx_msgs." + kind] += 1
             counters["rx_bytes." + kind] += env.ByteSize()
@@ -665,6 +703,12 @@ class Transport:
             st.confirmed = True
             st.heard = self.lazy.last_rx = asyncio.get_running_loop().time()
             self.on_envelopes(sender, inc, items)
+        if st.dup_run >= LINK_SUSPECT_DUPLICATES or st.bad_run >= LINK_SUSPECT_INVALID:
+            counters["link_suspect"] += 1
+            log_event(log, logging.ERROR, "link_suspect", sender=sender, inc=inc, duplicates=st.dup_run,
+                      invalid=st.bad_run, last=st.last)
+            st.dup_run = st.bad_run = 0
+            return False  # end the stream: the sender reconnects (and the event says why)
         return True
 
 

@@ -460,7 +460,11 @@ class Allocator(BundleBuilder):
         pinned = s.pinned
         alloc = cast(
             "dict[str, str]",
-            {j: s.own[j].winner if j in s.allocatable else pinned[j] for j in s.agents if j in s.allocatable or j in pinned},
+            {
+                j: s.own[j].winner if j in s.allocatable else pinned[j]
+                for j in s.agents
+                if j in s.allocatable or j in pinned
+            },
         )
         fin = ProposeFinish(s.ses_id, alloc, self.me, s.unallocatable)
         self._pending_finish = fin
