@@ -255,3 +255,40 @@ def test_a_leader_whose_lock_wait_fails_releases_the_lock():
     who held every write for good (HM-Termination). The leader now unlocks with an unchanged OAC(membership)."""
     r = run_seed("membership", 6628, 7)
     assert not r.violations, r.violations
+
+
+def test_a_state_in_parts_joins_like_a_whole_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A global state larger than `SNAPSHOT_PART` crosses the link in parts (a 72 MiB state used to fail every
+    link to the joiner: frames are bounded by MAX_MESSAGE). With parts of 64 bytes every snapshot of these
+    membership schedules (joins, restarts, state requests) goes in parts, and the properties hold."""
+    from haa.core.membership import membership as mm
+
+    monkeypatch.setattr(mm, "SNAPSHOT_PART", 64)
+    joined: list[int] = []
+    real = mm.MembershipNode._snapshot_part
+
+    def counting(self: mm.MembershipNode, q: tuple[str, int], m: object) -> None:
+        joined.append(1)
+        real(self, q, m)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(mm.MembershipNode, "_snapshot_part", counting)
+    for seed in range(12):
+        r = run_seed("membership", seed, 5)
+        assert not r.violations, (seed, r.violations)
+    assert len(joined) > 100  # parts were received (a state of a few kB is dozens of 64-byte parts)
+
+
+def test_parts_out_of_order_or_over_the_bound_are_dropped_not_joined() -> None:
+    from haa.core.membership import membership as mm
+    from haa.core.messages import StateSnapshot
+
+    node = mm.MembershipNode("h2", 1, "h2:1", [("h1", "h1:1"), ("h2", "h2:1")])
+    q = ("h1", 1)
+    node._snapshot_part(q, StateSnapshot(5, b"ab", None, 0, 0, 3))
+    node._snapshot_part(q, StateSnapshot(5, b"cd", None, 0, 2, 3))  # part 1 missing
+    assert q not in node._parts and node.counters["snapshot_part_dropped"] == 1
+    node._snapshot_part(q, StateSnapshot(5, b"cd", None, 0, 1, 3))  # no part 0 since: dropped
+    assert node.counters["snapshot_part_dropped"] == 2
+    node._snapshot_part(q, StateSnapshot(6, b"x" * 10, None, 0, 0, 2))
+    node._snapshot_part(q, StateSnapshot(7, b"x" * 10, None, 0, 1, 2))  # another snapshot's part
+    assert node.counters["snapshot_part_dropped"] == 3 and node.counters["snapshot_parts_joined"] == 0

@@ -191,6 +191,8 @@ class StateSnapshot:
     data: bytes
     anchor: TxId | None
     anchor_seq: int
+    part: int = 0  # of `parts` slices of the state, in order on the link; parts <= 1: the whole state
+    parts: int = 1
 
 
 @dataclass(slots=True)

@@ -220,6 +220,8 @@ def _enc_snapshot(env: pb.Envelope, m: StateSnapshot) -> None:
     t.data = m.data
     if m.anchor is not None:
         _set_txid(t.anchor, m.anchor)
+    if m.parts > 1:
+        t.part, t.parts = m.part, m.parts
     t.anchor_seq = m.anchor_seq
 
 
@@ -466,7 +468,10 @@ def _dec_locked(env: pb.Envelope) -> Locked:
 def _dec_snapshot(env: pb.Envelope) -> StateSnapshot:
     m = env.state_snapshot
     anchor = _dec_txid(m, "state_snapshot", "anchor") if m.HasField("anchor") else None
-    return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq)
+    parts = max(1, m.parts)
+    if m.part >= parts:
+        raise WireError(f"state_snapshot.part: {m.part} of {parts} parts")
+    return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq, m.part, parts)
 
 
 def _dec_forward(env: pb.Envelope) -> StateForward:

@@ -159,16 +159,20 @@ class Locked(_message.Message):
     def __init__(self, key: _Optional[str] = ...) -> None: ...
 
 class StateSnapshot(_message.Message):
-    __slots__ = ("seq", "data", "anchor", "anchor_seq")
+    __slots__ = ("seq", "data", "anchor", "anchor_seq", "part", "parts")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
     ANCHOR_FIELD_NUMBER: _ClassVar[int]
     ANCHOR_SEQ_FIELD_NUMBER: _ClassVar[int]
+    PART_FIELD_NUMBER: _ClassVar[int]
+    PARTS_FIELD_NUMBER: _ClassVar[int]
     seq: int
     data: bytes
     anchor: TxId
     anchor_seq: int
-    def __init__(self, seq: _Optional[int] = ..., data: _Optional[bytes] = ..., anchor: _Optional[_Union[TxId, _Mapping]] = ..., anchor_seq: _Optional[int] = ...) -> None: ...
+    part: int
+    parts: int
+    def __init__(self, seq: _Optional[int] = ..., data: _Optional[bytes] = ..., anchor: _Optional[_Union[TxId, _Mapping]] = ..., anchor_seq: _Optional[int] = ..., part: _Optional[int] = ..., parts: _Optional[int] = ...) -> None: ...
 
 class StateForward(_message.Message):
     __slots__ = ("seq", "txid", "payload")

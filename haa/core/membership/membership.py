@@ -217,6 +217,16 @@ __all__ = ["AppliedTx", "Connect", "Left", "MembershipNode", "NodeConfig", "Node
 # ------------------------------------------------------------------------------------------------ config
 
 
+#: a global state larger than this crosses a link in parts of this size (`MembershipNode._send_snapshot`): the
+#: largest agent message (`MAX_AGENT_MESSAGE`), so a part costs a link what other traffic already may, and a
+#: state of any size joins through frames bounded by `MAX_MESSAGE` (64 MiB; a 72 MiB state used to fail every
+#: link to the joiner with "INTERNAL: Internal error from Core")
+SNAPSHOT_PART = 4 * 1024 * 1024
+#: the most a host gathers of a state in parts from one sender (a memory guard; the DDB alone is bounded to
+#: `MAX_DDB_BYTES`, and the agent table by its agents' bounded configs, states, backups and queues)
+MAX_SNAPSHOT_BYTES = 1024 * 1024 * 1024
+
+
 @dataclass(frozen=True, slots=True)
 class NodeConfig:
     core: CoreConfig = field(default_factory=CoreConfig)
@@ -325,6 +335,8 @@ class MembershipNode:
                                                    cfg.seq_retry, cfg.seq_abandon, cfg.seq_max_cost))
         self.started = False
         self._now = 0.0
+        #: a state in parts being received, per sender: (seq, anchor, anchor_seq, parts, slices, bytes so far)
+        self._parts: dict[Proc, tuple[int, TxId | None, int, int, list[bytes], int]] = {}
 
     # ------------------------------------------------------------------ plumbing shared with the driver
 
@@ -460,8 +472,11 @@ class MembershipNode:
                 self._up(LockedMsg(q, key))
             case StateForward(seq, txid, payload):
                 self._xfer(Forward(seq, txid, payload))
-            case StateSnapshot(seq, data, anchor, anchor_seq):
-                self._xfer(Snapshot(seq, data, anchor, anchor_seq))
+            case StateSnapshot(seq, data, anchor, anchor_seq, part, parts):
+                if parts <= 1:
+                    self._xfer(Snapshot(seq, data, anchor, anchor_seq))
+                else:
+                    self._snapshot_part(q, StateSnapshot(seq, data, anchor, anchor_seq, part, parts))
             case StateRequest(txid):
                 self._xfer(Request(q, txid))
             case SeqWrite(floor, writes, costs):
@@ -581,7 +596,7 @@ class MembershipNode:
                 case Restore(data):
                     self._restore(data)
                 case SendSnapshot(to, anchor, anchor_seq):
-                    self._send(to, StateSnapshot(self.state.seq, self.state.snapshot(), anchor, anchor_seq))
+                    self._send_snapshot(to, self.state.seq, self.state.snapshot(), anchor, anchor_seq)
                 case Rejected(reason):
                     self.counters["rejected_snapshot"] += 1
                     self._log("reject", reason=reason)
@@ -590,7 +605,48 @@ class MembershipNode:
 
     def _send_state(self, to: Proc) -> None:
         """l. 60: the global state to a sponsee (`haactl verify --mutate stale-snapshot` replaces this)."""
-        self._send(to, StateSnapshot(self.state.seq, self.state.snapshot(), None, 0))
+        self._send_snapshot(to, self.state.seq, self.state.snapshot(), None, 0)
+
+    def _send_snapshot(self, to: Proc, seq: int, data: bytes, anchor: TxId | None, anchor_seq: int) -> None:
+        """The global state to `to`, in parts of at most `SNAPSHOT_PART` bytes when it is larger: every part is
+        one link message, so a state of any size crosses links whose frames are bounded (`MAX_MESSAGE`), and
+        the link's FIFO order and flow control carry the parts like any other traffic."""
+        n = -(-len(data) // SNAPSHOT_PART)
+        if n <= 1:
+            self._send(to, StateSnapshot(seq, data, anchor, anchor_seq))
+            return
+        view = memoryview(data)
+        for i in range(n):
+            part = bytes(view[i * SNAPSHOT_PART:(i + 1) * SNAPSHOT_PART])
+            self._send(to, StateSnapshot(seq, part, anchor, anchor_seq, i, n))
+        self.counters["snapshot_parts_sent"] += n
+
+    def _snapshot_part(self, q: Proc, m: StateSnapshot) -> None:
+        """One part of a state sent in parts (`_send_snapshot`): kept until the last one, then the whole state
+        goes to the state transfer as one snapshot. Parts come in order on the sender's link; a part 0 starts
+        over (a new snapshot), one out of order or beyond `MAX_SNAPSHOT_BYTES` drops what was gathered."""
+        if m.part == 0:
+            self._parts[q] = (m.seq, m.anchor, m.anchor_seq, m.parts, [], 0)
+        got = self._parts.get(q)
+        if got is None:
+            self.counters["snapshot_part_dropped"] += 1
+            return
+        seq, anchor, anchor_seq, parts, slices, size = got
+        size += len(m.data)
+        if (m.seq, m.anchor, m.anchor_seq, m.parts, m.part) != (seq, anchor, anchor_seq, parts, len(slices)) or (
+            size > MAX_SNAPSHOT_BYTES
+        ):
+            del self._parts[q]
+            self.counters["snapshot_part_dropped"] += 1
+            self._log("snapshot_parts_dropped", src=q[0], part=m.part, parts=m.parts, size=size)
+            return
+        slices.append(m.data)
+        if len(slices) < parts:
+            self._parts[q] = (seq, anchor, anchor_seq, parts, slices, size)
+            return
+        del self._parts[q]
+        self.counters["snapshot_parts_joined"] += 1
+        self._xfer(Snapshot(seq, b"".join(slices), anchor, anchor_seq))
 
     def _xfer(self, inp: XferInput) -> None:
         """After an `ApplyTx` or a `Restore`, step the state transfer with `Continue` (a loop, not recursion:
