@@ -263,7 +263,8 @@ def mission_logs(
 def mission_stop(
     where: ClusterOpts = LOCAL,
 ) -> None:
-    """Stop the mission: its agents are removed, the haa-sim `start` started is stopped; prints its results."""
+    """Stop the mission: its agents are removed, the haa-sim `start` started is stopped (a finished mission has
+    stopped it already); prints its results."""
     from haa.cluster.local_backend import default_root
     from haa.mission.attached import stop_attached
 

@@ -41,7 +41,9 @@ def test_a_second_start_gets_a_fresh_mission(tmp_path, monkeypatch):
             res = st["results"]
             assert res["completed"] is True, res
             durations.append(float(res["duration_s"]))
-            attached.stop_attached(root)  # stops the haa-sim `start` started
+            # the conductor stopped the haa-sim `start` started for the mission: no `mission stop` needed
+            # before the next start (its avatars used to stay, and the second start was refused)
+            assert not (attached.mission_dir(root) / attached.SIM_FILE).exists()
         # each mission ran its own FAKE_DURATION_S: the second did not inherit the first's `complete`
         assert all(d >= 0.8 * FAKE_DURATION_S for d in durations), durations
         values = queries.ddb_read(b, keys=[rn.K_STATUS])

@@ -145,6 +145,10 @@ def start_attached(root: Path | None, mission: Mission, speed: float | None = No
     md = md or mission_dir(backend.root)
     md.mkdir(parents=True, exist_ok=True)
     state = read_json(md / STATE_FILE)
+    if conductor_alive(state) and state is not None and state.get("state") in ("finished", "failed"):
+        deadline = time.monotonic() + 10.0  # the mission is over; its conductor is on its way out
+        while conductor_alive(state) and time.monotonic() < deadline:
+            time.sleep(0.1)
     if conductor_alive(state):
         raise MissionRunError(f"mission {state.get('mission')} is running on this cluster (pid {state.get('pid')}): "  # type: ignore[union-attr]
                               "haactl mission stop first")
@@ -218,6 +222,7 @@ def stop_attached(root: Path | None, timeout: float = 90.0, md: Path | None = No
     md = md or mission_dir(Path(root or "."))
     state = read_json(md / STATE_FILE)
     out: dict[str, Any] = {"results": None, "removed": [], "sim": "", "was_running": False}
+    rec = read_json(md / SIM_FILE)  # (a conductor that ends stops the haa-sim `start` started, and forgets it)
     if conductor_alive(state):
         out["was_running"] = True
         assert state is not None
@@ -231,15 +236,32 @@ def stop_attached(root: Path | None, timeout: float = 90.0, md: Path | None = No
         with contextlib.suppress(Exception):
             backend = backend if backend is not None else LocalBackend(Path(root or "."))
             out["removed"] = remove_agents(backend, [i for i in state["agent_ids"] if i])
-    rec = read_json(md / SIM_FILE)
     if rec:
+        out["sim"] = _stop_started_sim(md)
         h = SimHandle.from_json(rec)
-        if h.started_here and h.alive():
-            h.stop()
-            out["sim"] = "stopped"
+        if not out["sim"] and h.started_here and out["was_running"] and not h.alive():
+            out["sim"] = "stopped"  # by the conductor, on its way out
         (md / SIM_FILE).unlink(missing_ok=True)
     out["results"] = read_json(md / "run" / "results.json")
     return out
+
+
+def _stop_started_sim(md: Path) -> str:
+    """Stop the haa-sim recorded in `md` if `mission start` started it (not one the operator gave with --sim);
+    "stopped" if it did. A finished mission's haa-sim used to step on (3 % of a core) after the mission and
+    `cluster down`, and the next `mission start` was refused (its avatars still there) until `mission stop`."""
+    rec = read_json(md / SIM_FILE)
+    if not rec:
+        return ""
+    h = SimHandle.from_json(rec)
+    if not h.started_here:
+        return ""
+    done = ""
+    if h.alive():
+        h.stop()
+        done = "stopped"
+    (md / SIM_FILE).unlink(missing_ok=True)
+    return done
 
 
 def live_transcript(root: Path | None, md: Path | None = None) -> list[dict[str, Any]]:
@@ -301,7 +323,11 @@ def conduct(argv: Sequence[str] | None = None, backend: Any = None) -> int:
                          agent_types=(exec_type, avatar_type))
         signal.signal(signal.SIGTERM, lambda *_: run.stop_flag.set())
         signal.signal(signal.SIGINT, lambda *_: run.stop_flag.set())
-        results = run.run()
+        try:
+            results = run.run()
+        finally:
+            if a.fresh_sim:  # the mission is over: the haa-sim `start` started for it goes too
+                _stop_started_sim(md)
         lines = [json.loads(x) for x in (a.out / "transcript.jsonl").read_text().splitlines() if x.strip()]
         (md / TRANSCRIPT_FILE).write_text("".join(json.dumps(x) + "\n" for x in lines))
         write_json(md / STATE_FILE, {**snapshot(run), "state": "finished", "results": results})
