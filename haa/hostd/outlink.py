@@ -100,6 +100,7 @@ class LinkOwner(LinkHost, Protocol):
     datagrams: HeartbeatDatagrams
     on_peer_incarnation: OnPeerIncarnation
     on_superseded: OnSuperseded
+    on_live_elsewhere: Callable[[str], None]
 
     def track(self, task: asyncio.Task[Any]) -> None: ...
 
@@ -345,6 +346,8 @@ class OutLink:
         t.counters["link_refused"] += 1
         if t.limiter.allow("refused." + self.peer):
             log_event(log, logging.WARNING, "link_refused", peer=self.peer, reason=reason[:300])
+        if code == "UNAVAILABLE":  # another process under this host's name is live at the peer
+            asyncio.get_running_loop().call_soon(t.on_live_elsewhere, self.peer)
         if code != "FAILED_PRECONDITION":
             return
         if newer is not None and newer > t.incarnation:

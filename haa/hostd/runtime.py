@@ -184,6 +184,7 @@ class HostRuntime:
         return Transport(cfg.name, cfg.token, {} if cfg.membership else cfg.peers,
                          on_envelopes=self._on_envelopes, on_peer_incarnation=self._on_peer_incarnation,
                          counters=self.counters, accept_unknown=cfg.membership, on_superseded=self._on_superseded,
+                         on_live_elsewhere=self._on_live_elsewhere,
                          datagram_heartbeats=cfg.datagram_heartbeats, tls=cfg.tls, carrier=cfg.host_link)
 
     def add_service(self, service: HostService) -> None:
@@ -407,6 +408,16 @@ class HostRuntime:
         if self.node is None or self.stopping or self.left or newer <= self.incarnation:
             return
         self._reincarnate(f"superseded at {peer} by incarnation {newer}", above=newer)
+
+    def _on_live_elsewhere(self, peer: str) -> None:
+        """`peer` refused this process: another one under this host's name is live there (a second daemon, a
+        copied certificate). This one never forms a group of its own then (it used to, after the formation
+        timeout: a one-host group beside the real one); it keeps applying, and joins once the other is gone."""
+        node = self.node.m if isinstance(self.node, AgentNode) else self.node
+        if isinstance(node, MembershipNode) and node.note_live_elsewhere(peer):
+            log_event(log, logging.ERROR, "name_in_use", peer=peer,
+                      reason=f"another process runs as {self.name} (live on {peer}): this one will not form a "
+                             "group of its own; it joins once the other is gone")
 
     def _reincarnate(self, by: str, above: int = 0) -> None:
         old = self.core

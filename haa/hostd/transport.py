@@ -262,6 +262,7 @@ class Transport:
         max_queue: int = 1_000_000,
         accept_unknown: bool = False,
         on_superseded: OnSuperseded | None = None,
+        on_live_elsewhere: Callable[[str], None] | None = None,
         max_ahead: float = MAX_INCARNATION_AHEAD,
         live_window: float = LIVE_WINDOW,
         wall_ns: Callable[[], int] = time.time_ns,
@@ -304,6 +305,8 @@ class Transport:
         self.lazy = LazyRelease(lazy_delay, lazy_quiet)
         self.accept_unknown = accept_unknown
         self.on_superseded: OnSuperseded = on_superseded or (lambda _p, _i: None)
+        #: told when a peer refuses this host because another process under its name is live there
+        self.on_live_elsewhere: Callable[[str], None] = on_live_elsewhere or (lambda _p: None)
         self.max_ahead = max_ahead
         self.live_window = live_window
         self.wall_ns = wall_ns

@@ -335,6 +335,8 @@ class MembershipNode:
                                                    cfg.seq_retry, cfg.seq_abandon, cfg.seq_max_cost))
         self.started = False
         self._now = 0.0
+        #: peers that refused this process because another one under its name is live there (never forms alone)
+        self.live_elsewhere: set[str] = set()
         #: a state in parts being received, per sender: (seq, anchor, anchor_seq, parts, slices, bytes so far)
         self._parts: dict[Proc, tuple[int, TxId | None, int, int, list[bytes], int]] = {}
 
@@ -386,6 +388,15 @@ class MembershipNode:
                     if self.seq.pending:
                         self._seq(Retarget())
         return res
+
+    def note_live_elsewhere(self, peer: str) -> bool:
+        """`peer` refused this process: another process under this host's name is live there. From now on this
+        host never forms a group of its own (`NodeView.may_form`); True the first time."""
+        if peer in self.live_elsewhere:
+            return False
+        self.live_elsewhere.add(peer)
+        self.counters["refused_name_in_use"] += 1
+        return True
 
     def _send(self, dst: Proc, msg: Message) -> None:
         if dst != self.me:

@@ -38,6 +38,7 @@ class ViewedNode(Protocol):
     core: HostCore
     addrs: dict[str, str]
     known_hosts: list[tuple[str, str]]
+    live_elsewhere: set[str]
     join: Join
     upd: MembershipUpdate
     xfer: StateTransfer
@@ -121,7 +122,9 @@ class NodeView:
         """A host that was a member before (it knows hosts from a previous incarnation) never forms a group:
         its group may still exist and only be slow to answer; it applies until it is joined."""
         n = self.node
-        return not (n.state.members or n.join.group_seen or n.lv.leaving or n.known_hosts)
+        # nor one that a peer refused because another process under its name is live there (that process has a
+        # group; a copied certificate or a second daemon used to form a one-host group beside it)
+        return not (n.state.members or n.join.group_seen or n.lv.leaving or n.known_hosts or n.live_elsewhere)
 
     def applicants(self) -> Mapping[Proc, str]:
         return self.node.join.join_list
