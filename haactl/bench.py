@@ -368,6 +368,31 @@ def bench_memory(
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 
+@bench_app.command("soak")
+def bench_soak(
+    minutes: float = typer.Option(30.0, "--minutes", min=0.5, help="duration of the load"),
+    kill_every: float = typer.Option(180.0, "--kill-every", min=10.0, help="s between kill -9 of h4 / h5"),
+    burst: int = typer.Option(20, "--burst", min=0, help="counter agents spawned per burst (removed a burst later)"),
+    write_rate: float = typer.Option(40.0, "--write-rate", min=1.0, help="DDB writes per second, in all"),
+    root: BenchRootOpt = None,
+    out: str = typer.Option("soak", "--out", help="result name: bench-results/<out>.json"),
+) -> None:
+    """A 5-host group under a mission-like load for MINUTES: DDB writes, spawn bursts, agent messages, a host
+    killed and restarted every few minutes; RSS, loop stalls and commit latency over time
+    (haa.lab.experiments.soak; figure docs/img/soak.png)."""
+    from pathlib import Path
+
+    from haa.lab.experiments.soak import plot_soak, run_soak
+
+    t0 = time.perf_counter()
+    res = run_soak(minutes, write_rate=write_rate, burst=burst, kill_every=kill_every, root=root)
+    print()
+    print(benchtables.soak(res))
+    path = write_json(out, {"machine": machine("cpus", "load_avg_at_end"), **res})
+    plot_soak(res, Path("docs/img") / f"{out}.png")
+    print(f"\nwrote {path} and docs/img/{out}.png in {time.perf_counter() - t0:.0f} s")
+
+
 @bench_app.command("replica")
 def bench_replica(
     scenario: str = typer.Option("basic", "--scenario", help="basic | advanced_a | advanced_b"),

@@ -382,3 +382,17 @@ def ap51(data: dict[str, Any]) -> str:
                           "map accuracy"], pooled))
         parts.append("")
     return "\n".join(parts)
+
+
+def soak(res: dict[str, Any]) -> str:
+    """`haactl bench soak`: per host RSS early / late / peak, then the write latency, stalls and view changes."""
+    rows = [[n, g["rss_second_fifth_mib"], g["rss_last_fifth_mib"], g["rss_peak_mib"]] for n, g in res["rss"].items()]
+    out = [_md(["host", "RSS 2nd fifth (MiB)", "RSS last fifth (MiB)", "peak (MiB)"], rows)]
+    out.append(f"writes {res['writes']} ({res['writes_failed']} failed), p50 {res['write_p50_ms']} ms, "
+               f"p99 {res['write_p99_ms']} ms; spawned {res['spawned']}, removed {res['removed']}; "
+               f"messages {res['messages']} ({res['message_failures']} failed)")
+    largest = res["largest_stalls"][0]["ms"] if res["largest_stalls"] else 0
+    out.append(f"kills {sum(k == 'kill' for _t, _h, k in res['kills'])}, removals {len(res['removals'])}, "
+               f"expulsions without a fault {res['expulsions_without_fault']}; stalls over 500 ms "
+               f"{res['stalls_over_500ms']}, largest {largest} ms")
+    return "\n".join(out)
