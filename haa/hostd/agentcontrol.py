@@ -70,6 +70,7 @@ class AgentControl:
         stats = drv.sup.stats() if drv is not None else {}
         out = []
         members = node.members()
+        placed = t.placements()
         for r in sorted(t, key=lambda x: x.name):
             loc = node.local.get(r.id)
             st = stats.get(r.id)
@@ -86,7 +87,7 @@ class AgentControl:
                     msgs_out=sum(st.msgs_out.values()) if st is not None else 0,
                     bytes_in=sum(st.bytes_in.values()) if st is not None else 0,
                     bytes_out=sum(st.bytes_out.values()) if st is not None else 0,
-                    waiting=t.waiting(r, members),
+                    waiting=t.waiting(r, members, placed),
                 )
             )
         types = drv.sup.known_types() if drv is not None else []

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 from google.protobuf.message import DecodeError
@@ -673,10 +673,22 @@ class AgentTable:
         self.paused = m.paused
         return AgentApplied("control", "", True)
 
-    def waiting(self, r: AgentRecord, members: Iterable[str]) -> str:
+    def placements(self) -> dict[str, dict[str, int]]:
+        """Agent type -> host -> agents of that type allocated there (for `waiting`, counted once per listing)."""
+        out: dict[str, dict[str, int]] = {}
+        for o in self.records.values():
+            if o.alloc:
+                per_host = out.setdefault(o.spec.type, {})
+                per_host[o.alloc] = per_host.get(o.alloc, 0) + 1
+        return out
+
+    def waiting(self, r: AgentRecord, members: Iterable[str],
+                placements: Mapping[str, Mapping[str, int]] | None = None) -> str:
         """Why agent `r`, allocated nowhere, cannot run now ('' if nothing stands in its way but the next
         allocation session): no member offers its hardware, every member already runs its type's per-host limit,
-        or allocation is paused. Read from the table as it is (not replicated: each host computes the same)."""
+        or allocation is paused. Read from the table as it is (not replicated: each host computes the same).
+        `placements`: `self.placements()`, computed once when many agents are asked about (else per call: a
+        listing of n waiting agents of a limited type was O(n^2))."""
         if r.alloc or r.status not in ("new", "frozen", "crashed"):
             return ""
         hosts = [self.hosts[m] for m in members if m in self.hosts and not self.hosts[m].draining]
@@ -687,10 +699,7 @@ class AgentTable:
                     f"{', '.join(offered) or 'none'})")
         limit = r.spec.max_per_host
         if limit:
-            per_host: dict[str, int] = {}
-            for o in self.records.values():
-                if o.spec.type == r.spec.type and o.alloc:
-                    per_host[o.alloc] = per_host.get(o.alloc, 0) + 1
+            per_host = (placements if placements is not None else self.placements()).get(r.spec.type, {})
             able = [h for h in hosts if need <= set(h.hardware)]
             if able and all(per_host.get(h.name, 0) >= limit for h in able):
                 return (f"every host that can run it already runs {limit} agent(s) of type {r.spec.type!r} "
