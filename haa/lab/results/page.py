@@ -53,6 +53,7 @@ from haa.lab.results.parts import (
     render_memory,
     render_restructure_ab,
     render_sim,
+    render_soak,
     render_ufd,
 )
 from haa.lab.results.slam import (
@@ -155,6 +156,7 @@ KNOWN: dict[str, Known] = {
                   "haactl bench idle --hosts 10 --duration 60; haactl bench idle --hosts 10 --duration 60 --compose"),
     "memory": Known("parts", "Memory and event-loop stalls under maximum-size requests", render_memory,
                     "haactl bench memory"),
+    "soak": Known("parts", "A soak under a mission-like load", render_soak, "haactl bench soak --minutes 20"),
     "dashboard": Known("parts", "Dashboard: commit to painted page", render_dashboard,
                        ".venv/bin/python -m haa.lab.bench.dashboard_latency"),
     "issue17-ab": Known("parts", "Before and after splitting the core and the runtime into machines (AP-1, AP-2, "
