@@ -106,7 +106,8 @@ def render_soak(d: Json, name: str) -> Lines:
     largest = d["largest_stalls"][0]["ms"] if d["largest_stalls"] else 0
     return [f"{num(d['minutes'], 3)} minutes of a mission-like load on {len(d['hosts'])} hosts (docs/limits.md, "
             f"\"A soak\"): {d['writes']} DDB writes, {d['writes_failed']} not committed, "
-            f"p50 {num(d['write_p50_ms'], 3)} ms, p99 {num(d['write_p99_ms'], 4)} ms; {d['spawned']} agents spawned, {d['removed']} removed; "
+            f"p50 {num(d['write_p50_ms'], 3)} ms, p99 {num(d['write_p99_ms'], 4)} ms; {d['spawned']} agents spawned, "
+            f"{d['removed']} removed; "
             f"{d['messages']} messages ({d['message_failures']} failed); {kills} kills, {len(d['removals'])} removals, "
             f"{d['expulsions_without_fault']} without a fault; stalls over 500 ms: {d['stalls_over_500ms']} (largest "
             f"{num(largest)} ms).", "", machine_line(d.get("machine")), "",
