@@ -353,22 +353,6 @@ def test_a_joiner_buffers_its_deliveries_requests_the_state_and_catches_up() -> 
     assert d.step(3.0, xf.CatchupDue()) == []  # caught up: the timer has nothing to do
 
 
-def test_a_joiner_that_already_holds_the_state_before_the_anchor_applies_its_own_deliveries() -> None:
-    """Its sponsor crashed after forwarding everything up to the transaction that added us (`haactl verify
-    recovery --hosts 7` seed 1610): the answer to the state request is ahead of what we delivered, but our state
-    is the one just before the anchor, so we keep it and apply our deliveries with all their consequences
-    (a snapshot would skip them, and with them the lock acknowledgement of Alg. 3 l. 130)."""
-    host = FakeXferHost(state=FakeState(seq=5))
-    d = XferDriver(host)
-    d.step(0.0, xf.Delivered(tx(6), b"join", joining=True))
-    d.step(0.1, xf.Delivered(tx(7), b"lock", joining=False))
-    d.step(2.0, xf.CatchupDue())
-    out = d.step(2.1, xf.Snapshot(9, snapshot(9), tx(6), 6))
-    assert not any(isinstance(e, xf.Restore) for e in out)
-    assert d.applied == [(tx(6), True), (tx(7), True)] and host.state.seq == 7
-    assert out[-1] == xf.CaughtUp() and not d.m.catching_up()
-
-
 def test_the_sponsors_stream_reaching_the_first_delivery_ends_the_catch_up() -> None:
     host = FakeXferHost(state=FakeState(seq=4))
     d = XferDriver(host)

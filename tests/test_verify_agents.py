@@ -56,19 +56,6 @@ def test_a_group_of_two_that_removes_its_partner_is_not_wedged():
     assert run_seed("recovery", 1229, 5).violations == []
 
 
-def test_a_new_member_whose_sponsor_crashed_acknowledges_the_lock_it_delivered():
-    """Seed 1610 (recovery, 7 hosts; found by a 2,000-schedule sweep): h1 sponsored h5, forwarded it the state
-    up to seq 9, proposed the OAC(membership) that adds it (seq 10) and crashed. h5 delivered that transaction,
-    h2's OAC(remove) of h1 and h2's locking OAC(remove) (seqs 11, 12) itself, asked h2 for the state and got a
-    snapshot at seq 12: it installed it and skipped its three deliveries with their consequences, among them the
-    lock acknowledgement of Alg. 3 l. 130. h2 waited for it for good (l. 103; h5 was not suspected) and held
-    every write: no agent was ever allocated (AG-Liveness: not quiet). A new member whose state is already the
-    one just before the transaction that added it now keeps it and applies its own deliveries from there
-    (haa.core.membership.statetransfer)."""
-    r = run_seed("recovery", 1610, 7)
-    assert not r.violations, r.violations
-
-
 def test_a_move_to_a_host_that_left_before_it_committed_leaves_a_crashed_agent_recoverable():
     """Seed 1954 (recovery, 7 hosts; found by a 2,000-schedule sweep): at t=3.73 the operator moved A2, crashed
     and backing off, to h6 through h3, while h6 was a member about to leave. The move's OAC aborted eight times

@@ -15,11 +15,7 @@ that answers a joiner's request, as a sans-I/O machine with its own state:
   delivers until its state has reached the one just before the first of them — from the sponsor's stream,
   or, if that does not arrive within `catchup_timeout` (`CatchupDue`), from a `StateRequest` to a member
   answered with a snapshot anchored at that transaction — then applies them (`ApplyTx(direct=True)`) and
-  lets the held global-state changes go (`CaughtUp`). The member answers with its current state, usually
-  past the anchor: installing it skips the deliveries it covers together with their consequences here (ll.
-  117-157, among them the lock acknowledgement of l. 130). So a joiner whose state is already the one just
-  before the anchor (its sponsor forwarded everything up to it, then crashed) keeps its state and takes from
-  the answer only where the anchor sits; only a joiner further behind installs the snapshot;
+  lets the held global-state changes go (`CaughtUp`);
 * any member answers a `StateRequest` (`Request`) with its state once it has applied the anchor
   transaction (`Applied` reports each applied transaction).
 
@@ -227,10 +223,7 @@ class StateTransfer:
                     if not (self.host.is_member() and not self.direct_q):
                         self._start(self._install_then_drain(data))
                 elif self.direct_q and anchor == self.direct_q[0][0]:
-                    if self._holds_state_before(data, anchor_seq):
-                        self._start(self._drain_from(anchor_seq))
-                    else:
-                        self._start(self._install_anchored(data, anchor_seq))
+                    self._start(self._install_anchored(data, anchor_seq))
             case Request(src, txid):
                 applied = st.recent.get(txid)
                 if applied is None:
@@ -295,21 +288,6 @@ class StateTransfer:
 
     def _install_anchored(self, data: bytes, anchor_seq: int) -> _Drain:
         yield from self._install(data)
-        yield from self._drain_from(anchor_seq)
-
-    def _holds_state_before(self, data: bytes, anchor_seq: int) -> bool:
-        """Our state is already the one just before the anchor (`anchor_seq` - 1, in the snapshot's group): then
-        we apply every transaction we delivered ourselves, with what Alg. 3 ll. 117-157 do on each (the
-        snapshot would skip them: `haactl verify recovery --hosts 7` seed 1610, where the skipped OAC(remove)
-        took the lock acknowledgement of l. 130 with it and the leader waited for it at l. 103 for good)."""
-        st = self.host.state
-        try:
-            _seq, gid, _correct = GlobalState.peek(data)
-        except GroupTxError:
-            return False
-        return gid == st.genesis and st.seq + 1 == anchor_seq
-
-    def _drain_from(self, anchor_seq: int) -> _Drain:
         self.direct_anchor = anchor_seq
         self.fwd_buffer.clear()
         yield from self._drain_direct()
