@@ -57,6 +57,14 @@ DEFAULT_STATUSES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
 OnEvent = Callable[[str, str, str, BaseException | None], None]
 
 
+def client_address(peer: str) -> str:
+    """A gRPC peer ("ipv4:127.0.0.1:51234", "ipv6:[::1]:5", "unix:...") without its port: one client machine."""
+    kind, _, rest = peer.partition(":")
+    if kind in ("ipv4", "ipv6"):
+        return rest.rsplit(":", 1)[0]
+    return peer
+
+
 def _cut(text: str) -> str:
     return text if len(text) <= MAX_DETAILS else text[: MAX_DETAILS - 3] + "..."
 

@@ -13,14 +13,18 @@ import itertools
 import json
 import os
 import time
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from helpers import run, until
 
 from haa.cluster.hostprocs import MemberGroup, MemberHost
 from haa.cluster.hostprocs import wait_for as wait
+from haa.core.agents.agentroute import Router
+from haa.core.agents.agentstep import Propose, Route
 from haa.core.ddb import agenttable as at
 from haa.core.ddb import ops as ddb
 from haa.hostd.agentproc import AgentSupervisor, Envelope, Failed, InstanceSpec
@@ -105,6 +109,37 @@ def test_a_failure_after_the_start_resets_the_count_and_so_does_a_transfer() -> 
     assert t.apply(tx(freeze=apb.AgentFreeze(id="a", host="h1", epoch=r.epoch)), MEMBERS).ok
     assert t.apply(tx(release=apb.AgentRelease(id="a", host="h1", epoch=r.epoch)), MEMBERS).ok
     assert t.get("a").failures == 0  # it ran until it froze: it was up
+
+
+def test_pushes_to_a_frozen_agent_count_their_bytes_and_carry_at_most_what_its_queue_keeps() -> None:
+    """The router holds messages for an agent that is not active while one push per agent is in OAC: their payload
+    bytes are counted (`held_bytes`: a host admits a message for that route only while they are few,
+    haa.hostd.budget), and one push carries at most MAX_QUEUE_BYTES of payload (a queue keeps no more; 512
+    maximum-size messages used to make a 2 GiB transaction), one message whatever its size."""
+    t = at.AgentTable()
+    c = apb.AgentCreate(id="a", type="counter", cost=0.1, recovery="backup", host="h1")
+    assert t.apply(tx(create=c), MEMBERS).ok  # new: its messages go to queue2
+    view = SimpleNamespace(table=t, name="h1")
+    r = Router(view, {}, 512, Counter())  # type: ignore[arg-type]
+    big = 3 * 1024 * 1024
+    for i in range(3):
+        assert r.route(apb.RoutedMsg(dst="a", payload=bytes([i]) * big)) == []
+    assert r.held_bytes == 3 * big
+    pushes = []
+    while r.held_bytes:
+        (p,) = r.flush()
+        assert isinstance(p, Propose) and p.kind == "push"
+        assert len(p.tx.push.msgs) == 1  # two would be over MAX_QUEUE_BYTES
+        assert r.flush() == []  # one push per agent in OAC at a time
+        pushes.append(p.tx.push.msgs[0].payload[0])
+        assert r.push_done(p.epoch, True, True) == []
+    assert pushes == [0, 1, 2]
+    for _ in range(600):
+        r.route(apb.RoutedMsg(dst="a", payload=b"x"))
+    (p,) = r.flush()
+    assert len(p.tx.push.msgs) == 512 and r.held_bytes == 600
+    assert r.push_done(p.epoch, False, True) == [Route(tuple(p.tx.push.msgs))]  # aborted: routed again
+    assert r.held_bytes == 88
 
 
 def test_hostile_failed_transactions_are_refused_or_bounded_identically() -> None:

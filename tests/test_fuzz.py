@@ -346,7 +346,7 @@ class _Acks:
     def __init__(self) -> None:
         self.frames = 0
 
-    def frame(self) -> None:
+    def frame(self, size: int = 0) -> None:
         self.frames += 1
 
 

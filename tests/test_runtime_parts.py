@@ -82,6 +82,9 @@ class FakeBackend:
 
     def kill_all(self, reason: str) -> None: ...
 
+    def backlog(self) -> int:
+        return 0
+
 
 def _no_writes() -> Writes:
     def propose(payload: bytes, req: int, kind: str, cost: int = 1) -> None:

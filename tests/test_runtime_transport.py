@@ -255,6 +255,50 @@ def test_fifo_and_no_loss_across_receiver_server_restarts(carrier: str) -> None:
     run(main())
 
 
+def test_a_link_counts_its_bytes_until_acked_bulk_is_acked_early_and_acks_wait_for_the_gate(carrier: str) -> None:
+    """What a link holds is counted in bytes until the receiver acknowledges it (haa.hostd.budget admits agent
+    messages by it); the receiver acknowledges after ACK_BYTES at once, not an ack interval later; and while its
+    ack gate is closed (its agents have not read what it delivered to them) it delivers frames but acknowledges
+    nothing, so the sender keeps counting them."""
+    from haa.core.messages import StateSnapshot
+    from haa.hostd.transport import ACK_BYTES
+
+    mib = 1 << 20
+
+    async def main() -> None:
+        pa, pb_ = free_port(), free_port()
+        a = Node("a", 11, pa, {"b": pb_}, carrier=carrier)
+        b = Node("b", 22, pb_, {"a": pa}, carrier=carrier, ack_interval=30.0)  # no ack by the clock in this test
+        await b.serve()
+        a.t.start()
+        await until(lambda: a.t.connected("b"), what="first connection")
+        a.t.send("b", 22, hb(1))  # the first frame of a stream is acknowledged at once
+        await until(lambda: a.t.queued_bytes("b") == 0, what="the first frame acknowledged")
+        n = 2 * ACK_BYTES // mib + 1
+        for i in range(n):
+            a.t.send("b", 22, StateSnapshot(i, bytes(mib), None, 0))
+        assert a.t.queued_bytes("b") > n * mib
+        await until(lambda: len(b.got) == n + 1, what="the snapshots delivered")
+        # acknowledged after every ACK_BYTES received: all but the last one's at most, long before ack_interval
+        await until(lambda: a.t.queued_bytes("b") <= ACK_BYTES, what="early acks")
+        assert b.t.counters["acks_early"] >= 1
+        gate = [False]
+        b.t.ack_gate = lambda: gate[0]
+        for i in range(n):
+            a.t.send("b", 22, StateSnapshot(i, bytes(mib), None, 0))
+        await until(lambda: len(b.got) == 2 * n + 1, what="delivered with the gate closed")
+        held = a.t.queued_bytes("b")
+        assert held > ACK_BYTES
+        await asyncio.sleep(0.2)  # a quiet period: no ack may come while the gate is closed
+        assert a.t.queued_bytes("b") == held and b.t.counters["acks_held"] >= 1
+        gate[0] = True
+        await until(lambda: a.t.queued_bytes("b") == 0, what="everything acknowledged once the gate opened")
+        await a.close()
+        await b.close()
+
+    run(main())
+
+
 def test_new_receiver_incarnation_discards_messages_for_the_old_one(carrier: str) -> None:
     async def main() -> None:
         pa, pb_ = free_port(), free_port()

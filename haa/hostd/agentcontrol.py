@@ -17,7 +17,10 @@ cluster token like the rest of the API. The service reaches the agent layer thro
 * `AgentSend`: an operator message to an agent (no sender agent). `AgentRequest`: an operator request (the
   agent's `on_request`), answered through the host that was asked, wherever the agent runs. A payload over
   `haa.sdk.channel.MAX_AGENT_MESSAGE` (4 MiB) is refused up front (ok=false and the reason; counted as
-  `control_oversized`) instead of being accepted and then dropped by the agent's owner.
+  `control_oversized`) instead of being accepted and then dropped by the agent's owner. A message enters the
+  agent layer only when it has room on its way (the host's byte budgets, haa.hostd.budget): the call waits for
+  it, at most `budget.OPERATOR_WAIT` and while this client's and this host's waiting messages are within their
+  bounds; otherwise it is refused with `RESOURCE_EXHAUSTED` naming the bound, and nothing was sent.
 * `Alloc`: status | pause | resume | run (pause/resume the periodic rebalancing; run starts a session).
 * `AgentEvents`: the allocation timeline of this host (spawning, active, freezing, frozen, thawing, thawed,
   crashed, recovering, recovered, removed), kept entries first if asked, then live.
@@ -39,6 +42,7 @@ from haa.core.ddb.agenttable import MAX_CONFIG
 from haa.core.inputs import CreateAgent, MoveAgent, OperatorSend, RemoveAgent, RunAllocation, SetPaused
 from haa.hostd.outcomes import NotMembershipMode
 from haa.pb import control_pb2 as cpb
+from haa.rpcguard import MAX_DETAILS, client_address
 from haa.sdk.channel import message_too_large
 
 if TYPE_CHECKING:
@@ -170,23 +174,43 @@ class AgentControl:
 
     async def AgentSend(self, request: cpb.AgentSendRequest, context: aio.ServicerContext) -> cpb.AgentOpReply:
         node = await self._agent_node(context)
-        too_large = message_too_large(len(request.payload))
+        size = len(request.payload)  # (each read of a bytes field copies it: 4 MiB, on the event loop)
+        too_large = message_too_large(size)
         if too_large:
             self.rt.counters["control_oversized"] += 1
             return cpb.AgentOpReply(ok=False, reason=too_large)
         if node.table.resolve(request.ref) is None:
             return cpb.AgentOpReply(ok=False, reason=f"unknown agent {request.ref!r}")
+        if not await self._room(request.ref, size, context, "AgentSend"):
+            return cpb.AgentOpReply()
         self.rt.feed(node.step, OperatorSend(request.ref, request.payload))
         return cpb.AgentOpReply(ok=True)
+
+    async def _room(self, ref: str, size: int, context: aio.ServicerContext, method: str) -> bool:
+        """Wait until a message of `size` bytes to `ref` has room on its way from this host (haa.hostd.budget):
+        True. False: the call's status is set to RESOURCE_EXHAUSTED naming the bound (the caller returns an empty
+        reply, which gRPC does not send). Not `context.abort`: its exception's traceback holds the handler frames,
+        and with them the request (raw and decoded: twice its size) until the garbage collector's next full pass —
+        refused 4 MiB sends retried by a client took a host to 798-972 MiB that way."""
+        why = await self.rt.budget.operator(ref, size, client_address(context.peer()), context.time_remaining())
+        if not why:
+            return True
+        context.set_code(grpc.StatusCode.RESOURCE_EXHAUSTED)
+        context.set_details(f"{method} to {ref[:64]}: {why}"[:MAX_DETAILS])
+        return False
 
     async def AgentRequest(self, request: cpb.AgentSendRequest,
                            context: aio.ServicerContext) -> cpb.AgentRequestReply:
         await self._agent_node(context)
-        too_large = message_too_large(len(request.payload))
+        size = len(request.payload)
+        too_large = message_too_large(size)
         if too_large:
             self.rt.counters["control_oversized"] += 1
             return cpb.AgentRequestReply(ok=False, error=too_large)
         timeout = min(request.timeout, MAX_REQUEST_TIMEOUT) if request.timeout > 0 else 5.0  # NaN: 5 s
+        if self.rt.agent_ops.agent_node().table.resolve(request.ref) is not None and \
+                not await self._room(request.ref, size, context, "AgentRequest"):
+            return cpb.AgentRequestReply()
         try:
             rep = await self.rt.agent_ops.agent_request(request.ref, request.payload, timeout=timeout)
         except LookupError as e:

@@ -32,7 +32,7 @@ import logging
 import time
 import uuid
 from collections import Counter, deque
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from pathlib import Path
 from typing import Any, Protocol, assert_never
 
@@ -77,6 +77,8 @@ class AgentHost(Protocol):
 
     def report_costs(self, cpu: dict[str, float], rates: dict[tuple[str, str], float]) -> None: ...
 
+    def send_room(self, dst: str, size: int, gone: Callable[[], bool]) -> Awaitable[None] | None: ...
+
     def local_replica(self) -> Ddb | None: ...
 
     def agent_table(self) -> AgentTable | None: ...
@@ -111,6 +113,7 @@ class AgentDriver:
 
     async def start(self, host: AgentHost) -> None:
         self.host = host
+        self.sup.send_room = host.send_room  # back-pressure on what the agents send (haa.hostd.budget)
         await self.sup.start()
         self.started = True
         self._stats_task = asyncio.create_task(self._stats_loop(), name="agent-stats")
@@ -124,6 +127,10 @@ class AgentDriver:
             t.cancel()
         await self.sup.close()
         self.epochs.clear()
+
+    def backlog(self) -> int:
+        """Bytes this host gave its agents that they have not read yet (`AgentSupervisor.backlog`)."""
+        return self.sup.backlog()
 
     def kill_all(self, reason: str) -> None:
         """A new incarnation of this host: the old one's agents are not ours any more."""

@@ -61,6 +61,13 @@ class AgentInstance:
         self.cpu_limit = 0.0  # cores (0: none)
         self.mailbox = 0
         self.handled = 0
+        #: the host holds this agent's frames unread until a message it sent has room on its way (`held`, see
+        #: haa.hostd.budget): the monitor does not count that time as silence
+        self.held = False
+        #: what the monitor last saw of the bytes the agent's socket took from this host (`taken`), and when they
+        #: last grew or nothing was waiting (`reading`): an agent that reads nothing of what waits for it is hung
+        self.taken = 0
+        self.reading = self.t0
 
     @property
     def id(self) -> str:

@@ -2,7 +2,10 @@
 "Failure detection" and "Resource limits").
 
 One task (`AgentMonitor.run`) ticks over the supervisor's live instances: an instance silent (no frame) for
-`hang_timeout` is SIGKILLed as hung — unless this loop itself was stalled, when their frames may just be unread;
+`hang_timeout` is SIGKILLed as hung — unless this loop itself was stalled, when their frames may just be unread,
+or the host holds its frames unread (`AgentInstance.held`: back-pressure, haa.hostd.budget); so is one that reads
+nothing of what its host wrote to it for `hang_timeout` (its socket takes no byte while bytes wait: the host's
+acks wait for its agents to read, docs/limits.md "Messages in flight");
 every `cpu_window` it samples each agent's CPU time and RSS (the figures of `AgentSupervisor.stats()`), and
 every `mem_period` in between the RSS of the agents with a memory limit. An agent over its type's memory limit,
 or over its CPU limit averaged over `cpu_limit_window`, is SIGKILLed with that reason. `set_limits` gives a new
@@ -63,16 +66,25 @@ class AgentMonitor:
                 log_event(self.log, logging.WARNING, "agent_monitor_stalled", seconds=round(gap, 3))
                 for inst in self.agents.values():
                     inst.last_heard = max(inst.last_heard, now)
+                    inst.reading = max(inst.reading, now)
                 continue
             for inst in list(self.agents.values()):
                 if inst.state in ("spawning",) or inst.fail_reason is not None or inst.terminal:
                     continue
+                if inst.held:
+                    inst.last_heard = now
                 silent = now - inst.last_heard
+                unread = self.unread(inst, now)
                 if silent > self.hang_timeout:
                     inst.fail_reason = f"hung: no heartbeat for {silent:.1f} s"
-                    log_event(self.log, logging.WARNING, "agent_hung", agent=inst.id, name=inst.spec.name,
-                              pid=inst.pid, silent=round(silent, 3))
-                    inst.signal(signal.SIGKILL)
+                elif unread:
+                    inst.fail_reason = f"hung: read nothing of its channel for {now - inst.reading:.1f} s " \
+                                       f"({unread} bytes waiting)"
+                else:
+                    continue
+                log_event(self.log, logging.WARNING, "agent_hung", agent=inst.id, name=inst.spec.name,
+                          pid=inst.pid, silent=round(silent, 3), unread=unread, reason=inst.fail_reason)
+                inst.signal(signal.SIGKILL)
             if now - last_cpu >= self.cpu_window:
                 last_cpu = now
                 last_mem = now
@@ -80,6 +92,19 @@ class AgentMonitor:
             elif now - last_mem >= self.mem_period:
                 last_mem = now
                 self.sample_memory()
+
+    def unread(self, inst: AgentInstance, now: float) -> int:
+        """The bytes waiting for `inst` if its socket has taken none of them for `hang_timeout`, else 0."""
+        chan = inst.chan
+        if chan is None:
+            return 0
+        waiting = chan.buffered()
+        taken = chan.bytes_out - waiting
+        if not waiting or taken != inst.taken:
+            inst.taken = taken
+            inst.reading = now
+            return 0
+        return waiting if now - inst.reading > self.hang_timeout else 0
 
     # ------------------------------------------------------------------ limits
 

@@ -13,7 +13,8 @@ the `AgentOps` object it gets at `start` (its `AgentHost` protocol), so it never
   (create, remove, move, pause) and waits for its `AgentOpDone`; `agent_request` sends an operator request
   to an agent and waits for its `OperatorReply`; `feed` runs any other node input (send, run allocation);
 * the backend: `on_agent_event` (what an instance did), `undeliverable`, `report_costs`, the local replica
-  and agent table (reads, fencing) and `ddb_write` (the agents' writes, through haa.hostd.writes).
+  and agent table (reads, fencing), `ddb_write` (the agents' writes, through haa.hostd.writes) and `send_room`
+  (whether an agent's message has room on its way: the host's byte budgets, haa.hostd.budget).
 
 Request numbers come from the runtime's one sequence (`next_req`, shared with the writes).
 """
@@ -23,7 +24,7 @@ from __future__ import annotations
 import asyncio
 from collections import Counter
 from collections.abc import Awaitable, Callable, Hashable
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from haa.core import agentio as io
 from haa.core.agents.agentnode import AgentNode
@@ -33,6 +34,9 @@ from haa.core.inputs import AgentLayerInput, InstanceEvent, OperatorSend, Report
 from haa.core.membership.membership import MembershipNode
 from haa.hostd.outcomes import DdbWriteResult, NotMembershipMode
 from haa.pb import agenttx_pb2 as apb
+
+if TYPE_CHECKING:
+    from haa.hostd.budget import MessageBudget
 
 #: the commands `AgentNode` gives whatever runs its agent instances (haa.core.agentio)
 AgentCommand = io.SpawnShell | io.StartAgent | io.DeliverAgent | io.FreezeAgent | io.KillAgent | io.AnswerAgent
@@ -52,6 +56,10 @@ class AgentBackend(Protocol):
     def check_replica(self) -> None: ...
 
     def kill_all(self, reason: str) -> None: ...
+
+    def backlog(self) -> int:
+        """Bytes this host gave its agents that they have not read yet."""
+        ...
 
 
 class AgentOps:
@@ -74,6 +82,8 @@ class AgentOps:
         self._next_req = next_req
         self._ops: dict[Hashable, asyncio.Future[io.AgentOpDone]] = {}
         self._requests: dict[int, asyncio.Future[io.OperatorReply]] = {}
+        #: the host's byte budgets of messages in flight (set by the runtime); None: none
+        self.budget: MessageBudget | None = None
 
     def agent_node(self) -> AgentNode:
         node = self._node()
@@ -138,6 +148,10 @@ class AgentOps:
         node = self._node()
         if isinstance(node, AgentNode):
             self.feed(node.step, ReportCosts(cpu, rates))
+
+    def send_room(self, dst: str, size: int, gone: Callable[[], bool]) -> Awaitable[None] | None:
+        """None if an agent's message of `size` bytes to `dst` may go now, else what to wait for (haa.hostd.budget)."""
+        return None if self.budget is None else self.budget.agent_room(dst, size, gone)
 
     def local_replica(self) -> Ddb | None:
         """This host's DDB replica (it is replaced when a joiner installs its sponsor's state)."""

@@ -52,6 +52,12 @@ Config validation (`validate_config`): a type with a config model (`AgentTypeInf
 checked by the fork server, which has the agent classes (the host does not import agent code), before the
 host commits a spawn.
 
+Back-pressure (docs/limits.md, "Messages in flight"): `backlog()` is what this host has written to its agents and they
+have not read yet (the host's acks to other hosts wait while it is too large); before an agent's `sent` frame is
+passed on, `send_room` (the host's byte budget, haa.hostd.budget) may ask to wait until the message has room on its
+way — meanwhile that agent's frames stay unread (`AgentInstance.held`; the monitor does not count it as silence),
+so an agent that sends faster than its messages leave fills its own socket and buffers, not its host.
+
 Measurements (`stats()`, for the allocation's cost and affinity): per agent the CPU share of one core over
 the last `cpu_window` seconds (psutil), total CPU seconds and RSS, and messages and bytes in and out per peer
 agent id (peer "" = the host or the operator), counted where they cross this supervisor.
@@ -71,7 +77,7 @@ import logging
 import signal
 import socket
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 
 import psutil
@@ -199,6 +205,9 @@ class AgentSupervisor:
         self._tasks: set[asyncio.Task[None]] = set()  # every instance's task, also of ended ones still exiting
         self._closing = False
         self._started = False
+        #: asked with (destination, size, gone) before an agent's `sent` frame is passed on: None if the message
+        #: may go now, else an awaitable that ends when it may (or when `gone()`: the agent's process exited)
+        self.send_room: Callable[[str, int, Callable[[], bool]], Awaitable[None] | None] | None = None
         #: counters for the host's stats
         self.spawned = 0
         self.failed = 0
@@ -277,6 +286,17 @@ class AgentSupervisor:
     def agents(self) -> list[str]:
         """Ids of the agents with a live process here (spawning, shell, running, freezing, stopping)."""
         return [a for a, inst in self._agents.items() if inst.state in LIVE_STATES]
+
+    def backlog(self) -> int:
+        """Bytes this host has given its agents that they have not read yet: what their channels hold, and the
+        payloads buffered for agents that have not started."""
+        n = 0
+        for inst in self._agents.values():
+            if inst.chan is not None:
+                n += inst.chan.buffered()
+            if inst.pending:
+                n += sum(len(e.payload) for e in inst.pending)
+        return n
 
     def pid(self, agent_id: str) -> int:
         """The pid of the agent's process (KeyError if it has none here)."""
@@ -609,6 +629,15 @@ class AgentSupervisor:
                 if msg is None:
                     break
                 inst.last_heard = time.monotonic()
+                if self.send_room is not None and msg.WhichOneof("msg") == "sent":
+                    wait = self.send_room(msg.sent.dst, msg.sent.ByteSize(), inst.exited.is_set)
+                    if wait is not None:
+                        inst.held = True
+                        try:
+                            await wait
+                        finally:
+                            inst.held = False
+                            inst.last_heard = time.monotonic()
                 self._on_frame(inst, msg)
                 if inst.terminal:
                     break

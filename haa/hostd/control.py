@@ -106,14 +106,6 @@ class _ClientGone(Exception):
     """A stream's call ended while we were writing to it (cancelled, deadline, connection closed)."""
 
 
-def _client_address(peer: str) -> str:
-    """A gRPC peer ("ipv4:127.0.0.1:51234", "ipv6:[::1]:5", "unix:...") without its port: one client machine."""
-    kind, _, rest = peer.partition(":")
-    if kind in ("ipv4", "ipv6"):
-        return rest.rsplit(":", 1)[0]
-    return peer
-
-
 def _txid(t: TxId) -> pb.TxId:
     return pb.TxId(host=t.host, incarnation=t.inc, seq=t.seq)
 
@@ -367,7 +359,7 @@ class HostControlService(AgentControl, control_pb2_grpc.HostControlServicer):
             await context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
             raise
         try:
-            sub = rt.mirrors.subscribe(request.views, node.state.ddb, _client_address(context.peer()))
+            sub = rt.mirrors.subscribe(request.views, node.state.ddb, rpcguard.client_address(context.peer()))
         except MirrorRefused as e:
             rt.counters["mirror_refused"] += 1
             await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))

@@ -247,4 +247,4 @@ async def receive(
             continue
         if not on_frame(frame, sender, inc, st):
             return
-        acker.frame()
+        acker.frame(len(frame))

@@ -115,9 +115,9 @@ class LinkCall(Protocol):
 
 
 class Acks(Protocol):
-    """The acks of one inbound link (`haa.hostd.transport.Acker`): `frame()` after every frame taken."""
+    """The acks of one inbound link (`haa.hostd.transport.Acker`): `frame(size)` after every frame taken."""
 
-    def frame(self) -> None: ...
+    def frame(self, size: int = 0) -> None: ...
 
     def stop(self) -> None: ...
 

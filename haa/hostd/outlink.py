@@ -167,6 +167,9 @@ class OutLink:
         self.address = address
         self.pending: deque[Entry] = deque()  # not yet written on the current stream
         self.unacked: deque[Entry] = deque()  # written, not yet acknowledged; seqs base, base+1, ...
+        #: bytes of the envelopes in `pending` and `unacked`: what this link holds of this host's memory. Agent
+        #: messages wait for it to drop below `haa.hostd.budget.LINK_QUEUE_BYTES` before they enter it
+        self.queued_bytes = 0
         self.base = 1  # link sequence number of unacked[0] (or of pending[0] if unacked is empty)
         self.acked = 0  # highest sequence number the receiver acknowledged
         self.receiver_inc = 0  # receiver incarnation of the last handshake (0: never connected)
@@ -195,12 +198,13 @@ class OutLink:
     def enqueue(self, dst_inc: int, chunk: bytes, lazy: bool = False) -> None:
         pending = self.pending
         pending.append((dst_inc, chunk))
+        self.queued_bytes += len(chunk)
         t = self.t
         if not self.receiver_inc and len(pending) > t.precontact_limit and pending[0][0] == 0:
-            pending.popleft()
+            self.queued_bytes -= len(pending.popleft()[1])
             t.counters["dropped_precontact"] += 1
         elif len(pending) + len(self.unacked) > t.max_queue:
-            pending.popleft()
+            self.queued_bytes -= len(pending.popleft()[1])
             t.counters["dropped_overflow"] += 1
             if t.limiter.allow("overflow." + self.peer):
                 log_event(log, logging.WARNING, "link_overflow", peer=self.peer, queued=len(pending))
@@ -220,6 +224,7 @@ class OutLink:
         self._next_write = 1
         self.pending.clear()
         self.unacked.clear()
+        self.queued_bytes = 0
         self.base = 1
         self.acked = 0
 
@@ -451,6 +456,7 @@ class OutLink:
             t.counters["link_discarded"] += len(entries) - len(keep)
             self.unacked.clear()
             self.pending = deque(keep)
+            self.queued_bytes = sum(len(e[1]) for e in keep)
             self.base = acked + 1
             self.acked = acked
             self.receiver_inc = inc
@@ -469,7 +475,7 @@ class OutLink:
         # The same receiver process: resend everything it does not have, in order.
         unacked = self.unacked
         while unacked and self.base <= acked:
-            unacked.popleft()
+            self.queued_bytes -= len(unacked.popleft()[1])
             self.base += 1
         if acked >= self.base:  # it has more than we ever wrote: impossible unless the numbering broke
             t.counters["link_ack_beyond_sent"] += 1
@@ -509,8 +515,10 @@ class OutLink:
                 self.t.counters["link_ack_beyond_sent"] += 1
             return
         n = a - self.base + 1
+        freed = 0
         for _ in range(n):
-            unacked.popleft()
+            freed += len(unacked.popleft()[1])
+        self.queued_bytes -= freed
         self.base += n
         self.acked = a
 

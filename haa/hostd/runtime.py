@@ -49,6 +49,7 @@ from haa.core.inputs import LeaveGroup, PeerInfo, Receive, Start, Submit, TimerF
 from haa.core.membership.membership import MembershipNode, NodeConfig
 from haa.core.messages import Message, TxId
 from haa.hostd.agentops import AgentBackend, AgentOps
+from haa.hostd.budget import MessageBudget
 from haa.hostd.datadir import HostDataDir
 from haa.hostd.delivered import DeliveredLog
 from haa.hostd.dispatch import EffectDispatcher, HostEffect
@@ -168,6 +169,12 @@ class HostRuntime:
                                   lambda: self.stopping or self.left, next_req)
         self.agent_ops = AgentOps(config.name, self.counters, lambda: self.node, self.feed,
                                   lambda ops, atomic: self.writes.ddb_write(ops, atomic), next_req)
+        #: the byte budgets of agent messages in flight through this host (haa.hostd.budget): a message waits for
+        #: room on its way; this host's acks wait for its agents to read what it delivered to them
+        self.budget = MessageBudget(config.name, self.counters, lambda: self.node, self.transport.queued_bytes,
+                                    self._agent_backlog)
+        self.agent_ops.budget = self.budget
+        self.transport.ack_gate = self.budget.may_ack
         #: mirror stream subscribers, fed from applied transactions and view changes
         self.mirrors = Mirrors()
         self.dispatcher = EffectDispatcher(
@@ -177,6 +184,9 @@ class HostRuntime:
         )
         #: event-loop stall watchdog and heap trimming (haa.hostd.resources)
         self.loopwatch = LoopWatch(self.counters, self._moved_bytes)
+
+    def _agent_backlog(self) -> int:
+        return self.agents.backlog() if self.agents is not None else 0
 
     def _make_transport(self) -> Transport:
         """The host-to-host links (haa.hostd.transport), feeding this runtime's inputs."""
@@ -519,6 +529,8 @@ class HostRuntime:
         core = self.core
         for k, v in (self._past_core_counters + (core.counters if core else Counter())).items():
             c["core." + k] += v
+        c.update(self.budget.gauges())
+        c["budget.link_queued_bytes"] = self.transport.queued_bytes_total()
         return c
 
     def status(self) -> dict[str, Any]:

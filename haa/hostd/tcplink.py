@@ -370,7 +370,7 @@ class ServerConn(_Framed):
             self.abort()
             return False
         assert self.acker is not None
-        self.acker.frame()
+        self.acker.frame(len(payload))
         return True
 
     def _hello(self, kind: int, payload: bytes) -> bool:

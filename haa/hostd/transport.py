@@ -201,6 +201,13 @@ _HB_KEY_RE = re.compile(r"[0-9a-f]{64}")
 LINK_SUSPECT_DUPLICATES = 100_000
 LINK_SUSPECT_INVALID = 1_000
 
+#: an inbound link acknowledges at once (not `ack_interval` later) once it has received this many bytes since its
+#: last ack: a sender frees what it keeps for resending, and takes new agent messages (haa.hostd.budget), only
+#: on an ack, so with acks once a second a link could carry at most its byte budget per second
+ACK_BYTES = 4 * 1024 * 1024
+#: while the ack gate is closed (`Transport.ack_gate`), an ack that is due is tried again this often, s
+ACK_GATE_POLL = 0.005
+
 #: called with (sender, sender_inc, [(dst_inc, msg), ...]) for every frame's valid, new envelopes
 OnEnvelopes = Callable[[str, int, list[tuple[int, Message]]], None]
 
@@ -256,6 +263,7 @@ class Transport:
         max_backoff: float = 1.0,
         handshake_timeout: float = 2.0,
         ack_interval: float = 1.0,
+        ack_bytes: int = ACK_BYTES,
         max_batch: int = 4096,
         max_batch_bytes: int = 1 << 20,
         precontact_limit: int = 16,
@@ -297,6 +305,10 @@ class Transport:
         self.max_backoff = max_backoff
         self.handshake_timeout = handshake_timeout
         self.ack_interval = ack_interval
+        self.ack_bytes = ack_bytes
+        #: False while this host may not acknowledge what it received (`Acker`): set by the runtime to "this host's
+        #: agents have read what was delivered to them" (haa.hostd.budget.MessageBudget.may_ack)
+        self.ack_gate: Callable[[], bool] = lambda: True
         self.max_batch = max_batch
         self.max_batch_bytes = max_batch_bytes
         self.precontact_limit = precontact_limit
@@ -455,6 +467,14 @@ class Transport:
     def queued(self, peer: str) -> int:
         link = self.links.get(peer)
         return 0 if link is None else len(link.pending) + len(link.unacked)
+
+    def queued_bytes(self, peer: str) -> int:
+        """Bytes of the envelopes the link to `peer` holds (not yet written, or written and not yet acked)."""
+        link = self.links.get(peer)
+        return 0 if link is None else link.queued_bytes
+
+    def queued_bytes_total(self) -> int:
+        return sum(link.queued_bytes for link in self.links.values())
 
     # ------------------------------------------------------------------ receiving
 
@@ -716,13 +736,18 @@ class Transport:
 
 
 class Acker:
-    """Cumulative acks on one inbound stream, at most one per `ack_interval`. Acks only let the sender free
-    its resend buffer, so they can be rare: the first frame is acknowledged at once, later ones after at
-    most `ack_interval` (a profile of 10 hosts under load showed 5 ms acks costing a sixth of each host's
-    CPU; at 100 ms an idle 10-host group still acked every heartbeat — 36 acks/s per host — and 1 s cut the
-    idle cluster's CPU from 49 % to 37 % of one core; the price is up to 1 s of traffic kept for resending,
-    memory only). All writes after the handshake happen in this task (a stream allows one write at a time);
-    `write` writes one serialized `LinkReply` on the stream, whichever carrier it is."""
+    """Cumulative acks on one inbound stream, at most one per `ack_interval` — or at once after `ack_bytes`.
+    Acks only let the sender free its resend buffer, so they can be rare: the first frame is acknowledged at
+    once, later ones after at most `ack_interval` (a profile of 10 hosts under load showed 5 ms acks costing a
+    sixth of each host's CPU; at 100 ms an idle 10-host group still acked every heartbeat — 36 acks/s per host —
+    and 1 s cut the idle cluster's CPU from 49 % to 37 % of one core; the price is up to 1 s of traffic kept for
+    resending, memory only). Bulk traffic is acknowledged sooner: once `ack_bytes` (`ACK_BYTES`) arrived since
+    the last ack, the next goes at once, because the sender admits agent messages only while its link holds less
+    than its byte budget (haa.hostd.budget). No ack leaves while the transport's `ack_gate` is closed — while this
+    host's agents have not read what it delivered to them — so that a sender's byte budget also holds what this
+    host buffers for its agents (docs/limits.md, "Messages in flight"); the frames are still read and delivered.
+    All writes after the handshake happen in this task (a stream allows one write at a time); `write` writes one
+    serialized `LinkReply` on the stream, whichever carrier it is."""
 
     def __init__(self, t: Transport, write: Callable[[bytes], Awaitable[None]], st: RxState) -> None:
         self.t = t
@@ -730,10 +755,17 @@ class Acker:
         self.st = st
         self.sent = -1
         self.need = asyncio.Event()
+        #: bytes received since the last ack; `soon` is set once they reach `ack_bytes`
+        self.bytes = 0
+        self.soon = asyncio.Event()
         self.task = asyncio.get_running_loop().create_task(self._run())
 
-    def frame(self) -> None:
+    def frame(self, size: int = 0) -> None:
+        """A frame of `size` bytes was taken."""
         self.need.set()
+        self.bytes += size
+        if self.bytes >= self.t.ack_bytes:
+            self.soon.set()
 
     def stop(self) -> None:
         self.task.cancel()
@@ -744,9 +776,20 @@ class Acker:
             while True:
                 await self.need.wait()
                 self.need.clear()
+                if not t.ack_gate():
+                    t.counters["acks_held"] += 1
+                    while not t.ack_gate():
+                        await asyncio.sleep(ACK_GATE_POLL)
                 last = self.st.last
                 if last != self.sent:
+                    self.bytes = 0
+                    self.soon.clear()
                     await self.write(pb.LinkReply(acked_seq=last).SerializeToString())
                     self.sent = last
                     t.counters["acks_sent"] += 1
-                await asyncio.sleep(t.ack_interval)
+                if not self.soon.is_set():
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(t.ack_interval):
+                            await self.soon.wait()
+                if self.soon.is_set():
+                    t.counters["acks_early"] += 1

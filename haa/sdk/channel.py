@@ -225,6 +225,13 @@ class Channel(Generic[M]):
     def closed(self) -> bool:
         return self._closed
 
+    def buffered(self) -> int:
+        """Bytes queued by `send` that the socket has not taken yet (the peer has not read them); 0 once closed."""
+        try:
+            return self.writer.transport.get_write_buffer_size()
+        except Exception:  # a transport already gone
+            return 0
+
     async def wait_closed(self) -> None:
         with contextlib.suppress(Exception):
             await self.writer.wait_closed()

@@ -13,7 +13,10 @@ agent. `Router` decides, from the replicated agent table and the instances this 
 * a is ours by the table but no instance runs here (its failure is being reported) -> held by the recovery
   (`ToRecovery(recovery.Orphan)`) until the table says where it is;
 * a is frozen or freezing elsewhere, new or crashed -> pushed to its queue2 in the table (Alg. 5 ll. 11, 23),
-  batched: one push transaction per agent in OAC at a time (`flush`).
+  batched: one push transaction per agent in OAC at a time, of at most `max_push` messages and
+  `at.MAX_QUEUE_BYTES` of payload (what a queue keeps: more would be dropped on apply anyway) unless one message
+  is larger (`flush`). `held_bytes` counts the payload bytes waiting for or inside a push: the host admits a
+  message for this route only while they are few (haa.hostd.budget, docs/limits.md "Messages in flight").
 
 It also stamps what a local instance sends with its sender stream (`sent`: (sender, life, n) per receiver)
 and passes replies to operator requests back to the host the request came through (`from_host` takes the
@@ -53,6 +56,8 @@ class Router:
         #: push number -> (agent, messages) of the pushes in OAC
         self._push_reqs: dict[int, tuple[str, list[apb.RoutedMsg]]] = {}
         self._push_seq = 0
+        #: payload bytes of the messages in `pushes` and in the pushes in OAC
+        self.held_bytes = 0
 
     def route(self, m: apb.RoutedMsg, here: bool = True) -> list[RouteEffect]:
         """Where `m` goes from this host, now (`here` False: not to an instance of this host, whose transfer
@@ -78,6 +83,7 @@ class Router:
             return [ToRecovery(rc.Orphan(m.dst, m))]
         # frozen / freezing elsewhere (Alg. 5 l. 23), new or crashed: into queue2 (Alg. 5 l. 11, 23)
         self.pushes.setdefault(m.dst, []).append(m)
+        self.held_bytes += len(m.payload)
         return []
 
     def sent(self, loc: Local, ev: Sent) -> list[RouteEffect]:
@@ -142,7 +148,11 @@ class Router:
         busy = {agent for agent, _msgs in self._push_reqs.values()}
         for agent in [a for a in self.pushes if a not in busy]:
             msgs = self.pushes.pop(agent)
-            part, rest = msgs[: self.max_push], msgs[self.max_push :]
+            n = size = 0
+            while n < len(msgs) and n < self.max_push and (n == 0 or size + len(msgs[n].payload) <= at.MAX_QUEUE_BYTES):
+                size += len(msgs[n].payload)
+                n += 1
+            part, rest = msgs[:n], msgs[n:]
             if rest:
                 self.pushes[agent] = rest
             tx = apb.AgentTx()
@@ -156,6 +166,7 @@ class Router:
     def push_done(self, n: int, ok: bool, member: bool) -> list[RouteEffect]:
         """Push `n` committed (`ok`) or was given up; `member`: this host is (still) a member of the group."""
         _agent, msgs = self._push_reqs.pop(n, ("", []))
+        self.held_bytes -= sum(len(m.payload) for m in msgs)
         if ok:
             return []
         if member:  # aborted or refused: the table may say something else now
