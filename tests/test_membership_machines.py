@@ -461,3 +461,21 @@ def test_formation_vote_is_yes_only_without_a_group_and_for_our_own_list() -> No
     assert not m.vote(mine, has_group=True)  # ll. 160-161
     host.suspected.add(("h1", 1))
     assert not m.vote(mine, has_group=False)  # ll. 162-163: our list is [h2] now
+
+
+def test_a_joiner_that_installs_an_answer_holding_a_lock_inherits_it() -> None:
+    """The answer skips the joiner's own deliveries it covers, among them the remove that locked the group: the
+    lock the answering member holds comes with it (`InheritLock`), after the state is installed."""
+    host = FakeXferHost(state=FakeState(seq=2))
+    d = XferDriver(host)
+    d.step(0.0, xf.Delivered(tx(6), b"join", joining=True))
+    out = d.step(2.1, xf.Snapshot(8, snapshot(8), tx(6), 6, ("h2.1.3", ("h2", 1))))
+    kinds = [type(e).__name__ for e in out]
+    assert kinds.index("Restore") < kinds.index("InheritLock")
+    assert xf.InheritLock("h2.1.3", ("h2", 1)) in out
+    # an answer that is not installed (not ahead of our state) hands on no lock
+    host = FakeXferHost(state=FakeState(seq=9))
+    d = XferDriver(host)
+    d.step(0.0, xf.Delivered(tx(10), b"join", joining=True))
+    out = d.step(2.1, xf.Snapshot(8, snapshot(8), tx(10), 10, ("h2.1.3", ("h2", 1))))
+    assert not any(isinstance(e, xf.InheritLock) for e in out)

@@ -16,7 +16,7 @@ from haa.core.membership import join as jn
 from haa.core.membership import update as up
 from haa.core.membership.globalstate import GlobalState, TxMembership, TxRemove, encode_tx
 from haa.core.membership.groupeffects import Left, WriteDone
-from haa.core.messages import Apply, Connections, Introduce, Leave, Member, Sponsor, TxId
+from haa.core.messages import Apply, Connections, Introduce, Leave, Locked, Member, Sponsor, TxId
 
 H1, H2, H3, H4 = ("h1", 1), ("h2", 1), ("h3", 1), ("h4", 1)
 CORE = ("h1", "h2", "h3")
@@ -315,3 +315,53 @@ def test_a_member_removed_without_leaving_restarts_and_an_applicant_withdraws_at
     g = gl.GroupLeave(H4, FakeHost(H4, group(H1, H2, H3)))
     out = g.step(0.0, gl.LeaveCalled())
     assert g.left and Left() in out and sends(out, Leave) == [H1, H2, H3]  # to every host it knows
+
+
+# ------------------------------------------------------------------------------------------------ lock and votes
+
+
+def test_a_new_member_that_installed_a_locked_state_takes_the_lock_and_acknowledges_it() -> None:
+    """A joiner whose state came from a member's answer skipped the remove that locked the group: it takes the
+    lock from the answer and acknowledges it to the leader (ll. 127-130), or the leader waits at l. 103."""
+    d = UpdateDriver(FakeHost(H4, group(H1, H2, H3, H4)))
+    out = d.step(1.0, up.LockInherited("h2.1.3", H2))
+    assert d.m.locked == "h2.1.3" and d.m.lock() == ("h2.1.3", H2)
+    assert sends(out, Locked) == [H2]
+
+
+def test_a_lock_whose_membership_transaction_aborted_here_is_not_taken_from_a_later_answer() -> None:
+    d = UpdateDriver(FakeHost(H4, group(H1, H2, H3, H4)))
+    txid = TxId("h2", 1, 4)
+    assert d.m.vote(txid, TxMembership("h2.1.3", H2, ()), frozenset({H1, H2, H3, H4}))
+    d.step(1.0, up.TxAborted(txid))  # ll. 152-155: released before the answer arrived
+    out = d.step(1.1, up.LockInherited("h2.1.3", H2))
+    assert d.m.locked is None and not sends(out, Locked)
+
+
+def test_a_group_transaction_that_leaves_out_a_member_admitted_here_is_voted_down() -> None:
+    """OAC orders a transaction only among its participants: one ordered after the admission of a member it
+    leaves out would never reach that member, whose global sequence would fall one behind (HM-Agreement)."""
+    host = FakeHost(H2, group(H1, H2, H3, H4), suspects={H3, H4})
+    d = UpdateDriver(host)
+    members = tuple(Member(n, i, n) for n, i in (H1, H2, H3, H4))
+    d.step(0.5, up.GroupTxApplied(TxId("h1", 1, 2), TxMembership("k", H1, members), False, True, False, (H4,)))
+    remove = TxRemove("", H1, (H3,))
+    assert not d.m.vote(TxId("h1", 1, 3), remove, frozenset({H1, H2}))  # proposed before h4 was admitted
+    assert d.m.vote(TxId("h1", 1, 4), remove, frozenset({H1, H2, H4}))
+    # a transaction that removes the new member itself may leave it out
+    assert d.m.vote(TxId("h1", 1, 5), TxRemove("", H1, (H3, H4)), frozenset({H1, H2}))
+
+
+def test_a_remove_and_a_membership_transaction_that_admits_a_member_the_remove_leaves_out_cannot_both_pass() -> None:
+    """A member that suspects the leader proposes its removal under the old list while the leader admits a new
+    member: the common participants vote against whichever of the two they see second."""
+    members = tuple(Member(n, i, n) for n, i in (H1, H2, H3, H4))
+    admit, remove = TxMembership("k", H1, members), TxRemove("", H2, (H1,))
+    m = up.MembershipUpdate(H3, 1, CORE, FakeHost(H3, group(H1, H2, H3), suspects={H1}), 0.05)
+    assert m.vote(TxId("h1", 1, 9), admit, frozenset({H1, H2, H3, H4}))
+    assert not m.vote(TxId("h2", 1, 1), remove, frozenset({H2, H3}))
+    m = up.MembershipUpdate(H3, 1, CORE, FakeHost(H3, group(H1, H2, H3), suspects={H1}), 0.05)
+    assert m.vote(TxId("h2", 1, 1), remove, frozenset({H2, H3}))
+    assert not m.vote(TxId("h1", 1, 9), admit, frozenset({H1, H2, H3, H4}))
+    m.step(1.0, up.TxDelivered(TxId("h2", 1, 1)))  # once the remove is delivered, nothing is in flight
+    assert m.vote(TxId("h1", 1, 10), admit, frozenset({H1, H2, H3, H4}))

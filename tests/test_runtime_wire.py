@@ -195,6 +195,7 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
         m.Locked("h1.1.4"),
         m.StateSnapshot(5, b"state", None, 0),
         m.StateSnapshot(5, b"state", m.TxId("h1", 1, 2), 4),
+        m.StateSnapshot(5, b"state", m.TxId("h1", 1, 2), 4, 0, 1, "h2.1.3", ("h2", 1)),  # holding a lock
         m.StateForward(3, m.TxId("h1", 1, 2), b"payload"),
         m.StateRequest(m.TxId("h1", 1, 2)),
         m.SeqWrite(3, ((3, b"a"), (5, b""), (6, b"c"))),
@@ -208,6 +209,10 @@ def test_membership_messages_round_trip_and_reject_incomplete_ids() -> None:
     bad.state_request.txid.incarnation = 0
     with pytest.raises(wire.WireError):
         wire.decode(bad)
+    lockless = wire.encode("h9", 7, 0, m.StateSnapshot(5, b"s", m.TxId("h1", 1, 2), 4, 0, 1, "h2.1.3", ("h2", 1)))
+    lockless.state_snapshot.lock_by_incarnation = 0
+    with pytest.raises(wire.WireError, match="lock_by"):
+        wire.decode(lockless)
     twice = wire.encode("h9", 7, 0, m.Connections((("h1", 1), ("h1", 1))))
     with pytest.raises(wire.WireError, match="duplicate"):
         wire.decode(twice)

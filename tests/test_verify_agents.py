@@ -77,3 +77,14 @@ def test_a_move_to_a_host_removed_before_it_committed_does_not_freeze_the_agent_
     a move to a host that is no member when it commits: h5 claims A6 back and it processes everything."""
     r = run_seed("recovery", 1802, 7)
     assert not r.violations, r.violations
+
+
+def test_a_new_member_whose_sponsor_crashed_acknowledges_the_lock_of_the_state_it_installed():
+    """Seed 1610 (recovery, 7 hosts; found by a 2,000-schedule sweep): h1 sponsored h5, forwarded it everything
+    up to seq 9, proposed the OAC(membership) that adds it (seq 10) and crashed. h5 delivered seqs 10-12 itself
+    (the membership, h2's removal of h1, h2's locking OAC(remove)), asked h2 for the state after catchup_timeout
+    and installed h2's state at seq 12, which skipped the three deliveries and the lock acknowledgement of
+    l. 130 with them: h2 waited at l. 103 for good (h5 was not suspected), held every write, and no agent was
+    ever allocated (AG-Liveness). The answer now carries the lock its sender holds and h5 acknowledges it."""
+    r = run_seed("recovery", 1610, 7)
+    assert not r.violations, r.violations

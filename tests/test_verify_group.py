@@ -204,7 +204,7 @@ def test_member_unlocks_when_the_membership_transaction_aborts():
     node.upd.locked = "k1"
     txid = TxId("h1", 1, 9)
     tx = TxMembership("k1", ("h1", 1), (Member("h1", 1, "h1"), Member("h2", 1, "h2"), Member("h4", 1, "h4")))
-    assert node._evaluate(txid, encode_tx(tx))
+    assert node._evaluate(txid, encode_tx(tx), (("h1", 1), ("h2", 1), ("h4", 1)))
     node._on_decided(Decided(txid, False))
     assert node.upd.locked is None
 

@@ -193,6 +193,11 @@ class StateSnapshot:
     anchor_seq: int
     part: int = 0  # of `parts` slices of the state, in order on the link; parts <= 1: the whole state
     parts: int = 1
+    #: an answer only: the lock of a membership change in progress the answering member holds (Alg. 3 l. 127)
+    #: and who took it; the new member that installs this state skips the remove that locked it, so it takes
+    #: the lock and acknowledges it from here (docs/membership.md, "State transfer")
+    lock_key: str = ""
+    lock_by: tuple[str, int] | None = None
 
 
 @dataclass(slots=True)

@@ -223,6 +223,9 @@ def _enc_snapshot(env: pb.Envelope, m: StateSnapshot) -> None:
     if m.parts > 1:
         t.part, t.parts = m.part, m.parts
     t.anchor_seq = m.anchor_seq
+    if m.lock_key and m.lock_by is not None:
+        t.lock_key = m.lock_key
+        t.lock_by, t.lock_by_incarnation = m.lock_by
 
 
 def _enc_forward(env: pb.Envelope, m: StateForward) -> None:
@@ -471,7 +474,12 @@ def _dec_snapshot(env: pb.Envelope) -> StateSnapshot:
     parts = max(1, m.parts)
     if m.part >= parts:
         raise WireError(f"state_snapshot.part: {m.part} of {parts} parts")
-    return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq, m.part, parts)
+    lock_by = None
+    if m.lock_key:
+        if not m.lock_by or m.lock_by_incarnation == 0:
+            raise WireError("state_snapshot.lock_by: a lock without the host and incarnation that took it")
+        lock_by = (m.lock_by, m.lock_by_incarnation)
+    return StateSnapshot(m.seq, m.data, anchor, m.anchor_seq, m.part, parts, m.lock_key, lock_by)
 
 
 def _dec_forward(env: pb.Envelope) -> StateForward:

@@ -159,20 +159,26 @@ class Locked(_message.Message):
     def __init__(self, key: _Optional[str] = ...) -> None: ...
 
 class StateSnapshot(_message.Message):
-    __slots__ = ("seq", "data", "anchor", "anchor_seq", "part", "parts")
+    __slots__ = ("seq", "data", "anchor", "anchor_seq", "part", "parts", "lock_key", "lock_by", "lock_by_incarnation")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
     ANCHOR_FIELD_NUMBER: _ClassVar[int]
     ANCHOR_SEQ_FIELD_NUMBER: _ClassVar[int]
     PART_FIELD_NUMBER: _ClassVar[int]
     PARTS_FIELD_NUMBER: _ClassVar[int]
+    LOCK_KEY_FIELD_NUMBER: _ClassVar[int]
+    LOCK_BY_FIELD_NUMBER: _ClassVar[int]
+    LOCK_BY_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     seq: int
     data: bytes
     anchor: TxId
     anchor_seq: int
     part: int
     parts: int
-    def __init__(self, seq: _Optional[int] = ..., data: _Optional[bytes] = ..., anchor: _Optional[_Union[TxId, _Mapping]] = ..., anchor_seq: _Optional[int] = ..., part: _Optional[int] = ..., parts: _Optional[int] = ...) -> None: ...
+    lock_key: str
+    lock_by: str
+    lock_by_incarnation: int
+    def __init__(self, seq: _Optional[int] = ..., data: _Optional[bytes] = ..., anchor: _Optional[_Union[TxId, _Mapping]] = ..., anchor_seq: _Optional[int] = ..., part: _Optional[int] = ..., parts: _Optional[int] = ..., lock_key: _Optional[str] = ..., lock_by: _Optional[str] = ..., lock_by_incarnation: _Optional[int] = ...) -> None: ...
 
 class StateForward(_message.Message):
     __slots__ = ("seq", "txid", "payload")

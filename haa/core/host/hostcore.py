@@ -127,6 +127,7 @@ class VoteRequest:
 
     txid: TxId
     payload: bytes
+    participants: tuple[tuple[str, int], ...] = ()
 
 
 class _Peer:
@@ -236,9 +237,9 @@ class HostCore:
                         self.out.append(e)
                 case Learn(parts):
                     self._learn_participants(parts)
-                case Evaluate(txid, payload):
+                case Evaluate(txid, payload, parts):
                     if self.accept_group:
-                        ask = VoteRequest(txid, payload)
+                        ask = VoteRequest(txid, payload, parts)
                     else:
                         ask = self._oac(now, Vote(txid, payload not in self.no_votes))
                 case Decided() | Deliver() | Closed() | Log() | Voted():

@@ -157,6 +157,7 @@ from haa.core.membership.statetransfer import (
     Continue,
     Delivered,
     Forward,
+    InheritLock,
     Rejected,
     Request,
     Restore,
@@ -172,6 +173,7 @@ from haa.core.membership.update import (
     GroupTxApplied,
     LeaveAsked,
     LockedMsg,
+    LockInherited,
     MembershipUpdate,
     NowMember,
     Poll,
@@ -479,11 +481,12 @@ class MembershipNode:
                 self._up(LockedMsg(q, key))
             case StateForward(seq, txid, payload):
                 self._xfer(Forward(seq, txid, payload))
-            case StateSnapshot(seq, data, anchor, anchor_seq, part, parts):
+            case StateSnapshot(seq, data, anchor, anchor_seq, _, parts, lock_key, lock_by):
                 if parts <= 1:
-                    self._xfer(Snapshot(seq, data, anchor, anchor_seq))
+                    lock = (lock_key, lock_by) if lock_key and lock_by is not None else None
+                    self._xfer(Snapshot(seq, data, anchor, anchor_seq, lock))
                 else:
-                    self._snapshot_part(q, StateSnapshot(seq, data, anchor, anchor_seq, part, parts))
+                    self._snapshot_part(q, msg)
             case StateRequest(txid):
                 self._xfer(Request(q, txid))
             case SeqWrite(floor, writes, costs):
@@ -603,7 +606,10 @@ class MembershipNode:
                 case Restore(data):
                     self._restore(data)
                 case SendSnapshot(to, anchor, anchor_seq):
-                    self._send_snapshot(to, self.state.seq, self.state.snapshot(), anchor, anchor_seq)
+                    self._send_snapshot(to, self.state.seq, self.state.snapshot(), anchor, anchor_seq,
+                                        self.upd.lock())
+                case InheritLock(key, by):
+                    self._up(LockInherited(key, by))
                 case Rejected(reason):
                     self.counters["rejected_snapshot"] += 1
                     self._log("reject", reason=reason)
@@ -614,18 +620,21 @@ class MembershipNode:
         """l. 60: the global state to a sponsee (`haactl verify --mutate stale-snapshot` replaces this)."""
         self._send_snapshot(to, self.state.seq, self.state.snapshot(), None, 0)
 
-    def _send_snapshot(self, to: Proc, seq: int, data: bytes, anchor: TxId | None, anchor_seq: int) -> None:
+    def _send_snapshot(self, to: Proc, seq: int, data: bytes, anchor: TxId | None, anchor_seq: int,
+                       lock: tuple[str, Proc] | None = None) -> None:
         """The global state to `to`, in parts of at most `SNAPSHOT_PART` bytes when it is larger: every part is
         one link message, so a state of any size crosses links whose frames are bounded (`MAX_MESSAGE`), and
-        the link's FIFO order and flow control carry the parts like any other traffic."""
+        the link's FIFO order and flow control carry the parts like any other traffic. `lock`: an answer to a
+        `StateRequest` carries the lock this member holds (`StateSnapshot.lock_key`)."""
+        key, by = lock if lock is not None else ("", None)
         n = -(-len(data) // SNAPSHOT_PART)
         if n <= 1:
-            self._send(to, StateSnapshot(seq, data, anchor, anchor_seq))
+            self._send(to, StateSnapshot(seq, data, anchor, anchor_seq, 0, 1, key, by))
             return
         view = memoryview(data)
         for i in range(n):
             part = bytes(view[i * SNAPSHOT_PART:(i + 1) * SNAPSHOT_PART])
-            self._send(to, StateSnapshot(seq, part, anchor, anchor_seq, i, n))
+            self._send(to, StateSnapshot(seq, part, anchor, anchor_seq, i, n, key, by))
         self.counters["snapshot_parts_sent"] += n
 
     def _snapshot_part(self, q: Proc, m: StateSnapshot) -> None:
@@ -653,7 +662,8 @@ class MembershipNode:
             return
         del self._parts[q]
         self.counters["snapshot_parts_joined"] += 1
-        self._xfer(Snapshot(seq, b"".join(slices), anchor, anchor_seq))
+        lock = (m.lock_key, m.lock_by) if m.lock_key and m.lock_by is not None else None  # (every part has it)
+        self._xfer(Snapshot(seq, b"".join(slices), anchor, anchor_seq, lock))
 
     def _xfer(self, inp: XferInput) -> None:
         """After an `ApplyTx` or a `Restore`, step the state transfer with `Continue` (a loop, not recursion:
@@ -684,15 +694,15 @@ class MembershipNode:
 
     def _vote(self, ask: VoteRequest) -> None:
         """OAC asks this host's vote on a transaction (Alg. 2 l. 27): the group's rules decide it (`_evaluate`)."""
-        self.core.vote(self._now, ask.txid, self._evaluate(ask.txid, ask.payload))
+        self.core.vote(self._now, ask.txid, self._evaluate(ask.txid, ask.payload, ask.participants))
 
-    def _evaluate(self, txid: TxId, payload: bytes) -> bool:
+    def _evaluate(self, txid: TxId, payload: bytes, participants: tuple[Proc, ...]) -> bool:
         try:
             tx = decode_tx(payload)
         except GroupTxError:
             return True  # not ours to judge: it is applied as a no-op everywhere
         if isinstance(tx, (TxRemove, TxMembership)):
-            return self.upd.vote(txid, tx)  # ll. 110-116
+            return self.upd.vote(txid, tx, frozenset(participants))  # ll. 110-116
         if isinstance(tx, TxFormation):
             return self.formation.vote(tx, bool(self.state.members))  # ll. 158-165
         return True
@@ -755,7 +765,8 @@ class MembershipNode:
         if not (direct or self.is_member()):
             return  # an applicant following its sponsor's stream: state only
         if res.stale or isinstance(tx, (TxRemove, TxMembership, TxFormation)):  # ll. 117-157, 166-179
-            self._up(GroupTxApplied(txid, tx, res.stale, was_member, self.lv.leaving))
+            self._up(GroupTxApplied(txid, tx, res.stale, was_member, self.lv.leaving,
+                                    tuple(m.proc for m in res.added)))
         if self.is_member() and not was_leader and self.view.leader_now():
             self._log("leader", view=st.view)
 

@@ -96,6 +96,8 @@ class Snapshot:
     data: bytes
     anchor: TxId | None
     anchor_seq: int
+    #: an answer only: the lock (key, taken by) of a membership change in progress the answering member holds
+    lock: tuple[str, Proc] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,6 +169,16 @@ class SendSnapshot:
 
 
 @dataclass(frozen=True, slots=True)
+class InheritLock:
+    """The answer this new member installed holds the global state locked for a membership change (Alg. 3 l.
+    127) whose remove it skipped: take the lock and acknowledge it to `by` (l. 130), as applying the remove
+    would have."""
+
+    key: str
+    by: Proc
+
+
+@dataclass(frozen=True, slots=True)
 class CaughtUp:
     """The new member's state has caught up: propose the global-state changes held meanwhile."""
 
@@ -178,7 +190,7 @@ class Rejected:
     reason: str
 
 
-XferEffect = ApplyTx | Restore | SendSnapshot | Send | SetTimer | Log | CaughtUp | Rejected
+XferEffect = ApplyTx | Restore | SendSnapshot | Send | SetTimer | Log | InheritLock | CaughtUp | Rejected
 
 _Drain = Iterator[ApplyTx | Restore]
 
@@ -198,6 +210,7 @@ class StateTransfer:
         self.direct_anchor: int = 0  # global seq of direct_q[0], 0 = unknown
         self.requests: dict[TxId, list[Proc]] = {}  # StateRequests waiting for their anchor to be applied
         self._drain: _Drain | None = None
+        self._installed = False  # the last `_install` replaced the state
         self._now = 0.0
         self._out: list[XferEffect] = []
 
@@ -218,12 +231,12 @@ class StateTransfer:
                 if not (self.host.is_member() and not self.direct_q) and seq > st.seq:
                     self.fwd_buffer[seq] = (txid, payload)
                     self._start(self._drain_forwarded())
-            case Snapshot(seq, data, anchor, anchor_seq):
+            case Snapshot(seq, data, anchor, anchor_seq, lock):
                 if anchor is None:  # from our sponsor (ll. 60, 125, 176)
                     if not (self.host.is_member() and not self.direct_q):
                         self._start(self._install_then_drain(data))
                 elif self.direct_q and anchor == self.direct_q[0][0]:
-                    self._start(self._install_anchored(data, anchor_seq))
+                    self._start(self._install_anchored(data, anchor_seq, lock))
             case Request(src, txid):
                 applied = st.recent.get(txid)
                 if applied is None:
@@ -280,14 +293,23 @@ class StateTransfer:
             return
         if not same:
             self.fwd_buffer.clear()
+        self._installed = True
         yield Restore(data)
 
     def _install_then_drain(self, data: bytes) -> _Drain:
         yield from self._install(data)
         yield from self._drain_forwarded()
 
-    def _install_anchored(self, data: bytes, anchor_seq: int) -> _Drain:
+    def _install_anchored(self, data: bytes, anchor_seq: int, lock: tuple[str, Proc] | None) -> _Drain:
+        """The answer to our `StateRequest`: usually past the anchor, so installing it skips deliveries of ours
+        that it covers, and with them their consequences here (Alg. 3 ll. 117-157). The one another member
+        waits for is the lock acknowledgement of a remove (l. 130; its leader waits at l. 103): the answer
+        carries the lock its sender holds, and we take it (`InheritLock`). Without it the leader waited for
+        good and held every write (`haactl verify recovery --hosts 7` seed 1610)."""
+        self._installed = False
         yield from self._install(data)
+        if self._installed and lock is not None:
+            self._out.append(InheritLock(*lock))
         self.direct_anchor = anchor_seq
         self.fwd_buffer.clear()
         yield from self._drain_direct()

@@ -40,6 +40,8 @@ from haa.core.messages import Locked, Member, TxId
 Proc = tuple[str, int]
 
 RETRY_TIMER = NodeTimer("retry")
+#: how many lock keys released by an aborted membership transaction a host remembers (`LockInherited`)
+RELEASED_KEEP = 64
 
 
 class UpdateHost(Protocol):
@@ -128,6 +130,15 @@ class LockedMsg:
 
 
 @dataclass(frozen=True, slots=True)
+class LockInherited:
+    """This new member installed a state, answered by a member holding the lock `key` that `by` took (l. 127),
+    past the remove that took it: lock and acknowledge as applying the remove would have (ll. 127-130)."""
+
+    key: str
+    by: Proc
+
+
+@dataclass(frozen=True, slots=True)
 class LeaveAsked:
     """Member or applicant `proc` asked to leave (ll. 18-21)."""
 
@@ -166,10 +177,12 @@ class GroupTxApplied:
     stale: bool
     was_member: bool
     leaving: bool
+    #: the members it added to the list
+    added: tuple[Proc, ...] = ()
 
 
 UpdateInput = (
-    Run | RetryDue | SuspicionChanged | Poll | LockedMsg | LeaveAsked | GroupOfOne | TxAborted
+    Run | RetryDue | SuspicionChanged | Poll | LockedMsg | LockInherited | LeaveAsked | GroupOfOne | TxAborted
     | TxDelivered | GroupTxApplied
 )
 
@@ -253,10 +266,17 @@ class MembershipUpdate:
         self.retry_backoff = retry_backoff
         self.leave_list: set[Proc] = set()  # l. 5
         self.locked: str | None = None  # l. 6
+        self.locked_by: Proc | None = None  # who took the lock (the proposer of its remove, l. 102)
+        #: lock keys of membership transactions that aborted here (ll. 152-155), the last `RELEASED_KEEP`
+        self.released: dict[str, None] = {}
         self.updating = False  # l. 7
         self.attempt: Attempt | None = None
         self.group_txs: set[TxId] = set()  # remove / membership transactions in progress here (l. 77)
         self.lock_keys: dict[TxId, str] = {}  # membership transactions we voted on -> the lock they release
+        #: group transactions voted yes here, not yet delivered or aborted: (their participants, the members
+        #: they add); and the members this host saw added by a membership transaction (`_excludes_new_member`)
+        self.voted: dict[TxId, tuple[frozenset[Proc], frozenset[Proc]]] = {}
+        self.admitted: set[Proc] = set()
         self.key_seq = 0
         self._out: list[UpdateEffect] = []
         self._now = 0.0
@@ -278,6 +298,9 @@ class MembershipUpdate:
                 self._poll()
             case LockedMsg(src, key):
                 self._on_locked(src, key)
+            case LockInherited(key, by):
+                if key not in self.released and self.host.is_member():
+                    self._lock(key, by)
             case LeaveAsked(p):  # ll. 18-21
                 st = self.host.state
                 if st.is_member(p) or p in self.host.applicants():
@@ -287,19 +310,21 @@ class MembershipUpdate:
                     self._out.append(RunUpdate())
             case GroupOfOne(member):
                 key = self._new_key()
-                self.locked = key  # l. 42
+                self._set_lock(key, self.me)  # l. 42
                 self._propose(TxMembership(key, self.me, (member,)), (self.me,), _Pending("group_of_one", None, {}, []))
             case TxAborted(txid):
                 self._aborted(txid)
             case TxDelivered(txid):
                 self.group_txs.discard(txid)
                 self.lock_keys.pop(txid, None)
+                self.voted.pop(txid, None)
             case GroupTxApplied(txid, _, True, _, _):
                 self._on_stale(txid)
             case GroupTxApplied(_, TxRemove() as tx, _, was_member, _):
                 if was_member:
                     self._on_remove_committed(tx)
-            case GroupTxApplied(txid, TxMembership() as tx, _, was_member, leaving):
+            case GroupTxApplied(txid, TxMembership() as tx, _, was_member, leaving, added):
+                self.admitted = (self.admitted | set(added)) & {m.proc for m in tx.members}
                 self._out.append(Admit(frozenset(m.proc for m in tx.members), tx.proposer == self.me))
                 self._on_membership_committed(txid, tx, was_member, leaving)
             case GroupTxApplied(_, TxFormation() as tx, _, _, _):  # ll. 166-179 (the state part is GlobalState's)
@@ -315,14 +340,50 @@ class MembershipUpdate:
                 assert_never(inp)
         return self._out
 
-    def vote(self, txid: TxId, tx: TxRemove | TxMembership) -> bool:
-        """The OAC evaluate hook for group transactions (ll. 110-116; a membership list is always accepted)."""
+    def vote(self, txid: TxId, tx: TxRemove | TxMembership, participants: frozenset[Proc] = frozenset()) -> bool:
+        """The OAC evaluate hook for group transactions (ll. 110-116; a membership list is always accepted),
+        with HAA's rule that no group transaction may be ordered after the admission of a member it leaves out
+        (`_excludes_new_member`)."""
         self.group_txs.add(txid)
         if isinstance(tx, TxRemove):
-            return self._vote_remove(tx)
-        if tx.key:
-            self.lock_keys[txid] = tx.key  # for l. 153 if it aborts
-        return True
+            adds: frozenset[Proc] = frozenset()
+            ok = self._vote_remove(tx)
+        else:
+            if tx.key:
+                self.lock_keys[txid] = tx.key  # for l. 153 if it aborts
+            adds = frozenset(m.proc for m in tx.members) - set(self.host.state.procs())
+            ok = True
+        if ok and self._excludes_new_member(tx, participants, adds):
+            ok = False
+        if ok:
+            self.voted[txid] = (participants, adds)
+        return ok
+
+    def _excludes_new_member(self, tx: TxRemove | TxMembership, parts: frozenset[Proc],
+                             adds: frozenset[Proc]) -> bool:
+        """A group transaction must not commit after a membership transaction that admits a member it leaves
+        out of its participants. OAC orders a transaction only among its participants, so the new member would
+        never deliver it, and every later transaction would sit one place lower in its global sequence than in
+        everyone else's (HM-Agreement; `haactl verify ddb --hosts 7` seed 2358 with the held writes of a
+        suspicion: a non-leader's OAC(remove) of the crashed leader, proposed under the old list, was ordered
+        after the leader's OAC(membership) adding two hosts). Alg. 3 keeps writes out of a membership change by
+        the lock (l. 103), but a remove proposed by a member that suspects the leader is not held. The common
+        participants of the two vote against the second one they see: a transaction that leaves out a member
+        admitted here (unless it removes it) or one a membership transaction voted yes and undecided here
+        admits, and a membership transaction admitting a member that a group transaction voted yes and
+        undecided here leaves out. At worst a no aborts a transaction that would have been safe (this host has
+        not yet applied a removal its proposer applied); it is retried like any aborted group transaction."""
+        removal = set(tx.removal) if isinstance(tx, TxRemove) else set()
+        here = set(self.host.state.procs())
+        if any(m not in parts and m not in removal for m in self.admitted & here):
+            return True
+        return any((a2 - parts - removal) or (adds - p2) for p2, a2 in self.voted.values())
+
+    def lock(self) -> tuple[str, Proc] | None:
+        """The lock this host holds (l. 6) and who took it, None when unlocked."""
+        if self.locked is None or self.locked_by is None:
+            return None
+        return self.locked, self.locked_by
 
     def remove_list(self) -> set[Proc]:
         """removeList_p = memberList_p ∩ ◇S_p (ll. 22-31, 119, 142)."""
@@ -497,13 +558,30 @@ class MembershipUpdate:
 
     # ------------------------------------------------------------------ outcomes
 
+    def _set_lock(self, key: str | None, by: Proc | None) -> None:
+        self.locked = key
+        self.locked_by = by if key is not None else None
+
+    def _lock(self, key: str, by: Proc) -> None:
+        """ll. 127-130: lock, and acknowledge the lock to whoever took it."""
+        self._set_lock(key, by)
+        if by != self.me:
+            self._out.append(Send(by[0], by[1], Locked(key)))
+        else:
+            self._on_locked(self.me, key)
+
     def _unlock(self) -> None:
-        self.locked = None
+        self._set_lock(None, None)
         self._out.append(Unlocked())
 
     def _aborted(self, txid: TxId) -> None:
         self.group_txs.discard(txid)
+        self.voted.pop(txid, None)
         key = self.lock_keys.pop(txid, None)
+        if key is not None:  # a state installed later may still hold it (`LockInherited`)
+            self.released[key] = None
+            while len(self.released) > RELEASED_KEEP:
+                del self.released[next(iter(self.released))]
         a = self.attempt
         if key is not None and self.locked == key and (a is None or a.key != key):
             # ll. 152-155 on every participant, not only the proposer: a member that stayed locked after the
@@ -542,13 +620,10 @@ class MembershipUpdate:
         if h.leader_now():  # ll. 121-126
             self._out.append(SponsorAll())
         key = tx.key or None
-        self.locked = key  # l. 127
-        if key is not None:  # ll. 128-130
-            if tx.proposer != self.me:
-                self._out.append(Send(tx.proposer[0], tx.proposer[1], Locked(key)))
-            else:
-                self._on_locked(self.me, key)
+        if key is not None:  # ll. 127-130
+            self._lock(key, tx.proposer)
         else:
+            self._set_lock(None, None)  # l. 127
             self._out.append(ProposeHeld())  # l. 132
         a = self.attempt
         if a is not None and a.stage == "remove" and tx.proposer == self.me and key == (a.key or None):
@@ -570,7 +645,7 @@ class MembershipUpdate:
         if not was_member:
             self._log("joined", view=self.host.state.view, tx=str(txid))
             self._out.append(NowMember())
-        self.locked = None  # l. 144
+        self._set_lock(None, None)  # l. 144
         self._out.append(ProposeHeld())  # l. 145
         a = self.attempt
         if a is not None and a.membership_txid == txid:

@@ -119,6 +119,7 @@ class Evaluate:
 
     txid: TxId
     payload: bytes
+    participants: tuple[Participant, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -434,7 +435,7 @@ class OrderedAtomicCommit:
         if bump:
             self._send_all(tx, OacOrder(tx.id, order_p))  # l. 24
         tx.voting = True  # l. 27: the host votes; the transaction waits for its `Vote`
-        self._out.append(Evaluate(tx.id, tx.payload))
+        self._out.append(Evaluate(tx.id, tx.payload, tx.parts))
 
     def _on_vote(self, txid: TxId, ok: bool) -> None:
         """ll. 27-32: this host's vote on a transaction it was asked to evaluate."""

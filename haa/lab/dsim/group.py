@@ -306,8 +306,8 @@ class GroupSim:
         proc = (h.name, inc)
         orig = node._evaluate
 
-        def evaluate(txid: TxId, payload: bytes, _p: Proc = proc) -> bool:
-            vote = orig(txid, payload)
+        def evaluate(txid: TxId, payload: bytes, participants: tuple[Proc, ...], _p: Proc = proc) -> bool:
+            vote = orig(txid, payload, participants)
             try:
                 tx = decode_tx(payload)
             except ValueError:
