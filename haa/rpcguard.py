@@ -18,6 +18,11 @@ method of a protobuf service with raw bytes instead (`request_deserializer=None`
    the `on_event` hook). `context.abort(...)` inside a handler works as before (its `AbortError` passes),
    and so does cancellation.
 
+The guard's own refusals set the status and return (an empty reply, which gRPC does not send) instead of
+`context.abort`: the `AbortError` that raises carries a traceback holding the handler's frames, and with them
+the raw and the decoded request, until the garbage collector's next full pass. Refused 4 MiB calls retried by a
+client took a host to 798-972 MiB that way (docs/limits.md, "Messages in flight").
+
 `Guard.on_event(kind, method, detail, exc)` is told about each of the three outcomes, so the owner can count
 them (haa-hostd: `rejected_unauthenticated`, `control_malformed`, `control_errors`; see haa.hostd.control).
 Status details are cut to `MAX_DETAILS` characters: an exception's text can quote a huge input. So are the
@@ -105,20 +110,22 @@ class Guard:
             except Exception:  # a reporting hook must not turn a clean refusal into UNKNOWN
                 self.log.exception("rpc guard on_event hook failed")
 
-    async def admit(self, method: MethodDescriptor, raw: bytes, context: aio.ServicerContext, req_cls: Any) -> Any:
-        """The decoded request, or abort (UNAUTHENTICATED / INVALID_ARGUMENT)."""
+    def admit(self, method: MethodDescriptor, raw: bytes, context: aio.ServicerContext, req_cls: Any) -> Any:
+        """The decoded request, or None with the call's status set (UNAUTHENTICATED / INVALID_ARGUMENT)."""
         if self.authenticate is not None and not self.authenticate(context):
             self._event("unauthenticated", method.name, "missing or wrong token")
-            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
+            _refuse(context, grpc.StatusCode.UNAUTHENTICATED, "missing or wrong cluster token")
+            return None
         try:
             return req_cls.FromString(raw)
         except Exception as e:  # DecodeError; the upb backend may raise others for some garbage
             detail = f"malformed {method.input_type.name} ({len(raw)} bytes): {e}"
             self._event("malformed", method.name, detail, e)
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, _cut(detail))
+            _refuse(context, grpc.StatusCode.INVALID_ARGUMENT, _cut(detail))
+            return None
 
-    async def fail(self, method: MethodDescriptor, exc: Exception, context: aio.ServicerContext) -> None:
-        """Abort the call with the status `exc` maps to (never returns)."""
+    def fail(self, method: MethodDescriptor, exc: Exception, context: aio.ServicerContext) -> None:
+        """Set the call's status to the one `exc` maps to (the handler then returns)."""
         code = self.status_for(exc)
         if code is grpc.StatusCode.DEADLINE_EXCEEDED:
             text = str(exc) or "no answer in time (the operation may still complete)"
@@ -128,7 +135,13 @@ class Guard:
             text = str(exc) or type(exc).__name__
         detail = f"{method.name}: {text}"
         self._event("error", method.name, f"{code.name}: {detail}", exc)
-        await context.abort(code, _cut(detail))
+        _refuse(context, code, _cut(detail))
+
+
+def _refuse(context: aio.ServicerContext, code: grpc.StatusCode, details: str) -> None:
+    """End the call with `code` once the handler returns (not `context.abort`: see the module docstring)."""
+    context.set_code(code)
+    context.set_details(details)
 
 
 def _serializer(cls: Any) -> Callable[[Any], bytes]:
@@ -141,30 +154,37 @@ def _serializer(cls: Any) -> Callable[[Any], bytes]:
     return serialize
 
 
-def _unary(guard: Guard, m: MethodDescriptor, fn: Callable[..., Awaitable[Any]], req_cls: Any) -> Any:
-    """A unary method, or a server-streaming one that sends with `context.write` (a coroutine)."""
+def _unary(guard: Guard, m: MethodDescriptor, fn: Callable[..., Awaitable[Any]], req_cls: Any,
+           empty: Callable[[], Any] | None) -> Any:
+    """A unary method (`empty` makes the reply sent with a refusal, which gRPC does not send), or a
+    server-streaming one that sends with `context.write` (a coroutine; `empty` None)."""
     async def handler(raw: bytes, context: aio.ServicerContext) -> Any:
-        request = await guard.admit(m, raw, context, req_cls)
+        request = guard.admit(m, raw, context, req_cls)
+        if request is None:
+            return empty() if empty is not None else None
         try:
             return _cut_reasons(await fn(request, context))
         except aio.AbortError:
             raise
         except Exception as e:
-            await guard.fail(m, e, context)
+            guard.fail(m, e, context)
+        return empty() if empty is not None else None
 
     return handler
 
 
 def _stream(guard: Guard, m: MethodDescriptor, fn: Callable[..., AsyncIterator[Any]], req_cls: Any) -> Any:
     async def handler(raw: bytes, context: aio.ServicerContext) -> AsyncIterator[Any]:
-        request = await guard.admit(m, raw, context, req_cls)
+        request = guard.admit(m, raw, context, req_cls)
+        if request is None:
+            return
         try:
             async for item in fn(request, context):
                 yield item
         except (aio.AbortError, asyncio.CancelledError):
             raise
         except Exception as e:
-            await guard.fail(m, e, context)
+            guard.fail(m, e, context)
 
     return handler
 
@@ -178,14 +198,15 @@ def guarded_handler(service: ServiceDescriptor, servicer: object, guard: Guard) 
             raise ValueError(f"{service.full_name}.{m.name}: client streaming is not supported")
         fn = getattr(servicer, m.name)
         req_cls = message_factory.GetMessageClass(m.input_type)
-        ser = _serializer(message_factory.GetMessageClass(m.output_type))
+        out_cls = message_factory.GetMessageClass(m.output_type)
+        ser = _serializer(out_cls)
         if m.server_streaming:
-            wrap = _stream if inspect.isasyncgenfunction(fn) else _unary
-            handlers[m.name] = grpc.unary_stream_rpc_method_handler(
-                wrap(guard, m, fn, req_cls), request_deserializer=None, response_serializer=ser
-            )
+            h = _stream(guard, m, fn, req_cls) if inspect.isasyncgenfunction(fn) else _unary(
+                guard, m, fn, req_cls, None)
+            handlers[m.name] = grpc.unary_stream_rpc_method_handler(h, request_deserializer=None,
+                                                                    response_serializer=ser)
         else:
             handlers[m.name] = grpc.unary_unary_rpc_method_handler(
-                _unary(guard, m, fn, req_cls), request_deserializer=None, response_serializer=ser
+                _unary(guard, m, fn, req_cls, out_cls), request_deserializer=None, response_serializer=ser
             )
     return grpc.method_handlers_generic_handler(service.full_name, handlers)
