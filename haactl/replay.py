@@ -41,7 +41,8 @@ def replay(
         r = ir.result
         n_in += r.inputs
         n_out += r.outputs
-        cut = " (its recording was cut: the writer died)" if r.truncated else ""
+        cut = (f" (its recording is damaged and was read up to there: {r.damage})" if r.damage
+               else " (its recording was cut: the writer died)" if r.truncated else "")
         label = f"instance {k} {ir.instance} ({ir.how or '?'} on {ir.host}, epoch {ir.epoch})"
         if r.identical:
             out.print(f"{escape(label)}: identical, {r.inputs} inputs, {r.outputs} outputs{cut}")

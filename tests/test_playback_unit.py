@@ -235,3 +235,33 @@ def test_a_large_output_is_kept_as_its_digest_and_still_compared_byte_for_byte(t
     changed.sent.payload = big.sent.payload[:-1] + b"\xff"
     with pytest.raises(ReplayStopped, match="output 0"):
         asyncio.run(check([changed]))
+
+
+def test_a_damaged_segment_says_so_and_a_folder_of_cut_segments_says_why_nothing_replays(tmp_path: Path) -> None:
+    """A writer that died leaves a file that ends early: "cut". A record that fails its CRC is damage, and is
+    named as such, not passed off as a cut; an agent whose every segment was cut before its first message is
+    not "no recording" but an instance killed as it started."""
+    rec = Recorder(tmp_path, INIT, segment_bytes=4096)
+    for k in range(300):
+        rec.input(ppb.PlaybackInput(clock=float(k)))
+    rec.close()
+    path = sorted((tmp_path / "A7.2").iterdir())[0]
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunk = summary.chunk_indexes[-1]  # (the first holds the instance header: without it nothing is readable)
+    mid = chunk.chunk_start_offset + chunk.chunk_length // 2  # inside the last chunk's compressed records
+    data = bytearray(path.read_bytes())
+    data[mid:mid + 8] = b"\xde\xad\xbe\xef" * 2
+    bad = tmp_path / "bad" / "A7.2"
+    bad.mkdir(parents=True)
+    (bad / path.name).write_bytes(bytes(data))
+    seg = reader.read_segment(bad / path.name)
+    assert seg.truncated and "CRC" in seg.damage, seg.damage
+    r = CliRunner().invoke(app, ["replay", str(tmp_path / "bad"), "--agent", "A7.2"])
+    assert "damaged" in r.output and "writer died" not in r.output, r.output
+    cut = tmp_path / "cut" / "A7.2"
+    cut.mkdir(parents=True)
+    (cut / path.name).write_bytes(path.read_bytes()[:20])
+    r = CliRunner().invoke(app, ["replay", str(tmp_path / "cut"), "--agent", "A7.2"])
+    assert r.exit_code == 2 and "cut before its first message" in r.output, r.output

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +45,9 @@ class Segment:
     outputs: list[ppb.PlaybackOutput] = field(default_factory=list)
     truncated: bool = False
     size: int = 0
+    #: why reading stopped before the end when it was not the file ending (a writer that died leaves a file that
+    #: ends early; a record that fails its CRC or does not parse is damage): "" for a whole or a cut segment
+    damage: str = ""
 
 
 @dataclass
@@ -69,6 +73,11 @@ class Instance:
     def truncated(self) -> bool:
         return any(s.truncated for s in self.segments)
 
+    @property
+    def damage(self) -> str:
+        """The first damaged segment's damage (`Segment.damage`), "" if none."""
+        return next((f"{s.path.name}: {s.damage}" for s in self.segments if s.damage), "")
+
 
 def read_segment(path: Path, headers_only: bool = False) -> Segment:
     """Read one segment; RecordingError if it is not an AgentPlayback MCAP file, or holds more than
@@ -89,6 +98,7 @@ def read_segment(path: Path, headers_only: bool = False) -> Segment:
     inputs: list[ppb.PlaybackInput] = []
     outputs: list[ppb.PlaybackOutput] = []
     truncated = False
+    damage = ""
     with f:
         size = os.fstat(f.fileno()).st_size
         try:
@@ -118,16 +128,21 @@ def read_segment(path: Path, headers_only: bool = False) -> Segment:
                 raise RecordingError(f"{path}: not a readable AgentPlayback recording ({type(e).__name__}: {e})") \
                     from None
             truncated = True  # the writer died: everything up to its last complete chunk is here
-        except Exception as e:  # a decode error inside a truncated chunk (zstd, protobuf)
+            if not isinstance(e, EndOfFile | EOFError):
+                damage = f"{type(e).__name__}: {e}"[:200]
+        except Exception as e:  # a decode error inside a damaged chunk (zstd, protobuf)
+            if header is None and isinstance(e, struct.error):  # the mcap reader's short read of a cut file
+                raise EmptySegment(f"{path}: cut before its first message") from None
             if header is None:
                 raise RecordingError(f"{path}: not a readable AgentPlayback recording ({type(e).__name__}: {e})") \
                     from None
             truncated = True
+            damage = f"{type(e).__name__}: {e}"[:200]
     if header is None:
         raise RecordingError(f"{path}: no {TOPIC_INSTANCE} message (not an AgentPlayback recording)")
     if header.format != FORMAT:
         raise RecordingError(f"{path}: format {header.format!r}, this haactl reads {FORMAT!r}")
-    return Segment(path, header, inputs, outputs, truncated, size)
+    return Segment(path, header, inputs, outputs, truncated, size, damage)
 
 
 def segment_files(root: Path) -> list[Path]:
@@ -147,6 +162,7 @@ def load(root: Path, agent: str | None = None, headers_only: bool = False) -> di
     if not files:
         raise RecordingError(f"{root}: no recording segments (*{SUFFIX})")
     instances: dict[tuple[str, str], Instance] = {}
+    empty = 0  # segments of the agent's folder cut before their first message
     for p in files:
         if agent is not None and Path(root).is_dir() and p.parent.name != agent:
             # the folder is the display name: skip other agents' files without reading them (an id is
@@ -158,6 +174,7 @@ def load(root: Path, agent: str | None = None, headers_only: bool = False) -> di
         try:
             seg = read_segment(p, headers_only=headers_only)
         except EmptySegment:
+            empty += agent is not None and Path(root).is_dir() and p.parent.name == agent
             continue
         init = seg.header.init
         if agent is not None and agent not in (init.name,) and not init.agent_id.startswith(agent):
@@ -171,6 +188,9 @@ def load(root: Path, agent: str | None = None, headers_only: bool = False) -> di
     for lst in out.values():
         lst.sort(key=lambda i: (i.init.wall_start_ns, i.key))
     if agent is not None and not out:
+        if empty:
+            raise RecordingError(f"{root}: every segment of agent {agent!r} ({empty}) was cut before its first "
+                                 "message (its writer died as the instance started): nothing to replay")
         raise RecordingError(f"{root}: no recording of agent {agent!r}")
     return dict(sorted(out.items(), key=lambda kv: _name_key(kv[0])))
 

@@ -76,6 +76,8 @@ class ReplayResult:
     divergence: Divergence | None = None
     truncated: bool = False
     exit_code: int | None = None
+    #: the recording is damaged (`Instance.damage`), read up to the damage
+    damage: str = ""
 
     @property
     def identical(self) -> bool:
@@ -136,6 +138,7 @@ class ReplayFeed:
         self.inputs = inst.inputs
         self.outputs = inst.outputs
         self.truncated = inst.truncated
+        self.damage = inst.damage
         self.pos = 0
         self.out_pos = 0
         self.divergence: Divergence | None = None
@@ -443,7 +446,7 @@ async def _replay(inst: Instance, break_at: int | None,
         feed.divergence = Divergence(feed.pos, "an output the replay did not make", describe(feed.outputs[k]),
                                      "(nothing)", k)
     return ReplayResult(feed.pos, feed.out_pos, len(feed.inputs), len(feed.outputs), feed.divergence,
-                        feed.truncated, ctx.exit_code)
+                        feed.truncated, ctx.exit_code, feed.damage)
 
 
 def replay_instance(inst: Instance, break_at: int | None = None,
