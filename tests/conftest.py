@@ -10,6 +10,8 @@
 * `hashseed`: runs simulated schedules under several PYTHONHASHSEEDs (a seed must reproduce anywhere).
 * `hostilecluster`: a real three-host cluster for the hostile-peer and hostile-client tests.
 * `limitagents`: agent types for the resource-limit tests.
+* `collectables_sweep`: the collectable detector against the simulator's truth on seeded frames (also prints
+  the table of docs/control.md: `python tests/collectables_sweep.py`).
 
 The fixtures below hand out the `helpers` to tests that prefer fixtures to imports, and a local cluster per
 test.
