@@ -13,7 +13,8 @@ Markers are textured onto their faces with exact perspective (per column depth i
 texture row of a pixel is a function of its height above the floor). Collectables (red cylinders) and other
 avatars (green cylinders, shorter than the walls) are drawn in front of the walls where they are nearer;
 only the nearest one per column is drawn (a simplification: a short object behind another short object in
-the same column is not shown). Pixel noise (triangular over 0-6 grey levels below the true colour, 3 below on average) comes from a seeded tile.
+the same column is not shown). Pixel noise (triangular over 0-6 grey levels below the true colour, 3 below on
+average) comes from a seeded tile.
 
 Landmarks carry ArUco markers (`cv2.aruco`, dictionary from the arena file, default DICT_4X4_250, one
 white cell of margin): the thesis used self-similar landmarks [113], whose job — many distinct, cheaply
