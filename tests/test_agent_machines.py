@@ -166,6 +166,32 @@ def test_freeze_acks_before_the_local_commit_count_and_a_removed_host_counts_as_
     assert proposal(effs, "release").tx.release.state == b"S"
 
 
+def test_the_freeze_of_an_instance_thawed_here_waits_for_its_own_freeze_acks():
+    """Alg. 5 l. 10 waits for a freezeAck from every host of commitGroup: each host sends it once it committed
+    OAC(freeze), after any message it had sent this host for the agent before, so what is still on its way
+    arrives before l. 11 and goes with the release as queue1. The claimAcks of the thaw that started the
+    instance here say nothing about that. Counted as freezeAcks (as the code did before, one set of acks per
+    instance), they let h5 release at once in `haactl verify transfer --seed 599 --hosts 5`: a message h4 had
+    sent before it applied the freeze reached h5 after l. 11, h5 pushed it to queue2 on its own, was removed
+    before the push committed, and the message was lost for a receiver and a sender that never crashed."""
+    g = Group()
+    t, effs = thawing(g)  # h2 thaws the agent, then is asked to freeze it again
+    t.step(2.1, Committed(g.commit(proposal(effs, "claim").tx)))
+    t.step(2.2, ShellUp(AGENT))
+    t.step(2.3, tr.Ack("h1", AGENT, claim=True))
+    effs = t.step(2.4, tr.Ack("h3", AGENT, claim=True))
+    assert isinstance(effs[0], Activate) and t.thaws == {}  # thawed: epoch 2 runs on h2
+    assert g.commit(tx(move=apb.AgentMove(id=AGENT, host="h3"))).ok
+    effs = t.step(3.0, tr.Freeze(AGENT, 2, effs[0].inbox, effs[0].outbox))
+    t.step(3.1, Committed(g.commit(proposal(effs, "freeze").tx)))
+    late = msg("b", 1)
+    assert t.step(3.2, tr.StateArrived(AGENT, b"S")) == []  # no freezeAck yet: not l. 11
+    assert t.step(3.3, Hold(late)) == []  # sent by h1 before it applied OAC(freeze): queue1
+    assert t.step(3.4, tr.Ack("h1", AGENT, claim=False)) == []
+    effs = t.step(3.5, tr.Ack("h3", AGENT, claim=False))
+    assert list(proposal(effs, "release").tx.release.pending) == [late]
+
+
 def test_other_hosts_acknowledge_a_committed_freeze_and_claim():
     g = Group()
     _t, effs = freezing(g)

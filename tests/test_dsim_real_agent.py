@@ -173,6 +173,17 @@ def test_the_checks_catch_an_executive_that_forgets_its_mission(monkeypatch):
     assert {"EX-Resume", "EX-Once"} <= props
 
 
+def test_a_write_aborted_under_a_suspicion_waits_for_the_group_instead_of_failing_the_agent():
+    """Seed 1263 (7 hosts): a delay spike h2->h1 made h1 suspect h2 while h3 still trusted it, so h1's removal
+    of h2 was voted down and every OAC transaction h1 proposed aborted until the spike ended (AC-Non-Triviality).
+    The executive's `spawn_child` was re-proposed at once after each abort: 50 attempts in 0.8 s, then
+    "gave up after 50 attempts (aborted)", and `on_start` failed (EX-Finish). A write aborted while its host
+    suspects a member is now held, uncounted, until the suspicion ends or the view changes
+    (haa.core.membership.groupwrites)."""
+    r = run_seed("executive", 1263, 7)
+    assert not r.violations, r.violations
+
+
 def test_an_executive_whose_start_record_loses_resumes_the_recorded_start():
     """The path of `ExecutiveMission._record_start` a compare-and-set exists for, driven frame by frame: a
     recovered instance without a backup reads no `mission/status`, begins the mission, and its create of the

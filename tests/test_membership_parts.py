@@ -92,6 +92,9 @@ class FakeHost:
     def catching_up(self) -> bool:
         return self.catching
 
+    def suspects_member(self) -> bool:
+        return any(self.suspected(m.proc) for m in self.state.members)
+
     def peer_list(self) -> list[tuple[str, int]]:
         return [H1, H2, H3]
 
@@ -287,6 +290,22 @@ def test_writes_are_held_while_locked_and_acknowledged_once_committed() -> None:
     assert w.step(4.0, gw.Request("r3", b"agent")) == [gw.ProposeWrite(TxId("h2", 1, 3), b"agent")]
     (done,) = w.step(5.0, gw.Committed(TxId("h2", 1, 3), 9, "", None))
     assert done.ok and done.seq == 9 and done.req == "r3" and not w.writes
+
+
+def test_an_abort_while_suspecting_a_member_holds_the_write_uncounted() -> None:
+    """OAC commits only if no participant is suspected (AC-Non-Triviality): an abort while this host suspects a
+    member is not counted against `max_attempts`; the write waits for a Release (the suspicion ended, the view
+    changed) instead of being re-proposed at once (`haactl verify executive --hosts 7` seeds 1263, 1572, 1853:
+    50 immediate re-proposals went in under a second of a delay spike, and an agent's spawn failed)."""
+    host = FakeHost(H2, group(H1, H2, H3), suspects={H3})
+    w = gw.GroupWrites(host, max_attempts=1)
+    assert w.step(0.0, gw.Request("r", b"agent")) == [gw.ProposeWrite(TxId("h2", 1, 1), b"agent")]
+    for i in range(1, 4):  # aborted again and again while h3 is suspected: held, never given up
+        assert w.step(float(i), gw.Aborted(TxId("h2", 1, i))) == [] and len(w.held) == 1
+        assert w.step(float(i), gw.Release()) == [gw.ProposeWrite(TxId("h2", 1, i + 1), b"agent")]
+    host.suspects.clear()  # trusted again (l. 26): an abort now counts, and the one attempt is used up
+    out = w.step(5.0, gw.Aborted(TxId("h2", 1, 4)))
+    assert isinstance(out[0], WriteDone) and not out[0].ok and "gave up after 1 attempts" in out[0].reason
 
 
 def test_a_write_is_refused_outside_a_formed_group() -> None:

@@ -56,6 +56,21 @@ def test_a_group_of_two_that_removes_its_partner_is_not_wedged():
     assert run_seed("recovery", 1229, 5).violations == []
 
 
+def test_the_old_host_releases_a_frozen_agent_only_after_every_freeze_ack():
+    """Seed 599 (transfer, 5 hosts; found once writes aborted under a suspicion were held, which changed its
+    timing): h5 had thawed A1 (257-a0) at 2.36 with claimAcks from h1, h4, h2, and froze it for a move to h2.
+    OAC(freeze) h5.1.13 committed at h5 at 3.0538 and h5 proposed the release h5.1.14 in the same step, the old
+    claimAcks counting as freezeAcks (Alg. 5 l. 10). A2's (257-a1) message 6, sent by h4 at 3.0538 before h4
+    applied the freeze (3.0546), reached h5 at 3.0627, after l. 11: h5 pushed it to queue2 itself (h5.1.15)
+    instead of committing it with the release as queue1. A delay spike on h5's links from 3.074 made the others
+    suspect and remove h5 (view 7 at 3.355): the release committed, the push aborted, h5 was excluded before
+    its second try committed, and message 6 was gone. A1 thawed on h2 and held A2's messages 7-16 back behind
+    the gap for good (AT-Consistency: 5 of 16 processed, neither agent crashed). The freeze now waits for its
+    own freezeAcks (haa.core.agents.transfer)."""
+    r = run_seed("transfer", 599, 5)
+    assert not r.violations, r.violations
+
+
 def test_a_move_to_a_host_that_left_before_it_committed_leaves_a_crashed_agent_recoverable():
     """Seed 1954 (recovery, 7 hosts; found by a 2,000-schedule sweep): at t=3.73 the operator moved A2, crashed
     and backing off, to h6 through h3, while h6 was a member about to leave. The move's OAC aborted eight times

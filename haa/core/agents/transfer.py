@@ -222,10 +222,6 @@ class Transfer:
         self.view = view
         self.freezes: dict[str, _Freeze] = {}
         self.thaws: dict[str, _Thaw] = {}
-        #: claimAcks of an instance thawed here, which its later freeze counts as acknowledged too: the
-        #: behaviour of the code before the split (one `acks` set per instance), kept so that the simulator's
-        #: decisions are unchanged; docs/agents-host.md, "Transfer"
-        self._carry: dict[str, set[str]] = {}
         self._out: list[TransferEffect] = []
 
     def step(self, now: float, inp: TransferInput) -> list[TransferEffect]:
@@ -262,7 +258,6 @@ class Transfer:
             case Drop():
                 self.freezes.pop(inp.agent, None)
                 self.thaws.pop(inp.agent, None)
-                self._carry.pop(inp.agent, None)
             case _:
                 assert_never(inp)
         out, self._out = self._out, []
@@ -273,7 +268,7 @@ class Transfer:
     def _freeze(self, inp: Freeze) -> None:
         r = self.view.table.get(inp.agent)
         assert r is not None
-        f = _Freeze(inp.epoch, inp.inbox, inp.outbox, self._carry.pop(inp.agent, set()))
+        f = _Freeze(inp.epoch, inp.inbox, inp.outbox, set())  # l. 10 counts this freeze's acks only
         self.freezes[inp.agent] = f
         self._out.append(Cmd(FreezeAgent(inp.agent, inp.epoch)))  # l. 2
         # l. 3 (clear the queues): they are empty while the agent is active (haa.core.ddb.agenttable)
@@ -288,7 +283,17 @@ class Transfer:
         self._out.append(Propose(tx, "freeze", agent, f.epoch))  # ll. 5-8
 
     def _freeze_progress(self, agent: str, f: _Freeze) -> None:
-        """l. 10: wait until the state arrived and every host of commitGroup acknowledged or was removed."""
+        """l. 10: wait until the state arrived and every host of commitGroup acknowledged or was removed.
+
+        A host sends its freezeAck once it committed OAC(freeze) (l. 24), after any message it had sent here for
+        the agent before it knew (one channel, in order): with every ack in, nothing of theirs is on its way to
+        this host any more, and what arrived went into queue1, which commits with the state in OAC(release).
+        Only the acks of this freeze count. Counting the claimAcks of the thaw that had started the instance
+        here (as the code did before transfer became a machine) released at once: a message a host had sent
+        before it applied the freeze reached this host after l. 11 and was pushed to queue2 in a transaction of
+        this host's own, which is lost when this host is removed before it commits, though the release did
+        (`haactl verify transfer --seed 599 --hosts 5`: AT-Consistency, a receiver and a sender that never
+        crashed)."""
         if not f.committed or f.state is None or f.after_l11:
             return
         members = set(self.view.members())
@@ -316,7 +321,6 @@ class Transfer:
         assert r is not None
         t = _Thaw(r.epoch + 1)
         self.thaws[agent] = t
-        self._carry.pop(agent, None)
         self._out.append(SetPhase(agent, t.epoch, "claiming"))
         self._out.append(spawn(r, t.epoch))  # l. 2
         # l. 3: messages for a are held in t.local_q (`Hold`)
@@ -341,7 +345,6 @@ class Transfer:
         assert t.inbox is not None
         msgs = start_messages(t.inbox, t.handed, t.local_q)  # l. 10: queue1, queue2, local queue in that order
         del self.thaws[agent]
-        self._carry[agent] = t.acks
         self._out.append(Activate(agent, t.epoch, t.inbox, t.outbox, t.life))  # l. 11
         self._out.append(Cmd(StartAgent(agent, t.epoch, "thaw", t.state, msgs)))
         self._out.append(Timeline(agent, "thawed", f"{len(msgs)} queued messages"))

@@ -3,8 +3,15 @@
 Alg. 3 applies every change of the global state in total order by OAC among the members (thesis L698-712,
 ll. 127-132, 144-145, 153-155): a change requested while the global state is locked for a membership change
 is held (l. 129) and proposed once it is unlocked (ll. 132, 145, 155). HAA acknowledges a change to whoever
-requested it only once it committed and was applied here (`WriteDone`), re-proposes it after an abort (up to
-`max_attempts`), and holds it too while this host is a new member whose state has not caught up. These are
+requested it only once it committed and was applied here (`WriteDone`), re-proposes it after an abort (given
+up after `max_attempts` aborts), and holds it too while this host is a new member whose state has not caught
+up. An abort while this host suspects a member of its view (removeList_p not empty, ll. 22-31) is not
+counted: OAC commits only if no participant is suspected (AC-Non-Triviality, thesis L549), so until the
+suspicion ends — the member trusted again (l. 26) or removed (l. 117) — every proposal would abort. The
+change is held instead and proposed again on `Release`, which the node steps when a suspicion ends or the
+view changes as well as when the lock is released. (Re-proposed at once, 50 aborts took well under a second
+of an asymmetric delay spike that made this host suspect a member the others still trusted, and an agent's
+`spawn_child` or DDB write failed: `haactl verify executive --hosts 7`, seeds 1263, 1572, 1853.) These are
 the agent-table changes (`TxAgent`), and DDB and test writes when the node runs without the sequencer
 (`NodeConfig.sequencer` off, the thesis' own way); with it, the node hands DDB and test writes straight to
 the sequencer (`haa.core.membership.sequencer`, docs/oac.md), which does its own holding.
@@ -43,6 +50,9 @@ class WritesHost(Protocol):
     def catching_up(self) -> bool:
         """A new member whose state has not caught up yet."""
 
+    def suspects_member(self) -> bool:
+        """This host suspects a member of its view (removeList_p is not empty, ll. 22-31)."""
+
     def new_txid(self) -> TxId:
         """A fresh OAC transaction id of this host incarnation for a proposal (the one call that changes the node:
         it reserves the id, so the machine knows its transaction before it is proposed)."""
@@ -52,6 +62,7 @@ class WritesHost(Protocol):
 class Write:
     req: Hashable
     payload: bytes
+    #: aborts counted against `max_attempts` (not those while this host suspected a member)
     attempts: int = 0
 
 
@@ -68,7 +79,8 @@ class Request:
 
 @dataclass(frozen=True, slots=True)
 class Release:
-    """The global state may be unlocked, or the new member caught up: propose what is held."""
+    """The global state may be unlocked, the new member caught up, a suspicion ended or the view changed:
+    propose what is held."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,7 +153,12 @@ class GroupWrites:
                         self._propose(w)
             case Aborted(txid):
                 w_ = self.writes.pop(txid, None)
-                if w_ is not None:
+                if w_ is None:
+                    pass
+                elif h.is_member() and h.suspects_member():  # AC-Non-Triviality: wait for the suspicion to end
+                    self.held.append(w_)
+                else:
+                    w_.attempts += 1
                     self._retry(w_, "aborted")
             case Committed(txid, seq, error, result):
                 w_ = self.writes.pop(txid, None)
@@ -152,7 +169,6 @@ class GroupWrites:
         return self._out
 
     def _propose(self, w: Write) -> None:
-        w.attempts += 1
         txid = self.host.new_txid()
         self.writes[txid] = w
         self._out.append(ProposeWrite(txid, w.payload))

@@ -26,7 +26,8 @@ applies the global sequence in total order (`_apply`: forwarding to sponsees, l.
 machines' part of each committed group transaction), and carries the global-state changes of `submit`:
 agent-table transactions (and, without the sequencer, DDB batches and test payloads) are proposed to every
 member by OAC, held while locked (ll. 127-132, 144-145, 153-155), acknowledged to the requester only once
-committed, and re-proposed after an abort; and voluntary leave (ll. 14-21).
+committed, and re-proposed after an abort (held instead while this host suspects a member: until the
+suspicion ends or the view changes, `haa.core.membership.groupwrites`); and voluntary leave (ll. 14-21).
 
 Line numbers in comments refer to Alg. 3. Where the pseudo-code is silent or had to be completed, the
 choices are documented in docs/membership.md; in short:
@@ -247,7 +248,8 @@ class NodeConfig:
     catchup_timeout: float = 2.0
     #: wait between a failed membership update attempt and the next
     retry_backoff: float = 0.05
-    #: a global-state change aborted this many times is reported failed
+    #: a global-state change aborted this many times is reported failed (aborts while this host suspects a
+    #: member are not counted: the change waits for the suspicion to end, `haa.core.membership.groupwrites`)
     max_write_attempts: int = 50
     #: compute the content hash after every applied transaction (the simulator's checks)
     hash_every_apply: bool = False
@@ -381,6 +383,8 @@ class MembershipNode:
                     self._up(SuspicionChanged((e.peer, e.inc)))
                     if self.state.is_member((e.peer, e.inc)) and self.seq.pending:
                         self._seq(Retarget())
+                    if not e.suspected and self.wr.held:  # l. 26: writes held since an abort under suspicion
+                        self._carry(self.wr.step(self._now, WRelease()))
                 elif isinstance(e, PeerDead):  # ll. 32-34
                     self._join(PeerGone((e.peer, e.inc)))
                     if self.seq.pending:
@@ -756,6 +760,8 @@ class MembershipNode:
             self._join(ViewChanged(tuple(st.members), res.removed))
         if self.wr.writes:
             self._carry(self.wr.step(self._now, WCommitted(txid, res.seq, res.error, res.ddb_result)))
+        if res.view_changed and self.wr.held:  # l. 117: a suspected member removed (writes held since an abort)
+            self._carry(self.wr.step(self._now, WRelease()))
         if type(tx) is TxSeq:
             self._seq(BatchApplied(txid, res.seq, cast("tuple[SeqApplied, ...]", res.ddb_result)))
         elif txid in self.seq.inflight:  # (our batch, but it did not decode as one: cannot happen)

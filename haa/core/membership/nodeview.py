@@ -69,6 +69,10 @@ class NodeView:
     def is_suspected(self, name: str, inc: int) -> bool:
         return self.node.core.is_suspected(name, inc)
 
+    def suspects_member(self) -> bool:
+        """◇S_p holds a member of the view (removeList_p is not empty, ll. 22-31)."""
+        return any(self.suspected(m.proc) for m in self.node.state.members)
+
     def known_dead(self, p: Proc) -> bool:
         """Permanently suspected: excluded, removed, or superseded by a newer incarnation we heard of."""
         if p in self.node.core.dead:
