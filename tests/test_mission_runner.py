@@ -304,9 +304,17 @@ def test_a_mission_with_stand_in_agents_runs_end_to_end(tmp_path, monkeypatch):
     assert 0.0 < r["coverage"] <= 1.0 and 0.0 < r["accuracy"] <= 1.0 and r["explored"] == pytest.approx(1.0)
     assert r["readings_generated"] > 0 and r["processings"] == 2 * r["readings_processed"]
     assert 2.0 <= r["hosts_avg"] <= 3.0 and r["hosts_avg_thesis"] == pytest.approx(r["hosts_avg"] + 1)
-    # the first two agents go one to each starting host and stay there when h3 joins (join hysteresis), so h2
-    # runs one at its leave and hands it over; where s2's agent goes is a tie the allocation breaks by host name
-    assert 1.0 <= r["agents_avg"] <= 3.0 and r["transfers"] >= 1
+    assert 1.0 <= r["agents_avg"] <= 3.0
+    # every agent h2 runs when it retires is handed over, not recovered. Usually the first two agents go one to
+    # each starting host (and stay there when h3 joins: join hysteresis), but placing both on h1 is a tie the
+    # allocation may break either way when h2's load report is late (the machine under load), so the count comes
+    # from where the transcript last saw each agent before the leave
+    events = [json.loads(ln) for ln in (tmp_path / "out" / "transcript.jsonl").read_text().splitlines()]
+    leave_t = next(e["t"] for e in events if e["text"] == "h2 retires (graceful leave)")
+    where = {e["agent"]: e["host"] for e in events
+             if e["t"] < leave_t and e["event"] in ("active", "thawed", "recovered")}
+    on_h2 = sorted(a for a, h in where.items() if h == "h2")
+    assert r["transfers"] >= len(on_h2) and r["agent_failures"] == 0, (on_h2, r["transfers"])
     assert r["provenance"]["seed"] == 3 and r["provenance"]["machine"]["cpu_count"] == os.cpu_count()
     assert 0.0 <= r["cpu_percent"] <= 100.0
     out = tmp_path / "out"
