@@ -197,7 +197,10 @@ class ExecutiveMission(team.TeamAgent):
                 self, mode=self.m.get("slam", "jc-slam"), particles=int(self.m.get("particles", 100)),
                 grid=(0.0, 0.0, f["width"], f["height"], res), landmark_ids=f["landmark_ids"],
                 marker_dictionary=f["marker_dictionary"], marker_size=f["marker_size"],
-                discard_agents=int(self.m.get("hosts", {}).get("start", 1))),
+                discard_agents=int(self.m.get("hosts", {}).get("start", 1)),
+                # Forage: the landmark agents report collectables too (the key only then: the other
+                # scenarios' configs stay as they were)
+                **({"collectables": True} if self.m.get("scenario") == "forage" else {})),
             "supervisor_explore": team.team_config(
                 self, exploration=self.m.get("exploration", "em"), radius=f["radius"],
                 camera_range=f["camera_range"]),

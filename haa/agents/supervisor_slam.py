@@ -51,12 +51,15 @@ all timed out, again and again).
 (haa.slam.replica) of the event log `slam/log` plus the checkpoint `slam/ckpt/*`: this agent applies every
 event in index order, appends a Request event (JC-SLAM events (d)+(e)) for every avatar every `request_s`,
 publishes the map (`slam/map`), the estimates (`slam/estimates`, `slam/est/<avatar>`) and the landmarks
-(`slam/landmarks`) every `publish_s`, and every `checkpoint_events` events writes a checkpoint and trims the
-log in one atomic batch. A crash of this agent or its host loses nothing committed: its successor restores
-the checkpoint and replays the log (recovery: "Restore configuration and retrieve AgentSensor* statuses,
-reassign readings if appropriate. Confirm that reading list is up to date" — the reading list is
-`slam/raw/` less the marked processings, read again; the sensor agents' statuses are their answers to a
-sync: what they have in flight stays with them, the rest is handed out again).
+(`slam/landmarks`) every `publish_s` — and, when they changed, the identified collectables' estimates
+(`forage/collectables`, docs/team.md "Forage: identified collectables in the DDB"; with `collectables` set
+the landmark agents also report the collectables they see, haa.agents.sensor_landmark) — and every
+`checkpoint_events` events writes a checkpoint and trims the log in one atomic batch. A crash of this agent
+or its host loses nothing committed: its successor restores the checkpoint and replays the log (recovery:
+"Restore configuration and retrieve AgentSensor* statuses, reassign readings if appropriate. Confirm that
+reading list is up to date" — the reading list is `slam/raw/` less the marked processings, read again; the
+sensor agents' statuses are their answers to a sync: what they have in flight stays with them, the rest is
+handed out again).
 
 Periodic DDB writes (requests, publication, checkpoints) and the bookkeeping of finished readings run beside
 the mailbox (`_upkeep`, `_background`): awaiting their commits in it held up the log events and the sensor
@@ -116,6 +119,9 @@ class SlamAgentConfig(team.TeamConfig):
     landmark_ids: list[int] = []
     marker_dictionary: str = ""
     marker_size: float = 0.0
+    #: Forage: the landmark agents also report collectables (haa.agents.sensor_landmark); off: their configs
+    #: and readings are those of explore and congregate
+    collectables: bool = False
     request_s: float = pydantic.Field(1.0, gt=0, le=60)
     publish_s: float = pydantic.Field(0.5, gt=0, le=60)
     checkpoint_events: int = pydantic.Field(600, ge=10, le=1_000_000)
@@ -178,6 +184,8 @@ class SupervisorSLAM(team.TeamAgent):
         self.tasks: set[asyncio.Task[Any]] = set()
         #: what the sensor agents reported per processing type: processings, readings made, sightings, ms
         self.proc_stats: dict[str, dict[str, float]] = {}
+        #: the `forage/collectables` value this life last wrote (written again only when it changes)
+        self.collectables_written: dict[str, Any] | None = None
         #: HAA_SLAM_RECORD=DIR: every log item applied is appended to DIR/slam-log-<agent id>.bin (u32 index,
         #: u32 length, bytes), for offline replays against the simulator's true poses (diagnosis only)
         self.record = None
@@ -353,7 +361,8 @@ class SupervisorSLAM(team.TeamAgent):
                  stacks={p: len(s) for p, s in self.stacks.items()},
                  sensors={p: len(a) for p, a in self.sensors.items()},
                  procs={p: {k: round(v, 2) for k, v in st.items()} for p, st in self.proc_stats.items()},
-                 gated=self.replica.system.landmarks.gated, landmarks=len(self.replica.system.landmarks))
+                 gated=self.replica.system.landmarks.gated, landmarks=len(self.replica.system.landmarks),
+                 collectables=len(self.replica.system.collectables))
         if self.record is not None:
             self.record.flush()
 
@@ -374,7 +383,21 @@ class SupervisorSLAM(team.TeamAgent):
                for i, lm in self.replica.system.landmarks.landmarks.items()}
         if lms:
             ops.append(team.op_put_json(team.K_SLAM_LANDMARKS, lms))
-        self._upkeep("publish", self.ddb_write(ops))
+        # the estimates part only: each collectable's forage state is a key of its own (`forage/state/<id>`),
+        # written by the forage agents, so this write never overwrites it
+        cols = self.replica.system.collectables.published()
+        if cols and cols != self.collectables_written:
+            ops.append(team.op_put_json(team.K_FORAGE_COLLECTABLES, cols))
+            self._upkeep("publish", self._write_publication(ops, cols))
+        else:
+            self._upkeep("publish", self.ddb_write(ops))
+
+    async def _write_publication(self, ops: list[Any], cols: dict[str, Any]) -> None:
+        errs = await self.ddb_write(ops)
+        if not any(errs):
+            self.collectables_written = cols
+        else:  # (written again at the next publication)
+            self.dirty = True
 
     # ------------------------------------------------------------------ readings
 
@@ -486,6 +509,8 @@ class SupervisorSLAM(team.TeamAgent):
         if p == "sensor_landmark":
             cfg.update(landmark_ids=self.cfg.landmark_ids, marker_dictionary=self.cfg.marker_dictionary,
                        marker_size=self.cfg.marker_size)
+            if self.cfg.collectables:
+                cfg["collectables"] = True
         type_name = p + DEDICATED if avatar else p
 
         async def go() -> None:

@@ -51,6 +51,11 @@ K_SLAM_EST = "slam/est/"
 K_SLAM_ESTIMATES = "slam/estimates"
 K_SLAM_RAW = "slam/raw/"
 K_SLAM_LANDMARKS = "slam/landmarks"
+#: Forage (docs/team.md "Forage: identified collectables in the DDB"): SupervisorSLAM writes the estimates of
+#: the identified collectables in one key; each collectable's forage state is a key of its own, written by
+#: the forage agents, never by SupervisorSLAM
+K_FORAGE_COLLECTABLES = "forage/collectables"
+K_FORAGE_STATE = "forage/state/"
 K_TARGETS = "targets/"
 K_STATS = "stats/"
 

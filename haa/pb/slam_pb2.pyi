@@ -146,6 +146,24 @@ class SlamLandmark(_message.Message):
     sightings: _containers.RepeatedCompositeFieldContainer[SlamSighting]
     def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., sightings: _Optional[_Iterable[_Union[SlamSighting, _Mapping]]] = ...) -> None: ...
 
+class SlamRangeBearing(_message.Message):
+    __slots__ = ("range", "bearing")
+    RANGE_FIELD_NUMBER: _ClassVar[int]
+    BEARING_FIELD_NUMBER: _ClassVar[int]
+    range: float
+    bearing: float
+    def __init__(self, range: _Optional[float] = ..., bearing: _Optional[float] = ...) -> None: ...
+
+class SlamCollectables(_message.Message):
+    __slots__ = ("avatar", "t", "sightings")
+    AVATAR_FIELD_NUMBER: _ClassVar[int]
+    T_FIELD_NUMBER: _ClassVar[int]
+    SIGHTINGS_FIELD_NUMBER: _ClassVar[int]
+    avatar: str
+    t: float
+    sightings: _containers.RepeatedCompositeFieldContainer[SlamRangeBearing]
+    def __init__(self, avatar: _Optional[str] = ..., t: _Optional[float] = ..., sightings: _Optional[_Iterable[_Union[SlamRangeBearing, _Mapping]]] = ...) -> None: ...
+
 class SlamCooccupancy(_message.Message):
     __slots__ = ("avatar", "t", "radius")
     AVATAR_FIELD_NUMBER: _ClassVar[int]
@@ -197,18 +215,20 @@ class SlamAddAvatar(_message.Message):
     def __init__(self, avatar: _Optional[_Union[SlamAvatarInfo, _Mapping]] = ..., t0: _Optional[float] = ...) -> None: ...
 
 class SlamObserve(_message.Message):
-    __slots__ = ("sonar", "landmark", "cooccupancy", "floor", "processor")
+    __slots__ = ("sonar", "landmark", "cooccupancy", "floor", "collectables", "processor")
     SONAR_FIELD_NUMBER: _ClassVar[int]
     LANDMARK_FIELD_NUMBER: _ClassVar[int]
     COOCCUPANCY_FIELD_NUMBER: _ClassVar[int]
     FLOOR_FIELD_NUMBER: _ClassVar[int]
+    COLLECTABLES_FIELD_NUMBER: _ClassVar[int]
     PROCESSOR_FIELD_NUMBER: _ClassVar[int]
     sonar: SlamSonar
     landmark: SlamLandmark
     cooccupancy: SlamCooccupancy
     floor: SlamFloor
+    collectables: SlamCollectables
     processor: str
-    def __init__(self, sonar: _Optional[_Union[SlamSonar, _Mapping]] = ..., landmark: _Optional[_Union[SlamLandmark, _Mapping]] = ..., cooccupancy: _Optional[_Union[SlamCooccupancy, _Mapping]] = ..., floor: _Optional[_Union[SlamFloor, _Mapping]] = ..., processor: _Optional[str] = ...) -> None: ...
+    def __init__(self, sonar: _Optional[_Union[SlamSonar, _Mapping]] = ..., landmark: _Optional[_Union[SlamLandmark, _Mapping]] = ..., cooccupancy: _Optional[_Union[SlamCooccupancy, _Mapping]] = ..., floor: _Optional[_Union[SlamFloor, _Mapping]] = ..., collectables: _Optional[_Union[SlamCollectables, _Mapping]] = ..., processor: _Optional[str] = ...) -> None: ...
 
 class SlamRequest(_message.Message):
     __slots__ = ("avatar",)

@@ -35,9 +35,11 @@ from google.protobuf.message import DecodeError
 from haa.pb import slam_pb2 as pb
 from haa.slam.motion import DriftSpec, Prediction
 from haa.slam.sensors import (
+    CollectablesReading,
     CooccupancyReading,
     FloorReading,
     LandmarkReading,
+    RangeBearing,
     Reading,
     Sighting,
     SonarEcho,
@@ -53,6 +55,8 @@ MAX_POLYGON = 256  # vertices of one floor region
 MAX_SONAR_RANGE = 20.0  # m
 MAX_FLOOR_EXTENT = 20.0  # m, |x| and |y| of a floor vertex in the avatar frame
 MAX_RADIUS = 2.0  # m, an avatar footprint (co-occupancy) or its stated radius
+MAX_COLLECTABLE_SIGHTINGS = 256  # collectables in one image (each costs O(particles + identified ones))
+MAX_COLLECTABLE_RANGE = 20.0  # m (the cameras see 3-4 m: Table 6.2-4)
 
 
 NO_DRIFT = DriftSpec(0.0, 0.0)
@@ -140,7 +144,7 @@ class Observe:
 
     def __post_init__(self) -> None:
         r = self.reading
-        if not isinstance(r, (SonarReading, LandmarkReading, CooccupancyReading, FloorReading)):
+        if not isinstance(r, (SonarReading, LandmarkReading, CooccupancyReading, FloorReading, CollectablesReading)):
             raise EventError(f"observe.reading: must be a reading, got {type(r).__name__}")
         _name("observe.reading.avatar", r.avatar)
         if not isinstance(self.processor, str) or len(self.processor) > MAX_NAME:
@@ -156,6 +160,8 @@ class Observe:
         elif isinstance(r, CooccupancyReading):
             if r.radius > MAX_RADIUS:
                 raise EventError(f"observe.cooccupancy.radius: must be <= {MAX_RADIUS} m, got {r.radius}")
+        elif isinstance(r, CollectablesReading):
+            _collectables_bounds(len(r.sightings), max((g.range for g in r.sightings), default=0.0))
         else:
             if len(r.polygon) > MAX_POLYGON:
                 raise EventError(f"observe.floor.polygon: more than {MAX_POLYGON} vertices ({len(r.polygon)})")
@@ -165,6 +171,13 @@ class Observe:
     @property
     def avatar(self) -> str:
         return self.reading.avatar
+
+
+def _collectables_bounds(n: int, max_range: float) -> None:
+    if n > MAX_COLLECTABLE_SIGHTINGS:
+        raise EventError(f"observe.collectables.sightings: more than {MAX_COLLECTABLE_SIGHTINGS} ({n})")
+    if max_range > MAX_COLLECTABLE_RANGE:
+        raise EventError(f"observe.collectables.range: must be <= {MAX_COLLECTABLE_RANGE} m, got {max_range}")
 
 
 @dataclass(frozen=True)
@@ -217,6 +230,11 @@ def _reading_to_pb(r: Reading, m: pb.SlamObserve) -> None:
             g.sightings.add(landmark_id=s_.landmark_id, range=s_.range, bearing=s_.bearing)
     elif isinstance(r, CooccupancyReading):
         m.cooccupancy.avatar, m.cooccupancy.t, m.cooccupancy.radius = r.avatar, r.t, r.radius
+    elif isinstance(r, CollectablesReading):
+        c = m.collectables
+        c.avatar, c.t = r.avatar, r.t
+        for g in r.sightings:
+            c.sightings.add(range=g.range, bearing=g.bearing)
     else:
         m.floor.avatar, m.floor.t = r.avatar, r.t
         m.floor.xs.extend(v[0] for v in r.polygon)
@@ -226,8 +244,8 @@ def _reading_to_pb(r: Reading, m: pb.SlamObserve) -> None:
 
 def reading_message(r: Reading) -> tuple[str, Any]:
     """(kind, message) of a reading in its proto form — the SlamObserve field ("sonar", "landmark",
-    "cooccupancy", "floor") and its SlamSonar / SlamLandmark / ... message; the event log and the recordings
-    (haa.slam.recording, topic /slam/<kind>) share it."""
+    "cooccupancy", "floor", "collectables") and its SlamSonar / SlamLandmark / ... message; the event log and
+    the recordings (haa.slam.recording, topic /slam/<kind>) share it."""
     m = pb.SlamObserve()
     _reading_to_pb(r, m)
     kind = m.WhichOneof("reading")
@@ -305,6 +323,13 @@ def _from_pb(m: pb.SlamEvent) -> SlamEvent:
             if f.occupied and len(f.occupied) != len(f.xs):
                 raise EventError(f"observe.floor.occupied: {len(f.occupied)} flags for {len(f.xs)} vertices")
             r = FloorReading(f.avatar, f.t, tuple(zip(f.xs, f.ys, strict=True)), tuple(f.occupied))
+        elif kind == "collectables":
+            c = o.collectables
+            if len(c.sightings) > MAX_COLLECTABLE_SIGHTINGS:  # before building them
+                raise EventError(
+                    f"observe.collectables.sightings: more than {MAX_COLLECTABLE_SIGHTINGS} ({len(c.sightings)})"
+                )
+            r = CollectablesReading(c.avatar, c.t, tuple(RangeBearing(x.range, x.bearing) for x in c.sightings))
         else:
             raise EventError("observe: no reading set")
         return Observe(r, o.processor)

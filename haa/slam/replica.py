@@ -9,8 +9,9 @@ is bit-identical to one that applied everything:
 
 * `checkpoint() -> dict[str, bytes]`: the state as a few blobs, each at most `BLOB_LIMIT` (1 MiB, the DDB's
   largest value): `meta` (JSON: format, next index, grid, seed, configuration, avatars, counters, and which
-  blobs make the checkpoint with their CRC-32), `grid`, `landmarks`, `models` (the sensor models' template
-  caches, see below) and `filter-<i>` per avatar (its history blocks, its current float64 states and its
+  blobs make the checkpoint with their CRC-32), `grid`, `landmarks`, `collectables` (the identified
+  collectables, haa.slam.collectables), `models` (the sensor models' template caches, see below) and
+  `filter-<i>` per avatar (its history blocks, its current float64 states and its
   numpy Generator state, so that replay after a restore draws the same noise); a component larger than a
   blob is split into `<name>`, `<name>.1`, `<name>.2`, .... No pickle: arrays are raw little-endian bytes
   with a dtype/shape list in a small JSON header, the whole zlib-compressed (level 1); particle histories
@@ -63,6 +64,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from haa.slam.collectables import Collectable
 from haa.slam.events import (
     AddAvatar,
     EventError,
@@ -283,11 +285,13 @@ _FILTER_ATTRS = frozenset(
         "corrections", "weight_updates", "weight_requests", "resamples", "pending_obs", "obs_per_update",
     }
 )  # fmt: skip
-_SYSTEM_ATTRS = frozenset({"config", "grid", "landmarks", "filters", "seed", "processed"})
+_SYSTEM_ATTRS = frozenset({"config", "grid", "landmarks", "collectables", "filters", "seed", "processed"})
 _GRID_ATTRS = frozenset(
     {"spec", "map_particles", "rows", "cols", "clamp", "prow", "_lo", "_p", "_border", "updates", "_df", "_df_version"}
 )
 _LANDMARKS_ATTRS = frozenset({"window", "gate", "gated", "landmarks", "_n"})
+_COLLECTABLES_ATTRS = frozenset({"gate", "limit", "items", "next_id", "sightings", "full"})
+_COLLECTABLE_FIELDS = ("id", "sw", "swx", "swy", "n", "t_first", "t_last")
 
 
 def _check_attrs(obj: object, known: frozenset[str], what: str) -> None:
@@ -421,6 +425,7 @@ class SlamReplica:
         n = s.memory_bytes() + g._lo.nbytes + g._p.nbytes + (0 if g._df is None else g._df.nbytes)
         n += sum(pf._current.nbytes for pf in s.filters.values())
         n += sum(100 + 7 * 8 * len(lm.sources) for lm in s.landmarks.landmarks.values())
+        n += 120 * len(s.collectables)
         for cache in (self.config.sonar._cache, self.config.cooccupancy._cache):
             n += sum(t.points.nbytes + np.asarray(t.p).nbytes for t in cache.values())
         return n
@@ -432,10 +437,12 @@ class SlamReplica:
         _check_attrs(s, _SYSTEM_ATTRS, "SlamSystem")
         _check_attrs(s.grid, _GRID_ATTRS, "OccupancyGrid")
         _check_attrs(s.landmarks, _LANDMARKS_ATTRS, "LandmarkMap")
+        _check_attrs(s.collectables, _COLLECTABLES_ATTRS, "CollectableMap")
         components: dict[str, bytes] = {}
         g = s.grid
         components["grid"] = _pack({"updates": g.updates}, [("lo", g._lo), ("p", g._p)])
         components["landmarks"] = self._landmarks_blob()
+        components["collectables"] = self._collectables_blob()
         components["models"] = self._models_blob()
         for i, pf in enumerate(s.filters.values()):
             components[f"filter-{i}"] = self._filter_blob(pf)
@@ -523,6 +530,22 @@ class SlamReplica:
             ],
         )
 
+    def _collectables_blob(self) -> bytes:
+        cm = self.system.collectables
+        items = list(cm.items.values())
+        if any(set(vars(c)) != set(_COLLECTABLE_FIELDS) for c in items):
+            raise CheckpointError("Collectable: attributes the checkpoint does not know")
+        head = {"next_id": cm.next_id, "sightings": cm.sightings, "full": cm.full}
+        return _pack(
+            head,
+            [
+                ("ids", np.asarray([c.id for c in items], dtype=np.int64)),
+                ("n", np.asarray([c.n for c in items], dtype=np.int64)),
+                ("sums", np.asarray([[c.sw, c.swx, c.swy] for c in items], dtype=np.float64).reshape(-1, 3)),
+                ("times", np.asarray([[c.t_first, c.t_last] for c in items], dtype=np.float64).reshape(-1, 2)),
+            ],
+        )
+
     def _models_blob(self) -> bytes:
         def origins(cache: Mapping[Any, Any], width: int) -> np.ndarray:
             rows = []
@@ -574,6 +597,8 @@ class SlamReplica:
             s.grid._p[:] = arr["p"]
             s.grid.updates = int(head["updates"])
             rep._restore_landmarks(comps["landmarks"])
+            if "collectables" in comps:  # (a checkpoint written before the collectable map has none)
+                rep._restore_collectables(comps["collectables"])
             rep._restore_models(comps["models"])
             for i, a in enumerate(meta["avatars"]):
                 ev = _avatar_from_json(a)
@@ -640,6 +665,16 @@ class SlamReplica:
             key = (names[int(arr["src_avatar"][k])], int(arr["src_key"][k]))
             order[int(arr["src_lm"][k])].sources[key] = Contribution(*vals)
 
+    def _restore_collectables(self, data: bytes) -> None:
+        head, arr = _unpack(data, "collectables")
+        cm = self.system.collectables
+        cm.next_id, cm.sightings, cm.full = int(head["next_id"]), int(head["sightings"]), int(head["full"])
+        cm.items = {}
+        for k, cid in enumerate(arr["ids"]):
+            sw, swx, swy = (float(v) for v in arr["sums"][k])
+            t_first, t_last = (float(v) for v in arr["times"][k])
+            cm.items[int(cid)] = Collectable(int(cid), sw, swx, swy, int(arr["n"][k]), t_first, t_last)
+
     def _restore_models(self, data: bytes) -> None:
         _, arr = _unpack(data, "models")
         sonar, cooc = self.config.sonar, self.config.cooccupancy
@@ -683,6 +718,10 @@ class SlamReplica:
             put(lid, lm.mean, lm.cov, lm.sightings)
             for key, c in lm.sources.items():
                 put(key, dataclasses.astuple(c))
+        cm = s.collectables
+        put(cm.gate, cm.limit, cm.next_id, cm.sightings, cm.full)
+        for cid, col in cm.items.items():
+            put(cid, dataclasses.astuple(col))
         for cache in (self.config.sonar._cache, self.config.cooccupancy._cache):
             for key, tpl in cache.items():
                 put(key, tpl.points, np.asarray(tpl.p), tpl.origin)

@@ -14,6 +14,9 @@ densities.
   (AgentSensorCooccupancy): the disc under the avatar is free.
 * `FloorReading` — a floor region found in a camera image and already mapped to the ground plane (the
   FloorFinder's output): a polygon in the avatar frame whose inside is free.
+* `CollectablesReading` — the collectables (Forage) found in one camera image: (range, bearing) of each
+  one's centre, no id. It gives no density and no grid update: the team's collectable map
+  (haa.slam.collectables) places and identifies them with the avatar's estimated pose at the reading's time.
 
 Grid sensors use *belief templates*: a fixed set of sample points in the avatar frame, one per cell area
 (polar sampling for cones), each with a sensor model value p(s|C). Per reading the template is moved to
@@ -156,7 +159,35 @@ class FloorReading:
             raise ValueError(f"FloorReading.occupied: {len(self.occupied)} flags for {len(self.polygon)} vertices")
 
 
-Reading = SonarReading | LandmarkReading | CooccupancyReading | FloorReading
+@dataclass(frozen=True)
+class RangeBearing:
+    """Where something is seen from the avatar's centre: range (m), bearing (rad, relative to the heading)."""
+
+    range: float
+    bearing: float
+
+
+@dataclass(frozen=True)
+class CollectablesReading:
+    """The collectables found in one camera image (haa.control.collectables), processed as one reading."""
+
+    avatar: str
+    t: float
+    sightings: tuple[RangeBearing, ...]
+    kind: str = field(default="collectables", init=False)
+
+    def __post_init__(self) -> None:
+        _finite(self, "t")
+        for i, g in enumerate(self.sightings):
+            if not isinstance(g, RangeBearing):
+                raise ValueError(f"CollectablesReading.sightings[{i}]: must be a RangeBearing, got {type(g).__name__}")
+            if not (math.isfinite(g.range) and g.range > 0):
+                raise ValueError(f"CollectablesReading.sightings[{i}].range: must be > 0, got {g.range}")
+            if not math.isfinite(g.bearing):
+                raise ValueError(f"CollectablesReading.sightings[{i}].bearing: must be finite, got {g.bearing}")
+
+
+Reading = SonarReading | LandmarkReading | CooccupancyReading | FloorReading | CollectablesReading
 
 
 @dataclass

@@ -8,6 +8,8 @@
   history, the sensor model gives log g per particle against the current map (event (c)) and then updates
   the map at each particle, adjusted by the weights last computed for that block (§5.1.4; weights are not
   recomputed just for a map update — that is what Strategy 1 saves);
+* `process(CollectablesReading)` — no density and no map update: the sightings are placed with the particles
+  at the reading's time and identified in the collectable map (`collectables`, haa.slam.collectables);
 * `request(name)` — a weight request: event (d) at the newest time, then event (e) if n_eff dropped below
   `resample_threshold · N`.
 
@@ -22,10 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from haa.slam.collectables import GATE, CollectableMap
 from haa.slam.filter import Estimate, ParticleFilter
 from haa.slam.grid import GridSpec, OccupancyGrid
 from haa.slam.motion import Prediction
+from haa.slam.resample import normalize_log
 from haa.slam.sensors import (
+    CollectablesReading,
     CooccupancyModel,
     CooccupancyReading,
     FloorModel,
@@ -59,12 +64,17 @@ class SlamConfig:
     #: off); 13.82 = the 99.9 % quantile. With honest covariances a sighting beyond it comes from a lost
     #: avatar (its density is still applied: it is what re-localizes the avatar)
     landmark_gate: float | None = 13.82
+    #: m: a collectable sighting within this distance of an identified collectable's estimate is that one
+    #: (the nearest), else a new one — half the arenas' minimum collectable spacing (haa.slam.collectables)
+    collectable_gate: float = GATE
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:
             raise ValueError(f"n_particles: must be >= 1, got {self.n_particles}")
         if not 0 < self.resample_threshold <= 1:
             raise ValueError(f"resample_threshold: must be in (0, 1], got {self.resample_threshold}")
+        if not (math.isfinite(self.collectable_gate) and self.collectable_gate > 0):
+            raise ValueError(f"collectable_gate: must be a finite distance > 0 m, got {self.collectable_gate}")
 
 
 @dataclass
@@ -87,6 +97,7 @@ class SlamSystem:
         for m in (self.config.sonar, self.config.cooccupancy, self.config.floor):
             m.resolution = grid.resolution
         self.landmarks = LandmarkMap(self.config.landmark_window, self.config.landmark_gate)
+        self.collectables = CollectableMap(self.config.collectable_gate)
         self.filters: dict[str, ParticleFilter] = {}
         self.seed = seed
         self.processed: dict[str, int] = {}
@@ -135,6 +146,12 @@ class SlamSystem:
             log_g = self.config.cooccupancy.apply(r, states, w, self.grid)
         elif isinstance(r, FloorReading):
             log_g = self.config.floor.apply(r, states, w, self.grid)
+        elif isinstance(r, CollectablesReading):
+            if np.any(block.log_acc):  # the densities applied to the block so far, folded into a temporary
+                with np.errstate(divide="ignore"):
+                    w = normalize_log(np.log(w) + block.log_acc)
+            self.collectables.apply(r, states, w)
+            log_g = None
         else:
             raise TypeError(f"reading: unknown type {type(r).__name__}")
         if log_g is not None:
