@@ -557,3 +557,20 @@ def test_the_avatar_agent_tells_a_crash_from_a_graceful_leave_by_haa_sims_words(
     assert left_how("avatar s1 retired") == left_how("haa-sim is stopping") == left_how(None) == "retired"
     assert team.capacity({"type": "carrier"}) == 1 and team.capacity({"type": "seeker"}) == 0
     assert team.capacity({"type": "seeker", "capacity": 2}) == 2 and team.capacity({"type": "robot"}) == 0
+
+
+def test_a_transfer_keeps_the_step_and_sends_nothing_again() -> None:
+    async def main() -> None:
+        bus = Bus()
+        sup, w1 = await carried(bus)
+        n = len(w1.msgs)
+        state = sup.pack_state()
+        bus.down("F1")
+        moved = bus.start(SupervisorForage, "F1", forage_cfg())
+        moved.unpack_state(state)
+        await moved.on_resume("thaw")
+        await bus.settle()
+        assert (moved.phase, moved.held, moved.controlled) == ("carry", "w1", {"w1": "av-w1"})
+        assert len(w1.msgs) == n and bus.states[-1]["state"] == "carried"
+
+    run(main())
