@@ -123,6 +123,12 @@ def jpeg_frame(f: spb.CameraFrame) -> spb.CameraFrame:
     return out
 
 
+def left_how(details: str | None) -> str:
+    """"crashed" if haa-sim's UNAVAILABLE details say the avatar crashed ("avatar s2 crashed"), else "retired"
+    (a graceful leave, or haa-sim stopping)."""
+    return "crashed" if "crashed" in (details or "") else "retired"
+
+
 def to_map(t_est: Pose, t_odo: Pose, p: Pose) -> Pose:
     """Odometry-frame pose -> map frame, with the estimate `t_est` and the odometry `t_odo` at one instant."""
     d = t_est[2] - t_odo[2]
@@ -173,6 +179,12 @@ class AvatarSimulation(team.TeamAgent):
         self.settled_tid: Any = None
         self.path: list[list[float]] = []
         self.retired = False
+        #: Forage: the team's ids of the collectables it carries (from the supervisor's pick_up commands), and
+        #: its last drop {"item", "x", "y", "t"} (map frame, its own estimate) — in the registry entry, so a
+        #: recovered SupervisorForage learns what happened while it was down
+        self.cargo: list[int] = []
+        self.last_drop: dict[str, Any] | None = None
+        self.action_task: asyncio.Task[Any] | None = None
         self.delay_waits = 0  # SLAM mode "delay": legs started after waiting for readings, and the time waited
         self.delay_s = 0.0
         self.flushing = False
@@ -183,7 +195,8 @@ class AvatarSimulation(team.TeamAgent):
 
     def pack_backup(self) -> bytes:
         """The backup: planner, target and reading number (frames are not backed up: a crash loses them)."""
-        return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings})
+        return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings,
+                           "cargo": self.cargo, "last_drop": self.last_drop})
 
     def pack_state(self) -> bytes:
         """The transfer state: the backup's fields and the frames still waiting for their processings, newest
@@ -206,6 +219,8 @@ class AvatarSimulation(team.TeamAgent):
         self.planner = st.get("planner", "")
         self.target = st.get("target")
         self.n_readings = int(st.get("n", 0))
+        self.cargo = [int(c) for c in st.get("cargo", [])]
+        self.last_drop = st.get("last_drop")
         for n, b64 in reversed(st.get("frames", [])):
             f = spb.CameraFrame()
             f.ParseFromString(base64.b64decode(b64))
@@ -230,12 +245,12 @@ class AvatarSimulation(team.TeamAgent):
             )
         except grpc.aio.AioRpcError as e:
             if e.code() == grpc.StatusCode.UNAVAILABLE or "retired" in (e.details() or ""):
-                await self._retired(f"cannot register: {e.details()}")
+                await self._retired(f"cannot register: {e.details()}", left_how(e.details()))
                 return
             raise
         self.info = reply.avatar
         if self.info.status != "active":
-            await self._retired(f"avatar is {self.info.status}")
+            await self._retired(f"avatar is {self.info.status}", left_how(self.info.status))
             return
         anchor = await self._read_anchor()
         if fresh or anchor is None:
@@ -243,13 +258,13 @@ class AvatarSimulation(team.TeamAgent):
             sp = self.info.start_pose
             ev = sev.AddAvatar(self.name_, self.cfg.type, (sp.x, sp.y, sp.theta), float(self.info.joined),
                                 d, float(self.info.radius))
-            reg = {"agent": self.id, "type": self.cfg.type, "status": "active", "t": self.now()}
+            reg = self._registration("active")
             await self.ddb_write([ddbops.log_append(team.K_SLAM_LOG, [sev.encode(ev)]),
                                   team.op_put_json(team.K_AVATARS + self.name_, reg)], atomic=True)
             if self.anchor is None:
                 self.anchor = (float(self.info.joined), (sp.x, sp.y, sp.theta))
         else:
-            reg = {"agent": self.id, "type": self.cfg.type, "status": "active", "t": self.now()}
+            reg = self._registration("active")
             await team.put_json(self, team.K_AVATARS + self.name_, reg)
         if fresh:
             await team.transcript(self, f"avatar {self.name_} ({self.cfg.type}) registered")
@@ -285,6 +300,13 @@ class AvatarSimulation(team.TeamAgent):
             await team.transcript(self, f"resumed after a crash: predictions from t={t:.2f} (the committed anchor), "
                                         f"readings from #{self.n_readings + 1}, {tgt}")
 
+    def _registration(self, status: str) -> dict[str, Any]:
+        """The registry entry `avatars/<avatar>`: agent id, type, status, and for Forage the capacity (from
+        its hardware, haa-sim's AvatarInfo), what it carries and its last drop."""
+        cap = int(self.info.capacity) if self.info is not None else team.CAPACITY.get(self.cfg.type, 0)
+        return {"agent": self.id, "type": self.cfg.type, "status": status, "t": self.now(), "capacity": cap,
+                "cargo": list(self.cargo), "last_drop": self.last_drop}
+
     async def _read_anchor(self) -> dict[str, Any] | None:
         """The committed anchor (time, odometry pose, last reading number) into `anchor` / `n_readings`."""
         anchor = await team.get_json(self, f"slam/anchor/{self.name_}")
@@ -306,7 +328,8 @@ class AvatarSimulation(team.TeamAgent):
             raise
         except grpc.aio.AioRpcError as e:
             if e.code() == grpc.StatusCode.UNAVAILABLE:
-                self.call_later(0, lambda: self._retired("odometry stream ended (UNAVAILABLE)"))
+                how = left_how(e.details())
+                self.call_later(0, lambda: self._retired("odometry stream ended (UNAVAILABLE)", how))
             else:
                 self.log("odometry_error", level="warning", error=str(e))
 
@@ -436,7 +459,7 @@ class AvatarSimulation(team.TeamAgent):
                                                metadata=self.link.metadata)
         except grpc.aio.AioRpcError as e:
             if e.code() == grpc.StatusCode.UNAVAILABLE:
-                await self._retired("camera unavailable")
+                await self._retired("camera unavailable", left_how(e.details()))
             return
         # the frame's own odometry stamps the history, so the predictions can cover its time exactly
         if not self.odo or f.time > self.odo[-1][0]:
@@ -517,6 +540,11 @@ class AvatarSimulation(team.TeamAgent):
             self.backup()
             self._stop_driving()
             self._send_planner({"op": "goto", **self.target})
+        elif op in ("pick_up", "drop"):  # Forage (SupervisorForage): one collection action at a time
+            self._stop_driving()
+            if self.action_task is None or self.action_task.done():
+                self.action_task = asyncio.ensure_future(self._collect(src, msg))
+                self.tasks.append(self.action_task)
         elif op == "halt":
             self.target = None
             self._stop_driving()
@@ -627,20 +655,61 @@ class AvatarSimulation(team.TeamAgent):
             raise
         except grpc.aio.AioRpcError as e:
             if e.code() == grpc.StatusCode.UNAVAILABLE:
-                self.call_later(0, lambda: self._retired("actions unavailable"))
+                how = left_how(e.details())
+                self.call_later(0, lambda: self._retired("actions unavailable", how))
             else:
                 self.log("drive_error", level="warning", error=str(e))
 
+    async def _collect(self, src: str, msg: dict[str, Any]) -> None:
+        """A pick_up or drop action for SupervisorForage (App. III: "Assign target and collection actions" /
+        "Send action updates"): the outcome updates `cargo` / `last_drop` in the registry (committed before
+        the answer), then {"op": "picked"|"dropped", "avatar", "tid", "item", "ok", "reason", "pose"} goes
+        to the supervisor. A pick_up takes the nearest collectable in reach: the team's id is the supervisor's
+        (haa-sim's own ids are not the team's business)."""
+        assert self.link is not None
+        op, item = str(msg["op"]), int(msg.get("item", -1))
+        if op == "pick_up":
+            req = spb.ActionRequest(avatar_id=self.name_, pick_up=spb.PickUp(), progress_period=0.5)
+        else:
+            req = spb.ActionRequest(avatar_id=self.name_, drop=spb.Drop(), progress_period=0.5)
+        last = None
+        try:
+            async for u in self.link.avatar.Act(req, metadata=self.link.metadata):
+                last = u
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE:
+                how = left_how(e.details())
+                self.call_later(0, lambda: self._retired("actions unavailable", how))
+                return
+            last = None
+        ok = last is not None and last.status == spb.ACTION_STATUS_SUCCEEDED
+        reason = "" if ok else (last.reason if last is not None else "no outcome")
+        pose = self._pose_map()
+        if ok and op == "pick_up":
+            self.cargo.append(item)
+        elif ok:
+            self.cargo = [c for c in self.cargo if c != item]
+            self.last_drop = {"item": item, "x": pose.get("x"), "y": pose.get("y"),
+                              "theta": pose.get("theta"), "t": round(self.now(), 3)}
+        if ok:
+            self.backup()
+            await team.put_json(self, team.K_AVATARS + self.name_, self._registration("active"))
+        self.send(src, team.dumps({"op": "picked" if op == "pick_up" else "dropped", "avatar": self.name_,
+                                   "tid": msg.get("tid"), "item": item, "ok": ok, "reason": reason,
+                                   "pose": pose}))
+
     # ------------------------------------------------------------------ retirement
 
-    async def _retired(self, why: str) -> None:
+    async def _retired(self, why: str, how: str = "retired") -> None:
         if self.retired:
             return
         self.retired = True
         self._stop_driving()
         for t in self.tasks:
             t.cancel()
-        reg = {"agent": self.id, "type": self.cfg.type, "status": "retired", "t": self.now(), "why": why}
+        # Forage: how it left ("retired": haa-sim put its cargo down where it stood; "crashed": it keeps it) and
+        # where it was by its own estimate (SupervisorForage fetches a put-down collectable from there)
+        reg = {**self._registration("retired"), "why": why, "how": how, "pose": self._pose_map()}
         ops = [team.op_put_json(team.K_AVATARS + self.name_, reg),
                ddbops.log_append(team.K_SLAM_LOG, [sev.encode(sev.RemoveAvatar(self.name_))])]
         try:

@@ -78,6 +78,8 @@ def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
         "landmark_ids": sorted(arena.landmarks), "congregation_id": arena.congregation_id,
         "radius": max(s.radius for s in specs),
         "camera_range": max(CAMERAS[s.camera].max_range for s in specs),
+        # Forage: the predefined collection regions (SupervisorForage's `regions`)
+        "collection_regions": {rid: [[float(x), float(y)] for x, y in poly] for rid, poly in arena.regions.items()},
     }
 
 

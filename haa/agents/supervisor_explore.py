@@ -7,7 +7,9 @@ reachable cells, one region and one target per avatar; docs/control.md); `explor
 mission file selects coordinated frontier exploration instead (haa.control.frontier, Burgard et al. 2005).
 
 * Bidding: "SupervisorExplore by default places a low priority bid and gains control of each avatar"
-  (L1510): priority `team.BID_EXPLORE` on every active avatar (haa.agents.team.SupervisorBase).
+  (L1510): priority `team.BID_EXPLORE` on every active avatar (haa.agents.team.SupervisorBase) but carriers:
+  a carrier is never used to explore (Table 6.2-2, L1243: "The Carrier's function is to retrieve
+  collectables"; `wants`).
 * Cadence (thesis gap 7, ours): targets are computed again every `replan_s` simulated seconds for the
   avatars that are idle (no target, reached, unreachable) or whose target has been explored meanwhile, and
   for every avatar every `refresh_s`; at once when the controlled set changes. A target reported
@@ -83,6 +85,11 @@ class SupervisorExplore(team.SupervisorBase):
 
     def priority(self, avatar: str) -> float:
         return team.BID_EXPLORE
+
+    def wants(self, avatar: str) -> bool:
+        """Not a carrier (Table 6.2-2: "The Carrier's function is to retrieve collectables"): seekers and
+        sweepers explore."""
+        return self.registry.get(avatar, {}).get("type") != "carrier"
 
     def pack_state(self) -> bytes:
         st = json.loads(super().pack_state())

@@ -23,6 +23,7 @@ import asyncio
 import concurrent.futures
 import functools
 import json
+import math
 import time
 from collections.abc import Callable
 from types import SimpleNamespace
@@ -59,9 +60,35 @@ K_FORAGE_STATE = "forage/state/"
 K_TARGETS = "targets/"
 K_STATS = "stats/"
 
-#: bid priorities (docs/team.md "Bid scale")
+#: bid priorities (docs/team.md "Bid scale"): SupervisorExplore's low default, SupervisorCongregate's "all
+#: avatars"; SupervisorForage bids BID_FORAGE_BASE + BID_FORAGE_RANGE / (1 + d) (d: the weighted path length in
+#: metres from the avatar's estimate to the collectable's, `forage_priority`) while it looks for an avatar,
+#: and BID_FORAGE_HOLD on the one it holds — above every forage bid (no other SupervisorForage takes it away),
+#: below SupervisorCongregate's
 BID_EXPLORE = 1.0
+BID_FORAGE_BASE = 2.0
+BID_FORAGE_RANGE = 6.0
+BID_FORAGE_HOLD = 9.0
 BID_CONGREGATE = 10.0
+
+#: collectables an avatar type carries at once (Table 6.2-3), for a registry entry without `capacity`
+CAPACITY = {"seeker": 0, "enhanced_seeker": 0, "sweeper": 1, "carrier": 1}
+
+
+def forage_priority(d: float | None) -> float:
+    """SupervisorForage's bid for an avatar `d` metres (path) from its collectable; None/inf: unknown."""
+    if d is None or not math.isfinite(d):
+        return BID_FORAGE_BASE
+    return BID_FORAGE_BASE + BID_FORAGE_RANGE / (1.0 + max(0.0, d))
+
+
+def capacity(reg: dict[str, Any]) -> int:
+    """How many collectables the avatar of registry entry `reg` carries at once: what it registered
+    (`capacity`, from its hardware: haa-sim's AvatarInfo), else its type's (CAPACITY; unknown type: 0)."""
+    c = reg.get("capacity")
+    if isinstance(c, int | float) and not isinstance(c, bool):
+        return int(c)
+    return CAPACITY.get(str(reg.get("type", "")), 0)
 
 #: transcript lines kept in `mission/events` (older ones are trimmed by ExecutiveMission)
 EVENTS_KEEP = 2000
@@ -220,6 +247,14 @@ class SupervisorBase(TeamAgent):
     def priority(self, avatar: str) -> float:
         raise NotImplementedError
 
+    def wants(self, avatar: str) -> bool:
+        """Whether to bid on `avatar` (active, and bidding at all, are checked besides). Default: every one."""
+        return True
+
+    def _bid_op(self, a: str) -> Any:
+        return op_put_json(f"{K_BIDS}{a}/{self.id}", {"priority": self.priority(a), "task": self.TASK,
+                                                      "t": round(self.now(), 3)})
+
     async def on_avatars_changed(self) -> None:
         """The controlled set changed."""
 
@@ -235,9 +270,8 @@ class SupervisorBase(TeamAgent):
     async def _bid_all(self) -> None:
         ops = []
         for a, reg in self.registry.items():
-            if reg.get("status") == "active" and self.bidding:
-                ops.append(op_put_json(f"{K_BIDS}{a}/{self.id}",
-                                       {"priority": self.priority(a), "task": self.TASK, "t": round(self.now(), 3)}))
+            if reg.get("status") == "active" and self.bidding and self.wants(a):
+                ops.append(self._bid_op(a))
         if ops:
             await self.ddb_write(ops)
 
@@ -276,10 +310,8 @@ class SupervisorBase(TeamAgent):
         else:
             self.registry[a] = json.loads(value)
         reg = self.registry.get(a)
-        if reg and reg.get("status") == "active" and self.bidding:
-            await self.ddb_write([op_put_json(f"{K_BIDS}{a}/{self.id}",
-                                              {"priority": self.priority(a), "task": self.TASK,
-                                               "t": round(self.now(), 3)})])
+        if reg and reg.get("status") == "active" and self.bidding and self.wants(a):
+            await self.ddb_write([self._bid_op(a)])
         elif reg is not None or kind == "remove":
             await self.ddb_write([ddbops.delete(f"{K_BIDS}{a}/{self.id}")])
         await self._load_assignments()
