@@ -39,6 +39,7 @@ TYPE_NAMES = {
     "supervisor_explore": "SupervisorExplore",
     "supervisor_slam": "SupervisorSLAM",
     "supervisor_congregate": "SupervisorCongregate",
+    "supervisor_forage": "SupervisorForage",
     "avatar_simulation": "AvatarSimulation",
     "path_planner": "AgentPathPlanner",
     "sensor_landmark": "AgentSensorLandmark",

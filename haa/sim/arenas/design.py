@@ -1,4 +1,5 @@
-"""The designs of the thesis' two arenas; `python -m haa.sim.arenas.design` rewrites small.yaml and large.yaml.
+"""The designs of the thesis' two arenas and of a small forage arena for CI; `python -m haa.sim.arenas.design`
+rewrites small.yaml, large.yaml and small-forage.yaml.
 
 The thesis gives the arenas only as figures (Fig. 6.2-1, 6.2-2) and these numbers (§6.2.1):
 
@@ -13,6 +14,11 @@ north wall between two collection regions, three along the south wall between th
 third region; 36 markers on the outer walls (every 2 m), 8 on each lattice block, one on each small block,
 plus one; 20 collectables drawn (seed 6) from free floor with 0.5 m of clearance, outside regions and the
 start area. docs/sim.md has the pictures (`haactl sim show small|large`).
+
+small-forage (ours, not the thesis'; a file, not a built-in name: missions name it by path) is the small arena
+with the congregation post taken out and AF-3's forage parts added at a scale a CI mission can finish in a few
+minutes: 3 collectables (2.3-2.8 m apart, >= 0.6 m from any obstacle or wall) and one collection region in the
+north-east corner (1.3 x 1.1 m, where the post stood).
 """
 
 from __future__ import annotations
@@ -89,6 +95,18 @@ def small() -> dict[str, Any]:
         "congregation": {"id": 200, "pos": [2.4, 6.0], "size": 0.27},
         "start_poses": [[_r(a) for a in p] for p in starts],
     }
+
+
+def small_forage() -> dict[str, Any]:
+    spec = small()
+    del spec["congregation"]
+    spec["name"] = "small-forage"
+    spec["description"] = ("The small arena without its congregation point, with 3 collectables and one collection "
+                           "region (a CI forage arena, ours; haa/sim/arenas/design.py)")
+    spec["collectables"] = [{"id": "c1", "pos": [2.4, 1.9]}, {"id": "c2", "pos": [0.6, 3.4]},
+                            {"id": "c3", "pos": [2.6, 4.9]}]
+    spec["collection_regions"] = [_box("region-ne", 2.75, 6.65, 1.3, 1.1)]
+    return spec
 
 
 def large() -> dict[str, Any]:
@@ -172,7 +190,8 @@ def render_yaml(spec: dict[str, Any]) -> str:
 
 
 def designs() -> dict[str, str]:
-    return {"small": render_yaml(small()), "large": render_yaml(large())}
+    return {"small": render_yaml(small()), "large": render_yaml(large()),
+            "small-forage": render_yaml(small_forage())}
 
 
 def main() -> None:
