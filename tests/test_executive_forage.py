@@ -118,7 +118,7 @@ def test_one_supervisor_forage_per_identified_collectable_one_per_check_with_the
         for _, cfg, key, child in table.of_type("supervisor_forage"):
             assert key == f"forage/{cfg['collectable']}"
             assert {r: [[round(x, 6), round(y, 6)] for x, y in poly] for r, poly in cfg["regions"].items()} == {
-                "region-ne": [[2.1, 6.1], [3.4, 6.1], [3.4, 7.2], [2.1, 7.2]]}
+                "region-ne": [[1.8, 5.8], [3.4, 5.8], [3.4, 7.2], [1.8, 7.2]]}
             assert cfg["avatar_radius"] == 0.2  # the sweeper's and the carrier's
             assert ex.children[f"supervisor_forage/{cfg['collectable']}"] == child
         assert status(bus)["forage"] == {"identified": 3, "deposited": 0, "lost": 0, "open": 3}
@@ -260,3 +260,16 @@ def test_forage_results_and_the_retirement_lines_from_the_team_state_and_the_age
         "02:32 A1.4 (SupervisorForage) retired: collectable 1 deposited, after 02:00",
         "03:12 A1.5 (SupervisorForage) retired: collectable 2 lost, after 02:20"]
     assert json.dumps(r)  # results.json takes it as it is
+
+
+def test_a_removed_supervisor_forage_is_named_as_it_was_spawned_in_the_transcript() -> None:
+    """A host reports a removal after the agent left its table, naming it by its id's first part: the line uses
+    the display name its earlier events gave."""
+    clock = tr.ClockMap(1.0)
+    clock.add(0.0, 0.0)
+    aid = "cabd7789-0ce8-4a9e-9c1b-86085fa31e92"
+    events = [{"time": 1.0, "agent": aid, "name": "A1.5", "event": "created", "host": "h1",
+               "detail": "supervisor_forage"},
+              {"time": 9.0, "agent": aid, "name": "cabd7789", "event": "removed", "host": "h1", "detail": ""}]
+    assert [ln.text for ln in tr.host_agent_lines(events, clock)] == [
+        "A1.5 (SupervisorForage) requested by A1", "A1.5 (SupervisorForage) removed"]

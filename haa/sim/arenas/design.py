@@ -16,9 +16,12 @@ plus one; 20 collectables drawn (seed 6) from free floor with 0.5 m of clearance
 start area. docs/sim.md has the pictures (`haactl sim show small|large`).
 
 small-forage (ours, not the thesis'; a file, not a built-in name: missions name it by path) is the small arena
-with the congregation post taken out and AF-3's forage parts added at a scale a CI mission can finish in a few
-minutes: 3 collectables (2.3-2.8 m apart, >= 0.6 m from any obstacle or wall) and one collection region in the
-north-east corner (1.3 x 1.1 m, where the post stood).
+with the congregation post and panel-a (and its 4 markers) taken out — a sweeper or carrier (0.20 m) cannot
+pass panel-a's gaps once the map has the floor finder's marks in front of it — and AF-3's forage parts added at
+a scale a CI mission can finish in a few minutes: 3 collectables (2.3-2.8 m apart, >= 0.6 m from any obstacle
+or wall) and one collection region of 1.6 x 1.4 m in the north-east corner, where the post stood (with a 1.3 x 1.1 m
+one — 3 drop points 0.5 m inside it — a carrier carried its collectable through the last 4.5 minutes of a run
+without delivering it).
 """
 
 from __future__ import annotations
@@ -100,12 +103,17 @@ def small() -> dict[str, Any]:
 def small_forage() -> dict[str, Any]:
     spec = small()
     del spec["congregation"]
+    # panel-a goes, with its 4 markers (ids 22-25; the others keep theirs): its gaps to the west wall (0.6 m)
+    # and to box-a leave a sweeper or carrier (0.20 m + the planner's 0.08 m margin on each side) no passage
+    # once the floor finder's marks in front of it are in the map, and the south bay would be shut off
+    spec["obstacles"] = [o for o in spec["obstacles"] if o["id"] != "panel-a"]
+    spec["landmarks"] = [m for m in spec["landmarks"] if not (0.8 < m["pos"][0] < 1.6 and 2.1 < m["pos"][1] < 2.3)]
     spec["name"] = "small-forage"
     spec["description"] = ("The small arena without its congregation point, with 3 collectables and one collection "
                            "region (a CI forage arena, ours; haa/sim/arenas/design.py)")
     spec["collectables"] = [{"id": "c1", "pos": [2.4, 1.9]}, {"id": "c2", "pos": [0.6, 3.4]},
                             {"id": "c3", "pos": [2.6, 4.9]}]
-    spec["collection_regions"] = [_box("region-ne", 2.75, 6.65, 1.3, 1.1)]
+    spec["collection_regions"] = [_box("region-ne", 2.6, 6.5, 1.6, 1.4)]
     return spec
 
 
