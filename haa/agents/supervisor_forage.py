@@ -359,7 +359,26 @@ class SupervisorForage(team.SupervisorBase):
         reg = self.registry.get(self.held)
         if reg is None or reg.get("status") != "active":
             await self._check_avatar()
-        # else: outbid (SupervisorCongregate): the claim and the hold bid stay; the step goes on when it is back
+            return
+        # outbid. By SupervisorCongregate: the claim and the hold bid stay; the step goes on when it is back. By
+        # another SupervisorForage's hold bid: both claimed it (each won it before the other's hold bid was in:
+        # ExecutiveAvatar decides per avatar from the bids it has), and the tie of two hold bids goes to the lower
+        # supervisor id for good — the other one releases it and bids anew, else it would wait forever
+        await self._yield_to_holder()
+
+    async def _yield_to_holder(self) -> None:
+        """Release the held avatar if `assign/<avatar>` gives it to another SupervisorForage's hold bid that wins
+        the tie for good (on_avatars_changed)."""
+        a = self.held
+        if a is None or a in self.controlled:
+            return
+        st = await team.get_json(self, team.K_ASSIGN + a)
+        if not (isinstance(st, dict) and st.get("task") == self.TASK and str(st.get("supervisor")) < self.id):
+            return
+        # its bid, not the assignment's priority (written when the winner changes, not when its bid rises)
+        bid = await team.get_json(self, f"{team.K_BIDS}{a}/{st['supervisor']}")
+        if isinstance(bid, dict) and float(bid.get("priority", 0)) >= team.BID_FORAGE_HOLD:
+            await self._release(f"{a} is held by another SupervisorForage")
 
     async def _claim(self, avatar: str) -> None:
         self.held, self.phase, self.attempts, self.since = avatar, "fetch", 0, self.now()
@@ -610,8 +629,20 @@ class SupervisorForage(team.SupervisorBase):
         ests = await team.get_json(self, team.K_SLAM_ESTIMATES, {}) or {}
         for a, e in ests.items():
             self.last_seen[a] = (float(e["x"]), float(e["y"]))
-        if self.held is None or self.held not in self.controlled:
+        if self.held is None:
             return
+        if self.held not in self.controlled:
+            if (self.registry.get(self.held) or {}).get("status") == "active":
+                await self._yield_to_holder()
+            return
+        if self.phase in ("fetch", "carry") and self.held in self.targets:
+            # the avatar's target is another supervisor's (it sent one while it briefly controlled the avatar, as
+            # two SupervisorForage that both claimed it do): the avatar drives that one, or nothing, and never
+            # answers ours — send ours again
+            cur = await team.get_json(self, team.K_TARGETS + self.held)
+            if isinstance(cur, dict) and cur.get("supervisor") not in (None, self.id):
+                self.log("forage_target_replaced", level="warning", avatar=self.held, by=cur.get("supervisor"))
+                self.targets.pop(self.held, None)
         if self.phase in ("fetch", "carry") and self.held not in self.targets:
             await self._send_step()
         elif self.phase in ("pick", "drop") and self.now() - self.since > self.cfg.action_timeout_s:
