@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 from types import SimpleNamespace
 from typing import Any
 
@@ -440,6 +441,29 @@ def test_the_full_sequence_seen_claimed_carried_deposited_then_it_retires() -> N
         assert "F1" not in bus.bids().get("w1", {}) and bus.get(team.K_ASSIGN + "w1") is None
         done = next(ops for ops, atomic in bus.writes if any(b'"deposited"' in op_value(o) for o in ops))
         assert next(atomic for ops, atomic in bus.writes if ops is done) and "bids/w1/F1" in {op_key(o) for o in done}
+
+    run(main())
+
+
+def test_the_drop_point_keeps_clear_of_an_avatar_parked_in_the_region() -> None:
+    """An idle avatar standing in the region (one that has just dropped there) would shut the nearest drop
+    points: the planner answers each "unreachable" and the carrying avatar stood still (a CI forage mission)."""
+
+    async def main() -> None:
+        bus = Bus()
+        w1 = FakeAvatar(bus, "w1")
+        w1.register()
+        world(bus, {1: (5.0, 2.0)}, {"w1": (6.0, 2.0), "k9": (8.6, 1.4)})
+        ea = bus.start(ExecutiveAvatar, "EA", {})
+        sup = bus.start(SupervisorForage, "F1", forage_cfg())
+        await started(bus, ea, sup)
+        w1.reply("reached")
+        await bus.settle()
+        w1.picked(1)
+        await bus.settle()
+        t = w1.last("target")
+        assert sup.phase == "carry" and inside((t["x"], t["y"]), REGIONS["E"])
+        assert math.dist((t["x"], t["y"]), (8.6, 1.4)) >= 2 * 0.2 + 0.1 - 1e-9
 
     run(main())
 

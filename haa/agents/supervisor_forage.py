@@ -511,9 +511,17 @@ class SupervisorForage(team.SupervisorBase):
         if field is not None and not np.isfinite(field).any():
             field = None
         best: tuple[float, list[Any]] | None = None
+        # other avatars where the team last saw them: an idle one parked in a region (one that has just dropped
+        # there) shuts every drop point within its radius plus the planner's inflation, and the planner answers
+        # each of them "unreachable" (the carrying avatar then stood still to the end of a CI mission)
+        others = [q for b, q in self.last_seen.items() if b != a]
+        near = 2 * self.cfg.avatar_radius + 0.1
+        skip_near = bool(others) and not self._all_near(others, near)
         for rid, poly in sorted(self.cfg.regions.items()):
             for p in drop_candidates(poly, self.cfg.region_margin):
                 if any(math.dist(p, b) < 0.3 for b in self.blocked):
+                    continue
+                if skip_near and any(math.dist(p, q) < near for q in others):
                     continue
                 c = None
                 if cm is not None and field is not None:
@@ -528,6 +536,11 @@ class SupervisorForage(team.SupervisorBase):
             self.blocked = []
             return await self._drop_point()
         return best[1] if best else None
+
+    def _all_near(self, others: list[XY], near: float) -> bool:
+        """Whether every drop point of every region is within `near` of another avatar (then none is skipped)."""
+        return all(any(math.dist(p, q) < near for q in others)
+                   for poly in self.cfg.regions.values() for p in drop_candidates(poly, self.cfg.region_margin))
 
     async def _carry(self) -> None:
         self.phase, self.since, self.attempts, self.drop_at = "carry", self.now(), 0, None
