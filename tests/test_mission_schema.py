@@ -18,7 +18,7 @@ MISSIONS = ROOT / "missions"
 
 ISSUE_EXAMPLE = """
 name: af1
-scenario: explore              # explore | congregate   (forage comes later)
+scenario: explore              # explore | congregate | forage
 arena: small                   # small | large | a path to an arena YAML in the schema of haa/sim/arenas/
 seed: 1
 slam: jc-slam                  # jc-slam | discard | delay   (Table 7.2-4)
@@ -66,11 +66,11 @@ def test_issue_example_works_as_written(tmp_path):
     ]
 
 
-@pytest.mark.parametrize("name", ["af1", "af2", "quick"])
+@pytest.mark.parametrize("name", ["af1", "af2", "quick", "forage-small"])
 def test_shipped_missions_load(name):
     m = load_mission(MISSIONS / f"{name}.yaml")
     assert m.spec.name == name
-    assert m.arena.name == "small"
+    assert m.arena.name == ("small-forage" if name == "forage-small" else "small")
     # the avatar schedule is one the simulator accepts
     assert check_schedule(m.sim_schedule(), len(m.arena.start_poses)) is None
 
@@ -188,7 +188,10 @@ DELETE = object()
 
 BAD = [
     # (mutation, field path in the error, words of the reason)
-    (_set("scenario", "forage"), "scenario", "'explore' or 'congregate'"),
+    (_set("scenario", "gather"), "scenario", "'explore', 'congregate' or 'forage'"),
+    (_set("scenario", "forage"), "scenario",
+     "forage needs an arena with collectables and collection regions; arena 'small' has no collectables and no "
+     "collection regions"),
     (_set("scenario", DELETE), "scenario", "required field is missing"),
     (_set("name", DELETE), "name", "required"),
     (_set("name", ""), "name", "at least 1"),
@@ -296,6 +299,58 @@ def test_congregate_needs_a_congregation_point(tmp_path):
     d.update(scenario="congregate", arena="plain.yaml")
     with pytest.raises(MissionError, match=r"scenario: congregate needs an arena with a congregation point"):
         load_mission(write(tmp_path, d))
+
+
+FORAGE = """
+name: f
+scenario: forage
+arena: ARENA
+complete: {explored: 0.7, time_limit_s: 300}
+hosts: {start: 3}
+avatars:
+  - {name: s1, type: seeker, pose: [0.5, 0.5, 1.5708]}
+  - {name: w1, type: sweeper, pose: [1.7, 0.5, 1.5708]}
+  - {name: k1, type: carrier, pose: [2.9, 0.5, 1.5708]}
+"""
+FORAGE_ARENA = ROOT / "haa" / "sim" / "arenas" / "small-forage.yaml"
+
+
+def forage_base() -> dict:
+    return yaml.safe_load(FORAGE.replace("ARENA", str(FORAGE_ARENA)))
+
+
+def test_a_forage_mission_names_an_arena_with_collectables_and_a_mixed_team(tmp_path):
+    m = load_mission(write(tmp_path, forage_base()))
+    assert m.spec.scenario == "forage"
+    assert len(m.arena.collectables) == 3 and list(m.arena.regions) == ["region-ne"]
+    assert {a.type for a in m.spec.avatars} == {"seeker", "sweeper", "carrier"}
+
+
+def _no_regions(tmp_path: Path) -> str:
+    from haa.sim.arena import dump_spec
+
+    spec = load_arena(FORAGE_ARENA).spec.model_copy(update={"collection_regions": []})
+    (tmp_path / "noregions.yaml").write_text(dump_spec(spec))
+    return "noregions.yaml"
+
+
+@pytest.mark.parametrize(("mutate", "field", "words"), [
+    (lambda d, tmp: {**d, "avatars": [{"name": "s1", "type": "seeker", "pose": [0.5, 0.5, 0]},
+                                      {"name": "e1", "type": "enhanced_seeker", "pose": [1.7, 0.5, 0]}]},
+     "avatars", "forage needs an avatar that can carry a collectable (sweeper or carrier); the team has only "
+     "enhanced_seeker, seeker"),
+    (lambda d, tmp: {**d, "arena": "small"}, "scenario", "arena 'small' has no collectables and no collection"),
+    (lambda d, tmp: {**d, "arena": _no_regions(tmp)}, "scenario", "has no collection regions"),
+    (lambda d, tmp: {**d, "forage": {"spawns": 2}}, "forage", "unknown field"),
+], ids=["no-carrier", "no-collectables", "no-regions", "unknown-key"])
+def test_a_broken_forage_file_gets_one_line(tmp_path, mutate, field, words):
+    p = write(tmp_path, mutate(forage_base(), tmp_path))
+    with pytest.raises(MissionError) as ei:
+        load_mission(p)
+    e = ei.value
+    assert "\n" not in str(e)
+    assert e.field == field, str(e)
+    assert words in e.reason, str(e)
 
 
 def test_large_arena_pose_check(tmp_path):

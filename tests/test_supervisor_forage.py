@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 from types import SimpleNamespace
 from typing import Any
 
@@ -365,6 +366,43 @@ def test_a_held_avatar_is_not_taken_over_by_another_forage_supervisor_as_it_move
     run(main())
 
 
+def test_of_two_supervisors_that_both_claimed_an_avatar_one_keeps_it_and_drives_it_the_other_bids_anew() -> None:
+    """Each won the avatar before the other's hold bid was in (ExecutiveAvatar decides from the bids it has: found
+    in a real mission, where the carrier then stood still for the rest of it — the loser waited with its claim,
+    and the winner's target had been replaced by the loser's)."""
+
+    async def main() -> None:
+        bus = Bus()
+        w1 = FakeAvatar(bus, "w1")
+        w1.register()
+        world(bus, {1: (5.0, 2.0), 2: (7.0, 2.0)}, {"w1": (6.0, 2.0)})
+        ea = bus.start(ExecutiveAvatar, "EA", {})
+        f1 = bus.start(SupervisorForage, "F1", forage_cfg(1))
+        f2 = bus.start(SupervisorForage, "F2", forage_cfg(2))
+        await started(bus, ea, f1, f2)
+        assert f1.held == "w1" and f2.held is None
+        # F2 too had w1 assigned for a moment, and claimed it and sent it its target
+        f2.controlled["w1"] = w1.id
+        await f2._claim("w1")
+        await bus.settle()
+        assert w1.last("target")["_src"] == "F2" and bus.bids()["w1"] == {"F1": 9.0, "F2": 9.0}
+        # the tie of the hold bids goes to F1 (the lower id) for good: F2 lets go and bids anew
+        assert bus.get(team.K_ASSIGN + "w1")["supervisor"] == "F1"
+        await f2._load_assignments()  # its controlled set from the assignments: w1 is lost
+        await bus.settle()
+        assert f2.held is None and f2.phase == "bidding" and bus.get(team.K_FORAGE_STATE + "2")["state"] == "seen"
+        assert bus.bids()["w1"]["F2"] < team.BID_FORAGE_HOLD
+        # F1 finds the avatar's target is F2's and sends its own again
+        await tick(bus, f1)
+        t = w1.last("target")
+        assert t["_src"] == "F1" and (t["x"], t["y"]) == (5.0, 2.0)
+        w1.reply("reached")
+        await bus.settle()
+        assert f1.phase == "pick" and w1.last("pick_up")["item"] == 1
+
+    run(main())
+
+
 # ---------------------------------------------------------------------------------------------- the task
 
 
@@ -403,6 +441,29 @@ def test_the_full_sequence_seen_claimed_carried_deposited_then_it_retires() -> N
         assert "F1" not in bus.bids().get("w1", {}) and bus.get(team.K_ASSIGN + "w1") is None
         done = next(ops for ops, atomic in bus.writes if any(b'"deposited"' in op_value(o) for o in ops))
         assert next(atomic for ops, atomic in bus.writes if ops is done) and "bids/w1/F1" in {op_key(o) for o in done}
+
+    run(main())
+
+
+def test_the_drop_point_keeps_clear_of_an_avatar_parked_in_the_region() -> None:
+    """An idle avatar standing in the region (one that has just dropped there) would shut the nearest drop
+    points: the planner answers each "unreachable" and the carrying avatar stood still (a CI forage mission)."""
+
+    async def main() -> None:
+        bus = Bus()
+        w1 = FakeAvatar(bus, "w1")
+        w1.register()
+        world(bus, {1: (5.0, 2.0)}, {"w1": (6.0, 2.0), "k9": (8.6, 1.4)})
+        ea = bus.start(ExecutiveAvatar, "EA", {})
+        sup = bus.start(SupervisorForage, "F1", forage_cfg())
+        await started(bus, ea, sup)
+        w1.reply("reached")
+        await bus.settle()
+        w1.picked(1)
+        await bus.settle()
+        t = w1.last("target")
+        assert sup.phase == "carry" and inside((t["x"], t["y"]), REGIONS["E"])
+        assert math.dist((t["x"], t["y"]), (8.6, 1.4)) >= 2 * 0.2 + 0.1 - 1e-9
 
     run(main())
 

@@ -9,7 +9,9 @@ docs/team.md) with the mission spec; it
 * spawns its children at start, as in the AF-1 transcript (L1417-1462): ExecutiveAvatar (a separate agent
   here; rolled in in the thesis, L1264), SupervisorSLAM and SupervisorExplore; for `scenario: congregate`,
   SupervisorCongregate once the congregation point's landmark is in the map (L1190: exploration goes on
-  until it is found);
+  until it is found); for `scenario: forage`, one SupervisorForage per collectable the team identifies
+  (`forage/collectables`, written by SupervisorSLAM; L1545 "When a collectable is located a SupervisorForage
+  agent is spawned"), at most `forage_spawns_per_check` per check (below, "Forage");
 * detects completion every `check_s`: **explore** — the explored share (thesis L1186: reachable cells with
   p > 0.73 or p < 0.27) ≥ `complete.explored`. The team does not know which cells are reachable (that is
   ground truth); what it knows is the arena's explorable area (thesis §6.2.1 gives it: 24.2 m² for the small
@@ -18,7 +20,31 @@ docs/team.md) with the mission spec; it
   finder's marks of an obstacle's foot land in front of it by the pose error, in reachable cells, and a thin
   panel fills reachable cells of the 50 % ideal grid —: the share is their count / `expected_cells`,
   capped at 1 (docs/team.md, "Completion"); **congregate** — SupervisorCongregate reports every avatar on its slot
-  (`congregate/status`). The time limit (`complete.time_limit_s`, simulated) ends the mission as stopped.
+  (`congregate/status`); **forage** — the explored share as for explore *and* every identified collectable's
+  `forage/state/<id>` terminal (L1194: "once the exploration threshold has been reached and all identified
+  collectables have been deposited"; "lost" counts as terminal, see "Forage"). The time limit
+  (`complete.time_limit_s`, simulated) ends the mission as stopped.
+
+Forage. Each check reads `forage/collectables` and `forage/state/*`; every id without a child gets a
+SupervisorForage (config: the id, the arena's collection regions, the largest carrying avatar's radius) spawned
+with the explicit key `forage/<id>` (docs/agents.md "Idempotent spawn": a recovered or moved executive that asks
+again for an id whose spawn committed before its backup recorded it gets the same child back, whatever order or
+count of spawns its new life goes through; the default key counts spawns per instance and would not). An id
+whose `forage/state/<id>` already names a holder is recorded as that child without a spawn (a crash between the
+spawn and the backup whose child has since retired: its key no longer answers, and a second SupervisorForage
+would only find the collectable deposited and retire). Spawns are bounded to `forage_spawns_per_check` (1) per
+check: a spawn is an allocation session and a new agent process, and it holds the executive's mailbox until it
+is allocated (1-2 s, AP-4); SupervisorSLAM may publish several ids at once (one frame, or the first publication
+after a long gap) and a recovered executive may find many unspawned, and a burst would delay this executive's
+status writes and the other agents' spawns (SupervisorSLAM's sensor agents) for all of them together. At one per
+second the thesis' AF-3 (20 collectables found over 28 min) is never held back.
+
+Completion counts a collectable "lost" (its avatar crashed carrying it: haa-sim keeps it on the wreck,
+SupervisorForage ends, docs/team.md) as finished. The thesis' criterion is "all identified collectables have
+been deposited" and in AF-3 every one was; it never has a collectable out of the team's reach. Waiting for a lost
+one would end every such mission at the time limit as stopped without anything left to do; counting it done
+ends the mission when the team's work is done, and the results keep the two apart (`collectables_deposited`,
+`collectables_lost`; the reason says "N lost").
 
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
 dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
@@ -60,6 +86,31 @@ class MissionAgentConfig(team.TeamConfig):
     mission: dict[str, Any]
     expected_cells: int = pydantic.Field(gt=0)
     check_s: float = pydantic.Field(1.0, gt=0, le=60)
+    #: Forage: at most this many SupervisorForage spawned per check (module docstring, "Forage")
+    forage_spawns_per_check: int = pydantic.Field(1, ge=1, le=100)
+
+
+#: the SupervisorForage type, and its entries in `children` ("supervisor_forage/<id>")
+FORAGE = "supervisor_forage"
+#: `forage/state/<id>` states that end a collectable's foraging (completion)
+TERMINAL = ("deposited", "lost")
+
+
+def forage_child(cid: str) -> str:
+    """The `children` entry of the SupervisorForage of collectable `cid`."""
+    return f"{FORAGE}/{cid}"
+
+
+def id_order(cid: str) -> int:
+    """Collectable ids (digits) in numeric order ("2" before "10")."""
+    return int(cid)
+
+
+def forage_counts(ids: list[str], states: dict[str, Any]) -> dict[str, int]:
+    """{"identified", "deposited", "lost", "open"} of the identified collectables `ids` by their states."""
+    st = [states.get(c, {}).get("state") if isinstance(states.get(c), dict) else None for c in ids]
+    dep, lost = st.count("deposited"), st.count("lost")
+    return {"identified": len(ids), "deposited": dep, "lost": lost, "open": len(ids) - dep - lost}
 
 
 def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
@@ -77,6 +128,9 @@ def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
         "marker_dictionary": arena.marker_dictionary, "marker_size": arena.marker_size,
         "landmark_ids": sorted(arena.landmarks), "congregation_id": arena.congregation_id,
         "radius": max(s.radius for s in specs),
+        # Forage: the largest avatar that may carry (SupervisorForage's `avatar_radius`: its drop points are
+        # passable for it)
+        "carrier_radius": max((s.radius for s in specs if s.capacity >= 1), default=max(s.radius for s in specs)),
         "camera_range": max(CAMERAS[s.camera].max_range for s in specs),
         # Forage: the predefined collection regions (SupervisorForage's `regions`)
         "collection_regions": {rid: [[float(x), float(y)] for x, y in poly] for rid, poly in arena.regions.items()},
@@ -110,10 +164,12 @@ class ExecutiveMission(team.TeamAgent):
         self.explored = 0.0
         self.reason = ""
         self.facts: dict[str, Any] = {}
+        self.forage: dict[str, int] = {}  # forage_counts at the last check (forage missions)
 
     def pack_state(self) -> bytes:
         return team.dumps({"children": self.children, "state": self.state, "started_t": self.started_t,
-                           "finished_t": self.finished_t, "explored": self.explored, "reason": self.reason})
+                           "finished_t": self.finished_t, "explored": self.explored, "reason": self.reason,
+                           "forage": self.forage})
 
     def unpack_state(self, data: bytes) -> None:
         st = json.loads(data)
@@ -122,6 +178,7 @@ class ExecutiveMission(team.TeamAgent):
         self.started_t, self.finished_t = st.get("started_t"), st.get("finished_t")
         self.explored = float(st.get("explored", 0.0))
         self.reason = str(st.get("reason", ""))
+        self.forage = {str(k): int(v) for k, v in dict(st.get("forage") or {}).items()}
 
     def recover(self, backup: bytes | None) -> None:
         if backup:
@@ -213,9 +270,12 @@ class ExecutiveMission(team.TeamAgent):
                 self.backup()
 
     def _status_value(self, reason: str) -> dict[str, Any]:
-        return {"state": self.state, "t": round(self.now(), 3), "explored": round(self.explored, 4),
-                "reason": reason, "started_t": self.started_t, "finished_t": self.finished_t,
-                "children": self.children}
+        v = {"state": self.state, "t": round(self.now(), 3), "explored": round(self.explored, 4),
+             "reason": reason, "started_t": self.started_t, "finished_t": self.finished_t,
+             "children": self.children}
+        if self.m.get("scenario") == "forage":
+            v["forage"] = self.forage
+        return v
 
     async def _status(self, reason: str) -> None:
         await self.ddb_write([team.op_put_json(team.K_STATUS, self._status_value(reason))])
@@ -226,8 +286,13 @@ class ExecutiveMission(team.TeamAgent):
         await self._read_explored()
         complete = self.m.get("complete", {})
         reason = ""
-        if self.m.get("scenario", "explore") == "explore" and self.explored >= float(complete.get("explored", 0.95)):
+        scenario = self.m.get("scenario", "explore")
+        explored = self.explored >= float(complete.get("explored", 0.95))
+        foraged, forage_text = await self._forage() if scenario == "forage" else (True, "")
+        if scenario == "explore" and explored:
             self.state, reason = "complete", f"explored {self.explored:.1%}"
+        elif scenario == "forage" and explored and foraged:
+            self.state, reason = "complete", f"explored {self.explored:.1%}, {forage_text}"
         elif self.started_t is not None and self.now() - self.started_t >= float(complete.get("time_limit_s", 900)):
             self.state, reason = "stopped", "time limit"
         if self.state != "running":
@@ -237,6 +302,59 @@ class ExecutiveMission(team.TeamAgent):
             await team.transcript(self, f"Mission finished: {reason}")
         await self._status(reason)
         await self._trim_events()
+
+    async def _forage(self) -> tuple[bool, str]:
+        """Forage (module docstring): spawn the SupervisorForage of identified collectables that have none (at
+        most `forage_spawns_per_check`); (whether every identified collectable is deposited or lost and has
+        had its supervisor, the counts as reason text)."""
+        found = await team.get_json(self, team.K_FORAGE_COLLECTABLES, {})
+        found = found if isinstance(found, dict) else {}
+        states: dict[str, Any] = {}
+        for key, data in (await self.ddb_scan(team.K_FORAGE_STATE)).items():
+            try:
+                states[key[len(team.K_FORAGE_STATE):]] = json.loads(data)
+            except ValueError:
+                continue
+        ids = sorted((str(c) for c in found if str(c).isdigit()), key=id_order)  # SupervisorSLAM's ids: 1, 2, ...
+        spawned = 0
+        for cid in ids:
+            child = forage_child(cid)
+            if child in self.children:
+                continue
+            st = states.get(cid)
+            if isinstance(st, dict) and st.get("holder"):
+                self.children[child] = str(st["holder"])
+                self.backup()
+                continue
+            if spawned >= self.cfg.forage_spawns_per_check:
+                break
+            spawned += 1
+            if not await self._spawn_forager(cid, found[cid]):
+                break
+        self.forage = forage_counts(ids, states)
+        done = self.forage["open"] == 0 and all(forage_child(c) in self.children for c in ids)
+        n = self.forage
+        text = f"{n['deposited']} of {n['identified']} identified collectables deposited" + (
+            f", {n['lost']} lost" if n["lost"] else "")
+        return done, text
+
+    async def _spawn_forager(self, cid: str, est: Any) -> bool:
+        """Spawn the SupervisorForage of collectable `cid` (estimate `est`); False if the spawn failed (the next
+        check asks again, with the same key)."""
+        f = self.facts
+        cfg = team.team_config(self, collectable=int(cid), regions=f["collection_regions"],
+                               avatar_radius=float(f.get("carrier_radius", f.get("radius", 0.2))))
+        try:
+            self.children[forage_child(cid)] = await self.spawn_child(FORAGE, cfg, key=f"forage/{cid}")
+        except Exception as e:  # no host could take it now, a timeout: the next check tries again
+            self.log("forage_spawn_failed", level="warning", collectable=cid, error=str(e))
+            return False
+        self.backup()
+        where = ""
+        if isinstance(est, dict) and isinstance(est.get("x"), int | float) and isinstance(est.get("y"), int | float):
+            where = f" at ({float(est['x']):.2f}, {float(est['y']):.2f})"
+        await team.transcript(self, f"collectable {cid} identified{where}: SupervisorForage spawned for it")
+        return True
 
     async def _read_explored(self) -> None:
         data = await self.ddb_get(team.K_SLAM_MAP)

@@ -359,7 +359,26 @@ class SupervisorForage(team.SupervisorBase):
         reg = self.registry.get(self.held)
         if reg is None or reg.get("status") != "active":
             await self._check_avatar()
-        # else: outbid (SupervisorCongregate): the claim and the hold bid stay; the step goes on when it is back
+            return
+        # outbid. By SupervisorCongregate: the claim and the hold bid stay; the step goes on when it is back. By
+        # another SupervisorForage's hold bid: both claimed it (each won it before the other's hold bid was in:
+        # ExecutiveAvatar decides per avatar from the bids it has), and the tie of two hold bids goes to the lower
+        # supervisor id for good — the other one releases it and bids anew, else it would wait forever
+        await self._yield_to_holder()
+
+    async def _yield_to_holder(self) -> None:
+        """Release the held avatar if `assign/<avatar>` gives it to another SupervisorForage's hold bid that wins
+        the tie for good (on_avatars_changed)."""
+        a = self.held
+        if a is None or a in self.controlled:
+            return
+        st = await team.get_json(self, team.K_ASSIGN + a)
+        if not (isinstance(st, dict) and st.get("task") == self.TASK and str(st.get("supervisor")) < self.id):
+            return
+        # its bid, not the assignment's priority (written when the winner changes, not when its bid rises)
+        bid = await team.get_json(self, f"{team.K_BIDS}{a}/{st['supervisor']}")
+        if isinstance(bid, dict) and float(bid.get("priority", 0)) >= team.BID_FORAGE_HOLD:
+            await self._release(f"{a} is held by another SupervisorForage")
 
     async def _claim(self, avatar: str) -> None:
         self.held, self.phase, self.attempts, self.since = avatar, "fetch", 0, self.now()
@@ -492,9 +511,17 @@ class SupervisorForage(team.SupervisorBase):
         if field is not None and not np.isfinite(field).any():
             field = None
         best: tuple[float, list[Any]] | None = None
+        # other avatars where the team last saw them: an idle one parked in a region (one that has just dropped
+        # there) shuts every drop point within its radius plus the planner's inflation, and the planner answers
+        # each of them "unreachable" (the carrying avatar then stood still to the end of a CI mission)
+        others = [q for b, q in self.last_seen.items() if b != a]
+        near = 2 * self.cfg.avatar_radius + 0.1
+        skip_near = bool(others) and not self._all_near(others, near)
         for rid, poly in sorted(self.cfg.regions.items()):
             for p in drop_candidates(poly, self.cfg.region_margin):
                 if any(math.dist(p, b) < 0.3 for b in self.blocked):
+                    continue
+                if skip_near and any(math.dist(p, q) < near for q in others):
                     continue
                 c = None
                 if cm is not None and field is not None:
@@ -509,6 +536,11 @@ class SupervisorForage(team.SupervisorBase):
             self.blocked = []
             return await self._drop_point()
         return best[1] if best else None
+
+    def _all_near(self, others: list[XY], near: float) -> bool:
+        """Whether every drop point of every region is within `near` of another avatar (then none is skipped)."""
+        return all(any(math.dist(p, q) < near for q in others)
+                   for poly in self.cfg.regions.values() for p in drop_candidates(poly, self.cfg.region_margin))
 
     async def _carry(self) -> None:
         self.phase, self.since, self.attempts, self.drop_at = "carry", self.now(), 0, None
@@ -610,8 +642,20 @@ class SupervisorForage(team.SupervisorBase):
         ests = await team.get_json(self, team.K_SLAM_ESTIMATES, {}) or {}
         for a, e in ests.items():
             self.last_seen[a] = (float(e["x"]), float(e["y"]))
-        if self.held is None or self.held not in self.controlled:
+        if self.held is None:
             return
+        if self.held not in self.controlled:
+            if (self.registry.get(self.held) or {}).get("status") == "active":
+                await self._yield_to_holder()
+            return
+        if self.phase in ("fetch", "carry") and self.held in self.targets:
+            # the avatar's target is another supervisor's (it sent one while it briefly controlled the avatar, as
+            # two SupervisorForage that both claimed it do): the avatar drives that one, or nothing, and never
+            # answers ours — send ours again
+            cur = await team.get_json(self, team.K_TARGETS + self.held)
+            if isinstance(cur, dict) and cur.get("supervisor") not in (None, self.id):
+                self.log("forage_target_replaced", level="warning", avatar=self.held, by=cur.get("supervisor"))
+                self.targets.pop(self.held, None)
         if self.phase in ("fetch", "carry") and self.held not in self.targets:
             await self._send_step()
         elif self.phase in ("pick", "drop") and self.now() - self.since > self.cfg.action_timeout_s:

@@ -49,6 +49,7 @@ import psutil
 
 from haa.cluster import queries
 from haa.cluster.backend import Backend, ClusterError
+from haa.mission import forage
 from haa.mission import transcript as tr
 from haa.mission.chaosrun import ChaosRun
 from haa.mission.extensions import ExtensionMissing, extension
@@ -64,7 +65,7 @@ from haa.mission.plan import (
 )
 from haa.mission.results import Tally, landmark_scores
 from haa.mission.schema import Mission
-from haa.mission.simproc import RUNNER_CALLER, SimHandle, check_sim_matches, start_sim
+from haa.mission.simproc import RUNNER_CALLER, SimHandle, arena_argument, check_sim_matches, start_sim
 from haa.sdk import registry
 
 #: top-level agent types the runner spawns (docs/team.md "Starting a mission")
@@ -88,7 +89,7 @@ MAP_PERIOD = 5.0
 
 
 #: DDB prefixes of the robot team's state (docs/team.md "DDB layout")
-TEAM_PREFIXES = ("mission/", "avatars/", "bids/", "assign/", "slam/", "targets/")
+TEAM_PREFIXES = ("mission/", "avatars/", "bids/", "assign/", "slam/", "targets/", "forage/")
 
 
 def clear_team_state(backend: Backend, timeout: float = 15.0) -> int:
@@ -320,6 +321,7 @@ class MissionRun:
         expected = self.tally.expected
         cfg = {"mission": self.spec.model_dump(mode="json"), "expected_cells": expected, **self.team_config()}
         cfg["mission"]["speed"] = self.speed
+        cfg["mission"]["arena"] = arena_argument(self.mission)  # an arena file: its absolute path, for the agents
         self.exec_id, self.exec_name = self.spawn(self.exec_type, cfg)
         self.say(f"spawned {self.exec_name} ({self.exec_type}); {expected} reachable cells")
 
@@ -630,6 +632,11 @@ class MissionRun:
             ddb_size=queries.ddb_bytes(self.backend), truth_calls=self.truth_calls(),
             landmarks=self.landmark_scores(), chaos=self.chaos.summary() if self.chaos else None,
             errors=self.errors, wall_start=self.wall_start)
+        if self.spec.scenario == "forage":  # haa.mission.forage: counts, haa-sim's view, SupervisorForage lives
+            more, retired = forage.collect(self.mission, self.backend, self.reader, self.sim, agent_events,
+                                           self.clock, self.t0)
+            results.update(more)
+            lines = tr.merge(lines, retired)
         self.tally.write(self.out_dir, results, lines, chaos=self.chaos.to_json() if self.chaos else None,
                          clock=self.clock, members=self.members, runner_lines=self.lines)
         return results

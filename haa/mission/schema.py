@@ -9,7 +9,7 @@ every even minute a host joins", §7.1.1 L1372-1474) and the avatars with their 
 
 ```yaml
 name: af1
-scenario: explore              # explore | congregate
+scenario: explore              # explore | congregate | forage
 arena: small                   # small | large | a path to an arena YAML (relative: to the mission file)
 seed: 1
 slam: jc-slam                  # jc-slam | discard | delay
@@ -191,7 +191,7 @@ class MissionSpec(_Model):
 
     name: Name
     description: str = Field("", max_length=10_000)
-    scenario: Literal["explore", "congregate"]
+    scenario: Literal["explore", "congregate", "forage"]
     arena: str = Field(min_length=1, max_length=4096)
     seed: int = Field(0, ge=0, le=2**63 - 1)
     slam: Literal["jc-slam", "discard", "delay"] = "jc-slam"
@@ -335,6 +335,18 @@ def check_mission(spec: MissionSpec, label: str, base: Path | None = None) -> An
         fail("arena", str(e))
     if spec.scenario == "congregate" and arena.congregation_point is None:
         fail("scenario", f"congregate needs an arena with a congregation point; arena {arena.name!r} has none")
+    if spec.scenario == "forage":
+        # L1194: collectables to find and "specified collection regions" to deposit them in; an avatar that
+        # can carry one (Table 6.2-3: capacity >= 1, sweeper and carrier) — else no SupervisorForage could act
+        missing = [what for what, have in (("collectables", arena.collectables), ("collection regions", arena.regions))
+                   if not have]
+        if missing:
+            fail("scenario", f"forage needs an arena with collectables and collection regions; arena {arena.name!r} "
+                             f"has no {' and no '.join(missing)}")
+        if not any(avatar_spec(a.type).capacity >= 1 for a in spec.avatars):
+            kinds = ", ".join(sorted({a.type for a in spec.avatars}))
+            fail("avatars", f"forage needs an avatar that can carry a collectable (sweeper or carrier); "
+                            f"the team has only {kinds}")
     limit = spec.complete.time_limit_s
 
     # avatars: unique names, poses in free space, joins and leaves within the time limit

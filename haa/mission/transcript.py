@@ -39,6 +39,7 @@ TYPE_NAMES = {
     "supervisor_explore": "SupervisorExplore",
     "supervisor_slam": "SupervisorSLAM",
     "supervisor_congregate": "SupervisorCongregate",
+    "supervisor_forage": "SupervisorForage",
     "avatar_simulation": "AvatarSimulation",
     "path_planner": "AgentPathPlanner",
     "sensor_landmark": "AgentSensorLandmark",
@@ -255,8 +256,13 @@ def host_agent_lines(events: list[dict[str, Any]], clock_map: ClockMap, t0: floa
     crashed, recovered, removed remain)."""
     types: dict[str, str] = {}
     runs_on: dict[str, str] = {}
+    names: dict[str, str] = {}  # agent id -> display name (a host's "removed" names it by its id's first part)
     out = []
     for e in dedup_agent_events(events):
+        if e["name"] and not e["agent"].startswith(e["name"]):
+            names[e["agent"]] = e["name"]
+        elif e["agent"] in names:
+            e = {**e, "name": names[e["agent"]]}
         if e["event"] == "created" and e["detail"]:
             types[e["agent"]] = e["detail"]
         text = describe_agent_event(e, types, runs_on)

@@ -1,4 +1,5 @@
-"""The designs of the thesis' two arenas; `python -m haa.sim.arenas.design` rewrites small.yaml and large.yaml.
+"""The designs of the thesis' two arenas and of a small forage arena for CI; `python -m haa.sim.arenas.design`
+rewrites small.yaml, large.yaml and small-forage.yaml.
 
 The thesis gives the arenas only as figures (Fig. 6.2-1, 6.2-2) and these numbers (§6.2.1):
 
@@ -13,6 +14,14 @@ north wall between two collection regions, three along the south wall between th
 third region; 36 markers on the outer walls (every 2 m), 8 on each lattice block, one on each small block,
 plus one; 20 collectables drawn (seed 6) from free floor with 0.5 m of clearance, outside regions and the
 start area. docs/sim.md has the pictures (`haactl sim show small|large`).
+
+small-forage (ours, not the thesis'; a file, not a built-in name: missions name it by path) is the small arena
+with the congregation post and panel-a (and its 4 markers) taken out — a sweeper or carrier (0.20 m) cannot
+pass panel-a's gaps once the map has the floor finder's marks in front of it — and AF-3's forage parts added at
+a scale a CI mission can finish in a few minutes: 3 collectables (2.3-2.8 m apart, >= 0.6 m from any obstacle
+or wall) and one collection region of 1.6 x 1.4 m in the north-east corner, where the post stood (with a 1.3 x 1.1 m
+one — 3 drop points 0.5 m inside it — a carrier carried its collectable through the last 4.5 minutes of a run
+without delivering it).
 """
 
 from __future__ import annotations
@@ -89,6 +98,23 @@ def small() -> dict[str, Any]:
         "congregation": {"id": 200, "pos": [2.4, 6.0], "size": 0.27},
         "start_poses": [[_r(a) for a in p] for p in starts],
     }
+
+
+def small_forage() -> dict[str, Any]:
+    spec = small()
+    del spec["congregation"]
+    # panel-a goes, with its 4 markers (ids 22-25; the others keep theirs): its gaps to the west wall (0.6 m)
+    # and to box-a leave a sweeper or carrier (0.20 m + the planner's 0.08 m margin on each side) no passage
+    # once the floor finder's marks in front of it are in the map, and the south bay would be shut off
+    spec["obstacles"] = [o for o in spec["obstacles"] if o["id"] != "panel-a"]
+    spec["landmarks"] = [m for m in spec["landmarks"] if not (0.8 < m["pos"][0] < 1.6 and 2.1 < m["pos"][1] < 2.3)]
+    spec["name"] = "small-forage"
+    spec["description"] = ("The small arena without its congregation point, with 3 collectables and one collection "
+                           "region (a CI forage arena, ours; haa/sim/arenas/design.py)")
+    spec["collectables"] = [{"id": "c1", "pos": [2.4, 1.9]}, {"id": "c2", "pos": [0.6, 3.4]},
+                            {"id": "c3", "pos": [2.6, 4.9]}]
+    spec["collection_regions"] = [_box("region-ne", 2.6, 6.5, 1.6, 1.4)]
+    return spec
 
 
 def large() -> dict[str, Any]:
@@ -172,7 +198,8 @@ def render_yaml(spec: dict[str, Any]) -> str:
 
 
 def designs() -> dict[str, str]:
-    return {"small": render_yaml(small()), "large": render_yaml(large())}
+    return {"small": render_yaml(small()), "large": render_yaml(large()),
+            "small-forage": render_yaml(small_forage())}
 
 
 def main() -> None:
