@@ -6,8 +6,9 @@ the first time a collectable is being carried, the host running its SupervisorFo
 haa-hostd): the supervisor is recovered from its backup on another host and the collectable still arrives.
 No agent asks haa-sim for the truth (`sim_truth_calls` empty).
 
-NOT RELIABLE YET (marked slow and xfail, strict=False): on the 2-core machine, 5 of 13 runs over the day's
-versions passed (49-76 s wall); the failures end at the 400 s time limit (~112 s wall) with every collectable
+NOT RELIABLE YET (opt-in: HAA_FORAGE_MISSION=1; a known failure is not left in make test as an xfail that
+cannot fail): on the 2-core machine, 6 of 14 runs over the day's versions passed (49-85 s wall); the failures
+end at the 400 s time limit (~112 s wall) with every collectable
 identified and the crash handled (the SupervisorForage recovered "carried with <avatar>"), but an avatar that
 carries a collectable stands still until the end:
 * a carrier and a sweeper each stood still after the pick-up, without a transcript line (runs of
@@ -22,6 +23,7 @@ no log when they give up, so which one stops is not known yet. Two deadlocks fou
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import Any
@@ -60,7 +62,9 @@ class CrashMidCarry:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="carrying avatars stand still in about half the runs (module docstring)")
+@pytest.mark.skipif(os.environ.get("HAA_FORAGE_MISSION") != "1",
+                    reason="opt-in (HAA_FORAGE_MISSION=1) until carrying avatars stop standing still in about half "
+                           "the runs (module docstring); it then joins make test")
 def test_forage_mission_every_identified_collectable_deposited_once_through_a_host_crash_mid_carry(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # the hosts load SupervisorForage by module too: an environment whose installed entry points predate it
