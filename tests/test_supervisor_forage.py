@@ -635,3 +635,33 @@ def test_a_transfer_keeps_the_step_and_sends_nothing_again() -> None:
         assert len(w1.msgs) == n and bus.states[-1]["state"] == "carried"
 
     run(main())
+
+
+def test_an_answer_lost_on_the_way_the_step_is_sent_again_once_the_avatar_has_stood_for_stall_s() -> None:
+    """The avatar reached its point, but its "reached" was lost (an agent crashed or moved with it in flight):
+    it stands and waits for a command; the supervisor sees it stand `stall_s` and sends the step again."""
+
+    async def main() -> None:
+        bus = Bus()
+        sup, w1 = await carried(bus)
+        first = w1.last("target")
+        for _ in range(5):  # it stands (its estimate stays): no new step before stall_s
+            bus.t += 10
+            await tick(bus, sup)
+        assert w1.last("target")["tid"] == first["tid"]
+        for _ in range(4):
+            bus.t += 10
+            await tick(bus, sup)
+        again = w1.last("target")
+        assert again["tid"] != first["tid"] and (again["x"], again["y"]) == (first["x"], first["y"])
+        assert sup.stalls == 1 and sup.phase == "carry"
+        # moving, it is not stalled
+        bus.put(team.K_SLAM_ESTIMATES, {"w1": {"t": bus.t, "x": 7.5, "y": 2.0, "theta": 0.0, "std": [0.05] * 3}})
+        for _ in range(5):
+            bus.t += 10
+            await tick(bus, sup)
+            est = 7.5 + (bus.t % 100) / 100
+            bus.put(team.K_SLAM_ESTIMATES, {"w1": {"t": bus.t, "x": est, "y": 2.0, "theta": 0.0, "std": [0.05] * 3}})
+        assert sup.stalls == 1
+
+    run(main())

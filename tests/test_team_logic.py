@@ -99,7 +99,8 @@ def test_frames_travel_with_a_transfer_jpeg_compressed_within_their_budget() -> 
     for n in (3, 7, 9):
         frames[n] = spb.CameraFrame(avatar_id="s1", time=float(n), width=320, height=240, data=img.tobytes(),
                                     encoding=spb.IMAGE_ENCODING_RAW_RGB, K=[200, 0, 160, 0, 200, 120, 0, 0, 1])
-    obj = SimpleNamespace(planner="p", target={"x": 1.0}, n_readings=9, frames=frames, cargo=[4], last_drop=None)
+    obj = SimpleNamespace(planner="p", target={"x": 1.0}, n_readings=9, frames=frames, cargo=[4], last_drop=None,
+                          pending_action={"op": "drop", "item": 4, "tid": 2, "src": "F1"})
     obj.pack_backup = lambda: av.AvatarSimulation.pack_backup(obj)
     state = av.AvatarSimulation.pack_state(obj)
     assert "frames" not in json.loads(obj.pack_backup())
@@ -107,6 +108,7 @@ def test_frames_travel_with_a_transfer_jpeg_compressed_within_their_budget() -> 
     new = SimpleNamespace(frames=OrderedDict())
     av.AvatarSimulation.unpack_state(new, state)
     assert list(new.frames) == [3, 7, 9] and new.planner == "p" and new.n_readings == 9 and new.cargo == [4]
+    assert new.pending_action == obj.pending_action  # an action in progress moves with it
     got = frame_from_pb(new.frames[7], "s1")
     assert got.image.shape == (240, 320, 3) and got.time == 7.0
     assert np.abs(got.image[60:180, 100:220].astype(int)).mean() < 10  # the JPEG kept the picture

@@ -99,6 +99,8 @@ class AvatarConfig(team.TeamConfig):
 #: s of mission time without a word from the planner, while the avatar has a target and stands, after which
 #: the target is sent again (AvatarSimulation._planner_watchdog)
 PLANNER_SILENT_S = 8.0
+#: s of mission time a boxed-in avatar waits, after turning in place, for its readings to reach the map
+LOOK_WAIT_S = 10.0
 BUMP_M = 0.05
 BUMP_SLIDE = 0.5
 BUMP_TURN_RAD = 0.5
@@ -177,6 +179,8 @@ class AvatarSimulation(team.TeamAgent):
         #: unreachable: nothing more to ask the planner until a new target) (`_planner_watchdog`)
         self.planner_heard = 0.0
         self.settled_tid: Any = None
+        self.looked_tid: Any = None  # the target it last turned in place for (`_look_around`)
+        self.look_arounds = 0
         self.path: list[list[float]] = []
         self.retired = False
         #: Forage: the team's ids of the collectables it carries (from the supervisor's pick_up commands), and
@@ -185,6 +189,8 @@ class AvatarSimulation(team.TeamAgent):
         self.cargo: list[int] = []
         self.last_drop: dict[str, Any] | None = None
         self.action_task: asyncio.Task[Any] | None = None
+        #: the pick_up/drop in progress {"op", "item", "tid", "src"}, backed up before it starts (`_collect`)
+        self.pending_action: dict[str, Any] | None = None
         self.delay_waits = 0  # SLAM mode "delay": legs started after waiting for readings, and the time waited
         self.delay_s = 0.0
         self.flushing = False
@@ -196,7 +202,7 @@ class AvatarSimulation(team.TeamAgent):
     def pack_backup(self) -> bytes:
         """The backup: planner, target and reading number (frames are not backed up: a crash loses them)."""
         return team.dumps({"planner": self.planner, "target": self.target, "n": self.n_readings,
-                           "cargo": self.cargo, "last_drop": self.last_drop})
+                           "cargo": self.cargo, "last_drop": self.last_drop, "pending": self.pending_action})
 
     def pack_state(self) -> bytes:
         """The transfer state: the backup's fields and the frames still waiting for their processings, newest
@@ -221,6 +227,7 @@ class AvatarSimulation(team.TeamAgent):
         self.n_readings = int(st.get("n", 0))
         self.cargo = [int(c) for c in st.get("cargo", [])]
         self.last_drop = st.get("last_drop")
+        self.pending_action = st.get("pending")
         for n, b64 in reversed(st.get("frames", [])):
             f = spb.CameraFrame()
             f.ParseFromString(base64.b64decode(b64))
@@ -294,6 +301,10 @@ class AvatarSimulation(team.TeamAgent):
             self.backup()
         elif self.target:
             self._send_planner({"op": "goto", **self.target})
+        if self.pending_action is not None and not fresh:  # an action its previous life did not see end
+            pend = self.pending_action
+            self.action_task = asyncio.ensure_future(self._collect(str(pend.get("src", "")), pend, again=True))
+            self.tasks.append(self.action_task)
         if how == "recover":
             t = self.anchor[0] if self.anchor else float("nan")
             tgt = f"target {self.target['tid']} re-sent to its planner" if self.target else "no target"
@@ -302,10 +313,13 @@ class AvatarSimulation(team.TeamAgent):
 
     def _registration(self, status: str) -> dict[str, Any]:
         """The registry entry `avatars/<avatar>`: agent id, type, status, and for Forage the capacity (from
-        its hardware, haa-sim's AvatarInfo), what it carries and its last drop."""
+        its hardware, haa-sim's AvatarInfo), what it carries and its last drop; its radius."""
         cap = int(self.info.capacity) if self.info is not None else team.CAPACITY.get(self.cfg.type, 0)
-        return {"agent": self.id, "type": self.cfg.type, "status": status, "t": self.now(), "capacity": cap,
-                "cargo": list(self.cargo), "last_drop": self.last_drop}
+        reg = {"agent": self.id, "type": self.cfg.type, "status": status, "t": self.now(), "capacity": cap,
+               "cargo": list(self.cargo), "last_drop": self.last_drop}
+        if self.info is not None:  # the sonar agents tell echoes off this avatar from obstacles by it
+            reg["radius"] = float(self.info.radius)
+        return reg
 
     async def _read_anchor(self) -> dict[str, Any] | None:
         """The committed anchor (time, odometry pose, last reading number) into `anchor` / `n_readings`."""
@@ -537,6 +551,8 @@ class AvatarSimulation(team.TeamAgent):
             self.target = {"x": float(msg["x"]), "y": float(msg["y"]), "tid": msg.get("tid", 0),
                            "sup": msg.get("sup", src)}
             self.settled_tid = None
+            self.log("target", tid=self.target["tid"], x=self.target["x"], y=self.target["y"],
+                     sup=self.target["sup"])
             self.backup()
             self._stop_driving()
             self._send_planner({"op": "goto", **self.target})
@@ -557,7 +573,13 @@ class AvatarSimulation(team.TeamAgent):
             self.drive_task = asyncio.ensure_future(self._drive(self.target["tid"], msg.get("final", True)))
         elif op == "unreachable" and self.target and msg.get("tid") == self.target.get("tid"):
             self.planner_heard = self.now()
+            if msg.get("reason") == team.START_ENCLOSED and self.looked_tid != self.target.get("tid"):
+                self.looked_tid = self.target.get("tid")
+                self._stop_driving()
+                self.drive_task = asyncio.ensure_future(self._look_around(self.target["tid"]))
+                return
             self.settled_tid = self.target.get("tid")
+            self.log("target_unreachable", level="warning", tid=self.target.get("tid"), reason=msg.get("reason"))
             self._tell_supervisor("unreachable")
 
     async def on_request(self, src: str, payload: bytes) -> bytes:
@@ -640,6 +662,7 @@ class AvatarSimulation(team.TeamAgent):
                     last = u
                 if last is None or last.status != spb.ACTION_STATUS_SUCCEEDED:
                     why = last.reason if last is not None else "no outcome"
+                    self.log("move_failed", tid=tid, reason=why, waypoint=[wx, wy])
                     self.send(self.planner, team.dumps({"op": "failed", "tid": tid, "reason": why,
                                                         "pose": self._pose_map()}))
                     return
@@ -648,6 +671,7 @@ class AvatarSimulation(team.TeamAgent):
                                                 "pose": self._pose_map()}))
             if final and self.target and self.target.get("tid") == tid:
                 self.settled_tid = tid
+                self.log("target_reached", tid=tid)
                 self._tell_supervisor("reached")
         except asyncio.CancelledError:
             with contextlib.suppress(Exception):  # stop the avatar where it is; the new path follows
@@ -659,15 +683,55 @@ class AvatarSimulation(team.TeamAgent):
                 self.call_later(0, lambda: self._retired("actions unavailable", how))
             else:
                 self.log("drive_error", level="warning", error=str(e))
+        except Exception as e:  # a task's exception is otherwise dropped unseen, and the avatar stands still
+            self.log("drive_error", level="error", error=repr(e))
 
-    async def _collect(self, src: str, msg: dict[str, Any]) -> None:
+    async def _look_around(self, tid: Any) -> None:
+        """Boxed in (the planner's "start enclosed", haa.agents.path_planner.enclosed): turn once in place, so
+        that the sonar ring and the camera sweep what the avatar stands beside, wait until those readings are in
+        the map (its `slam/raw/<avatar>/` entries processed, at most LOOK_WAIT_S), and ask the planner again.
+        What boxes an avatar in is most often an obstacle that has gone (a teammate mapped where it stood) in
+        the blind sectors of its sensors; a real trap is reported unreachable after this one turn."""
+        assert self.link is not None
+        self.look_arounds += 1
+        self.log("look_around", tid=tid)
+        try:
+            req = spb.ActionRequest(avatar_id=self.name_, rotate=spb.Rotate(angle=2 * math.pi), progress_period=0.5)
+            async for _ in self.link.avatar.Act(req, metadata=self.link.metadata):
+                pass
+            t0 = self.now()
+            prefix = f"{team.K_SLAM_RAW}{self.name_}/"
+            while self.now() - t0 < LOOK_WAIT_S and await self.ddb_scan(prefix, limit=1):
+                await asyncio.sleep(self._ctx.clock.wall_delay(0.2))
+        except asyncio.CancelledError:
+            raise
+        except grpc.aio.AioRpcError as e:
+            if e.code() == grpc.StatusCode.UNAVAILABLE:
+                how = left_how(e.details())
+                self.call_later(0, lambda: self._retired("actions unavailable", how))
+                return
+            self.log("drive_error", level="warning", error=str(e))
+        if self.target and self.target.get("tid") == tid:
+            self._send_planner({"op": "goto", **self.target})
+
+    async def _collect(self, src: str, msg: dict[str, Any], again: bool = False) -> None:
         """A pick_up or drop action for SupervisorForage (App. III: "Assign target and collection actions" /
         "Send action updates"): the outcome updates `cargo` / `last_drop` in the registry (committed before
         the answer), then {"op": "picked"|"dropped", "avatar", "tid", "item", "ok", "reason", "pose"} goes
         to the supervisor. A pick_up takes the nearest collectable in reach: the team's id is the supervisor's
-        (haa-sim's own ids are not the team's business)."""
+        (haa-sim's own ids are not the team's business).
+
+        **An action its agent did not see end** (moved or crashed while it ran: the gripper closed, the answer
+        was lost with the old instance) would leave the hardware carrying what no record says — both
+        supervisors then saw "carries something else" to the end of a CI mission. The action is backed up
+        (`pending_action`) before it starts, and a resumed agent runs it `again`: the actions are idempotent
+        by their outcome — a pick_up answered `capacity_full` while the records hold less than the capacity
+        means the first one took it; a drop answered `nothing_carried` while the records hold the item means
+        the first one put it down (here: the avatar stood still since)."""
         assert self.link is not None
         op, item = str(msg["op"]), int(msg.get("item", -1))
+        self.pending_action = {"op": op, "item": item, "tid": msg.get("tid"), "src": src}
+        self.backup()
         if op == "pick_up":
             req = spb.ActionRequest(avatar_id=self.name_, pick_up=spb.PickUp(), progress_period=0.5)
         else:
@@ -684,19 +748,28 @@ class AvatarSimulation(team.TeamAgent):
             last = None
         ok = last is not None and last.status == spb.ACTION_STATUS_SUCCEEDED
         reason = "" if ok else (last.reason if last is not None else "no outcome")
+        capacity = int(self.info.capacity) if self.info is not None else team.CAPACITY.get(self.cfg.type, 0)
+        if again and not ok and ((op == "pick_up" and reason == "capacity_full" and len(self.cargo) < capacity
+                                  and item not in self.cargo)
+                                 or (op == "drop" and reason == "nothing_carried" and item in self.cargo)):
+            self.log("action_completed_unseen", op=op, item=item)
+            ok, reason = True, ""
         pose = self._pose_map()
         if ok and op == "pick_up":
-            self.cargo.append(item)
+            if item not in self.cargo:
+                self.cargo.append(item)
         elif ok:
             self.cargo = [c for c in self.cargo if c != item]
             self.last_drop = {"item": item, "x": pose.get("x"), "y": pose.get("y"),
                               "theta": pose.get("theta"), "t": round(self.now(), 3)}
+        self.pending_action = None
+        self.backup()
         if ok:
-            self.backup()
             await team.put_json(self, team.K_AVATARS + self.name_, self._registration("active"))
-        self.send(src, team.dumps({"op": "picked" if op == "pick_up" else "dropped", "avatar": self.name_,
-                                   "tid": msg.get("tid"), "item": item, "ok": ok, "reason": reason,
-                                   "pose": pose}))
+        if src:
+            self.send(src, team.dumps({"op": "picked" if op == "pick_up" else "dropped", "avatar": self.name_,
+                                       "tid": msg.get("tid"), "item": item, "ok": ok, "reason": reason,
+                                       "pose": pose}))
 
     # ------------------------------------------------------------------ retirement
 

@@ -17,7 +17,10 @@ Protocol with its avatar agent (messages, JSON):
 * avatar → planner {"op": "arrived", "tid", "final", "pose"} / {"op": "failed", "tid", "reason", "pose"}
   ("Send action updates"): plan the next part, or plan again after a blocked move (up to `max_failures` in a
   row, then the target is reported unreachable);
-* planner → avatar {"op": "unreachable", "tid", "reason"}.
+* planner → avatar {"op": "unreachable", "tid", "reason"}. A plan is first made `margin` wider than the
+  avatar's radius; when that fails, at the radius itself. When that fails too and the avatar's centre can
+  reach less than ENCLOSED_M2 from where it is, the reason is "start enclosed" (the avatar agent then turns
+  in place once to look around, and asks again).
 
 Recovery: "Restore configuration and wait for instructions" — RECOVERY = "restart": a restarted planner
 says {"op": "hello"} to its avatar, which sends the current target again.
@@ -25,16 +28,29 @@ says {"op": "hello"} to its avatar, which sends the current target again.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from typing import Any
 
+import numpy as np
 import pydantic
 
 from haa.agents import team
-from haa.control.pathplanner import PlannerConfig, plan_path
+from haa.control.pathplanner import CostMap, PlannerConfig, plan_path
 from haa.sdk.registry import register
 from haa.slam.replica import decode_map
+
+#: m²: an avatar whose centre can reach less than this is boxed in. Every passage of a mapped arena opens onto
+#: more than a square metre; what closes a pocket smaller than that around an avatar is (mostly) an obstacle
+#: that is not there any more: a teammate mapped where it stood, a sonar ghost
+ENCLOSED_M2 = 1.0
+
+
+def enclosed(cm: CostMap, start: tuple[float, float]) -> bool:
+    """Whether the area the avatar's centre can reach from `start` on `cm` is under ENCLOSED_M2."""
+    field = cm.cost_field(start)
+    return float(np.isfinite(field).sum()) * cm.spec.resolution ** 2 < ENCLOSED_M2
 
 
 class PlannerAgentConfig(team.TeamConfig):
@@ -119,6 +135,7 @@ class AgentPathPlanner(team.TeamAgent):
 
     def _unreachable(self, why: str) -> None:
         assert self.goal is not None
+        self.log("target_unreachable", level="warning", tid=self.goal["tid"], reason=why)
         self.send(self.cfg.avatar_agent, team.dumps({"op": "unreachable", "tid": self.goal["tid"], "reason": why}))
         self.goal = None
 
@@ -145,9 +162,18 @@ class AgentPathPlanner(team.TeamAgent):
         others = await team.get_json(self, team.K_SLAM_ESTIMATES, {})
         avoid = [(float(e["x"]), float(e["y"]), self.cfg.radius) for a, e in others.items() if a != self.cfg.avatar]
         start = (float(pose["x"]), float(pose["y"]))
-        plan = plan_path(prob, start, (self.goal["x"], self.goal["y"]), spec=spec,
+        goal = (self.goal["x"], self.goal["y"])
+        plan = plan_path(prob, start, goal, spec=spec,
                          config=PlannerConfig(radius=self.cfg.radius + self.cfg.margin), avoid=avoid or None)
         self.plans += 1
+        if not plan.ok and self.cfg.margin > 0:  # the margin is a preference, the radius the avatar's body
+            tight = CostMap(prob, spec, PlannerConfig(radius=self.cfg.radius), avoid or None)
+            first = plan.reason
+            plan = tight.plan(start, goal)
+            if plan.ok:
+                self.log("plan_without_margin", tid=self.goal["tid"], reason=first)
+            elif plan.reason in ("unreachable", "start on an obstacle") and enclosed(tight, start):
+                plan = dataclasses.replace(plan, reason=team.START_ENCLOSED)
         if not plan.ok:
             self._unreachable(plan.reason)
             return

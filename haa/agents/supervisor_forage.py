@@ -78,6 +78,11 @@ class ForageConfig(team.TeamConfig):
     #: offset of the 2nd.. pick-up points around the estimate (haa-sim's reach: 0.15 m beyond the rim)
     search_m: float = pydantic.Field(0.2, ge=0, le=2)
     retry_s: float = pydantic.Field(20.0, ge=0, le=3600)
+    #: driving to a point, the avatar's estimate has not moved `stall_m` for this long: the step is sent again
+    #: (a new target id). An answer ("reached"/"unreachable") lost with a crashed or moved agent would otherwise
+    #: leave both waiting for good
+    stall_s: float = pydantic.Field(60.0, gt=0, le=3600)
+    stall_m: float = pydantic.Field(0.2, gt=0, le=10)
 
 
 def inside(p: XY, poly: Sequence[Sequence[float]]) -> bool:
@@ -147,6 +152,8 @@ class SupervisorForage(team.SupervisorBase):
         self._map_digest = b""
         self._last_rebid = -math.inf
         self.result = ""
+        self.progress: tuple[float, XY] | None = None  # (since, where) the held avatar was last seen moving
+        self.stalls = 0
 
     # ------------------------------------------------------------------ state
 
@@ -489,6 +496,9 @@ class SupervisorForage(team.SupervisorBase):
         else:
             return
         self.send_target(a, p[0], p[1])
+        self.progress = None  # the stall clock starts with the step
+        self.log("forage_step", phase=self.phase, avatar=a, tid=self.targets[a]["tid"], x=round(p[0], 3),
+                 y=round(p[1], 3))
         await self.ddb_write([team.op_put_json(team.K_TARGETS + a, {**self.targets[a], "supervisor": self.id,
                                                                      "task": self.TASK})])
         self.backup()
@@ -585,6 +595,8 @@ class SupervisorForage(team.SupervisorBase):
         if self.phase == "done" or a is None or a != self.held:
             return
         t = self.targets.get(a)
+        self.log("forage_answer", op=op, avatar=a, tid=msg.get("tid"), phase=self.phase,
+                 ok=msg.get("ok"), reason=msg.get("reason"))
         if op in ("reached", "unreachable"):
             if t is None or msg.get("tid") != t.get("tid"):
                 return
@@ -617,6 +629,20 @@ class SupervisorForage(team.SupervisorBase):
                 await self._dropped_at(msg.get("pose") or {})
             else:
                 await self._check_avatar()
+
+    def _stalled(self) -> bool:
+        """Whether the held avatar's estimate has stayed within `stall_m` for `stall_s` (and restart the clock
+        when it has)."""
+        p = self.last_seen.get(self.held) if self.held else None
+        if p is None:
+            return False
+        if self.progress is None or math.dist(p, self.progress[1]) > self.cfg.stall_m:
+            self.progress = (self.now(), p)
+            return False
+        if self.now() - self.progress[0] < self.cfg.stall_s:
+            return False
+        self.progress = (self.now(), p)
+        return True
 
     async def _missed(self, why: str) -> None:
         """A pick-up point that gave nothing: the next point around the estimate, or release the avatar."""
@@ -656,6 +682,11 @@ class SupervisorForage(team.SupervisorBase):
             if isinstance(cur, dict) and cur.get("supervisor") not in (None, self.id):
                 self.log("forage_target_replaced", level="warning", avatar=self.held, by=cur.get("supervisor"))
                 self.targets.pop(self.held, None)
+        if self.phase in ("fetch", "carry") and self.held in self.targets and self._stalled():
+            self.stalls += 1
+            self.log("forage_stalled", level="warning", avatar=self.held, phase=self.phase,
+                     tid=self.targets[self.held].get("tid"))
+            self.targets.pop(self.held, None)
         if self.phase in ("fetch", "carry") and self.held not in self.targets:
             await self._send_step()
         elif self.phase in ("pick", "drop") and self.now() - self.since > self.cfg.action_timeout_s:

@@ -71,6 +71,10 @@ BID_FORAGE_RANGE = 6.0
 BID_FORAGE_HOLD = 9.0
 BID_CONGREGATE = 10.0
 
+#: AgentPathPlanner's reason when the avatar itself is boxed in (haa.agents.path_planner.enclosed): its avatar
+#: agent turns in place to look around before it gives the target up (AvatarSimulation._look_around)
+START_ENCLOSED = "start enclosed"
+
 #: collectables an avatar type carries at once (Table 6.2-3), for a registry entry without `capacity`
 CAPACITY = {"seeker": 0, "enhanced_seeker": 0, "sweeper": 1, "carrier": 1}
 
