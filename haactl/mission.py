@@ -1,4 +1,4 @@
-"""`haactl mission run|start|status|logs|stop` and `haactl experiment af1|af2` (issue 15 §3-4).
+"""`haactl mission run|start|status|logs|stop` and `haactl experiment af1|af2|af3|r1`.
 
 Thin: arguments are parsed here, the work is haa.mission (runner, metrics, transcript, experiment), and the
 results are printed with rich. docs/missions.md, "Running a mission".
@@ -9,8 +9,8 @@ results are printed with rich. docs/missions.md, "Running a mission".
 * `mission start FILE` against the running local cluster (`--root`), starting haa-sim unless one runs (and
   refusing one with another arena or seed); `status`, `logs [-f]`, `stop`. With `--compose` the same on the
   compose cluster, its `sim` service as haa-sim (haa.mission.compose).
-* `experiment af1|af2 [--runs N] [--speed X]`: N runs on seeds seed..seed+N-1, the table beside the thesis'
-  values, bench-results/<name>.json.
+* `experiment af1|af2|af3 [--runs N] [--speed X] [--resume]`: N runs on seeds seed..seed+N-1, the table
+  beside the thesis' values, bench-results/<name>.json (written after every run; `--resume` goes on from it).
 """
 
 from __future__ import annotations
@@ -292,7 +292,7 @@ def mission_stop(
 
 
 def experiment(
-    name: Annotated[str, typer.Argument(metavar="NAME", help="af1 | af2 | r1")],
+    name: Annotated[str, typer.Argument(metavar="NAME", help="af1 | af2 | af3 | r1")],
     runs: Annotated[int, typer.Option("--runs", "-n", min=1, max=100, help="runs (seeds seed..seed+N-1)")] = 10,
     speed: SpeedOpt = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="default bench-results/NAME.json")] = None,
@@ -304,9 +304,13 @@ def experiment(
         "the same seeds")] = None,
     levels: Annotated[str | None, typer.Option(
         "--levels", help="r1 only: failure levels to run, comma-separated (none,moderate,high,extreme: all)")] = None,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="af1/af2/af3: go on from the runs its JSON already holds (same mission file, speed, first "
+        "seed, exploration); a run cut off mid-mission is made again")] = False,
 ) -> None:
-    """Experiments AF-1 / AF-2 (thesis §7.1.1-7.1.2): N missions, representative run, mean, RMS, STD beside
-    the thesis' Table 7.1-1 / 7.1-2. R-1 (§7.3.1): N missions per failure level, Table 7.3-1 and eq. 7.3-1's k."""
+    """Experiments AF-1 / AF-2 / AF-3 (thesis §7.1.1-7.1.3): N missions, representative run, mean, RMS, STD
+    beside the thesis' Table 7.1-1 / 7.1-2 / 7.1-3. R-1 (§7.3.1): N missions per failure level, Table 7.3-1
+    and eq. 7.3-1's k."""
     from haa.lab.experiments.af import EXPERIMENTS, mission_for, run_experiment, table_rows
     from haa.mission.plan import MissionRunError
 
@@ -328,7 +332,7 @@ def experiment(
 
     try:
         doc = run_experiment(name, runs, speed, out_dir, json_out, mission, on_run=on_run,
-                             log=lambda s: err.print(f"[dim]{escape(s)}[/]"), exploration=exploration)
+                             log=lambda s: err.print(f"[dim]{escape(s)}[/]"), exploration=exploration, resume=resume)
     except (MissionRunError, ValueError) as e:
         _fail(str(e))
     except KeyboardInterrupt:

@@ -225,6 +225,22 @@ def test_recovered_inbox_adopts_the_first_message_of_each_stream() -> None:
     assert box.offer(msg("s", 16)) == []
 
 
+def test_a_recovered_inbox_keeps_adopting_after_a_move_for_the_streams_it_has_not_seen() -> None:
+    """Recovered (adopt), then frozen before a sender it had heard from in its previous life spoke again: on
+    the next host that sender's stream is new to the inbox and far along (seq 57). Without the mode travelling
+    with the positions the thawed inbox waited for message 1 and held the stream back for good."""
+    rec = Inbox(adopt=True)
+    assert [int(m.payload) for m in rec.offer(msg("t", 9))] == [9]
+    moved = Inbox(rec.positions())
+    assert moved.adopt and [int(m.payload) for m in moved.offer(msg("s", 57))] == [57]
+    assert [int(m.payload) for m in moved.offer(msg("t", 10))] == [10] and moved.offer(msg("t", 8)) == []
+    assert [int(m.payload) for m in moved.offer(msg("s", 59))] == [] and moved.waiting() == [("s", 1)]
+    # a fresh agent's inbox does not adopt, here or after a move: its streams start at 1
+    fresh = Inbox()
+    assert fresh.offer(msg("s", 2)) == [] and not Inbox(fresh.positions()).adopt
+    assert all(p.src for p in fresh.positions())
+
+
 def test_outbox_numbers_per_receiver_and_travels() -> None:
     o = Outbox()
     assert [o.stamp("x"), o.stamp("x"), o.stamp("y")] == [1, 2, 1]

@@ -35,6 +35,25 @@ from haa.mission import load_mission
 from haa.mission import runner as rn
 
 MISSION = Path(__file__).resolve().parent / "missions" / "forage.yaml"
+HOLDOUT = Path(__file__).resolve().parent / "missions" / "forage-holdout.yaml"
+
+
+def deposited_once(r: dict[str, Any], text: str, total: int) -> None:
+    """Every identified collectable deposited exactly once, by the team's account, haa-sim's and the
+    transcript's; one SupervisorForage per id; no truth call."""
+    why = f"{r['reason']}\n{text}"
+    assert r["completed"], why
+    assert "identified collectables deposited" in r["reason"], why
+    assert r["sim_truth_calls"] == {}, r["sim_truth_calls"]  # found with the cameras, not told
+    assert r["collectables_total"] == total
+    assert r["collectables_identified"] >= 1, why
+    assert r["collectables_lost"] == 0 and r["collectables_open"] == 0, r["collectable_states"]
+    assert r["collectables_deposited"] == r["collectables_identified"] == r["cargo_collected"]
+    assert r["collectables_deposited_sim"] == r["collectables_deposited"], r["collectables_sim"]
+    deposited = re.findall(r"collectable (\d+) deposited \(by", text)
+    assert sorted(deposited) == sorted(set(deposited)) and len(deposited) == r["collectables_deposited"], text
+    spawned = re.findall(r"collectable (\d+) identified at .*: SupervisorForage spawned for it", text)
+    assert sorted(spawned) == sorted(set(spawned)), text  # one SupervisorForage per id
 
 
 class CrashMidCarry:
@@ -75,22 +94,7 @@ def test_forage_mission_every_identified_collectable_deposited_once_through_a_ho
     m = load_mission(MISSION)
     r = rn.MissionRun(m, None, out, None, None, on_poll=crash).run()
     text = (out / "transcript.txt").read_text()
-    why = f"{r['reason']}\n{text}"
-    assert r["completed"], why
-    assert "identified collectables deposited" in r["reason"], why
-    assert r["sim_truth_calls"] == {}, r["sim_truth_calls"]  # found with the cameras, not told
-
-    # every identified collectable deposited, exactly once: by the team's account, by haa-sim's, and in the
-    # transcript (one "deposited" line per id)
-    assert r["collectables_total"] == 3
-    assert r["collectables_identified"] >= 1, why
-    assert r["collectables_lost"] == 0 and r["collectables_open"] == 0, r["collectable_states"]
-    assert r["collectables_deposited"] == r["collectables_identified"] == r["cargo_collected"]
-    assert r["collectables_deposited_sim"] == r["collectables_deposited"], r["collectables_sim"]
-    deposited = re.findall(r"collectable (\d+) deposited \(by", text)
-    assert sorted(deposited) == sorted(set(deposited)) and len(deposited) == r["collectables_deposited"], text
-    spawned = re.findall(r"collectable (\d+) identified at .*: SupervisorForage spawned for it", text)
-    assert sorted(spawned) == sorted(set(spawned)), text  # one SupervisorForage per id
+    deposited_once(r, text, 3)
 
     # the crash hit a SupervisorForage mid-carry; it was recovered on another host and its collectable arrived
     assert crash.fired, f"no collectable was ever seen carried with 3 hosts up\n{text}"
@@ -102,3 +106,18 @@ def test_forage_mission_every_identified_collectable_deposited_once_through_a_ho
     # each retires once done (the last may still be on its way out when the mission completes)
     assert sum(v["retired_s"] is None for v in lives.values()) <= 1, lives
     assert re.search(r"\(SupervisorForage\) retired: collectable \d+ deposited, after \d\d:\d\d", text), text
+
+
+@pytest.mark.slow
+def test_forage_on_a_held_out_arena_with_three_kinds_of_avatar_a_host_join_and_a_host_crash(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """tests/missions/forage-holdout.yaml: an arena the team was never tuned on, a seeker, a sweeper and a
+    carrier, h4 joining at 40 s and h2 crashing at 90 s, at --speed 4 on a real local cluster. The carrier
+    only ever carries (it is never assigned to explore)."""
+    monkeypatch.setenv("HAA_AGENT_MODULES", "haa.agents.supervisor_forage")
+    out = tmp_path / "out"
+    r = rn.MissionRun(load_mission(HOLDOUT), None, out, None, None).run()
+    text = (out / "transcript.txt").read_text()
+    deposited_once(r, text, 3)
+    assert "h4 joined" in text and "h2 crashes (SIGKILL" in text, text
+    assert "assigned k1 to explore" not in text and not re.search(r"assigned [^\n]*k1 to explore", text), text

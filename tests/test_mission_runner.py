@@ -249,6 +249,36 @@ def test_an_experiment_runs_each_seed_and_writes_its_json(tmp_path):
     assert saved["provenance"]["mission_sha256"] and doc["json"] == str(tmp_path / "af2.json")
 
 
+def test_an_interrupted_experiment_resumes_at_its_next_seed_and_not_from_another_setup(tmp_path):
+    seen = []
+
+    def fake_run(mission, speed=None, out_dir=None, log=None):
+        seen.append(mission.spec.seed)
+        if len(seen) == 3:
+            raise KeyboardInterrupt  # the session ends mid-run
+        return {"seed": mission.spec.seed, "completed": True, "duration_s": 1700.0 + mission.spec.seed,
+                "collectables_total": 20, "cargo_collected": 20}
+
+    js = tmp_path / "af3.json"
+    with pytest.raises(KeyboardInterrupt):
+        ex.run_experiment("af3", runs=4, speed=1.0, out_dir=tmp_path / "runs", json_out=js, run_fn=fake_run)
+    assert json.loads((tmp_path / "af3-partial.json").read_text())["seeds"] == [1, 2]
+    logs: list[str] = []
+    doc = ex.run_experiment("af3", runs=4, speed=1.0, out_dir=tmp_path / "runs", json_out=js, run_fn=fake_run,
+                            resume=True, log=logs.append)
+    assert seen == [1, 2, 3, 3, 4] and doc["seeds"] == [1, 2, 3, 4] and not doc["partial"]
+    assert any("resuming from" in m and "2 run(s)" in m for m in logs)
+    assert not (tmp_path / "af3-partial.json").exists()
+    cargo = next(r for r in doc["rows"] if r["title"] == "Cargo Collected")
+    assert cargo["mean"] == 20 and cargo["thesis"] == [20.0, 20.0, 20.0, 0.0]
+    # another speed: its runs are not these; it starts again from the first seed
+    seen.clear()
+    logs.clear()
+    ex.run_experiment("af3", runs=1, speed=2.0, out_dir=tmp_path / "runs", json_out=js, run_fn=fake_run,
+                      resume=True, log=logs.append)
+    assert seen == [1] and any("not resuming" in m and "speed" in m for m in logs)
+
+
 def test_an_experiment_can_compare_the_exploration_strategies_on_the_same_seeds(tmp_path):
     seen = []
 

@@ -132,6 +132,7 @@ def test_the_bumper_widens_the_motion_noise_by_what_the_wheels_may_have_missed()
     from haa.agents import avatar_simulation as av
 
     me = SimpleNamespace(cfg=SimpleNamespace(cruise=0.2), info=SimpleNamespace(max_speed=2.0), bumper=deque())
+    me.cruise_speed = lambda: av.AvatarSimulation.cruise_speed(me)
     for k in range(21):  # odometry every 0.05 s; the bumper pressed from 0.30 to 0.50 s, one contact
         t = round(0.05 * k, 2)
         me.bumper.append((t, 0.30 <= t <= 0.50, 0 if t < 0.30 else 1))
@@ -141,6 +142,19 @@ def test_the_bumper_widens_the_motion_noise_by_what_the_wheels_may_have_missed()
     speed = 0.2 * 2.0
     assert sigma(me, 0.25, 0.55) == pytest.approx(av.BUMP_M + av.BUMP_SLIDE * speed * 0.25)
     assert sigma(me, 0.35, 0.45) == pytest.approx(av.BUMP_SLIDE * speed * 0.10)  # in contact, none begun
+    # cruise "physics": the speed its sensing allows (a seeker: one 0.1 m cell per 0.5 s image)
+    me.cfg = SimpleNamespace(cruise="physics", map_cell=0.1, capture_period=0.5)
+    me.info = SimpleNamespace(max_speed=2.0, sonars=0, sonar_period=1.0)
+    assert sigma(me, 0.35, 0.45) == pytest.approx(av.BUMP_SLIDE * 0.2 * 0.10)
+
+
+def test_physics_cruise_is_a_map_cell_per_reading_of_the_mapping_sensor_capped_at_the_top_speed() -> None:
+    from haa.agents.team import physics_cruise
+
+    assert physics_cruise(1.0, 0.1, 1.0, 0.5) == pytest.approx(0.1)  # sweeper: sonar every 1 s
+    assert physics_cruise(1.5, 0.1, None, 0.5) == pytest.approx(0.2)  # carrier: camera every 0.5 s
+    assert physics_cruise(2.0, 0.05, None, 0.5) == pytest.approx(0.1)  # a finer map: slower
+    assert physics_cruise(0.15, 0.1, None, 0.5) == pytest.approx(0.15)  # never above the top speed
 
 
 def test_bottleneck_assignment_minimises_the_longest_drive_then_the_total() -> None:

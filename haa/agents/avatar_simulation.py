@@ -85,7 +85,16 @@ class AvatarConfig(team.TeamConfig):
     #: --speed 4, two runs each) 0.2 with an image every 0.5 s gave coverage 89.0 / 86.0 %, accuracy
     #: 94.0 / 92.5 %, position error 0.32 / 0.43 m against 84.6 / 78.8 %, 91.8 / 89.0 %, 0.51 / 0.29 m at
     #: 0.5 and 1 s, in the same mission time (docs/slam.md)
-    cruise: float = pydantic.Field(0.2, gt=0, le=1)
+    cruise: float | Literal["physics"] = pydantic.Field(0.2)
+    #: the shared map's cell (m), for `cruise: physics` (team.physics_cruise)
+    map_cell: float = pydantic.Field(0.1, gt=0, le=10)
+
+    @pydantic.field_validator("cruise")
+    @classmethod
+    def _share(cls, v: float | str) -> float | str:
+        if isinstance(v, float | int) and not 0 < v <= 1:
+            raise ValueError(f"cruise: a share of the top speed in (0, 1] or 'physics', got {v}")
+        return v
     #: how near a waypoint counts as reached, m
     tolerance: float = pydantic.Field(0.12, gt=0, le=1)
     #: SLAM mode of the mission (Table 7.2-4); "delay": the avatar halts before each leg until every reading
@@ -360,7 +369,7 @@ class AvatarSimulation(team.TeamAgent):
         BUMP_SLIDE of the driving speed per second the bumper was pressed (a slide along what it touches).
         haa-sim moves an avatar only as its wheels measure, except in contact (docs/sim.md); a real robot's
         bumper or motor current tells it the same."""
-        speed = self.cfg.cruise * float(self.info.max_speed) if self.info is not None else 0.5
+        speed = self.cruise_speed() if self.info is not None else 0.5
         pressed_s, before, last = 0.0, None, None
         prev_t = t0
         for t, pressed, bumps in self.bumper:
@@ -645,9 +654,18 @@ class AvatarSimulation(team.TeamAgent):
             self.delay_waits += 1
             self.delay_s += self.now() - t0
 
+    def cruise_speed(self) -> float:
+        """m/s: `cruise` of its type's top speed, or with `cruise: physics` its sensing's (team.physics_cruise)."""
+        assert self.info is not None
+        top = float(self.info.max_speed)
+        if self.cfg.cruise == "physics":
+            sonar = float(self.info.sonar_period) if self.info.sonars > 0 else None
+            return team.physics_cruise(top, self.cfg.map_cell, sonar, self.cfg.capture_period)
+        return float(self.cfg.cruise) * top
+
     async def _drive(self, tid: Any, final: bool) -> None:
         assert self.link is not None and self.info is not None
-        speed = self.cfg.cruise * float(self.info.max_speed)
+        speed = self.cruise_speed()
         try:
             while self.path:
                 if self.cfg.slam == "delay":

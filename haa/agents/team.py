@@ -75,6 +75,16 @@ BID_CONGREGATE = 10.0
 #: agent turns in place to look around before it gives the target up (AvatarSimulation._look_around)
 START_ENCLOSED = "start enclosed"
 
+def physics_cruise(top_speed: float, map_cell: float, sonar_period: float | None, capture_period: float) -> float:
+    """Cruise speed (m/s) from an avatar's own sensing (mission `cruise: physics`, docs/team.md "Cruise speed"):
+    at most one map cell travelled between two readings of the sensor that maps what it passes — the sonar
+    ring's scan for an avatar with sonars, else its camera image (the floor finder) — and never above its top
+    speed. A sweeper (sonar every 1 s, 0.1 m cells) drives 0.1 m/s of its 1.0; a seeker or carrier (an image
+    every 0.5 s) 0.2 m/s of its 2.0 / 1.5."""
+    period = sonar_period if sonar_period is not None and sonar_period > 0 else capture_period
+    return min(float(top_speed), float(map_cell) / float(period))
+
+
 #: collectables an avatar type carries at once (Table 6.2-3), for a registry entry without `capacity`
 CAPACITY = {"seeker": 0, "enhanced_seeker": 0, "sweeper": 1, "carrier": 1}
 

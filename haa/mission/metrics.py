@@ -333,10 +333,25 @@ EXTRA_ROWS: tuple[tuple[str, str, float], ...] = (
     ("Agent failures", "agent_failures", 1.0),
 )
 TABLE_ROWS = THESIS_ROWS + EXTRA_ROWS
+#: Forage (Table 7.1-3 adds "Cargo Collected", L1564-1578), then ours; a dotted key reads into a dict
+FORAGE_ROWS: tuple[tuple[str, str, float], ...] = (
+    ("Cargo Collected", "cargo_collected", 1.0),
+    ("Collectables identified", "collectables_identified", 1.0),
+    ("Collectables lost", "collectables_lost", 1.0),
+    ("SupervisorForage lifetime [min]", "forage_lifetime_s.mean", 1 / 60),
+)
+
+
+def rows_for(results: Sequence[dict[str, Any]]) -> tuple[tuple[str, str, float], ...]:
+    """The table's rows for these runs: the forage rows after the thesis' when any run is a forage mission."""
+    forage = any("collectables_total" in r for r in results)
+    return THESIS_ROWS + (FORAGE_ROWS[:1] if forage else ()) + EXTRA_ROWS + (FORAGE_ROWS[1:] if forage else ())
 
 
 def scaled(results: dict[str, Any], key: str, scale: float) -> float | None:
-    v = results.get(key)
+    v: Any = results
+    for part in key.split("."):
+        v = v.get(part) if isinstance(v, dict) else None
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         return None
     return float(v) * scale
@@ -358,4 +373,4 @@ def fmt(v: float | None, title: str = "") -> str:
 
 def results_rows(results: dict[str, Any]) -> list[tuple[str, str]]:
     """One run's results as (title, value) rows in the shape of Table 7.1-1 (then our extra rows)."""
-    return [(title, fmt(scaled(results, key, scale), title)) for title, key, scale in TABLE_ROWS]
+    return [(title, fmt(scaled(results, key, scale), title)) for title, key, scale in rows_for([results])]

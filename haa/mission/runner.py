@@ -338,6 +338,8 @@ class MissionRun:
         if self.avatar_type == AVATAR:  # the team's avatar agent: SLAM mode (it halts in "delay"), speed
             cfg["slam"] = self.spec.slam
             cfg["cruise"] = self.spec.cruise
+            if self.spec.cruise == "physics":
+                cfg["map_cell"] = self.spec.map_resolution
         for attempt in range(3):
             try:
                 self.avatar_agents[name] = self.spawn(self.avatar_type, cfg)

@@ -200,8 +200,9 @@ class MissionSpec(_Model):
     #: per 10 m), table (Table 6.2-3 as printed: 1.22 m) or systematic (table + per-avatar scale and bias)
     drift: Literal["thesis", "table", "systematic"] = "thesis"
     #: share of each avatar type's top speed (Table 6.2-3) the avatars drive at (docs/missions.md): the thesis
-    #: gives top speeds only; missions/af1.yaml picks the share that makes AF-1 last as long as the thesis' run
-    cruise: float = Field(0.2, gt=0, le=1, allow_inf_nan=False)
+    #: gives top speeds only; missions/af1.yaml picks the share that makes AF-1 last as long as the thesis' run.
+    #: "physics": each type at the speed its own sensing allows (haa.agents.team.physics_cruise, docs/team.md)
+    cruise: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | Literal["physics"] = 0.2
     complete: Complete = Complete()
     hosts: Hosts = Hosts()
     avatars: list[Avatar] = Field(min_length=1, max_length=MAX_AVATARS)

@@ -14,7 +14,12 @@ A sender *life* ends when the sender crashes (recovery starts a new life, `Agent
 the dead life that never left its host are gone, so the receiver's host flushes that stream (delivers what it
 holds back, skipping the gap) once the table shows the sender in a newer life or removed. A *recovered*
 receiver starts with an empty inbox in `adopt` mode: the first message of each stream sets the position (its
-older messages were processed by a life that is lost, or never will be).
+older messages were processed by a life that is lost, or never will be). The mode travels with the positions
+when the receiver is frozen — as the entry (src "", life 0, next 0), `ADOPT` — and holds for the streams the
+inbox has not seen yet: a recovered agent moved before it heard from a sender whose stream is far along
+(every stream it had before its crash) would otherwise wait at the new host for that stream's message 1, and
+hold back everything of it for good (a SupervisorForage recovered, moved, and deaf to its avatar's "reached"
+for the rest of a forage mission).
 
 Pure: no I/O, no clock, no randomness.
 """
@@ -28,6 +33,8 @@ from haa.pb import agenttx_pb2 as apb
 
 #: messages one inbox holds back (waiting for a gap to fill) before it gives up on the gap
 MAX_HELD = 10_000
+#: the position entry that says "adopt mode" (no agent has the empty id)
+ADOPT = apb.StreamPos(src="", src_life=0, next=0)
 
 
 @dataclass(slots=True)
@@ -48,8 +55,9 @@ class Inbox:
     """The receiver side of the sender streams of one agent."""
 
     def __init__(self, positions: Iterable[apb.StreamPos] = (), adopt: bool = False) -> None:
-        self.streams: dict[tuple[str, int], _Stream] = {(p.src, p.src_life): _Stream(p.next) for p in positions}
-        self.adopt = adopt
+        pos = list(positions)
+        self.streams: dict[tuple[str, int], _Stream] = {(p.src, p.src_life): _Stream(p.next) for p in pos if p.src}
+        self.adopt = adopt or any(not p.src for p in pos)
         self.stats = InboxStats()
 
     def offer(self, m: apb.RoutedMsg) -> list[apb.RoutedMsg]:
@@ -106,7 +114,9 @@ class Inbox:
         return [m for s in self.streams.values() for _, m in sorted(s.held.items())]
 
     def positions(self) -> list[apb.StreamPos]:
-        return [apb.StreamPos(src=k[0], src_life=k[1], next=s.next) for k, s in sorted(self.streams.items())]
+        """Where each stream stands, for a frozen receiver's next host; with ADOPT first in adopt mode."""
+        out = [apb.StreamPos(src=k[0], src_life=k[1], next=s.next) for k, s in sorted(self.streams.items())]
+        return [apb.StreamPos(src="", src_life=0, next=0), *out] if self.adopt else out
 
 
 class Outbox:

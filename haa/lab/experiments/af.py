@@ -1,12 +1,18 @@
-"""Experiments AF-1 and AF-2 (thesis §7.1.1-7.1.2; issue 15 §4): N runs of a mission on seeds
-seed..seed+N-1, summarised as the thesis' tables do — representative run, mean, RMS and STD (population) per
-metric — beside the thesis' values (Tables 7.1-1 and 7.1-2, L1390-1403 and L1514-1527).
+"""Experiments AF-1, AF-2 and AF-3 (thesis §7.1.1-7.1.3): N runs of a mission on seeds seed..seed+N-1,
+summarised as the thesis' tables do — representative run, mean, RMS and STD (population) per metric — beside
+the thesis' values (Tables 7.1-1, 7.1-2 and 7.1-3, L1390-1403, L1514-1527 and L1564-1578).
 
     summary = run_experiment("af1", runs=10, speed=4)     # bench-results/af1.json
 
 Statistics (thesis guide §3.1, verified on every table): STD is the population standard deviation
 (ddof = 0) over the runs and RMS² = mean² + STD². Runs without a value for a metric (None: not measured, or
 a run that did not produce it) are left out of that metric's statistics; `n` says how many counted.
+
+Resuming (`resume=True`, `haactl experiment NAME --resume`): an AF-3 run lasts ~29 simulated minutes, so ten
+span sessions. The summary JSON is written after every run (`<name>-partial.json` until all are done); a
+resumed experiment reads it (or the finished file), keeps its runs when they were made with the same mission
+file (its provenance hash), speed, first seed and exploration strategy, and goes on with the next seed. A run
+cut off mid-mission is made again from its start.
 
 Representative run (thesis: "figures show one representative run", no rule given): the completed run whose
 main metrics (duration, coverage, accuracy, position error) are closest to the means, in units of each
@@ -23,7 +29,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from haa.mission.metrics import TABLE_ROWS, fmt, scaled
+from haa.mission.metrics import fmt, rows_for, scaled
 from haa.mission.schema import Mission, load_mission
 
 REPO = Path(__file__).resolve().parents[3]
@@ -57,6 +63,20 @@ THESIS: dict[str, dict[str, tuple[float, float, float, float]]] = {
         "Average # Agents": (12.32, 12.41, 12.41, 0.355753),
         "Average CPU Usage [%]": (16.25, 16.28, 16.41, 2.085000),
         "DDB Size [MB]": (5.973, 5.453, 5.532, 0.928745),
+    },
+    "af3": {
+        "Mission Duration [min]": (28.963, 28.599, 28.683, 2.203573),
+        "Map Coverage [%]*": (98.32, 97.83, 97.83, 0.755300),
+        "Map Accuracy [%]*": (91.52, 91.15, 91.16, 1.291200),
+        "Localization Positional Err [m]": (0.08069, 0.10553, 0.11601, 0.048174),
+        "Localization Rotational Err [rad]": (0.01906, 0.02403, 0.02609, 0.010175),
+        "Landmark Err [m]": (0.09601, 0.09915, 0.10426, 0.032232),
+        "Landmark Covariance [m]": (0.05503, 0.05333, 0.05337, 0.002213),
+        "Average # Hosts": (9.00, 9.00, 9.00, 0.000000),
+        "Average # Agents": (29.95, 29.48, 29.49, 0.822289),
+        "Average CPU Usage [%]": (55.52, 53.84, 53.87, 1.586500),
+        "DDB Size [MB]": (26.122, 25.384, 25.420, 1.353034),
+        "Cargo Collected": (20.00, 20.00, 20.00, 0.000000),
     },
 }
 EXPERIMENTS = tuple(THESIS)
@@ -112,7 +132,7 @@ def summarize(name: str, runs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     rep = representative(runs)
     thesis = THESIS.get(name, {})
     rows = []
-    for title, key, scale in TABLE_ROWS:
+    for title, key, scale in rows_for(runs):
         s = stats([scaled(r, key, scale) for r in runs])
         rows.append({
             "title": title,
@@ -170,10 +190,12 @@ def run_experiment(
     on_run: Callable[[int, dict[str, Any]], None] | None = None,
     log: Callable[[str], None] | None = None,
     exploration: str | None = None,
+    resume: bool = False,
 ) -> dict[str, Any]:
     """Run the experiment's mission `runs` times on seeds seed..seed+runs-1 (each in its own local cluster
     and haa-sim, one after the other), write the summary JSON (default bench-results/<name>.json) and
-    return it. `run_fn` (default haa.mission.runner.run_mission) is how one run is made (tests)."""
+    return it. `run_fn` (default haa.mission.runner.run_mission) is how one run is made (tests). `resume`:
+    go on from the runs already in the JSON (module docstring)."""
     if run_fn is None:
         from haa.mission.runner import run_mission
 
@@ -181,8 +203,8 @@ def run_experiment(
     m = with_exploration(mission or mission_for(name), exploration)
     out_dir = (out_dir or Path("mission-runs") / name).absolute()
     t0 = time.time()
-    results: list[dict[str, Any]] = []
-    for k in range(runs):
+    results: list[dict[str, Any]] = resumed(name, m, speed, json_out, log) if resume else []
+    for k in range(len(results), runs):
         seed = m.spec.seed + k
         if log:
             log(f"{name} run {k + 1}/{runs}: seed {seed}")
@@ -193,6 +215,34 @@ def run_experiment(
         if k + 1 < runs:  # after every run, so that an interrupted experiment keeps what it measured
             _write(name, m, runs, speed, t0, results, json_out, partial=True)
     return _write(name, m, runs, speed, t0, results, json_out, partial=False)
+
+
+def resumed(name: str, m: Mission, speed: float | None, json_out: Path | None,
+            log: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
+    """The runs an earlier, interrupted (or shorter) call of the same experiment left in its JSON: [] when there
+    is none or it was made with another mission file, speed or first seed (then it is said why)."""
+    from haa.mission.results import provenance
+
+    path = json_out or RESULTS_DIR / f"{name}.json"
+    for p in (path.with_name(path.stem + "-partial" + path.suffix), path):
+        try:
+            doc = json.loads(p.read_text())
+        except (OSError, ValueError):
+            continue
+        want = {"mission file": provenance(m).get("mission_sha256"), "speed": speed if speed is not None
+                else m.spec.speed, "first seed": m.spec.seed, "exploration": m.spec.exploration}
+        got = {"mission file": (doc.get("provenance") or {}).get("mission_sha256"), "speed": doc.get("speed"),
+               "first seed": (doc.get("seeds") or [None])[0], "exploration": doc.get("exploration")}
+        differ = [k for k in want if got[k] != want[k]]
+        if differ:
+            if log:
+                log(f"not resuming from {p}: its {', '.join(differ)} differ{'s' if len(differ) == 1 else ''}")
+            return []
+        runs = [r for r in doc.get("results", []) if isinstance(r, dict)]
+        if log:
+            log(f"resuming from {p}: {len(runs)} run(s) done (seeds {doc.get('seeds')})")
+        return runs
+    return []
 
 
 def _write(name: str, m: Mission, runs: int, speed: float | None, t0: float, results: list[dict[str, Any]],

@@ -117,6 +117,43 @@ def small_forage() -> dict[str, Any]:
     return spec
 
 
+def holdout_forage() -> dict[str, Any]:
+    """A forage arena the team was never tuned on (its mission test's first runs are reported as they came):
+    wider than tall, a region in the north-west corner, the avatars starting in the south-east facing west,
+    a thin panel and two boxes of other sizes than the small arena's."""
+    W, H = 4.8, 4.0
+    t = 0.04
+    obstacles = [_box("box-w", 1.7, 2.3, 0.4, 0.4), _box("panel-m", 3.0, 2.2, t, 1.2),
+                 _box("box-s", 3.9, 1.6, 0.3, 0.3)]
+    marks: list[list[float]] = []
+    for x in (0.4, 1.2, 2.0, 2.8, 3.6, 4.4):
+        marks += [[x, 0.0], [x, H]]
+    for y in (0.5, 1.3, 2.1, 2.9, 3.7):
+        marks += [[0.0, y], [W, y]]
+    marks += _face_marks(1.7, 2.3, 0.4, 0.4, 1)
+    for dy in (-0.3, 0.3):
+        marks += [[3.0 - t / 2, 2.2 + dy], [3.0 + t / 2, 2.2 + dy]]
+    marks += _face_marks(3.9, 1.6, 0.3, 0.3, 1, "NW")
+    starts = [[x, y, math.pi] for y in (0.5, 1.0) for x in (4.3, 3.7, 3.1)]
+    return {
+        "name": "holdout-forage",
+        "description": "A held-out forage arena (ours; haa/sim/arenas/design.py): 4.8 x 4.0 m, 3 collectables, "
+        "one collection region",
+        "size": [W, H],
+        "wall_height": 0.6,
+        "outer_wall_thickness": 0.05,
+        "marker_dictionary": "DICT_4X4_250",
+        "marker_size": 0.2,
+        "marker_height": 0.3,
+        "obstacles": obstacles,
+        "landmarks": [{"id": i, "pos": [_r(x), _r(y)]} for i, (x, y) in enumerate(marks)],
+        "start_poses": [[_r(a) for a in p] for p in starts],
+        "collectables": [{"id": "c1", "pos": [1.1, 1.0]}, {"id": "c2", "pos": [2.3, 3.4]},
+                         {"id": "c3", "pos": [4.0, 3.2]}],
+        "collection_regions": [_box("region-nw", 0.8, 3.3, 1.4, 1.2)],
+    }
+
+
 def large() -> dict[str, Any]:
     W = H = 18.0
     bw, bh = 2.8, 2.655  # lattice blocks
@@ -199,7 +236,7 @@ def render_yaml(spec: dict[str, Any]) -> str:
 
 def designs() -> dict[str, str]:
     return {"small": render_yaml(small()), "large": render_yaml(large()),
-            "small-forage": render_yaml(small_forage())}
+            "small-forage": render_yaml(small_forage()), "holdout-forage": render_yaml(holdout_forage())}
 
 
 def main() -> None:
