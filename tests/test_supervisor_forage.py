@@ -23,7 +23,7 @@ from haa.agents import team
 from haa.agents.executive_avatar import ExecutiveAvatar
 from haa.agents.supervisor_congregate import SupervisorCongregate
 from haa.agents.supervisor_explore import SupervisorExplore
-from haa.agents.supervisor_forage import SupervisorForage, drop_candidates, inside
+from haa.agents.supervisor_forage import SupervisorForage, drop_candidates, edge_distance, inside
 from haa.core.ddb import ops as ddbops
 from haa.core.ddb.ddb import Ddb
 from haa.slam.grid import GridSpec
@@ -663,5 +663,60 @@ def test_an_answer_lost_on_the_way_the_step_is_sent_again_once_the_avatar_has_st
             est = 7.5 + (bus.t % 100) / 100
             bus.put(team.K_SLAM_ESTIMATES, {"w1": {"t": bus.t, "x": est, "y": 2.0, "theta": 0.0, "std": [0.05] * 3}})
         assert sup.stalls == 1
+
+    run(main())
+
+
+def test_after_the_deposit_the_avatar_is_driven_out_of_the_region_then_the_supervisor_retires() -> None:
+    """A carrier has nothing to do after its delivery; left standing in the region it shut the drop points of
+    every later delivery (a held-out forage mission). The supervisor keeps its hold bid, drives the avatar
+    `clear_m` out of every region, and retires when it is there (or after `clear_timeout_s`)."""
+
+    async def main() -> None:
+        bus = Bus()
+        spec = GridSpec(10.0, 4.0, 0.1)
+        bus.apply([ddbops.put(team.K_SLAM_MAP, "blob", encode_map(spec, np.full(spec.shape, 0.1)))])
+        sup, w1 = await carried(bus)
+        t = w1.last("target")
+        w1.reply("reached")
+        await bus.settle()
+        bus.put(team.K_SLAM_ESTIMATES, {"w1": {"t": bus.t, "x": t["x"], "y": t["y"], "theta": 0.0,
+                                               "std": [0.05] * 3}})
+        sup.last_seen["w1"] = (t["x"], t["y"])
+        w1.dropped(1, {"x": t["x"], "y": t["y"], "theta": 0.0})
+        await bus.settle()
+        assert bus.states[-1]["state"] == "deposited" and sup.phase == "clear" and "F1" in bus.agents
+        assert "F1" in bus.bids().get("w1", {})  # still held
+        out = w1.last("target")
+        assert all(not inside((out["x"], out["y"]), poly) and edge_distance((out["x"], out["y"]), poly) >= 0.5
+                   for poly in REGIONS.values())
+        assert math.dist((out["x"], out["y"]), (t["x"], t["y"])) < 2.0  # the nearest way out
+        w1.reply("reached")
+        await bus.settle()
+        assert sup._ctx.stopped and "F1" not in bus.bids().get("w1", {})
+        assert [s["state"] for s in bus.states] == ["seen", "claimed", "carried", "deposited"]
+
+    run(main())
+
+
+def test_a_clear_that_does_not_end_is_given_up_after_clear_timeout_s() -> None:
+    async def main() -> None:
+        bus = Bus()
+        spec = GridSpec(10.0, 4.0, 0.1)
+        bus.apply([ddbops.put(team.K_SLAM_MAP, "blob", encode_map(spec, np.full(spec.shape, 0.1)))])
+        sup, w1 = await carried(bus)
+        t = w1.last("target")
+        w1.reply("reached")
+        await bus.settle()
+        sup.last_seen["w1"] = (t["x"], t["y"])
+        w1.dropped(1, {"x": t["x"], "y": t["y"], "theta": 0.0})
+        await bus.settle()
+        assert sup.phase == "clear"
+        bus.t += 30
+        await tick(bus, sup)
+        assert not sup._ctx.stopped
+        bus.t += 31
+        await tick(bus, sup)
+        assert sup._ctx.stopped and "F1" not in bus.bids().get("w1", {})
 
     run(main())

@@ -58,7 +58,8 @@ from haa.slam.replica import decode_map
 XY = tuple[float, float]
 
 #: phases -> the `forage/state/<id>` state they are written as
-STATE_OF = {"bidding": "seen", "fetch": "claimed", "pick": "claimed", "carry": "carried", "drop": "carried"}
+STATE_OF = {"bidding": "seen", "fetch": "claimed", "pick": "claimed", "carry": "carried", "drop": "carried",
+            "clear": "deposited"}
 
 
 class ForageConfig(team.TeamConfig):
@@ -83,6 +84,11 @@ class ForageConfig(team.TeamConfig):
     #: leave both waiting for good
     stall_s: float = pydantic.Field(60.0, gt=0, le=3600)
     stall_m: float = pydantic.Field(0.2, gt=0, le=10)
+    #: after the deposit the avatar is driven this far out of every region before the supervisor retires (an
+    #: idle avatar left standing in a region — a carrier has nothing else to do — shut the drop points of every
+    #: later delivery); 0: retire at once
+    clear_m: float = pydantic.Field(0.5, ge=0, le=10)
+    clear_timeout_s: float = pydantic.Field(60.0, gt=0, le=3600)
 
 
 def inside(p: XY, poly: Sequence[Sequence[float]]) -> bool:
@@ -329,6 +335,9 @@ class SupervisorForage(team.SupervisorBase):
                 return False
             if st.get("state") in ("deposited", "lost"):
                 self.result = str(st["state"])
+                mine = await self._my_bids()  # the hold bid of phase "clear", if it went down then
+                if mine:
+                    await self.ddb_write([ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine)])
                 await team.transcript(self, f"collectable {self.item} is {st['state']} already: retiring")
                 return False
             if st.get("moved") and "x" in st:
@@ -353,6 +362,10 @@ class SupervisorForage(team.SupervisorBase):
 
     async def on_avatars_changed(self) -> None:
         if self.phase == "done":
+            return
+        if self.phase == "clear":
+            if self.held not in self.controlled:
+                await self._retire()
             return
         if self.held is None:
             cands = [a for a in self.controlled if self.wants(a)]
@@ -420,14 +433,59 @@ class SupervisorForage(team.SupervisorBase):
             await self._bid_all()
 
     async def _finish(self, state: str, why: str) -> None:
-        """Deposited or lost: the state and the withdrawal of every bid in one atomic batch; then retire."""
-        self.phase, self.result, self.bidding = "done", state, False
+        """Deposited or lost: the state and the withdrawal of every bid in one atomic batch — but the hold bid on
+        the avatar that deposited it, which is first driven out of the regions (phase "clear", `clear_m`); then
+        retire."""
+        a = self.held
+        p = None
+        if state == "deposited" and a is not None and a in self.controlled and self.cfg.clear_m > 0:
+            p = await self._clear_point()
+        self.phase, self.result, self.bidding = ("clear" if p is not None else "done"), state, False
         mine = await self._my_bids()
+        keep = {a} if p is not None else set()
         await self._write([self._state_op(state, why=why),
-                           *[ddbops.delete(f"{team.K_BIDS}{a}/{self.id}") for a in sorted(mine)]])
+                           *[ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine - keep)]])
         self.backup()
         await team.transcript(self, f"collectable {self.item} {state} ({why}): finished, retiring")
+        if a is not None and p is not None:
+            self.since = self.now()
+            self.targets.pop(a, None)
+            self.send_target(a, p[0], p[1])
+            self.log("forage_clear", avatar=a, x=round(p[0], 3), y=round(p[1], 3))
+            self.backup()
+            return
+        await self._retire()
+
+    async def _retire(self) -> None:
+        """Withdraw what bids are left (the hold bid of phase "clear") and stop."""
+        self.phase, self.bidding = "done", False
+        mine = await self._my_bids()
+        if mine:
+            await self.ddb_write([ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine)])
+        self.backup()
         self.stop()
+
+    async def _clear_point(self) -> XY | None:
+        """The passable cell of least path cost from the held avatar's estimate that lies `clear_m` outside
+        every region and away from the other avatars (None without a map or a way out)."""
+        a = self.held
+        start = self.last_seen.get(a) if a else None
+        cm = await self._read_map()
+        if start is None or cm is None:
+            return None
+        field = np.where(cm.passable, cm.cost_field(start), np.inf)
+        finite = np.flatnonzero(np.isfinite(field))
+        others = [q for b, q in self.last_seen.items() if b != a]
+        near = 2 * self.cfg.avatar_radius + 0.1
+        for i in finite[np.argsort(field.flat[finite], kind="stable")]:
+            r, c = np.unravel_index(int(i), field.shape)
+            p = cm.centre(int(r), int(c))
+            if any(inside(p, poly) or edge_distance(p, poly) < self.cfg.clear_m for poly in self.cfg.regions.values()):
+                continue
+            if any(math.dist(p, q) < near for q in others):
+                continue
+            return p
+        return None
 
     async def _check_avatar(self) -> None:
         """What happened to the collectable, from the held avatar's registry entry (cargo, last drop, status,
@@ -595,6 +653,10 @@ class SupervisorForage(team.SupervisorBase):
         if self.phase == "done" or a is None or a != self.held:
             return
         t = self.targets.get(a)
+        if self.phase == "clear":
+            if op in ("reached", "unreachable") and t is not None and msg.get("tid") == t.get("tid"):
+                await self._retire()
+            return
         self.log("forage_answer", op=op, avatar=a, tid=msg.get("tid"), phase=self.phase,
                  ok=msg.get("ok"), reason=msg.get("reason"))
         if op in ("reached", "unreachable"):
@@ -657,6 +719,10 @@ class SupervisorForage(team.SupervisorBase):
 
     async def _tick(self) -> None:
         if self.phase == "done":
+            return
+        if self.phase == "clear":  # out of the region, or given up: retire
+            if self.held not in self.controlled or self.now() - self.since > self.cfg.clear_timeout_s:
+                await self._retire()
             return
         await self._read_collectable()
         if self.phase == "bidding":
