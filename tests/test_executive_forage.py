@@ -121,7 +121,7 @@ def test_one_supervisor_forage_per_identified_collectable_one_per_check_with_the
                 "region-ne": [[1.8, 5.8], [3.4, 5.8], [3.4, 7.2], [1.8, 7.2]]}
             assert cfg["avatar_radius"] == 0.2  # the sweeper's and the carrier's
             assert ex.children[f"supervisor_forage/{cfg['collectable']}"] == child
-        assert status(bus)["forage"] == {"identified": 3, "deposited": 0, "lost": 0, "open": 3}
+        assert status(bus)["forage"] == {"identified": 3, "deposited": 0, "lost": 0, "missing": 0, "open": 3}
         texts = [json.loads(x)["text"] for x in _log(bus)]
         assert "collectable 1 identified at (1.50, 3.00): SupervisorForage spawned for it" in texts
 
@@ -198,7 +198,7 @@ def test_completion_needs_the_explored_share_and_every_identified_collectable_de
         st = status(bus)
         assert st["state"] == "complete" and st["finished_t"] is not None
         assert st["reason"] == "explored 70.0%, 3 of 4 identified collectables deposited, 1 lost"
-        assert st["forage"] == {"identified": 4, "deposited": 3, "lost": 1, "open": 0}
+        assert st["forage"] == {"identified": 4, "deposited": 3, "lost": 1, "missing": 0, "open": 0}
         assert any("Mission finished: explored 70.0%" in json.loads(x)["text"] for x in _log(bus))
 
     run(main())
@@ -218,8 +218,10 @@ def test_the_explore_and_congregate_scenarios_spawn_no_forager_and_report_no_for
 
 
 def test_forage_counts() -> None:
-    states = {"1": {"state": "deposited"}, "2": {"state": "lost"}, "3": {"state": "carried"}, "9": {"state": "lost"}}
-    assert forage_counts(["1", "2", "3", "4"], states) == {"identified": 4, "deposited": 1, "lost": 1, "open": 2}
+    states = {"1": {"state": "deposited"}, "2": {"state": "lost"}, "3": {"state": "carried"}, "9": {"state": "lost"},
+              "5": {"state": "missing"}}
+    assert forage_counts(["1", "2", "3", "4", "5"], states) == {"identified": 5, "deposited": 1, "lost": 1,
+                                                                "missing": 1, "open": 2}
 
 
 # ---------------------------------------------------------------------------------------------- results

@@ -6,24 +6,18 @@ the first time a collectable is being carried, the host running its SupervisorFo
 haa-hostd): the supervisor is recovered from its backup on another host and the collectable still arrives.
 No agent asks haa-sim for the truth (`sim_truth_calls` empty).
 
-NOT RELIABLE YET (opt-in: HAA_FORAGE_MISSION=1; a known failure is not left in make test as an xfail that
-cannot fail): on the 2-core machine, 6 of 14 runs over the day's versions passed (49-85 s wall); the failures
-end at the 400 s time limit (~112 s wall) with every collectable
-identified and the crash handled (the SupervisorForage recovered "carried with <avatar>"), but an avatar that
-carries a collectable stands still until the end:
-* a carrier and a sweeper each stood still after the pick-up, without a transcript line (runs of
-  missions/forage-small.yaml and of this file), in one case next to panel-b's west end, another while an idle
-  avatar was parked in the region (fixed since: drop points keep clear of other avatars' estimates;
-  tests/test_supervisor_forage.py);
-* after the host crash killed an avatar agent too (A4: "resumed after a crash: ... target 1 re-sent to its
-  planner"), both carrying sweepers stood still from then on (last run of the day).
-The steps between the supervisor's target and the avatar's wheels (AvatarSimulation, AgentPathPlanner) leave
-no log when they give up, so which one stops is not known yet. Two deadlocks found the same way are fixed
-(two supervisors claiming one avatar: tests/test_supervisor_forage.py)."""
+The second test is the same kind of mission on an arena the team was never tuned on
+(haa/sim/arenas/holdout-forage.yaml) with three kinds of avatar, a host join and a host crash.
+
+History: in its first 14 runs an avatar carrying a collectable stood still to the time limit in 8. The causes,
+each fixed and pinned by its own unit test (CHANGELOG, "why carrying avatars stood still"): ghosts of teammates
+in the map boxing a sweeper in (tests/test_sensor_sonar_teammates.py, tests/test_path_planner_agent.py), a
+pick-up its avatar agent did not see end (tests/test_avatar_actions.py), a recovered and moved supervisor deaf
+to its avatar (tests/test_agent_layer.py), an idle carrier parked in the region
+(tests/test_supervisor_forage.py)."""
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 from typing import Any
@@ -40,7 +34,10 @@ HOLDOUT = Path(__file__).resolve().parent / "missions" / "forage-holdout.yaml"
 
 def deposited_once(r: dict[str, Any], text: str, total: int) -> None:
     """Every identified collectable deposited exactly once, by the team's account, haa-sim's and the
-    transcript's; one SupervisorForage per id; no truth call."""
+    transcript's; one SupervisorForage per id; no truth call. An id that was never a collectable (a sighting
+    placed more than the 1 m gate away by a mislocalized avatar) may end "missing": then every collectable
+    haa-sim has is deposited all the same, and no more ids are missing than there are more ids than
+    collectables."""
     why = f"{r['reason']}\n{text}"
     assert r["completed"], why
     assert "identified collectables deposited" in r["reason"], why
@@ -48,8 +45,12 @@ def deposited_once(r: dict[str, Any], text: str, total: int) -> None:
     assert r["collectables_total"] == total
     assert r["collectables_identified"] >= 1, why
     assert r["collectables_lost"] == 0 and r["collectables_open"] == 0, r["collectable_states"]
-    assert r["collectables_deposited"] == r["collectables_identified"] == r["cargo_collected"]
+    missing = r["collectables_missing"]
+    assert r["collectables_deposited"] + missing == r["collectables_identified"], r["collectable_states"]
+    assert r["collectables_deposited"] == r["cargo_collected"]
     assert r["collectables_deposited_sim"] == r["collectables_deposited"], r["collectables_sim"]
+    if missing:  # ghosts only: the real ones are all in
+        assert missing <= r["collectables_identified"] - total and r["collectables_deposited"] == total, r
     deposited = re.findall(r"collectable (\d+) deposited \(by", text)
     assert sorted(deposited) == sorted(set(deposited)) and len(deposited) == r["collectables_deposited"], text
     spawned = re.findall(r"collectable (\d+) identified at .*: SupervisorForage spawned for it", text)
@@ -81,9 +82,6 @@ class CrashMidCarry:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("HAA_FORAGE_MISSION") != "1",
-                    reason="opt-in (HAA_FORAGE_MISSION=1) until carrying avatars stop standing still in about half "
-                           "the runs (module docstring); it then joins make test")
 def test_forage_mission_every_identified_collectable_deposited_once_through_a_host_crash_mid_carry(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # the hosts load SupervisorForage by module too: an environment whose installed entry points predate it
@@ -103,8 +101,12 @@ def test_forage_mission_every_identified_collectable_deposited_once_through_a_ho
     assert hit["recoveries"] >= 1 and hit["state"] == "deposited", (crash.fired, hit)
     assert f"(SupervisorForage) resumed after a crash: collectable {crash.fired['collectable']} " in text, text
     assert f"{crash.fired['host']} crashes (SIGKILL" in text
-    # each retires once done (the last may still be on its way out when the mission completes)
-    assert sum(v["retired_s"] is None for v in lives.values()) <= 1, lives
+    # each retires once done: after its deposit it drives its avatar out of the region (at most clear_timeout_s,
+    # 60 s), so only those that deposited in the mission's last minute (and a few seconds) may still be there
+    dep = {int(c): 60 * int(m) + int(s) for m, s, c in re.findall(r"(\d\d):(\d\d) \S+ \(SupervisorForage\) "
+                                                                   r"collectable (\d+) deposited", text)}
+    late = [v for v in lives.values() if v["retired_s"] is None]
+    assert all(dep[v["collectable"]] >= r["duration_s"] - 75 for v in late), (late, dep, r["duration_s"])
     assert re.search(r"\(SupervisorForage\) retired: collectable \d+ deposited, after \d\d:\d\d", text), text
 
 

@@ -44,7 +44,11 @@ SupervisorForage ends, docs/team.md) as finished. The thesis' criterion is "all 
 been deposited" and in AF-3 every one was; it never has a collectable out of the team's reach. Waiting for a lost
 one would end every such mission at the time limit as stopped without anything left to do; counting it done
 ends the mission when the team's work is done, and the results keep the two apart (`collectables_deposited`,
-`collectables_lost`; the reason says "N lost").
+`collectables_lost`; the reason says "N lost"). The same holds for one "missing": an identified collectable
+that two searches at its estimate did not find, with no sighting of it in between (a sighting placed by a
+mislocalized avatar more than the 1 m gate from the collectable's estimate is identified as a new one, with
+nothing at its place: seen in a CI forage mission; docs/team.md "SupervisorForage"); `collectables_missing`,
+"N not found".
 
 Arena facts it passes on are what the team may know of its arena (bounds for the map, the landmarks' marker
 dictionary, size and ids, the congregation point's landmark id); never obstacle positions or poses.
@@ -93,7 +97,7 @@ class MissionAgentConfig(team.TeamConfig):
 #: the SupervisorForage type, and its entries in `children` ("supervisor_forage/<id>")
 FORAGE = "supervisor_forage"
 #: `forage/state/<id>` states that end a collectable's foraging (completion)
-TERMINAL = ("deposited", "lost")
+TERMINAL = ("deposited", "lost", "missing")
 
 
 def forage_child(cid: str) -> str:
@@ -107,10 +111,12 @@ def id_order(cid: str) -> int:
 
 
 def forage_counts(ids: list[str], states: dict[str, Any]) -> dict[str, int]:
-    """{"identified", "deposited", "lost", "open"} of the identified collectables `ids` by their states."""
+    """{"identified", "deposited", "lost", "missing", "open"} of the identified collectables `ids` by their
+    states."""
     st = [states.get(c, {}).get("state") if isinstance(states.get(c), dict) else None for c in ids]
-    dep, lost = st.count("deposited"), st.count("lost")
-    return {"identified": len(ids), "deposited": dep, "lost": lost, "open": len(ids) - dep - lost}
+    dep, lost, missing = st.count("deposited"), st.count("lost"), st.count("missing")
+    return {"identified": len(ids), "deposited": dep, "lost": lost, "missing": missing,
+            "open": len(ids) - dep - lost - missing}
 
 
 def arena_facts(mission: dict[str, Any]) -> dict[str, Any]:
@@ -335,7 +341,7 @@ class ExecutiveMission(team.TeamAgent):
         done = self.forage["open"] == 0 and all(forage_child(c) in self.children for c in ids)
         n = self.forage
         text = f"{n['deposited']} of {n['identified']} identified collectables deposited" + (
-            f", {n['lost']} lost" if n["lost"] else "")
+            f", {n['lost']} lost" if n["lost"] else "") + (f", {n['missing']} not found" if n["missing"] else "")
         return done, text
 
     async def _spawn_forager(self, cid: str, est: Any) -> bool:

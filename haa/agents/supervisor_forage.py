@@ -89,6 +89,9 @@ class ForageConfig(team.TeamConfig):
     #: later delivery); 0: retire at once
     clear_m: float = pydantic.Field(0.5, ge=0, le=10)
     clear_timeout_s: float = pydantic.Field(60.0, gt=0, le=3600)
+    #: searches (rounds of `pick_attempts` points) that found nothing, without a sighting of the collectable in
+    #: between, after which it is "missing" (terminal): a ghost id must not hold the mission to its time limit
+    missing_after: int = pydantic.Field(2, ge=1, le=100)
 
 
 def inside(p: XY, poly: Sequence[Sequence[float]]) -> bool:
@@ -160,13 +163,17 @@ class SupervisorForage(team.SupervisorBase):
         self.result = ""
         self.progress: tuple[float, XY] | None = None  # (since, where) the held avatar was last seen moving
         self.stalls = 0
+        self.seen_t: float | None = None  # the collectable's last sighting (forage/collectables t_last)
+        self.misses = 0  # searches that found nothing since its last sighting
+        self.miss_seen_t: float | None = None  # its last sighting when the last search failed
 
     # ------------------------------------------------------------------ state
 
     def _forage_state(self) -> dict[str, Any]:
         return {"phase": self.phase, "held": self.held, "pos": self.pos, "moved": self.moved,
                 "attempts": self.attempts, "since": self.since, "drop_at": self.drop_at, "blocked": self.blocked,
-                "resume_at": self.resume_at, "last_seen": self.last_seen, "result": self.result}
+                "resume_at": self.resume_at, "last_seen": self.last_seen, "result": self.result,
+                "misses": self.misses, "miss_seen_t": self.miss_seen_t}
 
     def pack_state(self) -> bytes:
         return team.dumps({**json.loads(super().pack_state()), **self._forage_state()})
@@ -188,6 +195,8 @@ class SupervisorForage(team.SupervisorBase):
         self.resume_at = float(st.get("resume_at", 0.0))
         self.last_seen = {a: (float(p[0]), float(p[1])) for a, p in st.get("last_seen", {}).items()}
         self.result = str(st.get("result", ""))
+        self.misses = int(st.get("misses", 0))
+        self.miss_seen_t = st.get("miss_seen_t")
 
     @property
     def key(self) -> str:
@@ -257,6 +266,8 @@ class SupervisorForage(team.SupervisorBase):
         est = (await team.get_json(self, team.K_FORAGE_COLLECTABLES, {}) or {}).get(str(self.item))
         if est is not None:
             self.pos = (float(est["x"]), float(est["y"]))
+            if est.get("t_last") is not None:
+                self.seen_t = float(est["t_last"])
 
     async def _read_map(self) -> CostMap | None:
         data = await self.ddb_get(team.K_SLAM_MAP)
@@ -333,7 +344,7 @@ class SupervisorForage(team.SupervisorBase):
             if st.get("holder") not in (None, self.id):
                 await team.transcript(self, f"collectable {self.item} is handled by {st.get('holder')}: retiring")
                 return False
-            if st.get("state") in ("deposited", "lost"):
+            if st.get("state") in ("deposited", "lost", "missing"):
                 self.result = str(st["state"])
                 mine = await self._my_bids()  # the hold bid of phase "clear", if it went down then
                 if mine:
@@ -710,6 +721,13 @@ class SupervisorForage(team.SupervisorBase):
         """A pick-up point that gave nothing: the next point around the estimate, or release the avatar."""
         self.attempts += 1
         if self.attempts >= self.cfg.pick_attempts:
+            if self.seen_t is not None and self.miss_seen_t is not None and self.seen_t > self.miss_seen_t:
+                self.misses = 0  # seen again since the last search: that one was no evidence against it
+            self.misses += 1
+            self.miss_seen_t = self.seen_t
+            if self.misses >= self.cfg.missing_after:
+                await self._finish("missing", f"not found at its estimate in {self.misses} searches")
+                return
             await self._release(f"not found in reach after {self.attempts} tries ({why})", wait=self.cfg.retry_s)
             return
         self.phase, self.since = "fetch", self.now()

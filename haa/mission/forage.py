@@ -97,7 +97,8 @@ def forage_results(mission: Mission, found: dict[str, Any], states: dict[str, An
         "collectables_identified": len(ids),
         "collectables_deposited": deposited,
         "collectables_lost": sum(s == "lost" for s in state.values()),
-        "collectables_open": sum(s not in ("deposited", "lost") for s in state.values()),
+        "collectables_missing": sum(s == "missing" for s in state.values()),
+        "collectables_open": sum(s not in ("deposited", "lost", "missing") for s in state.values()),
         "cargo_collected": deposited,  # Table 7.1-3's "Cargo Collected"
         "collectables_deposited_sim": None if sim is None else sum(s == "deposited" for s in sim.values()),
         "collectables_sim": sim,

@@ -338,6 +338,7 @@ FORAGE_ROWS: tuple[tuple[str, str, float], ...] = (
     ("Cargo Collected", "cargo_collected", 1.0),
     ("Collectables identified", "collectables_identified", 1.0),
     ("Collectables lost", "collectables_lost", 1.0),
+    ("Collectables not found", "collectables_missing", 1.0),
     ("SupervisorForage lifetime [min]", "forage_lifetime_s.mean", 1 / 60),
 )
 
