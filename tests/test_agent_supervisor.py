@@ -182,6 +182,13 @@ def test_kill_9_is_reported_within_a_heartbeat_and_the_host_goes_on():
             assert await H.wait_end(b) == Failed(b, "killed by signal 9")
             assert gone(pid_b)
             assert H.sups["h1"].agents() == []
+            # a shell the core gives up (a thaw that lost its claim) ends with the core's reason and is no agent
+            # failure: not counted, logged as agent_shell_discarded
+            c = await H.create("probe", {}, "h1")
+            failed = H.sups["h1"].failed
+            assert H.sups["h1"].kill(c, "abandoned: not frozen and allocated to h4")
+            assert await H.wait_end(c) == Failed(c, "abandoned: not frozen and allocated to h4")
+            assert H.sups["h1"].failed == failed
             print(f"\nkill -9 -> Failed in {dt * 1e3:.1f} ms")
 
     run(main(), RUN_TIMEOUT)

@@ -165,7 +165,7 @@ class AgentDriver:
                         sup.freeze(c.agent)
                 case io.KillAgent():
                     if self.epochs.get(c.agent) == c.epoch:
-                        sup.kill(c.agent)
+                        sup.kill(c.agent, c.reason)
                 case io.AnswerAgent():
                     sup.answer(c.agent, c.req, c.ok, c.value.encode(), c.error)
                 case _:

@@ -43,6 +43,9 @@ class AgentInstance:
         self.exit_reason: str | None = None
         self.exited = asyncio.Event()
         self.fail_reason: str | None = None
+        #: killed by the core as a shell it no longer needs (a thaw or recovery given up: "abandoned: ...",
+        #: "stale shell ..."): its end is not an agent failure
+        self.discarded = False
         self.agent_error = ""
         self.terminal = False
         self.t0 = time.monotonic()

@@ -109,6 +109,10 @@ from haa.pb import agent_pb2 as pb
 from haa.sdk.channel import DEFAULT_MAX_FRAME, Channel, ChannelError, message_too_large
 from haa.sdk.forkserver import SpawnError
 
+#: reasons of the core's KillAgent for a shell it no longer needs (haa.core.agents.transfer / recovery): the
+#: process's end is logged as `agent_shell_discarded`, not as an agent failure
+DISCARD_REASONS = ("abandoned:", "stale shell")
+
 __all__ = [
     "AS_MARGIN_FACTOR",
     "CPU_LIMIT_WINDOW",
@@ -509,12 +513,18 @@ class AgentSupervisor:
         inst.state = "stopping"
         self._send(inst, pb.HostToAgent(stop=pb.HostToAgent.Stop()))
 
-    def kill(self, agent_id: str) -> bool:
-        """SIGKILL the agent's process; event Failed("killed by signal 9") follows. False if it has none."""
+    def kill(self, agent_id: str, reason: str = "") -> bool:
+        """SIGKILL the agent's process; event Failed("killed by signal 9") follows — or, for a shell the core no
+        longer needs (`reason` one of DISCARD_REASONS: a thaw that lost its claim), Failed(reason), logged as
+        `agent_shell_discarded` rather than as an agent failure. False if it has none."""
         inst = self._agents.get(agent_id)
         if inst is None:
             return False
-        log_event(self.log, logging.INFO, "agent_kill", agent=agent_id, name=inst.spec.name, pid=inst.pid)
+        log_event(self.log, logging.INFO, "agent_kill", agent=agent_id, name=inst.spec.name, pid=inst.pid,
+                  reason=reason)
+        if reason.startswith(DISCARD_REASONS) and inst.fail_reason is None and not inst.terminal:
+            inst.fail_reason = reason
+            inst.discarded = True
         return inst.signal(signal.SIGKILL)
 
     def answer(self, agent_id: str, req_id: int, ok: bool, value: bytes, error: str = "", *,
@@ -671,9 +681,13 @@ class AgentSupervisor:
         inst.state = "failed"
         inst.terminal = True
         self._retire(inst)
-        self.failed += 1
-        log_event(self.log, logging.WARNING, "agent_failed", agent=inst.id, name=inst.spec.name,
-                  type=inst.spec.type_name, pid=inst.pid, reason=reason)
+        if inst.discarded:  # a shell the core gave up (a thaw that lost its claim): not an agent failure
+            log_event(self.log, logging.INFO, "agent_shell_discarded", agent=inst.id, name=inst.spec.name,
+                      type=inst.spec.type_name, pid=inst.pid, reason=reason)
+        else:
+            self.failed += 1
+            log_event(self.log, logging.WARNING, "agent_failed", agent=inst.id, name=inst.spec.name,
+                      type=inst.spec.type_name, pid=inst.pid, reason=reason)
         self._emit(Failed(inst.id, reason))
 
     def _retire(self, inst: AgentInstance) -> None:
