@@ -131,6 +131,71 @@ def drop_candidates(poly: Sequence[Sequence[float]], margin: float, step: float 
     return [p for p, d in zip(pts, dist, strict=True) if d >= need - 1e-9]
 
 
+def fetch_point(pos: XY, attempts: int, search_m: float) -> XY:
+    """Where the `attempts`-th pick-up of a collectable estimated at `pos` is tried: the estimate, then points
+    `search_m` east, north, west, south of it."""
+    if attempts == 0 or search_m <= 0:
+        return pos
+    ang = (attempts - 1) * math.pi / 2
+    return (pos[0] + search_m * math.cos(ang), pos[1] + search_m * math.sin(ang))
+
+
+def landing_point(pose: dict[str, Any], radius: float) -> XY:
+    """Where a collectable dropped by an avatar of `radius` at `pose` (x, y, theta) lands: in front of it, as
+    haa-sim and a gripper put it."""
+    x, y = float(pose.get("x") or 0.0), float(pose.get("y") or 0.0)
+    th = float(pose.get("theta") or 0.0)
+    return (x + (radius + 0.06) * math.cos(th), y + (radius + 0.06) * math.sin(th))
+
+
+def drop_point(cm: CostMap | None, start: XY, regions: dict[str, list[tuple[float, float]]], margin: float,
+               blocked: Sequence[XY], others: Sequence[XY], radius: float) -> list[Any] | None:
+    """[x, y, region]: a passable point `margin` inside a region, of least path cost from `start` on `cm` (the
+    nearest region by path; straight lines without a map), not within 0.3 m of a `blocked` one; None if none.
+    Points within 2 `radius` + 0.1 m of another avatar (`others`: where the team last saw them) are skipped
+    unless every point is: an idle avatar parked in a region shuts every drop point within its radius plus the
+    planner's inflation, and the planner answers each "unreachable" (a carrying avatar then stood still to the
+    end of a CI mission)."""
+    field = cm.cost_field(start) if cm is not None else None
+    if field is not None and not np.isfinite(field).any():
+        field = None
+    near = 2 * radius + 0.1
+    points = [(rid, p) for rid, poly in sorted(regions.items()) for p in drop_candidates(poly, margin)]
+    skip_near = bool(others) and not all(any(math.dist(p, q) < near for q in others) for _, p in points)
+    best: tuple[float, list[Any]] | None = None
+    for rid, p in points:
+        if any(math.dist(p, b) < 0.3 for b in blocked) or (skip_near and any(math.dist(p, q) < near for q in others)):
+            continue
+        c = None
+        if cm is not None and field is not None:
+            cell = cm.cell(*p)
+            if cell is None or not cm.passable[cell]:
+                continue
+            c = float(field[cell])
+        cost = c if c is not None else math.dist(start, p)
+        if math.isfinite(cost) and (best is None or cost < best[0]):
+            best = (cost, [round(p[0], 3), round(p[1], 3), rid])
+    return best[1] if best else None
+
+
+def clear_point(cm: CostMap, start: XY, regions: dict[str, list[tuple[float, float]]], clear_m: float,
+                others: Sequence[XY], radius: float) -> XY | None:
+    """The passable cell of least path cost from `start` on `cm` that lies `clear_m` outside every region and
+    2 `radius` + 0.1 m from the other avatars (None without a way out)."""
+    field = np.where(cm.passable, cm.cost_field(start), np.inf)
+    finite = np.flatnonzero(np.isfinite(field))
+    near = 2 * radius + 0.1
+    for i in finite[np.argsort(field.flat[finite], kind="stable")]:
+        r, c = np.unravel_index(int(i), field.shape)
+        p = cm.centre(int(r), int(c))
+        if any(inside(p, poly) or edge_distance(p, poly) < clear_m for poly in regions.values()):
+            continue
+        if any(math.dist(p, q) < near for q in others):
+            continue
+        return p
+    return None
+
+
 @register
 class SupervisorForage(team.SupervisorBase):
     TYPE = "supervisor_forage"
@@ -477,26 +542,14 @@ class SupervisorForage(team.SupervisorBase):
         self.stop()
 
     async def _clear_point(self) -> XY | None:
-        """The passable cell of least path cost from the held avatar's estimate that lies `clear_m` outside
-        every region and away from the other avatars (None without a map or a way out)."""
+        """`clear_point` for the held avatar from its estimate on the published map."""
         a = self.held
         start = self.last_seen.get(a) if a else None
         cm = await self._read_map()
         if start is None or cm is None:
             return None
-        field = np.where(cm.passable, cm.cost_field(start), np.inf)
-        finite = np.flatnonzero(np.isfinite(field))
         others = [q for b, q in self.last_seen.items() if b != a]
-        near = 2 * self.cfg.avatar_radius + 0.1
-        for i in finite[np.argsort(field.flat[finite], kind="stable")]:
-            r, c = np.unravel_index(int(i), field.shape)
-            p = cm.centre(int(r), int(c))
-            if any(inside(p, poly) or edge_distance(p, poly) < self.cfg.clear_m for poly in self.cfg.regions.values()):
-                continue
-            if any(math.dist(p, q) < near for q in others):
-                continue
-            return p
-        return None
+        return clear_point(cm, start, self.cfg.regions, self.cfg.clear_m, others, self.cfg.avatar_radius)
 
     async def _check_avatar(self) -> None:
         """What happened to the collectable, from the held avatar's registry entry (cargo, last drop, status,
@@ -542,20 +595,12 @@ class SupervisorForage(team.SupervisorBase):
 
     # ------------------------------------------------------------------ steps
 
-    def _fetch_point(self) -> XY:
-        assert self.pos is not None
-        k = self.attempts
-        if k == 0 or self.cfg.search_m <= 0:
-            return self.pos
-        ang = (k - 1) * math.pi / 2
-        return (self.pos[0] + self.cfg.search_m * math.cos(ang), self.pos[1] + self.cfg.search_m * math.sin(ang))
-
     async def _send_step(self) -> None:
         a = self.held
         if a is None or a not in self.controlled:
             return
         if self.phase == "fetch" and self.pos is not None:
-            p = self._fetch_point()
+            p = fetch_point(self.pos, self.attempts, self.cfg.search_m)
         elif self.phase == "carry":
             if self.drop_at is None:
                 self.drop_at = await self._drop_point()
@@ -573,8 +618,8 @@ class SupervisorForage(team.SupervisorBase):
         self.backup()
 
     async def _drop_point(self) -> list[Any] | None:
-        """[x, y, region]: a passable point `region_margin` inside a region, of least path cost from the held
-        avatar's estimate (the nearest region by path; straight lines without a map)."""
+        """[x, y, region] (`drop_point`) from the held avatar's estimate on the published map; the drop points
+        found unreachable are skipped until every one has been."""
         a = self.held
         start = self.last_seen.get(a) if a else None
         if start is None:
@@ -586,40 +631,13 @@ class SupervisorForage(team.SupervisorBase):
         if start is None:
             return None
         cm = await self._read_map()
-        field = cm.cost_field(start) if cm is not None else None
-        if field is not None and not np.isfinite(field).any():
-            field = None
-        best: tuple[float, list[Any]] | None = None
-        # other avatars where the team last saw them: an idle one parked in a region (one that has just dropped
-        # there) shuts every drop point within its radius plus the planner's inflation, and the planner answers
-        # each of them "unreachable" (the carrying avatar then stood still to the end of a CI mission)
         others = [q for b, q in self.last_seen.items() if b != a]
-        near = 2 * self.cfg.avatar_radius + 0.1
-        skip_near = bool(others) and not self._all_near(others, near)
-        for rid, poly in sorted(self.cfg.regions.items()):
-            for p in drop_candidates(poly, self.cfg.region_margin):
-                if any(math.dist(p, b) < 0.3 for b in self.blocked):
-                    continue
-                if skip_near and any(math.dist(p, q) < near for q in others):
-                    continue
-                c = None
-                if cm is not None and field is not None:
-                    cell = cm.cell(*p)
-                    if cell is None or not cm.passable[cell]:
-                        continue
-                    c = float(field[cell])
-                cost = c if c is not None else math.dist(start, p)
-                if math.isfinite(cost) and (best is None or cost < best[0]):
-                    best = (cost, [round(p[0], 3), round(p[1], 3), rid])
+        best = drop_point(cm, start, self.cfg.regions, self.cfg.region_margin, self.blocked, others,
+                          self.cfg.avatar_radius)
         if best is None and self.blocked:  # every point tried: start over
             self.blocked = []
-            return await self._drop_point()
-        return best[1] if best else None
-
-    def _all_near(self, others: list[XY], near: float) -> bool:
-        """Whether every drop point of every region is within `near` of another avatar (then none is skipped)."""
-        return all(any(math.dist(p, q) < near for q in others)
-                   for poly in self.cfg.regions.values() for p in drop_candidates(poly, self.cfg.region_margin))
+            best = drop_point(cm, start, self.cfg.regions, self.cfg.region_margin, [], others, self.cfg.avatar_radius)
+        return best
 
     async def _carry(self) -> None:
         self.phase, self.since, self.attempts, self.drop_at = "carry", self.now(), 0, None
@@ -632,10 +650,7 @@ class SupervisorForage(team.SupervisorBase):
     async def _dropped_at(self, pose: dict[str, Any]) -> None:
         """The avatar dropped it at `pose` (its estimate): deposited if the point it lands on — in front of the
         avatar, as haa-sim and a gripper put it — is inside a region, else it is seen there (fetched again)."""
-        x, y = float(pose.get("x") or 0.0), float(pose.get("y") or 0.0)
-        th = float(pose.get("theta") or 0.0)
-        reach = self.cfg.avatar_radius + 0.06
-        p = (x + reach * math.cos(th), y + reach * math.sin(th))
+        p = landing_point(pose, self.cfg.avatar_radius)
         region = next((rid for rid, poly in sorted(self.cfg.regions.items()) if inside(p, poly)), None)
         if region is not None:
             self.pos = p
