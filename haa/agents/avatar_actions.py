@@ -56,6 +56,15 @@ class AvatarActions:
         async def ddb_scan(self, prefix: str, limit: int = ...) -> dict[str, bytes]: ...
         async def ddb_put_json(self, key: str, value: Any) -> None: ...
 
+    def _left_sim(self, e: grpc.aio.AioRpcError, why: str) -> bool:
+        """Whether haa-sim's error `e` says the avatar is gone (UNAVAILABLE: it crashed, retired, or haa-sim
+        stopped); then the agent retires (`why`), soon, outside the caller's stream."""
+        if e.code() != grpc.StatusCode.UNAVAILABLE:
+            return False
+        how = left_how(e.details())
+        self.call_later(0, lambda: self._retired(why, how))
+        return True
+
     async def _look_around(self, tid: Any) -> None:
         """Boxed in (the planner's "start enclosed", haa.agents.path_planner.enclosed): turn once in place, so
         that the sonar ring and the camera sweep what the avatar stands beside, wait until those readings are in
@@ -76,9 +85,7 @@ class AvatarActions:
         except asyncio.CancelledError:
             raise
         except grpc.aio.AioRpcError as e:
-            if e.code() == grpc.StatusCode.UNAVAILABLE:
-                how = left_how(e.details())
-                self.call_later(0, lambda: self._retired("actions unavailable", how))
+            if self._left_sim(e, "actions unavailable"):
                 return
             self.log("drive_error", level="warning", error=str(e))
         if self.target and self.target.get("tid") == tid:
@@ -111,9 +118,7 @@ class AvatarActions:
             async for u in self.link.avatar.Act(req, metadata=self.link.metadata):
                 last = u
         except grpc.aio.AioRpcError as e:
-            if e.code() == grpc.StatusCode.UNAVAILABLE:
-                how = left_how(e.details())
-                self.call_later(0, lambda: self._retired("actions unavailable", how))
+            if self._left_sim(e, "actions unavailable"):
                 return
             last = None
         ok = last is not None and last.status == spb.ACTION_STATUS_SUCCEEDED

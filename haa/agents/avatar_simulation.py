@@ -343,10 +343,7 @@ class AvatarSimulation(team.TeamAgent, AvatarActions):
         except asyncio.CancelledError:
             raise
         except grpc.aio.AioRpcError as e:
-            if e.code() == grpc.StatusCode.UNAVAILABLE:
-                how = left_how(e.details())
-                self.call_later(0, lambda: self._retired("odometry stream ended (UNAVAILABLE)", how))
-            else:
+            if not self._left_sim(e, "odometry stream ended (UNAVAILABLE)"):
                 self.log("odometry_error", level="warning", error=str(e))
 
     @property
@@ -689,10 +686,7 @@ class AvatarSimulation(team.TeamAgent, AvatarActions):
                 await self.link.avatar.Cancel(spb.AvatarRef(avatar_id=self.name_), metadata=self.link.metadata)
             raise
         except grpc.aio.AioRpcError as e:
-            if e.code() == grpc.StatusCode.UNAVAILABLE:
-                how = left_how(e.details())
-                self.call_later(0, lambda: self._retired("actions unavailable", how))
-            else:
+            if not self._left_sim(e, "actions unavailable"):
                 self.log("drive_error", level="warning", error=str(e))
         except Exception as e:  # a task's exception is otherwise dropped unseen, and the avatar stands still
             self.log("drive_error", level="error", error=repr(e))
