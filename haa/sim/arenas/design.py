@@ -61,6 +61,26 @@ def _face_marks(cx: float, cy: float, w: float, h: float, per_face: int, faces: 
     return [[_r(x), _r(y)] for x, y in out]
 
 
+def _arena(name: str, description: str, size: tuple[float, float], marker_size: float,
+           obstacles: list[dict[str, Any]], landmarks: list[dict[str, Any]], starts: list[list[float]],
+           **extra: Any) -> dict[str, Any]:
+    """An arena spec with what our arenas share: 0.6 m walls 0.05 m thick, DICT_4X4_250 markers 0.3 m up."""
+    return {
+        "name": name,
+        "description": description,
+        "size": list(size),
+        "wall_height": 0.6,
+        "outer_wall_thickness": 0.05,
+        "marker_dictionary": "DICT_4X4_250",
+        "marker_size": marker_size,
+        "marker_height": 0.3,
+        "obstacles": obstacles,
+        "landmarks": landmarks,
+        "start_poses": [[_r(a) for a in p] for p in starts],
+        **extra,
+    }
+
+
 def small() -> dict[str, Any]:
     W, H = 3.4, 7.2
     t = 0.04  # panel thickness
@@ -83,21 +103,10 @@ def small() -> dict[str, Any]:
         marks += [[1.2 - t / 2, 5.8 + dy], [1.2 + t / 2, 5.8 + dy]]
     starts = [[x, 0.5, math.pi / 2] for x in (0.5, 1.1, 1.7, 2.3, 2.9)]
     starts += [[x, 1.1, math.pi / 2] for x in (0.8, 1.4, 2.0, 2.6)]
-    return {
-        "name": "small",
-        "description": "Thesis small arena (Fig. 6.2-1): 3.4 x 7.2 m, 5 obstacles, 34 landmarks, congregation "
-        "point; our layout (haa/sim/arenas/design.py)",
-        "size": [W, H],
-        "wall_height": 0.6,
-        "outer_wall_thickness": 0.05,
-        "marker_dictionary": "DICT_4X4_250",
-        "marker_size": 0.2,
-        "marker_height": 0.3,
-        "obstacles": obstacles,
-        "landmarks": [{"id": i, "pos": [_r(x), _r(y)]} for i, (x, y) in enumerate(marks)],
-        "congregation": {"id": 200, "pos": [2.4, 6.0], "size": 0.27},
-        "start_poses": [[_r(a) for a in p] for p in starts],
-    }
+    return _arena("small", "Thesis small arena (Fig. 6.2-1): 3.4 x 7.2 m, 5 obstacles, 34 landmarks, congregation "
+                  "point; our layout (haa/sim/arenas/design.py)", (W, H), 0.2, obstacles,
+                  [{"id": i, "pos": [_r(x), _r(y)]} for i, (x, y) in enumerate(marks)], starts,
+                  congregation={"id": 200, "pos": [2.4, 6.0], "size": 0.27})
 
 
 def small_forage() -> dict[str, Any]:
@@ -135,23 +144,12 @@ def holdout_forage() -> dict[str, Any]:
         marks += [[3.0 - t / 2, 2.2 + dy], [3.0 + t / 2, 2.2 + dy]]
     marks += _face_marks(3.9, 1.6, 0.3, 0.3, 1, "NW")
     starts = [[x, y, math.pi] for y in (0.5, 1.0) for x in (4.3, 3.7, 3.1)]
-    return {
-        "name": "holdout-forage",
-        "description": "A held-out forage arena (ours; haa/sim/arenas/design.py): 4.8 x 4.0 m, 3 collectables, "
-        "one collection region",
-        "size": [W, H],
-        "wall_height": 0.6,
-        "outer_wall_thickness": 0.05,
-        "marker_dictionary": "DICT_4X4_250",
-        "marker_size": 0.2,
-        "marker_height": 0.3,
-        "obstacles": obstacles,
-        "landmarks": [{"id": i, "pos": [_r(x), _r(y)]} for i, (x, y) in enumerate(marks)],
-        "start_poses": [[_r(a) for a in p] for p in starts],
-        "collectables": [{"id": "c1", "pos": [1.1, 1.0]}, {"id": "c2", "pos": [2.3, 3.4]},
-                         {"id": "c3", "pos": [4.0, 3.2]}],
-        "collection_regions": [_box("region-nw", 0.8, 3.3, 1.4, 1.2)],
-    }
+    return _arena("holdout-forage", "A held-out forage arena (ours; haa/sim/arenas/design.py): 4.8 x 4.0 m, "
+                  "3 collectables, one collection region", (W, H), 0.2, obstacles,
+                  [{"id": i, "pos": [_r(x), _r(y)]} for i, (x, y) in enumerate(marks)], starts,
+                  collectables=[{"id": "c1", "pos": [1.1, 1.0]}, {"id": "c2", "pos": [2.3, 3.4]},
+                                {"id": "c3", "pos": [4.0, 3.2]}],
+                  collection_regions=[_box("region-nw", 0.8, 3.3, 1.4, 1.2)])
 
 
 def large() -> dict[str, Any]:
@@ -186,22 +184,10 @@ def large() -> dict[str, Any]:
         _box("region-se", 16.4, 1.6, 2.0, 2.0),
     ]
     starts = [[x, y, math.pi / 2] for y in (0.6, 1.4) for x in (0.6, 1.4, 2.2, 3.0, 3.8, 4.6)]
-    spec = {
-        "name": "large",
-        "description": "Thesis large arena (Fig. 6.2-2): 18 x 18 m, 18 obstacles, 139 landmarks, 20 collectables, "
-        "3 collection regions; our layout (haa/sim/arenas/design.py)",
-        "size": [W, H],
-        "wall_height": 0.6,
-        "outer_wall_thickness": 0.05,
-        "marker_dictionary": "DICT_4X4_250",
-        "marker_size": 0.3,
-        "marker_height": 0.3,
-        "obstacles": obstacles,
-        "landmarks": [{"id": i, "pos": p} for i, p in enumerate(marks)],
-        "collectables": [],
-        "collection_regions": regions,
-        "start_poses": [[_r(a) for a in p] for p in starts],
-    }
+    spec = _arena("large", "Thesis large arena (Fig. 6.2-2): 18 x 18 m, 18 obstacles, 139 landmarks, 20 "
+                  "collectables, 3 collection regions; our layout (haa/sim/arenas/design.py)", (W, H), 0.3, obstacles,
+                  [{"id": i, "pos": p} for i, p in enumerate(marks)], starts, collectables=[],
+                  collection_regions=regions)
     spec["collectables"] = _collectables(spec, 20, seed=6)
     return spec
 
