@@ -344,17 +344,23 @@ def test_it_keeps_the_nearest_avatar_it_won_and_withdraws_its_other_bids() -> No
     run(main())
 
 
+async def two_supervisors(bus: Bus, second: tuple[float, float]) -> tuple[FakeAvatar, Any, Any]:
+    """w1 at (6, 2); F1 for collectable 1 at (5, 2), F2 for collectable 2 at `second`; started: F1 holds w1."""
+    w1 = FakeAvatar(bus, "w1")
+    w1.register()
+    world(bus, {1: (5.0, 2.0), 2: second}, {"w1": (6.0, 2.0)})
+    ea = bus.start(ExecutiveAvatar, "EA", {})
+    f1 = bus.start(SupervisorForage, "F1", forage_cfg(1))
+    f2 = bus.start(SupervisorForage, "F2", forage_cfg(2))
+    await started(bus, ea, f1, f2)
+    assert f1.held == "w1" and f2.held is None
+    return w1, f1, f2
+
+
 def test_a_held_avatar_is_not_taken_over_by_another_forage_supervisor_as_it_moves() -> None:
     async def main() -> None:
         bus = Bus()
-        w1 = FakeAvatar(bus, "w1")
-        w1.register()
-        world(bus, {1: (5.0, 2.0), 2: (9.0, 2.0)}, {"w1": (6.0, 2.0)})
-        ea = bus.start(ExecutiveAvatar, "EA", {})
-        f1 = bus.start(SupervisorForage, "F1", forage_cfg(1))
-        f2 = bus.start(SupervisorForage, "F2", forage_cfg(2))
-        await started(bus, ea, f1, f2)
-        assert f1.held == "w1" and f2.held is None
+        _, f1, f2 = await two_supervisors(bus, (9.0, 2.0))
         # w1 drives past collectable 2: F2's bid rises to its maximum, still below the hold bid
         world(bus, {1: (5.0, 2.0), 2: (9.0, 2.0)}, {"w1": (9.0, 2.0)})
         bus.t += 5
@@ -373,14 +379,7 @@ def test_of_two_supervisors_that_both_claimed_an_avatar_one_keeps_it_and_drives_
 
     async def main() -> None:
         bus = Bus()
-        w1 = FakeAvatar(bus, "w1")
-        w1.register()
-        world(bus, {1: (5.0, 2.0), 2: (7.0, 2.0)}, {"w1": (6.0, 2.0)})
-        ea = bus.start(ExecutiveAvatar, "EA", {})
-        f1 = bus.start(SupervisorForage, "F1", forage_cfg(1))
-        f2 = bus.start(SupervisorForage, "F2", forage_cfg(2))
-        await started(bus, ea, f1, f2)
-        assert f1.held == "w1" and f2.held is None
+        w1, f1, f2 = await two_supervisors(bus, (7.0, 2.0))
         # F2 too had w1 assigned for a moment, and claimed it and sent it its target
         f2.controlled["w1"] = w1.id
         await f2._claim("w1")

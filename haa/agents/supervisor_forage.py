@@ -279,14 +279,6 @@ class SupervisorForage(team.SupervisorBase):
     def _state_op(self, state: str | None = None, **extra: Any) -> Any:
         return team.op_put_json(self.key, self._state_value(state or STATE_OF.get(self.phase, "seen"), **extra))
 
-    async def _my_bids(self) -> set[str]:
-        out = set()
-        for k in await self.ddb_scan(team.K_BIDS):
-            avatar, _, sup = k[len(team.K_BIDS):].partition("/")
-            if sup == self.id:
-                out.add(avatar)
-        return out
-
     async def _write(self, ops: list[Any]) -> None:
         """`ops` in one atomic batch (a state change with the bids that go with it); if the batch aborts (a
         bid deleted meanwhile), each op on its own."""
@@ -411,9 +403,7 @@ class SupervisorForage(team.SupervisorBase):
                 return False
             if st.get("state") in ("deposited", "lost", "missing"):
                 self.result = str(st["state"])
-                mine = await self._my_bids()  # the hold bid of phase "clear", if it went down then
-                if mine:
-                    await self.ddb_write([ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine)])
+                await self._withdraw_mine()  # the hold bid of phase "clear", if it went down then
                 await team.transcript(self, f"collectable {self.item} is {st['state']} already: retiring")
                 return False
             if st.get("moved") and "x" in st:
@@ -480,7 +470,7 @@ class SupervisorForage(team.SupervisorBase):
         self.held, self.phase, self.attempts, self.since = avatar, "fetch", 0, self.now()
         others = sorted((await self._my_bids()) - {avatar})
         await self._write([self._state_op(), self._bid_op(avatar),
-                           *[ddbops.delete(f"{team.K_BIDS}{a}/{self.id}") for a in others]])
+                           *[self._unbid_op(a) for a in others]])
         for a in others:
             self.bid_sent.pop(a, None)
         d = self.dist.get(avatar)
@@ -498,7 +488,7 @@ class SupervisorForage(team.SupervisorBase):
         mine = await self._my_bids()
         ops = [self._state_op("seen")]
         if held is not None and held in mine:
-            ops.append(ddbops.delete(f"{team.K_BIDS}{held}/{self.id}"))
+            ops.append(self._unbid_op(held))
             self.bid_sent.pop(held, None)
         await self._write(ops)
         if held:
@@ -520,7 +510,7 @@ class SupervisorForage(team.SupervisorBase):
         mine = await self._my_bids()
         keep = {a} if p is not None else set()
         await self._write([self._state_op(state, why=why),
-                           *[ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine - keep)]])
+                           *[self._unbid_op(b) for b in sorted(mine - keep)]])
         self.backup()
         await team.transcript(self, f"collectable {self.item} {state} ({why}): finished, retiring")
         if a is not None and p is not None:
@@ -535,9 +525,7 @@ class SupervisorForage(team.SupervisorBase):
     async def _retire(self) -> None:
         """Withdraw what bids are left (the hold bid of phase "clear") and stop."""
         self.phase, self.bidding = "done", False
-        mine = await self._my_bids()
-        if mine:
-            await self.ddb_write([ddbops.delete(f"{team.K_BIDS}{b}/{self.id}") for b in sorted(mine)])
+        await self._withdraw_mine()
         self.backup()
         self.stop()
 

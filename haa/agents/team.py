@@ -269,6 +269,26 @@ class SupervisorBase(TeamAgent):
         return op_put_json(f"{K_BIDS}{a}/{self.id}", {"priority": self.priority(a), "task": self.TASK,
                                                       "t": round(self.now(), 3)})
 
+    def _unbid_op(self, a: str) -> Any:
+        """The deletion of this supervisor's bid on avatar `a`."""
+        return ddbops.delete(f"{K_BIDS}{a}/{self.id}")
+
+    async def _my_bids(self) -> set[str]:
+        """The avatars this supervisor has a bid on, as `bids/` holds them (not as its registry says)."""
+        out = set()
+        for k in await self.ddb_scan(K_BIDS):
+            avatar, _, sup = k[len(K_BIDS):].partition("/")
+            if sup == self.id:
+                out.add(avatar)
+        return out
+
+    async def _withdraw_mine(self) -> None:
+        """Delete every bid of this supervisor in `bids/` — those on avatars no longer in its registry too, which
+        `withdraw_bids` (the registry's avatars) leaves."""
+        mine = await self._my_bids()
+        if mine:
+            await self.ddb_write([self._unbid_op(b) for b in sorted(mine)])
+
     async def on_avatars_changed(self) -> None:
         """The controlled set changed."""
 
@@ -291,7 +311,7 @@ class SupervisorBase(TeamAgent):
 
     async def withdraw_bids(self) -> None:
         self.bidding = False
-        ops = [ddbops.delete(f"{K_BIDS}{a}/{self.id}") for a in self.registry]
+        ops = [self._unbid_op(a) for a in self.registry]
         if ops:
             await self.ddb_write(ops)
 
@@ -327,7 +347,7 @@ class SupervisorBase(TeamAgent):
         if reg and reg.get("status") == "active" and self.bidding and self.wants(a):
             await self.ddb_write([self._bid_op(a)])
         elif reg is not None or kind == "remove":
-            await self.ddb_write([ddbops.delete(f"{K_BIDS}{a}/{self.id}")])
+            await self.ddb_write([self._unbid_op(a)])
         await self._load_assignments()
 
     async def _on_assign(self, kind: str, key: str, value: bytes | None) -> None:
